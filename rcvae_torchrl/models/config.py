@@ -1,0 +1,78 @@
+"""Configuration of one recurrent conditional VAE (RCVAE) member."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ["RCVAEConfig"]
+
+
+@dataclass(frozen=True)
+class RCVAEConfig:
+    """Sizes and bounds of an RCVAE world model p_θ(s_1:T | s_0, a_0:T-1).
+
+    Args:
+        obs_dim: state dimension S.
+        action_dim: action dimension A.
+        hidden_dim: size H of the deterministic recurrent (GRU) state h_t.
+        latent_dim: size Z of the stochastic latent z_t.
+        mlp_dim: width of the hidden layers of the embedding, prior, posterior and decoder MLPs.
+        min_log_std: lower bound of the decoder log-std, in normalised state-change units.
+        max_log_std: upper bound of the decoder log-std, in normalised state-change units.
+            The decoder log-std is soft-clamped between the two bounds (as in PETS,
+            Chua et al. 2018, ``softplus`` bounding), so gradients never vanish at a bound.
+        latent_min_std: floor added to the softplus std of the prior and posterior latents
+            (as in Dreamer's RSSM), which keeps the KL finite.
+        passthrough_dims: indices of state dimensions that are constant within an episode
+            (e.g. the Pusher's target position). They are copied from s_{t-1} to s_t exactly,
+            are not predicted by the decoder and are excluded from the likelihood. They are
+            still read by the model as inputs.
+    """
+
+    obs_dim: int
+    action_dim: int
+    hidden_dim: int = 128
+    latent_dim: int = 8
+    mlp_dim: int = 128
+    min_log_std: float = -6.0
+    max_log_std: float = 0.5
+    latent_min_std: float = 0.1
+    passthrough_dims: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("obs_dim", "action_dim", "hidden_dim", "latent_dim", "mlp_dim"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"RCVAEConfig.{name} must be a positive int, got {value!r}.")
+        if not self.min_log_std < self.max_log_std:
+            raise ValueError(
+                "RCVAEConfig.min_log_std must be below max_log_std, got "
+                f"{self.min_log_std} and {self.max_log_std}."
+            )
+        if self.latent_min_std < 0:
+            raise ValueError(f"RCVAEConfig.latent_min_std must be >= 0, got {self.latent_min_std}.")
+        object.__setattr__(self, "passthrough_dims", tuple(int(d) for d in self.passthrough_dims))
+        self._check_passthrough()
+
+    def _check_passthrough(self) -> None:
+        dims = self.passthrough_dims
+        if len(set(dims)) != len(dims):
+            raise ValueError(f"RCVAEConfig.passthrough_dims has duplicates: {dims}.")
+        bad = [d for d in dims if not 0 <= d < self.obs_dim]
+        if bad:
+            raise ValueError(
+                f"RCVAEConfig.passthrough_dims must lie in [0, {self.obs_dim}), got {bad}."
+            )
+        if len(dims) == self.obs_dim:
+            raise ValueError("RCVAEConfig.passthrough_dims cannot cover every state dimension.")
+
+    @property
+    def predicted_dims(self) -> tuple[int, ...]:
+        """Indices of the state dimensions the decoder predicts (all but the passthrough ones)."""
+        skip = set(self.passthrough_dims)
+        return tuple(d for d in range(self.obs_dim) if d not in skip)
+
+    @property
+    def predicted_dim(self) -> int:
+        """Number D of predicted state dimensions."""
+        return self.obs_dim - len(self.passthrough_dims)

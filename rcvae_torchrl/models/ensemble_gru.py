@@ -1,0 +1,67 @@
+"""A GRU cell for E stacked members, written from :class:`EnsembleLinear` ops.
+
+``nn.GRUCell`` has no ``torch.vmap`` batching rule; this cell is batched by construction.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from rcvae_torchrl.models.ensemble_layers import EnsembleLinear
+
+__all__ = ["EnsembleGRUCell", "gru_update"]
+
+
+def gru_update(gates_x: torch.Tensor, gates_h: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """The GRU update from precomputed input and hidden projections (Cho et al. 2014).
+
+    Same equations and gate order (reset, update, new) as ``torch.nn.GRUCell``::
+
+        r = σ(x_r + h_r),  u = σ(x_u + h_u),  n = tanh(x_n + r ⊙ h_n),  h' = (1 − u) ⊙ n + u ⊙ h
+
+    Args:
+        gates_x: input projection ``W_x x + b_x``, ``[..., 3H]``.
+        gates_h: hidden projection ``W_h h + b_h``, ``[..., 3H]``.
+        h: previous hidden state ``[..., H]``.
+
+    Returns:
+        the new hidden state ``[..., H]``.
+    """
+    x_r, x_u, x_n = gates_x.chunk(3, dim=-1)
+    h_r, h_u, h_n = gates_h.chunk(3, dim=-1)
+    reset = torch.sigmoid(x_r + h_r)
+    update = torch.sigmoid(x_u + h_u)
+    new = torch.tanh(x_n + reset * h_n)
+    return torch.lerp(new, h, update)
+
+
+class EnsembleGRUCell(nn.Module):
+    """E independent GRU cells evaluated together.
+
+    Initialised per member like ``nn.GRUCell`` (U(−1/√H, 1/√H) for every weight and bias).
+
+    Args:
+        ensemble_size: number of members E.
+        input_size: input size I.
+        hidden_size: hidden size H.
+
+    Shapes:
+        ``x [E, B, I]``, ``h [E, B, H]`` → ``[E, B, H]``.
+    """
+
+    def __init__(self, ensemble_size: int, input_size: int, hidden_size: int) -> None:
+        super().__init__()
+        self.hidden_size = hidden_size
+        self.input_proj = EnsembleLinear(ensemble_size, input_size, 3 * hidden_size)
+        self.hidden_proj = EnsembleLinear(ensemble_size, hidden_size, 3 * hidden_size)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """Draw all weights and biases from U(−1/√H, 1/√H), as ``nn.GRUCell`` does."""
+        bound = self.hidden_size**-0.5
+        for param in self.parameters():
+            nn.init.uniform_(param, -bound, bound)
+
+    def forward(self, x: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+        return gru_update(self.input_proj(x), self.hidden_proj(h), h)

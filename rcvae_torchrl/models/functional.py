@@ -1,0 +1,64 @@
+"""Pure tensor functions of the RCVAE's Gaussian heads."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+__all__ = ["gaussian_head", "reparameterize", "soft_clamp", "standard_normal"]
+
+
+def soft_clamp(x: torch.Tensor, low: float, high: float) -> torch.Tensor:
+    """Smoothly bound ``x`` to ``(low, high)`` with two softplus hinges (PETS, Chua et al. 2018).
+
+    ``y = high − softplus(high − x)``, then ``low + softplus(y − low)``. Identity far inside
+    the bounds, never a zero gradient at them. Elementwise, any shape.
+    """
+    x = high - F.softplus(high - x)
+    return low + F.softplus(x - low)
+
+
+def gaussian_head(
+    raw: torch.Tensor,
+    *,
+    min_std: float | None = None,
+    log_std_bounds: tuple[float, float] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split a network output ``[..., 2F]`` into a Gaussian's ``(mean [..., F], std [..., F])``.
+
+    Exactly one of ``min_std`` (std = softplus(raw) + min_std, the latent heads, as Dreamer's
+    RSSM) or ``log_std_bounds`` (std = exp(soft_clamp(raw, low, high)), the decoder, as PETS)
+    must be given.
+    """
+    mean, raw_std = raw.chunk(2, dim=-1)
+    if (min_std is None) == (log_std_bounds is None):
+        raise ValueError("gaussian_head: give exactly one of min_std or log_std_bounds.")
+    if min_std is not None:
+        return mean, F.softplus(raw_std) + min_std
+    return mean, soft_clamp(raw_std, *log_std_bounds).exp()
+
+
+def standard_normal(
+    shape: torch.Size | tuple[int, ...],
+    like: torch.Tensor,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Draw N(0, I) noise of ``shape`` with the dtype and device of ``like``."""
+    return torch.randn(shape, generator=generator, dtype=like.dtype, device=like.device)
+
+
+def reparameterize(
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    noise: torch.Tensor | None = None,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """A reparameterised Gaussian sample ``mean + std ⊙ ε`` (Kingma & Welling 2014).
+
+    ``noise`` (ε, same shape as ``mean``) is drawn from ``generator`` when not given.
+    """
+    if noise is None:
+        noise = standard_normal(mean.shape, mean, generator)
+    elif noise.shape != mean.shape:
+        raise ValueError(f"noise: expected shape {tuple(mean.shape)}, got {tuple(noise.shape)}.")
+    return mean + std * noise

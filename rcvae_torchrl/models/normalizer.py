@@ -1,0 +1,118 @@
+"""Normalisation statistics of states, actions and state changes, fitted from data.
+
+The statistics are buffers, so they travel with ``state_dict()`` and ``.to(device)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+__all__ = ["StateNormalizer", "masked_mean_std"]
+
+
+def masked_mean_std(
+    x: torch.Tensor, mask: torch.Tensor | None = None, min_std: float = 1e-6
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-feature mean and std over all leading dimensions.
+
+    Args:
+        x: samples ``[..., F]``.
+        mask: optional bool ``[...]`` selecting the samples that count.
+        min_std: stds below this (constant features) are replaced by 1, so normalising
+            leaves such a feature centred but unscaled instead of dividing by ~0.
+
+    Returns:
+        ``(mean [F], std [F])``.
+    """
+    flat = x.reshape(-1, x.shape[-1])
+    if mask is not None:
+        flat = flat[mask.reshape(-1)]
+    if flat.shape[0] == 0:
+        raise ValueError("masked_mean_std: no samples to fit (empty input or all masked out).")
+    mean = flat.mean(0)
+    std = flat.std(0, correction=0) if flat.shape[0] > 1 else torch.ones_like(mean)
+    return mean, torch.where(std < min_std, torch.ones_like(std), std)
+
+
+class StateNormalizer(nn.Module):
+    """Affine normalisers for states s, actions a and state changes Δ = s_t − s_{t−1}.
+
+    Until :meth:`fit` is called the maps are identities (mean 0, std 1); ``fitted`` says
+    whether it has been called.
+
+    Args:
+        obs_dim: state dimension S.
+        action_dim: action dimension A.
+
+    Example:
+        >>> norm = StateNormalizer(3, 1)
+        >>> norm.fit(torch.randn(10, 50, 3), torch.randn(10, 50, 1))
+        >>> norm.normalize_state(torch.zeros(3)).shape
+        torch.Size([3])
+    """
+
+    def __init__(self, obs_dim: int, action_dim: int) -> None:
+        super().__init__()
+        self.register_buffer("state_mean", torch.zeros(obs_dim))
+        self.register_buffer("state_std", torch.ones(obs_dim))
+        self.register_buffer("action_mean", torch.zeros(action_dim))
+        self.register_buffer("action_std", torch.ones(action_dim))
+        self.register_buffer("delta_mean", torch.zeros(obs_dim))
+        self.register_buffer("delta_std", torch.ones(obs_dim))
+        self.register_buffer("_fitted", torch.zeros((), dtype=torch.bool))
+
+    @property
+    def fitted(self) -> bool:
+        """Whether :meth:`fit` has set the statistics."""
+        return bool(self._fitted)
+
+    @torch.no_grad()
+    def fit(
+        self,
+        observations: torch.Tensor,
+        actions: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+    ) -> None:
+        """Fit all statistics from trajectories.
+
+        Args:
+            observations: states ``[..., T, S]`` with time on dim −2 (T ≥ 2); state changes are
+                taken between consecutive steps.
+            actions: optional actions ``[..., T, A]``; if omitted the action map stays as is.
+            mask: optional bool ``[..., T]`` of valid steps; a state change counts only when
+                both of its steps are valid.
+        """
+        if observations.dim() < 2 or observations.shape[-2] < 2:
+            raise ValueError(
+                "fit: observations must be [..., T, S] with T >= 2, "
+                f"got shape {tuple(observations.shape)}."
+            )
+        self._copy(self.state_mean, self.state_std, masked_mean_std(observations, mask))
+        delta = observations[..., 1:, :] - observations[..., :-1, :]
+        pair_mask = None if mask is None else mask[..., 1:] & mask[..., :-1]
+        self._copy(self.delta_mean, self.delta_std, masked_mean_std(delta, pair_mask))
+        if actions is not None:
+            self._copy(self.action_mean, self.action_std, masked_mean_std(actions, mask))
+        self._fitted.fill_(True)
+
+    @staticmethod
+    def _copy(mean: torch.Tensor, std: torch.Tensor, stats: tuple[torch.Tensor, ...]) -> None:
+        mean.copy_(stats[0])
+        std.copy_(stats[1])
+
+    def normalize_state(self, s: torch.Tensor) -> torch.Tensor:
+        """``[..., S]`` → ``[..., S]``."""
+        return (s - self.state_mean) / self.state_std
+
+    def normalize_action(self, a: torch.Tensor) -> torch.Tensor:
+        """``[..., A]`` → ``[..., A]``."""
+        return (a - self.action_mean) / self.action_std
+
+    def normalize_delta(self, delta: torch.Tensor, dims: torch.Tensor) -> torch.Tensor:
+        """Normalise the state changes of the state dimensions ``dims`` (``[..., len(dims)]``)."""
+        return (delta - self.delta_mean[dims]) / self.delta_std[dims]
+
+    def denormalize_delta(self, delta: torch.Tensor, dims: torch.Tensor) -> torch.Tensor:
+        """Inverse of :meth:`normalize_delta`."""
+        return delta * self.delta_std[dims] + self.delta_mean[dims]

@@ -1,0 +1,316 @@
+"""An ensemble of E recurrent conditional VAEs (RCVAEs), one vectorised computation.
+
+Each member models p_θ(s_1:T | s_0, a_0:T−1) (Acharya, Russell & Ahmed 2022, §II-A) with
+
+- a deterministic recurrent state   h_t = GRU(h_{t−1}, x_t),  x_t = φ([ŝ_{t−1}, â_{t−1}]),
+  h_0 = 0, where ŝ, â are normalised state and action and s_{t−1} is the true state
+  (teacher forcing, training) or the model's own sample (generation);
+- a latent z_t with prior p(z_t | h_t) and posterior q(z_t | h_t, Δ̂_t) (training only), where
+  Δ̂_t is the normalised state change s_t − s_{t−1} of the predicted dimensions: the posterior
+  sees exactly the quantity the decoder has to explain;
+- a Gaussian decoder p(Δ̂_t | h_t, x_t, z_t) with a soft-clamped log-std, and
+  s_t = s_{t−1} + denormalise(Δ̂_t) on predicted dimensions, s_t = s_{t−1} on
+  ``passthrough_dims`` (copied exactly, excluded from the likelihood).
+
+The decoder also reads x_t (a skip connection around the GRU), so the Markov part of the
+dynamics does not have to squeeze through the GRU's saturating gates.
+
+All members' parameters are stacked on a leading dim E (:class:`EnsembleLinear`); every method
+takes member-major tensors ``[E, *B, ...]``. The ensemble of independently initialised members
+gives the epistemic part of the uncertainty (Lakshminarayanan et al. 2017).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from rcvae_torchrl.models.config import RCVAEConfig
+from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_update
+from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP
+from rcvae_torchrl.models.functional import gaussian_head, reparameterize
+from rcvae_torchrl.models.normalizer import StateNormalizer
+
+__all__ = ["RCVAEEnsemble", "SequenceOutput", "StepOutput"]
+
+
+class StepOutput(NamedTuple):
+    """One generative step, member-major. Deltas are normalised, of the predicted dims only."""
+
+    hidden: torch.Tensor  #: h_t ``[E, *B, H]``
+    latent: torch.Tensor  #: z_t ``[E, *B, Z]``
+    observation: torch.Tensor  #: s_t ``[E, *B, S]``
+    delta_mean: torch.Tensor  #: decoder mean ``[E, *B, D]``
+    delta_std: torch.Tensor  #: decoder std ``[E, *B, D]``
+
+
+class SequenceOutput(NamedTuple):
+    """Distributions over the L − 1 transitions of windows ``[E, *B, L]``: ``[E, *B, L−1, ·]``."""
+
+    prior_mean: torch.Tensor  #: p(z_t | h_t) mean ``[..., Z]``
+    prior_std: torch.Tensor  #: ``[..., Z]``
+    posterior_mean: torch.Tensor  #: q(z_t | h_t, Δ̂_t) mean ``[..., Z]``
+    posterior_std: torch.Tensor  #: ``[..., Z]``
+    decoder_mean: torch.Tensor  #: p(Δ̂_t | h_t, x_t, z_t) mean, z_t ~ q ``[..., D]``
+    decoder_std: torch.Tensor  #: ``[..., D]``
+    target: torch.Tensor  #: the normalised state change Δ̂_t to explain ``[..., D]``
+
+
+class RCVAEEnsemble(nn.Module):
+    """E independently initialised RCVAE members with stacked parameters.
+
+    Args:
+        config: sizes and bounds of one member.
+        ensemble_size: number of members E (1 gives a single RCVAE).
+
+    Example:
+        >>> cfg = RCVAEConfig(obs_dim=4, action_dim=2, hidden_dim=16, mlp_dim=16)
+        >>> model = RCVAEEnsemble(cfg, ensemble_size=3)
+        >>> td = model.generate(torch.zeros(4), torch.zeros(10, 2), samples_per_member=8)
+        >>> td.batch_size
+        torch.Size([3, 8, 10])
+    """
+
+    def __init__(self, config: RCVAEConfig, ensemble_size: int = 5) -> None:
+        super().__init__()
+        if not isinstance(ensemble_size, int) or ensemble_size < 1:
+            raise ValueError(f"ensemble_size: expected a positive int, got {ensemble_size!r}.")
+        self.config = config
+        self.ensemble_size = ensemble_size
+        self.normalizer = StateNormalizer(config.obs_dim, config.action_dim)
+        self.register_buffer("predicted_idx", torch.tensor(config.predicted_dims), persistent=False)
+        self._build_networks(config, ensemble_size)
+
+    def _build_networks(self, c: RCVAEConfig, e: int) -> None:
+        h, m, z, d = c.hidden_dim, c.mlp_dim, c.latent_dim, c.predicted_dim
+        self.embed = EnsembleLinear(e, c.obs_dim + c.action_dim, m)
+        self.gru = EnsembleGRUCell(e, m, h)
+        self.prior_net = EnsembleMLP(e, h, m, 2 * z, depth=1)
+        self.posterior_net = EnsembleMLP(e, h + d, m, 2 * z, depth=1)
+        self.decoder = EnsembleMLP(e, h + m + z, m, 2 * d, depth=2)
+
+    # ----------------------------------------------------------------- building blocks
+    def initial_hidden(self, batch_shape: Sequence[int], like: torch.Tensor) -> torch.Tensor:
+        """h_0 = 0, ``[E, *batch_shape, H]`` with the dtype/device of ``like``."""
+        shape = (self.ensemble_size, *batch_shape, self.config.hidden_dim)
+        return like.new_zeros(shape)
+
+    def embed_inputs(self, obs_prev: torch.Tensor, action_prev: torch.Tensor) -> torch.Tensor:
+        """x_t = SiLU(W [ŝ_{t−1}, â_{t−1}] + b): ``[E, *B, S]``, ``[E, *B, A]`` → ``[E, *B, M]``."""
+        inputs = torch.cat(
+            [
+                self.normalizer.normalize_state(obs_prev),
+                self.normalizer.normalize_action(action_prev),
+            ],
+            dim=-1,
+        )
+        return F.silu(self.embed(inputs))
+
+    def recur(
+        self, hidden: torch.Tensor, obs_prev: torch.Tensor, action_prev: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """One recurrence step: returns ``(h_t [E, *B, H], x_t [E, *B, M])``."""
+        x = self.embed_inputs(obs_prev, action_prev)
+        return self.gru(x, hidden), x
+
+    def prior(self, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """p(z_t | h_t): ``[E, *B, H]`` → ``(mean, std)`` each ``[E, *B, Z]``."""
+        return gaussian_head(self.prior_net(hidden), min_std=self.config.latent_min_std)
+
+    def posterior(
+        self, hidden: torch.Tensor, target: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """q(z_t | h_t, Δ̂_t): ``[E, *B, H]``, ``[E, *B, D]`` → ``(mean, std)`` ``[E, *B, Z]``."""
+        raw = self.posterior_net(torch.cat([hidden, target], dim=-1))
+        return gaussian_head(raw, min_std=self.config.latent_min_std)
+
+    def decode(
+        self, hidden: torch.Tensor, x: torch.Tensor, latent: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """p(Δ̂_t | h_t, x_t, z_t) → ``(mean, std)`` ``[E, *B, D]``, normalised units."""
+        raw = self.decoder(torch.cat([hidden, x, latent], dim=-1))
+        bounds = (self.config.min_log_std, self.config.max_log_std)
+        return gaussian_head(raw, log_std_bounds=bounds)
+
+    def apply_delta(self, obs_prev: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+        """s_t from s_{t−1} ``[..., S]`` and a normalised change ``[..., D]``; passthrough exact."""
+        change = self.normalizer.denormalize_delta(delta, self.predicted_idx)
+        full = obs_prev.new_zeros(obs_prev.shape).index_copy(-1, self.predicted_idx, change)
+        return obs_prev + full
+
+    def target_delta(self, obs_prev: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
+        """Normalised state change Δ̂_t of the predicted dims: ``[..., S]`` × 2 → ``[..., D]``."""
+        delta = (obs - obs_prev).index_select(-1, self.predicted_idx)
+        return self.normalizer.normalize_delta(delta, self.predicted_idx)
+
+    def state_loc_scale(
+        self, obs_prev: torch.Tensor, delta_mean: torch.Tensor, delta_std: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The decoder's Gaussian over s_t in state units: ``(loc, scale)`` each ``[..., S]``.
+
+        Passthrough dims get ``loc = s_{t−1}`` and ``scale = 0``.
+        """
+        loc = self.apply_delta(obs_prev, delta_mean)
+        scale_pred = delta_std * self.normalizer.delta_std[self.predicted_idx]
+        scale = obs_prev.new_zeros(obs_prev.shape).index_copy(-1, self.predicted_idx, scale_pred)
+        return loc, scale
+
+    # ----------------------------------------------------------------- generation
+    def step(
+        self,
+        hidden: torch.Tensor,
+        obs_prev: torch.Tensor,
+        action_prev: torch.Tensor,
+        *,
+        noise_latent: torch.Tensor | None = None,
+        noise_obs: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> StepOutput:
+        """Sample s_t ~ p_θ(s_t | h_{t−1}, s_{t−1}, a_{t−1}) with z_t from the prior.
+
+        Args:
+            hidden: h_{t−1} ``[E, *B, H]``.
+            obs_prev: s_{t−1} ``[E, *B, S]``.
+            action_prev: a_{t−1} ``[E, *B, A]``.
+            noise_latent: optional ε_z ``[E, *B, Z]`` (else drawn from ``generator``).
+            noise_obs: optional ε_s ``[E, *B, D]`` (else drawn from ``generator``).
+            generator: torch generator for the noise not given.
+        """
+        hidden, x = self.recur(hidden, obs_prev, action_prev)
+        latent = reparameterize(*self.prior(hidden), noise_latent, generator)
+        mean, std = self.decode(hidden, x, latent)
+        delta = reparameterize(mean, std, noise_obs, generator)
+        return StepOutput(hidden, latent, self.apply_delta(obs_prev, delta), mean, std)
+
+    def generate(self, *args, **kwargs):
+        """Open- or closed-loop imagined rollouts; see :func:`rcvae_torchrl.models.generate`."""
+        from rcvae_torchrl.models.generate import generate
+
+        return generate(self, *args, **kwargs)
+
+    # ----------------------------------------------------------------- training pass
+    def observe(
+        self,
+        observations: torch.Tensor,
+        actions: torch.Tensor,
+        *,
+        mask: torch.Tensor | None = None,
+        open_loop_steps: int = 0,
+        detach_open_loop: bool = False,
+        generator: torch.Generator | None = None,
+    ) -> SequenceOutput:
+        """Run windows through the model for the ELBO (teacher forcing, optionally open loop).
+
+        Transition t (t = 0..L−2) reads state s_t and action a_t and explains s_{t+1}; the
+        last action of each window is not used. The last ``open_loop_steps`` transitions (at
+        most L − 2) read the model's own prior sample of s_t instead of the true one, generated
+        from the previous transition; their targets are s_{t+1} − ŝ_t. Gradients flow through
+        the fed-back samples unless ``detach_open_loop``.
+
+        Args:
+            observations: ``[E, *B, L, S]``.
+            actions: ``[E, *B, L, A]``.
+            mask: optional bool ``[E or 1, *B, L]`` of valid steps. The hidden state is reset
+                to h_0 after an invalid step, so left-padded windows start fresh; masked steps
+                are otherwise computed and must be excluded from the loss by the caller.
+            open_loop_steps: number K of trailing transitions fed with model samples.
+            detach_open_loop: stop gradients through the fed-back samples.
+            generator: torch generator for the latent and fed-back samples.
+
+        Returns:
+            a :class:`SequenceOutput` with tensors ``[E, *B, L − 1, ·]``.
+        """
+        n_steps = observations.shape[-2] - 1
+        n_open = min(max(int(open_loop_steps), 0), max(n_steps - 1, 0))
+        hidden, x, prev = self._teacher_forced(observations, actions, mask, n_steps - n_open)
+        if n_open:
+            opened = self._open_loop(
+                (hidden[..., -1, :], x[..., -1, :], prev[..., -1, :]),
+                actions[..., n_steps - n_open : n_steps, :],
+                detach_open_loop,
+                generator,
+            )
+            hidden, x, prev = (torch.cat(p, dim=-2) for p in zip((hidden, x, prev), opened))
+        return self._explain(hidden, x, prev, observations[..., 1:, :], generator)
+
+    def _teacher_forced(
+        self,
+        observations: torch.Tensor,
+        actions: torch.Tensor,
+        mask: torch.Tensor | None,
+        n_steps: int,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """h_1..h_n from true states; embeddings and input gates for all steps in one batch."""
+        prev = observations[..., :n_steps, :]
+        x = self.embed_inputs(prev, actions[..., :n_steps, :])
+        gates_x = self.gru.input_proj(x)
+        hidden = self.initial_hidden(observations.shape[1:-2], observations)
+        states = []
+        for t in range(n_steps):
+            if mask is not None and t > 0:
+                hidden = hidden * mask[..., t - 1, None].to(hidden.dtype)
+            hidden = gru_update(gates_x[..., t, :], self.gru.hidden_proj(hidden), hidden)
+            states.append(hidden)
+        return torch.stack(states, dim=-2), x, prev
+
+    def _open_loop(
+        self,
+        last: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        actions: torch.Tensor,
+        detach: bool,
+        generator: torch.Generator | None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Continue from the last teacher-forced step, feeding back prior samples."""
+        hidden, x, prev = last
+        states, xs, prevs = [], [], []
+        for j in range(actions.shape[-2]):
+            latent = reparameterize(*self.prior(hidden), generator=generator)
+            prev = self.apply_delta(
+                prev, reparameterize(*self.decode(hidden, x, latent), None, generator)
+            )
+            prev = prev.detach() if detach else prev
+            hidden, x = self.recur(hidden, prev, actions[..., j, :])
+            states.append(hidden), xs.append(x), prevs.append(prev)
+        return tuple(torch.stack(v, dim=-2) for v in (states, xs, prevs))
+
+    def _explain(
+        self,
+        hidden: torch.Tensor,
+        x: torch.Tensor,
+        prev: torch.Tensor,
+        obs_next: torch.Tensor,
+        generator: torch.Generator | None,
+    ) -> SequenceOutput:
+        """Prior, posterior and decoder over all steps at once (none of them is recurrent)."""
+        target = self.target_delta(prev, obs_next)
+        post_mean, post_std = self.posterior(hidden, target)
+        latent = reparameterize(post_mean, post_std, generator=generator)
+        dec_mean, dec_std = self.decode(hidden, x, latent)
+        prior_mean, prior_std = self.prior(hidden)
+        return SequenceOutput(prior_mean, prior_std, post_mean, post_std, dec_mean, dec_std, target)
+
+    # ----------------------------------------------------------------- utilities
+    def fit_normalizer(
+        self,
+        observations: torch.Tensor,
+        actions: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+    ) -> None:
+        """Fit the normalisation statistics; see :meth:`StateNormalizer.fit`."""
+        self.normalizer.fit(observations, actions, mask)
+
+    def select_members(self, indices: Sequence[int] | torch.Tensor) -> RCVAEEnsemble:
+        """A new ensemble holding copies of the chosen members (and the same normaliser).
+
+        ``select_members([i])`` is member i as a stand-alone RCVAE.
+        """
+        idx = torch.as_tensor(indices, dtype=torch.long, device=self.predicted_idx.device)
+        out = RCVAEEnsemble(self.config, int(idx.numel())).to(self.predicted_idx.device)
+        params = {name for name, _ in self.named_parameters()}
+        state = {k: (v[idx] if k in params else v) for k, v in self.state_dict().items()}
+        out.load_state_dict(state)
+        return out

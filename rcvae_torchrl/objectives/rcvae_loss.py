@@ -1,0 +1,193 @@
+"""The sequence ELBO of an RCVAE ensemble as a TorchRL ``LossModule``."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.objectives.common import LossModule
+
+from rcvae_torchrl.models.rcvae import RCVAEEnsemble, SequenceOutput
+from rcvae_torchrl.models.validation import check_batch_shapes, check_finite, check_trailing
+from rcvae_torchrl.objectives.functional import free_bits, gaussian_kl, gaussian_nll, masked_mean
+
+__all__ = ["RCVAELoss"]
+
+
+class RCVAELoss(LossModule):
+    """Negative sequence ELBO of all ensemble members, summed over members.
+
+    Per window of L steps and per member, for the L − 1 transitions t → t + 1 (Kingma &
+    Welling 2014; Chung et al. 2015 for the sequential form)::
+
+        −ELBO = Σ_t E_q[−log p(Δ̂_{t+1} | h, x, z)] + β · max(KL(q(z | h, Δ̂) ‖ p(z | h)), free_nats)
+
+    with Δ̂ the normalised state change of the predicted (non-passthrough) dims. Both terms are
+    averaged over valid transitions (windows × steps) per member, then summed over members, so
+    one optimiser step on ``loss_reconstruction + loss_kl`` trains every member.
+
+    Input layout: a tensordict of windows with batch ``[E, W, L]`` (member-major: member e sees
+    its own windows, e.g. a bootstrap resample) or ``[W, L]`` (the same windows for every member;
+    members still differ by their initialisation and noise). Entries: ``observation [..., L, S]``,
+    ``action [..., L, A]`` (the last action of a window is unused) and an optional bool mask
+    ``[..., L]`` of valid steps (TorchRL's ``SliceSampler(pad_output=True)`` writes
+    ``("collector", "mask")``); a transition counts when both of its steps are valid.
+
+    Args:
+        ensemble: the world model to train.
+        beta: weight of the KL term (β-VAE, Higgins et al. 2017).
+        free_nats: per-step free-nats clamp of the KL (0 disables it).
+        open_loop_steps: number K of trailing transitions of each window that read the model's
+            own sample of the previous state (at most L − 2); may be changed between steps for
+            a curriculum.
+        detach_open_loop: stop gradients through the fed-back samples.
+        generator: torch generator for the latent and fed-back samples.
+
+    Returns (``forward``): a TensorDict with ``loss_reconstruction`` and ``loss_kl`` (scalars
+    to sum for the optimiser) and detached diagnostics: ``kl_raw`` (mean unclamped KL per step),
+    ``nll`` (mean NLL per step), ``mse`` (mean squared error of the decoder mean, normalised
+    units), ``pred_std_mean`` (mean decoder std, normalised units), and per-member
+    ``loss_per_member``, ``nll_per_member``, ``kl_per_member`` ``[E]``.
+
+    Example:
+        >>> from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+        >>> model = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=8, mlp_dim=8), ensemble_size=2)
+        >>> loss = RCVAELoss(model, beta=1.0)
+        >>> td = TensorDict(observation=torch.randn(4, 6, 3), action=torch.randn(4, 6, 1),
+        ...                 batch_size=[4, 6])
+        >>> out = loss(td)
+        >>> (out["loss_reconstruction"] + out["loss_kl"]).backward()
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable tensordict keys.
+
+        Attributes:
+            observation: states ``[..., L, S]``. Defaults to ``"observation"``.
+            action: actions ``[..., L, A]``. Defaults to ``"action"``.
+            mask: optional bool ``[..., L]`` of valid steps. Defaults to ``("collector", "mask")``.
+        """
+
+        observation: NestedKey = "observation"
+        action: NestedKey = "action"
+        mask: NestedKey = ("collector", "mask")
+
+    tensor_keys: _AcceptedKeys
+    default_keys = _AcceptedKeys
+
+    def __init__(
+        self,
+        ensemble: RCVAEEnsemble,
+        *,
+        beta: float = 1.0,
+        free_nats: float = 0.0,
+        open_loop_steps: int = 0,
+        detach_open_loop: bool = False,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        if beta < 0 or free_nats < 0 or open_loop_steps < 0:
+            raise ValueError(
+                "beta, free_nats and open_loop_steps must be >= 0, got "
+                f"{beta}, {free_nats}, {open_loop_steps}."
+            )
+        self.ensemble = ensemble
+        self.beta = float(beta)
+        self.free_nats = float(free_nats)
+        self.open_loop_steps = int(open_loop_steps)
+        self.detach_open_loop = detach_open_loop
+        self.generator = generator
+        self._set_in_keys()
+
+    def _set_in_keys(self) -> None:
+        keys = self.tensor_keys
+        self._in_keys = [keys.observation, keys.action, keys.mask]
+        self._out_keys = ["loss_reconstruction", "loss_kl"]
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        return self._in_keys
+
+    @in_keys.setter
+    def in_keys(self, values: list[NestedKey]) -> None:
+        self._in_keys = values
+
+    @property
+    def out_keys(self) -> list[NestedKey]:
+        return self._out_keys
+
+    @out_keys.setter
+    def out_keys(self, values: list[NestedKey]) -> None:
+        self._out_keys = values
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        self._set_in_keys()
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        obs, action, mask = self._read(tensordict)
+        seq = self.ensemble.observe(
+            obs,
+            action,
+            mask=mask,
+            open_loop_steps=self.open_loop_steps,
+            detach_open_loop=self.detach_open_loop,
+            generator=self.generator,
+        )
+        valid = None if mask is None else mask[..., 1:] & mask[..., :-1]
+        return self._reduce(seq, valid)
+
+    def _reduce(self, seq: SequenceOutput, valid: torch.Tensor | None) -> TensorDict:
+        """Per-step terms ``[E, W, L−1]`` → per-member means ``[E]`` → scalars."""
+        nll = gaussian_nll(seq.target, seq.decoder_mean, seq.decoder_std).sum(-1)
+        kl = gaussian_kl(seq.posterior_mean, seq.posterior_std, seq.prior_mean, seq.prior_std)
+        kl = kl.sum(-1)
+        dims = tuple(range(1, nll.dim()))
+        nll_m = masked_mean(nll, valid, dims)
+        kl_m = masked_mean(free_bits(kl, self.free_nats), valid, dims)
+        with torch.no_grad():
+            mse = masked_mean((seq.decoder_mean - seq.target).square().mean(-1), valid, dims)
+            std = masked_mean(seq.decoder_std.mean(-1), valid, dims)
+            kl_raw = masked_mean(kl, valid, dims)
+        return TensorDict(
+            loss_reconstruction=nll_m.sum(),
+            loss_kl=self.beta * kl_m.sum(),
+            kl_raw=kl_raw.mean(),
+            nll=nll_m.detach().mean(),
+            mse=mse.mean(),
+            pred_std_mean=std.mean(),
+            loss_per_member=(nll_m + self.beta * kl_m).detach(),
+            nll_per_member=nll_m.detach(),
+            kl_per_member=kl_raw,
+        )
+
+    def _read(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Fetch and check the windows; return them member-major ``[E, W, L, ·]``."""
+        keys, cfg, e = self.tensor_keys, self.ensemble.config, self.ensemble.ensemble_size
+        if td.batch_dims not in (2, 3) or (td.batch_dims == 3 and td.batch_size[0] != e):
+            raise ValueError(
+                f"RCVAELoss: expected a tensordict with batch [W, L] or [E={e}, W, L], "
+                f"got batch {tuple(td.batch_size)}."
+            )
+        if td.batch_size[-1] < 2:
+            raise ValueError(f"RCVAELoss: windows need L >= 2 steps, got L={td.batch_size[-1]}.")
+        obs, action = td.get(keys.observation), td.get(keys.action)
+        check_trailing(str(keys.observation), obs, (cfg.obs_dim,), f"[..., L, S={cfg.obs_dim}]")
+        check_trailing(str(keys.action), action, (cfg.action_dim,), f"[..., L, A={cfg.action_dim}]")
+        check_batch_shapes(
+            (str(keys.observation), str(keys.action)), obs.shape[:-1], action.shape[:-1]
+        )
+        check_finite(str(keys.observation), obs)
+        check_finite(str(keys.action), action)
+        mask = td.get(keys.mask, None)
+        if mask is not None and (mask.dtype != torch.bool or mask.shape != td.batch_size):
+            raise ValueError(
+                f"{keys.mask}: expected a bool mask of shape {tuple(td.batch_size)}, got "
+                f"{mask.dtype} {tuple(mask.shape)}."
+            )
+        if td.batch_dims == 2:
+            obs, action = obs.expand(e, *obs.shape), action.expand(e, *action.shape)
+            mask = None if mask is None else mask.unsqueeze(0)
+        return obs, action, mask
