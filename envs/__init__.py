@@ -1,0 +1,46 @@
+"""The Pusher domain (installed as ``rcvae_torchrl.envs``)."""
+
+from .factory import DEFAULT_ACTION_NOISE_STD, VARIANTS, make_pusher_env
+from .functions import DEFAULT_SUCCESS_RADIUS, ball_to_target, pusher_reward, pusher_success
+from .layout import (
+    OBSERVATION_DIM,
+    OBSERVATION_GROUPS,
+    OBSERVATION_LAYOUT,
+    OBSERVATION_NAMES,
+    OBSERVATION_RESOLUTION,
+    obs_indices,
+    resolution_tensor,
+)
+from .pusher import (
+    CONTROL_TIMESTEP,
+    DEFAULT_TIME_LIMIT,
+    IN_DISTRIBUTION,
+    OUT_OF_DISTRIBUTION,
+    InitialStateRegion,
+)
+
+__all__ = [
+    # factory
+    "DEFAULT_ACTION_NOISE_STD",
+    "VARIANTS",
+    "make_pusher_env",
+    # task constants and regions
+    "CONTROL_TIMESTEP",
+    "DEFAULT_SUCCESS_RADIUS",
+    "DEFAULT_TIME_LIMIT",
+    "IN_DISTRIBUTION",
+    "OUT_OF_DISTRIBUTION",
+    "InitialStateRegion",
+    # observation layout
+    "OBSERVATION_DIM",
+    "OBSERVATION_GROUPS",
+    "OBSERVATION_LAYOUT",
+    "OBSERVATION_NAMES",
+    "OBSERVATION_RESOLUTION",
+    "obs_indices",
+    "resolution_tensor",
+    # pure functions of observations
+    "ball_to_target",
+    "pusher_reward",
+    "pusher_success",
+]

@@ -1,0 +1,113 @@
+"""``make_pusher_env``: the one factory for the Pusher variants, as a TorchRL env."""
+
+from __future__ import annotations
+
+import math
+
+from torchrl.envs import DMControlWrapper, DoubleToFloat, TransformedEnv
+
+from .functions import DEFAULT_SUCCESS_RADIUS
+from .pusher import (
+    CONTROL_TIMESTEP,
+    DEFAULT_TIME_LIMIT,
+    IN_DISTRIBUTION,
+    OUT_OF_DISTRIBUTION,
+    InitialStateRegion,
+    make_environment,
+)
+
+__all__ = ["DEFAULT_ACTION_NOISE_STD", "VARIANTS", "make_pusher_env"]
+
+VARIANTS = ("deterministic", "stochastic", "ood")
+DEFAULT_ACTION_NOISE_STD = 0.5  # std of the Gaussian action noise of the stochastic variant
+
+
+def _check_args(
+    variant: str,
+    action_noise_std: float | None,
+    time_limit: float,
+    control_timestep: float,
+    success_radius: float,
+) -> float:
+    if variant not in VARIANTS:
+        raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
+    if not (isinstance(time_limit, (int, float)) and time_limit > 0):
+        raise ValueError(f"time_limit: expected a positive number of seconds, got {time_limit!r}")
+    if not control_timestep > 0:
+        raise ValueError(f"control_timestep: expected > 0 s, got {control_timestep!r}")
+    steps = time_limit / control_timestep
+    if not math.isclose(steps, round(steps), rel_tol=0, abs_tol=1e-6):
+        raise ValueError(
+            f"time_limit: expected a whole number of control steps of {control_timestep} s, "
+            f"got {time_limit} s ({steps:.4f} steps)"
+        )
+    if not success_radius > 0:
+        raise ValueError(f"success_radius: expected > 0 m, got {success_radius!r}")
+    if action_noise_std is None:
+        return DEFAULT_ACTION_NOISE_STD if variant == "stochastic" else 0.0
+    if not (isinstance(action_noise_std, (int, float)) and action_noise_std >= 0):
+        raise ValueError(
+            f"action_noise_std: expected a non-negative standard deviation, got {action_noise_std!r}"
+        )
+    if variant == "deterministic" and action_noise_std > 0:
+        raise ValueError(
+            f"action_noise_std: the deterministic variant takes no action noise, got "
+            f"{action_noise_std}; use variant='stochastic'"
+        )
+    return float(action_noise_std)
+
+
+def make_pusher_env(
+    variant: str = "deterministic",
+    seed: int | None = None,
+    *,
+    action_noise_std: float | None = None,
+    time_limit: float = DEFAULT_TIME_LIMIT,
+    control_timestep: float = CONTROL_TIMESTEP,
+    success_radius: float = DEFAULT_SUCCESS_RADIUS,
+    region: InitialStateRegion | None = None,
+    from_pixels: bool = False,
+    device: str = "cpu",
+) -> TransformedEnv:
+    """A TorchRL Pusher env: ``DMControlWrapper`` + ``DoubleToFloat``.
+
+    Output keys: ``"observation"`` float32 ``[14]`` (layout in :data:`OBSERVATION_LAYOUT`),
+    ``"success"`` bool ``[1]`` (ball within ``success_radius`` of the target; success sets
+    ``"terminated"``), ``"action"`` float32 ``[2]`` in [-1, 1], ``"reward"`` float32 ``[1]``;
+    the time limit sets ``"truncated"``.
+
+    Args:
+        variant: ``"deterministic"``, ``"stochastic"`` (Gaussian action noise drawn from the
+            task's RNG, so reproducible under ``set_seed``) or ``"ood"`` (starts from
+            :data:`OUT_OF_DISTRIBUTION`, disjoint from the training region).
+        seed: seeds the task's RNG (start states and action noise).
+        action_noise_std: std of the action noise; default :data:`DEFAULT_ACTION_NOISE_STD` for
+            ``"stochastic"``, 0 otherwise. ``"ood"`` accepts noise too.
+        time_limit: episode length in seconds, a whole number of control steps.
+        control_timestep: seconds per agent action (10 physics steps at the default 0.05 s).
+        success_radius: ball-to-target distance that counts as success (m).
+        region: overrides the variant's initial-state region.
+        from_pixels: also return ``"pixels"`` rendered offscreen (needs ``MUJOCO_GL=egl``).
+        device: torch device of the outputs.
+
+    Example:
+        >>> env = make_pusher_env("stochastic", seed=0)
+        >>> td = env.rollout(10)
+        >>> td["next", "observation"].shape
+        torch.Size([10, 14])
+    """
+    noise = _check_args(variant, action_noise_std, time_limit, control_timestep, success_radius)
+    if region is None:
+        region = OUT_OF_DISTRIBUTION if variant == "ood" else IN_DISTRIBUTION
+    dm_env = make_environment(
+        region,
+        success_radius=success_radius,
+        action_noise_std=noise,
+        time_limit=time_limit,
+        control_timestep=control_timestep,
+    )
+    base = DMControlWrapper(dm_env, from_pixels=from_pixels, pixels_only=False, device=device)
+    env = TransformedEnv(base, DoubleToFloat())
+    if seed is not None:
+        env.set_seed(seed)
+    return env

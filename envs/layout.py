@@ -1,0 +1,100 @@
+"""Named layout of the Pusher observation and the resolution of each dimension.
+
+Every consumer (reward, success, scripted controller, world model, competency estimators) indexes
+observations through :data:`OBSERVATION_LAYOUT` instead of magic slices.
+
+:data:`OBSERVATION_RESOLUTION` is the smallest difference in each dimension that the competency
+estimators treat as meaningful: it is the bin width of the histogram entropy estimator, in the
+dimension's own units (metres, m/s, rad/s, or unitless for cos/sin).
+"""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+
+import torch
+
+__all__ = [
+    "OBSERVATION_DIM",
+    "OBSERVATION_GROUPS",
+    "OBSERVATION_LAYOUT",
+    "OBSERVATION_NAMES",
+    "OBSERVATION_RESOLUTION",
+    "obs_indices",
+    "resolution_tensor",
+]
+
+OBSERVATION_NAMES: tuple[str, ...] = (
+    "shoulder_cos",
+    "shoulder_sin",
+    "wrist_cos",
+    "wrist_sin",
+    "shoulder_vel",
+    "wrist_vel",
+    "finger_x",
+    "finger_y",
+    "ball_x",
+    "ball_y",
+    "ball_vx",
+    "ball_vy",
+    "target_x",
+    "target_y",
+)
+OBSERVATION_DIM: int = len(OBSERVATION_NAMES)
+OBSERVATION_LAYOUT = MappingProxyType({name: i for i, name in enumerate(OBSERVATION_NAMES)})
+
+# Groups of dimensions that belong together (a position is two dimensions, an angle two).
+OBSERVATION_GROUPS = MappingProxyType(
+    {
+        "shoulder": ("shoulder_cos", "shoulder_sin"),
+        "wrist": ("wrist_cos", "wrist_sin"),
+        "joint_vel": ("shoulder_vel", "wrist_vel"),
+        "finger": ("finger_x", "finger_y"),
+        "ball": ("ball_x", "ball_y"),
+        "ball_vel": ("ball_vx", "ball_vy"),
+        "target": ("target_x", "target_y"),
+    }
+)
+
+_UNIT_RESOLUTION = {
+    "cos_sin": 0.02,  # unitless; about 1.1 degrees near the axes
+    "joint_vel": 0.1,  # rad/s
+    "position": 0.005,  # m; a sixth of the success radius
+    "velocity": 0.01,  # m/s
+}
+OBSERVATION_RESOLUTION = MappingProxyType(
+    {
+        **dict.fromkeys(
+            ("shoulder_cos", "shoulder_sin", "wrist_cos", "wrist_sin"), _UNIT_RESOLUTION["cos_sin"]
+        ),
+        **dict.fromkeys(("shoulder_vel", "wrist_vel"), _UNIT_RESOLUTION["joint_vel"]),
+        **dict.fromkeys(
+            ("finger_x", "finger_y", "ball_x", "ball_y", "target_x", "target_y"),
+            _UNIT_RESOLUTION["position"],
+        ),
+        **dict.fromkeys(("ball_vx", "ball_vy"), _UNIT_RESOLUTION["velocity"]),
+    }
+)
+
+
+def obs_indices(*names: str) -> list[int]:
+    """Indices of the named observation dimensions or groups, in the order given.
+
+    >>> obs_indices("ball", "target_x")
+    [8, 9, 12]
+    """
+    out: list[int] = []
+    for name in names:
+        if name in OBSERVATION_GROUPS:
+            out.extend(OBSERVATION_LAYOUT[n] for n in OBSERVATION_GROUPS[name])
+        elif name in OBSERVATION_LAYOUT:
+            out.append(OBSERVATION_LAYOUT[name])
+        else:
+            known = sorted({*OBSERVATION_LAYOUT, *OBSERVATION_GROUPS})
+            raise KeyError(f"unknown observation name {name!r}; expected one of {known}")
+    return out
+
+
+def resolution_tensor(dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """The per-dimension resolution as a ``[OBSERVATION_DIM]`` tensor (histogram bin widths)."""
+    return torch.tensor([OBSERVATION_RESOLUTION[n] for n in OBSERVATION_NAMES], dtype=dtype)

@@ -1,0 +1,258 @@
+"""Pusher domain: a planar 2-link arm pushes a ball onto a target inside a circular fence.
+
+Written like a dm_control suite domain (``pusher.xml`` + this file): a :class:`Physics` with named
+accessors and a :class:`Pusher` task whose randomness comes only from ``self.random``, so
+``set_seed`` makes episodes reproducible, action noise included.
+
+Arm as dm_control's reacher (links 0.12 + 0.12 m, motor gear 0.05, controls in [-1, 1]); the ball
+moves on two slide joints; the fence (inner radius 0.21 m) and the hub (radius 0.06 m) keep it in
+the arm's reach. Physics steps every 0.005 s; the agent acts every :data:`CONTROL_TIMESTEP` s.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from dm_control import mujoco
+from dm_control.rl import control
+from dm_control.suite import base, common
+
+from .functions import ACTION_COST, APPROACH_WEIGHT, CONTACT_DISTANCE, DEFAULT_SUCCESS_RADIUS
+from .layout import OBSERVATION_DIM, obs_indices
+
+__all__ = [
+    "CONTROL_TIMESTEP",
+    "DEFAULT_TIME_LIMIT",
+    "IN_DISTRIBUTION",
+    "OUT_OF_DISTRIBUTION",
+    "InitialStateRegion",
+    "Physics",
+    "Pusher",
+    "get_model_and_assets",
+    "make_environment",
+]
+
+CONTROL_TIMESTEP = 0.05  # s: 10 physics steps; 30 s episodes are 600 control steps
+DEFAULT_TIME_LIMIT = 30.0  # s
+ARENA_RADIUS = 0.21  # m, inner radius of the fence
+HUB_RADIUS = 0.06  # m
+BALL_RADIUS = 0.015  # m
+WRIST_RANGE = np.deg2rad(160.0)
+_START_CLEARANCE = 0.04  # m, fingertip-to-ball distance below which a start is resampled
+_MIN_START_DISTANCE = 2 * DEFAULT_SUCCESS_RADIUS  # m, ball-to-target distance at the start
+
+# Observation slots, resolved once from the named layout.
+_COS = obs_indices("shoulder_cos", "wrist_cos")
+_SIN = obs_indices("shoulder_sin", "wrist_sin")
+_JOINT_VEL = obs_indices("joint_vel")
+_FINGER = obs_indices("finger")
+_BALL = obs_indices("ball")
+_BALL_VEL = obs_indices("ball_vel")
+_TARGET = obs_indices("target")
+
+
+@dataclass(frozen=True)
+class InitialStateRegion:
+    """Where episodes start: ranges of uniform distributions, in SI units.
+
+    Attributes:
+        ball_radius: distance of the ball's centre from the arm's base (m).
+        ball_speed: initial ball speed (m/s), in a uniformly random direction.
+        joint_speed: magnitude of each arm joint's initial velocity (rad/s), random sign.
+        target_radius: distance of the target from the arm's base (m).
+    """
+
+    ball_radius: tuple[float, float]
+    ball_speed: tuple[float, float]
+    joint_speed: tuple[float, float]
+    target_radius: tuple[float, float]
+
+    def __post_init__(self) -> None:
+        low_ok = HUB_RADIUS + BALL_RADIUS
+        high_ok = ARENA_RADIUS - BALL_RADIUS
+        for name in ("ball_radius", "target_radius"):
+            lo, hi = getattr(self, name)
+            if not low_ok <= lo <= hi <= high_ok:
+                raise ValueError(
+                    f"{name}: expected {low_ok:.3f} <= low <= high <= {high_ok:.3f} m "
+                    f"(between hub and fence), got ({lo}, {hi})"
+                )
+        for name in ("ball_speed", "joint_speed"):
+            lo, hi = getattr(self, name)
+            if not 0 <= lo <= hi:
+                raise ValueError(f"{name}: expected 0 <= low <= high, got ({lo}, {hi})")
+
+
+# Training / in-distribution starts: ball and target 0.09-0.16 m from the base, at rest.
+IN_DISTRIBUTION = InitialStateRegion(
+    ball_radius=(0.09, 0.16),
+    ball_speed=(0.0, 0.0),
+    joint_speed=(0.0, 0.0),
+    target_radius=(0.09, 0.16),
+)
+# Out-of-distribution starts: the ball near the fence (0.17-0.185 m) and already moving, the arm
+# swinging. Disjoint from IN_DISTRIBUTION in ball radius and in velocities; still reachable.
+OUT_OF_DISTRIBUTION = InitialStateRegion(
+    ball_radius=(0.17, 0.185),
+    ball_speed=(0.05, 0.15),
+    joint_speed=(0.5, 2.0),
+    target_radius=(0.09, 0.16),
+)
+
+
+def get_model_and_assets() -> tuple[bytes, dict]:
+    """The model XML string and the dm_control common assets it includes."""
+    with open(os.path.join(os.path.dirname(__file__), "pusher.xml"), "rb") as f:
+        return f.read(), common.ASSETS
+
+
+class Physics(mujoco.Physics):
+    """Physics with named accessors for the Pusher. Indices are resolved once per model."""
+
+    def _ids(self) -> dict[str, int]:
+        ids = self.__dict__.get("_pusher_ids")
+        if ids is None:
+            m = self.model
+            ids = {
+                "finger": m.name2id("finger", "body"),
+                "ball": m.name2id("ball", "body"),
+                "target": m.name2id("target", "geom"),
+                "ball_x": m.jnt_qposadr[m.name2id("ball_x", "joint")],
+                "ball_vx": m.jnt_dofadr[m.name2id("ball_x", "joint")],
+            }
+            self.__dict__["_pusher_ids"] = ids
+        return ids
+
+    def arm_angles(self) -> np.ndarray:
+        """Shoulder and wrist angles (rad), ``[2]``."""
+        return self.data.qpos[:2]
+
+    def arm_velocities(self) -> np.ndarray:
+        """Shoulder and wrist angular velocities (rad/s), ``[2]``."""
+        return self.data.qvel[:2]
+
+    def finger_xy(self) -> np.ndarray:
+        return self.data.xpos[self._ids()["finger"], :2]
+
+    def ball_xy(self) -> np.ndarray:
+        return self.data.xpos[self._ids()["ball"], :2]
+
+    def ball_velocity(self) -> np.ndarray:
+        i = self._ids()["ball_vx"]
+        return self.data.qvel[i : i + 2]
+
+    def target_xy(self) -> np.ndarray:
+        return self.model.geom_pos[self._ids()["target"], :2]
+
+    def set_target(self, xy: np.ndarray) -> None:
+        self.model.geom_pos[self._ids()["target"], :2] = xy
+
+    def set_ball(self, xy: np.ndarray, velocity: np.ndarray) -> None:
+        i, j = self._ids()["ball_x"], self._ids()["ball_vx"]
+        self.data.qpos[i : i + 2] = xy
+        self.data.qvel[j : j + 2] = velocity
+
+    def ball_to_target(self) -> float:
+        return float(np.linalg.norm(self.ball_xy() - self.target_xy()))
+
+    def finger_to_ball(self) -> float:
+        return float(np.linalg.norm(self.finger_xy() - self.ball_xy()))
+
+
+def _polar(random: np.random.RandomState, radius: tuple[float, float]) -> np.ndarray:
+    r = random.uniform(*radius)
+    angle = random.uniform(-np.pi, np.pi)
+    return r * np.array([np.cos(angle), np.sin(angle)])
+
+
+class Pusher(base.Task):
+    """Push the ball to within ``success_radius`` of the target; success ends the episode.
+
+    The reward is the dense shaping of :func:`rcvae_torchrl.envs.pusher_reward`, computed here from
+    the physics; it is <= 0 at every step. With ``action_noise_std > 0`` the commanded action gets
+    Gaussian noise from ``self.random`` before it reaches the motors (then clipped to [-1, 1]).
+    """
+
+    def __init__(
+        self,
+        region: InitialStateRegion = IN_DISTRIBUTION,
+        success_radius: float = DEFAULT_SUCCESS_RADIUS,
+        action_noise_std: float = 0.0,
+        random: int | np.random.RandomState | None = None,
+    ) -> None:
+        super().__init__(random=random)
+        self.region = region
+        self.success_radius = float(success_radius)
+        self.action_noise_std = float(action_noise_std)
+        self._action = np.zeros(2)
+
+    def initialize_episode(self, physics: Physics) -> None:
+        rnd, region = self.random, self.region
+        with physics.reset_context():
+            while True:
+                target = _polar(rnd, region.target_radius)
+                ball = _polar(rnd, region.ball_radius)
+                if np.linalg.norm(ball - target) < _MIN_START_DISTANCE:
+                    continue
+                direction = rnd.uniform(-np.pi, np.pi)
+                speed = rnd.uniform(*region.ball_speed)
+                physics.set_ball(ball, speed * np.array([np.cos(direction), np.sin(direction)]))
+                physics.set_target(target)
+                physics.data.qpos[0] = rnd.uniform(-np.pi, np.pi)
+                physics.data.qpos[1] = rnd.uniform(-0.9, 0.9) * WRIST_RANGE
+                signs = rnd.choice([-1.0, 1.0], size=2)
+                physics.data.qvel[:2] = signs * rnd.uniform(*region.joint_speed, size=2)
+                physics.forward()
+                if physics.finger_to_ball() > _START_CLEARANCE:
+                    break
+        self._action = np.zeros(2)
+        super().initialize_episode(physics)
+
+    def before_step(self, action: np.ndarray, physics: Physics) -> None:
+        self._action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        applied = self._action
+        if self.action_noise_std > 0:
+            noise = self.random.standard_normal(2) * self.action_noise_std
+            applied = np.clip(applied + noise, -1.0, 1.0)
+        physics.set_control(applied)
+
+    def get_observation(self, physics: Physics) -> collections.OrderedDict:
+        obs = np.empty(OBSERVATION_DIM)
+        angles = physics.arm_angles()
+        obs[_COS] = np.cos(angles)
+        obs[_SIN] = np.sin(angles)
+        obs[_JOINT_VEL] = physics.arm_velocities()
+        obs[_FINGER] = physics.finger_xy()
+        obs[_BALL] = physics.ball_xy()
+        obs[_BALL_VEL] = physics.ball_velocity()
+        obs[_TARGET] = physics.target_xy()
+        success = physics.ball_to_target() <= self.success_radius
+        return collections.OrderedDict(observation=obs, success=np.array([success]))
+
+    def get_reward(self, physics: Physics) -> float:
+        approach = max(physics.finger_to_ball() - CONTACT_DISTANCE, 0.0)
+        cost = ACTION_COST * float(self._action @ self._action)
+        return -(physics.ball_to_target() + APPROACH_WEIGHT * approach) - cost
+
+    def get_termination(self, physics: Physics) -> float | None:
+        return 0.0 if physics.ball_to_target() <= self.success_radius else None
+
+
+def make_environment(
+    region: InitialStateRegion = IN_DISTRIBUTION,
+    *,
+    success_radius: float = DEFAULT_SUCCESS_RADIUS,
+    action_noise_std: float = 0.0,
+    time_limit: float = DEFAULT_TIME_LIMIT,
+    control_timestep: float = CONTROL_TIMESTEP,
+    random: int | np.random.RandomState | None = None,
+) -> control.Environment:
+    """The raw dm_control environment (no TorchRL wrapping)."""
+    physics = Physics.from_xml_string(*get_model_and_assets())
+    task = Pusher(region, success_radius, action_noise_std, random=random)
+    return control.Environment(
+        physics, task, time_limit=time_limit, control_timestep=control_timestep
+    )
