@@ -47,7 +47,8 @@ def _check_args(
         return DEFAULT_ACTION_NOISE_STD if variant == "stochastic" else 0.0
     if not (isinstance(action_noise_std, (int, float)) and action_noise_std >= 0):
         raise ValueError(
-            f"action_noise_std: expected a non-negative standard deviation, got {action_noise_std!r}"
+            "action_noise_std: expected a non-negative standard deviation, "
+            f"got {action_noise_std!r}"
         )
     if variant == "deterministic" and action_noise_std > 0:
         raise ValueError(

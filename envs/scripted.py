@@ -46,7 +46,7 @@ def _dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def arm_jacobian(cos: torch.Tensor, sin: torch.Tensor) -> torch.Tensor:
-    """Fingertip Jacobian ``d(x, y) / d(q1, q2)``, ``[..., 2, 2]``, from joint cos/sin ``[..., 2]``."""
+    """Fingertip Jacobian d(x, y)/d(q1, q2), ``[..., 2, 2]``, from joint cos/sin ``[..., 2]``."""
     c1, c2 = cos.unbind(-1)
     s1, s2 = sin.unbind(-1)
     c12 = c1 * c2 - s1 * s2
