@@ -1,5 +1,6 @@
 """The Pusher domain (installed as ``rcvae_torchrl.envs``)."""
 
+from . import _gl  # noqa: F401  (sets MUJOCO_GL before dm_control loads)
 from .factory import DEFAULT_ACTION_NOISE_STD, VARIANTS, make_pusher_env
 from .functions import DEFAULT_SUCCESS_RADIUS, ball_to_target, pusher_reward, pusher_success
 from .layout import (

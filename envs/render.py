@@ -1,0 +1,100 @@
+"""Offscreen rendering of the Pusher and saving episodes as GIF or MP4."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+
+__all__ = ["gl_unavailable_reason", "record_episode", "render_frame", "save_video"]
+
+
+def _physics(env: EnvBase):
+    base = getattr(env, "base_env", env)
+    dm_env = getattr(base, "_env", None)
+    physics = getattr(dm_env, "physics", None)
+    if physics is None:
+        raise TypeError(
+            f"env: expected a Pusher env from make_pusher_env (a DMControlWrapper inside), "
+            f"got {type(env).__name__}"
+        )
+    return physics
+
+
+def render_frame(
+    env: EnvBase, height: int = 240, width: int = 240, camera: str = "fixed"
+) -> np.ndarray:
+    """The current scene as a uint8 RGB image ``[height, width, 3]`` (MuJoCo offscreen)."""
+    return _physics(env).render(height=height, width=width, camera_id=camera)
+
+
+def gl_unavailable_reason() -> str | None:
+    """None when offscreen rendering works here, else why it does not."""
+    from .factory import make_pusher_env
+
+    try:
+        render_frame(make_pusher_env(seed=0), 16, 16)
+    except Exception as err:  # any backend failure means "cannot render here"
+        return f"offscreen OpenGL unavailable (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): {err}"
+    return None
+
+
+def save_video(frames: list[np.ndarray], path: str | Path, fps: float) -> Path:
+    """Write uint8 frames ``[H, W, 3]`` to a .gif (or .mp4, with imageio-ffmpeg), atomically."""
+    path = Path(path)
+    if path.suffix not in (".gif", ".mp4"):
+        raise ValueError(f"path: expected a .gif or .mp4 file name, got {str(path)!r}")
+    if not frames:
+        raise ValueError("frames: expected at least one frame, got none")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        if path.suffix == ".gif":
+            imageio.mimsave(tmp, frames, duration=1000.0 / fps, loop=0)
+        else:
+            imageio.mimsave(tmp, frames, fps=fps)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def record_episode(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    path: str | Path,
+    max_steps: int = 600,
+    every: int = 2,
+    height: int = 240,
+    width: int = 240,
+) -> TensorDictBase:
+    """Roll ``policy`` out in ``env`` until done, save every ``every``-th frame to ``path``.
+
+    Returns the rollout tensordict; the video plays in real time.
+    """
+    frames = [render_frame(env, height, width)]
+
+    def grab(env_: EnvBase, td: TensorDictBase) -> None:
+        if len(frames) * every <= grab.step:
+            frames.append(render_frame(env_, height, width))
+        grab.step += 1
+
+    grab.step = 1
+    with torch.no_grad():
+        rollout = env.rollout(max_steps, policy, callback=grab, break_when_any_done=True)
+    dt = float(_physics(env).timestep()) * _n_sub_steps(env)
+    save_video(frames, path, fps=1.0 / (dt * every))
+    return rollout
+
+
+def _n_sub_steps(env: EnvBase) -> int:
+    return int(getattr(env, "base_env", env)._env._n_sub_steps)

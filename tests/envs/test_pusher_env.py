@@ -1,0 +1,154 @@
+"""Contract tests of the Pusher env: specs, determinism, regions, reward/success, arguments."""
+
+import functools
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import ParallelEnv
+from torchrl.envs.utils import check_env_specs
+
+from rcvae_torchrl.envs import (
+    IN_DISTRIBUTION,
+    OUT_OF_DISTRIBUTION,
+    VARIANTS,
+    InitialStateRegion,
+    make_pusher_env,
+    obs_indices,
+    pusher_reward,
+    pusher_success,
+)
+from rcvae_torchrl.envs.scripted import make_scripted_policy
+
+BALL, BALL_VEL, JOINT_VEL = obs_indices("ball"), obs_indices("ball_vel"), obs_indices("joint_vel")
+
+
+def _rollout(env, steps=60, policy=None):
+    with torch.no_grad():
+        return env.rollout(steps, policy or make_scripted_policy(), break_when_any_done=False)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_specs(variant):
+    env = make_pusher_env(variant, seed=0)
+    check_env_specs(env)
+    assert env.observation_spec["observation"].shape == (14,)
+    assert env.observation_spec["observation"].dtype == torch.float32
+    assert env.action_spec.shape == (2,)
+    assert torch.equal(env.action_spec.space.low, -torch.ones(2))
+    assert torch.equal(env.action_spec.space.high, torch.ones(2))
+
+
+def test_same_seed_same_rollout_and_different_seeds_differ():
+    a = _rollout(make_pusher_env("stochastic", seed=7))
+    b = _rollout(make_pusher_env("stochastic", seed=7))
+    c = _rollout(make_pusher_env("stochastic", seed=8))
+    assert torch.equal(a["next", "observation"], b["next", "observation"])
+    assert not torch.allclose(a["observation"][0], c["observation"][0])
+
+
+def test_stochastic_differs_from_deterministic_under_same_seed():
+    det = _rollout(make_pusher_env("deterministic", seed=3))
+    sto = _rollout(make_pusher_env("stochastic", seed=3))
+    # Same start state (the noise is drawn after the episode is initialised) ...
+    assert torch.equal(det["observation"][0], sto["observation"][0])
+    # ... but the noisy actuators take the arm elsewhere.
+    assert (det["next", "observation"][-1] - sto["next", "observation"][-1]).abs().max() > 1e-3
+
+
+def _starts(variant, n=40):
+    env = make_pusher_env(variant, seed=11)
+    return torch.stack([env.reset()["observation"] for _ in range(n)])
+
+
+def test_ood_starts_lie_outside_the_training_region():
+    ind, ood = _starts("deterministic"), _starts("ood")
+    r_ind = ind[:, BALL].norm(dim=-1)
+    r_ood = ood[:, BALL].norm(dim=-1)
+    lo, hi = IN_DISTRIBUTION.ball_radius
+    assert ((r_ind >= lo - 1e-4) & (r_ind <= hi + 1e-4)).all()
+    assert (ind[:, BALL_VEL].abs().max() == 0) and (ind[:, JOINT_VEL].abs().max() == 0)
+    lo, hi = OUT_OF_DISTRIBUTION.ball_radius
+    assert ((r_ood >= lo - 1e-4) & (r_ood <= hi + 1e-4)).all()
+    assert r_ood.min() > IN_DISTRIBUTION.ball_radius[1]
+    assert (ood[:, BALL_VEL].norm(dim=-1) >= OUT_OF_DISTRIBUTION.ball_speed[0] - 1e-4).all()
+    assert (ood[:, JOINT_VEL].abs() >= OUT_OF_DISTRIBUTION.joint_speed[0] - 1e-4).all()
+
+
+@pytest.mark.parametrize("variant", ["deterministic", "stochastic"])
+def test_pure_reward_and_success_match_the_env(variant):
+    env = make_pusher_env(variant, seed=5)
+    td = _rollout(env, steps=600)
+    nxt = td["next", "observation"]
+    torch.testing.assert_close(
+        pusher_reward(nxt, td["action"]), td["next", "reward"], atol=1e-5, rtol=0
+    )
+    success = pusher_success(nxt)
+    assert torch.equal(success, td["next", "success"].squeeze(-1))
+    assert success.any(), "the scripted pusher should succeed in this episode"
+    assert torch.equal(td["next", "terminated"].squeeze(-1), success)
+    assert (td["next", "reward"] <= 0).all()
+
+
+def test_random_actions_give_nonpositive_rewards_and_time_limit_truncates():
+    env = make_pusher_env(seed=1, time_limit=1.0)
+    td = env.rollout(100, break_when_any_done=True)
+    assert td.shape == (20,)
+    assert td["next", "truncated"][-1].item() and not td["next", "terminated"].any()
+    assert (td["next", "reward"] <= 0).all()
+
+
+def test_pure_functions_take_any_batch_shape():
+    obs = torch.randn(3, 4, 5, 14) * 0.1
+    act = torch.rand(3, 4, 5, 2) * 2 - 1
+    assert pusher_reward(obs, act).shape == (3, 4, 5, 1)
+    assert pusher_success(obs, 0.05).shape == (3, 4, 5)
+    with pytest.raises(ValueError, match=r"observation: expected shape \[\.\.\., 14\]"):
+        pusher_reward(torch.zeros(3, 13), torch.zeros(3, 2))
+    with pytest.raises(ValueError, match="action: expected shape"):
+        pusher_reward(torch.zeros(3, 14), torch.zeros(3, 3))
+    with pytest.raises(ValueError, match="radius"):
+        pusher_success(obs, 0.0)
+
+
+def test_parallel_env():
+    env = ParallelEnv(2, functools.partial(make_pusher_env, "stochastic", seed=None))
+    try:
+        env.set_seed(0)
+        td = env.rollout(5)
+        assert td["next", "observation"].shape == (2, 5, 14)
+        assert not torch.equal(td["observation"][0, 0], td["observation"][1, 0])
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"variant": "windy"}, "variant: expected one of"),
+        ({"variant": "stochastic", "action_noise_std": -0.1}, "action_noise_std: expected a non"),
+        ({"variant": "deterministic", "action_noise_std": 0.2}, "deterministic variant takes no"),
+        ({"time_limit": 0.0}, "time_limit: expected a positive"),
+        ({"time_limit": -5}, "time_limit: expected a positive"),
+        ({"time_limit": 1.03}, "whole number of control steps"),
+        ({"success_radius": 0}, "success_radius"),
+    ],
+)
+def test_bad_arguments_raise_clear_errors(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        make_pusher_env(**kwargs)
+
+
+def test_region_validation():
+    with pytest.raises(ValueError, match="ball_radius: expected"):
+        InitialStateRegion((0.01, 0.1), (0, 0), (0, 0), (0.1, 0.12))
+    with pytest.raises(ValueError, match="ball_speed"):
+        InitialStateRegion((0.1, 0.12), (0.2, 0.1), (0, 0), (0.1, 0.12))
+
+
+def test_custom_region_and_noise_for_ood():
+    region = InitialStateRegion((0.1, 0.1), (0, 0), (0, 0), (0.15, 0.15))
+    obs = make_pusher_env(region=region, seed=0).reset()["observation"]
+    np.testing.assert_allclose(obs[BALL].norm().item(), 0.1, atol=1e-6)
+    env = make_pusher_env("ood", seed=0, action_noise_std=0.2)
+    assert env.base_env._env.task.action_noise_std == 0.2
