@@ -1,1 +1,84 @@
-"""competency."""
+"""Competency assessment: uncertainty in bits, outcome forecasts and their calibration.
+
+Pure tensor functions (sample / member axes first, batch axes next, state dimension last) and the
+TorchRL-style metric modules built on them. Reference: Acharya, Russell & Ahmed (2022),
+equations 2 and 3 and Table 1.
+"""
+
+from rcvae_torchrl.competency.boundary import Predicate, SuccessBoundary
+from rcvae_torchrl.competency.calibration import (
+    BrierDecomposition,
+    ReliabilityDiagram,
+    brier_decomposition,
+    brier_score,
+    expected_calibration_error,
+    reliability_diagram,
+)
+from rcvae_torchrl.competency.decomposition import (
+    ESTIMATORS,
+    UncertaintyDecomposition,
+    decompose_uncertainty,
+    variance_decomposition,
+)
+from rcvae_torchrl.competency.entropy import gaussian_entropy, histogram_entropy, knn_entropy
+from rcvae_torchrl.competency.intervals import binomial_interval
+from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
+from rcvae_torchrl.competency.mixture import (
+    EntropyBounds,
+    fit_gaussian_mixture_entropy_bounds,
+    gaussian_mixture_entropy_bounds,
+)
+from rcvae_torchrl.competency.outcome import (
+    TimeToSuccess,
+    binary_entropy,
+    first_success_step,
+    outcome_uncertainty,
+    success_probability,
+    time_to_success,
+)
+from rcvae_torchrl.competency.outcome_assessment import (
+    famsec_outcome_assessment,
+    generalized_outcome_assessment,
+    ordinal_distribution,
+    partial_moments,
+)
+
+__all__ = [
+    # entropy estimators (bits)
+    "EntropyBounds",
+    "fit_gaussian_mixture_entropy_bounds",
+    "gaussian_entropy",
+    "gaussian_mixture_entropy_bounds",
+    "histogram_entropy",
+    "knn_entropy",
+    # decompositions
+    "ESTIMATORS",
+    "UncertaintyDecomposition",
+    "decompose_uncertainty",
+    "variance_decomposition",
+    # outcome forecasts
+    "TimeToSuccess",
+    "binary_entropy",
+    "binomial_interval",
+    "first_success_step",
+    "outcome_uncertainty",
+    "success_probability",
+    "time_to_success",
+    # outcome assessment (FaMSeC)
+    "famsec_outcome_assessment",
+    "generalized_outcome_assessment",
+    "ordinal_distribution",
+    "partial_moments",
+    # calibration against real outcomes
+    "BrierDecomposition",
+    "ReliabilityDiagram",
+    "brier_decomposition",
+    "brier_score",
+    "expected_calibration_error",
+    "reliability_diagram",
+    # metric modules
+    "Predicate",
+    "SuccessBoundary",
+    "SuccessMetric",
+    "UncertaintyMetric",
+]

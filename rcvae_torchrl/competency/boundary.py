@@ -1,0 +1,171 @@
+"""User-specified success / failure boundary of a task, evaluated on observation trajectories.
+
+The paper forecasts "the probability of success ... based on a user specified success-failure
+boundary" (Acharya, Russell & Ahmed, 2022, Sec. IV): here a success region (any predicate over
+observations, or a ball around a target), a time limit, and an optional failure predicate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from rcvae_torchrl.competency import _checks
+
+__all__ = ["Predicate", "SuccessBoundary"]
+
+#: ``obs [..., D] -> bool [...]``.
+Predicate = Callable[[Tensor], Tensor]
+
+
+class SuccessBoundary:
+    """Success region + time limit (+ failure region) over trajectories ``[..., T, D]``.
+
+    A trajectory succeeds when it is inside the success region at some step ``t`` with
+    ``t < time_limit`` (step indices along the time axis of the observations) and no failure
+    occurred at or before ``t``. It fails when a failure occurs within the time limit before any
+    success (a failure and a success at the same step count as a failure); otherwise it times out.
+
+    Args:
+        success: predicate ``obs [..., D] -> bool [...]`` for the success region.
+        time_limit: number of steps that count; ``None`` for the whole horizon.
+        time_limit_s: alternatively the limit in seconds, with ``dt`` (steps =
+            ``floor(time_limit_s / dt)``).
+        dt: seconds per step; needed by ``time_limit_s`` and for times in seconds.
+        failure: optional predicate for the failure region.
+
+    Example:
+        >>> boundary = SuccessBoundary.ball(position=[0, 1], target=[2, 3], radius=0.03,
+        ...                                 time_limit_s=30.0, dt=0.05)
+        >>> boundary.time_limit
+        600
+        >>> obs = torch.tensor([[[0.0, 0.0, 0.5, 0.5], [0.5, 0.49, 0.5, 0.5]]])  # [1, T=2, D=4]
+        >>> boundary.success_over_time(obs).tolist()
+        [[False, True]]
+    """
+
+    def __init__(
+        self,
+        success: Predicate,
+        *,
+        time_limit: int | None = None,
+        time_limit_s: float | None = None,
+        dt: float | None = None,
+        failure: Predicate | None = None,
+    ) -> None:
+        if not callable(success):
+            raise TypeError(f"success: expected a callable predicate, got {type(success).__name__}")
+        if failure is not None and not callable(failure):
+            raise TypeError(f"failure: expected a callable predicate, got {type(failure).__name__}")
+        self.success = success
+        self.failure = failure
+        self.dt = dt
+        self.time_limit = _time_limit_steps(time_limit, time_limit_s, dt)
+
+    @classmethod
+    def ball(
+        cls,
+        position: Sequence[int],
+        radius: float,
+        *,
+        target: Sequence[int] | Tensor,
+        **kwargs: object,
+    ) -> SuccessBoundary:
+        """Success when ``‖obs[..., position] - target‖ <= radius`` (Euclidean).
+
+        Args:
+            position: observation indices of the controlled position (e.g. ball x, y).
+            radius: positive radius, in the observation's units.
+            target: observation indices holding the target (a sequence of ints), or a fixed
+                target position (a float tensor of ``len(position)`` entries).
+            **kwargs: ``time_limit``, ``time_limit_s``, ``dt``, ``failure`` as in the constructor.
+        """
+        _checks.check_positive("radius", radius)
+        position = list(position)
+        target_fn = _target_getter(target, len(position))
+
+        def distance(obs: Tensor) -> Tensor:
+            return torch.linalg.vector_norm(obs[..., position] - target_fn(obs), dim=-1)
+
+        return cls.within_distance(distance, radius, **kwargs)
+
+    @classmethod
+    def within_distance(
+        cls, distance: Callable[[Tensor], Tensor], radius: float, **kwargs: object
+    ) -> SuccessBoundary:
+        """Success when ``distance(obs) <= radius``; ``distance``: ``[..., D] -> [...]``."""
+        _checks.check_positive("radius", radius)
+        return cls(lambda obs: distance(obs) <= radius, **kwargs)  # type: ignore[arg-type]
+
+    def success_over_time(self, observation: Tensor) -> Tensor:
+        """Bool ``[..., T]``: in the success region at step ``t``, within the limit, not failed."""
+        inside = self._evaluate(self.success, "success", observation)
+        steps = torch.arange(inside.shape[-1], device=inside.device)
+        inside = inside & (steps < self.time_limit)
+        if self.failure is None:
+            return inside
+        return inside & ~self._failed_by_step(observation)
+
+    def outcome(self, observation: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(success_over_time [..., T], success [...], failure [...])`` for ``[..., T, D]``."""
+        success_over_time = self.success_over_time(observation)
+        success = success_over_time.any(dim=-1)
+        if self.failure is None:
+            return success_over_time, success, torch.zeros_like(success)
+        return success_over_time, success, self._failed_by_step(observation)[..., -1] & ~success
+
+    def _failed_by_step(self, observation: Tensor) -> Tensor:
+        """Bool ``[..., T]``: a failure occurred at or before step ``t`` within the limit."""
+        failed = self._evaluate(self.failure, "failure", observation)
+        steps = torch.arange(failed.shape[-1], device=failed.device)
+        failed = failed & (steps < self.time_limit)
+        return failed.cummax(dim=-1).values
+
+    @staticmethod
+    def _evaluate(predicate: Predicate | None, name: str, observation: Tensor) -> Tensor:
+        _checks.check_min_rank("observation", observation, 2, "[..., T, D]")
+        result = predicate(observation)  # type: ignore[misc]
+        if not isinstance(result, Tensor) or result.shape != observation.shape[:-1]:
+            got = tuple(result.shape) if isinstance(result, Tensor) else type(result).__name__
+            raise ValueError(
+                f"{name}: expected the predicate to map observations {tuple(observation.shape)} "
+                f"to a bool tensor of shape {tuple(observation.shape[:-1])}, got {got}"
+            )
+        return result.to(torch.bool)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(time_limit={self.time_limit}, dt={self.dt})"
+
+
+def _time_limit_steps(steps: int | None, seconds: float | None, dt: float | None) -> int | float:
+    """Resolve the time limit to a number of steps (``inf`` when none is given)."""
+    if dt is not None:
+        _checks.check_positive("dt", dt)
+    if steps is not None and seconds is not None:
+        raise ValueError("time_limit, time_limit_s: expected at most one of them, got both")
+    if steps is not None:
+        _checks.check_positive_int("time_limit", steps)
+        return steps
+    if seconds is None:
+        return math.inf
+    _checks.check_positive("time_limit_s", seconds)
+    if dt is None:
+        raise ValueError("dt: expected the step duration in seconds with time_limit_s, got None")
+    return max(1, math.floor(seconds / dt + 1e-9))
+
+
+def _target_getter(target: Sequence[int] | Tensor, size: int) -> Callable[[Tensor], Tensor]:
+    """Target position from observation indices or a fixed tensor."""
+    if isinstance(target, Tensor) and target.is_floating_point():
+        if target.shape != (size,):
+            raise ValueError(
+                f"target: expected a fixed position of shape ({size},), got {tuple(target.shape)}"
+            )
+        return lambda obs: target.to(obs)
+    indices = [int(i) for i in target]
+    if len(indices) != size:
+        raise ValueError(f"target: expected {size} observation indices, got {indices}")
+    return lambda obs: obs[..., indices]

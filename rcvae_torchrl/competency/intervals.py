@@ -1,0 +1,81 @@
+"""Confidence intervals for a success probability estimated from ``n`` trajectories."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+import torch
+from scipy import stats
+from torch import Tensor
+
+from rcvae_torchrl.competency import _checks
+
+__all__ = ["binomial_interval"]
+
+
+def binomial_interval(
+    successes: Tensor,
+    trials: int | Tensor,
+    confidence: float = 0.95,
+    method: Literal["jeffreys", "wilson"] = "jeffreys",
+) -> tuple[Tensor, Tensor]:
+    """Two-sided interval for a binomial proportion, elementwise.
+
+    - ``"jeffreys"``: equal-tailed quantiles of the Beta(k + ½, n - k + ½) posterior (Jeffreys
+      prior), with the lower end 0 at ``k = 0`` and the upper end 1 at ``k = n`` (Brown, Cai &
+      DasGupta, 2001), from :data:`scipy.stats.beta`.
+    - ``"wilson"``: Wilson's score interval (Wilson, 1927).
+
+    The interval treats the ``n`` trajectories as independent draws, i.e. it covers the sampling
+    noise of the Monte-Carlo forecast, not the disagreement between members (see
+    :func:`~rcvae_torchrl.competency.outcome_uncertainty` for that).
+
+    Args:
+        successes: ``[*batch]`` success counts ``k`` (integers in ``[0, n]``).
+        trials: ``n``, a positive int or a ``[*batch]`` tensor.
+        confidence: coverage in (0, 1).
+        method: ``"jeffreys"`` or ``"wilson"``.
+
+    Returns:
+        ``(low, high)``, float ``[*batch]`` in [0, 1].
+
+    Example:
+        >>> low, high = binomial_interval(torch.tensor(0), 100)
+        >>> float(low), round(float(high), 4)
+        (0.0, 0.0247)
+    """
+    _checks.check_choice("method", method, ("jeffreys", "wilson"))
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence: expected a number in (0, 1), got {confidence!r}")
+    k = torch.as_tensor(successes, dtype=torch.float64)
+    n = torch.as_tensor(trials, dtype=torch.float64, device=k.device).expand_as(k)
+    if bool((n <= 0).any()) or bool((k < 0).any()) or bool((k > n).any()):
+        raise ValueError(
+            f"successes, trials: expected 0 <= successes <= trials and trials > 0, got successes "
+            f"in [{float(k.min())}, {float(k.max())}] and trials in "
+            f"[{float(n.min())}, {float(n.max())}]"
+        )
+    alpha = 1.0 - confidence
+    if method == "jeffreys":
+        low, high = _jeffreys(k, n, alpha)
+    else:
+        low, high = _wilson(k, n, alpha)
+    return low.float(), high.float()
+
+
+def _jeffreys(k: Tensor, n: Tensor, alpha: float) -> tuple[Tensor, Tensor]:
+    k_np, n_np = k.cpu().numpy(), n.cpu().numpy()
+    low = np.where(k_np > 0, stats.beta.ppf(alpha / 2, k_np + 0.5, n_np - k_np + 0.5), 0.0)
+    high = np.where(k_np < n_np, stats.beta.ppf(1 - alpha / 2, k_np + 0.5, n_np - k_np + 0.5), 1.0)
+    return torch.as_tensor(low).to(k.device), torch.as_tensor(high).to(k.device)
+
+
+def _wilson(k: Tensor, n: Tensor, alpha: float) -> tuple[Tensor, Tensor]:
+    z = float(stats.norm.ppf(1 - alpha / 2))
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * torch.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    low = torch.where(k == 0, 0.0, (centre - half).clamp(0.0, 1.0))
+    high = torch.where(k == n, 1.0, (centre + half).clamp(0.0, 1.0))
+    return low, high

@@ -1,0 +1,241 @@
+"""Competency metrics as TorchRL ``LossModule`` s over imagined rollouts.
+
+Both modules read a TensorDict with batch dims ``[E, N, *B, T]`` (ensemble member, sample per
+member, start state(s), time) holding observations ``[E, N, *B, T, D]`` and return a new
+TensorDict with no batch dims: :class:`UncertaintyMetric` under ``"uncertainty"``,
+:class:`SuccessMetric` under ``"competency"`` (both keys configurable with ``set_keys``). They are
+thin wrappers over :func:`~rcvae_torchrl.competency.decompose_uncertainty` and the outcome
+functions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch import Tensor
+from torchrl.objectives import LossModule
+
+from rcvae_torchrl.competency import _checks
+from rcvae_torchrl.competency.boundary import SuccessBoundary
+from rcvae_torchrl.competency.decomposition import ESTIMATORS, decompose_uncertainty
+from rcvae_torchrl.competency.entropy import BinWidth
+from rcvae_torchrl.competency.intervals import binomial_interval
+from rcvae_torchrl.competency.outcome import (
+    outcome_uncertainty,
+    success_probability,
+    time_to_success,
+)
+
+__all__ = ["SuccessMetric", "UncertaintyMetric"]
+
+_LAYOUT = "[E, N, *B, T, D]"
+
+
+def _observation(tensordict: TensorDictBase, key: NestedKey) -> Tensor:
+    obs = tensordict.get(key)
+    _checks.check_min_rank(f"tensordict[{key!r}]", obs, 4, _LAYOUT)
+    return obs
+
+
+class UncertaintyMetric(LossModule):
+    """Total / aleatoric / epistemic uncertainty of imagined observations, in bits.
+
+    The paper's equations 2 and 3 per time step (its Figure 1) and averaged over time (its
+    Table 1), for each observation dimension. Output entries under ``"uncertainty"``, each a
+    sub-TensorDict with ``"total"``, ``"aleatoric"`` and ``"epistemic"``:
+
+    - the three entries themselves: per time step, ``[*B, T, D]`` (``[*B, T]`` for joint
+      estimators: ``"knn"``, ``"mixture"``, ``"gaussian"`` with ``joint=True``);
+    - ``"time_mean"``: averaged over time, ``[*B, D]`` (``[*B]`` joint);
+    - ``"summary"``: averaged over time and reduced over dimensions with ``dim_reduction``
+      (``"sum"``: bits of the product of the per-dimension marginals, an upper bound on the
+      joint entropy; ``"mean"``: bits per dimension), ``[*B]``. The paper's Table 1 reports one
+      number of bits per condition without saying how it combines dimensions; the per-dimension
+      ``time_mean`` lets you pick the dimensions yourself. Joint estimators give the time mean;
+    - ``"by_dim"`` (only with ``dim_names``): ``{name: {"total", "aleatoric", "epistemic"}}``
+      time series ``[*B, T]`` for each named dimension.
+
+    Args:
+        bin_width: histogram bin width, scalar or ``[D]`` (required by ``"histogram"``; optional
+            discretisation for ``"gaussian"`` / ``"knn"``).
+        estimator: ``"histogram"`` (default), ``"gaussian"``, ``"knn"`` or ``"mixture"``.
+        dim_names: optional names of the ``D`` observation dimensions.
+        dim_reduction: ``"sum"`` or ``"mean"`` for ``"summary"``.
+        **estimator_args: other estimator arguments (e.g. ``k``, ``joint``, ``bound``).
+
+    Example:
+        >>> metric = UncertaintyMetric(bin_width=0.1, dim_names=["x", "y"])
+        >>> obs = torch.randn(5, 20, 3, 8, 2)  # E, N, B, T, D
+        >>> rollout = TensorDict({"observation": obs}, batch_size=obs.shape[:-1])
+        >>> out = metric(rollout)
+        >>> out["uncertainty", "total"].shape, out["uncertainty", "time_mean", "epistemic"].shape
+        (torch.Size([3, 8, 2]), torch.Size([3, 2]))
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable keys: ``observation`` (input), ``uncertainty`` (output root)."""
+
+        observation: NestedKey = "observation"
+        uncertainty: NestedKey = "uncertainty"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    bin_width: Tensor | None
+
+    def __init__(
+        self,
+        bin_width: BinWidth | None = None,
+        estimator: str = "histogram",
+        dim_names: Sequence[str] | None = None,
+        dim_reduction: Literal["sum", "mean"] = "sum",
+        **estimator_args: Any,
+    ) -> None:
+        super().__init__()
+        _checks.check_choice("estimator", estimator, tuple(ESTIMATORS))
+        _checks.check_choice("dim_reduction", dim_reduction, ("sum", "mean"))
+        if estimator == "histogram" and bin_width is None:
+            raise ValueError(
+                "bin_width: expected a positive width for the histogram estimator, got None"
+            )
+        width = None if bin_width is None else torch.as_tensor(bin_width, dtype=torch.float32)
+        self.register_buffer("bin_width", width)
+        self.estimator = estimator
+        self.estimator_args = estimator_args
+        self.dim_names = None if dim_names is None else tuple(dim_names)
+        self.dim_reduction = dim_reduction
+
+    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
+        pass
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Decompose ``tensordict[observation]`` ``[E, N, *B, T, D]``; see the class docstring."""
+        obs = _observation(tensordict, self.tensor_keys.observation)
+        if self.dim_names is not None and len(self.dim_names) != obs.shape[-1]:
+            raise ValueError(
+                f"dim_names: expected {obs.shape[-1]} names (one per observation dimension), "
+                f"got {len(self.dim_names)}"
+            )
+        args = dict(self.estimator_args)
+        if self.bin_width is not None:
+            args["bin_width"] = self.bin_width
+        parts = decompose_uncertainty(obs, self.estimator, **args).as_dict()
+        per_dim = parts["total"].ndim == obs.ndim - 2
+        out = TensorDict(parts)
+        time_axis = -2 if per_dim else -1
+        out["time_mean"] = TensorDict({k: v.mean(dim=time_axis) for k, v in parts.items()})
+        out["summary"] = TensorDict({k: self._summary(v, per_dim) for k, v in parts.items()})
+        if per_dim and self.dim_names is not None:
+            out["by_dim"] = TensorDict(
+                {
+                    name: TensorDict({k: v[..., i] for k, v in parts.items()})
+                    for i, name in enumerate(self.dim_names)
+                }
+            )
+        result = TensorDict()
+        result.set(self.tensor_keys.uncertainty, out)
+        return result
+
+    def _summary(self, value: Tensor, per_dim: bool) -> Tensor:
+        if not per_dim:
+            return value.mean(dim=-1)
+        reduced = value.sum(dim=-1) if self.dim_reduction == "sum" else value.mean(dim=-1)
+        return reduced.mean(dim=-1)
+
+
+class SuccessMetric(LossModule):
+    """Forecast P(success) of imagined rollouts against a :class:`SuccessBoundary`.
+
+    Output entries under ``"competency"``:
+
+    - ``"success"``, ``"failure"``: bool ``[E, N, *B]`` per trajectory;
+    - ``"p_success"`` ``[*B]`` (mean over all ``E·N`` trajectories), ``"p_success_member"``
+      ``[E, *B]``;
+    - ``"p_success_low"``, ``"p_success_high"`` ``[*B]``: a ``confidence`` interval for
+      P(success) from the ``E·N`` trajectories treated as independent draws
+      (:func:`~rcvae_torchrl.competency.binomial_interval`, Jeffreys by default) — Monte-Carlo
+      noise only; model disagreement is in ``"outcome_uncertainty"``;
+    - ``"outcome_uncertainty"``: ``"total"`` / ``"aleatoric"`` / ``"epistemic"`` binary entropies
+      in bits ``[*B]`` (:func:`~rcvae_torchrl.competency.outcome_uncertainty`);
+    - ``"time_to_success"``: ``"first_step"`` ``[E, N, *B]`` (``T`` when never),
+      ``"step_probability"`` and ``"success_by_step"`` ``[*B, T]``, ``"mean_steps"`` and
+      ``"median_steps"`` ``[*B]`` among successes (inf when none), and with the boundary's
+      ``dt`` also ``"mean_s"`` / ``"median_s"`` in seconds.
+
+    Args:
+        boundary: the task's success / failure boundary.
+        confidence: coverage of the P(success) interval.
+        interval: ``"jeffreys"`` or ``"wilson"``.
+
+    Example:
+        >>> boundary = SuccessBoundary(lambda obs: obs[..., 0] > 1.0, time_limit=5)
+        >>> obs = torch.randn(4, 25, 3, 10, 2)  # E, N, B, T, D
+        >>> rollout = TensorDict({"observation": obs}, batch_size=obs.shape[:-1])
+        >>> out = SuccessMetric(boundary)(rollout)
+        >>> out["competency", "p_success"].shape, out["competency", "success"].shape
+        (torch.Size([3]), torch.Size([4, 25, 3]))
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable keys: ``observation`` (input), ``competency`` (output root)."""
+
+        observation: NestedKey = "observation"
+        competency: NestedKey = "competency"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+
+    def __init__(
+        self,
+        boundary: SuccessBoundary,
+        confidence: float = 0.95,
+        interval: Literal["jeffreys", "wilson"] = "jeffreys",
+    ) -> None:
+        super().__init__()
+        if not isinstance(boundary, SuccessBoundary):
+            raise TypeError(f"boundary: expected a SuccessBoundary, got {type(boundary).__name__}")
+        _checks.check_choice("interval", interval, ("jeffreys", "wilson"))
+        self.boundary = boundary
+        self.confidence = confidence
+        self.interval = interval
+
+    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
+        pass
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Evaluate ``tensordict[observation]`` ``[E, N, *B, T, D]``; see the class docstring."""
+        obs = _observation(tensordict, self.tensor_keys.observation)
+        success_over_time, success, failure = self.boundary.outcome(obs)
+        p, p_member = success_probability(success)
+        trials = success.shape[0] * success.shape[1]
+        low, high = binomial_interval(
+            success.sum(dim=(0, 1)), trials, self.confidence, self.interval
+        )
+        out = TensorDict(
+            {
+                "success": success,
+                "failure": failure,
+                "p_success": p,
+                "p_success_member": p_member,
+                "p_success_low": low,
+                "p_success_high": high,
+                "outcome_uncertainty": outcome_uncertainty(success).as_dict(),
+                "time_to_success": self._time_to_success(success_over_time),
+            }
+        )
+        result = TensorDict()
+        result.set(self.tensor_keys.competency, out)
+        return result
+
+    def _time_to_success(self, success_over_time: Tensor) -> dict[str, Tensor]:
+        stats = time_to_success(success_over_time)._asdict()
+        if self.boundary.dt is not None:
+            stats["mean_s"] = stats["mean_steps"] * self.boundary.dt
+            stats["median_s"] = stats["median_steps"] * self.boundary.dt
+        return stats
