@@ -90,7 +90,7 @@ def _rollout(
     hidden = ensemble.initial_hidden(state.shape[1:2], state)
     steps: dict[str | tuple[str, str], list[torch.Tensor]] = {k: [] for k in _KEYS}
     for t in range(n_steps):
-        action = _action_at(t, state, grid, actions, policy)
+        action = _action_at(t, state, grid, actions, policy, ensemble.config.action_dim)
         out = ensemble.step(hidden, state, action, generator=generator)
         loc, scale = ensemble.state_loc_scale(state, out.delta_mean, out.delta_std)
         for key, value in zip(_KEYS, (out.observation, action, loc, scale, out.latent)):
@@ -105,6 +105,7 @@ def _action_at(
     grid: tuple[int, ...],
     actions: torch.Tensor | None,
     policy: Policy | None,
+    actions_dim: int,
 ) -> torch.Tensor:
     """a_t in member-major layout ``[E, N·P, A]``, from the open-loop plan or the policy."""
     e, n = grid[:2]
@@ -112,9 +113,10 @@ def _action_at(
         a_t = actions[..., t, :].reshape(1, 1, -1, actions.shape[-1])
         return a_t.expand(e, n, -1, -1).reshape(e, state.shape[1], -1)
     action = policy(state.reshape(*grid, state.shape[-1]))
-    if not isinstance(action, torch.Tensor) or action.shape[:-1] != grid:
+    want = (*grid, actions_dim)
+    if not isinstance(action, torch.Tensor) or tuple(action.shape) != want:
         got = tuple(action.shape) if isinstance(action, torch.Tensor) else type(action).__name__
-        raise ValueError(f"policy: expected actions of shape {(*grid, 'A')}, got {got}.")
+        raise ValueError(f"policy: expected actions of shape {want}, got {got}.")
     check_finite(f"policy output at step {t}", action)
     return action.reshape(e, state.shape[1], -1)
 

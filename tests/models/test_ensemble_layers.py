@@ -1,0 +1,78 @@
+"""EnsembleLinear, EnsembleGRUCell and MemberLayout against per-member references."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from rcvae_torchrl.models import EnsembleGRUCell, EnsembleLinear, EnsembleMLP, MemberLayout
+
+
+def test_ensemble_linear_matches_per_member_affine_maps():
+    torch.manual_seed(0)
+    layer = EnsembleLinear(3, 4, 5)
+    x = torch.randn(3, 2, 7, 4)
+    y = layer(x)
+    assert y.shape == (3, 2, 7, 5)
+    for e in range(3):
+        torch.testing.assert_close(y[e], x[e] @ layer.weight[e] + layer.bias[e])
+
+
+def test_ensemble_linear_init_is_independent_and_bounded():
+    torch.manual_seed(0)
+    layer = EnsembleLinear(4, 16, 8)
+    assert layer.weight.abs().max() <= 16**-0.5
+    assert layer.bias.abs().max() <= 16**-0.5
+    flat = layer.weight.flatten(1)
+    for i in range(4):
+        for j in range(i + 1, 4):
+            assert not torch.equal(flat[i], flat[j])
+
+
+def test_ensemble_mlp_depth_and_shapes():
+    mlp = EnsembleMLP(2, 3, 8, 4, depth=2)
+    assert sum(isinstance(m, EnsembleLinear) for m in mlp) == 3
+    assert mlp(torch.randn(2, 5, 3)).shape == (2, 5, 4)
+
+
+def test_gru_cell_matches_torch_gru_cell():
+    torch.manual_seed(0)
+    cell = EnsembleGRUCell(2, 3, 6)
+    for e in range(2):
+        ref = nn.GRUCell(3, 6)
+        with torch.no_grad():
+            ref.weight_ih.copy_(cell.input_proj.weight[e].T)
+            ref.weight_hh.copy_(cell.hidden_proj.weight[e].T)
+            ref.bias_ih.copy_(cell.input_proj.bias[e])
+            ref.bias_hh.copy_(cell.hidden_proj.bias[e])
+        x, h = torch.randn(2, 9, 3), torch.randn(2, 9, 6)
+        torch.testing.assert_close(cell(x, h)[e], ref(x[e], h[e]))
+
+
+@pytest.mark.parametrize(
+    "member",
+    [
+        torch.tensor([0, 1, 2, 0, 1, 2]),  # round robin, no padding
+        torch.tensor([2, 2, 0, 2, 0]),  # uneven, member 1 empty
+        torch.tensor([1]),
+    ],
+)
+def test_member_layout_round_trip(member):
+    layout = MemberLayout(member, ensemble_size=3)
+    x = torch.randn(member.shape[0], 2, 4)
+    packed = layout.pack(x)
+    assert packed.shape == (3, layout.capacity, 2, 4)
+    assert torch.equal(layout.unpack(packed), x)
+    for i, m in enumerate(member.tolist()):  # particle i sits in its member's row
+        assert any(torch.equal(packed[m, c], x[i]) for c in range(layout.capacity))
+
+
+def test_member_layout_round_robin_has_no_padding():
+    layout = MemberLayout(torch.arange(20) % 5, ensemble_size=5)
+    assert layout.capacity == 4
+
+
+def test_member_layout_rejects_non_flat_member():
+    with pytest.raises(ValueError, match="member must be 1-D"):
+        MemberLayout(torch.zeros(2, 2, dtype=torch.long), 3)

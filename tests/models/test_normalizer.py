@@ -1,0 +1,63 @@
+"""StateNormalizer: fitted statistics, masks, constant dims, state_dict."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rcvae_torchrl.models import StateNormalizer
+
+
+def test_fit_statistics_and_inverse():
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(6, 30, 3, generator=g) * torch.tensor([1.0, 2.0, 0.5]) + 3.0
+    act = torch.rand(6, 30, 2, generator=g)
+    norm = StateNormalizer(3, 2)
+    assert not norm.fitted
+    norm.fit(obs, act)
+    assert norm.fitted
+    torch.testing.assert_close(norm.state_mean, obs.reshape(-1, 3).mean(0))
+    torch.testing.assert_close(norm.state_std, obs.reshape(-1, 3).std(0, correction=0))
+    delta = obs[:, 1:] - obs[:, :-1]
+    torch.testing.assert_close(norm.delta_mean, delta.reshape(-1, 3).mean(0))
+    torch.testing.assert_close(norm.action_mean, act.reshape(-1, 2).mean(0))
+    dims = torch.tensor([0, 2])
+    d = torch.randn(4, 2)
+    torch.testing.assert_close(norm.denormalize_delta(norm.normalize_delta(d, dims), dims), d)
+
+
+def test_constant_dims_get_unit_std():
+    obs = torch.randn(4, 10, 2)
+    obs[..., 1] = 7.0  # constant within and across episodes (a passthrough-like dim)
+    norm = StateNormalizer(2, 1)
+    norm.fit(obs)
+    assert norm.state_std[1] == 1.0 and norm.delta_std[1] == 1.0
+    assert norm.state_mean[1] == 7.0
+    assert torch.isfinite(norm.normalize_state(obs)).all()
+
+
+def test_mask_excludes_padded_steps():
+    obs = torch.zeros(1, 4, 1)
+    obs[0, :3, 0] = torch.tensor([0.0, 1.0, 2.0])
+    obs[0, 3, 0] = 1000.0  # padding
+    mask = torch.tensor([[True, True, True, False]])
+    norm = StateNormalizer(1, 1)
+    norm.fit(obs, mask=mask)
+    assert norm.state_mean.item() == pytest.approx(1.0)
+    assert norm.delta_mean.item() == pytest.approx(1.0)
+    assert norm.delta_std.item() == 1.0  # zero spread → unit std
+
+
+def test_state_dict_round_trip():
+    norm = StateNormalizer(3, 2)
+    norm.fit(torch.randn(2, 5, 3), torch.randn(2, 5, 2))
+    other = StateNormalizer(3, 2)
+    other.load_state_dict(norm.state_dict())
+    assert other.fitted
+    for name, buf in norm.named_buffers():
+        assert torch.equal(buf, getattr(other, name))
+
+
+def test_fit_rejects_single_step():
+    with pytest.raises(ValueError, match=r"T >= 2"):
+        StateNormalizer(3, 1).fit(torch.randn(4, 1, 3))
