@@ -20,7 +20,7 @@ from rcvae_torchrl.models.transition import (
     make_transition_module,
 )
 
-__all__ = [  # noqa: RUF022 (grouped by role, not sorted)
+__all__ = [
     # model
     "RCVAEConfig",
     "RCVAEEnsemble",
