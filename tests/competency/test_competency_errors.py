@@ -1,0 +1,141 @@
+"""Bad input gives clear errors naming the argument, the expectation and what was given."""
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from rcvae_torchrl.competency import (
+    SuccessBoundary,
+    SuccessMetric,
+    UncertaintyMetric,
+    binomial_interval,
+    brier_decomposition,
+    decompose_uncertainty,
+    expected_calibration_error,
+    famsec_outcome_assessment,
+    first_success_step,
+    gaussian_entropy,
+    gaussian_mixture_entropy_bounds,
+    generalized_outcome_assessment,
+    histogram_entropy,
+    knn_entropy,
+    outcome_uncertainty,
+    success_probability,
+    variance_decomposition,
+)
+
+
+def test_wrong_rank():
+    with pytest.raises(
+        ValueError, match=r"samples: expected shape \[N, \*batch, D\].*got shape \(5,\)"
+    ):
+        histogram_entropy(torch.randn(5), 0.1)
+    with pytest.raises(ValueError, match=r"samples: expected shape \[E, N, \*batch, D\]"):
+        decompose_uncertainty(torch.randn(4, 10), bin_width=0.1)
+    with pytest.raises(ValueError, match=r"success: expected shape \[E, N, \*batch\]"):
+        success_probability(torch.ones(3, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"observation.*\[E, N, \*B, T, D\]"):
+        UncertaintyMetric(bin_width=0.1)(TensorDict({"observation": torch.randn(2, 3, 4)}, []))
+
+
+def test_too_few_members():
+    with pytest.raises(ValueError, match=r"samples: .*E >= 2 ensemble members.*got E = 1"):
+        decompose_uncertainty(torch.randn(1, 10, 2), bin_width=0.1)
+    with pytest.raises(ValueError, match="E >= 2"):
+        variance_decomposition(torch.randn(1, 10, 2))
+    with pytest.raises(ValueError, match=r"success: .*E >= 2"):
+        outcome_uncertainty(torch.ones(1, 10, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("width", [0.0, -0.1, float("nan"), [0.1, -1.0]])
+def test_non_positive_bin_width(width):
+    with pytest.raises(ValueError, match="bin_width: expected positive finite widths"):
+        histogram_entropy(torch.randn(10, 2), width)
+
+
+def test_bin_width_of_wrong_length():
+    with pytest.raises(
+        ValueError, match=r"bin_width: expected a scalar or a tensor of shape \[D\] = \[2\]"
+    ):
+        decompose_uncertainty(torch.randn(2, 10, 2), bin_width=[0.1, 0.1, 0.1])
+    with pytest.raises(ValueError, match="bin_width: expected a positive width for the histogram"):
+        UncertaintyMetric()
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_samples(bad):
+    x = torch.randn(3, 10, 2)
+    x[1, 2, 0] = bad
+    for call in (
+        lambda: decompose_uncertainty(x, bin_width=0.1),
+        lambda: gaussian_entropy(x),
+        lambda: knn_entropy(x),
+        lambda: famsec_outcome_assessment(x),
+    ):
+        with pytest.raises(ValueError, match="expected finite values, got"):
+            call()
+
+
+def test_probabilities_outside_unit_interval():
+    with pytest.raises(ValueError, match=r"forecast: expected probabilities in \[0, 1\]"):
+        brier_decomposition(torch.tensor([0.5, 1.2]), torch.tensor([0, 1]))
+    with pytest.raises(ValueError, match=r"success: expected probabilities in \[0, 1\]"):
+        success_probability(torch.tensor([[0.5, -0.1], [0.2, 0.3]]))
+    with pytest.raises(ValueError, match=r"probabilities: expected probabilities in \[0, 1\]"):
+        generalized_outcome_assessment(torch.tensor([0.5, 2.0]), 1)
+    with pytest.raises(ValueError, match=r"weights: expected probabilities in \[0, 1\]"):
+        gaussian_mixture_entropy_bounds(
+            torch.tensor([1.5, -0.5]), torch.zeros(2, 1), torch.ones(2, 1)
+        )
+    with pytest.raises(ValueError, match="outcome: expected binary outcomes"):
+        expected_calibration_error(torch.tensor([0.5, 0.5]), torch.tensor([0.0, 0.3]))
+
+
+def test_mismatched_shapes():
+    with pytest.raises(
+        ValueError, match=r"forecast and outcome: expected the same shape, got \(3,\) and \(4,\)"
+    ):
+        expected_calibration_error(torch.rand(3), torch.ones(4))
+    with pytest.raises(ValueError, match=r"weights: expected shape \[\*batch, K\] = \(2,\)"):
+        gaussian_mixture_entropy_bounds(torch.ones(3) / 3, torch.zeros(2, 1), torch.ones(2, 1))
+    with pytest.raises(ValueError, match="covariances: expected shape"):
+        gaussian_mixture_entropy_bounds(torch.ones(2) / 2, torch.zeros(2, 2), torch.ones(2, 3))
+    metric = UncertaintyMetric(bin_width=0.1, dim_names=["x"])
+    obs = torch.randn(2, 3, 4, 2)
+    with pytest.raises(ValueError, match="dim_names: expected 2 names"):
+        metric(TensorDict({"observation": obs}, obs.shape[:-1]))
+
+
+def test_bad_choices_and_scalars():
+    with pytest.raises(ValueError, match=r"estimator: expected one of .*got 'kde'"):
+        decompose_uncertainty(torch.randn(2, 10, 1), "kde")
+    with pytest.raises(ValueError, match=r"bound: expected one of"):
+        decompose_uncertainty(torch.randn(2, 10, 1), "mixture", bound="middle")
+    with pytest.raises(ValueError, match="k: expected a positive integer"):
+        knn_entropy(torch.randn(10, 1), k=0)
+    with pytest.raises(ValueError, match="expected more than k = 3 samples on axis 0, got N = 3"):
+        knn_entropy(torch.randn(3, 1), k=3)
+    with pytest.raises(ValueError, match="threshold_bin: expected an integer in"):
+        generalized_outcome_assessment(torch.tensor([0.5, 0.5]), 2)
+    with pytest.raises(ValueError, match="confidence: expected a number in"):
+        binomial_interval(torch.tensor(1), 2, confidence=1.5)
+    with pytest.raises(ValueError, match="successes, trials"):
+        binomial_interval(torch.tensor(3), 2)
+    with pytest.raises(TypeError, match="success_over_time: expected a bool tensor"):
+        first_success_step(torch.zeros(2, 3))
+
+
+def test_boundary_errors():
+    with pytest.raises(ValueError, match="radius: expected a positive number"):
+        SuccessBoundary.ball(position=[0], target=[1], radius=0.0)
+    with pytest.raises(ValueError, match="dt: expected the step duration"):
+        SuccessBoundary(lambda o: o[..., 0] > 0, time_limit_s=3.0)
+    with pytest.raises(ValueError, match="time_limit, time_limit_s: expected at most one"):
+        SuccessBoundary(lambda o: o[..., 0] > 0, time_limit=3, time_limit_s=3.0, dt=0.1)
+    with pytest.raises(ValueError, match="target: expected 2 observation indices"):
+        SuccessBoundary.ball(position=[0, 1], target=[2], radius=0.1)
+    with pytest.raises(TypeError, match="boundary: expected a SuccessBoundary"):
+        SuccessMetric(lambda o: o)
+    bad = SuccessBoundary(lambda o: o.sum() > 0)
+    with pytest.raises(ValueError, match="success: expected the predicate to map observations"):
+        bad.success_over_time(torch.randn(2, 5, 3))

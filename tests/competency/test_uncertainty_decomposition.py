@@ -1,0 +1,104 @@
+"""Total / aleatoric / epistemic decompositions (paper equations 2 and 3)."""
+
+import math
+
+import pytest
+import torch
+
+from rcvae_torchrl.competency import (
+    decompose_uncertainty,
+    histogram_entropy,
+    variance_decomposition,
+)
+
+E = 4
+ESTIMATOR_CASES = [
+    ("histogram", {"bin_width": 0.25}, (3, 2)),
+    ("gaussian", {}, (3, 2)),
+    ("gaussian", {"joint": True}, (3,)),
+    ("knn", {"k": 3}, (3,)),
+    ("mixture", {}, (3,)),
+    ("mixture", {"bound": "lower"}, (3,)),
+]
+
+
+@pytest.mark.parametrize(("estimator", "args", "shape"), ESTIMATOR_CASES)
+def test_identical_members_have_no_epistemic_uncertainty(estimator, args, shape):
+    samples = torch.randn(E, 1000, 3, 2)
+    u = decompose_uncertainty(samples, estimator, **args)
+    assert u.total.shape == u.aleatoric.shape == u.epistemic.shape == shape
+    tolerance = 0.1 if estimator == "knn" else 0.03
+    assert u.epistemic.abs().max().item() < tolerance
+    assert u.aleatoric.min().item() > 0.5  # the aleatoric part carries the entropy
+
+
+MIXTURE_ESTIMATOR_CASES = [case for case in ESTIMATOR_CASES if case[0] != "gaussian"]
+
+
+@pytest.mark.parametrize(("estimator", "args", "shape"), MIXTURE_ESTIMATOR_CASES)
+def test_separated_members_have_log2_e_epistemic_bits(estimator, args, shape):
+    offsets = 100.0 * torch.arange(E, dtype=torch.float32).view(E, 1, 1, 1)
+    samples = 0.3 * torch.randn(E, 500, 3, 2) + offsets
+    u = decompose_uncertainty(samples, estimator, **args)
+    assert torch.allclose(u.epistemic, torch.full(shape, math.log2(E)), atol=0.01)
+
+
+def test_gaussian_epistemic_is_half_log_variance_ratio():
+    # Members N(μ_m, 1) with μ = (-1, 1): pooled variance 2, so epistemic = ½·log2(2) = ½ bit
+    # (a moment-matched Gaussian, not the mixture entropy: it grows with the separation).
+    samples = torch.randn(2, 50_000, 1, 3)
+    samples = (samples - samples.mean(dim=1, keepdim=True)) / samples.std(dim=1, keepdim=True)
+    samples = samples + torch.tensor([-1.0, 1.0]).view(2, 1, 1, 1)
+    u = decompose_uncertainty(samples, "gaussian")
+    assert torch.allclose(u.epistemic, torch.full((1, 3), 0.5), atol=1e-3)
+    # Jointly the shift is along (1, 1, 1): pooled covariance I + 11ᵀ, det 4, so 1 bit.
+    joint = decompose_uncertainty(samples, "gaussian", joint=True)
+    assert joint.epistemic.item() == pytest.approx(1.0, abs=0.02)
+
+
+def test_histogram_decomposition_matches_direct_entropies():
+    samples = torch.randn(3, 200, 7, 4) * torch.tensor([1.0, 1.5, 2.0]).view(3, 1, 1, 1)
+    u = decompose_uncertainty(samples, bin_width=torch.tensor([0.1, 0.2, 0.3, 0.4]))
+    width = torch.tensor([0.1, 0.2, 0.3, 0.4])
+    total = histogram_entropy(samples.reshape(600, 7, 4), width)
+    aleatoric = torch.stack([histogram_entropy(s, width) for s in samples]).mean(dim=0)
+    assert torch.allclose(u.total, total, atol=1e-5)
+    assert torch.allclose(u.aleatoric, aleatoric, atol=1e-5)
+    assert torch.allclose(u.epistemic, total - aleatoric, atol=1e-5)
+
+
+def test_histogram_epistemic_is_a_bounded_jensen_shannon_divergence():
+    samples = torch.randn(5, 50, 40, 3) * torch.rand(5, 1, 40, 3) * 3 + torch.randn(5, 1, 40, 3)
+    u = decompose_uncertainty(samples, bin_width=0.3)
+    assert (u.epistemic >= 0).all()
+    assert (u.epistemic <= math.log2(5)).all()
+    assert torch.equal(u.epistemic, (u.total - u.aleatoric).clamp(0, math.log2(5)))
+
+
+def test_histogram_chunking_invariant():
+    samples = torch.randn(3, 40, 11, 3)
+    reference = decompose_uncertainty(samples, bin_width=0.2)
+    chunked = decompose_uncertainty(samples, bin_width=0.2, chunk_elements=1)
+    assert torch.equal(reference.total, chunked.total)
+    assert torch.equal(reference.aleatoric, chunked.aleatoric)
+
+
+def test_degenerate_samples_give_zero_and_never_nan():
+    samples = torch.full((3, 20, 4, 2), 0.7)
+    u = decompose_uncertainty(samples, bin_width=0.1)
+    for value in u.as_dict().values():
+        assert torch.equal(value, torch.zeros(4, 2))
+    for estimator in ("gaussian", "knn", "mixture"):
+        for value in decompose_uncertainty(samples, estimator).as_dict().values():
+            assert torch.isfinite(value).all()
+
+
+def test_variance_decomposition_adds_up_and_matches_construction():
+    member_means = torch.tensor([-2.0, 0.0, 2.0]).view(3, 1, 1, 1)
+    member_std = torch.tensor([0.5, 1.0, 1.5]).view(3, 1, 1, 1)
+    samples = member_means + member_std * torch.randn(3, 20_000, 2, 1)
+    v = variance_decomposition(samples)
+    assert v.total.shape == (2, 1)
+    assert torch.allclose(v.total, v.aleatoric + v.epistemic, atol=1e-5)
+    assert torch.allclose(v.aleatoric, torch.full((2, 1), (0.25 + 1 + 2.25) / 3), atol=0.03)
+    assert torch.allclose(v.epistemic, torch.full((2, 1), 8 / 3), atol=0.02)
