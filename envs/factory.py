@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from torchrl.envs import DMControlWrapper, DoubleToFloat, TransformedEnv
+from torchrl.envs import TransformedEnv
 
 from .functions import DEFAULT_SUCCESS_RADIUS
 from .pusher import (
@@ -15,6 +15,7 @@ from .pusher import (
     InitialStateRegion,
     make_environment,
 )
+from .wrapper import PusherWrapper
 
 __all__ = ["DEFAULT_ACTION_NOISE_STD", "VARIANTS", "make_pusher_env"]
 
@@ -68,9 +69,9 @@ def make_pusher_env(
     success_radius: float = DEFAULT_SUCCESS_RADIUS,
     region: InitialStateRegion | None = None,
     from_pixels: bool = False,
-    device: str = "cpu",
+    device: str | None = None,
 ) -> TransformedEnv:
-    """A TorchRL Pusher env: ``DMControlWrapper`` + ``DoubleToFloat``.
+    """A TorchRL Pusher env: a ``DMControlWrapper`` (``PusherWrapper``) in a ``TransformedEnv``.
 
     Output keys: ``"observation"`` float32 ``[14]`` (layout in :data:`OBSERVATION_LAYOUT`),
     ``"success"`` bool ``[1]`` (ball within ``success_radius`` of the target; success sets
@@ -89,7 +90,7 @@ def make_pusher_env(
         success_radius: ball-to-target distance that counts as success (m).
         region: overrides the variant's initial-state region.
         from_pixels: also return ``"pixels"`` rendered offscreen (needs ``MUJOCO_GL=egl``).
-        device: torch device of the outputs.
+        device: torch device of the outputs (None: CPU, without per-step device casts).
 
     Example:
         >>> env = make_pusher_env("stochastic", seed=0)
@@ -107,8 +108,8 @@ def make_pusher_env(
         time_limit=time_limit,
         control_timestep=control_timestep,
     )
-    base = DMControlWrapper(dm_env, from_pixels=from_pixels, pixels_only=False, device=device)
-    env = TransformedEnv(base, DoubleToFloat())
+    base = PusherWrapper(dm_env, from_pixels=from_pixels, pixels_only=False, device=device)
+    env = TransformedEnv(base)
     if seed is not None:
         env.set_seed(seed)
     return env

@@ -12,6 +12,7 @@ the arm's reach. Physics steps every 0.005 s; the agent acts every :data:`CONTRO
 from __future__ import annotations
 
 import collections
+import math
 import os
 from dataclasses import dataclass
 
@@ -156,10 +157,10 @@ class Physics(mujoco.Physics):
         self.data.qvel[j : j + 2] = velocity
 
     def ball_to_target(self) -> float:
-        return float(np.linalg.norm(self.ball_xy() - self.target_xy()))
+        return math.hypot(*(self.ball_xy() - self.target_xy()))
 
     def finger_to_ball(self) -> float:
-        return float(np.linalg.norm(self.finger_xy() - self.ball_xy()))
+        return math.hypot(*(self.finger_xy() - self.ball_xy()))
 
 
 def _polar(random: np.random.RandomState, radius: tuple[float, float]) -> np.ndarray:
@@ -188,6 +189,7 @@ class Pusher(base.Task):
         self.success_radius = float(success_radius)
         self.action_noise_std = float(action_noise_std)
         self._action = np.zeros(2)
+        self._ball_to_target = self._finger_to_ball = math.inf
 
     def initialize_episode(self, physics: Physics) -> None:
         rnd, region = self.random, self.region
@@ -209,6 +211,7 @@ class Pusher(base.Task):
                 if physics.finger_to_ball() > _START_CLEARANCE:
                     break
         self._action = np.zeros(2)
+        self.after_step(physics)
         super().initialize_episode(physics)
 
     def before_step(self, action: np.ndarray, physics: Physics) -> None:
@@ -219,8 +222,13 @@ class Pusher(base.Task):
             applied = np.clip(applied + noise, -1.0, 1.0)
         physics.set_control(applied)
 
+    def after_step(self, physics: Physics) -> None:
+        """Measure the distances that reward, success and termination share, once per step."""
+        self._ball_to_target = physics.ball_to_target()
+        self._finger_to_ball = physics.finger_to_ball()
+
     def get_observation(self, physics: Physics) -> collections.OrderedDict:
-        obs = np.empty(OBSERVATION_DIM)
+        obs = np.empty(OBSERVATION_DIM, dtype=np.float32)
         angles = physics.arm_angles()
         obs[_COS] = np.cos(angles)
         obs[_SIN] = np.sin(angles)
@@ -229,16 +237,16 @@ class Pusher(base.Task):
         obs[_BALL] = physics.ball_xy()
         obs[_BALL_VEL] = physics.ball_velocity()
         obs[_TARGET] = physics.target_xy()
-        success = physics.ball_to_target() <= self.success_radius
+        success = self._ball_to_target <= self.success_radius
         return collections.OrderedDict(observation=obs, success=np.array([success]))
 
     def get_reward(self, physics: Physics) -> float:
-        approach = max(physics.finger_to_ball() - CONTACT_DISTANCE, 0.0)
+        approach = max(self._finger_to_ball - CONTACT_DISTANCE, 0.0)
         cost = ACTION_COST * float(self._action @ self._action)
-        return -(physics.ball_to_target() + APPROACH_WEIGHT * approach) - cost
+        return -(self._ball_to_target + APPROACH_WEIGHT * approach) - cost
 
     def get_termination(self, physics: Physics) -> float | None:
-        return 0.0 if physics.ball_to_target() <= self.success_radius else None
+        return 0.0 if self._ball_to_target <= self.success_radius else None
 
 
 def make_environment(

@@ -35,3 +35,17 @@ def test_save_video_rejects_bad_input(tmp_path):
         save_video([], tmp_path / "x.avi", fps=10)
     with pytest.raises(ValueError, match="frames: expected at least one frame"):
         save_video([], tmp_path / "x.gif", fps=10)
+
+
+@needs_gl
+def test_pixels_from_the_torchrl_env():
+    from torchrl.envs.utils import check_env_specs
+
+    env = make_pusher_env(seed=0, from_pixels=True)
+    check_env_specs(env)
+    td = env.rollout(2)
+    assert (
+        td["next", "pixels"].shape[-1] == 3
+        and td["next", "pixels"].dtype.is_floating_point is False
+    )
+    assert td["next", "observation"].shape == (2, 14)

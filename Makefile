@@ -1,0 +1,66 @@
+# Two commands on a fresh machine: `make run` (the main job) and `make test` (the test suite).
+# Both create .venv when it is missing and install the project with the pinned stack; a second run
+# reinstalls nothing unless setup.cfg, pyproject.toml or constraints.txt changed.
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+EXTRAS ?= test,dev,docs
+export MUJOCO_GL ?= egl
+export PYTHONUNBUFFERED := 1
+
+.PHONY: run demo test test-slow test-all lint format docs bench system-deps setup clean
+
+run: setup
+	$(PY) recipes/pusher_demo.py
+
+demo: setup
+	$(PY) recipes/pusher_demo.py
+
+test: setup
+	$(PY) -m pytest -q
+
+test-slow: setup
+	$(PY) -m pytest -q -m slow
+
+test-all: setup
+	$(PY) -m pytest -q -m "slow or not slow"
+
+lint: setup
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+format: setup
+	$(VENV)/bin/ruff check --fix .
+	$(VENV)/bin/ruff format .
+
+docs: setup
+	$(VENV)/bin/sphinx-build -W --keep-going -b html docs docs/_build/html
+
+bench: setup
+	$(PY) benchmarks/env_speed.py
+
+setup: system-deps $(STAMP)
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): setup.cfg pyproject.toml constraints.txt | $(PY)
+	$(PY) -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[$(EXTRAS)]"
+	touch $(STAMP)
+
+# Offscreen MuJoCo rendering needs an EGL library (Mesa). Installed only when it is missing.
+system-deps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libEGL.so.1'; then \
+		if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+			echo "installing EGL (Mesa) for offscreen rendering"; \
+			apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq \
+				libegl1 libegl-mesa0 libgl1 libgles2 >/dev/null; \
+		else \
+			echo "warning: no libEGL and no root apt-get: rendering tests will be skipped"; \
+		fi; \
+	fi
+
+clean:
+	rm -rf $(VENV) docs/_build .pytest_cache .ruff_cache
