@@ -1,0 +1,83 @@
+"""Trajectory replay: episodes in a TorchRL replay buffer, windows sampled without crossing them."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data.replay_buffers.samplers import SliceSampler
+
+from .collection import TRAJ_KEY
+
+__all__ = ["make_window_buffer", "sample_windows", "split_episodes"]
+
+
+def make_window_buffer(
+    data: TensorDictBase, window: int, max_size: int | None = None
+) -> TensorDictReplayBuffer:
+    """A replay buffer holding ``data`` ``[frames]``, sampling windows of ``window`` steps.
+
+    ``SliceSampler`` finds episodes by :data:`TRAJ_KEY`, so windows never cross an episode
+    boundary; episodes shorter than ``window`` are never drawn (``strict_length``).
+    """
+    if window < 2:
+        raise ValueError(f"window: expected >= 2 steps, got {window}")
+    _check_flat(data)
+    lengths = torch.unique_consecutive(data[TRAJ_KEY], return_counts=True)[1]
+    if int(lengths.max()) < window:
+        raise ValueError(
+            f"window: expected at most the longest episode ({int(lengths.max())} steps), "
+            f"got {window}"
+        )
+    sampler = SliceSampler(
+        slice_len=window,
+        traj_key=TRAJ_KEY,
+        strict_length=True,
+        truncated_key=None,
+        cache_values=True,
+    )
+    buffer = TensorDictReplayBuffer(
+        storage=LazyTensorStorage(max_size or data.shape[0]), sampler=sampler
+    )
+    buffer.extend(data)
+    return buffer
+
+
+def sample_windows(
+    buffer: TensorDictReplayBuffer, num_windows: int, window: int, members: int | None = None
+) -> TensorDict:
+    """Windows ``[W, L]``, or ``[E, W, L]`` with independent draws for each of ``members``.
+
+    Independent draws give each ensemble member its own resample of the data (sampling with
+    replacement, as a bootstrap does), so members disagree where data is thin.
+    """
+    draws = num_windows * (members or 1)
+    flat = buffer.sample(draws * window)
+    shape = (draws, window) if members is None else (members, num_windows, window)
+    return flat.reshape(*shape)
+
+
+def split_episodes(
+    data: TensorDictBase, val_fraction: float, seed: int = 0
+) -> tuple[TensorDict, TensorDict]:
+    """Split ``data`` ``[frames]`` into (train, validation) by whole episodes."""
+    if not 0.0 < val_fraction < 1.0:
+        raise ValueError(f"val_fraction: expected a fraction in (0, 1), got {val_fraction}")
+    _check_flat(data)
+    ids = data[TRAJ_KEY]
+    episodes = torch.unique(ids)
+    if episodes.numel() < 2:
+        raise ValueError(f"data: expected >= 2 episodes to split, got {episodes.numel()}")
+    g = torch.Generator().manual_seed(seed)
+    n_val = min(max(1, round(val_fraction * episodes.numel())), episodes.numel() - 1)
+    val_ids = episodes[torch.randperm(episodes.numel(), generator=g)[:n_val]]
+    is_val = torch.isin(ids, val_ids)
+    return data[~is_val], data[is_val]
+
+
+def _check_flat(data: TensorDictBase) -> None:
+    if data.ndim != 1 or TRAJ_KEY not in data.keys(True):
+        raise ValueError(
+            f"data: expected a flat TensorDict [frames] with {TRAJ_KEY} episode ids, "
+            f"got batch {tuple(data.shape)} with keys {sorted(map(str, data.keys(True)))[:6]}"
+        )

@@ -1,0 +1,87 @@
+"""Episode collection, exploration policies, episode splits and window sampling."""
+
+import functools
+
+import pytest
+import torch
+
+from rcvae_torchrl.data import (
+    TRAJ_KEY,
+    GaussianExploration,
+    UniformRandomPolicy,
+    collect_episodes,
+    make_exploration_policy,
+    make_window_buffer,
+    sample_windows,
+    split_episodes,
+)
+from rcvae_torchrl.envs import make_pusher_env
+from rcvae_torchrl.envs.scripted import ScriptedPusher
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    policy = make_exploration_policy(UniformRandomPolicy(2, hold=3, seed=0))
+    make_env = functools.partial(make_pusher_env, "deterministic", time_limit=2.0)
+    return collect_episodes(make_env, policy, 6, seed=1, frames_per_batch=50, progress=False)
+
+
+def test_collect_whole_episodes(episodes):
+    ids = episodes[TRAJ_KEY]
+    assert torch.equal(torch.unique(ids), torch.arange(6))
+    assert episodes.shape == (6 * 40,)  # 2 s episodes of 0.05 s steps, random actions never win
+    ends = episodes["next", "done"].squeeze(-1)
+    assert ends.sum() == 6 and ends[-1]
+    # Within an episode, the next observation is the following step's observation.
+    same = ids[1:] == ids[:-1]
+    torch.testing.assert_close(
+        episodes["next", "observation"][:-1][same], episodes["observation"][1:][same]
+    )
+
+
+def test_collection_is_reproducible():
+    make_env = functools.partial(make_pusher_env, "stochastic", time_limit=1.0)
+
+    def run(seed):
+        policy = make_exploration_policy(GaussianExploration(ScriptedPusher(), 0.3, seed=seed))
+        return collect_episodes(make_env, policy, 2, seed=seed, frames_per_batch=20, progress=False)
+
+    a, b, c = run(3), run(3), run(4)
+    assert torch.equal(a["observation"], b["observation"])
+    assert torch.equal(a["action"], b["action"])
+    assert not torch.equal(a["observation"][:5], c["observation"][:5])
+
+
+def test_windows_never_cross_episodes(episodes):
+    buffer = make_window_buffer(episodes, window=16)
+    windows = sample_windows(buffer, num_windows=32, window=16, members=3)
+    assert windows.shape == (3, 32, 16)
+    ids = windows[TRAJ_KEY]
+    assert (ids == ids[..., :1]).all()
+    torch.testing.assert_close(
+        windows["observation"][..., 1:, :], windows["next", "observation"][..., :-1, :]
+    )
+    # Members draw independent windows.
+    assert not torch.equal(windows["observation"][0], windows["observation"][1])
+
+
+def test_split_by_episode(episodes):
+    train, val = split_episodes(episodes, 0.34, seed=0)
+    assert train.shape[0] + val.shape[0] == episodes.shape[0]
+    train_ids, val_ids = set(train[TRAJ_KEY].tolist()), set(val[TRAJ_KEY].tolist())
+    assert not train_ids & val_ids and len(val_ids) == 2
+
+
+def test_bad_inputs(episodes):
+    with pytest.raises(ValueError, match="window: expected >= 2"):
+        make_window_buffer(episodes, window=1)
+    with pytest.raises(ValueError, match="window: expected at most the longest episode"):
+        make_window_buffer(episodes, window=41)
+    with pytest.raises(ValueError, match=r"val_fraction: expected a fraction in \(0, 1\)"):
+        split_episodes(episodes, 1.0)
+    with pytest.raises(ValueError, match="data: expected a flat TensorDict"):
+        split_episodes(episodes.reshape(6, 40), 0.5)
+    with pytest.raises(ValueError, match="noise_std"):
+        GaussianExploration(ScriptedPusher(), -1.0)
+    with pytest.raises(ValueError, match="num_episodes"):
+        collect_episodes(make_pusher_env, None, 0)
