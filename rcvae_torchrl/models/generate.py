@@ -12,7 +12,12 @@ from typing import TYPE_CHECKING
 import torch
 from tensordict import TensorDict
 
-from rcvae_torchrl.models.validation import check_batch_shapes, check_finite, check_trailing
+from rcvae_torchrl.models.validation import (
+    check_batch_shapes,
+    check_dtype,
+    check_finite,
+    check_trailing,
+)
 
 if TYPE_CHECKING:
     from rcvae_torchrl.models.rcvae import RCVAEEnsemble
@@ -130,8 +135,10 @@ def _check_inputs(
     horizon: int | None,
 ) -> None:
     cfg = ensemble.config
+    dtype = ensemble.embed.weight.dtype
     check_trailing("observation", observation, (cfg.obs_dim,), f"[*B, S={cfg.obs_dim}]")
     check_finite("observation", observation)
+    check_dtype("observation", observation, dtype)
     if not isinstance(samples_per_member, int) or samples_per_member < 1:
         raise ValueError(
             f"samples_per_member: expected a positive int, got {samples_per_member!r}."
@@ -150,6 +157,7 @@ def _check_inputs(
         raise ValueError(f"actions: expected shape {what} with T >= 1, got {tuple(actions.shape)}.")
     check_batch_shapes(("observation", "actions"), observation.shape[:-1], actions.shape[:-2])
     check_finite("actions", actions)
+    check_dtype("actions", actions, dtype)
 
 
 def _check_output(states: torch.Tensor) -> None:

@@ -22,11 +22,12 @@ gives the epistemic part of the uncertainty (Lakshminarayanan et al. 2017).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
+from tensordict import TensorDict
 from torch import nn
 
 from rcvae_torchrl.models.config import RCVAEConfig
@@ -186,11 +187,30 @@ class RCVAEEnsemble(nn.Module):
         delta = reparameterize(mean, std, noise_obs, generator)
         return StepOutput(hidden, latent, self.apply_delta(obs_prev, delta), mean, std)
 
-    def generate(self, *args, **kwargs):
-        """Open- or closed-loop imagined rollouts; see :func:`rcvae_torchrl.models.generate`."""
+    def generate(
+        self,
+        observation: torch.Tensor,
+        actions: torch.Tensor | None = None,
+        *,
+        samples_per_member: int = 1,
+        generator: torch.Generator | None = None,
+        policy: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        horizon: int | None = None,
+        requires_grad: bool = False,
+    ) -> TensorDict:
+        """Imagined rollouts ``[E, N, *B, T]``; see :func:`rcvae_torchrl.models.generate`."""
         from rcvae_torchrl.models.generate import generate
 
-        return generate(self, *args, **kwargs)
+        return generate(
+            self,
+            observation,
+            actions,
+            samples_per_member=samples_per_member,
+            generator=generator,
+            policy=policy,
+            horizon=horizon,
+            requires_grad=requires_grad,
+        )
 
     # ----------------------------------------------------------------- training pass
     def observe(
@@ -250,10 +270,11 @@ class RCVAEEnsemble(nn.Module):
         gates_x = self.gru.input_proj(x)
         hidden = self.initial_hidden(observations.shape[1:-2], observations)
         states = []
-        for t in range(n_steps):
+        # unbind, not gates_x[..., t, :]: its backward is one stack, not L full-size zero fills
+        for t, gates_t in enumerate(gates_x.unbind(dim=-2)):
             if mask is not None and t > 0:
                 hidden = hidden * mask[..., t - 1, None].to(hidden.dtype)
-            hidden = gru_update(gates_x[..., t, :], self.gru.hidden_proj(hidden), hidden)
+            hidden = gru_update(gates_t, self.gru.hidden_proj(hidden), hidden)
             states.append(hidden)
         return torch.stack(states, dim=-2), x, prev
 

@@ -29,6 +29,7 @@ from rcvae_torchrl.models.layout import MemberLayout
 from rcvae_torchrl.models.rcvae import RCVAEEnsemble, StepOutput
 from rcvae_torchrl.models.validation import (
     check_batch_shapes,
+    check_dtype,
     check_finite,
     check_member,
     check_trailing,
@@ -169,6 +170,8 @@ class RCVAETransition(TensorDictModuleBase):
         check_batch_shapes((names[0], names[2]), obs.shape[:-1], hidden.shape[: -len(hid)])
         check_finite(names[0], obs)
         check_finite(names[1], action)
+        for name, x in zip(names[:3], (obs, action, hidden)):
+            check_dtype(name, x, self.ensemble.embed.weight.dtype)
         if self.trajectory_sampling == "ts_inf":
             if member is None:
                 raise KeyError(f"{names[4]}: missing; 'ts_inf' needs the member of each particle.")

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["check_batch_shapes", "check_finite", "check_member", "check_trailing"]
+__all__ = [
+    "check_batch_shapes",
+    "check_dtype",
+    "check_finite",
+    "check_member",
+    "check_trailing",
+]
 
 
 def check_finite(name: str, x: torch.Tensor) -> None:
@@ -51,3 +57,9 @@ def check_member(member: torch.Tensor, ensemble_size: int, name: str = "member")
             f"{name}: expected values in [0, {ensemble_size}), got range "
             f"[{int(member.min())}, {int(member.max())}]."
         )
+
+
+def check_dtype(name: str, x: torch.Tensor, dtype: torch.dtype) -> None:
+    """Raise ``TypeError`` unless ``x`` has the model's floating dtype."""
+    if x.dtype != dtype:
+        raise TypeError(f"{name}: expected dtype {dtype} (the model's), got {x.dtype}.")

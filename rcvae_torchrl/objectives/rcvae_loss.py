@@ -10,7 +10,12 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
 from rcvae_torchrl.models.rcvae import RCVAEEnsemble, SequenceOutput
-from rcvae_torchrl.models.validation import check_batch_shapes, check_finite, check_trailing
+from rcvae_torchrl.models.validation import (
+    check_batch_shapes,
+    check_dtype,
+    check_finite,
+    check_trailing,
+)
 from rcvae_torchrl.objectives.functional import free_bits, gaussian_kl, gaussian_nll, masked_mean
 
 __all__ = ["RCVAELoss"]
@@ -181,6 +186,8 @@ class RCVAELoss(LossModule):
         )
         check_finite(str(keys.observation), obs)
         check_finite(str(keys.action), action)
+        for key, x in ((keys.observation, obs), (keys.action, action)):
+            check_dtype(str(key), x, self.ensemble.embed.weight.dtype)
         mask = td.get(keys.mask, None)
         if mask is not None and (mask.dtype != torch.bool or mask.shape != td.batch_size):
             raise ValueError(

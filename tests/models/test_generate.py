@@ -118,6 +118,8 @@ def _nan(shape, where=0):
         (torch.zeros(5), None, {}, ValueError, "exactly one of actions"),
         (torch.zeros(5), None, {"policy": torch.tanh}, ValueError, "horizon"),
         (torch.zeros(5).long(), torch.zeros(3, 2), {}, TypeError, "floating-point"),
+        (torch.zeros(5).double(), torch.zeros(3, 2), {}, TypeError, "observation: expected dtype"),
+        (torch.zeros(5), torch.zeros(3, 2).double(), {}, TypeError, "actions: expected dtype"),
     ],
 )
 def test_input_errors(ensemble, obs, actions, kwargs, error, match):

@@ -141,6 +141,7 @@ def _corrupt(key, value):
         ),
         (_corrupt("member", lambda m: m + 4), ValueError, r"member: expected values in \[0, 4\)"),
         (_corrupt("member", lambda m: m.float()), TypeError, "member: expected an int64"),
+        (_corrupt("action", lambda x: x.double()), TypeError, "action: expected dtype"),
     ],
 )
 def test_bad_values(ensemble, corrupt, error, match):

@@ -145,6 +145,11 @@ def test_open_loop_gradients_flow_through_fed_back_samples(ensemble, windows):
             r"action: expected shape \[..., L, A=2\]",
         ),
         (
+            lambda td: td.set("observation", td["observation"].double()),
+            TypeError,
+            "observation: expected dtype torch.float32",
+        ),
+        (
             lambda td: td.set(("collector", "mask"), torch.ones(5, 8)),
             ValueError,
             "expected a bool mask",

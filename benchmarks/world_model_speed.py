@@ -1,0 +1,165 @@
+"""World-model speed: one vectorised training step for E members, and generation throughput.
+
+Pusher-sized model (S = 14, A = 2, the defaults of ``RCVAEConfig``: H = 128, Z = 8, MLP 128).
+On a shared machine, OpenMP threads that wait for busy cores distort timings badly; compare
+``--threads 1`` runs there (the JSON records the load average).
+
+1. Training step (loss forward + backward + Adam) on 64 windows × L = 32 per member, E = 1 vs
+   E = 5, median of repeats; target: E = 5 step ≤ 3 × E = 1 step. Also for a small model
+   (H = MLP = 32): the ratio depends on whether an E = 1 step is overhead- or FLOP-bound.
+2. Generation throughput in model-steps/s (member × sample × step) at N = 16, 256, 4096 samples
+   per member: the vectorised ``generate`` against a Python loop over single members, same run.
+3. One transition step for E·N particles: member-major ``ensemble.step`` against the indexed
+   layout (``RCVAETransition``, TS-∞ with round-robin and random members, and TS-1).
+
+    python benchmarks/world_model_speed.py [--repeats 7] [--horizon 20] [--threads N] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import asdict
+
+import torch
+from _report import median_time, print_table, write_json
+from tensordict import TensorDict
+
+from rcvae_torchrl.models import (
+    RCVAEConfig,
+    RCVAEEnsemble,
+    init_model_state,
+    make_transition_module,
+)
+from rcvae_torchrl.objectives import RCVAELoss
+
+CONFIG = RCVAEConfig(obs_dim=14, action_dim=2, passthrough_dims=(12, 13))
+SMALL = RCVAEConfig(obs_dim=14, action_dim=2, hidden_dim=32, mlp_dim=32, passthrough_dims=(12, 13))
+
+
+def make_model(ensemble_size: int, config: RCVAEConfig = CONFIG) -> RCVAEEnsemble:
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(config, ensemble_size)
+    model.fit_normalizer(torch.randn(16, 50, 14), torch.rand(16, 50, 2) * 2 - 1)
+    return model
+
+
+def train_step_time(
+    config: RCVAEConfig, ensemble_size: int, repeats: int, windows: int = 64, length: int = 32
+) -> float:
+    model = make_model(ensemble_size, config)
+    loss_fn = RCVAELoss(model)
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    batch = (ensemble_size, windows, length)
+    td = TensorDict(
+        observation=torch.randn(*batch, 14), action=torch.rand(*batch, 2), batch_size=batch
+    )
+
+    def step() -> None:
+        out = loss_fn(td)
+        opt.zero_grad()
+        (out["loss_reconstruction"] + out["loss_kl"]).backward()
+        opt.step()
+
+    return median_time(step, repeats=repeats, warmup=2)
+
+
+def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int):
+    """Model-steps/s of vectorised generate and of a Python loop over single members."""
+    obs, actions = torch.zeros(14), torch.rand(horizon, 2) * 2 - 1
+    singles = [model.select_members([m]) for m in range(model.ensemble_size)]
+    work = model.ensemble_size * n * horizon
+
+    def vectorised() -> None:
+        model.generate(obs, actions, samples_per_member=n)
+
+    def looped() -> None:
+        for single in singles:
+            single.generate(obs, actions, samples_per_member=n)
+
+    fast = median_time(vectorised, repeats=repeats)
+    slow = median_time(looped, repeats=repeats)
+    return work / fast, work / slow
+
+
+def transition_times(model: RCVAEEnsemble, n: int, repeats: int) -> dict[str, float]:
+    """Seconds per step for E·n particles in each layout."""
+    e, particles = model.ensemble_size, model.ensemble_size * n
+    obs, action = torch.randn(particles, 14), torch.rand(particles, 2)
+    hidden = torch.zeros(e, n, CONFIG.hidden_dim)
+    times = {
+        "member_major": median_time(
+            lambda: model.step(hidden, obs.view(e, n, 14), action.view(e, n, 2)), repeats=repeats
+        )
+    }
+    g = torch.Generator().manual_seed(0)
+    for name, ts, member in (
+        ("ts_inf_round_robin", "ts_inf", "round_robin"),
+        ("ts_inf_random", "ts_inf", "random"),
+        ("ts1", "ts1", "round_robin"),
+    ):
+        td = init_model_state(model, obs, trajectory_sampling=ts, member=member, generator=g)
+        td["action"] = action
+        module = make_transition_module(model, trajectory_sampling=ts)
+        times[name] = median_time(lambda td=td, module=module: module(td), repeats=repeats)
+    return times
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--horizon", type=int, default=20)
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument("--quick", action="store_true", help="fewer repeats, smallest N only")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    repeats = 3 if args.quick else args.repeats
+    sizes = (16, 256) if args.quick else (16, 256, 4096)
+
+    configs = {"pusher_H128": CONFIG, "small_H32": SMALL}
+    train = {
+        name: {e: train_step_time(cfg, e, repeats) for e in (1, 5)} for name, cfg in configs.items()
+    }
+    ratio = {name: t[5] / t[1] for name, t in train.items()}
+    print_table(
+        "Training step, 64 windows x L=32 per member (median s)",
+        ["model", "E1_step_s", "E5_step_s", "ratio_E5_E1"],
+        [[name, t[1], t[5], ratio[name]] for name, t in train.items()],
+    )
+
+    model = make_model(5)
+    with torch.no_grad():
+        gen = {n: generation_rates(model, n, args.horizon, repeats) for n in sizes}
+        trans = {n: transition_times(model, n, repeats) for n in sizes}
+    print_table(
+        f"Generation, E=5, T={args.horizon} (model-steps/s)",
+        ["N_per_member", "vectorised", "member_loop", "speedup"],
+        [[n, v, loop, v / loop] for n, (v, loop) in gen.items()],
+    )
+    layouts = list(next(iter(trans.values())))
+    print_table(
+        "One transition step for E*N particles (ms)",
+        ["N_per_member", *layouts],
+        [[n, *(1e3 * t[k] for k in layouts)] for n, t in trans.items()],
+    )
+    write_json(
+        "world_model_speed",
+        {
+            "configs": {name: asdict(cfg) for name, cfg in configs.items()},
+            "load_average_1min": os.getloadavg()[0],
+            "train_step_s": {name: {str(e): v for e, v in t.items()} for name, t in train.items()},
+            "train_step_ratio_e5_over_e1": ratio,
+            "train_ratio_target_le_3": {name: r <= 3.0 for name, r in ratio.items()},
+            "generation_steps_per_s": {
+                str(n): {"vectorised": v, "member_loop": loop, "speedup": v / loop}
+                for n, (v, loop) in gen.items()
+            },
+            "transition_step_s": {str(n): t for n, t in trans.items()},
+            "horizon": args.horizon,
+            "repeats": repeats,
+        },
+    )
+
+
+if __name__ == "__main__":
+    main()
