@@ -1,1 +1,19 @@
-"""training."""
+"""Training the world model: the loop, checkpoints, atomic writes."""
+
+from .atomic import atomic_write
+from .checkpoint import FORMAT_VERSION, CheckpointError, load_ensemble, save_ensemble
+from .trainer import TrainConfig, TrainResult, train_ensemble
+
+__all__ = [
+    # loop
+    "TrainConfig",
+    "TrainResult",
+    "train_ensemble",
+    # checkpoints
+    "FORMAT_VERSION",
+    "CheckpointError",
+    "load_ensemble",
+    "save_ensemble",
+    # files
+    "atomic_write",
+]

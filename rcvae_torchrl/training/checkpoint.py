@@ -1,0 +1,121 @@
+"""One-file ensemble checkpoints: weights, normalisation, config and a format version.
+
+``save_ensemble`` writes atomically; ``load_ensemble`` rebuilds the ensemble and raises
+:class:`CheckpointError` with a clear message for a missing, corrupt, truncated, foreign or
+mismatched file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+
+from .atomic import atomic_write
+
+__all__ = ["FORMAT_VERSION", "CheckpointError", "load_ensemble", "save_ensemble"]
+
+FORMAT_VERSION = 1
+_KIND = "rcvae_torchrl.RCVAEEnsemble"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file cannot be used: missing, corrupt, truncated, foreign or mismatched."""
+
+
+def ensemble_payload(ensemble: RCVAEEnsemble, extra: dict[str, Any] | None = None) -> dict:
+    """The checkpoint content of ``ensemble`` (CPU tensors), as written by :func:`save_ensemble`."""
+    return {
+        "kind": _KIND,
+        "format_version": FORMAT_VERSION,
+        "config": dataclasses.asdict(ensemble.config),
+        "ensemble_size": ensemble.ensemble_size,
+        "state_dict": {k: v.detach().cpu() for k, v in ensemble.state_dict().items()},
+        "extra": extra or {},
+    }
+
+
+def save_ensemble(
+    ensemble: RCVAEEnsemble, path: str | Path, extra: dict[str, Any] | None = None
+) -> Path:
+    """Write ``ensemble`` (weights, normalisation, config, format version) to ``path`` atomically.
+
+    Args:
+        ensemble: the trained ensemble.
+        path: destination file (parent folders are created).
+        extra: small picklable metadata stored beside (e.g. the data it was trained on).
+    """
+    payload = ensemble_payload(ensemble, extra)
+    return atomic_write(path, lambda f: torch.save(payload, f))
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Load a checkpoint dict from ``path`` with clear errors (no model is built)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"path: expected an existing checkpoint file, got {str(path)!r}")
+    data = path.read_bytes()
+    try:
+        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises several types for damaged archives
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} is corrupt or truncated ({len(data)} bytes): {err}"
+        ) from err
+    if not isinstance(payload, dict) or "kind" not in payload:
+        raise CheckpointError(f"checkpoint {str(path)!r}: expected an rcvae_torchrl checkpoint")
+    return payload
+
+
+def load_ensemble(
+    path: str | Path,
+    *,
+    map_location: str | torch.device = "cpu",
+    expected_config: RCVAEConfig | None = None,
+) -> RCVAEEnsemble:
+    """Rebuild the ensemble saved by :func:`save_ensemble`.
+
+    Args:
+        path: the checkpoint file.
+        map_location: device of the returned ensemble.
+        expected_config: if given, the saved config must equal it.
+
+    Raises:
+        CheckpointError: missing, corrupt or truncated file; another kind of file; an unknown
+            format version; a config or weights that do not match.
+    """
+    payload = read_checkpoint(path)
+    return ensemble_from_payload(payload, str(path), expected_config).to(map_location)
+
+
+def ensemble_from_payload(
+    payload: dict[str, Any], source: str, expected_config: RCVAEConfig | None = None
+) -> RCVAEEnsemble:
+    """Build an ensemble from a checkpoint dict, checking kind, version, config and weights."""
+    if payload.get("kind") != _KIND:
+        raise CheckpointError(
+            f"checkpoint {source!r}: expected kind {_KIND!r}, got {payload.get('kind')!r}"
+        )
+    version = payload.get("format_version")
+    if version != FORMAT_VERSION:
+        raise CheckpointError(
+            f"checkpoint {source!r}: expected format version {FORMAT_VERSION}, got {version!r}"
+        )
+    try:
+        config = RCVAEConfig(**payload["config"])
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"checkpoint {source!r}: invalid config: {err}") from err
+    if expected_config is not None and config != expected_config:
+        raise CheckpointError(
+            f"checkpoint {source!r}: config mismatch: expected {expected_config}, got {config}"
+        )
+    ensemble = RCVAEEnsemble(config, int(payload["ensemble_size"]))
+    try:
+        ensemble.load_state_dict(payload["state_dict"], strict=True)
+    except RuntimeError as err:
+        raise CheckpointError(f"checkpoint {source!r}: weights do not match: {err}") from err
+    return ensemble

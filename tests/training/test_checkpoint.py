@@ -1,0 +1,83 @@
+"""save_ensemble / load_ensemble: round trip and clear errors for bad files."""
+
+import pytest
+import torch
+
+from rcvae_torchrl.models import RCVAEConfig
+from rcvae_torchrl.training import (
+    FORMAT_VERSION,
+    CheckpointError,
+    atomic_write,
+    load_ensemble,
+    save_ensemble,
+)
+
+
+def _samples(ensemble):
+    g = torch.Generator().manual_seed(5)
+    return ensemble.generate(
+        torch.ones(2, 3), torch.zeros(2, 6, 1), samples_per_member=4, generator=g
+    )["observation"]
+
+
+def test_round_trip_keeps_weights_normaliser_and_config(tmp_path, small_ensemble):
+    ensemble = small_ensemble()
+    ensemble.fit_normalizer(torch.randn(50, 3) * 3 + 1, torch.rand(50, 1))
+    path = save_ensemble(ensemble, tmp_path / "sub" / "model.pt", extra={"note": "x"})
+    loaded = load_ensemble(path, expected_config=ensemble.config)
+    assert loaded.config == ensemble.config and loaded.ensemble_size == 3
+    torch.testing.assert_close(_samples(loaded), _samples(ensemble), rtol=0, atol=0)
+    assert not list(tmp_path.glob("sub/.*.tmp")), "no temporary file left behind"
+
+
+def test_missing_truncated_and_foreign_files(tmp_path, small_ensemble):
+    with pytest.raises(CheckpointError, match="expected an existing checkpoint file"):
+        load_ensemble(tmp_path / "none.pt")
+    path = save_ensemble(small_ensemble(), tmp_path / "m.pt")
+    data = path.read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(CheckpointError, match="corrupt or truncated"):
+        load_ensemble(tmp_path / "cut.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint at all")
+    with pytest.raises(CheckpointError, match="corrupt or truncated"):
+        load_ensemble(tmp_path / "junk.pt")
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="expected an rcvae_torchrl checkpoint"):
+        load_ensemble(tmp_path / "foreign.pt")
+
+
+def _edit(path, tmp_path, change):
+    payload = torch.load(path, weights_only=True)
+    change(payload)
+    torch.save(payload, tmp_path / "edited.pt")
+    return tmp_path / "edited.pt"
+
+
+def test_mismatched_version_config_and_weights(tmp_path, small_ensemble):
+    path = save_ensemble(small_ensemble(), tmp_path / "m.pt")
+    bumped = _edit(path, tmp_path, lambda p: p.update(format_version=FORMAT_VERSION + 1))
+    with pytest.raises(CheckpointError, match="expected format version"):
+        load_ensemble(bumped)
+    other = RCVAEConfig(3, 1, hidden_dim=32)
+    with pytest.raises(CheckpointError, match="config mismatch"):
+        load_ensemble(path, expected_config=other)
+    wrong = _edit(path, tmp_path, lambda p: p["config"].update(hidden_dim=32))
+    with pytest.raises(CheckpointError, match="weights do not match"):
+        load_ensemble(wrong)
+    bad_cfg = _edit(path, tmp_path, lambda p: p["config"].update(hidden_dim=-1))
+    with pytest.raises(CheckpointError, match="invalid config"):
+        load_ensemble(bad_cfg)
+
+
+def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
+    target = tmp_path / "f.bin"
+    atomic_write(target, lambda f: f.write(b"old"))
+
+    def broken(f):
+        f.write(b"half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError, match="disk full"):
+        atomic_write(target, broken)
+    assert target.read_bytes() == b"old"
+    assert [p.name for p in tmp_path.iterdir()] == ["f.bin"]

@@ -1,0 +1,126 @@
+"""train_ensemble: learning, determinism, early stopping, logging, resume after kill -9."""
+
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+
+from rcvae_torchrl.training import CheckpointError, TrainConfig, train_ensemble
+
+CONFIG = TrainConfig(max_steps=40, batch_windows=16, window=8, val_every=10, val_windows=32)
+
+
+def _weights(ensemble):
+    return {k: v.clone() for k, v in ensemble.state_dict().items()}
+
+
+def test_learns_and_logs(linear_data, small_ensemble, tmp_path):
+    train, val = linear_data
+    config = TrainConfig(max_steps=120, batch_windows=16, window=8, val_every=20, lr=3e-3)
+    result = train_ensemble(
+        small_ensemble(), train, val, config, checkpoint_path=tmp_path / "c.pt", progress=False
+    )
+    first, last = result.history[0]["val_loss"], result.history[-1]["best_val_loss"]
+    assert last < first - 0.5, f"validation loss should fall: {first:.3f} -> {last:.3f}"
+    assert result.best_val.shape == (3,) and torch.isfinite(result.best_val).all()
+    logs = list((tmp_path / "logs").rglob("val_loss.csv"))
+    assert logs and len(logs[0].read_text().strip().splitlines()) == len(result.history)
+
+
+def test_same_seed_same_result(linear_data, small_ensemble):
+    train, val = linear_data
+    a = train_ensemble(small_ensemble(seed=1), train, val, CONFIG, progress=False).ensemble
+    b = train_ensemble(small_ensemble(seed=1), train, val, CONFIG, progress=False).ensemble
+    for (name, x), y in zip(a.state_dict().items(), b.state_dict().values()):
+        assert torch.equal(x, y), name
+
+
+def test_early_stopping(linear_data, small_ensemble):
+    train, val = linear_data
+    frozen = TrainConfig(
+        max_steps=1000, batch_windows=8, window=8, val_every=5, lr=1e-30, patience=2
+    )
+    result = train_ensemble(small_ensemble(), train, val, frozen, progress=False)
+    assert result.stopped_early and result.steps == 15  # best at 5, no gain at 10 and 15
+
+
+_SCRIPT = textwrap.dedent(
+    """
+    import os, signal, sys, torch
+    sys.path.insert(0, {tests!r})
+    from conftest import linear_episodes
+    from rcvae_torchrl.data import TRAJ_KEY
+    from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+    from rcvae_torchrl.training import TrainConfig, train_ensemble
+
+    class KillAt:
+        def log_scalar(self, name, value, step):
+            if step == {kill_at}:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+    train, val = linear_episodes(12, 40, 0), linear_episodes(4, 40, 1)
+    val[TRAJ_KEY] += 100
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=16, latent_dim=2, mlp_dim=16), 3)
+    config = TrainConfig(max_steps=40, batch_windows=16, window=8, val_every=10, val_windows=32)
+    result = train_ensemble(model, train, val, config, checkpoint_path={ckpt!r},
+                            resume=True, logger=KillAt(), progress=False)
+    torch.save(result.ensemble.state_dict(), {out!r})
+    """
+)
+
+
+def _run(tmp_path, kill_at, ckpt, out):
+    tests = str(__import__("pathlib").Path(__file__).parent)
+    code = _SCRIPT.format(tests=tests, kill_at=kill_at, ckpt=str(ckpt), out=str(out))
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=300)
+
+
+def test_resume_after_kill_matches_an_uninterrupted_run(tmp_path):
+    ckpt, out = tmp_path / "run.pt", tmp_path / "final.pt"
+    killed = _run(tmp_path, kill_at=30, ckpt=ckpt, out=out)
+    assert killed.returncode == -signal.SIGKILL, killed.stderr.decode()[-2000:]
+    assert ckpt.exists() and not out.exists()
+    resumed = _run(tmp_path, kill_at=-1, ckpt=ckpt, out=out)
+    assert resumed.returncode == 0, resumed.stderr.decode()[-2000:]
+    reference = _run(tmp_path, kill_at=-1, ckpt=tmp_path / "ref.pt", out=tmp_path / "ref_final.pt")
+    assert reference.returncode == 0, reference.stderr.decode()[-2000:]
+    a, b = torch.load(out), torch.load(tmp_path / "ref_final.pt")
+    for name in a:
+        assert torch.equal(a[name], b[name]), name
+
+
+def test_finished_run_is_not_trained_again(linear_data, small_ensemble, tmp_path):
+    train, val = linear_data
+    ckpt = tmp_path / "c.pt"
+    first = train_ensemble(
+        small_ensemble(), train, val, CONFIG, checkpoint_path=ckpt, progress=False
+    )
+    again = train_ensemble(
+        small_ensemble(seed=9),
+        train,
+        val,
+        CONFIG,
+        checkpoint_path=ckpt,
+        resume=True,
+        progress=False,
+    )
+    assert again.steps == first.steps == 40
+    for x, y in zip(first.ensemble.state_dict().values(), again.ensemble.state_dict().values()):
+        assert torch.equal(x, y)
+
+
+def test_bad_resume_arguments(linear_data, small_ensemble, tmp_path):
+    train, val = linear_data
+    with pytest.raises(ValueError, match="resume: expected a checkpoint_path"):
+        train_ensemble(small_ensemble(), train, val, CONFIG, resume=True)
+    ckpt = tmp_path / "c.pt"
+    train_ensemble(small_ensemble(), train, val, CONFIG, checkpoint_path=ckpt, progress=False)
+    other = TrainConfig(max_steps=50, batch_windows=16, window=8, val_every=10)
+    with pytest.raises(CheckpointError, match="another TrainConfig"):
+        train_ensemble(small_ensemble(), train, val, other, checkpoint_path=ckpt, resume=True)
+    with pytest.raises(ValueError, match="window: expected >= 2"):
+        TrainConfig(window=1)
