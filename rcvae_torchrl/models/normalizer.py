@@ -35,6 +35,28 @@ def masked_mean_std(
     return mean, torch.where(std < min_std, torch.ones_like(std), std)
 
 
+def _state_changes(
+    observations: torch.Tensor,
+    mask: torch.Tensor | None,
+    next_observations: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """State changes and their validity mask, from transitions or from trajectories."""
+    if next_observations is not None:
+        if next_observations.shape != observations.shape:
+            raise ValueError(
+                f"next_observations: expected shape {tuple(observations.shape)} (that of "
+                f"observations), got {tuple(next_observations.shape)}."
+            )
+        return next_observations - observations, mask
+    if observations.dim() < 2 or observations.shape[-2] < 2:
+        raise ValueError(
+            "observations: expected trajectories [..., T, S] with T >= 2 (or pass "
+            f"next_observations), got shape {tuple(observations.shape)}."
+        )
+    delta = observations[..., 1:, :] - observations[..., :-1, :]
+    return delta, None if mask is None else mask[..., 1:] & mask[..., :-1]
+
+
 class StateNormalizer(nn.Module):
     """Affine normalisers for states s, actions a and state changes Δ = s_t − s_{t−1}.
 
@@ -73,25 +95,25 @@ class StateNormalizer(nn.Module):
         observations: torch.Tensor,
         actions: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
+        next_observations: torch.Tensor | None = None,
     ) -> None:
-        """Fit all statistics from trajectories.
+        """Fit all statistics from trajectories or from transitions.
 
         Args:
-            observations: states ``[..., T, S]`` with time on dim −2 (T ≥ 2); state changes are
-                taken between consecutive steps.
-            actions: optional actions ``[..., T, A]``; if omitted the action map stays as is.
-            mask: optional bool ``[..., T]`` of valid steps; a state change counts only when
-                both of its steps are valid.
+            observations: states. Without ``next_observations``: trajectories ``[..., T, S]``
+                with time on dim −2 (T ≥ 2); state changes are taken between consecutive steps,
+                so a flat batch of concatenated episodes would count the jumps between episodes.
+                With ``next_observations``: any ``[..., S]`` (e.g. flat TorchRL frames).
+            actions: optional actions ``[..., T, A]`` / ``[..., A]``; if omitted the action map
+                stays as is.
+            mask: optional bool ``[..., T]`` / ``[...]`` of valid steps. For trajectories a state
+                change counts only when both of its steps are valid.
+            next_observations: optional s_{t+1} ``[..., S]`` of each step (TorchRL's
+                ``("next", "observation")``); state changes are ``next − observation``.
         """
-        if observations.dim() < 2 or observations.shape[-2] < 2:
-            raise ValueError(
-                "fit: observations must be [..., T, S] with T >= 2, "
-                f"got shape {tuple(observations.shape)}."
-            )
         self._copy(self.state_mean, self.state_std, masked_mean_std(observations, mask))
-        delta = observations[..., 1:, :] - observations[..., :-1, :]
-        pair_mask = None if mask is None else mask[..., 1:] & mask[..., :-1]
-        self._copy(self.delta_mean, self.delta_std, masked_mean_std(delta, pair_mask))
+        delta, delta_mask = _state_changes(observations, mask, next_observations)
+        self._copy(self.delta_mean, self.delta_std, masked_mean_std(delta, delta_mask))
         if actions is not None:
             self._copy(self.action_mean, self.action_std, masked_mean_std(actions, mask))
         self._fitted.fill_(True)

@@ -50,7 +50,7 @@ class StepOutput(NamedTuple):
 
 
 class SequenceOutput(NamedTuple):
-    """Distributions over the L − 1 transitions of windows ``[E, *B, L]``: ``[E, *B, L−1, ·]``."""
+    """Distributions over the n transitions of windows ``[E, *B, L]``: ``[E, *B, n, ·]``."""
 
     prior_mean: torch.Tensor  #: p(z_t | h_t) mean ``[..., Z]``
     prior_std: torch.Tensor  #: ``[..., Z]``
@@ -218,6 +218,7 @@ class RCVAEEnsemble(nn.Module):
         observations: torch.Tensor,
         actions: torch.Tensor,
         *,
+        next_observations: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
         open_loop_steps: int = 0,
         detach_open_loop: bool = False,
@@ -225,15 +226,17 @@ class RCVAEEnsemble(nn.Module):
     ) -> SequenceOutput:
         """Run windows through the model for the ELBO (teacher forcing, optionally open loop).
 
-        Transition t (t = 0..L−2) reads state s_t and action a_t and explains s_{t+1}; the
-        last action of each window is not used. The last ``open_loop_steps`` transitions (at
-        most L − 2) read the model's own prior sample of s_t instead of the true one, generated
-        from the previous transition; their targets are s_{t+1} − ŝ_t. Gradients flow through
-        the fed-back samples unless ``detach_open_loop``.
+        Transition t reads state s_t and action a_t and explains s_{t+1}: taken from
+        ``next_observations[t]`` when given (L transitions), else from ``observations[t + 1]``
+        (L − 1 transitions; the last action is unused). The last ``open_loop_steps``
+        transitions (at most all but the first) read the model's own prior sample ŝ_t instead
+        of the true s_t, generated from the previous transition; their targets are
+        s_{t+1} − ŝ_t. Gradients flow through the fed-back samples unless ``detach_open_loop``.
 
         Args:
             observations: ``[E, *B, L, S]``.
             actions: ``[E, *B, L, A]``.
+            next_observations: optional ``[E, *B, L, S]``, s_{t+1} of each step.
             mask: optional bool ``[E or 1, *B, L]`` of valid steps. The hidden state is reset
                 to h_0 after an invalid step, so left-padded windows start fresh; masked steps
                 are otherwise computed and must be excluded from the loss by the caller.
@@ -242,9 +245,13 @@ class RCVAEEnsemble(nn.Module):
             generator: torch generator for the latent and fed-back samples.
 
         Returns:
-            a :class:`SequenceOutput` with tensors ``[E, *B, L − 1, ·]``.
+            a :class:`SequenceOutput` with tensors ``[E, *B, n, ·]``, n = number of transitions.
         """
-        n_steps = observations.shape[-2] - 1
+        if next_observations is None:
+            targets = observations[..., 1:, :]
+        else:
+            targets = next_observations
+        n_steps = targets.shape[-2]
         n_open = min(max(int(open_loop_steps), 0), max(n_steps - 1, 0))
         hidden, x, prev = self._teacher_forced(observations, actions, mask, n_steps - n_open)
         if n_open:
@@ -255,7 +262,7 @@ class RCVAEEnsemble(nn.Module):
                 generator,
             )
             hidden, x, prev = (torch.cat(p, dim=-2) for p in zip((hidden, x, prev), opened))
-        return self._explain(hidden, x, prev, observations[..., 1:, :], generator)
+        return self._explain(hidden, x, prev, targets, generator)
 
     def _teacher_forced(
         self,
@@ -320,9 +327,14 @@ class RCVAEEnsemble(nn.Module):
         observations: torch.Tensor,
         actions: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
+        next_observations: torch.Tensor | None = None,
     ) -> None:
-        """Fit the normalisation statistics; see :meth:`StateNormalizer.fit`."""
-        self.normalizer.fit(observations, actions, mask)
+        """Fit the normalisation statistics; see :meth:`StateNormalizer.fit`.
+
+        For flat TorchRL frames ``[F]`` pass ``next_observations=td["next", "observation"]``,
+        so that the jumps between concatenated episodes are not taken for state changes.
+        """
+        self.normalizer.fit(observations, actions, mask, next_observations)
 
     def select_members(self, indices: Sequence[int] | torch.Tensor) -> RCVAEEnsemble:
         """A new ensemble holding copies of the chosen members (and the same normaliser).

@@ -73,11 +73,14 @@ class RCVAELoss(LossModule):
         Attributes:
             observation: states ``[..., L, S]``. Defaults to ``"observation"``.
             action: actions ``[..., L, A]``. Defaults to ``"action"``.
+            next_observation: optional s_{t+1} of each step ``[..., L, S]``. Defaults to
+                ``("next", "observation")``.
             mask: optional bool ``[..., L]`` of valid steps. Defaults to ``("collector", "mask")``.
         """
 
         observation: NestedKey = "observation"
         action: NestedKey = "action"
+        next_observation: NestedKey = ("next", "observation")
         mask: NestedKey = ("collector", "mask")
 
     tensor_keys: _AcceptedKeys
@@ -109,7 +112,7 @@ class RCVAELoss(LossModule):
 
     def _set_in_keys(self) -> None:
         keys = self.tensor_keys
-        self._in_keys = [keys.observation, keys.action, keys.mask]
+        self._in_keys = [keys.observation, keys.action, keys.next_observation, keys.mask]
         self._out_keys = ["loss_reconstruction", "loss_kl"]
 
     @property
@@ -132,17 +135,17 @@ class RCVAELoss(LossModule):
         self._set_in_keys()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs, action, mask = self._read(tensordict)
+        obs, action, next_obs, mask = self._read(tensordict)
         seq = self.ensemble.observe(
             obs,
             action,
+            next_observations=next_obs,
             mask=mask,
             open_loop_steps=self.open_loop_steps,
             detach_open_loop=self.detach_open_loop,
             generator=self.generator,
         )
-        valid = None if mask is None else mask[..., 1:] & mask[..., :-1]
-        return self._reduce(seq, valid)
+        return self._reduce(seq, _transition_mask(mask, with_next=next_obs is not None))
 
     def _reduce(self, seq: SequenceOutput, valid: torch.Tensor | None) -> TensorDict:
         """Per-step terms ``[E, W, L−1]`` → per-member means ``[E]`` → scalars."""
@@ -168,33 +171,60 @@ class RCVAELoss(LossModule):
             kl_per_member=kl_raw,
         )
 
-    def _read(self, td: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def _read(
+        self, td: TensorDictBase
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None, torch.Tensor | None]:
         """Fetch and check the windows; return them member-major ``[E, W, L, ·]``."""
-        keys, cfg, e = self.tensor_keys, self.ensemble.config, self.ensemble.ensemble_size
+        keys, e = self.tensor_keys, self.ensemble.ensemble_size
         if td.batch_dims not in (2, 3) or (td.batch_dims == 3 and td.batch_size[0] != e):
             raise ValueError(
                 f"RCVAELoss: expected a tensordict with batch [W, L] or [E={e}, W, L], "
                 f"got batch {tuple(td.batch_size)}."
             )
-        if td.batch_size[-1] < 2:
-            raise ValueError(f"RCVAELoss: windows need L >= 2 steps, got L={td.batch_size[-1]}.")
-        obs, action = td.get(keys.observation), td.get(keys.action)
-        check_trailing(str(keys.observation), obs, (cfg.obs_dim,), f"[..., L, S={cfg.obs_dim}]")
-        check_trailing(str(keys.action), action, (cfg.action_dim,), f"[..., L, A={cfg.action_dim}]")
-        check_batch_shapes(
-            (str(keys.observation), str(keys.action)), obs.shape[:-1], action.shape[:-1]
+        next_obs = td.get(keys.next_observation, None)
+        if td.batch_size[-1] < (1 if next_obs is not None else 2):
+            raise ValueError(
+                f"RCVAELoss: windows need at least one transition, got L={td.batch_size[-1]}"
+                f"{'' if next_obs is not None else ' without next observations'}."
+            )
+        tensors = [td.get(keys.observation), td.get(keys.action), next_obs]
+        self._check(tensors)
+        mask = self._read_mask(td)
+        if td.batch_dims == 2:
+            tensors = [None if x is None else x.expand(e, *x.shape) for x in tensors]
+            mask = None if mask is None else mask.unsqueeze(0)
+        return (*tensors, mask)
+
+    def _check(self, tensors: list[torch.Tensor | None]) -> None:
+        keys, cfg = self.tensor_keys, self.ensemble.config
+        dtype = self.ensemble.embed.weight.dtype
+        obs_key, act_key, next_key = map(
+            str, (keys.observation, keys.action, keys.next_observation)
         )
-        check_finite(str(keys.observation), obs)
-        check_finite(str(keys.action), action)
-        for key, x in ((keys.observation, obs), (keys.action, action)):
-            check_dtype(str(key), x, self.ensemble.embed.weight.dtype)
-        mask = td.get(keys.mask, None)
+        for key, x, size, what in (
+            (obs_key, tensors[0], cfg.obs_dim, f"[..., L, S={cfg.obs_dim}]"),
+            (act_key, tensors[1], cfg.action_dim, f"[..., L, A={cfg.action_dim}]"),
+            (next_key, tensors[2], cfg.obs_dim, f"[..., L, S={cfg.obs_dim}]"),
+        ):
+            if x is None:
+                continue
+            check_trailing(key, x, (size,), what)
+            check_batch_shapes((obs_key, key), tensors[0].shape[:-1], x.shape[:-1])
+            check_finite(key, x)
+            check_dtype(key, x, dtype)
+
+    def _read_mask(self, td: TensorDictBase) -> torch.Tensor | None:
+        mask = td.get(self.tensor_keys.mask, None)
         if mask is not None and (mask.dtype != torch.bool or mask.shape != td.batch_size):
             raise ValueError(
-                f"{keys.mask}: expected a bool mask of shape {tuple(td.batch_size)}, got "
-                f"{mask.dtype} {tuple(mask.shape)}."
+                f"{self.tensor_keys.mask}: expected a bool mask of shape "
+                f"{tuple(td.batch_size)}, got {mask.dtype} {tuple(mask.shape)}."
             )
-        if td.batch_dims == 2:
-            obs, action = obs.expand(e, *obs.shape), action.expand(e, *action.shape)
-            mask = None if mask is None else mask.unsqueeze(0)
-        return obs, action, mask
+        return mask
+
+
+def _transition_mask(mask: torch.Tensor | None, with_next: bool) -> torch.Tensor | None:
+    """Which transitions count: step t's own (with next observations), else t and t + 1."""
+    if mask is None or with_next:
+        return mask
+    return mask[..., 1:] & mask[..., :-1]

@@ -58,6 +58,21 @@ def test_state_dict_round_trip():
         assert torch.equal(buf, getattr(other, name))
 
 
-def test_fit_rejects_single_step():
+def test_fit_from_flat_transitions_ignores_episode_jumps():
+    """Two episodes concatenated as flat frames: with next observations, the jump between
+    them is not a state change."""
+    episode = torch.arange(5.0)[:, None]  # s_t = t, state change 1 every step
+    frames = torch.cat([episode, episode + 100.0])  # [10, 1]
+    next_frames = frames + 1.0
+    norm = StateNormalizer(1, 1)
+    norm.fit(frames, next_observations=next_frames)
+    assert norm.delta_mean.item() == 1.0 and norm.delta_std.item() == 1.0  # zero spread
+    norm.fit(frames)  # as one trajectory: the jump of 96 counts
+    assert norm.delta_mean.item() > 1.0
+
+
+def test_fit_errors():
     with pytest.raises(ValueError, match=r"T >= 2"):
         StateNormalizer(3, 1).fit(torch.randn(4, 1, 3))
+    with pytest.raises(ValueError, match=r"next_observations: expected shape \(4, 3\)"):
+        StateNormalizer(3, 1).fit(torch.randn(4, 3), next_observations=torch.randn(4, 2))

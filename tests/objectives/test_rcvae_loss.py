@@ -41,7 +41,7 @@ def test_broadcast_windows_equal_member_major_copies(ensemble, windows):
 def test_set_keys(ensemble, windows):
     loss = _seeded(ensemble)
     loss.set_keys(observation="obs", action=("agent", "act"), mask="valid")
-    assert loss.in_keys == ["obs", ("agent", "act"), "valid"]
+    assert loss.in_keys == ["obs", ("agent", "act"), ("next", "observation"), "valid"]
     renamed = windows.clone()
     renamed.rename_key_("observation", "obs")
     renamed.rename_key_("action", ("agent", "act"))
@@ -50,6 +50,41 @@ def test_set_keys(ensemble, windows):
     )
     with pytest.raises(ValueError, match="not an accepted tensordict key"):
         loss.set_keys(reward="r")
+
+
+def test_next_observations_add_the_last_transition(ensemble, windows):
+    """With ("next", "observation"), a window of L steps has L transitions; the targets come
+    from the next observations, so they may differ from the following step's observation
+    (e.g. at an episode's end)."""
+    with_next = windows.clone()
+    following = torch.randn(5, 1, 4)
+    with_next["next", "observation"] = torch.cat([windows["observation"][:, 1:], following], 1)
+    seq = ensemble.observe(
+        with_next["observation"].expand(3, 5, 8, 4),
+        with_next["action"].expand(3, 5, 8, 2),
+        next_observations=with_next["next", "observation"].expand(3, 5, 8, 4),
+    )
+    short = ensemble.observe(
+        windows["observation"].expand(3, 5, 8, 4), windows["action"].expand(3, 5, 8, 2)
+    )
+    assert seq.target.shape[-2] == 8 and short.target.shape[-2] == 7
+    torch.testing.assert_close(seq.target[..., :7, :], short.target)
+    torch.testing.assert_close(seq.prior_mean[..., :7, :], short.prior_mean)
+    out = RCVAELoss(ensemble)(with_next)
+    assert torch.isfinite(out["loss_reconstruction"])
+    single = with_next[:, :1]  # one step with its next observation: one transition
+    assert torch.isfinite(RCVAELoss(ensemble)(single)["nll"])
+
+
+def test_mask_with_next_observations_counts_each_valid_step(ensemble, windows):
+    windows["next", "observation"] = torch.randn(5, 8, 4)
+    mask = torch.ones(5, 8, dtype=torch.bool)
+    mask[:, 7] = False
+    windows["collector", "mask"] = mask
+    padded = windows.clone()
+    padded["next", "observation"][:, 7] = 1e3
+    a, b = _seeded(ensemble)(windows), _seeded(ensemble)(padded)
+    torch.testing.assert_close(a["nll"], b["nll"])
 
 
 def test_beta_and_free_nats(ensemble, windows):
@@ -121,7 +156,7 @@ def test_open_loop_gradients_flow_through_fed_back_samples(ensemble, windows):
     [
         (lambda td: td[:, 0], ValueError, r"batch \[W, L\] or \[E=3, W, L\]"),
         (lambda td: td.expand(2, 5, 8).clone(), ValueError, r"\[E=3, W, L\]"),
-        (lambda td: td[:, :1], ValueError, "L >= 2"),
+        (lambda td: td[:, :1], ValueError, "at least one transition, got L=1 without next"),
         (
             lambda td: td.set(
                 "observation", td["observation"].index_fill(1, torch.tensor(2), torch.nan)
