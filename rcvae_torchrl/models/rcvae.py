@@ -294,16 +294,25 @@ class RCVAEEnsemble(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Continue from the last teacher-forced step, feeding back prior samples."""
         hidden, x, prev = last
-        states, xs, prevs = [], [], []
-        for j in range(actions.shape[-2]):
-            latent = reparameterize(*self.prior(hidden), generator=generator)
-            prev = self.apply_delta(
-                prev, reparameterize(*self.decode(hidden, x, latent), None, generator)
-            )
+        steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
+        for action in actions.unbind(dim=-2):
+            prev = self._sample_next(hidden, x, prev, generator)
             prev = prev.detach() if detach else prev
-            hidden, x = self.recur(hidden, prev, actions[..., j, :])
-            states.append(hidden), xs.append(x), prevs.append(prev)
-        return tuple(torch.stack(v, dim=-2) for v in (states, xs, prevs))
+            hidden, x = self.recur(hidden, prev, action)
+            steps.append((hidden, x, prev))
+        return tuple(torch.stack(v, dim=-2) for v in zip(*steps))
+
+    def _sample_next(
+        self,
+        hidden: torch.Tensor,
+        x: torch.Tensor,
+        prev: torch.Tensor,
+        generator: torch.Generator | None,
+    ) -> torch.Tensor:
+        """s_t ~ p(s_t | h_t, x_t, z_t), z_t ~ p(z_t | h_t): the generative half of :meth:`step`."""
+        latent = reparameterize(*self.prior(hidden), generator=generator)
+        delta = reparameterize(*self.decode(hidden, x, latent), generator=generator)
+        return self.apply_delta(prev, delta)
 
     def _explain(
         self,

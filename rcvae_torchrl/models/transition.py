@@ -40,8 +40,10 @@ __all__ = ["RCVAETransition", "TrajectorySampling", "init_model_state", "make_tr
 TrajectorySampling = Literal["ts_inf", "ts1"]
 
 
-def _next(key: NestedKey) -> tuple[str, ...]:
-    return ("next", *key) if isinstance(key, tuple) else ("next", key)
+def _prefixed(prefix: tuple[str, ...], key: NestedKey) -> NestedKey:
+    if not prefix:
+        return key
+    return (*prefix, *key) if isinstance(key, tuple) else (*prefix, key)
 
 
 class RCVAETransition(TensorDictModuleBase):
@@ -50,14 +52,17 @@ class RCVAETransition(TensorDictModuleBase):
     Reads ``observation [*B, S]``, ``action [*B, A]``, ``hidden [*B, H]`` (``[*B, E, H]`` for
     ``"ts1"``) and ``member [*B]`` (int64; unused by ``"ts1"``); writes
     ``("next", observation)``, ``("next", hidden)``, ``("next", latent) [*B, Z]`` and
-    ``("next", member)``. The latent z_{t+1} is an output only: the recurrence reads the
-    sampled state, not the previous latent.
+    ``("next", member)`` (see ``out_prefix``). The latent z_{t+1} is an output only: the
+    recurrence reads the sampled state, not the previous latent.
 
     Args:
         ensemble: the world model.
         trajectory_sampling: ``"ts_inf"`` or ``"ts1"`` (see module docstring).
         generator: torch generator for all sampling (``None``: the global RNG).
         validate: check shapes, finiteness and member range at each call.
+        out_prefix: where outputs go: ``("next",)`` (default, as ``EnvBase.step`` lays out a
+            transition) or ``()`` to overwrite the input keys in place, which is what the stock
+            ``ModelBasedEnvBase._step`` selects from its world model's output.
         observation_key, action_key, hidden_key, latent_key, member_key: tensordict keys.
 
     Example:
@@ -77,6 +82,7 @@ class RCVAETransition(TensorDictModuleBase):
         trajectory_sampling: TrajectorySampling = "ts_inf",
         generator: torch.Generator | None = None,
         validate: bool = True,
+        out_prefix: tuple[str, ...] = ("next",),
         observation_key: NestedKey = "observation",
         action_key: NestedKey = "action",
         hidden_key: NestedKey = ("rcvae", "hidden"),
@@ -94,10 +100,13 @@ class RCVAETransition(TensorDictModuleBase):
         self.validate = validate
         self.keys = (observation_key, action_key, hidden_key, latent_key, member_key)
         self.in_keys = [observation_key, action_key, hidden_key, member_key]
-        self.out_keys = [_next(k) for k in (observation_key, hidden_key, latent_key, member_key)]
+        self.out_keys = [
+            _prefixed(tuple(out_prefix), k)
+            for k in (observation_key, hidden_key, latent_key, member_key)
+        ]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        obs_k, act_k, hid_k, lat_k, mem_k = self.keys
+        obs_k, act_k, hid_k, _, mem_k = self.keys
         obs, action = tensordict.get(obs_k), tensordict.get(act_k)
         hidden, member = tensordict.get(hid_k), tensordict.get(mem_k, None)
         if self.validate:
@@ -108,10 +117,14 @@ class RCVAETransition(TensorDictModuleBase):
             out, member = self._step_ts_inf(*flat, hidden.reshape(-1, h), member.reshape(-1))
         else:
             out, member = self._step_ts1(*flat, hidden.reshape(-1, e, h))
-        tensordict.set(_next(obs_k), out.observation.reshape(*batch, -1))
-        tensordict.set(_next(hid_k), out.hidden.reshape(*batch, *out.hidden.shape[1:]))
-        tensordict.set(_next(lat_k), out.latent.reshape(*batch, -1))
-        tensordict.set(_next(mem_k), member.reshape(batch))
+        values = (
+            out.observation.reshape(*batch, -1),
+            out.hidden.reshape(*batch, *out.hidden.shape[1:]),
+            out.latent.reshape(*batch, -1),
+            member.reshape(batch),
+        )
+        for key, value in zip(self.out_keys, values):
+            tensordict.set(key, value)
         return tensordict
 
     def _noise(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -184,6 +197,7 @@ def make_transition_module(
     *,
     trajectory_sampling: TrajectorySampling = "ts_inf",
     generator: torch.Generator | None = None,
+    out_prefix: tuple[str, ...] = ("next",),
     **keys: NestedKey,
 ) -> RCVAETransition:
     """Factory for :class:`RCVAETransition` with the library's default keys (DESIGN.md).
@@ -192,7 +206,11 @@ def make_transition_module(
     and ``member_key``.
     """
     return RCVAETransition(
-        ensemble, trajectory_sampling=trajectory_sampling, generator=generator, **keys
+        ensemble,
+        trajectory_sampling=trajectory_sampling,
+        generator=generator,
+        out_prefix=out_prefix,
+        **keys,
     )
 
 

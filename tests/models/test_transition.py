@@ -38,6 +38,18 @@ def test_keys_and_shapes(ensemble, batch, ts):
     assert td["next", "member"].shape == batch and td["next", "member"].dtype == torch.int64
 
 
+def test_out_prefix_in_place_for_model_based_env(ensemble):
+    """out_prefix=() overwrites the state keys, as ModelBasedEnvBase._step expects."""
+    td = _state(ensemble, (6,))
+    start = td["observation"].clone()
+    module = make_transition_module(ensemble, out_prefix=())
+    assert module.out_keys == ["observation", ("rcvae", "hidden"), ("rcvae", "latent"), "member"]
+    out = module(td)
+    assert "next" not in out.keys()
+    assert not torch.equal(out["observation"], start)
+    assert torch.equal(out["observation"][:, 3:], start[:, 3:])
+
+
 def test_init_model_state_members(ensemble):
     td = init_model_state(ensemble, torch.zeros(2, 5, 5))
     assert torch.equal(td["member"].flatten(), torch.arange(10) % 4)
