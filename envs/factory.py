@@ -68,6 +68,7 @@ def make_pusher_env(
     control_timestep: float = CONTROL_TIMESTEP,
     success_radius: float = DEFAULT_SUCCESS_RADIUS,
     region: InitialStateRegion | None = None,
+    terminate_on_success: bool = True,
     from_pixels: bool = False,
     device: str | None = None,
 ) -> TransformedEnv:
@@ -89,6 +90,8 @@ def make_pusher_env(
         control_timestep: seconds per agent action (10 physics steps at the default 0.05 s).
         success_radius: ball-to-target distance that counts as success (m).
         region: overrides the variant's initial-state region.
+        terminate_on_success: end the episode at success (default); if False, episodes run to
+            the time limit and ``"success"`` still reports each step.
         from_pixels: also return ``"pixels"`` rendered offscreen (needs ``MUJOCO_GL=egl``).
         device: torch device of the outputs (None: CPU, without per-step device casts).
 
@@ -105,6 +108,7 @@ def make_pusher_env(
         region,
         success_radius=success_radius,
         action_noise_std=noise,
+        terminate_on_success=terminate_on_success,
         time_limit=time_limit,
         control_timestep=control_timestep,
     )

@@ -172,6 +172,9 @@ def _polar(random: np.random.RandomState, radius: tuple[float, float]) -> np.nda
 class Pusher(base.Task):
     """Push the ball to within ``success_radius`` of the target; success ends the episode.
 
+    With ``terminate_on_success=False`` episodes always run to the time limit (full-length
+    trajectories for world-model data and long-horizon forecast checks).
+
     The reward is the dense shaping of :func:`rcvae_torchrl.envs.pusher_reward`, computed here from
     the physics; it is <= 0 at every step. With ``action_noise_std > 0`` the commanded action gets
     Gaussian noise from ``self.random`` before it reaches the motors (then clipped to [-1, 1]).
@@ -182,12 +185,14 @@ class Pusher(base.Task):
         region: InitialStateRegion = IN_DISTRIBUTION,
         success_radius: float = DEFAULT_SUCCESS_RADIUS,
         action_noise_std: float = 0.0,
+        terminate_on_success: bool = True,
         random: int | np.random.RandomState | None = None,
     ) -> None:
         super().__init__(random=random)
         self.region = region
         self.success_radius = float(success_radius)
         self.action_noise_std = float(action_noise_std)
+        self.terminate_on_success = bool(terminate_on_success)
         self._action = np.zeros(2)
         self._ball_to_target = self._finger_to_ball = math.inf
 
@@ -246,7 +251,8 @@ class Pusher(base.Task):
         return -(self._ball_to_target + APPROACH_WEIGHT * approach) - cost
 
     def get_termination(self, physics: Physics) -> float | None:
-        return 0.0 if self._ball_to_target <= self.success_radius else None
+        success = self._ball_to_target <= self.success_radius
+        return 0.0 if success and self.terminate_on_success else None
 
 
 def make_environment(
@@ -254,13 +260,14 @@ def make_environment(
     *,
     success_radius: float = DEFAULT_SUCCESS_RADIUS,
     action_noise_std: float = 0.0,
+    terminate_on_success: bool = True,
     time_limit: float = DEFAULT_TIME_LIMIT,
     control_timestep: float = CONTROL_TIMESTEP,
     random: int | np.random.RandomState | None = None,
 ) -> control.Environment:
     """The raw dm_control environment (no TorchRL wrapping)."""
     physics = Physics.from_xml_string(*get_model_and_assets())
-    task = Pusher(region, success_radius, action_noise_std, random=random)
+    task = Pusher(region, success_radius, action_noise_std, terminate_on_success, random=random)
     return control.Environment(
         physics, task, time_limit=time_limit, control_timestep=control_timestep
     )

@@ -152,3 +152,11 @@ def test_custom_region_and_noise_for_ood():
     np.testing.assert_allclose(obs[BALL].norm().item(), 0.1, atol=1e-6)
     env = make_pusher_env("ood", seed=0, action_noise_std=0.2)
     assert env.base_env._env.task.action_noise_std == 0.2
+
+
+def test_episodes_can_run_past_success():
+    env = make_pusher_env(seed=5, time_limit=10.0, terminate_on_success=False)
+    with torch.no_grad():
+        td = env.rollout(1000, make_scripted_policy(), break_when_any_done=True)
+    assert td.shape == (200,) and td["next", "truncated"][-1].item()
+    assert td["next", "success"].any() and not td["next", "terminated"].any()
