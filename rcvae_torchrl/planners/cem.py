@@ -325,8 +325,10 @@ def make_cem_planner(env: EnvBase, horizon: int, **kwargs) -> CEMPlanner:
     ``success_key``, the env's observation or done entry whose key ends in ``"success"`` is used.
     Other keyword arguments go to :class:`CEMPlanner` unchanged.
     """
+    evaluation = kwargs.get("evaluation", "auto")
+    scores_itself = evaluation == "env" or (evaluation == "auto" and has_fast_path(env))
     wants_key = kwargs.get("objective") == "success" and kwargs.get("success_key") is None
-    if wants_key and not (has_fast_path(env) and supports_success(env)):
+    if wants_key and not (scores_itself and supports_success(env)):
         kwargs["success_key"] = _find_success_key(env)
     return CEMPlanner(env, horizon, **kwargs)
 

@@ -107,7 +107,9 @@ def test_env_returns_accepts_bc_and_rejects_wrong_shapes():
                 else torch.zeros(4, 3)
             )
 
-    with pytest.raises(ValueError, match=r"Wrong.evaluate_action_sequences result: expected shape"):
+    with pytest.raises(
+        ValueError, match=r"Wrong\.evaluate_action_sequences result: expected shape"
+    ):
         env_returns(Wrong(), td, actions, 5)
-    with pytest.raises(ValueError, match="Wrong.evaluate_action_sequences success: expected"):
+    with pytest.raises(ValueError, match=r"Wrong\.evaluate_action_sequences success: expected"):
         env_returns(Wrong(), td, actions, 5, return_success=True)

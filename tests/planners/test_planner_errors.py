@@ -1,0 +1,104 @@
+"""Bad input gives errors that name the argument, what was expected and what was given."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from planner_envs import AnalyticPointMassEnv, PointMassEnv, RiskyChoiceEnv
+from tensordict import TensorDict
+from torchrl.data import Categorical, Composite
+
+from rcvae_torchrl.planners import CEMPlanner
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"horizon": 0}, "horizon: expected an integer >= 1, got 0"),
+        ({"horizon": -3}, "horizon: expected an integer >= 1, got -3"),
+        ({"horizon": 2.5}, "horizon: expected an integer >= 1, got 2.5"),
+        ({"num_candidates": 0}, "num_candidates: expected an integer >= 1, got 0"),
+        ({"top_k": 11}, "top_k: expected at most num_candidates = 10 elites, got 11"),
+        ({"top_k": 0}, "top_k: expected an integer >= 1, got 0"),
+        ({"iterations": 0}, "iterations: expected an integer >= 1, got 0"),
+        ({"particles": 0}, "particles: expected an integer >= 1, got 0"),
+        ({"momentum": 1.0}, r"momentum: expected a float in \[0, 1\), got 1.0"),
+        ({"momentum": -0.1}, r"momentum: expected a float in \[0, 1\), got -0.1"),
+        ({"objective": "median"}, "objective: expected one of .*, got 'median'"),
+        ({"objective": "cvar", "risk_level": 0.0}, r"risk_level: expected a float in \(0, 1\]"),
+        ({"objective": "quantile", "risk_level": 1.5}, r"risk_level: expected a float in \[0, 1\]"),
+        ({"evaluation": "fast"}, "evaluation: expected one of .*, got 'fast'"),
+        ({"evaluation": "env"}, "evaluation: 'env' needs an env with evaluate_action_sequences"),
+        ({"objective": "success"}, "success_key: expected the key of a success flag"),
+        ({"seed": 0, "generator": torch.Generator()}, "seed: expected None when a generator"),
+        ({"init_std": -1.0}, "init_std: expected positive finite values, got -1.0"),
+    ],
+)
+def test_bad_arguments(kwargs, message):
+    args = {"horizon": 4, "num_candidates": 10, "top_k": 2, **kwargs}
+    with pytest.raises(ValueError, match=message):
+        CEMPlanner(PointMassEnv(), **args)
+
+
+def test_momentum_type():
+    with pytest.raises(TypeError, match="momentum: expected a float in"):
+        CEMPlanner(PointMassEnv(), horizon=4, momentum="0.1")
+
+
+def test_fast_path_conflicts():
+    with pytest.raises(
+        ValueError, match=r"discount: expected 1\.0 when the env scores plans itself"
+    ):
+        CEMPlanner(AnalyticPointMassEnv(), horizon=4, discount=0.9)
+    with pytest.raises(ValueError, match="objective: 'success' needs RiskyChoiceEnv"):
+        CEMPlanner(RiskyChoiceEnv(), horizon=4, objective="success")
+
+
+def test_unsupported_envs():
+    class Locked(PointMassEnv):
+        """Batch-locked, like most real envs (EnvBase.__new__ keeps the flag on the class)."""
+
+    locked = Locked()
+    Locked._batch_locked = True
+    assert locked.batch_locked
+    with pytest.raises(ValueError, match="Environment is batch_locked"):
+        CEMPlanner(locked, horizon=4)
+    env = PointMassEnv()
+    env.full_action_spec = Composite(action=Categorical(3))
+    with pytest.raises(TypeError, match=r"env.full_action_spec\['action'\]: expected a continuous"):
+        CEMPlanner(env, horizon=4)
+
+
+def test_nan_in_the_state():
+    env = PointMassEnv()
+    planner = CEMPlanner(env, horizon=4, num_candidates=10, top_k=2, seed=0)
+    td = env.reset()
+    td["velocity"] = torch.tensor([0.0, float("nan")])
+    with pytest.raises(
+        ValueError, match=r"tensordict\['velocity'\]: expected finite values, got 1 NaN"
+    ):
+        planner(td)
+
+
+def test_wrong_action_shape_given_to_evaluate():
+    env = PointMassEnv()
+    planner = CEMPlanner(env, horizon=4, num_candidates=10, top_k=2, seed=0)
+    td = env.reset(TensorDict(batch_size=(3,)))
+    planner.evaluate(td, torch.zeros(3, 5, 4, 2))
+    for bad in (torch.zeros(3, 5, 4, 3), torch.zeros(2, 5, 4, 2), torch.zeros(3, 4, 2)):
+        with pytest.raises(
+            ValueError, match=r"actions: expected shape \[\*B, C, H, \*A\] with B = \(3,\)"
+        ):
+            planner.evaluate(td, bad)
+
+
+def test_wrong_returns_shape_from_the_env():
+    class Wrong(PointMassEnv):
+        def evaluate_action_sequences(self, td_start, actions, particles):
+            return torch.zeros(actions.shape[0] + 1)
+
+    planner = CEMPlanner(Wrong(), horizon=4, num_candidates=10, top_k=2, seed=0)
+    with pytest.raises(
+        ValueError, match=r"Wrong\.evaluate_action_sequences result: expected shape"
+    ):
+        planner(Wrong().reset())
