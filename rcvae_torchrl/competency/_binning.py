@@ -60,11 +60,10 @@ def grouped_entropies(ids: Tensor) -> tuple[Tensor, Tensor]:
         the per-group entropies.
     """
     groups, n = ids.shape[0], ids.shape[1]
-    low = ids.amin(dim=(0, 1))
-    span = int((ids.amax(dim=(0, 1)) - low).max()) + 1
-    columns = low.numel()
-    if columns * span * groups <= DENSE_FACTOR * ids.numel():
-        pooled_sum, group_sum = _dense_xlogx_sums(ids - low, span)
+    low, high = torch.aminmax(ids.flatten(0, 1), dim=0)
+    spans = (high - low + 1).view(-1)
+    if int(spans.sum()) * groups <= DENSE_FACTOR * ids.numel():
+        pooled_sum, group_sum = _dense_xlogx_sums(ids - low, spans)
     else:
         pooled_sum, group_sum = _sorted_xlogx_sums(ids - low)
     total = math.log2(groups * n) - pooled_sum / (groups * n)
@@ -72,16 +71,36 @@ def grouped_entropies(ids: Tensor) -> tuple[Tensor, Tensor]:
     return total, mean_group
 
 
-def _dense_xlogx_sums(offsets: Tensor, span: int) -> tuple[Tensor, Tensor]:
-    """Σ c·log2 c over pooled and per-group counts from ``bincount``; offsets in [0, span)."""
-    groups, columns = offsets.shape[0], offsets[0, 0].numel()
+def _dense_xlogx_sums(offsets: Tensor, spans: Tensor) -> tuple[Tensor, Tensor]:
+    """Σ c·log2 c over pooled and per-group counts from one ``bincount``.
+
+    Column ``j`` owns the cells ``[start_j, start_j + span_j)`` (times ``G`` groups) of one flat
+    count array, so its size is the total number of bins the columns span.
+    """
+    groups = offsets.shape[0]
+    start = torch.cumsum(spans, dim=0) - spans
     group = torch.arange(groups, device=offsets.device).view(groups, 1, 1, 1)
-    column = torch.arange(columns, device=offsets.device).view(offsets.shape[2:])
-    flat = offsets * groups + (column * (span * groups) + group)
-    counts = torch.bincount(flat.view(-1), minlength=columns * span * groups)
-    counts = counts.view(columns, span, groups).to(torch.float64)
-    pooled = counts.sum(dim=-1)
-    return _xlog2x(pooled).sum(dim=-1), _xlog2x(counts).sum(dim=(-2, -1))
+    flat = (offsets + start.view(offsets.shape[2:])) * groups + group
+    bins = int(spans.sum())
+    counts = torch.bincount(flat.view(-1), minlength=bins * groups)
+    pooled = counts.view(bins, groups).sum(dim=-1)
+    max_count = offsets.shape[0] * offsets.shape[1]
+    pooled_sum = _segment_sums(_xlog2x_counts(pooled, max_count), spans)
+    group_sum = _segment_sums(_xlog2x_counts(counts, max_count), spans * groups)
+    return pooled_sum, group_sum
+
+
+def _segment_sums(values: Tensor, lengths: Tensor) -> Tensor:
+    """Sums of consecutive segments of ``values`` with the given lengths (``[C]`` -> ``[C]``)."""
+    return torch.segment_reduce(values, "sum", lengths=lengths)
+
+
+def _xlog2x_counts(counts: Tensor, max_count: int) -> Tensor:
+    """``c·log2 c`` of integer counts in ``[0, max_count]``; a table lookup when that is cheaper."""
+    if max_count + 1 > counts.numel():
+        return _xlog2x(counts.to(torch.float64))
+    table = torch.arange(max_count + 1, dtype=torch.float64, device=counts.device)
+    return _xlog2x(table)[counts]
 
 
 def _sorted_xlogx_sums(offsets: Tensor) -> tuple[Tensor, Tensor]:

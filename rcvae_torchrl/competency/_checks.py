@@ -45,9 +45,20 @@ def check_floating(name: str, x: Tensor) -> None:
         raise TypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
 
 
+def _all_finite(x: Tensor) -> bool:
+    """True when no entry is NaN or ±inf, via min and max (NaN propagates through both).
+
+    Unlike ``torch.isfinite(x).all()`` this allocates no tensor of the input's size.
+    """
+    if x.numel() == 0:
+        return True
+    low, high = torch.aminmax(x)
+    return bool(torch.isfinite(low)) and bool(torch.isfinite(high))
+
+
 def check_finite(name: str, x: Tensor) -> None:
     """Require every entry of ``x`` to be finite (no NaN, no inf)."""
-    if x.is_floating_point() and not bool(torch.isfinite(x).all()):
+    if x.is_floating_point() and not _all_finite(x):
         n_nan = int(torch.isnan(x).sum())
         n_inf = int(torch.isinf(x).sum())
         raise ValueError(
@@ -78,11 +89,13 @@ def check_members(name: str, x: Tensor, layout: str) -> None:
 
 def check_probability(name: str, x: Tensor) -> None:
     """Require finite values in [0, 1]."""
-    check_finite(name, x.float() if not x.is_floating_point() else x)
-    if x.numel() and (bool((x < 0).any()) or bool((x > 1).any())):
+    if x.numel() == 0 or x.dtype == torch.bool:
+        return
+    check_finite(name, x)
+    low, high = torch.aminmax(x)
+    if low < 0 or high > 1:
         raise ValueError(
-            f"{name}: expected probabilities in [0, 1], got values in "
-            f"[{float(x.min())}, {float(x.max())}]"
+            f"{name}: expected probabilities in [0, 1], got values in [{float(low)}, {float(high)}]"
         )
 
 

@@ -1,0 +1,163 @@
+"""Speed and memory of the competency estimators.
+
+Times ``decompose_uncertainty`` on imagined rollouts of the paper's size (E=5 members, N=100
+samples each, T=600 steps, D=14 dimensions) for every estimator (median of ``--repeats``; k-NN
+3 repeats), with one intra-op thread and with torch's default (on a shared 2-core machine other
+jobs make the threaded timings noisy, so both are recorded with the load average), and runs
+the histogram decomposition once on N·T = 1e7 (E=5, N=1000, T=10000, D=2) in a child process to
+report its peak resident memory next to the input's size.
+
+    python benchmarks/competency.py [--repeats 5] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import multiprocessing
+import os
+import resource
+import time
+from typing import Any
+
+import torch
+from _report import median_time, print_table, write_json
+
+from rcvae_torchrl.competency import decompose_uncertainty
+
+# name, estimator, arguments; bin width 0.1 spans ~80 bins per unit-variance dimension (counting
+# path), 0.002 spans ~4000 (sorting path).
+CASES: list[tuple[str, str, dict[str, Any]]] = [
+    ("histogram", "histogram", {"bin_width": 0.1}),
+    ("histogram, fine bins (sort path)", "histogram", {"bin_width": 0.002}),
+    ("gaussian per dim", "gaussian", {}),
+    ("gaussian joint", "gaussian", {"joint": True}),
+    ("mixture bounds (diagonal)", "mixture", {}),
+    ("mixture bounds (full cov)", "mixture", {"full_covariance": True}),
+    ("knn (k=3)", "knn", {"k": 3}),
+]
+
+
+def rollout_like(members: int, samples: int, steps: int, dim: int) -> torch.Tensor:
+    """Random-walk trajectories ``[E, N, T, D]`` whose members drift apart over time."""
+    gen = torch.Generator().manual_seed(0)
+    drift = torch.randn(members, 1, 1, dim, generator=gen) * 0.01
+    steps_noise = torch.randn(members, samples, steps, dim, generator=gen) * 0.05
+    return (steps_noise + drift).cumsum(dim=2) + torch.randn(dim, generator=gen)
+
+
+def time_estimators(
+    shape: tuple[int, int, int, int], repeats: int, threads: int
+) -> list[dict[str, Any]]:
+    """Median seconds of each case with ``threads`` intra-op threads."""
+    samples = rollout_like(*shape)
+    default_threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    results = []
+    try:
+        for name, estimator, args in CASES:
+            reps = repeats if estimator != "knn" else min(repeats, 3)
+            run = functools.partial(decompose_uncertainty, samples, estimator, **args)
+            results.append(
+                {
+                    "case": name,
+                    "estimator": estimator,
+                    "args": args,
+                    "shape": list(shape),
+                    "threads": threads,
+                    "repeats": reps,
+                    "median_s": median_time(run, reps),
+                }
+            )
+    finally:
+        torch.set_num_threads(default_threads)
+    return results
+
+
+def _peak_rss_mib() -> float:
+    """High-water mark of this process's resident memory."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _current_rss_mib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _memory_child(shape: tuple[int, int, int, int], queue: multiprocessing.Queue) -> None:
+    samples = torch.randn(*shape, generator=torch.Generator().manual_seed(0))
+    with_input = _current_rss_mib()
+    start = time.perf_counter()
+    u = decompose_uncertainty(samples, bin_width=0.1)
+    seconds = time.perf_counter() - start
+    queue.put(
+        {
+            "shape": list(shape),
+            "n_times_t": shape[1] * shape[2],
+            "input_mib": samples.numel() * samples.element_size() / 2**20,
+            "rss_with_input_mib": with_input,
+            "peak_rss_mib": _peak_rss_mib(),
+            "peak_over_rss_with_input_mib": max(0.0, _peak_rss_mib() - with_input),
+            "seconds": seconds,
+            "epistemic_mean_bits": float(u.epistemic.mean()),
+        }
+    )
+
+
+def memory_bounded_run(shape: tuple[int, int, int, int]) -> dict[str, Any]:
+    """Histogram decomposition in a fresh process, so its peak RSS is its own."""
+    context = multiprocessing.get_context("spawn")
+    queue = context.Queue()
+    child = context.Process(target=_memory_child, args=(shape, queue))
+    child.start()
+    result = queue.get()
+    child.join()
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5, help="timed repeats per case (>= 5)")
+    parser.add_argument("--quick", action="store_true", help="small shapes, for a smoke run")
+    args = parser.parse_args()
+    if args.repeats < 5:
+        parser.error(f"--repeats: expected at least 5, got {args.repeats}")
+    shape = (5, 20, 100, 14) if args.quick else (5, 100, 600, 14)
+    big = (5, 100, 1000, 2) if args.quick else (5, 1000, 10_000, 2)
+    load_before = os.getloadavg()
+    thread_counts = sorted({1, torch.get_num_threads()})
+    timings = [r for t in thread_counts for r in time_estimators(shape, args.repeats, t)]
+    print_table(
+        f"decompose_uncertainty on [E, N, T, D] = {list(shape)} (median of repeats); "
+        f"load average before: {load_before[0]:.2f}",
+        ["case", "threads", "repeats", "median s"],
+        [[r["case"], r["threads"], r["repeats"], r["median_s"]] for r in timings],
+    )
+    memory = memory_bounded_run(big)
+    print_table(
+        f"histogram decomposition, N·T = {memory['n_times_t']:.0e}, shape {memory['shape']}",
+        ["input MiB", "RSS with input MiB", "peak RSS MiB", "peak over that MiB", "seconds"],
+        [
+            [
+                memory["input_mib"],
+                memory["rss_with_input_mib"],
+                memory["peak_rss_mib"],
+                memory["peak_over_rss_with_input_mib"],
+                memory["seconds"],
+            ]
+        ],
+    )
+    write_json(
+        "competency",
+        {
+            "quick": args.quick,
+            "load_average_before": load_before,
+            "load_average_after": os.getloadavg(),
+            "timings": timings,
+            "memory_bounded": memory,
+        },
+    )
+
+
+if __name__ == "__main__":
+    main()
