@@ -163,7 +163,8 @@ class CEMPlanner(MPCPlannerBase):
         shape = (*tensordict.batch_size, self.horizon, *self.action_shape)
         prior = self.prior_mean.expand(shape), self.prior_std.expand(shape)
         kept = self._plan
-        if not self.warm_start or kept is None or kept[0].shape != shape:
+        stale = kept is None or kept[0].shape != shape or kept[0].device != self.prior_mean.device
+        if not self.warm_start or stale:
             return prior[0].clone(), prior[1].clone()
         is_init = tensordict.get(self.init_key, None)
         if is_init is None:

@@ -43,8 +43,20 @@ def action_prior(
         given = torch.as_tensor(init_std, dtype=low.dtype, device=low.device)
         if not bool((given > 0).all()) or not bool(torch.isfinite(given).all()):
             raise ValueError(f"init_std: expected positive finite values, got {given.tolist()}")
+        if not _broadcasts_to(given.shape, low.shape):
+            raise ValueError(
+                f"init_std: expected a scalar or shape [*A] = {tuple(low.shape)}, "
+                f"got shape {tuple(given.shape)}"
+            )
         std = given.expand_as(low).clone()
     return mean, std
+
+
+def _broadcasts_to(shape: torch.Size, target: torch.Size) -> bool:
+    try:
+        return torch.broadcast_shapes(shape, target) == target
+    except RuntimeError:
+        return False
 
 
 def sample_candidates(

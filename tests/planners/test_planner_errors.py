@@ -32,6 +32,10 @@ from rcvae_torchrl.planners import CEMPlanner
         ({"objective": "success"}, "success_key: expected the key of a success flag"),
         ({"seed": 0, "generator": torch.Generator()}, "seed: expected None when a generator"),
         ({"init_std": -1.0}, "init_std: expected positive finite values, got -1.0"),
+        (
+            {"init_std": torch.ones(3)},
+            r"init_std: expected a scalar or shape \[\*A\] = \(2,\), got shape \(3,\)",
+        ),
     ],
 )
 def test_bad_arguments(kwargs, message):

@@ -7,6 +7,7 @@ import doctest
 import pytest
 import torch
 from planner_envs import AnalyticPointMassEnv, PointMassEnv
+from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import InitTracker, PendulumEnv, RewardScaling, StepCounter, TransformedEnv
 from torchrl.envs.utils import check_env_specs
@@ -37,6 +38,17 @@ def _episodic(max_steps: int) -> TransformedEnv:
 )
 def test_toy_env_specs(env):
     check_env_specs(env)
+
+
+def test_toy_env_partial_reset():
+    env = PointMassEnv()
+    only_reset = TensorDict({"_reset": torch.tensor([[True], [False]])}, batch_size=(2,))
+    assert env.reset(only_reset)["position"][0].tolist() == pytest.approx([0.8, 0.8])
+    td = env.reset(TensorDict(batch_size=(2,)))
+    td["position"] = torch.tensor([[0.1, 0.2], [0.3, 0.4]])
+    td["_reset"] = torch.tensor([[True], [False]])
+    out = env.reset(td)["position"]
+    torch.testing.assert_close(out, torch.tensor([[0.8, 0.8], [0.3, 0.4]]))
 
 
 def test_init_tracker_clears_the_plan_at_each_episode_start():
