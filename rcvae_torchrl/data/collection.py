@@ -7,20 +7,12 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, SerialEnv
 from tqdm.auto import tqdm
 
 __all__ = ["TRAJ_KEY", "collect_episodes"]
 
 TRAJ_KEY = ("collector", "traj_ids")
-
-
-def _end_of_last_episode(batch: TensorDictBase, episodes_left: int) -> tuple[int, int]:
-    """(number of frames to keep, episodes they complete) from one flat collector batch."""
-    ends = batch["next", "done"].reshape(-1).nonzero().squeeze(-1)
-    if ends.numel() <= episodes_left:
-        return batch.shape[0], ends.numel()
-    return int(ends[episodes_left - 1]) + 1, episodes_left
 
 
 def collect_episodes(
@@ -29,52 +21,65 @@ def collect_episodes(
     num_episodes: int,
     *,
     seed: int = 0,
-    frames_per_batch: int = 2000,
+    num_envs: int = 1,
+    frames_per_batch: int = 1000,
     max_frames: int | None = None,
     progress: bool = True,
     desc: str = "collect",
 ) -> TensorDict:
-    """Run ``policy`` in fresh envs from ``make_env`` until ``num_episodes`` episodes have ended.
+    """Run ``policy`` in envs from ``make_env`` until ``num_episodes`` episodes have ended.
 
-    Returns a flat TensorDict ``[frames]`` of whole episodes (the unfinished tail is dropped),
-    with TorchRL's transition layout (``"observation"``, ``"action"``, ``("next", ...)``) and
-    episode ids under :data:`TRAJ_KEY` (``("collector", "traj_ids")``), unique and increasing.
+    Returns a flat TensorDict ``[frames]`` of ``num_episodes`` whole episodes, each contiguous
+    and in time order, with TorchRL's transition layout (``"observation"``, ``"action"``,
+    ``("next", ...)``) and unique episode ids under :data:`TRAJ_KEY`
+    (``("collector", "traj_ids")``). Unfinished episodes are dropped.
 
     Args:
         make_env: zero-argument env factory (e.g. ``functools.partial(make_pusher_env, ...)``).
         policy: a TorchRL policy (TensorDictModule or callable on tensordicts).
         num_episodes: episodes to collect (>= 1).
-        seed: seeds the env (and so its start states and noise).
-        frames_per_batch: collector batch size.
+        seed: seeds the env(s) (start states and noise).
+        num_envs: envs stepped together in a ``SerialEnv``: the policy runs once per step for
+            all of them, which pays off when a policy call costs more than an env step.
+        frames_per_batch: collector batch size (rounded up to a multiple of ``num_envs``).
         max_frames: safety cap on frames (default: 1,000 × ``num_episodes``).
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes: expected >= 1, got {num_episodes}")
+    if num_envs < 1:
+        raise ValueError(f"num_envs: expected >= 1, got {num_envs}")
     max_frames = max_frames or 1000 * num_episodes
-    env = make_env()
+    env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     env.set_seed(seed)
     collector = Collector(
         env,
         policy,
-        frames_per_batch=frames_per_batch,
+        frames_per_batch=-(-frames_per_batch // num_envs) * num_envs,
         total_frames=-1,
         split_trajs=False,
         auto_register_policy_transforms=False,
     )
-    parts, done = [], 0
+    parts, ended, frames = [], 0, 0
     bar = tqdm(total=num_episodes, desc=desc, disable=not progress, leave=False)
     try:
         with torch.no_grad():
             for batch in collector:
-                keep, finished = _end_of_last_episode(batch, num_episodes - done)
-                parts.append(batch[:keep].clone())
-                done += finished
-                bar.update(finished)
-                if done >= num_episodes or sum(p.shape[0] for p in parts) >= max_frames:
+                parts.append(batch.reshape(-1).clone())
+                finished = int(batch["next", "done"].sum())
+                ended, frames = ended + finished, frames + batch.numel()
+                bar.update(min(finished, num_episodes - bar.n))
+                if ended >= num_episodes or frames >= max_frames:
                     break
     finally:
         collector.shutdown()
         bar.close()
-    data = torch.cat(parts)
-    last_end = data["next", "done"].reshape(-1).nonzero().max()
-    return data[: int(last_end) + 1]
+    return _whole_episodes(torch.cat(parts), num_episodes)
+
+
+def _whole_episodes(data: TensorDict, num_episodes: int) -> TensorDict:
+    """The first ``num_episodes`` finished episodes, each contiguous, ordered by id."""
+    ids = data[TRAJ_KEY]
+    finished = torch.unique(ids[data["next", "done"].reshape(-1)])[:num_episodes]
+    data = data[torch.isin(ids, finished)]
+    order = torch.sort(data[TRAJ_KEY], stable=True).indices
+    return data[order]
