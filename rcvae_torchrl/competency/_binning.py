@@ -42,9 +42,10 @@ def batch_chunks(n_batch: int, per_item: int, chunk_elements: int) -> Iterator[s
 def bin_ids(samples: Tensor, width: Tensor) -> Tensor:
     """Bin index ``floor(x / width)`` on the grid anchored at 0 (int64, same shape as samples).
 
-    ``width`` is ``[]`` or ``[D]``. The division is done in the samples' dtype (float32 is 5x
-    faster than float64 here), so bins are exact while ``|x / width| < 2**24`` for float32 input
-    (``2**53`` for float64); every group is binned by the same arithmetic either way.
+    ``width`` is ``[]`` or ``[D]``. The division is done in the samples' dtype (float32 is several
+    times faster than float64 here): a value within one rounding error of a bin edge may land in
+    the neighbouring bin, but every group is binned by the same arithmetic, so bins stay shared.
+    Bin ids must fit in int64 (``|x / width| < 2**62``).
     """
     return torch.floor(samples / width.to(samples.dtype)).to(torch.int64)
 
