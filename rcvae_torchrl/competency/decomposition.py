@@ -105,9 +105,13 @@ def decompose_uncertainty(
 
 
 def _histogram(
-    samples: Tensor, bin_width: BinWidth, *, chunk_elements: int = CHUNK_ELEMENTS
+    samples: Tensor, *, bin_width: BinWidth | None = None, chunk_elements: int = CHUNK_ELEMENTS
 ) -> tuple[Tensor, Tensor, float]:
     """Total and aleatoric histogram entropies; bins shared by all members."""
+    if bin_width is None:
+        raise ValueError(
+            "bin_width: expected a positive width for the histogram estimator, got None"
+        )
     _checks.check_positive_int("chunk_elements", chunk_elements)
     width = _checks.bin_width_tensor(bin_width, samples.shape[-1], samples)
     members, n, dim = samples.shape[0], samples.shape[1], samples.shape[-1]

@@ -103,6 +103,11 @@ class UncertaintyMetric(LossModule):
             raise ValueError(
                 "bin_width: expected a positive width for the histogram estimator, got None"
             )
+        if estimator == "mixture" and bin_width is not None:
+            raise ValueError(
+                f"bin_width: expected None for the mixture estimator (it has no bins), "
+                f"got {bin_width!r}"
+            )
         width = None if bin_width is None else torch.as_tensor(bin_width, dtype=torch.float32)
         self.register_buffer("bin_width", width)
         self.estimator = estimator

@@ -60,6 +60,10 @@ def test_bin_width_of_wrong_length():
         decompose_uncertainty(torch.randn(2, 10, 2), bin_width=[0.1, 0.1, 0.1])
     with pytest.raises(ValueError, match="bin_width: expected a positive width for the histogram"):
         UncertaintyMetric()
+    with pytest.raises(ValueError, match="bin_width: expected a positive width for the histogram"):
+        decompose_uncertainty(torch.randn(2, 10, 2))
+    with pytest.raises(ValueError, match="bin_width: expected None for the mixture estimator"):
+        UncertaintyMetric(bin_width=0.1, estimator="mixture")
 
 
 @pytest.mark.parametrize("bad", [float("nan"), float("inf")])

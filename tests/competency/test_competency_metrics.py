@@ -43,6 +43,10 @@ def test_uncertainty_metric_joint_estimator_and_dim_mean(rollout):
     out = UncertaintyMetric(estimator="knn", k=2)(rollout)
     assert out["uncertainty", "total"].shape == (B, T)
     assert out["uncertainty", "time_mean", "total"].shape == (B,)
+    mixture = UncertaintyMetric(estimator="mixture", bound="lower")(rollout)["uncertainty"]
+    expected = decompose_uncertainty(rollout["observation"], "mixture", bound="lower")
+    assert torch.equal(mixture["epistemic"], expected.epistemic)
+    assert torch.allclose(mixture["summary", "epistemic"], expected.epistemic.mean(dim=-1))
     mean_metric = UncertaintyMetric(bin_width=0.5, dim_reduction="mean")
     per_step = mean_metric(rollout)["uncertainty", "total"]
     summary = mean_metric(rollout)["uncertainty", "summary", "total"]
