@@ -4,11 +4,14 @@ Pusher-sized model (S = 14, A = 2, the defaults of ``RCVAEConfig``: H = 128, Z =
 On a shared machine, OpenMP threads that wait for busy cores distort timings badly; compare
 ``--threads 1`` runs there (the JSON records the load average).
 
+All timings are medians of repeats taken round-robin across the variants compared.
+
 1. Training step (loss forward + backward + Adam) on 64 windows × L = 32 per member, E = 1 vs
    E = 5, median of repeats; target: E = 5 step ≤ 3 × E = 1 step. Also for a small model
    (H = MLP = 32): the ratio depends on whether an E = 1 step is overhead- or FLOP-bound.
 2. Generation throughput in model-steps/s (member × sample × step) at N = 16, 256, 4096 samples
-   per member: the vectorised ``generate`` against a Python loop over single members, same run.
+   per member: the vectorised ``generate`` (default chunks of 1024 trajectories per member, and
+   all in one chunk) against a Python loop over single members, same run.
 3. One transition step for E·N particles: member-major ``ensemble.step`` against the indexed
    layout (``RCVAETransition``, TS-∞ with round-robin and random members, and TS-1).
 
@@ -19,10 +22,13 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
+import time
+from collections.abc import Callable
 from dataclasses import asdict
 
 import torch
-from _report import median_time, print_table, write_json
+from _report import print_table, write_json
 from tensordict import TensorDict
 
 from rcvae_torchrl.models import (
@@ -37,6 +43,23 @@ CONFIG = RCVAEConfig(obs_dim=14, action_dim=2, passthrough_dims=(12, 13))
 SMALL = RCVAEConfig(obs_dim=14, action_dim=2, hidden_dim=32, mlp_dim=32, passthrough_dims=(12, 13))
 
 
+def interleaved_medians(
+    runs: dict[str, Callable[[], object]], repeats: int, warmup: int = 1
+) -> dict[str, float]:
+    """Median seconds of each run, timed round-robin (one call of each per round) so that
+    load drift on a shared machine hits all runs alike."""
+    for _ in range(warmup):
+        for run in runs.values():
+            run()
+    times: dict[str, list[float]] = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, run in runs.items():
+            start = time.perf_counter()
+            run()
+            times[name].append(time.perf_counter() - start)
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
 def make_model(ensemble_size: int, config: RCVAEConfig = CONFIG) -> RCVAEEnsemble:
     torch.manual_seed(0)
     model = RCVAEEnsemble(config, ensemble_size)
@@ -44,9 +67,8 @@ def make_model(ensemble_size: int, config: RCVAEConfig = CONFIG) -> RCVAEEnsembl
     return model
 
 
-def train_step_time(
-    config: RCVAEConfig, ensemble_size: int, repeats: int, windows: int = 64, length: int = 32
-) -> float:
+def train_step(config: RCVAEConfig, ensemble_size: int, windows: int = 64, length: int = 32):
+    """A closure running one loss + backward + Adam step on fixed windows ``[E, W, L]``."""
     model = make_model(ensemble_size, config)
     loss_fn = RCVAELoss(model)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
@@ -61,25 +83,27 @@ def train_step_time(
         (out["loss_reconstruction"] + out["loss_kl"]).backward()
         opt.step()
 
-    return median_time(step, repeats=repeats, warmup=2)
+    return step
 
 
-def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int):
-    """Model-steps/s of vectorised generate and of a Python loop over single members."""
+def train_step_times(config: RCVAEConfig, repeats: int) -> dict[int, float]:
+    runs = {str(e): train_step(config, e) for e in (1, 5)}
+    return {int(e): t for e, t in interleaved_medians(runs, repeats, warmup=2).items()}
+
+
+def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int) -> dict[str, float]:
+    """Model-steps/s of vectorised generate (default chunks, one chunk) and of a member loop."""
     obs, actions = torch.zeros(14), torch.rand(horizon, 2) * 2 - 1
     singles = [model.select_members([m]) for m in range(model.ensemble_size)]
     work = model.ensemble_size * n * horizon
-
-    def vectorised() -> None:
-        model.generate(obs, actions, samples_per_member=n)
-
-    def looped() -> None:
-        for single in singles:
-            single.generate(obs, actions, samples_per_member=n)
-
-    fast = median_time(vectorised, repeats=repeats)
-    slow = median_time(looped, repeats=repeats)
-    return work / fast, work / slow
+    runs = {
+        "vectorised": lambda: model.generate(obs, actions, samples_per_member=n),
+        "vectorised_one_chunk": lambda: model.generate(
+            obs, actions, samples_per_member=n, chunk_size=None
+        ),
+        "member_loop": lambda: [s.generate(obs, actions, samples_per_member=n) for s in singles],
+    }
+    return {name: work / t for name, t in interleaved_medians(runs, repeats).items()}
 
 
 def transition_times(model: RCVAEEnsemble, n: int, repeats: int) -> dict[str, float]:
@@ -87,11 +111,7 @@ def transition_times(model: RCVAEEnsemble, n: int, repeats: int) -> dict[str, fl
     e, particles = model.ensemble_size, model.ensemble_size * n
     obs, action = torch.randn(particles, 14), torch.rand(particles, 2)
     hidden = torch.zeros(e, n, CONFIG.hidden_dim)
-    times = {
-        "member_major": median_time(
-            lambda: model.step(hidden, obs.view(e, n, 14), action.view(e, n, 2)), repeats=repeats
-        )
-    }
+    runs = {"member_major": lambda: model.step(hidden, obs.view(e, n, 14), action.view(e, n, 2))}
     g = torch.Generator().manual_seed(0)
     for name, ts, member in (
         ("ts_inf_round_robin", "ts_inf", "round_robin"),
@@ -101,8 +121,8 @@ def transition_times(model: RCVAEEnsemble, n: int, repeats: int) -> dict[str, fl
         td = init_model_state(model, obs, trajectory_sampling=ts, member=member, generator=g)
         td["action"] = action
         module = make_transition_module(model, trajectory_sampling=ts)
-        times[name] = median_time(lambda td=td, module=module: module(td), repeats=repeats)
-    return times
+        runs[name] = lambda td=td, module=module: module(td)
+    return interleaved_medians(runs, repeats)
 
 
 def main() -> None:
@@ -117,9 +137,7 @@ def main() -> None:
     sizes = (16, 256) if args.quick else (16, 256, 4096)
 
     configs = {"pusher_H128": CONFIG, "small_H32": SMALL}
-    train = {
-        name: {e: train_step_time(cfg, e, repeats) for e in (1, 5)} for name, cfg in configs.items()
-    }
+    train = {name: train_step_times(cfg, repeats) for name, cfg in configs.items()}
     ratio = {name: t[5] / t[1] for name, t in train.items()}
     print_table(
         "Training step, 64 windows x L=32 per member (median s)",
@@ -133,8 +151,17 @@ def main() -> None:
         trans = {n: transition_times(model, n, repeats) for n in sizes}
     print_table(
         f"Generation, E=5, T={args.horizon} (model-steps/s)",
-        ["N_per_member", "vectorised", "member_loop", "speedup"],
-        [[n, v, loop, v / loop] for n, (v, loop) in gen.items()],
+        ["N_per_member", "vectorised", "one_chunk", "member_loop", "speedup_vs_loop"],
+        [
+            [
+                n,
+                r["vectorised"],
+                r["vectorised_one_chunk"],
+                r["member_loop"],
+                r["vectorised"] / r["member_loop"],
+            ]
+            for n, r in gen.items()
+        ],
     )
     layouts = list(next(iter(trans.values())))
     print_table(
@@ -150,10 +177,7 @@ def main() -> None:
             "train_step_s": {name: {str(e): v for e, v in t.items()} for name, t in train.items()},
             "train_step_ratio_e5_over_e1": ratio,
             "train_ratio_target_le_3": {name: r <= 3.0 for name, r in ratio.items()},
-            "generation_steps_per_s": {
-                str(n): {"vectorised": v, "member_loop": loop, "speedup": v / loop}
-                for n, (v, loop) in gen.items()
-            },
+            "generation_steps_per_s": {str(n): r for n, r in gen.items()},
             "transition_step_s": {str(n): t for n, t in trans.items()},
             "horizon": args.horizon,
             "repeats": repeats,

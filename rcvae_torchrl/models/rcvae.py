@@ -197,6 +197,7 @@ class RCVAEEnsemble(nn.Module):
         policy: Callable[[torch.Tensor], torch.Tensor] | None = None,
         horizon: int | None = None,
         requires_grad: bool = False,
+        chunk_size: int | None = 1024,
     ) -> TensorDict:
         """Imagined rollouts ``[E, N, *B, T]``; see :func:`rcvae_torchrl.models.generate`."""
         from rcvae_torchrl.models.generate import generate
@@ -210,6 +211,7 @@ class RCVAEEnsemble(nn.Module):
             policy=policy,
             horizon=horizon,
             requires_grad=requires_grad,
+            chunk_size=chunk_size,
         )
 
     # ----------------------------------------------------------------- training pass

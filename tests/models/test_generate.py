@@ -36,6 +36,20 @@ def test_start_states_and_samples_are_laid_out_in_order(ensemble):
     assert (td["observation"][:, :, 1, 0, 3:] == 100).all()
 
 
+@pytest.mark.parametrize("chunk_size", [None, 1, 5, 1024])
+def test_chunks_keep_the_layout(ensemble, chunk_size):
+    """Trajectory n of start b lands at [:, n, b] whatever the chunking; the passthrough dims
+    carry the start's index."""
+    obs = torch.zeros(2, 2, 5)
+    obs[..., 3] = torch.arange(4.0).reshape(2, 2)
+    actions = torch.rand(2, 2, 3, 2)
+    td = ensemble.generate(obs, actions, samples_per_member=3, chunk_size=chunk_size)
+    assert td.batch_size == (4, 3, 2, 2, 3)
+    index = torch.arange(4.0).reshape(1, 1, 2, 2, 1)
+    assert (td["observation"][..., 3] == index).all()
+    assert torch.equal(td["action"], actions.expand(4, 3, 2, 2, 3, 2))
+
+
 def test_determinism_under_generator(ensemble):
     obs, actions = torch.randn(2, 5), torch.rand(2, 6, 2)
 
@@ -70,7 +84,7 @@ def test_closed_loop_with_constant_policy_equals_open_loop(ensemble):
         samples_per_member=3,
         generator=torch.Generator().manual_seed(0),
     )
-    assert calls == [(4, 3, 2, 5)] * 4
+    assert calls == [(4, 6, 5)] * 4  # [E, trajectories per member, S]
     assert torch.equal(open_loop["observation"], closed["observation"])
 
 
@@ -118,6 +132,7 @@ def _nan(shape, where=0):
         (torch.zeros(5), None, {}, ValueError, "exactly one of actions"),
         (torch.zeros(5), None, {"policy": torch.tanh}, ValueError, "horizon"),
         (torch.zeros(5).long(), torch.zeros(3, 2), {}, TypeError, "floating-point"),
+        (torch.zeros(5), torch.zeros(3, 2), {"chunk_size": 0}, ValueError, "chunk_size"),
         (torch.zeros(5).double(), torch.zeros(3, 2), {}, TypeError, "observation: expected dtype"),
         (torch.zeros(5), torch.zeros(3, 2).double(), {}, TypeError, "actions: expected dtype"),
     ],
