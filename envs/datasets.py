@@ -32,6 +32,7 @@ def collect_pusher_data(
     random_time_limit: float = 10.0,
     terminate_on_success: bool = False,
     seed: int = 0,
+    num_envs: int = 4,
     progress: bool = True,
     **env_kwargs,
 ) -> TensorDict:
@@ -40,7 +41,8 @@ def collect_pusher_data(
 
     Episode ids (:data:`rcvae_torchrl.data.TRAJ_KEY`) are unique across both parts. By default
     episodes run past success (``terminate_on_success=False``), so the data also shows the ball
-    at rest on the target and long-horizon behaviour.
+    at rest on the target and long-horizon behaviour. ``num_envs`` envs are stepped together
+    (see :func:`~rcvae_torchrl.data.collect_episodes`).
     """
     make_env = functools.partial(
         make_pusher_env,
@@ -60,6 +62,7 @@ def collect_pusher_data(
                 policy,
                 scripted_episodes,
                 seed=seed,
+                num_envs=num_envs,
                 progress=progress,
                 desc=f"{variant}: scripted",
             )
@@ -73,6 +76,7 @@ def collect_pusher_data(
                 policy,
                 random_episodes,
                 seed=seed + 1,
+                num_envs=num_envs,
                 progress=progress,
                 desc=f"{variant}: random",
             )

@@ -1,0 +1,94 @@
+"""Behaviour cloning: distil an expensive policy (the MPC planner) into an :class:`MLPPolicy`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tqdm.auto import tqdm
+
+from .policy import MLPPolicy
+
+__all__ = ["DistillConfig", "distill_policy"]
+
+
+@dataclass(frozen=True)
+class DistillConfig:
+    """Budget of :func:`distill_policy`.
+
+    Args:
+        epochs: passes over the training pairs at most.
+        batch_size: pairs per step.
+        lr: Adam learning rate.
+        val_fraction: pairs held out for early stopping.
+        patience: epochs without validation improvement before stopping.
+        seed: seeds the split, the shuffling and the initialisation.
+    """
+
+    epochs: int = 200
+    batch_size: int = 256
+    lr: float = 1e-3
+    val_fraction: float = 0.1
+    patience: int = 20
+    seed: int = 0
+
+
+def _check_pairs(observations: torch.Tensor, actions: torch.Tensor) -> None:
+    if observations.ndim != 2 or actions.ndim != 2 or len(observations) != len(actions):
+        raise ValueError(
+            f"observations, actions: expected [N, S] and [N, A] with the same N, got "
+            f"{tuple(observations.shape)} and {tuple(actions.shape)}"
+        )
+    if len(observations) < 10:
+        raise ValueError(f"observations: expected at least 10 pairs, got {len(observations)}")
+    if not (torch.isfinite(observations).all() and torch.isfinite(actions).all()):
+        raise ValueError("observations, actions: expected finite values, got NaN or inf")
+
+
+def distill_policy(
+    observations: torch.Tensor,
+    actions: torch.Tensor,
+    config: DistillConfig = DistillConfig(),
+    *,
+    policy: MLPPolicy | None = None,
+    progress: bool = True,
+) -> tuple[MLPPolicy, dict[str, float]]:
+    """Fit ``policy`` (a new :class:`MLPPolicy` by default) to ``actions [N, A]`` given
+    ``observations [N, S]`` by mean squared error, keeping the weights of the best validation
+    epoch. Returns the policy and ``{"train_mse", "val_mse", "epochs"}``.
+    """
+    _check_pairs(observations, actions)
+    g = torch.Generator().manual_seed(config.seed)
+    torch.manual_seed(config.seed)
+    if policy is None:
+        policy = MLPPolicy(observations.shape[-1], actions.shape[-1])
+        policy.fit_normalizer(observations)
+    perm = torch.randperm(len(observations), generator=g)
+    n_val = max(1, int(config.val_fraction * len(observations)))
+    val, train = perm[:n_val], perm[n_val:]
+    optimizer = torch.optim.Adam(policy.parameters(), lr=config.lr)
+    best = (float("inf"), {k: v.clone() for k, v in policy.state_dict().items()}, 0)
+    stats = {"train_mse": float("nan")}
+    for epoch in tqdm(
+        range(config.epochs), desc="distil policy", disable=not progress, leave=False
+    ):
+        stats["train_mse"] = _epoch(policy, optimizer, observations, actions, train, config, g)
+        with torch.no_grad():
+            val_mse = (policy(observations[val]) - actions[val]).square().mean().item()
+        if val_mse < best[0]:
+            best = (val_mse, {k: v.clone() for k, v in policy.state_dict().items()}, epoch)
+        elif epoch - best[2] >= config.patience:
+            break
+    policy.load_state_dict(best[1])
+    return policy, {**stats, "val_mse": best[0], "epochs": float(epoch + 1)}
+
+
+def _epoch(policy, optimizer, observations, actions, idx, config, g) -> float:
+    total, count = 0.0, 0
+    for batch in idx[torch.randperm(len(idx), generator=g)].split(config.batch_size):
+        loss = (policy(observations[batch]) - actions[batch]).square().mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        total, count = total + loss.item() * len(batch), count + len(batch)
+    return total / count

@@ -1,0 +1,43 @@
+"""The amortised policy and behaviour cloning."""
+
+import pytest
+import torch
+
+from rcvae_torchrl.agent import DistillConfig, MLPPolicy, distill_policy, make_policy_module
+
+
+def test_policy_shapes_bounds_and_normaliser():
+    policy = MLPPolicy(5, 2, hidden=16)
+    obs = torch.randn(7, 3, 5) * 10 + 4
+    policy.fit_normalizer(obs)
+    torch.testing.assert_close(policy.obs_mean, obs.reshape(-1, 5).mean(0))
+    action = policy(obs)
+    assert action.shape == (7, 3, 2) and (action.abs() <= 1).all()
+    module = make_policy_module(policy)
+    assert module.out_keys == ["action"]
+    with pytest.raises(ValueError, match=r"observation: expected shape \[\.\.\., 5\]"):
+        policy(torch.zeros(3, 4))
+
+
+def test_distillation_recovers_a_smooth_teacher():
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(3000, 4, generator=g)
+    teacher = torch.stack([torch.tanh(obs[:, 0] - obs[:, 1]), 0.5 * torch.sin(obs[:, 2])], -1)
+    config = DistillConfig(epochs=60, batch_size=128, lr=3e-3, patience=10)
+    policy, stats = distill_policy(obs, teacher, config, progress=False)
+    baseline = teacher.var(0).sum().item() / 2  # MSE of predicting the mean action
+    assert stats["val_mse"] < 0.05 * baseline, stats
+    # Determinism under the seed.
+    again, _ = distill_policy(obs, teacher, config, progress=False)
+    assert torch.equal(policy(obs[:10]), again(obs[:10]))
+
+
+def test_bad_pairs():
+    with pytest.raises(ValueError, match="same N"):
+        distill_policy(torch.zeros(20, 3), torch.zeros(19, 2))
+    with pytest.raises(ValueError, match="at least 10 pairs"):
+        distill_policy(torch.zeros(5, 3), torch.zeros(5, 2))
+    bad = torch.zeros(20, 3)
+    bad[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        distill_policy(bad, torch.zeros(20, 2))
