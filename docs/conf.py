@@ -10,3 +10,4 @@ html_theme = "alabaster"
 html_static_path = ["_static"]
 exclude_patterns = ["_build"]
 nitpicky = False
+napoleon_use_ivar = True

@@ -125,7 +125,11 @@ def train_ensemble(
     torch.manual_seed(config.seed)
     device = next(ensemble.parameters()).device
     if not ensemble.normalizer.fitted:
-        ensemble.fit_normalizer(train_data["observation"], train_data["action"])
+        ensemble.fit_normalizer(
+            train_data["observation"],
+            train_data["action"],
+            next_observations=train_data["next", "observation"],
+        )
     buffer = make_window_buffer(train_data, config.window)
     val_windows = _fixed_windows(val_data, config).to(device)
     loss_fn = RCVAELoss(
