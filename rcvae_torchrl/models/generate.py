@@ -150,7 +150,7 @@ def _check_inputs(
     chunk_size: int | None,
 ) -> None:
     cfg = ensemble.config
-    dtype = ensemble.embed.weight.dtype
+    dtype = ensemble.dtype
     check_trailing("observation", observation, (cfg.obs_dim,), f"[*B, S={cfg.obs_dim}]")
     check_finite("observation", observation)
     check_dtype("observation", observation, dtype)

@@ -94,6 +94,16 @@ class RCVAEEnsemble(nn.Module):
         self.posterior_net = EnsembleMLP(e, h + d, m, 2 * z, depth=1)
         self.decoder = EnsembleMLP(e, h + m + z, m, 2 * d, depth=2)
 
+    @property
+    def dtype(self) -> torch.dtype:
+        """The parameters' floating dtype (inputs must match it)."""
+        return self.embed.weight.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """The parameters' device."""
+        return self.embed.weight.device
+
     # ----------------------------------------------------------------- building blocks
     def initial_hidden(self, batch_shape: Sequence[int], like: torch.Tensor) -> torch.Tensor:
         """h_0 = 0, ``[E, *batch_shape, H]`` with the dtype/device of ``like``."""
@@ -352,8 +362,8 @@ class RCVAEEnsemble(nn.Module):
 
         ``select_members([i])`` is member i as a stand-alone RCVAE.
         """
-        idx = torch.as_tensor(indices, dtype=torch.long, device=self.predicted_idx.device)
-        out = RCVAEEnsemble(self.config, int(idx.numel())).to(self.predicted_idx.device)
+        idx = torch.as_tensor(indices, dtype=torch.long, device=self.device)
+        out = RCVAEEnsemble(self.config, int(idx.numel())).to(self.device, self.dtype)
         params = {name for name, _ in self.named_parameters()}
         state = {k: (v[idx] if k in params else v) for k, v in self.state_dict().items()}
         out.load_state_dict(state)

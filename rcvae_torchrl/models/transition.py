@@ -184,7 +184,7 @@ class RCVAETransition(TensorDictModuleBase):
         check_finite(names[0], obs)
         check_finite(names[1], action)
         for name, x in zip(names[:3], (obs, action, hidden)):
-            check_dtype(name, x, self.ensemble.embed.weight.dtype)
+            check_dtype(name, x, self.ensemble.dtype)
         if self.trajectory_sampling == "ts_inf":
             if member is None:
                 raise KeyError(f"{names[4]}: missing; 'ts_inf' needs the member of each particle.")

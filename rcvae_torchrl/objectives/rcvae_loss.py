@@ -197,7 +197,7 @@ class RCVAELoss(LossModule):
 
     def _check(self, tensors: list[torch.Tensor | None]) -> None:
         keys, cfg = self.tensor_keys, self.ensemble.config
-        dtype = self.ensemble.embed.weight.dtype
+        dtype = self.ensemble.dtype
         obs_key, act_key, next_key = map(
             str, (keys.observation, keys.action, keys.next_observation)
         )

@@ -126,6 +126,14 @@ def test_select_members_and_state_dict_round_trip(ensemble):
         assert torch.equal(a, b), name
 
 
+def test_double_precision_model(ensemble):
+    model = ensemble.double()
+    assert model.dtype == torch.float64 and model.device.type == "cpu"
+    assert model.select_members([1]).dtype == torch.float64
+    td = model.generate(torch.zeros(5, dtype=torch.float64), torch.zeros(3, 2).double())
+    assert td["observation"].dtype == torch.float64
+
+
 def test_members_are_initialised_differently(ensemble):
     weight = ensemble.decoder[0].weight
     assert not torch.equal(weight[0], weight[1])
