@@ -45,8 +45,13 @@ class RCVAELoss(LossModule):
         beta: weight of the KL term (β-VAE, Higgins et al. 2017).
         free_nats: per-step free-nats clamp of the KL (0 disables it).
         open_loop_steps: number K of trailing transitions of each window that read the model's
-            own sample of the previous state (at most L − 2); may be changed between steps for
-            a curriculum.
+            own sample of the previous state (at most all but the first); may be changed between
+            steps for a curriculum. It fights compounding *model* error, but on a stochastic
+            system the fed-back sample is independent of the true noise, so the model learns
+            to widen its one-step distribution: on the linear-Gaussian test system (σ = 0.1,
+            L = 16, K = 8, 400 steps) the one-step std came out 1.24 σ and the 20-step spread
+            1.08–1.33 × the analytic one, against 1.03 σ and 0.99–1.03 × with K = 0. Keep K
+            small (or 0) where aleatoric calibration matters.
         detach_open_loop: stop gradients through the fed-back samples.
         generator: torch generator for the latent and fed-back samples.
 
