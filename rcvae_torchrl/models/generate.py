@@ -56,7 +56,7 @@ def generate(
         policy: closed-loop policy (instead of ``actions``).
         horizon: number of steps T in closed loop.
         requires_grad: keep the autograd graph (off by default: rollouts are for evaluation).
-        chunk_size: trajectories per member rolled out together (``None``: all N·|B| at
+        chunk_size: trajectories per member rolled out together (``None``: all ``N·|B|`` at
             once). Bounded chunks keep tensors in cache and below the allocator's mmap
             threshold; on 2 CPU cores one chunk of 5 × 4096 rows ran slower than a loop
             over members (``benchmarks/world_model_speed.py``).
