@@ -1,0 +1,132 @@
+"""Returns of candidate action sequences under the ensemble: the planner's fast path.
+
+Mirrors mbrl-lib's ``ModelEnv.evaluate_action_sequences``: R = |B|·C rows (start state ×
+candidate), G particle groups per row, all G·R particles stepped together, rewards accumulated
+on the fly; no TensorDict, no per-step allocation beyond the model's own.
+
+Particle layout (flat index i = g·R + r, so ``"ts_inf"`` is member-major without copies):
+
+- ``"ts_inf"``: G = E·k with k = ⌈P / E⌉, so P is rounded **up** to a multiple of E and every
+  member scores every candidate equally often; particle g = m·k + j follows member m. The
+  tensors ``[G·R, ·]`` are viewed as ``[E, k·R, ·]``: one batched matmul per layer.
+- ``"ts1"``: G = P; every particle carries all members' hidden states ``[E, P·R, H]``.
+- ``"mean"``: deterministic, so G = 1 and the result is repeated P times.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from rcvae_torchrl.model_env.propagation import Propagation, mean_step, ts1_step
+from rcvae_torchrl.model_env.task import RewardFn, SuccessFn, task_reward, task_success
+from rcvae_torchrl.models import RCVAEEnsemble
+
+__all__ = ["SequenceScores", "particle_groups", "score_action_sequences"]
+
+
+class SequenceScores(NamedTuple):
+    """Per-particle outcome of each row's action sequence."""
+
+    returns: torch.Tensor  #: sum of rewards up to and including the first done ``[R, P']``
+    success: torch.Tensor  #: success reached within the horizon, bool ``[R, P']``
+
+
+def particle_groups(trajectory_sampling: Propagation, particles: int, ensemble_size: int) -> int:
+    """G, the particles computed per row: ``E·⌈P/E⌉`` (``"ts_inf"``), P (``"ts1"``), 1."""
+    if trajectory_sampling == "ts_inf":
+        return ensemble_size * math.ceil(particles / ensemble_size)
+    return particles if trajectory_sampling == "ts1" else 1
+
+
+def score_action_sequences(
+    ensemble: RCVAEEnsemble,
+    start: torch.Tensor,
+    actions: torch.Tensor,
+    particles: int,
+    *,
+    reward_fn: RewardFn,
+    success_fn: SuccessFn,
+    trajectory_sampling: Propagation = "ts_inf",
+    terminate_on_success: bool = True,
+    generator: torch.Generator | None = None,
+) -> SequenceScores:
+    """Roll every row's action sequence out for its particles and score it.
+
+    The return of a particle is Σ_t r_t over the steps up to and including its first success
+    when ``terminate_on_success`` (the real Pusher ends the episode there), else over all H
+    steps; ``success`` says whether any step within the horizon succeeded. Non-finite states
+    give non-finite rewards and returns; callers mask rows with non-finite starts themselves.
+
+    Args:
+        ensemble: the world model.
+        start: s_0 of each row ``[R, S]`` (every particle starts from h_0 = 0).
+        actions: a_0..a_{H−1} of each row ``[R, H, A]``.
+        particles: P requested per row (see the module docstring for P').
+        reward_fn: ``(s_{t+1} [M, S], a_t [M, A]) -> [M, 1]``.
+        success_fn: ``s_{t+1} [M, S] -> [M]`` bool.
+        trajectory_sampling: ``"ts_inf"``, ``"ts1"`` or ``"mean"``.
+        terminate_on_success: success ends a particle's episode.
+        generator: source of all sampling noise.
+
+    Returns:
+        :class:`SequenceScores`, each ``[R, P']``.
+    """
+    rows, horizon = actions.shape[0], actions.shape[1]
+    groups = particle_groups(trajectory_sampling, particles, ensemble.ensemble_size)
+    n = groups * rows
+    obs = start.expand(groups, *start.shape).reshape(n, start.shape[-1])
+    per_step = actions.transpose(0, 1)  # [H, R, A]
+    hidden = _initial_hidden(ensemble, trajectory_sampling, n, obs)
+    returns = obs.new_zeros(n)
+    alive = torch.ones(n, dtype=torch.bool, device=obs.device)
+    success = torch.zeros_like(alive)
+    for t in range(horizon):
+        action = per_step[t].expand(groups, rows, -1).reshape(n, -1)
+        obs, hidden = _propagate(ensemble, trajectory_sampling, hidden, obs, action, generator)
+        reward = task_reward(reward_fn, obs, action).squeeze(-1)
+        succeeded = task_success(success_fn, obs).squeeze(-1)
+        returns = returns + reward.masked_fill(~alive, 0.0)
+        success = success | (alive & succeeded)
+        if terminate_on_success:
+            alive = alive & ~succeeded
+    out = SequenceScores(returns.view(groups, rows).T, success.view(groups, rows).T)
+    if trajectory_sampling == "mean":
+        out = SequenceScores(*(x.expand(rows, particles) for x in out))
+    return out
+
+
+def _initial_hidden(
+    ensemble: RCVAEEnsemble, trajectory_sampling: Propagation, n: int, like: torch.Tensor
+) -> torch.Tensor:
+    """h_0: ``[E, n/E, H]`` for TS-∞ (member-major), else every member's ``[E, n, H]``."""
+    if trajectory_sampling == "ts_inf":
+        return ensemble.initial_hidden((n // ensemble.ensemble_size,), like)
+    return ensemble.initial_hidden((n,), like)
+
+
+def _propagate(
+    ensemble: RCVAEEnsemble,
+    trajectory_sampling: Propagation,
+    hidden: torch.Tensor,
+    obs: torch.Tensor,
+    action: torch.Tensor,
+    generator: torch.Generator | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One step of all particles ``[n, ·]``: ``(s_{t+1} [n, S], hidden)``."""
+    if trajectory_sampling == "ts_inf":
+        e = ensemble.ensemble_size
+        out = ensemble.step(
+            hidden,
+            obs.view(e, -1, obs.shape[-1]),
+            action.view(e, -1, action.shape[-1]),
+            generator=generator,
+        )
+        return out.observation.view(obs.shape), out.hidden
+    if trajectory_sampling == "ts1":
+        out = ts1_step(ensemble, hidden, obs, action, generator)
+    else:
+        out = mean_step(ensemble, hidden, obs, action)
+    return out.observation, out.hidden

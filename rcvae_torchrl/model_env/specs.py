@@ -1,0 +1,142 @@
+"""Specs of the model env: the real env's task specs plus the model state.
+
+Copied from the real env (when given): ``"observation"``, ``"success"`` (if it has one), the
+action, reward and done specs. Other observation entries of the real env (pixels, step
+counters added by transforms) are not modelled and are left out. Added: the model state
+``("rcvae", "hidden")``, ``("rcvae", "latent")`` and ``"member"`` (not for ``"mean"``), declared
+both as observations (so that ``step_mdp`` carries the new values) and as state (the inputs a
+step reads), together with ``"observation"`` (so that ``reset`` can take start states from the
+input tensordict, also through a ``TransformedEnv``).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
+from torchrl.envs import EnvBase
+
+from rcvae_torchrl.model_env.propagation import Propagation
+from rcvae_torchrl.models import RCVAEEnsemble
+
+__all__ = [
+    "ACTION_KEY",
+    "HIDDEN_KEY",
+    "LATENT_KEY",
+    "MEMBER_KEY",
+    "OBSERVATION_KEY",
+    "REWARD_KEY",
+    "SUCCESS_KEY",
+    "ModelEnvSpecs",
+    "model_env_specs",
+]
+
+OBSERVATION_KEY = "observation"
+ACTION_KEY = "action"
+REWARD_KEY = "reward"
+SUCCESS_KEY = "success"
+HIDDEN_KEY = ("rcvae", "hidden")
+LATENT_KEY = ("rcvae", "latent")
+MEMBER_KEY = "member"
+
+
+class ModelEnvSpecs(NamedTuple):
+    """The specs of an :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv` (unbatched)."""
+
+    observation: Composite
+    action: TensorSpec
+    reward: TensorSpec
+    done: Composite
+    state: Composite
+
+
+def model_env_specs(
+    ensemble: RCVAEEnsemble,
+    trajectory_sampling: Propagation,
+    device: torch.device,
+    real_env: EnvBase | None = None,
+) -> ModelEnvSpecs:
+    """Specs for the model env, from ``real_env`` or, without one, defaults.
+
+    Defaults: observation unbounded ``[S]``, action bounded in [-1, 1] ``[A]``, reward
+    unbounded ``[1]``, success bool ``[1]``, ``done`` / ``terminated`` / ``truncated`` bool
+    ``[1]``. A batched real env contributes the spec of one of its elements.
+    """
+    task = _real_specs(ensemble, real_env) if real_env is not None else _default_specs(ensemble)
+    obs_spec, success_spec, action, reward, done = (s.clone().to(device) for s in task)
+    model_state = _model_state_spec(ensemble, trajectory_sampling, obs_spec.dtype, device)
+    observation = Composite(
+        {OBSERVATION_KEY: obs_spec, SUCCESS_KEY: success_spec, **model_state}, device=device
+    )
+    state = Composite({OBSERVATION_KEY: obs_spec.clone(), **model_state}, device=device)
+    return ModelEnvSpecs(observation, action, reward, done, state.clone())
+
+
+def _model_state_spec(
+    ensemble: RCVAEEnsemble, trajectory_sampling: Propagation, dtype: torch.dtype, device
+) -> dict[str, TensorSpec]:
+    cfg, e = ensemble.config, ensemble.ensemble_size
+    hidden = (cfg.hidden_dim,) if trajectory_sampling == "ts_inf" else (e, cfg.hidden_dim)
+    out: dict[str, TensorSpec] = {
+        "rcvae": Composite(
+            hidden=Unbounded(hidden, dtype=dtype, device=device),
+            latent=Unbounded((cfg.latent_dim,), dtype=dtype, device=device),
+            device=device,
+        )
+    }
+    if trajectory_sampling != "mean":
+        out[MEMBER_KEY] = Categorical(e, shape=(), dtype=torch.int64, device=device)
+    return out
+
+
+def _default_specs(ensemble: RCVAEEnsemble) -> tuple[TensorSpec, ...]:
+    cfg = ensemble.config
+    flag = Categorical(2, shape=(1,), dtype=torch.bool)
+    return (
+        Unbounded((cfg.obs_dim,), dtype=torch.float32),
+        Unbounded((1,), dtype=torch.bool),
+        Bounded(low=-1.0, high=1.0, shape=(cfg.action_dim,), dtype=torch.float32),
+        Unbounded((1,), dtype=torch.float32),
+        Composite(done=flag, terminated=flag.clone(), truncated=flag.clone()),
+    )
+
+
+def _unbatched(spec: Composite, batch_dims: int) -> Composite:
+    for _ in range(batch_dims):
+        spec = spec[0]
+    return spec
+
+
+def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]:
+    """The real env's observation, success, action, reward and done specs, checked."""
+    cfg, nb = ensemble.config, len(env.batch_size)
+    observations = _unbatched(env.observation_spec, nb)
+    name = type(env).__name__
+    if OBSERVATION_KEY not in observations.keys():
+        raise KeyError(f"real_env: {name} has no {OBSERVATION_KEY!r} observation to model.")
+    obs = observations[OBSERVATION_KEY]
+    success = observations[SUCCESS_KEY] if SUCCESS_KEY in observations.keys() else None
+    if env.action_key != ACTION_KEY or env.reward_key != REWARD_KEY:
+        raise ValueError(
+            f"real_env: expected action and reward keys {ACTION_KEY!r} and {REWARD_KEY!r}, got "
+            f"{env.action_key!r} and {env.reward_key!r}."
+        )
+    action = _unbatched(env.full_action_spec, nb)[ACTION_KEY]
+    reward = _unbatched(env.full_reward_spec, nb)[REWARD_KEY]
+    _check_shape(f"real_env {OBSERVATION_KEY!r} spec", obs.shape, (cfg.obs_dim,))
+    _check_shape(f"real_env {ACTION_KEY!r} spec", action.shape, (cfg.action_dim,))
+    _check_shape(f"real_env {REWARD_KEY!r} spec", reward.shape, (1,))
+    defaults = _default_specs(ensemble)
+    return (
+        obs,
+        defaults[1] if success is None else success,
+        action,
+        reward,
+        _unbatched(env.full_done_spec, nb),
+    )
+
+
+def _check_shape(name: str, got: torch.Size, want: tuple[int, ...]) -> None:
+    if tuple(got) != want:
+        raise ValueError(f"{name}: expected shape {want} (the ensemble's), got {tuple(got)}.")

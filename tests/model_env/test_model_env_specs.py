@@ -1,0 +1,99 @@
+"""RCVAEEnsembleEnv contract: TorchRL spec checks, keys, batch shapes and spec copying."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import CONFIG, E
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv
+
+MODES = ["ts_inf", "ts1", "mean"]
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_check_env_specs_with_real_env_specs(make_env, mode):
+    check_env_specs(make_env(trajectory_sampling=mode), seed=0)
+
+
+def test_check_env_specs_with_default_specs(ensemble, starts):
+    env = RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, start_states=starts, seed=0)
+    check_env_specs(env, seed=0)
+    assert (env.action_spec.space.low == -1).all() and (env.action_spec.space.high == 1).all()
+
+
+def test_specs_copied_from_the_real_env(make_env, real_env):
+    env = make_env()
+    assert env.batch_size == () and not env.batch_locked
+    assert env.action_spec == real_env.action_spec
+    assert env.reward_spec == real_env.reward_spec
+    assert env.done_keys == real_env.done_keys
+    for key in real_env.done_keys:
+        assert env.full_done_spec[key] == real_env.full_done_spec[key]
+    assert env.observation_spec["observation"] == real_env.observation_spec["observation"]
+    assert env.observation_spec["success"] == real_env.observation_spec["success"]
+    assert set(env.observation_spec.keys(True, True)) == {
+        "observation",
+        "success",
+        ("rcvae", "hidden"),
+        ("rcvae", "latent"),
+        "member",
+    }
+    assert set(env.state_spec.keys(True, True)) == {
+        "observation",
+        ("rcvae", "hidden"),
+        ("rcvae", "latent"),
+        "member",
+    }
+    assert env.state_spec["member"].dtype == torch.int64
+
+
+@pytest.mark.parametrize(
+    ("mode", "hidden", "has_member"),
+    [("ts_inf", (16,), True), ("ts1", (E, 16), True), ("mean", (E, 16), False)],
+)
+def test_model_state_layout_per_mode(make_env, mode, hidden, has_member):
+    env = make_env(trajectory_sampling=mode, terminate_on_success=False)
+    assert env.state_spec["rcvae", "hidden"].shape == hidden
+    assert ("member" in env.state_spec.keys()) == has_member
+    td = env.rollout(3, tensordict=env.reset(TensorDict(batch_size=[5])), auto_reset=False)
+    assert td["next", "rcvae", "hidden"].shape == (5, 3, *hidden)
+    assert ("member" in td.keys()) == has_member
+
+
+@pytest.mark.parametrize("batch", [(), (4,), (2, 3)])
+@pytest.mark.parametrize("mode", MODES)
+def test_any_leading_batch(make_env, starts, batch, mode):
+    env = make_env(trajectory_sampling=mode, terminate_on_success=False)
+    n = torch.Size(batch).numel()
+    start = TensorDict({"observation": starts[:n].reshape(*batch, 14)}, batch_size=batch)
+    td = env.rollout(4, tensordict=env.reset(start), auto_reset=False)
+    assert td.batch_size == (*batch, 4)
+    assert td["next", "observation"].shape == (*batch, 4, 14)
+    assert td["next", "reward"].shape == (*batch, 4, 1)
+    for key in ("success", "done", "terminated", "truncated"):
+        assert td["next", key].shape == (*batch, 4, 1) and td["next", key].dtype == torch.bool
+    assert torch.equal(td["observation"][..., 0, :], start["observation"])
+    # passthrough dims (the target) are copied exactly
+    assert torch.equal(td["next", "observation"][..., 12:], td["observation"][..., 12:])
+    assert not td["next", "truncated"].any()
+
+
+def test_reward_and_success_are_the_task_functions(make_env, starts):
+    env = make_env(terminate_on_success=False)
+    td = env.rollout(5, tensordict=env.reset(TensorDict({"observation": starts[:6]}, [6])))
+    nxt = td["next"]
+    torch.testing.assert_close(nxt["reward"], pusher_reward(nxt["observation"], td["action"]))
+    assert torch.equal(nxt["success"].squeeze(-1), pusher_success(nxt["observation"]))
+
+
+def test_real_env_with_other_dims_is_refused(pusher_data, real_env):
+    from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+
+    small = RCVAEEnsemble(RCVAEConfig(10, 2, hidden_dim=8, mlp_dim=8), ensemble_size=2)
+    with pytest.raises(ValueError, match="'observation' spec: expected shape \\(10,\\)"):
+        RCVAEEnsembleEnv(small, pusher_reward, pusher_success, real_env=real_env)
+    assert CONFIG.obs_dim == 14
