@@ -160,3 +160,22 @@ def test_episodes_can_run_past_success():
         td = env.rollout(1000, make_scripted_policy(), break_when_any_done=True)
     assert td.shape == (200,) and td["next", "truncated"][-1].item()
     assert td["next", "success"].any() and not td["next", "terminated"].any()
+
+
+def test_reset_to_state_reproduces_an_episode():
+    from rcvae_torchrl.envs.state import reset_to_state
+
+    env = make_pusher_env("deterministic", seed=3)
+    start = env.reset()
+    with torch.no_grad():
+        a = env.rollout(40, make_scripted_policy(), auto_reset=False, tensordict=start)
+    other = make_pusher_env("deterministic", seed=99)
+    td = reset_to_state(other, start["observation"])
+    torch.testing.assert_close(td["observation"], start["observation"], atol=1e-6, rtol=0)
+    with torch.no_grad():
+        b = other.rollout(40, make_scripted_policy(), auto_reset=False, tensordict=td)
+    torch.testing.assert_close(
+        a["next", "observation"], b["next", "observation"], atol=1e-4, rtol=0
+    )
+    with pytest.raises(ValueError, match="observation: expected a finite tensor of shape"):
+        reset_to_state(other, torch.full((14,), float("nan")))
