@@ -3,6 +3,8 @@ real Pusher, the real env, and a factory of model envs."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 
@@ -62,5 +64,23 @@ def make_env(ensemble, real_env, starts):
         kwargs.setdefault("start_states", starts)
         kwargs.setdefault("seed", 0)
         return make_rcvae_env(ensemble, real_env, pusher_reward, pusher_success, **kwargs)
+
+    return make
+
+
+@pytest.fixture
+def still_ball_env(pusher_data, real_env):
+    """``still_ball_env(**kwargs)``: a model whose ball and target never move (passthrough
+    dims), so Pusher success is decided by the start state."""
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(replace(CONFIG, passthrough_dims=(8, 9, 12, 13)), ensemble_size=E)
+    model.fit_normalizer(
+        pusher_data["observation"],
+        pusher_data["action"],
+        next_observations=pusher_data["next", "observation"],
+    )
+
+    def make(**kwargs):
+        return make_rcvae_env(model, real_env, pusher_reward, pusher_success, seed=0, **kwargs)
 
     return make

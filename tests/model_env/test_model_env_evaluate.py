@@ -1,0 +1,157 @@
+"""evaluate_action_sequences: shapes, particle layout, equality with env.rollout, success, NaN."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from conftest import E
+from model_env_utils import Replay, at_target
+from tensordict import TensorDict
+
+from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.model_env import alive_mask, make_rcvae_env
+
+
+def _start(starts, batch=(2,)):
+    n = torch.Size(batch).numel()
+    return TensorDict({"observation": starts[:n].reshape(*batch, 14)}, batch_size=batch)
+
+
+@pytest.mark.parametrize(
+    ("mode", "particles", "expected"),
+    [
+        ("ts_inf", 1, E),
+        ("ts_inf", 4, 2 * E),
+        ("ts_inf", 2 * E, 2 * E),
+        ("ts1", 4, 4),
+        ("mean", 4, 4),
+    ],
+)
+@pytest.mark.parametrize("batch", [(), (2,), (2, 3)])
+def test_shapes_and_particle_rounding(make_env, starts, mode, particles, expected, batch):
+    env = make_env(trajectory_sampling=mode)
+    actions = torch.rand(*batch, 7, 4, 2) * 2 - 1
+    returns, success = env.evaluate_action_sequences(
+        _start(starts, batch), actions, particles, return_success=True
+    )
+    assert returns.shape == (*batch, 7, expected) == success.shape
+    assert success.dtype == torch.bool and torch.isfinite(returns).all()
+    assert env.evaluate_action_sequences(_start(starts, batch), actions, particles).shape == (
+        *batch,
+        7,
+        expected,
+    )
+
+
+@pytest.mark.parametrize("mode", ["ts_inf", "ts1", "mean"])
+@pytest.mark.parametrize("terminate", [False, True])
+def test_fast_path_equals_env_rollout_under_the_same_seed(
+    ensemble, real_env, starts, mode, terminate
+):
+    """Particle p of row r (start × candidate) is the rollout of the tensordict [G, R] at (p, r);
+    TS-∞ particle p follows member p // ⌈P/E⌉. Success: ball past x = 0.3 (some particles)."""
+    env = make_rcvae_env(
+        ensemble,
+        real_env,
+        pusher_reward,
+        lambda obs: obs[..., 8] > 0.3,
+        trajectory_sampling=mode,
+        terminate_on_success=terminate,
+        seed=0,
+    )
+    c, h, p = 4, 6, 4
+    groups = {"ts_inf": 2 * E, "ts1": p, "mean": 1}[mode]
+    actions = torch.rand(1, c, h, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    td_start = _start(starts, (1,))
+    env.set_seed(3)
+    returns, success = env.evaluate_action_sequences(td_start, actions, p, return_success=True)
+
+    state = {"observation": td_start["observation"].expand(groups, c, 14)}
+    if mode == "ts_inf":
+        k = groups // E
+        state["member"] = (torch.arange(groups) // k)[:, None].expand(groups, c)
+    env.set_seed(3)
+    td = env.reset(TensorDict(state, batch_size=[groups, c]))
+    rollout = env.rollout(
+        h,
+        Replay(actions[0].expand(groups, c, h, 2)),
+        tensordict=td,
+        auto_reset=False,
+        break_when_any_done=False,
+    )
+    done = rollout["next", "done"].squeeze(-1)
+    alive = alive_mask(done)
+    expected = (rollout["next", "reward"].squeeze(-1) * alive).sum(-1).T  # [c, groups]
+    reached = (rollout["next", "success"].squeeze(-1) & alive).any(-1).T
+    if mode == "mean":
+        expected, reached = expected.expand(c, p), reached.expand(c, p)
+    torch.testing.assert_close(returns[0], expected)
+    assert torch.equal(success[0], reached)
+    assert bool(success.any())  # the test exercises the success bookkeeping
+    if mode != "mean":
+        assert not bool(success.all())
+
+
+def test_success_detected_and_later_rewards_dropped(still_ball_env, starts):
+    env = still_ball_env()
+    obs = torch.stack([at_target(starts[0]), starts[1]])
+    assert not pusher_success(starts[1])
+    td_start = TensorDict({"observation": obs}, batch_size=[2])
+    actions = torch.rand(2, 5, 4, 2) * 2 - 1
+    env.set_seed(0)
+    returns, success = env.evaluate_action_sequences(td_start, actions, E, return_success=True)
+    assert success[0].all() and not success[1].any()
+    env.set_seed(0)
+    first = env.evaluate_action_sequences(td_start, actions[:, :, :1], E)
+    torch.testing.assert_close(returns[0], first[0])  # only the success step's reward counts
+    full = still_ball_env(terminate_on_success=False)
+    full_returns, full_success = full.evaluate_action_sequences(
+        td_start, actions, E, return_success=True
+    )
+    assert torch.equal(full_success, success)
+    assert (full_returns[0] < returns[0]).all()  # every reward is < 0, four more of them
+
+
+def test_non_finite_start_gives_nan_returns_for_that_start_only(make_env, starts):
+    env = make_env()
+    obs = starts[:3].clone()
+    obs[1, 4] = float("nan")
+    obs[2, 0] = float("inf")
+    td_start = TensorDict({"observation": obs}, batch_size=[3])
+    returns, success = env.evaluate_action_sequences(
+        td_start, torch.zeros(3, 5, 4, 2), 3, return_success=True
+    )
+    assert torch.isfinite(returns[0]).all()
+    assert torch.isnan(returns[1:]).all()
+    assert not success[1:].any()
+
+
+@pytest.mark.parametrize(
+    ("actions", "particles", "match"),
+    [
+        (torch.zeros(2, 5, 4, 3), 2, "actions: expected shape"),
+        (torch.zeros(5, 4, 2), 2, "actions: expected shape"),
+        (torch.zeros(3, 5, 4, 2), 2, "actions: expected shape"),
+        (torch.zeros(2, 5, 0, 2), 2, "horizon H >= 1"),
+        (torch.zeros(2, 0, 4, 2), 2, "C >= 1"),
+        (torch.full((2, 5, 4, 2), float("nan")), 2, "actions: expected finite"),
+        (torch.zeros(2, 5, 4, 2), 0, "particles"),
+        (torch.zeros(2, 5, 4, 2), 2.0, "particles"),
+        (torch.zeros(2, 5, 4, 2), True, "particles"),
+    ],
+)
+def test_bad_input_is_a_clear_error(make_env, starts, actions, particles, match):
+    with pytest.raises(ValueError, match=match):
+        make_env().evaluate_action_sequences(_start(starts), actions, particles)
+
+
+def test_bad_start_is_a_clear_error(make_env, starts):
+    env = make_env()
+    with pytest.raises(KeyError, match="observation"):
+        env.evaluate_action_sequences(TensorDict(batch_size=[2]), torch.zeros(2, 5, 4, 2), 1)
+    with pytest.raises(TypeError, match="dtype"):
+        env.evaluate_action_sequences(
+            TensorDict({"observation": starts[:2].double()}, [2]), torch.zeros(2, 5, 4, 2), 1
+        )
+    with pytest.raises(TypeError, match="dtype"):
+        env.evaluate_action_sequences(_start(starts), torch.zeros(2, 5, 4, 2).double(), 1)
