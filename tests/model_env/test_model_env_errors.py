@@ -1,0 +1,102 @@
+"""Clear errors for bad arguments and bad inputs."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"trajectory_sampling": "ts2"}, ValueError, "trajectory_sampling"),
+        ({"member_assignment": "first"}, ValueError, "member_assignment"),
+        ({"seed": 0, "generator": torch.Generator()}, ValueError, "seed"),
+        ({"start_states": torch.zeros(5, 13)}, ValueError, "start_states"),
+        ({"start_states": torch.zeros(2, 3, 14)}, ValueError, "start_states"),
+        ({"start_states": torch.zeros(0, 14)}, ValueError, "start_states"),
+        ({"start_states": torch.full((2, 14), float("nan"))}, ValueError, "start_states"),
+        ({"start_states": torch.zeros(2, 14, dtype=torch.float64)}, TypeError, "start_states"),
+    ],
+)
+def test_constructor_arguments(ensemble, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, **kwargs)
+
+
+def test_constructor_types(ensemble):
+    with pytest.raises(TypeError, match="ensemble"):
+        RCVAEEnsembleEnv(torch.nn.Linear(2, 2), pusher_reward, pusher_success)
+    with pytest.raises(TypeError, match="reward_fn"):
+        RCVAEEnsembleEnv(ensemble, None, pusher_success)
+    with pytest.raises(TypeError, match="success_fn"):
+        RCVAEEnsembleEnv(ensemble, pusher_reward, 0.5)
+
+
+def _state(env, starts, n=4):
+    td = env.reset(TensorDict({"observation": starts[:n]}, batch_size=[n]))
+    td["action"] = torch.zeros(n, 2)
+    return td
+
+
+@pytest.mark.parametrize("mode", ["ts_inf", "ts1", "mean"])
+def test_step_inputs(make_env, starts, mode):
+    env = make_env(trajectory_sampling=mode)
+    td = _state(env, starts)
+    td["action"] = torch.zeros(4, 3)
+    with pytest.raises(ValueError, match="action: expected shape"):
+        env.step(td)
+    td["action"] = torch.full((4, 2), float("nan"))
+    with pytest.raises(ValueError, match="action: expected finite"):
+        env.step(td)
+    td = _state(env, starts)
+    td["observation"][1, 2] = float("nan")
+    with pytest.raises(ValueError, match="observation: expected finite"):
+        env.step(td)
+    td = _state(env, starts).exclude("rcvae", "member")
+    td["observation"][1, 2] = float("nan")
+    with pytest.raises(ValueError, match="observation: expected finite"):
+        env.step(td)  # no model state: started from the observation, which is checked too
+    with pytest.raises(KeyError, match="observation"):
+        env.step(TensorDict({"action": torch.zeros(4, 2)}, batch_size=[4]))
+
+
+def test_step_without_model_state_starts_it(make_env, starts):
+    env = make_env()
+    td = TensorDict({"observation": starts[:5], "action": torch.zeros(5, 2)}, batch_size=[5])
+    out = env.step(td)
+    assert out["next", "member"].tolist() == [0, 1, 2, 0, 1]
+    assert out["next", "rcvae", "hidden"].shape == (5, 16)
+
+
+def test_reset_inputs(make_env, starts):
+    env = make_env()
+    bad = starts[:2].clone()
+    bad[0, 0] = float("inf")
+    with pytest.raises(ValueError, match="finite"):
+        env.reset(TensorDict({"observation": bad}, batch_size=[2]))
+    with pytest.raises(ValueError, match="expected shape"):
+        env.reset(TensorDict({"observation": torch.zeros(2, 9)}, batch_size=[2]))
+    with pytest.raises(TypeError, match="dtype"):
+        env.reset(TensorDict({"observation": starts[:2].double()}, batch_size=[2]))
+    with pytest.raises(ValueError, match="member"):
+        env.reset(
+            TensorDict({"observation": starts[:2], "member": torch.tensor([0, 7])}, batch_size=[2])
+        )
+
+
+def test_task_functions_with_wrong_outputs(ensemble, starts):
+    td = TensorDict({"observation": starts[:3], "action": torch.zeros(3, 2)}, batch_size=[3])
+    env = RCVAEEnsembleEnv(ensemble, lambda o, a: o, pusher_success)
+    with pytest.raises(ValueError, match="reward_fn: expected a reward of shape"):
+        env.step(td)
+    env = RCVAEEnsembleEnv(ensemble, pusher_reward, lambda o: o[..., :2] > 0)
+    with pytest.raises(ValueError, match="success_fn: expected a flag"):
+        env.step(td)
+    env = RCVAEEnsembleEnv(ensemble, lambda o, a: 0.0, pusher_success)
+    with pytest.raises(TypeError, match="reward_fn: expected a tensor"):
+        env.step(td)
