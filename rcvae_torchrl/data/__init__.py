@@ -3,6 +3,7 @@
 from .collection import TRAJ_KEY, collect_episodes
 from .exploration import GaussianExploration, UniformRandomPolicy, make_exploration_policy
 from .replay import make_window_buffer, sample_windows, split_episodes
+from .storage import load_episodes, save_episodes
 
 __all__ = [
     # collection
@@ -16,4 +17,7 @@ __all__ = [
     "make_window_buffer",
     "sample_windows",
     "split_episodes",
+    # storage
+    "load_episodes",
+    "save_episodes",
 ]

@@ -1,0 +1,121 @@
+"""The MPC agent: our CEM planner over the RCVAE ensemble env, and running it in the real env."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+from tqdm.auto import tqdm
+
+from rcvae_torchrl.data import TRAJ_KEY
+from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.envs.state import reset_to_state
+from rcvae_torchrl.model_env import make_rcvae_env
+from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.planners import CEMPlanner
+
+__all__ = ["EpisodeStats", "PlannerConfig", "make_mpc_policy", "run_episodes"]
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    """The planning budget: ``num_candidates × iterations × horizon × particles`` model steps.
+
+    Args:
+        horizon: planning horizon H (control steps).
+        num_candidates: action sequences sampled per CEM iteration.
+        top_k: elites per iteration.
+        iterations: CEM iterations per control step.
+        particles: imagined trajectories per candidate (spread over the members).
+        momentum: weight of the previous mean/std in the CEM update.
+        objective: ``"mean"``, ``"quantile"``, ``"cvar"`` or ``"success"``.
+        trajectory_sampling: ``"ts_inf"``, ``"ts1"`` or ``"mean"``.
+    """
+
+    horizon: int = 12
+    num_candidates: int = 100
+    top_k: int = 10
+    iterations: int = 3
+    particles: int = 5
+    momentum: float = 0.1
+    objective: str = "mean"
+    trajectory_sampling: str = "ts_inf"
+
+
+def make_mpc_policy(
+    ensemble: RCVAEEnsemble,
+    real_env: EnvBase,
+    config: PlannerConfig = PlannerConfig(),
+    *,
+    reward_fn: Callable = pusher_reward,
+    success_fn: Callable = pusher_success,
+    seed: int = 0,
+) -> CEMPlanner:
+    """A CEM planner over an :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv` of ``ensemble``
+    with the specs of ``real_env``; use it as a TorchRL policy in ``real_env``.
+    """
+    model_env = make_rcvae_env(
+        ensemble,
+        real_env,
+        reward_fn,
+        success_fn,
+        trajectory_sampling=config.trajectory_sampling,
+        seed=seed,
+    )
+    kwargs = {k: v for k, v in asdict(config).items() if k != "trajectory_sampling"}
+    return CEMPlanner(model_env, seed=seed, **kwargs)
+
+
+@dataclass
+class EpisodeStats:
+    """Outcomes of episodes run by :func:`run_episodes`."""
+
+    success: torch.Tensor  # [n] bool
+    steps: torch.Tensor  # [n] int64: steps to success, or the episode length
+    data: TensorDict  # flat transitions [frames] with episode ids under TRAJ_KEY
+
+    @property
+    def success_rate(self) -> float:
+        return self.success.float().mean().item()
+
+
+def run_episodes(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    *,
+    seeds: Sequence[int],
+    starts: torch.Tensor | None = None,
+    max_steps: int = 600,
+    first_id: int = 0,
+    progress: bool = True,
+    desc: str = "episodes",
+) -> EpisodeStats:
+    """One episode per seed (``env.set_seed(seed)`` draws the start state and the noise), or
+    from the given start observations ``starts [n, S]`` (the seed then only draws the noise).
+
+    Calls ``policy.reset()`` before each episode when the policy has one (the planner's warm
+    start must not leak across episodes).
+    """
+    if starts is not None and len(starts) != len(seeds):
+        raise ValueError(
+            f"starts: expected one start state per seed ({len(seeds)}), got {len(starts)}"
+        )
+    success, steps, parts = [], [], []
+    for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
+        env.set_seed(int(seed))
+        td = env.reset() if starts is None else reset_to_state(env, starts[i])
+        if hasattr(policy, "reset"):
+            policy.reset()
+        with torch.no_grad():
+            episode = env.rollout(
+                max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
+            )
+        won = episode["next", "success"].reshape(-1)
+        success.append(bool(won.any()))
+        steps.append(int(won.float().argmax()) + 1 if won.any() else episode.shape[0])
+        episode[TRAJ_KEY] = torch.full(episode.shape, first_id + i, dtype=torch.int64)
+        parts.append(episode.exclude("is_init"))
+    return EpisodeStats(torch.tensor(success), torch.tensor(steps), torch.cat(parts))
