@@ -8,13 +8,15 @@ directly. The math is in pure functions: particle propagation (TS-∞, TS-1, mea
 success / episode masks, and the scoring loop.
 """
 
-from rcvae_torchrl.model_env.env import MemberAssignment, RCVAEEnsembleEnv, make_rcvae_env
+from rcvae_torchrl.model_env.env import MemberAssignment, RCVAEEnsembleEnv
+from rcvae_torchrl.model_env.factory import make_rcvae_env
 from rcvae_torchrl.model_env.imagine import ImaginePolicy, as_tensor_policy, imagine_rollouts
 from rcvae_torchrl.model_env.propagation import (
     PROPAGATIONS,
     MeanTransition,
     ParticleStep,
     Propagation,
+    make_step_module,
     mean_step,
     ts1_step,
 )
@@ -49,6 +51,7 @@ __all__ = [
     "MeanTransition",
     "ParticleStep",
     "Propagation",
+    "make_step_module",
     "mean_step",
     "ts1_step",
     # task functions and specs

@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Literal
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import EnvBase, Transform, TransformedEnv
+from torchrl.envs import EnvBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
+from rcvae_torchrl.model_env import _checks
 from rcvae_torchrl.model_env.imagine import ImaginePolicy, imagine_rollouts
-from rcvae_torchrl.model_env.propagation import PROPAGATIONS, MeanTransition, Propagation
+from rcvae_torchrl.model_env.propagation import Propagation, make_step_module
 from rcvae_torchrl.model_env.scoring import score_action_sequences
 from rcvae_torchrl.model_env.specs import (
     ACTION_KEY,
@@ -26,10 +25,9 @@ from rcvae_torchrl.model_env.specs import (
     model_env_specs,
 )
 from rcvae_torchrl.model_env.task import RewardFn, SuccessFn, task_reward, task_success
-from rcvae_torchrl.models import RCVAEEnsemble, init_model_state, make_transition_module
-from rcvae_torchrl.models.validation import check_dtype, check_finite, check_trailing
+from rcvae_torchrl.models import RCVAEEnsemble, init_model_state
 
-__all__ = ["MemberAssignment", "RCVAEEnsembleEnv", "make_rcvae_env"]
+__all__ = ["MemberAssignment", "RCVAEEnsembleEnv"]
 
 MemberAssignment = Literal["round_robin", "random"]
 _STATE_KEYS = (OBSERVATION_KEY, ACTION_KEY, HIDDEN_KEY, LATENT_KEY, MEMBER_KEY)
@@ -129,10 +127,14 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         validate: bool = True,
         requires_grad: bool = False,
     ) -> None:
-        _check_arguments(ensemble, reward_fn, success_fn, trajectory_sampling, member_assignment)
+        _checks.check_arguments(
+            ensemble, reward_fn, success_fn, trajectory_sampling, member_assignment
+        )
         device = ensemble.embed.weight.device
-        generator = _make_generator(generator, seed, device)
-        transition = _transition(ensemble, trajectory_sampling, generator, validate)
+        generator = _checks.make_generator(generator, seed, device)
+        transition = make_step_module(
+            ensemble, trajectory_sampling, generator=generator, validate=validate
+        )
         super().__init__(transition, device=device, batch_size=torch.Size([]))
         self.ensemble = ensemble
         self.reward_fn, self.success_fn = reward_fn, success_fn
@@ -170,15 +172,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     def set_start_states(self, start_states: torch.Tensor | None) -> None:
         """Set (or clear, with ``None``) the start observations ``[K, S]`` sampled at reset."""
         if start_states is not None:
-            cfg = self.ensemble.config
-            check_trailing("start_states", start_states, (cfg.obs_dim,), f"[K, S={cfg.obs_dim}]")
-            if start_states.dim() != 2 or start_states.shape[0] == 0:
-                raise ValueError(
-                    f"start_states: expected shape [K >= 1, {cfg.obs_dim}], "
-                    f"got {tuple(start_states.shape)}."
-                )
-            check_finite("start_states", start_states)
-            check_dtype("start_states", start_states, self.ensemble.embed.weight.dtype)
+            _checks.check_start_states(self.ensemble, start_states)
             start_states = start_states.detach().to(self.device).clone()
         self.start_states = start_states
 
@@ -198,7 +192,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         if given is None:
             observation = self._sample_start_states(batch)
         else:
-            self._check_observation("tensordict['observation']", given)
+            _checks.check_observation(self.ensemble, "tensordict['observation']", given)
             observation = given.clone()
         member = None if tensordict is None else tensordict.get(MEMBER_KEY, None)
         state = self._initial_state(observation, member)
@@ -271,12 +265,6 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             self.start_states.shape[0], batch, generator=self.generator, device=self.device
         )
         return self.start_states[index]
-
-    def _check_observation(self, name: str, observation: torch.Tensor) -> None:
-        cfg = self.ensemble.config
-        check_trailing(name, observation, (cfg.obs_dim,), f"[*B, S={cfg.obs_dim}]")
-        check_finite(name, observation)
-        check_dtype(name, observation, self.ensemble.embed.weight.dtype)
 
     # ----------------------------------------------------------------- fast paths
     def imagine(
@@ -353,7 +341,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         Returns:
             returns ``[*B, C, P']`` (and success, bool ``[*B, C, P']``).
         """
-        observation = self._check_evaluation(td_start, actions, particles)
+        observation = _checks.check_evaluation_inputs(self.ensemble, td_start, actions, particles)
         batch, (c, h, a) = td_start.batch_size, actions.shape[td_start.batch_dims :]
         finite = torch.isfinite(observation).all(-1)
         start = torch.where(finite.unsqueeze(-1), observation, torch.zeros_like(observation))
@@ -376,114 +364,3 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         if not return_success:
             return returns
         return returns, scores.success.reshape(*batch, c, -1) & valid
-
-    def _check_evaluation(
-        self, td_start: TensorDictBase, actions: torch.Tensor, particles: int
-    ) -> torch.Tensor:
-        cfg, batch = self.ensemble.config, tuple(td_start.batch_size)
-        if isinstance(particles, bool) or not isinstance(particles, int) or particles < 1:
-            raise ValueError(f"particles: expected an int >= 1, got {particles!r}.")
-        if OBSERVATION_KEY not in td_start.keys():
-            raise KeyError(f"td_start: expected an {OBSERVATION_KEY!r} entry [*B, S].")
-        observation = td_start.get(OBSERVATION_KEY)
-        check_trailing("td_start['observation']", observation, (cfg.obs_dim,), "[*B, S]")
-        check_dtype("td_start['observation']", observation, self.ensemble.embed.weight.dtype)
-        what = f"[*B, C, H, A] with B = {batch}, A = {cfg.action_dim}"
-        if (
-            actions.dim() != len(batch) + 3
-            or tuple(actions.shape[: len(batch)]) != batch
-            or actions.shape[-1] != cfg.action_dim
-        ):
-            raise ValueError(f"actions: expected shape {what}, got {tuple(actions.shape)}.")
-        if actions.shape[-3] < 1 or actions.shape[-2] < 1:
-            raise ValueError(
-                f"actions: expected C >= 1 candidates and a horizon H >= 1, got C = "
-                f"{actions.shape[-3]}, H = {actions.shape[-2]} (shape {tuple(actions.shape)})."
-            )
-        check_finite("actions", actions)
-        check_dtype("actions", actions, self.ensemble.embed.weight.dtype)
-        return observation
-
-
-def make_rcvae_env(
-    ensemble: RCVAEEnsemble,
-    real_env: EnvBase | None,
-    reward_fn: RewardFn,
-    success_fn: SuccessFn,
-    *,
-    transforms: Transform | Sequence[Transform] | None = None,
-    **kwargs,
-) -> EnvBase:
-    """Build an :class:`RCVAEEnsembleEnv` with the specs of ``real_env``.
-
-    Args:
-        ensemble: the trained world model.
-        real_env: the env the agent acts in (specs are copied; it is not stepped or reset).
-        reward_fn, success_fn: the task functions (Pusher: ``pusher_reward``,
-            ``pusher_success``; use ``functools.partial`` for a non-default success radius).
-        transforms: optional transforms; the env is then wrapped in a ``TransformedEnv`` (its
-            class has no fast path, so planners score through ``step``).
-        **kwargs: keyword arguments of :class:`RCVAEEnsembleEnv` (``trajectory_sampling``,
-            ``start_states``, ``seed``, ...).
-    """
-    env = RCVAEEnsembleEnv(ensemble, reward_fn, success_fn, real_env=real_env, **kwargs)
-    if transforms is None:
-        return env
-    if isinstance(transforms, Transform):
-        return TransformedEnv(env, transforms)
-    return TransformedEnv(env, _compose(transforms))
-
-
-def _compose(transforms: Sequence[Transform]) -> Transform:
-    from torchrl.envs import Compose
-
-    return Compose(*transforms)
-
-
-def _transition(
-    ensemble: RCVAEEnsemble,
-    trajectory_sampling: Propagation,
-    generator: torch.Generator | None,
-    validate: bool,
-) -> TensorDictModuleBase:
-    """The one-step module, writing in place (``out_prefix=()``)."""
-    if trajectory_sampling == "mean":
-        return MeanTransition(ensemble, validate=validate, out_prefix=())
-    module = make_transition_module(
-        ensemble, trajectory_sampling=trajectory_sampling, generator=generator, out_prefix=()
-    )
-    module.validate = validate
-    return module
-
-
-def _check_arguments(
-    ensemble: object,
-    reward_fn: object,
-    success_fn: object,
-    trajectory_sampling: str,
-    member_assignment: str,
-) -> None:
-    if not isinstance(ensemble, RCVAEEnsemble):
-        raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}.")
-    for name, fn in (("reward_fn", reward_fn), ("success_fn", success_fn)):
-        if not callable(fn):
-            raise TypeError(f"{name}: expected a callable, got {type(fn).__name__}.")
-    if trajectory_sampling not in PROPAGATIONS:
-        raise ValueError(
-            f"trajectory_sampling: expected one of {list(PROPAGATIONS)}, "
-            f"got {trajectory_sampling!r}."
-        )
-    if member_assignment not in ("round_robin", "random"):
-        raise ValueError(
-            f"member_assignment: expected 'round_robin' or 'random', got {member_assignment!r}."
-        )
-
-
-def _make_generator(
-    generator: torch.Generator | None, seed: int | None, device: torch.device
-) -> torch.Generator | None:
-    if generator is not None and seed is not None:
-        raise ValueError(f"seed: expected None when a generator is given, got {seed!r}.")
-    if seed is None:
-        return generator
-    return torch.Generator(device=device).manual_seed(int(seed))

@@ -29,7 +29,7 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 
-from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.models import RCVAEEnsemble, make_transition_module
 from rcvae_torchrl.models.functional import standard_normal
 from rcvae_torchrl.models.validation import (
     check_batch_shapes,
@@ -43,6 +43,7 @@ __all__ = [
     "MeanTransition",
     "ParticleStep",
     "Propagation",
+    "make_step_module",
     "mean_step",
     "ts1_step",
 ]
@@ -200,3 +201,29 @@ def _prefixed(prefix: tuple[str, ...], key: NestedKey) -> NestedKey:
     if not prefix:
         return key
     return (*prefix, *key) if isinstance(key, tuple) else (*prefix, key)
+
+
+def make_step_module(
+    ensemble: RCVAEEnsemble,
+    trajectory_sampling: Propagation,
+    *,
+    generator: torch.Generator | None = None,
+    validate: bool = True,
+    out_prefix: tuple[str, ...] = (),
+) -> TensorDictModuleBase:
+    """The one-step TensorDict module of a propagation mode, with the library's default keys.
+
+    :class:`~rcvae_torchrl.models.RCVAETransition` for ``"ts_inf"`` and ``"ts1"``,
+    :class:`MeanTransition` for ``"mean"``. Outputs go under ``out_prefix`` (default ``()``: in
+    place, as a ``ModelBasedEnvBase`` step wants).
+    """
+    if trajectory_sampling == "mean":
+        return MeanTransition(ensemble, validate=validate, out_prefix=out_prefix)
+    module = make_transition_module(
+        ensemble,
+        trajectory_sampling=trajectory_sampling,
+        generator=generator,
+        out_prefix=out_prefix,
+    )
+    module.validate = validate
+    return module

@@ -6,7 +6,7 @@ import importlib
 import pytest
 
 
-@pytest.mark.parametrize("name", ["env", "propagation", "task"])
+@pytest.mark.parametrize("name", ["env", "factory", "propagation", "task"])
 def test_docstring_examples(name):
     module = importlib.import_module(f"rcvae_torchrl.model_env.{name}")
     result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE)

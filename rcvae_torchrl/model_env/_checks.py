@@ -1,0 +1,102 @@
+"""Argument and input checks of the model env; errors name the argument, expectation and value."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+
+from rcvae_torchrl.model_env.propagation import PROPAGATIONS
+from rcvae_torchrl.model_env.specs import OBSERVATION_KEY
+from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.models.validation import check_dtype, check_finite, check_trailing
+
+MEMBER_ASSIGNMENTS = ("round_robin", "random")
+
+
+def check_arguments(
+    ensemble: object,
+    reward_fn: object,
+    success_fn: object,
+    trajectory_sampling: str,
+    member_assignment: str,
+) -> None:
+    """The constructor arguments of :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv`."""
+    if not isinstance(ensemble, RCVAEEnsemble):
+        raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}.")
+    for name, fn in (("reward_fn", reward_fn), ("success_fn", success_fn)):
+        if not callable(fn):
+            raise TypeError(f"{name}: expected a callable, got {type(fn).__name__}.")
+    if trajectory_sampling not in PROPAGATIONS:
+        raise ValueError(
+            f"trajectory_sampling: expected one of {list(PROPAGATIONS)}, "
+            f"got {trajectory_sampling!r}."
+        )
+    if member_assignment not in MEMBER_ASSIGNMENTS:
+        raise ValueError(
+            f"member_assignment: expected one of {list(MEMBER_ASSIGNMENTS)}, "
+            f"got {member_assignment!r}."
+        )
+
+
+def make_generator(
+    generator: torch.Generator | None, seed: int | None, device: torch.device
+) -> torch.Generator | None:
+    """``generator``, or a new one seeded with ``seed`` (not both)."""
+    if generator is not None and seed is not None:
+        raise ValueError(f"seed: expected None when a generator is given, got {seed!r}.")
+    if seed is None:
+        return generator
+    return torch.Generator(device=device).manual_seed(int(seed))
+
+
+def check_start_states(ensemble: RCVAEEnsemble, start_states: torch.Tensor) -> None:
+    """Start observations ``[K >= 1, S]``, finite, of the model's dtype."""
+    cfg = ensemble.config
+    check_trailing("start_states", start_states, (cfg.obs_dim,), f"[K, S={cfg.obs_dim}]")
+    if start_states.dim() != 2 or start_states.shape[0] == 0:
+        raise ValueError(
+            f"start_states: expected shape [K >= 1, {cfg.obs_dim}], "
+            f"got {tuple(start_states.shape)}."
+        )
+    check_finite("start_states", start_states)
+    check_dtype("start_states", start_states, ensemble.embed.weight.dtype)
+
+
+def check_observation(ensemble: RCVAEEnsemble, name: str, observation: torch.Tensor) -> None:
+    """Start observations ``[*B, S]``, finite, of the model's dtype."""
+    cfg = ensemble.config
+    check_trailing(name, observation, (cfg.obs_dim,), f"[*B, S={cfg.obs_dim}]")
+    check_finite(name, observation)
+    check_dtype(name, observation, ensemble.embed.weight.dtype)
+
+
+def check_evaluation_inputs(
+    ensemble: RCVAEEnsemble, td_start: TensorDictBase, actions: torch.Tensor, particles: object
+) -> torch.Tensor:
+    """Inputs of ``evaluate_action_sequences``; returns the start observations ``[*B, S]``.
+
+    The start observations may be non-finite (they get NaN returns); actions may not.
+    """
+    cfg, batch, dtype = ensemble.config, tuple(td_start.batch_size), ensemble.embed.weight.dtype
+    if isinstance(particles, bool) or not isinstance(particles, int) or particles < 1:
+        raise ValueError(f"particles: expected an int >= 1, got {particles!r}.")
+    if OBSERVATION_KEY not in td_start.keys():
+        raise KeyError(f"td_start: expected an {OBSERVATION_KEY!r} entry [*B, S].")
+    observation = td_start.get(OBSERVATION_KEY)
+    check_trailing("td_start['observation']", observation, (cfg.obs_dim,), "[*B, S]")
+    check_dtype("td_start['observation']", observation, dtype)
+    what = f"[*B, C, H, A] with B = {batch}, A = {cfg.action_dim}"
+    if (
+        actions.dim() != len(batch) + 3
+        or tuple(actions.shape[: len(batch)]) != batch
+        or actions.shape[-1] != cfg.action_dim
+    ):
+        raise ValueError(f"actions: expected shape {what}, got {tuple(actions.shape)}.")
+    if actions.shape[-3] < 1 or actions.shape[-2] < 1:
+        raise ValueError(
+            f"actions: expected C >= 1 candidates and a horizon H >= 1, got C = "
+            f"{actions.shape[-3]}, H = {actions.shape[-2]} (shape {tuple(actions.shape)})."
+        )
+    check_finite("actions", actions)
+    check_dtype("actions", actions, dtype)
+    return observation
