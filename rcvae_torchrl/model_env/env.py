@@ -65,7 +65,10 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     members are taken from the input's ``"member"`` if given (TS-∞), else assigned round-robin
     over the flattened batch (balanced: no padding in the member-major layout) or at random
     (``member_assignment``). A step whose input has no model state (e.g. a tensordict from the
-    real env, as TorchRL's planners pass it) starts it the same way.
+    real env, as TorchRL's planners pass it) starts it the same way: the planners plan from the
+    real state with a fresh recurrent state, as the model was trained (windows start at h_0).
+    TorchRL's ``rollout`` stops the whole batch at the first done unless
+    ``break_when_any_done=False``; :meth:`imagine` has no such coupling.
 
     **Fast paths.** :meth:`imagine` (rollouts ``[E, N, *B, T]`` for the competency metrics) and
     :meth:`evaluate_action_sequences` (the planner seam of :mod:`rcvae_torchrl.planners`) skip

@@ -7,13 +7,11 @@ from dataclasses import replace
 
 import pytest
 import torch
+from model_env_utils import CONFIG, E
 
 from rcvae_torchrl.envs import make_pusher_env, pusher_reward, pusher_success
 from rcvae_torchrl.model_env import RCVAEEnsembleEnv, make_rcvae_env
-from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
-
-E = 3
-CONFIG = RCVAEConfig(14, 2, hidden_dim=16, latent_dim=4, mlp_dim=16, passthrough_dims=(12, 13))
+from rcvae_torchrl.models import RCVAEEnsemble
 
 
 @pytest.fixture(autouse=True)

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 import torch
 
+from rcvae_torchrl.models import RCVAEConfig
+
+E = 3  # ensemble size of the tiny test models
+CONFIG = RCVAEConfig(14, 2, hidden_dim=16, latent_dim=4, mlp_dim=16, passthrough_dims=(12, 13))
+
 
 def at_target(observation: torch.Tensor) -> torch.Tensor:
     """Copies of ``observation [..., 14]`` with the ball put on the target."""

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import E
-from model_env_utils import Replay, at_target
+from model_env_utils import E, Replay, at_target
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn

@@ -3,8 +3,7 @@
 from __future__ import annotations
 
 import torch
-from conftest import E
-from model_env_utils import Replay
+from model_env_utils import E, Replay
 from tensordict import TensorDict
 
 from rcvae_torchrl.model_env import mean_step, ts1_step

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from conftest import CONFIG, E
+from model_env_utils import CONFIG, E
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
