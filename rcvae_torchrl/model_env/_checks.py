@@ -59,7 +59,7 @@ def check_start_states(ensemble: RCVAEEnsemble, start_states: torch.Tensor) -> N
             f"got {tuple(start_states.shape)}."
         )
     check_finite("start_states", start_states)
-    check_dtype("start_states", start_states, ensemble.embed.weight.dtype)
+    check_dtype("start_states", start_states, ensemble.dtype)
 
 
 def check_observation(ensemble: RCVAEEnsemble, name: str, observation: torch.Tensor) -> None:
@@ -67,7 +67,7 @@ def check_observation(ensemble: RCVAEEnsemble, name: str, observation: torch.Ten
     cfg = ensemble.config
     check_trailing(name, observation, (cfg.obs_dim,), f"[*B, S={cfg.obs_dim}]")
     check_finite(name, observation)
-    check_dtype(name, observation, ensemble.embed.weight.dtype)
+    check_dtype(name, observation, ensemble.dtype)
 
 
 def check_evaluation_inputs(
@@ -77,7 +77,7 @@ def check_evaluation_inputs(
 
     The start observations may be non-finite (they get NaN returns); actions may not.
     """
-    cfg, batch, dtype = ensemble.config, tuple(td_start.batch_size), ensemble.embed.weight.dtype
+    cfg, batch, dtype = ensemble.config, tuple(td_start.batch_size), ensemble.dtype
     if isinstance(particles, bool) or not isinstance(particles, int) or particles < 1:
         raise ValueError(f"particles: expected an int >= 1, got {particles!r}.")
     if OBSERVATION_KEY not in td_start.keys():

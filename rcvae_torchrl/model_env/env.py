@@ -133,7 +133,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         _checks.check_arguments(
             ensemble, reward_fn, success_fn, trajectory_sampling, member_assignment
         )
-        device = ensemble.embed.weight.device
+        device = ensemble.device
         generator = _checks.make_generator(generator, seed, device)
         transition = make_step_module(
             ensemble, trajectory_sampling, generator=generator, validate=validate
@@ -279,6 +279,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         horizon: int | None = None,
         samples_per_member: int = 1,
         generator: torch.Generator | None = None,
+        chunk_size: int | None = 1024,
     ) -> TensorDictBase:
         """Imagined rollouts ``[E, N, *B, T]`` from start states, open or closed loop.
 
@@ -290,8 +291,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         **Equivalence with ``env.rollout``.** With the same generator state, a TS-∞ rollout of
         the tensordict ``[E, N, *B]`` whose ``"member"`` is e along dim 0 (flattened in that
         order, member-major) and whose observations are the start states broadcast over
-        ``[E, N]``, gives the same trajectories, provided :func:`~rcvae_torchrl.models.generate`
-        rolls all N·|B| trajectories per member in one chunk (its ``chunk_size``).
+        ``[E, N]``, gives the same trajectories when all N·|B| trajectories per member are
+        rolled out in one chunk (``chunk_size=None`` or ≥ N·|B|).
 
         Args:
             start: start states ``[*B, S]``, or a tensordict ``[*B]`` holding ``"observation"``.
@@ -301,6 +302,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             horizon: T (closed loop).
             samples_per_member: N.
             generator: default: the env's.
+            chunk_size: trajectories per member rolled out together (see
+                :func:`~rcvae_torchrl.models.generate`); the noise drawn depends on it.
         """
         observation = start.get(OBSERVATION_KEY) if isinstance(start, TensorDictBase) else start
         with torch.no_grad():
@@ -315,6 +318,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
                 samples_per_member=samples_per_member,
                 terminate_on_success=self.terminate_on_success,
                 generator=self.generator if generator is None else generator,
+                chunk_size=chunk_size,
             )
 
     def evaluate_action_sequences(

@@ -64,6 +64,7 @@ def imagine_rollouts(
     samples_per_member: int = 1,
     terminate_on_success: bool = True,
     generator: torch.Generator | None = None,
+    chunk_size: int | None = 1024,
 ) -> TensorDictBase:
     """N TS-∞ samples per member from each start state, open or closed loop, scored.
 
@@ -78,6 +79,8 @@ def imagine_rollouts(
         samples_per_member: N.
         terminate_on_success: success ends an episode (sets ``"terminated"``/``"done"``).
         generator: source of all sampling noise.
+        chunk_size: trajectories per member rolled out together (``None``: all N·|B|), as in
+            :func:`~rcvae_torchrl.models.generate`; the noise drawn depends on it.
 
     Returns:
         TensorDict ``[E, N, *B, T]`` with :func:`~rcvae_torchrl.models.generate`'s entries
@@ -96,6 +99,7 @@ def imagine_rollouts(
         generator=generator,
         policy=tensor_policy,
         horizon=horizon,
+        chunk_size=chunk_size,
     )
     return _add_task(td, ensemble.ensemble_size, reward_fn, success_fn, terminate_on_success)
 

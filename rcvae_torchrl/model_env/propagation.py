@@ -194,7 +194,7 @@ class MeanTransition(TensorDictModuleBase):
         check_finite(names[0], obs)
         check_finite(names[1], action)
         for name, x in zip(names[:3], (obs, action, hidden)):
-            check_dtype(name, x, self.ensemble.embed.weight.dtype)
+            check_dtype(name, x, self.ensemble.dtype)
 
 
 def _prefixed(prefix: tuple[str, ...], key: NestedKey) -> NestedKey:

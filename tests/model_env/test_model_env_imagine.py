@@ -77,7 +77,7 @@ def test_open_loop_imagine_equals_env_rollout_under_the_same_seed(
     )
     actions = torch.rand(B, T, 2, generator=_g(2)) * 2 - 1
     env.set_seed(11)
-    imagined = env.imagine(starts[:B], actions, samples_per_member=N)
+    imagined = env.imagine(starts[:B], actions, samples_per_member=N, chunk_size=None)
     assert bool(imagined["done"].any()) == terminate
     assert bool(imagined["mask"].all()) != terminate
     env.set_seed(11)
@@ -134,6 +134,16 @@ def test_imagine_is_deterministic_under_the_env_seed(make_env, starts):
     c = env.imagine(starts[:2], actions, samples_per_member=3)
     assert torch.equal(a["observation"], b["observation"])
     assert not torch.equal(b["observation"], c["observation"])
+
+
+def test_chunked_imagine_keeps_the_layout(make_env, starts):
+    env = make_env(terminate_on_success=False)
+    actions = torch.zeros(B, T, 2)
+    whole = env.imagine(starts[:B], actions, samples_per_member=N, chunk_size=None)
+    chunked = env.imagine(starts[:B], actions, samples_per_member=N, chunk_size=3)
+    assert chunked.batch_size == whole.batch_size == (E, N, B, T)
+    # passthrough target dims are exact in both, whatever noise each chunk drew
+    assert torch.equal(chunked["observation"][..., 12:], whole["observation"][..., 12:])
 
 
 def test_imagine_errors(make_env, starts):
