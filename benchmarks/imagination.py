@@ -18,6 +18,9 @@ The overhead ratio is time / raw time at the same particle count (target for ``e
 ≤ 1.25 at planning batch sizes). Timings are medians of repeats taken round-robin across the
 variants, so load drift on a shared machine hits all alike.
 
+On a shared machine OpenMP threads waiting for busy cores distort timings badly (a 2-thread
+run under load took 50x longer than on an idle machine); compare ``--threads 1`` runs there.
+
     python benchmarks/imagination.py [--repeats 7] [--threads N] [--quick]
 """
 
