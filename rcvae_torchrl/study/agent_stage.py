@@ -1,0 +1,97 @@
+"""The study's agent: MPC in the real env teaches an amortised policy that is then forecast.
+
+Planning at every step of thousands of imagined particles over 600 steps is far beyond a CPU
+budget, so the agent that acts and is forecast is an :class:`~rcvae_torchrl.agent.MLPPolicy`
+distilled from the CEM planner's actions in MPC episodes (behaviour cloning). The executed
+action is perturbed during those episodes (the recorded label is the planner's), so the policy
+also sees states off the planner's own path and learns to recover from them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs import EnvBase
+
+from rcvae_torchrl.agent import (
+    DistillConfig,
+    MLPPolicy,
+    PlannerConfig,
+    distill_policy,
+    make_mpc_policy,
+    make_policy_module,
+    run_episodes,
+)
+from rcvae_torchrl.models import RCVAEEnsemble
+
+__all__ = ["PerturbedPolicy", "collect_mpc_demonstrations", "train_agent_policy"]
+
+
+class PerturbedPolicy:
+    """Records ``policy``'s action as the label and executes it plus Gaussian noise."""
+
+    def __init__(
+        self, policy: Callable[[TensorDictBase], TensorDictBase], noise_std: float, seed: int = 0
+    ) -> None:
+        self.policy, self.noise_std = policy, noise_std
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def reset(self) -> None:
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def __call__(self, td: TensorDictBase) -> TensorDictBase:
+        td = self.policy(td)
+        label = td["action"]
+        noise = torch.randn(label.shape, generator=self.generator) * self.noise_std
+        td["label"] = label
+        td["action"] = (label + noise).clamp(-1.0, 1.0)
+        return td
+
+
+def collect_mpc_demonstrations(
+    ensemble: RCVAEEnsemble,
+    env: EnvBase,
+    planner: PlannerConfig,
+    *,
+    episodes: int,
+    action_noise: float,
+    seed: int,
+    progress: bool = True,
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    """Observations ``[M, S]`` and planner actions ``[M, A]`` from MPC episodes in ``env``."""
+    mpc = make_mpc_policy(ensemble, env, planner, seed=seed)
+    behaviour = PerturbedPolicy(mpc, action_noise, seed=seed)
+    seeds = [50_000 + seed * 1000 + i for i in range(episodes)]
+    stats = run_episodes(env, behaviour, seeds=seeds, progress=progress, desc="MPC demos")
+    info = {
+        "mpc_noisy_success_rate": stats.success_rate,
+        "mpc_median_steps": stats.steps.float().median().item(),
+        "pairs": float(stats.data.shape[0]),
+    }
+    return stats.data["observation"], stats.data["label"], info
+
+
+def train_agent_policy(
+    observations: torch.Tensor,
+    labels: torch.Tensor,
+    distill: DistillConfig,
+    env: EnvBase,
+    *,
+    eval_episodes: int,
+    seed: int,
+    progress: bool = True,
+) -> tuple[MLPPolicy, dict[str, float]]:
+    """Distil the policy and measure its success in ``env`` on fresh seeds."""
+    policy, info = distill_policy(observations, labels, distill, progress=progress)
+    seeds = [70_000 + seed * 1000 + i for i in range(eval_episodes)]
+    stats = run_episodes(
+        env, make_policy_module(policy), seeds=seeds, progress=progress, desc="policy eval"
+    )
+    return policy, {
+        **info,
+        "policy_success_rate": stats.success_rate,
+        "policy_median_steps": stats.steps.float().median().item(),
+    }
