@@ -10,10 +10,13 @@ EXTRAS ?= test,dev,docs
 export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 
-.PHONY: run demo test test-slow test-all lint format docs bench system-deps setup clean
+.PHONY: run run-quick demo test test-slow test-all lint format docs bench system-deps setup clean
 
 run: setup
-	$(PY) recipes/pusher_demo.py
+	$(PY) recipes/pusher_competency.py
+
+run-quick: setup
+	$(PY) recipes/pusher_competency.py profile=quick
 
 demo: setup
 	$(PY) recipes/pusher_demo.py
@@ -40,6 +43,11 @@ docs: setup
 
 bench: setup
 	$(PY) benchmarks/env_speed.py
+	$(PY) benchmarks/competency.py
+	$(PY) benchmarks/imagination.py
+	$(PY) benchmarks/world_model_speed.py
+	$(PY) benchmarks/world_model.py
+	$(PY) benchmarks/planning.py
 
 setup: system-deps $(STAMP)
 

@@ -1,13 +1,14 @@
 """World-model quality on the Pusher: open-loop forecasts against what really happened.
 
-Trains an ensemble on deterministic-variant data (scripted pusher with exploration noise, plus
-random play), another on stochastic-variant data, and one with open-loop steps in the ELBO window;
+Uses the study's default data and ensembles (trained here if ``--work-dir`` has none): one on
+deterministic-variant data (scripted pusher with exploration noise, plus random play), one on
+stochastic-variant data, and one trained with K open-loop steps in each ELBO window;
 then forecasts held-out episodes (30 s, the episode's own actions replayed open loop) and reports,
 for the ball position at 1 s, 5 s and 30 s: the median forecast error over episodes, the error of
 a constant-position baseline, and how often the 5-95 % band covers the real position; and the
 forecast spread of each model on the same inputs.
 
-    python benchmarks/world_model.py [--quick] [--steps 3000] [--episodes 150]
+    python benchmarks/world_model.py [--work-dir DIR] [--test-episodes 20] [--open-loop 8]
 """
 
 from __future__ import annotations
@@ -15,15 +16,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from pathlib import Path
 
 import torch
 from _report import print_table, write_json
 
-from rcvae_torchrl.data import split_episodes
+from rcvae_torchrl.data import load_episodes, split_episodes
 from rcvae_torchrl.envs import CONTROL_TIMESTEP, obs_indices
 from rcvae_torchrl.envs.datasets import collect_pusher_data
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
-from rcvae_torchrl.training import TrainConfig, train_ensemble
+from rcvae_torchrl.study.config import StudyConfig
+from rcvae_torchrl.study.pipeline import _Study
+from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
 from rcvae_torchrl.training.forecast import (
     band_coverage,
     constant_baseline_error,
@@ -50,44 +54,38 @@ def held_out(variant: str, episodes: int, seed: int) -> tuple[torch.Tensor, torc
     return data["observation"][:, 0], data["action"], data["next", "observation"]
 
 
-def train(variant: str, args, open_loop_steps: int = 0) -> tuple[RCVAEEnsemble, dict]:
-    data = collect_pusher_data(
-        variant,
-        scripted_episodes=args.episodes,
-        random_episodes=args.episodes // 5,
-        time_limit=args.time_limit,
-        seed=1,
-        progress=False,
-        num_envs=4,
-    )
-    train_data, val_data = split_episodes(data, 0.1, seed=0)
+def open_loop_model(study: _Study, k: int) -> tuple[RCVAEEnsemble, dict]:
+    """The deterministic model trained with K open-loop steps per window (cached)."""
+    path = study.dir / "models" / f"deterministic_open_loop_{k}.pt"
+    if path.is_file():
+        return load_ensemble(path), {}
+    m = study.cfg.model
     config = RCVAEConfig(
         14,
         2,
-        hidden_dim=args.hidden,
-        mlp_dim=args.hidden,
+        hidden_dim=m.hidden_dim,
+        mlp_dim=m.hidden_dim,
+        latent_dim=m.latent_dim,
         passthrough_dims=tuple(obs_indices("target")),
     )
-    torch.manual_seed(0)
-    ensemble = RCVAEEnsemble(config, args.members)
-    tc = TrainConfig(
-        max_steps=args.steps,
-        batch_windows=args.batch,
-        window=args.window,
-        open_loop_steps=open_loop_steps,
-        val_every=max(args.steps // 20, 1),
-        patience=6,
+    torch.manual_seed(study.cfg.seed)
+    ensemble = RCVAEEnsemble(config, m.ensemble_size)
+    train_data, val_data = split_episodes(
+        load_episodes(study.dir / "data" / "deterministic.pt"), 0.1, seed=study.cfg.seed
     )
+    tc = dataclasses.replace(study.cfg.train, open_loop_steps=k)
     start = time.perf_counter()
-    result = train_ensemble(ensemble, train_data, val_data, tc, progress=True)
-    info = {
-        "frames": int(data.shape[0]),
-        "train_s": time.perf_counter() - start,
-        "steps": result.steps,
-        "best_val": result.best_val.mean().item(),
-        "config": dataclasses.asdict(tc),
-    }
-    return result.ensemble, info
+    result = train_ensemble(
+        ensemble,
+        train_data,
+        val_data,
+        tc,
+        progress=True,
+        checkpoint_path=path.with_name(path.stem + "_train.pt"),
+        resume=True,
+    )
+    save_ensemble(result.ensemble, path)
+    return result.ensemble, {"train_s": time.perf_counter() - start, "steps": result.steps}
 
 
 def evaluate(ensemble, starts, actions, states, samples: int) -> dict:
@@ -118,39 +116,34 @@ def evaluate(ensemble, starts, actions, states, samples: int) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--steps", type=int, default=3000)
-    parser.add_argument("--episodes", type=int, default=150)
-    parser.add_argument("--time-limit", type=float, default=15.0)
-    parser.add_argument("--members", type=int, default=5)
-    parser.add_argument("--hidden", type=int, default=128)
-    parser.add_argument("--batch", type=int, default=32)
-    parser.add_argument("--window", type=int, default=32)
+    parser.add_argument("--work-dir", type=Path, default=Path("outputs/benchmarks/study_default"))
     parser.add_argument("--test-episodes", type=int, default=20)
     parser.add_argument("--samples", type=int, default=20)
     parser.add_argument("--open-loop", type=int, default=8, help="K for the open-loop variant")
-    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads")
     args = parser.parse_args()
-    if args.quick:
-        args.steps, args.episodes, args.test_episodes, args.samples = 200, 20, 5, 8
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    study = _Study(StudyConfig(), args.work_dir, torch.device("cpu"), progress=True)
+    study.data()
+    study.models()
     test = {v: held_out(v, args.test_episodes, seed=100) for v in ("deterministic", "stochastic")}
     models = {
-        "deterministic": train("deterministic", args),
-        "stochastic": train("stochastic", args),
-        f"deterministic, open loop K={args.open_loop}": train(
-            "deterministic", args, args.open_loop
-        ),
+        "deterministic": (study.model("deterministic"), "deterministic"),
+        "stochastic": (study.model("stochastic"), "stochastic"),
     }
+    if args.open_loop:
+        model, _ = open_loop_model(study, args.open_loop)
+        models[f"deterministic, open loop K={args.open_loop}"] = (model, "deterministic")
     results = {}
-    for name, (ensemble, info) in models.items():
-        variant = "stochastic" if name == "stochastic" else "deterministic"
+    for name, (ensemble, variant) in models.items():
         results[name] = {
-            "train": info,
             "own_variant": evaluate(ensemble, *test[variant], args.samples),
             "deterministic_inputs": evaluate(ensemble, *test["deterministic"], args.samples),
         }
     rows = []
     for name, r in results.items():
-        for h in (*(f"{h:g}s" for h in HORIZONS_S),):
+        for h in (f"{h:g}s" for h in HORIZONS_S):
             m = r["own_variant"][h]
             rows.append(
                 [
@@ -173,7 +166,14 @@ def main() -> None:
         ["model", "mean spread (m)"],
         [[n, s] for n, s in spread.items()],
     )
-    write_json("world_model", {"args": vars(args), "results": results})
+    write_json(
+        "world_model",
+        {
+            "args": {k: str(v) for k, v in vars(args).items()},
+            "study_config": dataclasses.asdict(study.cfg),
+            "results": results,
+        },
+    )
 
 
 if __name__ == "__main__":

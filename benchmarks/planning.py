@@ -1,0 +1,159 @@
+"""The MPC agent on the real Pusher: success, planning latency, and the stock TorchRL planner.
+
+Uses (or trains, with the study's default data and model budgets) a deterministic-variant
+ensemble, then measures:
+
+- success within 30 s of our CEM planner at the default budget over ``--episodes`` in-distribution
+  episodes, and over fewer stochastic and out-of-distribution episodes;
+- planning latency per control step (median and 95th percentile) against the 0.05 s control step;
+- TorchRL's stock ``CEMPlanner`` over the same model env at the same budget (candidates x
+  iterations x horizon): time per plan on the same states (ratio from the same run) and success
+  on the same ``--compare-episodes`` seeds.
+
+    python benchmarks/planning.py [--episodes 50] [--compare-episodes 10] [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import time
+from pathlib import Path
+
+import torch
+from _report import print_table, write_json
+from torchrl.modules.planners import CEMPlanner as StockCEMPlanner
+
+from rcvae_torchrl.agent import PlannerConfig, make_mpc_policy, run_episodes
+from rcvae_torchrl.envs import CONTROL_TIMESTEP, make_pusher_env, pusher_reward, pusher_success
+from rcvae_torchrl.model_env import make_rcvae_env
+from rcvae_torchrl.study.config import StudyConfig
+from rcvae_torchrl.study.pipeline import _Study
+
+
+class Timed:
+    """Wraps a policy and records the wall time of every call."""
+
+    def __init__(self, policy) -> None:
+        self.policy, self.times = policy, []
+
+    def reset(self) -> None:
+        if hasattr(self.policy, "reset"):
+            self.policy.reset()
+
+    def __call__(self, td):
+        start = time.perf_counter()
+        out = self.policy(td)
+        self.times.append(time.perf_counter() - start)
+        return out
+
+
+def _stock(model_env, config: PlannerConfig) -> StockCEMPlanner:
+    return StockCEMPlanner(
+        model_env,
+        planning_horizon=config.horizon,
+        optim_steps=config.iterations,
+        num_candidates=config.num_candidates,
+        top_k=config.top_k,
+    )
+
+
+def _episodes(env, policy, seeds, label):
+    timed = Timed(policy)
+    stats = run_episodes(env, timed, seeds=seeds, progress=True, desc=label)
+    times = sorted(timed.times)
+    return {
+        "episodes": len(seeds),
+        "success_rate": stats.success_rate,
+        "median_steps_to_success": stats.steps[stats.success].float().median().item()
+        if stats.success.any()
+        else float("nan"),
+        "plan_s_median": statistics.median(times),
+        "plan_s_p95": times[int(0.95 * (len(times) - 1))],
+    }
+
+
+def _plan_times(policy, states, repeats: int = 1) -> float:
+    times = []
+    for td in states:
+        for _ in range(repeats):
+            if hasattr(policy, "reset"):
+                policy.reset()
+            start = time.perf_counter()
+            policy(td.clone())
+            times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--work-dir", type=Path, default=Path("outputs/benchmarks/study_default"))
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--other-episodes", type=int, default=20)
+    parser.add_argument("--compare-episodes", type=int, default=10)
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    if args.quick:
+        args.episodes, args.other_episodes, args.compare_episodes = 4, 2, 2
+    study = _Study(StudyConfig(), args.work_dir, torch.device("cpu"), progress=True)
+    study.data()
+    study.models()
+    model = study.model("deterministic")
+    config = PlannerConfig()
+    results = {"planner_config": dataclasses.asdict(config), "control_step_s": CONTROL_TIMESTEP}
+
+    env = make_pusher_env("deterministic")
+    ours = make_mpc_policy(model, env, config)
+    results["ours_deterministic"] = _episodes(env, ours, list(range(args.episodes)), "ours det")
+    for variant in ("stochastic", "ood"):
+        results[f"ours_{variant}"] = _episodes(
+            make_pusher_env(variant),
+            make_mpc_policy(model, make_pusher_env(variant), config),
+            list(range(1000, 1000 + args.other_episodes)),
+            f"ours {variant}",
+        )
+
+    model_env = make_rcvae_env(model, env, pusher_reward, pusher_success, seed=0)
+    stock = _stock(model_env, config)
+    ours_p1 = make_mpc_policy(model, env, dataclasses.replace(config, particles=1))
+    seeds = list(range(args.compare_episodes))
+    states = [env.reset() for _ in range(10)]
+    t = {
+        name: _plan_times(p, states)
+        for name, p in [("ours", ours), ("ours_1_particle", ours_p1), ("stock", stock)]
+    }
+    results["plan_time_s"] = t
+    results["speedup_vs_stock"] = {k: t["stock"] / t[k] for k in ("ours", "ours_1_particle")}
+    results["stock_deterministic"] = _episodes(env, stock, seeds, "stock det")
+    results["ours_same_episodes"] = _episodes(env, ours, seeds, "ours det (same)")
+
+    print_table(
+        "MPC agent in the real Pusher (success within 30 s)",
+        ["planner", "variant", "episodes", "success", "plan s (median)", "plan s (p95)"],
+        [
+            [
+                k.split("_")[0],
+                k.split("_", 1)[1],
+                r["episodes"],
+                r["success_rate"],
+                r["plan_s_median"],
+                r["plan_s_p95"],
+            ]
+            for k, r in results.items()
+            if isinstance(r, dict) and "success_rate" in r
+        ],
+    )
+    print_table(
+        "Time per plan on the same 10 states (same budget C x I x H)",
+        ["planner", "s / plan", "stock / this"],
+        [[k, v, t["stock"] / v] for k, v in t.items()],
+    )
+    write_json("planning", {"args": {k: str(v) for k, v in vars(args).items()}, **results})
+
+
+if __name__ == "__main__":
+    main()
