@@ -5,7 +5,10 @@ samples each, T=600 steps, D=14 dimensions) for every estimator (median of ``--r
 3 repeats), with one intra-op thread and with torch's default (on a shared 2-core machine other
 jobs make the threaded timings noisy, so both are recorded with the load average), and runs
 the histogram decomposition once on N·T = 1e7 (E=5, N=1000, T=10000, D=2) in a child process to
-report its peak resident memory next to the input's size.
+report its peak resident memory next to the input's size. Last, ``CompetencyAssessor``: a 30 s
+open-loop forecast (600 steps of 0.05 s) plus the full report and its summary for one start
+state with a Pusher-sized ensemble (E=5 members, N=20 samples each, untrained, normaliser fitted
+on random data), with 1 and 2 intra-op threads (target: at most 2 s).
 
     python benchmarks/competency.py [--repeats 5] [--quick]
 """
@@ -23,7 +26,18 @@ from typing import Any
 import torch
 from _report import median_time, print_table, write_json
 
-from rcvae_torchrl.competency import decompose_uncertainty
+from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary, decompose_uncertainty
+from rcvae_torchrl.envs import (
+    OBSERVATION_NAMES,
+    obs_indices,
+    pusher_reward,
+    pusher_success,
+    resolution_tensor,
+)
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+
+ASSESSOR_TARGET_S = 2.0
 
 # name, estimator, arguments; bin width 0.1 spans ~80 bins per unit-variance dimension (counting
 # path), 0.002 spans ~4000 (sorting path).
@@ -115,6 +129,61 @@ def memory_bounded_run(shape: tuple[int, int, int, int]) -> dict[str, Any]:
     return result
 
 
+def pusher_assessor(members: int, samples: int, steps: int, dt: float) -> CompetencyAssessor:
+    """An assessor over an untrained Pusher-sized ensemble (normaliser fitted on random data)."""
+    gen = torch.Generator().manual_seed(0)
+    torch.manual_seed(0)
+    config = RCVAEConfig(14, 2, hidden_dim=64, mlp_dim=64, passthrough_dims=(12, 13))
+    model = RCVAEEnsemble(config, ensemble_size=members)
+    obs = torch.randn(2000, 14, generator=gen) * 0.1
+    actions = torch.rand(2000, 2, generator=gen) * 2 - 1
+    model.fit_normalizer(obs, actions, next_observations=obs + 0.01 * torch.randn_like(obs))
+    env = RCVAEEnsembleEnv(model, pusher_reward, pusher_success, seed=0)
+    boundary = SuccessBoundary.ball(
+        obs_indices("ball"), 0.03, target=obs_indices("target"), time_limit=steps, dt=dt
+    )
+    return CompetencyAssessor(
+        env,
+        boundary,
+        bin_width=resolution_tensor(),
+        dim_names=OBSERVATION_NAMES,
+        samples_per_member=samples,
+    )
+
+
+def time_assessor(
+    steps: int, repeats: int, threads: int, members: int = 5, samples: int = 20
+) -> dict[str, Any]:
+    """Median seconds of one open-loop assessment (imagine + report + summary), one start."""
+    dt = 0.05
+    assessor = pusher_assessor(members, samples, steps, dt)
+    gen = torch.Generator().manual_seed(1)
+    start = torch.randn(14, generator=gen) * 0.1
+    plan = torch.rand(steps, 2, generator=gen) * 2 - 1
+
+    def run() -> str:
+        return assessor.assess(start, actions=plan, generator=gen).summary()
+
+    default_threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        seconds = median_time(run, repeats)
+    finally:
+        torch.set_num_threads(default_threads)
+    return {
+        "case": "open-loop forecast + full report + summary, one start state",
+        "members": members,
+        "samples_per_member": samples,
+        "steps": steps,
+        "horizon_s": steps * dt,
+        "threads": threads,
+        "repeats": repeats,
+        "median_s": seconds,
+        "target_s": ASSESSOR_TARGET_S,
+        "summary": run(),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats per case (>= 5)")
@@ -147,6 +216,15 @@ def main() -> None:
             ]
         ],
     )
+    steps = 100 if args.quick else 600
+    assessor = [time_assessor(steps, args.repeats, t) for t in (1, 2)]
+    print_table(
+        f"CompetencyAssessor, {steps} steps x 0.05 s open loop, E=5, N=20, one start state "
+        f"(median of repeats; target <= {ASSESSOR_TARGET_S} s for 600 steps)",
+        ["threads", "repeats", "median s"],
+        [[r["threads"], r["repeats"], r["median_s"]] for r in assessor],
+    )
+    print(f"\nsummary: {assessor[0]['summary']}")
     write_json(
         "competency",
         {
@@ -155,6 +233,7 @@ def main() -> None:
             "load_average_after": os.getloadavg(),
             "timings": timings,
             "memory_bounded": memory,
+            "assessor": assessor,
         },
     )
 

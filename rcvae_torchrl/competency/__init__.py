@@ -5,6 +5,7 @@ TorchRL-style metric modules built on them. Reference: Acharya, Russell & Ahmed 
 equations 2 and 3 and Table 1.
 """
 
+from rcvae_torchrl.competency.assessor import CompetencyAssessor, CompetencyReport
 from rcvae_torchrl.competency.boundary import Predicate, SuccessBoundary
 from rcvae_torchrl.competency.calibration import (
     BrierDecomposition,
@@ -81,4 +82,7 @@ __all__ = [
     "SuccessBoundary",
     "SuccessMetric",
     "UncertaintyMetric",
+    # one-call assessment from start states
+    "CompetencyAssessor",
+    "CompetencyReport",
 ]

@@ -1,0 +1,540 @@
+"""One call from start states to a competency report: forecast, uncertainty, plain words.
+
+:class:`CompetencyAssessor` imagines ``E·N`` TS-∞ rollouts per start state with an
+:class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv`, either closed loop (a policy acts on the
+imagined states, e.g. the MPC planner) or open loop (an action sequence: the paper's
+p(s_1:T | s_0, a_0:T−1)), measures them with :class:`~rcvae_torchrl.competency.UncertaintyMetric`
+and :class:`~rcvae_torchrl.competency.SuccessMetric`, and returns a :class:`CompetencyReport`:
+one TensorDict with the start states as its batch, and a plain-language summary of it
+(Acharya, Russell & Ahmed, 2022: Table 1 per start state, Figure 1 per dimension and time).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch import Tensor
+from torchrl.objectives import LossModule
+
+from rcvae_torchrl.competency import _checks
+from rcvae_torchrl.competency.boundary import SuccessBoundary
+from rcvae_torchrl.competency.entropy import BinWidth
+from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
+from rcvae_torchrl.model_env import ImaginePolicy, RCVAEEnsembleEnv
+
+__all__ = ["CompetencyAssessor", "CompetencyReport"]
+
+_MEMBER_FIRST = ("success", "failure", ("time_to_success", "first_step"))  # [E, N, b] entries
+_REASONS = {
+    "epistemic": "the model has not seen states like this",
+    "aleatoric": "the members agree that the states vary by chance, which more data would not "
+    "remove",
+}
+
+
+@dataclass(frozen=True)
+class CompetencyReport:
+    """The assessment of a batch of start states, and its plain-language summary.
+
+    ``data`` has batch ``[*B]`` (one entry per start state; ``report[i]`` is start state i)
+    and holds, with ``E`` members, ``N`` samples per member, ``T`` steps, ``D`` dimensions:
+
+    - ``"observation"`` ``[*B, D]``: the start states;
+    - ``"uncertainty"``: :class:`~rcvae_torchrl.competency.UncertaintyMetric`'s entries
+      (``"total"`` / ``"aleatoric"`` / ``"epistemic"`` bits ``[*B, T, D]``, ``"time_mean"``
+      ``[*B, D]``, ``"summary"`` ``[*B]`` summed over dimensions, ``"by_dim"`` with names),
+      plus ``"peak_step"`` int64 ``[*B, D]``, the time index of each dimension's largest total
+      bits, and with ``dt`` ``"peak_time_s"`` = (peak_step + 1)·dt (index t holds s_{t+1});
+      joint estimators give ``[*B, T]``, ``[*B]``, ``[*B]`` and no peaks;
+    - ``"competency"``: :class:`~rcvae_torchrl.competency.SuccessMetric`'s entries with the
+      start state first: ``"p_success"``, ``"p_success_low"``, ``"p_success_high"`` ``[*B]``,
+      ``"p_success_member"`` ``[*B, E]``, ``"success"`` / ``"failure"`` ``[*B, E, N]``,
+      ``"outcome_uncertainty"`` ``[*B]``, ``"time_to_success"`` (``"first_step"``
+      ``[*B, E, N]``, per-step entries ``[*B, T]``, statistics ``[*B]``);
+    - ``"rollout"`` (only when asked for): the imagined rollouts ``[*B, E, N, T]``.
+
+    **Summary rules** (:meth:`summary`), one paragraph per start state:
+
+    1. ``P(success within L) = p (c% interval low–high).`` L = min(time limit, T) steps, in
+       seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
+    2. The dominant type is the larger of the aleatoric and epistemic time-mean bits summed
+       over dimensions (``("uncertainty", "summary", ·)``; a tie counts as aleatoric), given
+       with its share of the total: ``Most of the doubt is epistemic (0.70 of 1.10 bits): the
+       model has not seen states like this.`` When all three are 0 the sentence says so.
+    3. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
+       each with its mean bits and the time of its peak. Left out for joint estimators.
+
+    The words are only as good as the estimate: with the histogram estimator, a member's
+    entropy from ``N`` samples is at most log2 N bits, so when the samples spread over many
+    more bins than ``N`` the epistemic part is inflated (up to log2 E bits per dimension).
+    Coarser bins or more samples per member help.
+
+    Args:
+        data: the report TensorDict described above.
+        dim_names: names of the ``D`` dimensions.
+        time_limit: L in steps.
+        dt: seconds per step, or ``None`` (times in steps).
+        confidence: coverage of the P(success) interval.
+        top_k: number of dimensions named in the summary.
+        uncertainty_key, competency_key, observation_key: where ``data`` holds each part.
+    """
+
+    data: TensorDictBase
+    dim_names: tuple[str, ...]
+    time_limit: int
+    dt: float | None
+    confidence: float
+    top_k: int = 2
+    uncertainty_key: NestedKey = "uncertainty"
+    competency_key: NestedKey = "competency"
+    observation_key: NestedKey = "observation"
+
+    @property
+    def batch_size(self) -> torch.Size:
+        """``[*B]``, the start states' batch."""
+        return self.data.batch_size
+
+    @property
+    def uncertainty(self) -> TensorDictBase:
+        """The ``"uncertainty"`` entries."""
+        return self.data.get(self.uncertainty_key)
+
+    @property
+    def competency(self) -> TensorDictBase:
+        """The ``"competency"`` entries."""
+        return self.data.get(self.competency_key)
+
+    def __getitem__(self, index: Any) -> CompetencyReport:
+        """The report of some start states (``data[index]``)."""
+        return replace(self, data=self.data[index])
+
+    def summary(self, index: int | tuple[int, ...] | None = None) -> str:
+        """Plain-language summary (see the class docstring for the rules).
+
+        Args:
+            index: one start state (an int, or a tuple for a multi-dimensional batch). ``None``:
+                the one paragraph of an unbatched report, else one paragraph per start state,
+                each headed ``Start state i:``.
+        """
+        if index is not None:
+            one = self.data[index]
+            if one.batch_dims:
+                raise ValueError(
+                    f"index: expected one start state of the batch {tuple(self.batch_size)}, "
+                    f"got {index!r} (selects {tuple(one.batch_size)})"
+                )
+            return self._paragraph(one)
+        if not self.data.batch_dims:
+            return self._paragraph(self.data)
+        return "\n\n".join(
+            f"Start state {i[0] if len(i) == 1 else i}: {self._paragraph(self.data[i])}"
+            for i in np.ndindex(*self.batch_size)
+        )
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def _paragraph(self, one: TensorDictBase) -> str:
+        competency, uncertainty = one.get(self.competency_key), one.get(self.uncertainty_key)
+        sentences = [
+            _success_sentence(
+                float(competency.get("p_success")),
+                float(competency.get("p_success_low")),
+                float(competency.get("p_success_high")),
+                self.confidence,
+                _duration(self.time_limit, self.dt),
+            ),
+            _doubt_sentence(
+                *(float(uncertainty.get(("summary", k))) for k in ("aleatoric", "epistemic")),
+                float(uncertainty.get(("summary", "total"))),
+            ),
+        ]
+        if "peak_step" in uncertainty.keys():
+            sentences.append(
+                _dims_sentence(
+                    uncertainty.get(("time_mean", "total")),
+                    uncertainty.get("peak_step"),
+                    self.dim_names,
+                    self.dt,
+                    self.top_k,
+                )
+            )
+        return " ".join(s for s in sentences if s)
+
+
+def _success_sentence(p: float, low: float, high: float, confidence: float, within: str) -> str:
+    """``P(success within 30 s) = 0.84 (95% interval 0.78–0.89).``"""
+    return f"P(success within {within}) = {p:.2f} ({confidence:.0%} interval {low:.2f}–{high:.2f})."
+
+
+def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:
+    """The dominant uncertainty type (larger of the two; a tie is aleatoric) and its share."""
+    if aleatoric == epistemic == total == 0.0:
+        return "No doubt about the imagined states (0.00 bits): all samples agree."
+    kind, bits = ("epistemic", epistemic) if epistemic > aleatoric else ("aleatoric", aleatoric)
+    return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {_REASONS[kind]}."
+
+
+def _dims_sentence(
+    time_mean: Tensor, peak_step: Tensor, names: Sequence[str], dt: float | None, top_k: int
+) -> str:
+    """The ``top_k`` dimensions by time-mean bits ``[D]`` (above 0) with their peak ``[D]``."""
+    order = torch.argsort(time_mean, descending=True, stable=True)[:top_k].tolist()
+    parts = [
+        f"{names[d]} (mean {float(time_mean[d]):.2f} bits, peak at {_when(int(peak_step[d]), dt)})"
+        for d in order
+        if float(time_mean[d]) > 0
+    ]
+    return f"Most uncertain: {', '.join(parts)}." if parts else ""
+
+
+def _duration(steps: int, dt: float | None) -> str:
+    return f"{steps} steps" if dt is None else f"{round(steps * dt, 6):g} s"
+
+
+def _when(index: int, dt: float | None) -> str:
+    """Index t of the time axis holds s_{t+1}: step t + 1, time (t + 1)·dt."""
+    return f"step {index + 1}" if dt is None else f"t = {round((index + 1) * dt, 6):g} s"
+
+
+class CompetencyAssessor(LossModule):
+    """Forecast success and its uncertainty for start states, closed or open loop.
+
+    Each start state gets ``samples_per_member`` TS-∞ rollouts from every member of the model
+    env's ensemble (:meth:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv.imagine`) over
+    ``horizon`` steps, measured by :class:`~rcvae_torchrl.competency.UncertaintyMetric` (bits
+    per dimension and time, the paper's equations 2 and 3) and
+    :class:`~rcvae_torchrl.competency.SuccessMetric` (P(success) against ``boundary``), in
+    chunks of ``start_chunk`` start states so that memory stays bounded (the noise a generator
+    gives each start state depends on the chunking). Rollouts run the whole horizon; success is
+    reaching the boundary at any step within its time limit.
+
+    Use :meth:`assess` (start states as a tensor or a tensordict, policy or actions as
+    arguments) or ``forward(td)`` (the TorchRL ``LossModule`` contract: start states under
+    ``"observation"`` ``[*B, S]``, an optional open-loop plan under ``"actions"``
+    ``[*B, T, A]``, else the ``policy`` given here; keys configurable with ``set_keys``).
+
+    Args:
+        model_env: the ensemble world model as an env (``E >= 2`` members).
+        boundary: the task's success / failure boundary.
+        bin_width: histogram bin width, scalar or ``[S]`` (e.g. the Pusher's
+            ``resolution_tensor()``); see :class:`~rcvae_torchrl.competency.UncertaintyMetric`.
+        dim_names: names of the ``S`` observation dimensions (default ``obs[i]``).
+        samples_per_member: N.
+        horizon: T, steps imagined; default the boundary's time limit. Open-loop action
+            sequences must have T steps (without a horizon, their length is T).
+        estimator: ``"histogram"`` (default), ``"gaussian"``, ``"knn"`` or ``"mixture"``.
+        dt: seconds per step for the summary's times; default the boundary's.
+        policy: default closed-loop policy (a TensorDict module ``"observation"`` →
+            ``"action"`` or a tensor callable ``[..., S] -> [..., A]``, e.g. the MPC planner).
+        confidence: coverage of the P(success) interval.
+        interval: ``"jeffreys"`` or ``"wilson"``.
+        top_k: dimensions named in the summary.
+        start_chunk: start states imagined together.
+        **estimator_args: other estimator arguments (e.g. ``k``, ``joint``).
+
+    Example:
+        >>> from rcvae_torchrl.model_env import RCVAEEnsembleEnv
+        >>> from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+        >>> model = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=8, mlp_dim=8), ensemble_size=3)
+        >>> env = RCVAEEnsembleEnv(model, lambda s, a: -s[..., :1], lambda s: s[..., 0] > 1)
+        >>> boundary = SuccessBoundary(lambda s: s[..., 0] > 1.0, time_limit_s=1.0, dt=0.1)
+        >>> assessor = CompetencyAssessor(env, boundary, bin_width=0.5, dim_names=["x", "y", "v"])
+        >>> report = assessor.assess(torch.zeros(2, 3), actions=torch.zeros(10, 1))
+        >>> report.data["competency", "p_success"].shape, report.data["uncertainty", "total"].shape
+        (torch.Size([2]), torch.Size([2, 10, 3]))
+        >>> print(report.summary(index=0))  # doctest: +ELLIPSIS
+        P(success within 1 s) = ... (95% interval ...). Most of the doubt is ... Most uncertain: ...
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        """Configurable keys: ``observation``, ``actions`` (inputs); ``uncertainty``,
+        ``competency`` (output roots)."""
+
+        observation: NestedKey = "observation"
+        actions: NestedKey = "actions"
+        uncertainty: NestedKey = "uncertainty"
+        competency: NestedKey = "competency"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+
+    def __init__(
+        self,
+        model_env: RCVAEEnsembleEnv,
+        boundary: SuccessBoundary,
+        *,
+        bin_width: BinWidth | None = None,
+        dim_names: Sequence[str] | None = None,
+        samples_per_member: int = 20,
+        horizon: int | None = None,
+        estimator: str = "histogram",
+        dt: float | None = None,
+        policy: ImaginePolicy | None = None,
+        confidence: float = 0.95,
+        interval: Literal["jeffreys", "wilson"] = "jeffreys",
+        top_k: int = 2,
+        start_chunk: int = 16,
+        **estimator_args: Any,
+    ) -> None:
+        super().__init__()
+        obs_dim = _check_model_env(model_env)
+        for name, value in (
+            ("samples_per_member", samples_per_member),
+            ("top_k", top_k),
+            ("start_chunk", start_chunk),
+        ):
+            _checks.check_positive_int(name, value)
+        if bin_width is not None:
+            _checks.bin_width_tensor(bin_width, obs_dim, torch.empty(0))
+        self.model_env = model_env
+        self.success_metric = SuccessMetric(boundary, confidence, interval)
+        self.uncertainty_metric = UncertaintyMetric(
+            bin_width, estimator, dim_names, **estimator_args
+        )
+        self.dim_names = _dim_names(dim_names, obs_dim)
+        self.horizon = _horizon(horizon, boundary)
+        self.dt = _dt(dt, boundary)
+        self.policy = policy
+        self.samples_per_member = samples_per_member
+        self.top_k, self.start_chunk = top_k, start_chunk
+
+    @property
+    def boundary(self) -> SuccessBoundary:
+        return self.success_metric.boundary
+
+    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
+        pass
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The report's ``data`` for ``tensordict[observation]`` (see the class docstring)."""
+        actions = tensordict.get(self.tensor_keys.actions, None)
+        return self.assess(tensordict, actions=actions).data
+
+    def assess(
+        self,
+        start: Tensor | TensorDictBase,
+        *,
+        policy: ImaginePolicy | None = None,
+        actions: Tensor | None = None,
+        generator: torch.Generator | None = None,
+        return_rollouts: bool = False,
+    ) -> CompetencyReport:
+        """Imagine, measure and report; see :class:`CompetencyReport` for what it holds.
+
+        Args:
+            start: start states ``[*B, S]``, or a tensordict holding them under the
+                ``observation`` key.
+            policy: closed loop (default: the assessor's ``policy``), ``horizon`` steps.
+            actions: open loop instead: ``[T, A]`` (the same for every start state) or
+                ``[*B, T, A]``.
+            generator: source of all sampling noise (default: the model env's).
+            return_rollouts: also keep the rollouts, ``data["rollout"]`` ``[*B, E, N, T]``
+                (``E·N·T`` states per start state: memory).
+        """
+        observation = self._start_states(start)
+        batch = observation.shape[:-1]
+        policy, plan = self._controls(policy, actions, batch)
+        flat = observation.reshape(-1, observation.shape[-1])
+        parts = [
+            self._assess_chunk(
+                flat[i : i + self.start_chunk],
+                None if plan is None else plan[i : i + self.start_chunk],
+                policy,
+                generator,
+                return_rollouts,
+            )
+            for i in range(0, flat.shape[0], self.start_chunk)
+        ]
+        steps = self.horizon if plan is None else plan.shape[-2]
+        return CompetencyReport(
+            torch.cat(parts, dim=0).reshape(batch),
+            self.dim_names,
+            int(min(self.boundary.time_limit, steps)),
+            self.dt,
+            self.success_metric.confidence,
+            self.top_k,
+            self.tensor_keys.uncertainty,
+            self.tensor_keys.competency,
+            self.tensor_keys.observation,
+        )
+
+    # ----------------------------------------------------------------- one chunk
+    def _assess_chunk(
+        self,
+        starts: Tensor,
+        plan: Tensor | None,
+        policy: ImaginePolicy | None,
+        generator: torch.Generator | None,
+        keep_rollouts: bool,
+    ) -> TensorDictBase:
+        """Report entries ``[b]`` for start states ``[b, S]``."""
+        rollout = self.model_env.imagine(
+            starts,
+            plan,
+            policy=policy,
+            horizon=self.horizon if plan is None else None,
+            samples_per_member=self.samples_per_member,
+            generator=generator,
+        )
+        observed = TensorDict(
+            {"observation": rollout.get("observation")}, batch_size=rollout.batch_size
+        )
+        out = TensorDict(batch_size=starts.shape[:1])
+        out.set(self.tensor_keys.observation, starts)
+        out.set(self.tensor_keys.uncertainty, self._uncertainty(observed, starts.shape[0]))
+        out.set(self.tensor_keys.competency, self._competency(observed, starts.shape[0]))
+        if keep_rollouts:
+            out.set("rollout", rollout.permute(2, 0, 1, 3))
+        return out
+
+    def _uncertainty(self, observed: TensorDictBase, b: int) -> TensorDictBase:
+        """``UncertaintyMetric`` entries with batch ``[b]``, plus the peak time per dimension."""
+        out = self.uncertainty_metric(observed).get(self.uncertainty_metric.tensor_keys.uncertainty)
+        out.batch_size = torch.Size([b])
+        total = out.get("total")
+        if total.ndim == 3:  # [b, T, D]: per dimension
+            peak = total.argmax(dim=1)
+            out.set("peak_step", peak)
+            if self.dt is not None:
+                out.set("peak_time_s", (peak + 1).to(total.dtype) * self.dt)
+        return out
+
+    def _competency(self, observed: TensorDictBase, b: int) -> TensorDictBase:
+        """``SuccessMetric`` entries with the start state first, batch ``[b]``."""
+        out = self.success_metric(observed).get(self.success_metric.tensor_keys.competency)
+        for key in _MEMBER_FIRST:
+            out.set(key, out.get(key).movedim(2, 0))
+        out.set("p_success_member", out.get("p_success_member").movedim(1, 0))
+        stats = out.get("time_to_success")
+        if self.dt is not None and "mean_s" not in stats.keys():
+            stats.set("mean_s", stats.get("mean_steps") * self.dt)
+            stats.set("median_s", stats.get("median_steps") * self.dt)
+        out.batch_size = torch.Size([b])
+        return out
+
+    # ----------------------------------------------------------------- inputs
+    def _start_states(self, start: Tensor | TensorDictBase) -> Tensor:
+        """Validated start states ``[*B, S]`` (finite, at least one)."""
+        name = "start_states"
+        if isinstance(start, TensorDictBase):
+            key = self.tensor_keys.observation
+            if key not in start.keys(include_nested=True):
+                raise KeyError(f"start: expected the start states [*B, S] under {key!r}")
+            start, name = start.get(key), f"start[{key!r}]"
+        if not isinstance(start, Tensor):
+            raise TypeError(f"{name}: expected a torch.Tensor, got {type(start).__name__}")
+        obs_dim = self.model_env.ensemble.config.obs_dim
+        if start.ndim < 1 or start.shape[-1] != obs_dim or start.numel() == 0:
+            raise ValueError(
+                f"{name}: expected shape [*B, S={obs_dim}] with at least one start state, "
+                f"got {tuple(start.shape)}"
+            )
+        _checks.check_floating(name, start)
+        bad = ~torch.isfinite(start.reshape(-1, obs_dim)).all(dim=-1)
+        if bool(bad.any()):
+            raise ValueError(
+                f"{name}: expected finite values, got NaN or inf in start state(s) "
+                f"{bad.nonzero().flatten().tolist()} (flattened over [*B] = "
+                f"{list(start.shape[:-1])})"
+            )
+        return start
+
+    def _controls(
+        self, policy: ImaginePolicy | None, actions: Tensor | None, batch: torch.Size
+    ) -> tuple[ImaginePolicy | None, Tensor | None]:
+        """``(policy, None)`` for closed loop or ``(None, actions [B', T, A])`` for open loop."""
+        if policy is not None and actions is not None:
+            raise ValueError(
+                "policy, actions: expected one of them (policy: closed loop, actions: open "
+                "loop), got both"
+            )
+        if actions is not None:
+            return None, self._action_plan(actions, batch)
+        policy = self.policy if policy is None else policy
+        if policy is None:
+            raise ValueError(
+                "policy, actions: expected a policy (closed loop) or actions (open loop), got "
+                "neither (and the assessor has no default policy)"
+            )
+        if self.horizon is None:
+            raise ValueError(
+                "horizon: a closed-loop assessment needs a horizon; give the assessor one, or "
+                "a boundary with a time limit"
+            )
+        return policy, None
+
+    def _action_plan(self, actions: Tensor, batch: torch.Size) -> Tensor:
+        """Open-loop actions ``[T, A]`` or ``[*B, T, A]``, checked, as ``[B', T, A]``."""
+        if not isinstance(actions, Tensor):
+            raise TypeError(f"actions: expected a torch.Tensor, got {type(actions).__name__}")
+        action_dim = self.model_env.ensemble.config.action_dim
+        if actions.ndim == 2:
+            actions = actions.expand(*batch, *actions.shape)
+        if (
+            actions.ndim != len(batch) + 2
+            or actions.shape[:-2] != batch
+            or actions.shape[-1] != action_dim
+            or actions.shape[-2] < 1
+        ):
+            raise ValueError(
+                f"actions: expected shape [T, A] or [*B, T, A] with [*B] = {list(batch)}, "
+                f"T >= 1 and A = {action_dim}, got {tuple(actions.shape)}"
+            )
+        if self.horizon is not None and actions.shape[-2] != self.horizon:
+            raise ValueError(
+                f"actions: expected T = horizon = {self.horizon} steps, got T = "
+                f"{actions.shape[-2]} (shape {tuple(actions.shape)})"
+            )
+        _checks.check_finite("actions", actions)
+        return actions.reshape(-1, *actions.shape[-2:])
+
+
+def _check_model_env(model_env: object) -> int:
+    """An :class:`RCVAEEnsembleEnv` over ``E >= 2`` members; returns its state dimension."""
+    if not isinstance(model_env, RCVAEEnsembleEnv):
+        raise TypeError(f"model_env: expected an RCVAEEnsembleEnv, got {type(model_env).__name__}")
+    if model_env.ensemble.ensemble_size < 2:
+        raise ValueError(
+            "model_env: expected an ensemble of E >= 2 members (the aleatoric / epistemic split "
+            f"needs them), got E = {model_env.ensemble.ensemble_size}"
+        )
+    return model_env.ensemble.config.obs_dim
+
+
+def _dim_names(names: Sequence[str] | None, obs_dim: int) -> tuple[str, ...]:
+    if names is None:
+        return tuple(f"obs[{i}]" for i in range(obs_dim))
+    names = tuple(names)
+    if len(names) != obs_dim:
+        raise ValueError(
+            f"dim_names: expected {obs_dim} names (one per observation dimension), got {len(names)}"
+        )
+    return names
+
+
+def _horizon(horizon: int | None, boundary: SuccessBoundary) -> int | None:
+    """``horizon``, else the boundary's time limit when finite, else ``None``."""
+    if horizon is not None:
+        _checks.check_positive_int("horizon", horizon)
+        return horizon
+    limit = boundary.time_limit
+    return int(limit) if math.isfinite(limit) else None
+
+
+def _dt(dt: float | None, boundary: SuccessBoundary) -> float | None:
+    """``dt``, else the boundary's; both given must agree."""
+    if dt is None:
+        return boundary.dt
+    _checks.check_positive("dt", dt)
+    if boundary.dt is not None and not math.isclose(dt, boundary.dt):
+        raise ValueError(f"dt: expected the boundary's dt = {boundary.dt}, got {dt!r}")
+    return float(dt)

@@ -1,0 +1,413 @@
+"""CompetencyAssessor and CompetencyReport: keys, shapes, loops, chunks, summary rules, errors."""
+
+import doctest
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+
+import rcvae_torchrl.competency.assessor as assessor_module
+from rcvae_torchrl.competency import (
+    CompetencyAssessor,
+    CompetencyReport,
+    SuccessBoundary,
+    SuccessMetric,
+    UncertaintyMetric,
+)
+from rcvae_torchrl.envs import (
+    OBSERVATION_NAMES,
+    obs_indices,
+    pusher_reward,
+    pusher_success,
+    resolution_tensor,
+)
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+
+E, N, T, S, A = 3, 8, 6, 14, 2
+CONFIG = RCVAEConfig(S, A, hidden_dim=16, latent_dim=4, mlp_dim=16, passthrough_dims=(12, 13))
+DT = 0.05
+
+
+@pytest.fixture(autouse=True)
+def single_thread():
+    """Tiny tensor ops on a shared 2-core machine: one intra-op thread (restored after)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def make_ensemble(seed: int = 0) -> RCVAEEnsemble:
+    """A tiny untrained ensemble with a normaliser fitted on random Pusher-scale data."""
+    gen = torch.Generator().manual_seed(seed)
+    torch.manual_seed(seed)
+    model = RCVAEEnsemble(CONFIG, ensemble_size=E)
+    obs = torch.randn(200, S, generator=gen) * 0.1
+    actions = torch.rand(200, A, generator=gen) * 2 - 1
+    model.fit_normalizer(obs, actions, next_observations=obs + 0.01 * torch.randn_like(obs))
+    return model
+
+
+def make_env(model: RCVAEEnsemble) -> RCVAEEnsembleEnv:
+    return RCVAEEnsembleEnv(model, pusher_reward, pusher_success, seed=0)
+
+
+def set_decoder(model: RCVAEEnsemble, mean: torch.Tensor, raw_log_std: float) -> None:
+    """Make the decoder output a constant ``mean [E, 1]`` change and log-std for every input."""
+    last = model.decoder[-1]
+    d = CONFIG.predicted_dim
+    with torch.no_grad():
+        last.weight.zero_()
+        last.bias[:, :d] = mean
+        last.bias[:, d:] = raw_log_std
+
+
+def boundary(**kwargs) -> SuccessBoundary:
+    kwargs.setdefault("time_limit", T)
+    kwargs.setdefault("dt", DT)
+    return SuccessBoundary.ball(obs_indices("ball"), 0.03, target=obs_indices("target"), **kwargs)
+
+
+@pytest.fixture
+def env() -> RCVAEEnsembleEnv:
+    return make_env(make_ensemble())
+
+
+@pytest.fixture
+def starts() -> torch.Tensor:
+    return torch.randn(3, S, generator=torch.Generator().manual_seed(1)) * 0.1
+
+
+@pytest.fixture
+def plan() -> torch.Tensor:
+    return torch.rand(3, T, A, generator=torch.Generator().manual_seed(2)) * 2 - 1
+
+
+def make_assessor(env, **kwargs) -> CompetencyAssessor:
+    kwargs.setdefault("bin_width", resolution_tensor())
+    kwargs.setdefault("dim_names", OBSERVATION_NAMES)
+    kwargs.setdefault("samples_per_member", N)
+    return CompetencyAssessor(env, kwargs.pop("boundary", boundary()), **kwargs)
+
+
+def seeded(seed: int = 0) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+def assert_same(a: TensorDict, b: TensorDict) -> None:
+    assert a.batch_size == b.batch_size
+    assert set(a.keys(True, True)) == set(b.keys(True, True))
+    for key in a.keys(True, True):
+        assert torch.equal(a.get(key), b.get(key)), key
+
+
+# ----------------------------------------------------------------- report contents
+def test_report_keys_shapes_and_values(env, starts, plan):
+    report = make_assessor(env).assess(starts, actions=plan, generator=seeded())
+    data = report.data
+    assert data.batch_size == (3,) and report.batch_size == (3,)
+    for name in ("total", "aleatoric", "epistemic"):
+        assert data["uncertainty", name].shape == (3, T, S)
+        assert data["uncertainty", "time_mean", name].shape == (3, S)
+        assert data["uncertainty", "summary", name].shape == (3,)
+        assert data["uncertainty", "by_dim", "ball_vx", name].shape == (3, T)
+        assert data["competency", "outcome_uncertainty", name].shape == (3,)
+    assert data["uncertainty", "peak_step"].dtype == torch.int64
+    assert torch.equal(data["uncertainty", "peak_step"], data["uncertainty", "total"].argmax(1))
+    peak_s = (data["uncertainty", "peak_step"] + 1) * DT
+    assert torch.allclose(data["uncertainty", "peak_time_s"], peak_s.float())
+    for key in ("p_success", "p_success_low", "p_success_high"):
+        assert data["competency", key].shape == (3,)
+    assert data["competency", "p_success_member"].shape == (3, E)
+    assert data["competency", "success"].shape == (3, E, N)
+    assert data["competency", "time_to_success", "first_step"].shape == (3, E, N)
+    assert data["competency", "time_to_success", "success_by_step"].shape == (3, T)
+    assert data["competency", "time_to_success", "median_s"].shape == (3,)
+    assert torch.equal(data["observation"], starts)
+    assert "rollout" not in data.keys()
+    assert report.time_limit == T and report.dt == DT
+
+    # the same numbers as the metrics on env.imagine with the same noise
+    rollout = env.imagine(starts, plan, samples_per_member=N, generator=seeded())
+    observed = TensorDict({"observation": rollout["observation"]}, batch_size=rollout.batch_size)
+    u = UncertaintyMetric(resolution_tensor())(observed)["uncertainty"]
+    c = SuccessMetric(boundary())(observed)["competency"]
+    assert torch.equal(data["uncertainty", "epistemic"], u["epistemic"])
+    assert torch.equal(data["competency", "p_success"], c["p_success"])
+    assert torch.equal(data["competency", "success"], c["success"].permute(2, 0, 1))
+    assert torch.equal(data["competency", "p_success_member"], c["p_success_member"].T)
+
+
+def test_rollouts_on_request(env, starts, plan):
+    assessor = make_assessor(env)
+    report = assessor.assess(starts, actions=plan, generator=seeded(), return_rollouts=True)
+    rollout = report.data["rollout"]
+    assert rollout.batch_size == (3, E, N, T)
+    assert rollout["observation"].shape == (3, E, N, T, S)
+    assert torch.equal(rollout["action"][:, 0, 0], plan)
+    plain = assessor.assess(starts, actions=plan, generator=seeded())
+    assert_same(report.data.exclude("rollout"), plain.data)
+
+
+def test_batched_start_states_and_shared_plan(env, starts):
+    grid = starts[:2].expand(2, 2, S)  # [2, 2, S]
+    report = make_assessor(env).assess(grid, actions=torch.zeros(T, A), generator=seeded())
+    assert report.batch_size == (2, 2)
+    assert report.data["uncertainty", "total"].shape == (2, 2, T, S)
+    assert report.data["competency", "success"].shape == (2, 2, E, N)
+    assert report[1, 0].batch_size == ()
+    single = make_assessor(env).assess(starts[0], actions=torch.zeros(T, A))
+    assert single.batch_size == ()
+    assert single.data["uncertainty", "total"].shape == (T, S)
+
+
+def test_chunks_match_separate_calls(env, starts, plan):
+    chunked = make_assessor(env, start_chunk=2).assess(starts, actions=plan, generator=seeded())
+    whole = make_assessor(env)
+    gen = seeded()
+    first = whole.assess(starts[:2], actions=plan[:2], generator=gen)
+    second = whole.assess(starts[2:], actions=plan[2:], generator=gen)
+    assert_same(chunked.data, torch.cat([first.data, second.data]))
+
+
+# ----------------------------------------------------------------- loops, generator, forward
+def test_closed_loop_constant_policy_equals_open_loop(env, starts):
+    action = torch.tensor([0.3, -0.7])
+
+    def policy(obs):
+        return action.expand(*obs.shape[:-1], A)
+
+    assessor = make_assessor(env)
+    closed = assessor.assess(starts, policy=policy, generator=seeded())
+    opened = assessor.assess(starts, actions=action.expand(T, A), generator=seeded())
+    assert_same(closed.data, opened.data)
+
+
+def test_closed_loop_tensordict_policy_acts_on_imagined_states(env, starts):
+    policy = TensorDictModule(
+        lambda obs: torch.tanh(obs[..., :A] * 5), in_keys=["observation"], out_keys=["action"]
+    )
+    assessor = make_assessor(env, policy=policy)
+    rollout = assessor.assess(starts, generator=seeded(), return_rollouts=True).data["rollout"]
+    assert rollout.batch_size == (3, E, N, T)  # horizon = the boundary's time limit
+    expected = torch.tanh(rollout["observation"][..., :-1, :A] * 5)
+    assert torch.allclose(rollout["action"][..., 1:, :], expected)
+    assert torch.allclose(rollout["action"][:, 0, 0, 0], torch.tanh(starts[:, :A] * 5))
+
+
+def test_determinism_under_a_generator(env, starts, plan):
+    assessor = make_assessor(env)
+    one = assessor.assess(starts, actions=plan, generator=seeded(3))
+    two = assessor.assess(starts, actions=plan, generator=seeded(3))
+    other = assessor.assess(starts, actions=plan, generator=seeded(4))
+    assert_same(one.data, two.data)
+    assert one.summary() == two.summary()
+    assert not torch.equal(one.data["uncertainty", "total"], other.data["uncertainty", "total"])
+
+
+def test_forward_reads_the_tensordict_and_set_keys(env, starts, plan):
+    assessor = make_assessor(env)
+    td = TensorDict({"observation": starts, "actions": plan}, batch_size=[3])
+    torch.manual_seed(0)
+    env.generator.manual_seed(5)
+    out = assessor(td)
+    direct = assessor.assess(starts, actions=plan, generator=seeded(5))
+    assert_same(out, direct.data)
+
+    assessor.set_keys(observation=("start", "obs"), actions="plan", uncertainty="u")
+    td = TensorDict({("start", "obs"): starts, "plan": plan}, batch_size=[3])
+    out = assessor(td)
+    assert out["u", "total"].shape == (3, T, S)
+    assert out["start", "obs"].shape == (3, S)
+    report = assessor.assess(td, actions=plan)
+    assert "Most uncertain" in report.summary(index=0)  # the report knows the keys
+    with pytest.raises(ValueError, match="not an accepted tensordict key"):
+        assessor.set_keys(reward="r")
+
+
+def test_forward_without_actions_uses_the_default_policy(env, starts):
+    assessor = make_assessor(env, policy=lambda obs: torch.zeros(*obs.shape[:-1], A))
+    out = assessor(TensorDict({"observation": starts}, batch_size=[3]))
+    assert out["competency", "p_success"].shape == (3,)
+
+
+def test_joint_estimator_has_no_dimension_breakdown(env, starts, plan):
+    assessor = make_assessor(env, estimator="gaussian", bin_width=None, joint=True)
+    report = assessor.assess(starts, actions=plan)
+    assert report.data["uncertainty", "total"].shape == (3, T)
+    assert "peak_step" not in report.data["uncertainty"].keys()
+    text = report.summary(index=0)
+    assert "Most of the doubt is" in text and "Most uncertain" not in text
+
+
+# ----------------------------------------------------------------- summary
+def hand_report(dt=0.05, **summary) -> CompetencyReport:
+    summary = {"aleatoric": 0.4, "epistemic": 0.7, "total": 1.1, **summary}
+    data = TensorDict(
+        {
+            "competency": {
+                "p_success": torch.tensor(0.84),
+                "p_success_low": torch.tensor(0.78),
+                "p_success_high": torch.tensor(0.89),
+            },
+            "uncertainty": {
+                "summary": {k: torch.tensor(v) for k, v in summary.items()},
+                "time_mean": {"total": torch.tensor([0.1, 0.9, 0.0, 0.5])},
+                "peak_step": torch.tensor([0, 89, 3, 19]),
+            },
+        }
+    )
+    return CompetencyReport(data, ("a", "b", "c", "d"), 600, dt, 0.95)
+
+
+def test_summary_text_rules_on_known_numbers():
+    assert hand_report().summary() == (
+        "P(success within 30 s) = 0.84 (95% interval 0.78–0.89). "
+        "Most of the doubt is epistemic (0.70 of 1.10 bits): the model has not seen states "
+        "like this. Most uncertain: b (mean 0.90 bits, peak at t = 4.5 s), "
+        "d (mean 0.50 bits, peak at t = 1 s)."
+    )
+    steps = str(replace_top_k(hand_report(dt=None, aleatoric=0.7, epistemic=0.4), 5))
+    assert steps.startswith("P(success within 600 steps)")
+    assert "Most of the doubt is aleatoric (0.70 of 1.10 bits)" in steps
+    assert "b (mean 0.90 bits, peak at step 90)" in steps
+    assert "c (mean" not in steps  # zero bits: never named
+    tie = hand_report(aleatoric=0.5, epistemic=0.5, total=1.0).summary()
+    assert "Most of the doubt is aleatoric (0.50 of 1.00 bits)" in tie
+    none = hand_report(aleatoric=0.0, epistemic=0.0, total=0.0).summary()
+    assert "No doubt about the imagined states (0.00 bits)" in none
+
+
+def replace_top_k(report: CompetencyReport, top_k: int) -> CompetencyReport:
+    return CompetencyReport(report.data, report.dim_names, 600, report.dt, 0.95, top_k)
+
+
+def dominant(report: CompetencyReport, index: int) -> str:
+    s = report.data[index]["uncertainty", "summary"]
+    return "epistemic" if s["epistemic"] > s["aleatoric"] else "aleatoric"
+
+
+def check_summary_numbers(report: CompetencyReport, index: int) -> str:
+    """The paragraph of ``index`` quotes the report's own numbers, by the documented rules."""
+    one = report.data[index]
+    text = report.summary(index=index)
+    c, u = one["competency"], one["uncertainty"]
+    p, low, high = (float(c[k]) for k in ("p_success", "p_success_low", "p_success_high"))
+    assert text.startswith(
+        f"P(success within {T * DT:g} s) = {p:.2f} (95% interval {low:.2f}–{high:.2f})."
+    )
+    kind = dominant(report, index)
+    bits, total = float(u["summary", kind]), float(u["summary", "total"])
+    assert f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits)" in text
+    top = torch.argsort(u["time_mean", "total"], descending=True, stable=True)[:2].tolist()
+    named = ", ".join(
+        f"{OBSERVATION_NAMES[d]} (mean {float(u['time_mean', 'total'][d]):.2f} bits, peak at "
+        f"t = {round((int(u['peak_step'][d]) + 1) * DT, 6):g} s)"
+        for d in top
+    )
+    assert text.endswith(f"Most uncertain: {named}.")
+    return text
+
+
+def test_summary_when_epistemic_dominates():
+    model = make_ensemble()
+    set_decoder(model, torch.tensor([[-2.0], [0.0], [2.0]]), -20.0)  # members move apart
+    report = make_assessor(make_env(model)).assess(
+        torch.zeros(1, S), actions=torch.zeros(T, A), generator=seeded()
+    )
+    u = report.data[0]["uncertainty", "summary"]
+    assert u["epistemic"] > 5 * u["aleatoric"]
+    text = check_summary_numbers(report, 0)
+    assert "epistemic" in text and "the model has not seen states like this" in text
+
+
+def test_summary_when_aleatoric_dominates():
+    model = make_ensemble()
+    with torch.no_grad():
+        for param in model.parameters():
+            param.copy_(param[:1].expand_as(param))  # every member = member 0
+    set_decoder(model, torch.zeros(E, 1), 5.0)  # wide, identical noise
+    assessor = make_assessor(make_env(model), bin_width=0.05, samples_per_member=100)
+    report = assessor.assess(torch.zeros(1, S), actions=torch.zeros(T, A), generator=seeded())
+    u = report.data[0]["uncertainty", "summary"]
+    assert u["aleatoric"] > 5 * u["epistemic"]
+    text = check_summary_numbers(report, 0)
+    assert "aleatoric" in text and "more data would not remove" in text
+
+
+def test_summary_of_a_batch(env, starts, plan):
+    report = make_assessor(env).assess(starts, actions=plan, generator=seeded())
+    paragraphs = report.summary().split("\n\n")
+    assert len(paragraphs) == 3
+    for i, paragraph in enumerate(paragraphs):
+        assert paragraph == f"Start state {i}: {check_summary_numbers(report, i)}"
+    assert str(report) == report.summary()
+    assert report[1].summary() == report.summary(index=1)
+    grid = make_assessor(env).assess(starts[:2].expand(2, 2, S), actions=torch.zeros(T, A))
+    assert "Start state (1, 0): P(success" in grid.summary()
+    assert grid.summary(index=(1, 0)) == grid[1, 0].summary()
+    with pytest.raises(ValueError, match="index: expected one start state"):
+        grid.summary(index=1)
+
+
+# ----------------------------------------------------------------- errors
+def test_argument_errors(env):
+    with pytest.raises(ValueError, match=r"bin_width: expected a scalar or a tensor of shape"):
+        make_assessor(env, bin_width=torch.full((3,), 0.1))
+    with pytest.raises(ValueError, match="horizon: expected a positive integer, got 0"):
+        make_assessor(env, horizon=0)
+    with pytest.raises(ValueError, match="horizon: expected a positive integer, got -3"):
+        make_assessor(env, horizon=-3)
+    with pytest.raises(ValueError, match="dim_names: expected 14 names"):
+        make_assessor(env, dim_names=["x"])
+    with pytest.raises(ValueError, match="samples_per_member: expected a positive integer"):
+        make_assessor(env, samples_per_member=0)
+    with pytest.raises(ValueError, match=r"dt: expected the boundary's dt = 0\.05"):
+        make_assessor(env, dt=0.1)
+    with pytest.raises(TypeError, match="model_env: expected an RCVAEEnsembleEnv"):
+        CompetencyAssessor(object(), boundary(), bin_width=0.1)
+    single = RCVAEEnsembleEnv(RCVAEEnsemble(CONFIG, 1), pusher_reward, pusher_success)
+    with pytest.raises(ValueError, match="E >= 2 members"):
+        CompetencyAssessor(single, boundary(), bin_width=0.1)
+    with pytest.raises(TypeError, match="boundary: expected a SuccessBoundary"):
+        CompetencyAssessor(env, lambda obs: obs, bin_width=0.1)
+
+
+def test_assess_errors(env, starts, plan):
+    assessor = make_assessor(env)
+    with pytest.raises(ValueError, match="got both"):
+        assessor.assess(starts, policy=lambda obs: obs[..., :A], actions=plan)
+    with pytest.raises(ValueError, match="got neither"):
+        assessor.assess(starts)
+    with pytest.raises(ValueError, match=r"actions: expected shape \[T, A\] or \[\*B, T, A\]"):
+        assessor.assess(starts, actions=plan[..., :1])  # wrong A
+    with pytest.raises(ValueError, match=r"actions: expected shape"):
+        assessor.assess(starts, actions=plan[:2])  # wrong B
+    with pytest.raises(ValueError, match=r"actions: expected T = horizon = 6 steps, got T = 4"):
+        assessor.assess(starts, actions=plan[:, :4])
+    with pytest.raises(ValueError, match="actions: expected finite values"):
+        assessor.assess(starts, actions=torch.full((T, A), float("nan")))
+    bad = starts.clone()
+    bad[1, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"start_states: expected finite values.*\[1\]"):
+        assessor.assess(bad, actions=plan)
+    with pytest.raises(ValueError, match=r"start_states: expected shape \[\*B, S=14\]"):
+        assessor.assess(starts[:, :5], actions=plan)
+    with pytest.raises(KeyError, match="start: expected the start states"):
+        assessor.assess(TensorDict({"obs": starts}, batch_size=[3]), actions=plan)
+    no_limit = make_assessor(env, boundary=boundary(time_limit=None, dt=None))
+    with pytest.raises(ValueError, match="horizon: a closed-loop assessment needs a horizon"):
+        no_limit.assess(starts, policy=lambda obs: torch.zeros(*obs.shape[:-1], A))
+    free = no_limit.assess(starts, actions=plan[:, :4])  # open loop: T from the actions
+    assert free.data["uncertainty", "total"].shape == (3, 4, S)
+    assert free.summary(index=0).startswith("P(success within 4 steps)")
+
+
+def test_docstring_example():
+    result = doctest.testmod(
+        assessor_module, optionflags=doctest.NORMALIZE_WHITESPACE | doctest.ELLIPSIS
+    )
+    assert result.attempted > 0
+    assert result.failed == 0
