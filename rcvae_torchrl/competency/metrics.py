@@ -241,6 +241,7 @@ class SuccessMetric(LossModule):
     def _time_to_success(self, success_over_time: Tensor) -> dict[str, Tensor]:
         stats = time_to_success(success_over_time)._asdict()
         if self.boundary.dt is not None:
-            stats["mean_s"] = stats["mean_steps"] * self.boundary.dt
-            stats["median_s"] = stats["median_steps"] * self.boundary.dt
+            # Index t of an imagined rollout holds s_{t+1}: the state t + 1 steps after s_0.
+            stats["mean_s"] = (stats["mean_steps"] + 1) * self.boundary.dt
+            stats["median_s"] = (stats["median_steps"] + 1) * self.boundary.dt
         return stats

@@ -110,7 +110,8 @@ def test_success_metric_keys_shapes_and_values(rollout):
     tts = time_to_success(success_over_time)
     assert out["time_to_success", "success_by_step"].shape == (B, T)
     assert torch.allclose(out["time_to_success", "success_by_step"], tts.success_by_step)
-    assert torch.allclose(out["time_to_success", "mean_s"], tts.mean_steps * 0.5)
+    # index t holds the state after t + 1 steps
+    assert torch.allclose(out["time_to_success", "mean_s"], (tts.mean_steps + 1) * 0.5)
 
 
 def test_success_metric_set_keys_and_wilson(rollout):
