@@ -11,9 +11,3 @@ html_static_path = ["_static"]
 exclude_patterns = ["_build"]
 nitpicky = False
 napoleon_use_ivar = True
-
-# Docstrings write a batch's size as |B| (e.g. "N·|B| trajectories"), which reStructuredText
-# reads as a substitution reference: define it as the literal text.
-rst_prolog = r"""
-.. |B| replace:: \|B\|
-"""

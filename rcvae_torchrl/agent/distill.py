@@ -32,6 +32,17 @@ class DistillConfig:
     patience: int = 20
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        for name in ("epochs", "batch_size", "patience"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected an int >= 1, got {getattr(self, name)!r}")
+        if not self.lr > 0:
+            raise ValueError(f"lr: expected > 0, got {self.lr!r}")
+        if not 0.0 < self.val_fraction < 1.0:
+            raise ValueError(
+                f"val_fraction: expected a fraction in (0, 1), got {self.val_fraction!r}"
+            )
+
 
 def _check_pairs(observations: torch.Tensor, actions: torch.Tensor) -> None:
     if observations.ndim != 2 or actions.ndim != 2 or len(observations) != len(actions):

@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from tqdm.auto import tqdm
 
 from rcvae_torchrl.data import TRAJ_KEY, load_episodes, save_episodes, split_episodes
-from rcvae_torchrl.envs import make_pusher_env, obs_indices
+from rcvae_torchrl.envs import CONTROL_TIMESTEP, make_pusher_env, obs_indices
 from rcvae_torchrl.envs.datasets import collect_pusher_data
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.training import TrainConfig, load_ensemble, save_ensemble, train_ensemble
@@ -39,6 +39,7 @@ class AgentConfig:
             exploration noise ``exploration_std``, and random play).
         data_time_limit: length (s) of the initial scripted episodes (they run past success).
         mpc_episodes: real episodes acted with MPC per round (their data is added).
+        mpc_time_limit: length (s) of those episodes.
         ensemble_size, hidden_dim: the world model.
         train: training budget per round (later rounds continue from the previous weights).
         planner: the MPC budget.
@@ -52,6 +53,7 @@ class AgentConfig:
     exploration_std: float = 0.3
     data_time_limit: float = 15.0
     mpc_episodes: int = 5
+    mpc_time_limit: float = 30.0
     ensemble_size: int = 5
     hidden_dim: int = 64
     train: TrainConfig = field(
@@ -127,6 +129,20 @@ def _train_round(
     return result.ensemble, {"train_steps": result.steps, "val_loss": result.best_val.mean().item()}
 
 
+def _record_config(path: Path, config: dict) -> None:
+    """Write the loop's config; an output folder made with other settings is an error (more
+    ``rounds`` is fine: a run can be extended)."""
+    if path.is_file():
+        saved, current = json.loads(path.read_text()), json.loads(json.dumps(config))
+        saved.pop("rounds", None)
+        if saved != {k: v for k, v in current.items() if k != "rounds"}:
+            raise ValueError(
+                f"out_dir: {str(path.parent)!r} holds a run made with other settings; "
+                "finished rounds would be reused: use a new out_dir"
+            )
+    atomic_write(path, lambda f: f.write(json.dumps(config, indent=2).encode()))
+
+
 def run_model_based_agent(
     config: AgentConfig, out_dir: str | Path, *, progress: bool = True
 ) -> AgentResult:
@@ -136,10 +152,12 @@ def run_model_based_agent(
     ``mpc_episodes`` episodes with the CEM planner in the real env, and adds them to the data.
     """
     out = Path(out_dir)
+    _record_config(out / "config.json", dataclasses.asdict(config))
     history_path = out / "history.json"
     history = json.loads(history_path.read_text()) if history_path.is_file() else []
     data = _initial_data(config, out / "data_initial.pt", progress)
-    env = make_pusher_env(config.variant)
+    env = make_pusher_env(config.variant, time_limit=config.mpc_time_limit)
+    max_steps = round(config.mpc_time_limit / CONTROL_TIMESTEP)
     ensemble = None
     for k in tqdm(range(config.rounds), desc="agent rounds", disable=not progress):
         round_dir = out / f"round_{k}"
@@ -154,22 +172,26 @@ def run_model_based_agent(
             env,
             policy,
             seeds=seeds,
+            max_steps=max_steps,
             first_id=int(data[TRAJ_KEY].max()) + 1,
             progress=progress,
             desc=f"round {k}: MPC",
         )
         episodes = stats.data.select(*data.keys(True, True))
-        save_episodes(episodes, episodes_path)
-        data = torch.cat([data, episodes])
+        # The history row first: a kill before the episodes are saved redoes the round, and
+        # the row (keyed by round) is then replaced.
+        history = [row for row in history if row["round"] != k]
         history.append(
             {
                 "round": k,
                 **train_info,
                 "mpc_success_rate": stats.success_rate,
-                "mpc_median_steps": stats.steps.median().item(),
-                "frames": int(data.shape[0]),
+                "mpc_median_steps": stats.steps.float().median().item(),
+                "frames": int(data.shape[0] + episodes.shape[0]),
             }
         )
-        atomic_write(history_path, lambda f: f.write(json.dumps(history, indent=2).encode()))
-    (out / "config.json").write_text(json.dumps(dataclasses.asdict(config), indent=2))
+        text = json.dumps(history, indent=2).encode()
+        atomic_write(history_path, lambda f, text=text: f.write(text))
+        save_episodes(episodes, episodes_path)
+        data = torch.cat([data, episodes])
     return AgentResult(ensemble, data, history)

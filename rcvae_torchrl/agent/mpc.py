@@ -12,12 +12,13 @@ from tqdm.auto import tqdm
 
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.envs.scripted import ScriptedPusher
 from rcvae_torchrl.envs.state import reset_to_state
-from rcvae_torchrl.model_env import make_rcvae_env
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv, make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.planners import CEMPlanner
+from rcvae_torchrl.planners import OBJECTIVES, CEMPlanner
 
-__all__ = ["EpisodeStats", "PlannerConfig", "make_mpc_policy", "run_episodes"]
+__all__ = ["EpisodeStats", "PlannerConfig", "make_mpc_policy", "policy_proposal", "run_episodes"]
 
 
 @dataclass(frozen=True)
@@ -33,6 +34,9 @@ class PlannerConfig:
         momentum: weight of the previous mean/std in the CEM update.
         objective: ``"mean"``, ``"quantile"``, ``"cvar"`` or ``"success"``.
         trajectory_sampling: ``"ts_inf"``, ``"ts1"`` or ``"mean"``.
+        policy_prior: seed every CEM iteration with the scripted pusher's plan, imagined in the
+            model (policy-guided CEM): the planner keeps it unless it finds better under the
+            model. Off: plain CEM from the Gaussian prior.
     """
 
     horizon: int = 12
@@ -43,6 +47,25 @@ class PlannerConfig:
     momentum: float = 0.1
     objective: str = "mean"
     trajectory_sampling: str = "ts_inf"
+    policy_prior: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("horizon", "num_candidates", "top_k", "iterations", "particles"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected an int >= 1, got {getattr(self, name)!r}")
+        if self.top_k > self.num_candidates:
+            raise ValueError(
+                f"top_k: expected at most num_candidates ({self.num_candidates}), got {self.top_k}"
+            )
+        if not 0.0 <= self.momentum < 1.0:
+            raise ValueError(f"momentum: expected a value in [0, 1), got {self.momentum!r}")
+        if self.objective not in OBJECTIVES:
+            raise ValueError(f"objective: expected one of {OBJECTIVES}, got {self.objective!r}")
+        if self.trajectory_sampling not in ("ts_inf", "ts1", "mean"):
+            raise ValueError(
+                "trajectory_sampling: expected 'ts_inf', 'ts1' or 'mean', "
+                f"got {self.trajectory_sampling!r}"
+            )
 
 
 def make_mpc_policy(
@@ -65,8 +88,27 @@ def make_mpc_policy(
         trajectory_sampling=config.trajectory_sampling,
         seed=seed,
     )
-    kwargs = {k: v for k, v in asdict(config).items() if k != "trajectory_sampling"}
-    return CEMPlanner(model_env, seed=seed, **kwargs)
+    skip = ("trajectory_sampling", "policy_prior")
+    kwargs = {k: v for k, v in asdict(config).items() if k not in skip}
+    proposal = None
+    if config.policy_prior:
+        proposal = policy_proposal(model_env, ScriptedPusher(), config.horizon)
+    return CEMPlanner(model_env, seed=seed, proposal=proposal, **kwargs)
+
+
+def policy_proposal(
+    model_env: RCVAEEnsembleEnv, policy: Callable[[torch.Tensor], torch.Tensor], horizon: int
+) -> Callable[[TensorDictBase], torch.Tensor]:
+    """A planner proposal: ``policy``'s actions along one imagined rollout (member 0),
+    ``[*B, H, A]`` from the input's observations ``[*B, S]``."""
+
+    def propose(td: TensorDictBase) -> torch.Tensor:
+        rollout = model_env.imagine(
+            td["observation"], policy=policy, horizon=horizon, samples_per_member=1
+        )
+        return rollout["action"][0, 0]
+
+    return propose
 
 
 @dataclass

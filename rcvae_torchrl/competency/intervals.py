@@ -6,7 +6,6 @@ from typing import Literal
 
 import numpy as np
 import torch
-from scipy import stats
 from torch import Tensor
 
 from rcvae_torchrl.competency import _checks
@@ -65,6 +64,8 @@ def binomial_interval(
 
 
 def _jeffreys(k: Tensor, n: Tensor, alpha: float) -> tuple[Tensor, Tensor]:
+    from scipy import stats  # imported here: scipy adds ~0.5 s to importing the library
+
     k_np, n_np = k.cpu().numpy(), n.cpu().numpy()
     low = np.where(k_np > 0, stats.beta.ppf(alpha / 2, k_np + 0.5, n_np - k_np + 0.5), 0.0)
     high = np.where(k_np < n_np, stats.beta.ppf(1 - alpha / 2, k_np + 0.5, n_np - k_np + 0.5), 1.0)
@@ -72,6 +73,8 @@ def _jeffreys(k: Tensor, n: Tensor, alpha: float) -> tuple[Tensor, Tensor]:
 
 
 def _wilson(k: Tensor, n: Tensor, alpha: float) -> tuple[Tensor, Tensor]:
+    from scipy import stats
+
     z = float(stats.norm.ppf(1 - alpha / 2))
     p = k / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)

@@ -291,8 +291,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         **Equivalence with ``env.rollout``.** With the same generator state, a TS-∞ rollout of
         the tensordict ``[E, N, *B]`` whose ``"member"`` is e along dim 0 (flattened in that
         order, member-major) and whose observations are the start states broadcast over
-        ``[E, N]``, gives the same trajectories when all N·|B| trajectories per member are
-        rolled out in one chunk (``chunk_size=None`` or ≥ N·|B|).
+        ``[E, N]``, gives the same trajectories when all ``N·|B|`` trajectories per member are
+        rolled out in one chunk (``chunk_size=None`` or ≥ ``N·|B|``).
 
         Args:
             start: start states ``[*B, S]``, or a tensordict ``[*B]`` holding ``"observation"``.

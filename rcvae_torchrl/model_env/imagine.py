@@ -79,7 +79,7 @@ def imagine_rollouts(
         samples_per_member: N.
         terminate_on_success: success ends an episode (sets ``"terminated"``/``"done"``).
         generator: source of all sampling noise.
-        chunk_size: trajectories per member rolled out together (``None``: all N·|B|), as in
+        chunk_size: trajectories per member rolled out together (``None``: all ``N·|B|``), as in
             :func:`~rcvae_torchrl.models.generate`; the noise drawn depends on it.
 
     Returns:

@@ -1,6 +1,6 @@
 """Returns of candidate action sequences under the ensemble: the planner's fast path.
 
-Mirrors mbrl-lib's ``ModelEnv.evaluate_action_sequences``: R = |B|·C rows (start state ×
+Mirrors mbrl-lib's ``ModelEnv.evaluate_action_sequences``: ``R = |B|·C`` rows (start state ×
 candidate), G particle groups per row, all G·R particles stepped together, rewards accumulated
 on the fly; no TensorDict, no per-step allocation beyond the model's own.
 

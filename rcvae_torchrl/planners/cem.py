@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Literal
 
 import torch
@@ -77,6 +78,11 @@ class CEMPlanner(MPCPlannerBase):
         success_key: success flag under ``"next"`` for ``objective="success"`` on the rollout path.
         init_key: the episode-start flag read from the input (``InitTracker``'s ``"is_init"``).
         generator: random source of the candidates; or ``seed`` to make one.
+        proposal: optional prior plan: a callable mapping the input tensordict ``[*B]`` to an
+            action sequence ``[*B, H, *A]`` (e.g. a policy rolled out in the model). It joins
+            every iteration's candidates (replacing one sample), so it is kept whenever it
+            scores among the elites: policy-guided CEM, never worse than the prior under the
+            model's own scores.
 
     Example:
         >>> from torchrl.envs import PendulumEnv
@@ -109,6 +115,7 @@ class CEMPlanner(MPCPlannerBase):
         init_key: NestedKey = "is_init",
         generator: torch.Generator | None = None,
         seed: int | None = None,
+        proposal: Callable[[TensorDictBase], Tensor] | None = None,
     ) -> None:
         _check_arguments(horizon, num_candidates, top_k, iterations, particles, momentum)
         _check_objective(objective, risk_level)
@@ -127,6 +134,9 @@ class CEMPlanner(MPCPlannerBase):
         self.generator = _make_generator(generator, seed, env.device)
         self._register_bounds(init_std)
         self._plan: tuple[Tensor, Tensor] | None = None
+        if proposal is not None and not callable(proposal):
+            raise TypeError(f"proposal: expected a callable or None, got {type(proposal).__name__}")
+        self.proposal = proposal
 
     def _register_bounds(self, init_std: float | Tensor | None) -> None:
         """Buffers ``low``, ``high`` (bounds), ``prior_mean``, ``prior_std``, all ``[*A]``."""
@@ -205,13 +215,26 @@ class CEMPlanner(MPCPlannerBase):
         self, tensordict: TensorDictBase, mean: Tensor, std: Tensor
     ) -> tuple[Tensor, Tensor]:
         """Run the CEM iterations from ``(mean, std)`` ``[*B, H, *A]``; return the final plan."""
+        prior = self._proposed_plan(tensordict, mean.shape)
         for _ in range(self.iterations):
             candidates = sample_candidates(
                 mean, std, self.num_candidates, self.low, self.high, self.generator
             )
+            if prior is not None:
+                candidates.select(tensordict.batch_dims, -1).copy_(prior)
             scores = self.score(tensordict, candidates)
             mean, std = cem_update(mean, std, candidates, scores, self.top_k, self.momentum)
         return mean, std
+
+    def _proposed_plan(self, tensordict: TensorDictBase, shape: torch.Size) -> Tensor | None:
+        """The proposal's plan ``[*B, H, *A]`` clamped to the bounds, or None."""
+        if self.proposal is None:
+            return None
+        plan = self.proposal(tensordict)
+        if not isinstance(plan, Tensor) or plan.shape != shape:
+            got = tuple(plan.shape) if isinstance(plan, Tensor) else type(plan).__name__
+            raise ValueError(f"proposal: expected a plan of shape {tuple(shape)}, got {got}")
+        return torch.maximum(torch.minimum(plan, self.high), self.low)
 
     def planning(self, tensordict: TensorDictBase) -> Tensor:
         """Plan from each start state of ``tensordict`` ``[*B]``; return actions ``[*B, *A]``."""

@@ -9,9 +9,10 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, TypeVar, get_type_hints
+from typing import Any, TypeVar, get_args, get_type_hints
 
 from rcvae_torchrl.agent import DistillConfig, PlannerConfig
+from rcvae_torchrl.envs import CONTROL_TIMESTEP
 from rcvae_torchrl.training import TrainConfig
 
 __all__ = [
@@ -26,6 +27,24 @@ __all__ = [
 T = TypeVar("T")
 
 
+def _at_least(obj: object, names: tuple[str, ...], low: float) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or value < low:
+            raise ValueError(f"{name}: expected a number >= {low}, got {value!r}")
+
+
+def _whole_steps(obj: object, names: tuple[str, ...]) -> None:
+    for name in names:
+        value = getattr(obj, name)
+        steps = value / CONTROL_TIMESTEP if isinstance(value, (int, float)) else -1
+        if not (steps >= 1 and abs(steps - round(steps)) < 1e-6):
+            raise ValueError(
+                f"{name}: expected a positive whole number of {CONTROL_TIMESTEP} s control "
+                f"steps, got {value!r}"
+            )
+
+
 @dataclass(frozen=True)
 class DataConfig:
     """World-model data per variant: scripted pushing with exploration noise, and random play."""
@@ -37,6 +56,13 @@ class DataConfig:
     random_time_limit: float = 10.0
     stochastic_noise_std: float = 0.5
 
+    def __post_init__(self) -> None:
+        _at_least(self, ("scripted_episodes", "random_episodes"), 0)
+        if self.scripted_episodes + self.random_episodes < 1:
+            raise ValueError("scripted_episodes, random_episodes: expected at least one episode")
+        _at_least(self, ("exploration_std", "stochastic_noise_std"), 0.0)
+        _whole_steps(self, ("time_limit", "random_time_limit"))
+
 
 @dataclass(frozen=True)
 class ModelConfig:
@@ -45,6 +71,10 @@ class ModelConfig:
     ensemble_size: int = 5
     hidden_dim: int = 64
     latent_dim: int = 8
+
+    def __post_init__(self) -> None:
+        _at_least(self, ("ensemble_size",), 2)
+        _at_least(self, ("hidden_dim", "latent_dim"), 1)
 
 
 @dataclass(frozen=True)
@@ -60,6 +90,10 @@ class AgentStudyConfig:
     eval_episodes: int = 20
     distill: DistillConfig = field(default_factory=DistillConfig)
 
+    def __post_init__(self) -> None:
+        _at_least(self, ("mpc_episodes", "eval_episodes"), 1)
+        _at_least(self, ("action_noise",), 0.0)
+
 
 @dataclass(frozen=True)
 class AssessConfig:
@@ -73,6 +107,22 @@ class AssessConfig:
     success_radius: float = 0.03
     open_loop: bool = False
     forecast_panels: int = 3
+
+    def __post_init__(self) -> None:
+        _at_least(
+            self,
+            (
+                "start_states",
+                "samples_per_member",
+                "seeds_per_start",
+                "stochastic_seeds_per_start",
+                "forecast_panels",
+            ),
+            1,
+        )
+        _whole_steps(self, ("horizon_s",))
+        if not self.success_radius > 0:
+            raise ValueError(f"success_radius: expected > 0 m, got {self.success_radius!r}")
 
 
 @dataclass(frozen=True)
@@ -90,22 +140,50 @@ class StudyConfig:
     seed: int = 0
 
 
-def from_mapping(cls: type[T], values: Mapping[str, Any] | None, where: str = "config") -> T:
-    """Build dataclass ``cls`` from a nested mapping; unknown keys raise ``ValueError``."""
+def _check_scalar(where: str, value: Any, hint: Any) -> None:
+    """``value`` must fit a scalar type hint (int, float, bool, str, or ``X | None``)."""
+    allowed = tuple(a for a in get_args(hint) if a is not type(None)) or (hint,)
+    if value is None and type(None) in get_args(hint):
+        return
+    ok = any(
+        (kind is float and isinstance(value, (int, float)) and not isinstance(value, bool))
+        or (kind is int and isinstance(value, int) and not isinstance(value, bool))
+        or (kind in (bool, str) and isinstance(value, kind))
+        or kind not in (int, float, bool, str)
+        for kind in allowed
+    )
+    if not ok:
+        names = " or ".join(getattr(k, "__name__", str(k)) for k in allowed)
+        raise ValueError(f"{where}: expected {names}, got {value!r}")
+
+
+def from_mapping(
+    cls: type[T], values: Mapping[str, Any] | None, where: str = "config", base: T | None = None
+) -> T:
+    """Build dataclass ``cls`` from a nested mapping, starting from ``base`` (default: ``cls()``).
+
+    A partial section keeps the defaults of ``base``'s own section. Unknown keys, a scalar where
+    a section belongs, values of the wrong type and out-of-range values raise ``ValueError``
+    naming the key's path.
+    """
+    if not isinstance(values, Mapping) and values is not None:
+        raise ValueError(f"{where}: expected a mapping of settings, got {values!r}")
     values = dict(values or {})
-    names = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - set(names))
+    base = cls() if base is None else base
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
     if unknown:
         raise ValueError(f"{where}: unknown key(s) {unknown}; expected some of {sorted(names)}")
     hints = get_type_hints(cls)
     kwargs = {}
     for name, value in values.items():
         kind = hints[name]
-        if dataclasses.is_dataclass(kind) and isinstance(value, Mapping):
-            kwargs[name] = from_mapping(kind, value, f"{where}.{name}")
+        if dataclasses.is_dataclass(kind):
+            kwargs[name] = from_mapping(kind, value, f"{where}.{name}", getattr(base, name))
         else:
+            _check_scalar(f"{where}.{name}", value, kind)
             kwargs[name] = value
     try:
-        return cls(**kwargs)
+        return dataclasses.replace(base, **kwargs)
     except (TypeError, ValueError) as err:
         raise ValueError(f"{where}: {err}") from err

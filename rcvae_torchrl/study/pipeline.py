@@ -15,6 +15,7 @@ last checkpoint).
 from __future__ import annotations
 
 import functools
+import json
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -138,12 +139,15 @@ class _Study:
                 resume=True,
                 progress=self.progress,
             )
-            save_ensemble(result.ensemble, path, extra={"variant": variant})
-            summary[variant] = {
+            info = {
                 "steps": result.steps,
                 "stopped_early": result.stopped_early,
                 "best_val_loss": result.best_val.mean().item(),
             }
+            save_ensemble(result.ensemble, path, extra={"variant": variant, "training": info})
+        for variant in VARIANTS:
+            saved = torch.load(self.dir / "models" / f"{variant}.pt", weights_only=True)
+            summary[variant] = saved["extra"].get("training", {})
         return summary
 
     def agent(self) -> dict[str, Any]:
@@ -257,6 +261,20 @@ class _Study:
         )
 
 
+def _record_config(path: Path, config: dict[str, Any]) -> None:
+    """Write the run's config; a run directory made with other settings is an error."""
+    if path.is_file():
+        saved = json.loads(path.read_text())
+        if saved != json.loads(json.dumps(config)):
+            changed = sorted(k for k in config if saved.get(k) != json.loads(json.dumps(config[k])))
+            raise ValueError(
+                f"run_dir: {str(path.parent)!r} holds a run made with other settings (sections "
+                f"{changed} differ); finished stages would be reused: use a new run_dir"
+            )
+        return
+    atomic_write(path, lambda f: f.write(json.dumps(config, indent=2).encode()))
+
+
 def run_study(
     config: StudyConfig,
     run_dir: str | Path,
@@ -268,10 +286,7 @@ def run_study(
     """Run (or resume) the study in ``run_dir``; returns every stage's summary."""
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write(
-        run_dir / "study_config.json",
-        lambda f: f.write(__import__("json").dumps(asdict(config), indent=2).encode()),
-    )
+    _record_config(run_dir / "study_config.json", asdict(config))
     study = _Study(config, run_dir, torch.device(device), progress)
     runner = StageRunner(run_dir, log)
     for name in ("data", "models", "agent", "forecast", "truth", "report"):

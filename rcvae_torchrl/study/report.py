@@ -190,9 +190,9 @@ def write_report(
 
 def _markdown(rows, overall, checks, figures, gif, run_dir: Path) -> str:
     table = (run_dir / "table.md").read_text()
-    stages = {
-        p.stem: json.loads(p.read_text()) for p in sorted((run_dir / "stages").glob("*.json"))
-    }
+    order = ("data", "models", "agent", "forecast", "truth", "report")
+    found = {p.stem: p for p in (run_dir / "stages").glob("*.json")}
+    stages = {name: json.loads(found[name].read_text()) for name in order if name in found}
     agent = stages.get("agent", {})
     lines = [
         "# Pusher competency assessment",

@@ -24,6 +24,7 @@ CONFIG = AgentConfig(
     random_episodes=1,
     data_time_limit=2.0,
     mpc_episodes=1,
+    mpc_time_limit=1.0,
     ensemble_size=2,
     hidden_dim=16,
     train=TrainConfig(max_steps=10, batch_windows=4, window=8, val_every=5, val_windows=8),

@@ -224,3 +224,29 @@ def test_success_objective_on_both_paths():
     torch.testing.assert_close(fast(td.clone())["action"], slow(td.clone())["action"])
     rollout = env.rollout(6, CEMPlanner(env, **kwargs))
     assert bool(rollout["next", "success"].any())
+
+
+def test_proposal_joins_the_candidates_and_wins_when_best():
+    env = AnalyticPointMassEnv()
+    td = env.reset()
+    # The best plan pushes straight to the goal; a tiny population rarely samples it.
+    best = -torch.sign(td["position"]).expand(6, *td["position"].shape).clone()
+    planner = CEMPlanner(
+        env,
+        horizon=6,
+        num_candidates=2,
+        top_k=1,
+        iterations=1,
+        momentum=0.0,
+        seed=0,
+        proposal=lambda t: best,
+    )
+    torch.testing.assert_close(planner(td.clone())["action"], best[0])
+    blind = CEMPlanner(
+        env, horizon=6, num_candidates=2, top_k=1, iterations=1, momentum=0.0, seed=0
+    )
+    assert not torch.allclose(blind(td.clone())["action"], best[0])
+    with pytest.raises(ValueError, match="proposal: expected a plan of shape"):
+        CEMPlanner(env, horizon=6, seed=0, proposal=lambda t: best[:3])(td.clone())
+    with pytest.raises(TypeError, match="proposal: expected a callable"):
+        CEMPlanner(env, horizon=6, seed=0, proposal=3)
