@@ -34,20 +34,23 @@ class PlannerConfig:
         momentum: weight of the previous mean/std in the CEM update.
         objective: ``"mean"``, ``"quantile"``, ``"cvar"`` or ``"success"``.
         trajectory_sampling: ``"ts_inf"``, ``"ts1"`` or ``"mean"``.
-        policy_prior: seed every CEM iteration with the scripted pusher's plan, imagined in the
-            model (policy-guided CEM): the planner keeps it unless it finds better under the
-            model. Off: plain CEM from the Gaussian prior.
+        policy_prior: guide CEM with the scripted pusher's plan, imagined in the model: each
+            call searches around it (std ``prior_std`` × the prior std) and keeps it among the
+            candidates, so the planner refines it where the model finds better. Off: plain CEM
+            from the Gaussian prior, warm-started from the shifted previous plan.
+        prior_std: the search width around the policy's plan, relative to the prior std.
     """
 
     horizon: int = 12
-    num_candidates: int = 100
-    top_k: int = 10
-    iterations: int = 3
+    num_candidates: int = 64
+    top_k: int = 8
+    iterations: int = 2
     particles: int = 5
     momentum: float = 0.1
     objective: str = "mean"
     trajectory_sampling: str = "ts_inf"
-    policy_prior: bool = False
+    policy_prior: bool = True
+    prior_std: float = 0.1
 
     def __post_init__(self) -> None:
         for name in ("horizon", "num_candidates", "top_k", "iterations", "particles"):
@@ -88,12 +91,13 @@ def make_mpc_policy(
         trajectory_sampling=config.trajectory_sampling,
         seed=seed,
     )
-    skip = ("trajectory_sampling", "policy_prior")
+    skip = ("trajectory_sampling", "policy_prior", "prior_std")
     kwargs = {k: v for k, v in asdict(config).items() if k not in skip}
     proposal = None
     if config.policy_prior:
         proposal = policy_proposal(model_env, ScriptedPusher(), config.horizon)
-    return CEMPlanner(model_env, seed=seed, proposal=proposal, **kwargs)
+    proposal_std = config.prior_std if config.policy_prior else None
+    return CEMPlanner(model_env, seed=seed, proposal=proposal, proposal_std=proposal_std, **kwargs)
 
 
 def policy_proposal(

@@ -83,6 +83,10 @@ class CEMPlanner(MPCPlannerBase):
             every iteration's candidates (replacing one sample), so it is kept whenever it
             scores among the elites: policy-guided CEM, never worse than the prior under the
             model's own scores.
+        proposal_std: with a proposal, start each call's search at the proposed plan with
+            std ``proposal_std`` × the prior std (a local refinement of the policy's plan)
+            instead of at the kept warm-start plan; ``None`` (default): the proposal only joins
+            the candidates.
 
     Example:
         >>> from torchrl.envs import PendulumEnv
@@ -116,6 +120,7 @@ class CEMPlanner(MPCPlannerBase):
         generator: torch.Generator | None = None,
         seed: int | None = None,
         proposal: Callable[[TensorDictBase], Tensor] | None = None,
+        proposal_std: float | None = None,
     ) -> None:
         _check_arguments(horizon, num_candidates, top_k, iterations, particles, momentum)
         _check_objective(objective, risk_level)
@@ -136,7 +141,9 @@ class CEMPlanner(MPCPlannerBase):
         self._plan: tuple[Tensor, Tensor] | None = None
         if proposal is not None and not callable(proposal):
             raise TypeError(f"proposal: expected a callable or None, got {type(proposal).__name__}")
-        self.proposal = proposal
+        if proposal_std is not None and not proposal_std > 0:
+            raise ValueError(f"proposal_std: expected > 0 or None, got {proposal_std!r}")
+        self.proposal, self.proposal_std = proposal, proposal_std
 
     def _register_bounds(self, init_std: float | Tensor | None) -> None:
         """Buffers ``low``, ``high`` (bounds), ``prior_mean``, ``prior_std``, all ``[*A]``."""
@@ -216,6 +223,8 @@ class CEMPlanner(MPCPlannerBase):
     ) -> tuple[Tensor, Tensor]:
         """Run the CEM iterations from ``(mean, std)`` ``[*B, H, *A]``; return the final plan."""
         prior = self._proposed_plan(tensordict, mean.shape)
+        if prior is not None and self.proposal_std is not None:
+            mean, std = prior.clone(), (self.prior_std * self.proposal_std).expand_as(std).clone()
         for _ in range(self.iterations):
             candidates = sample_candidates(
                 mean, std, self.num_candidates, self.low, self.high, self.generator

@@ -85,7 +85,7 @@ class AgentStudyConfig:
     episodes, so the policy also learns to recover from states off the planner's path.
     """
 
-    mpc_episodes: int = 10
+    mpc_episodes: int = 15
     action_noise: float = 0.3
     eval_episodes: int = 20
     distill: DistillConfig = field(default_factory=DistillConfig)
@@ -132,7 +132,9 @@ class StudyConfig:
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(
-        default_factory=lambda: TrainConfig(max_steps=1500, batch_windows=32, window=32)
+        default_factory=lambda: TrainConfig(
+            max_steps=5000, batch_windows=32, window=32, lr=3e-3, val_every=250, patience=6
+        )
     )
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     agent: AgentStudyConfig = field(default_factory=AgentStudyConfig)
