@@ -195,6 +195,7 @@ class Pusher(base.Task):
         self.terminate_on_success = bool(terminate_on_success)
         self._action = np.zeros(2)
         self._ball_to_target = self._finger_to_ball = math.inf
+        self._obs: np.ndarray | None = None
 
     def initialize_episode(self, physics: Physics) -> None:
         rnd, region = self.random, self.region
@@ -228,22 +229,27 @@ class Pusher(base.Task):
         physics.set_control(applied)
 
     def after_step(self, physics: Physics) -> None:
-        """Measure the distances that reward, success and termination share, once per step."""
-        self._ball_to_target = physics.ball_to_target()
-        self._finger_to_ball = physics.finger_to_ball()
-
-    def get_observation(self, physics: Physics) -> collections.OrderedDict:
+        """Read the state once per step: the observation, and the distances that reward,
+        success and termination share (the hot path: accessors are called once each)."""
         obs = np.empty(OBSERVATION_DIM, dtype=np.float32)
         angles = physics.arm_angles()
         obs[_COS] = np.cos(angles)
         obs[_SIN] = np.sin(angles)
         obs[_JOINT_VEL] = physics.arm_velocities()
-        obs[_FINGER] = physics.finger_xy()
-        obs[_BALL] = physics.ball_xy()
+        finger, ball, target = physics.finger_xy(), physics.ball_xy(), physics.target_xy()
+        obs[_FINGER] = finger
+        obs[_BALL] = ball
         obs[_BALL_VEL] = physics.ball_velocity()
-        obs[_TARGET] = physics.target_xy()
+        obs[_TARGET] = target
+        self._obs = obs
+        self._ball_to_target = math.hypot(ball[0] - target[0], ball[1] - target[1])
+        self._finger_to_ball = math.hypot(finger[0] - ball[0], finger[1] - ball[1])
+
+    def get_observation(self, physics: Physics) -> collections.OrderedDict:
+        if self._obs is None:  # the spec is inferred before the first episode starts
+            self.after_step(physics)
         success = self._ball_to_target <= self.success_radius
-        return collections.OrderedDict(observation=obs, success=np.array([success]))
+        return collections.OrderedDict(observation=self._obs, success=np.array([success]))
 
     def get_reward(self, physics: Physics) -> float:
         approach = max(self._finger_to_ball - CONTACT_DISTANCE, 0.0)
