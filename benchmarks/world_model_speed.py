@@ -41,6 +41,10 @@ from rcvae_torchrl.objectives import RCVAELoss
 
 CONFIG = RCVAEConfig(obs_dim=14, action_dim=2, passthrough_dims=(12, 13))
 SMALL = RCVAEConfig(obs_dim=14, action_dim=2, hidden_dim=32, mlp_dim=32, passthrough_dims=(12, 13))
+# The study's default world model (recipes/config/profile/default.yaml).
+DEFAULT = RCVAEConfig(
+    obs_dim=14, action_dim=2, hidden_dim=64, mlp_dim=64, passthrough_dims=(12, 13)
+)
 
 
 def interleaved_medians(
@@ -136,7 +140,7 @@ def main() -> None:
     repeats = 3 if args.quick else args.repeats
     sizes = (16, 256) if args.quick else (16, 256, 4096)
 
-    configs = {"pusher_H128": CONFIG, "small_H32": SMALL}
+    configs = {"pusher_H128": CONFIG, "study_default_H64": DEFAULT, "small_H32": SMALL}
     train = {name: train_step_times(cfg, repeats) for name, cfg in configs.items()}
     ratio = {name: t[5] / t[1] for name, t in train.items()}
     print_table(
