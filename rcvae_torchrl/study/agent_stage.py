@@ -4,7 +4,9 @@ Planning at every step of thousands of imagined particles over 600 steps is far 
 budget, so the agent that acts and is forecast is an :class:`~rcvae_torchrl.agent.MLPPolicy`
 distilled from the CEM planner's actions in MPC episodes (behaviour cloning). The executed
 action is perturbed during those episodes (the recorded label is the planner's), so the policy
-also sees states off the planner's own path and learns to recover from them.
+also sees states off the planner's own path and learns to recover from them. DAgger rounds
+(Ross, Gordon & Bagnell 2011) then run the policy itself, label the states it visits with the
+planner (all of a round's states planned at once, as one batch) and retrain on everything.
 """
 
 from __future__ import annotations
@@ -26,7 +28,13 @@ from rcvae_torchrl.agent import (
 )
 from rcvae_torchrl.models import RCVAEEnsemble
 
-__all__ = ["PerturbedPolicy", "collect_mpc_demonstrations", "train_agent_policy"]
+__all__ = [
+    "PerturbedPolicy",
+    "collect_mpc_demonstrations",
+    "dagger",
+    "label_states",
+    "train_agent_policy",
+]
 
 
 class PerturbedPolicy:
@@ -95,3 +103,63 @@ def train_agent_policy(
         "policy_success_rate": stats.success_rate,
         "policy_median_steps": stats.steps.float().median().item(),
     }
+
+
+def label_states(
+    planner: Callable[[TensorDictBase], TensorDictBase], states: torch.Tensor, chunk: int = 256
+) -> torch.Tensor:
+    """The planner's action ``[M, A]`` for each state ``[M, S]``, planned in batches."""
+    from tensordict import TensorDict
+
+    actions = []
+    for part in states.split(chunk):
+        if hasattr(planner, "reset"):
+            planner.reset()
+        td = TensorDict({"observation": part}, batch_size=[part.shape[0]])
+        with torch.no_grad():
+            actions.append(planner(td)["action"])
+    return torch.cat(actions)
+
+
+def dagger(
+    ensemble: RCVAEEnsemble,
+    env: EnvBase,
+    planner_config: PlannerConfig,
+    observations: torch.Tensor,
+    labels: torch.Tensor,
+    distill: DistillConfig,
+    *,
+    rounds: int,
+    episodes: int,
+    seed: int,
+    progress: bool = True,
+) -> tuple[MLPPolicy, torch.Tensor, torch.Tensor, list[dict[str, float]]]:
+    """Distil, then ``rounds`` times: run the policy, label its states with MPC, retrain.
+
+    Returns the last policy, all observations and labels, and per-round statistics.
+    """
+    planner = make_mpc_policy(ensemble, env, planner_config, seed=seed)
+    policy, info = distill_policy(observations, labels, distill, progress=progress)
+    history = [{"round": 0, "pairs": float(len(observations)), **info}]
+    for k in range(1, rounds + 1):
+        seeds = [80_000 + seed * 1000 + 100 * k + i for i in range(episodes)]
+        stats = run_episodes(
+            env,
+            make_policy_module(policy),
+            seeds=seeds,
+            progress=progress,
+            desc=f"DAgger {k}: policy",
+        )
+        states = stats.data["observation"]
+        observations = torch.cat([observations, states])
+        labels = torch.cat([labels, label_states(planner, states)])
+        policy, info = distill_policy(observations, labels, distill, progress=progress)
+        history.append(
+            {
+                "round": k,
+                "pairs": float(len(observations)),
+                "policy_success_before": stats.success_rate,
+                **info,
+            }
+        )
+    return policy, observations, labels, history

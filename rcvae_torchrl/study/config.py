@@ -82,16 +82,21 @@ class AgentStudyConfig:
     """The agent: MPC episodes in the real env teach an amortised policy (behaviour cloning).
 
     ``action_noise`` perturbs the executed action (not the recorded label) during the MPC
-    episodes, so the policy also learns to recover from states off the planner's path.
+    episodes, so the policy also learns to recover from states off the planner's path;
+    ``dagger_rounds`` rounds of ``dagger_episodes`` policy episodes then relabel the policy's own
+    states with the planner.
     """
 
     mpc_episodes: int = 15
     action_noise: float = 0.3
+    dagger_rounds: int = 3
+    dagger_episodes: int = 10
     eval_episodes: int = 20
     distill: DistillConfig = field(default_factory=DistillConfig)
 
     def __post_init__(self) -> None:
-        _at_least(self, ("mpc_episodes", "eval_episodes"), 1)
+        _at_least(self, ("mpc_episodes", "eval_episodes", "dagger_episodes"), 1)
+        _at_least(self, ("dagger_rounds",), 0)
         _at_least(self, ("action_noise",), 0.0)
 
 

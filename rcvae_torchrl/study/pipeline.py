@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl.agent import MLPPolicy, make_policy_module
+from rcvae_torchrl.agent import MLPPolicy, make_policy_module, run_episodes
 from rcvae_torchrl.data import load_episodes, save_episodes, split_episodes
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
@@ -39,7 +39,7 @@ from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
 from rcvae_torchrl.training.atomic import atomic_write
 
-from .agent_stage import collect_mpc_demonstrations, train_agent_policy
+from .agent_stage import collect_mpc_demonstrations, dagger
 from .config import StudyConfig
 from .forecast import forecast_condition
 from .report import write_report
@@ -168,15 +168,30 @@ class _Study:
                 progress=self.progress,
             )
             _save({"observations": obs, "labels": labels, "info": info}, demos)
-        policy, stats = train_agent_policy(
+        model = self.model("deterministic").cpu()
+        policy, obs, labels, rounds = dagger(
+            model,
+            env,
+            self.cfg.planner,
             obs,
             labels,
             a.distill,
-            env,
-            eval_episodes=a.eval_episodes,
+            rounds=a.dagger_rounds,
+            episodes=a.dagger_episodes,
             seed=self.cfg.seed,
             progress=self.progress,
         )
+        _save({"observations": obs, "labels": labels}, self.dir / "agent" / "dagger_data.pt")
+        seeds = [70_000 + self.cfg.seed * 1000 + i for i in range(a.eval_episodes)]
+        evaluation = run_episodes(
+            env, make_policy_module(policy), seeds=seeds, progress=self.progress, desc="policy eval"
+        )
+        stats = {
+            **{k: v for k, v in rounds[-1].items() if k != "round"},
+            "dagger": rounds,
+            "policy_success_rate": evaluation.success_rate,
+            "policy_median_steps": evaluation.steps.float().median().item(),
+        }
         _save(
             {
                 "obs_dim": policy.obs_dim,
