@@ -3,11 +3,12 @@
 from .distill import DistillConfig, distill_policy
 from .loop import AgentConfig, AgentResult, run_model_based_agent
 from .mpc import EpisodeStats, PlannerConfig, make_mpc_policy, run_episodes
-from .policy import MLPPolicy, make_policy_module
+from .policy import MLPPolicy, ResidualPolicy, make_policy_module
 
 __all__ = [
     # amortised policy
     "MLPPolicy",
+    "ResidualPolicy",
     "make_policy_module",
     # MPC agent
     "EpisodeStats",

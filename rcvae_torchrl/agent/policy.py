@@ -11,7 +11,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-__all__ = ["MLPPolicy", "make_policy_module"]
+__all__ = ["MLPPolicy", "ResidualPolicy", "make_policy_module"]
 
 
 class MLPPolicy(nn.Module):
@@ -48,6 +48,23 @@ class MLPPolicy(nn.Module):
                 f"observation: expected shape [..., {self.obs_dim}], got {tuple(observation.shape)}"
             )
         return torch.tanh(self.net((observation - self.obs_mean) / self.obs_std))
+
+
+class ResidualPolicy(nn.Module):
+    """``a = clamp(base(s) + residual(s), -1, 1)``: a fixed prior policy plus a learned correction.
+
+    Distilling a planner that refines a prior policy (policy-guided CEM) into the residual is far
+    easier than into a whole policy: the correction is small and smooth where the prior switches
+    modes abruptly (residual policy learning, Silver et al. 2018; Johannink et al. 2019).
+    """
+
+    def __init__(self, base: nn.Module, residual: MLPPolicy) -> None:
+        super().__init__()
+        self.base, self.residual = base, residual
+        self.obs_dim, self.action_dim = residual.obs_dim, residual.action_dim
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return (self.base(observation) + self.residual(observation)).clamp(-1.0, 1.0)
 
 
 def make_policy_module(policy: nn.Module) -> TensorDictModule:

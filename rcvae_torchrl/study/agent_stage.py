@@ -1,5 +1,9 @@
 """The study's agent: MPC in the real env teaches an amortised policy that is then forecast.
 
+With the default policy-guided planner (CEM around the scripted pusher's plan), the amortised
+agent is that prior plus a small MLP correction distilled from the planner (a
+:class:`~rcvae_torchrl.agent.ResidualPolicy`); with plain CEM it is an MLP on its own.
+
 Planning at every step of thousands of imagined particles over 600 steps is far beyond a CPU
 budget, so the agent that acts and is forecast is an :class:`~rcvae_torchrl.agent.MLPPolicy`
 distilled from the CEM planner's actions in MPC episodes (behaviour cloning). The executed
@@ -15,12 +19,14 @@ from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
+from torch import nn
 from torchrl.envs import EnvBase
 
 from rcvae_torchrl.agent import (
     DistillConfig,
     MLPPolicy,
     PlannerConfig,
+    ResidualPolicy,
     distill_policy,
     make_mpc_policy,
     make_policy_module,
@@ -133,13 +139,25 @@ def dagger(
     episodes: int,
     seed: int,
     progress: bool = True,
-) -> tuple[MLPPolicy, torch.Tensor, torch.Tensor, list[dict[str, float]]]:
+    base: nn.Module | None = None,
+) -> tuple[nn.Module, torch.Tensor, torch.Tensor, list[dict[str, float]]]:
     """Distil, then ``rounds`` times: run the policy, label its states with MPC, retrain.
 
-    Returns the last policy, all observations and labels, and per-round statistics.
+    With a ``base`` policy (the planner's own prior), the MLP learns the correction
+    ``label - base(s)`` and the agent is a :class:`ResidualPolicy`. Returns the last policy, all
+    observations and labels, and per-round statistics.
     """
     planner = make_mpc_policy(ensemble, env, planner_config, seed=seed)
-    policy, info = distill_policy(observations, labels, distill, progress=progress)
+
+    def fit(obs: torch.Tensor, target: torch.Tensor) -> tuple[nn.Module, dict]:
+        if base is None:
+            return distill_policy(obs, target, distill, progress=progress)
+        with torch.no_grad():
+            correction = target - base(obs)
+        mlp, stats = distill_policy(obs, correction, distill, progress=progress)
+        return ResidualPolicy(base, mlp), stats
+
+    policy, info = fit(observations, labels)
     history = [{"round": 0, "pairs": float(len(observations)), **info}]
     for k in range(1, rounds + 1):
         seeds = [80_000 + seed * 1000 + 100 * k + i for i in range(episodes)]
@@ -153,7 +171,7 @@ def dagger(
         states = stats.data["observation"]
         observations = torch.cat([observations, states])
         labels = torch.cat([labels, label_states(planner, states)])
-        policy, info = distill_policy(observations, labels, distill, progress=progress)
+        policy, info = fit(observations, labels)
         history.append(
             {
                 "round": k,

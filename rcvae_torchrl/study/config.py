@@ -89,7 +89,7 @@ class AgentStudyConfig:
 
     mpc_episodes: int = 15
     action_noise: float = 0.3
-    dagger_rounds: int = 3
+    dagger_rounds: int = 1
     dagger_episodes: int = 10
     eval_episodes: int = 20
     distill: DistillConfig = field(default_factory=DistillConfig)
@@ -105,7 +105,7 @@ class AssessConfig:
     """The competency assessment and its ground truth."""
 
     start_states: int = 20
-    samples_per_member: int = 20
+    samples_per_member: int = 50
     horizon_s: float = 30.0
     seeds_per_start: int = 1
     stochastic_seeds_per_start: int = 5

@@ -24,7 +24,7 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl.agent import MLPPolicy, make_policy_module, run_episodes
+from rcvae_torchrl.agent import MLPPolicy, ResidualPolicy, make_policy_module, run_episodes
 from rcvae_torchrl.data import load_episodes, save_episodes, split_episodes
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
@@ -34,6 +34,7 @@ from rcvae_torchrl.envs import (
     pusher_success,
 )
 from rcvae_torchrl.envs.datasets import collect_pusher_data
+from rcvae_torchrl.envs.scripted import ScriptedPusher
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
@@ -81,11 +82,14 @@ class _Study:
     def model(self, variant: str) -> RCVAEEnsemble:
         return load_ensemble(self.dir / "models" / f"{variant}.pt", map_location=self.device)
 
-    def policy(self) -> MLPPolicy:
+    def policy(self) -> torch.nn.Module:
+        """The agent: the distilled MLP, or the scripted prior plus the distilled correction."""
         saved = _load(self.dir / "agent" / "policy.pt")
-        policy = MLPPolicy(saved["obs_dim"], saved["action_dim"], saved["hidden"])
-        policy.load_state_dict(saved["state_dict"])
-        return policy.eval()
+        mlp = MLPPolicy(saved["obs_dim"], saved["action_dim"], saved["hidden"])
+        mlp.load_state_dict(saved["state_dict"])
+        if saved.get("residual_of_scripted", False):
+            return ResidualPolicy(ScriptedPusher(), mlp).eval()
+        return mlp.eval()
 
     # ------------------------------------------------------------------ stages
     def data(self) -> dict[str, Any]:
@@ -169,6 +173,7 @@ class _Study:
             )
             _save({"observations": obs, "labels": labels, "info": info}, demos)
         model = self.model("deterministic").cpu()
+        base = ScriptedPusher() if self.cfg.planner.policy_prior else None
         policy, obs, labels, rounds = dagger(
             model,
             env,
@@ -180,6 +185,7 @@ class _Study:
             episodes=a.dagger_episodes,
             seed=self.cfg.seed,
             progress=self.progress,
+            base=base,
         )
         _save({"observations": obs, "labels": labels}, self.dir / "agent" / "dagger_data.pt")
         seeds = [70_000 + self.cfg.seed * 1000 + i for i in range(a.eval_episodes)]
@@ -192,12 +198,14 @@ class _Study:
             "policy_success_rate": evaluation.success_rate,
             "policy_median_steps": evaluation.steps.float().median().item(),
         }
+        mlp = policy.residual if isinstance(policy, ResidualPolicy) else policy
         _save(
             {
-                "obs_dim": policy.obs_dim,
-                "action_dim": policy.action_dim,
-                "hidden": policy.net[0].out_features,
-                "state_dict": policy.state_dict(),
+                "obs_dim": mlp.obs_dim,
+                "action_dim": mlp.action_dim,
+                "hidden": mlp.net[0].out_features,
+                "state_dict": mlp.state_dict(),
+                "residual_of_scripted": isinstance(policy, ResidualPolicy),
             },
             self.dir / "agent" / "policy.pt",
         )
