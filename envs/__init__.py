@@ -1,6 +1,7 @@
 """The Pusher domain (installed as ``rcvae_torchrl.envs``)."""
 
 from . import _gl  # noqa: F401  (sets MUJOCO_GL before dm_control loads)
+from .constraints import pusher_state_constraint
 from .factory import DEFAULT_ACTION_NOISE_STD, VARIANTS, make_pusher_env
 from .functions import DEFAULT_SUCCESS_RADIUS, ball_to_target, pusher_reward, pusher_success
 from .layout import (
@@ -41,6 +42,7 @@ __all__ = [
     "obs_indices",
     "resolution_tensor",
     # pure functions of observations
+    "pusher_state_constraint",
     "ball_to_target",
     "pusher_reward",
     "pusher_success",

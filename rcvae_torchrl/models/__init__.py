@@ -1,6 +1,11 @@
 """The RCVAE world model: config, vectorised ensemble, normalisation and TensorDict entry points."""
 
 from rcvae_torchrl.models.config import RCVAEConfig
+from rcvae_torchrl.models.constraints import (
+    StateConstraint,
+    get_state_constraint,
+    register_state_constraint,
+)
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_update
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP
 from rcvae_torchrl.models.functional import (
@@ -33,6 +38,10 @@ __all__ = [
     "generate",
     "init_model_state",
     "make_transition_module",
+    # known state constraints
+    "StateConstraint",
+    "get_state_constraint",
+    "register_state_constraint",
     # building blocks
     "EnsembleGRUCell",
     "EnsembleLinear",

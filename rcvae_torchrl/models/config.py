@@ -27,6 +27,8 @@ class RCVAEConfig:
             (e.g. the Pusher's target position). They are copied from s_{t-1} to s_t exactly,
             are not predicted by the decoder and are excluded from the likelihood. They are
             still read by the model as inputs.
+        state_constraint: name of a registered known-state constraint applied to every
+            generated state (:mod:`rcvae_torchrl.models.constraints`), or ``None``.
     """
 
     obs_dim: int
@@ -38,6 +40,7 @@ class RCVAEConfig:
     max_log_std: float = 0.5
     latent_min_std: float = 0.1
     passthrough_dims: tuple[int, ...] = ()
+    state_constraint: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("obs_dim", "action_dim", "hidden_dim", "latent_dim", "mlp_dim"):

@@ -31,6 +31,7 @@ from tensordict import TensorDict
 from torch import nn
 
 from rcvae_torchrl.models.config import RCVAEConfig
+from rcvae_torchrl.models.constraints import get_state_constraint
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_update
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP
 from rcvae_torchrl.models.functional import gaussian_head, reparameterize
@@ -148,10 +149,14 @@ class RCVAEEnsemble(nn.Module):
         return gaussian_head(raw, log_std_bounds=bounds)
 
     def apply_delta(self, obs_prev: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
-        """s_t from s_{t−1} ``[..., S]`` and a normalised change ``[..., D]``; passthrough exact."""
+        """s_t from s_{t−1} ``[..., S]`` and a normalised change ``[..., D]``; passthrough exact,
+        then the config's known state constraint, if any."""
         change = self.normalizer.denormalize_delta(delta, self.predicted_idx)
         full = obs_prev.new_zeros(obs_prev.shape).index_copy(-1, self.predicted_idx, change)
-        return obs_prev + full
+        state = obs_prev + full
+        if self.config.state_constraint is not None:
+            state = get_state_constraint(self.config.state_constraint)(obs_prev, state)
+        return state
 
     def target_delta(self, obs_prev: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
         """Normalised state change Δ̂_t of the predicted dims: ``[..., S]`` × 2 → ``[..., D]``."""

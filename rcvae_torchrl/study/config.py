@@ -66,11 +66,13 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class ModelConfig:
-    """The RCVAE ensemble."""
+    """The RCVAE ensemble; ``state_constraint`` names the known-state constraint applied to
+    generated states (``"pusher"``: unit-circle angles, forward kinematics, ball in the arena)."""
 
     ensemble_size: int = 5
     hidden_dim: int = 64
     latent_dim: int = 8
+    state_constraint: str | None = "pusher"
 
     def __post_init__(self) -> None:
         _at_least(self, ("ensemble_size",), 2)

@@ -128,6 +128,7 @@ class _Study:
                 mlp_dim=m.hidden_dim,
                 latent_dim=m.latent_dim,
                 passthrough_dims=tuple(obs_indices("target")),
+                state_constraint=m.state_constraint,
             )
             torch.manual_seed(self.cfg.seed)
             ensemble = RCVAEEnsemble(config, m.ensemble_size).to(self.device)

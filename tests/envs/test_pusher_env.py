@@ -179,3 +179,28 @@ def test_reset_to_state_reproduces_an_episode():
     )
     with pytest.raises(ValueError, match="observation: expected a finite tensor of shape"):
         reset_to_state(other, torch.full((14,), float("nan")))
+
+
+def test_pusher_state_constraint_holds_on_real_states_and_repairs_others():
+    from rcvae_torchrl.envs import obs_indices, pusher_state_constraint
+    from rcvae_torchrl.models import get_state_constraint
+
+    assert get_state_constraint("pusher") is pusher_state_constraint
+    td = _rollout(make_pusher_env(seed=4), steps=80)
+    real = td["next", "observation"]
+    torch.testing.assert_close(
+        pusher_state_constraint(td["observation"], real), real, atol=2e-5, rtol=0
+    )
+    broken = real.clone()
+    broken[:, obs_indices("finger")] += 0.05
+    broken[:, obs_indices("shoulder_cos")] *= 1.3
+    broken[:, obs_indices("ball")] *= 5.0
+    fixed = pusher_state_constraint(td["observation"], broken)
+    cos, sin = obs_indices("shoulder_cos", "wrist_cos"), obs_indices("shoulder_sin", "wrist_sin")
+    torch.testing.assert_close(fixed[:, cos] ** 2 + fixed[:, sin] ** 2, torch.ones(80, 2))
+    assert (fixed[:, obs_indices("ball")].norm(dim=-1) <= 0.195 + 1e-6).all()
+    only_finger = real.clone()
+    only_finger[:, obs_indices("finger")] += 0.05
+    torch.testing.assert_close(
+        pusher_state_constraint(td["observation"], only_finger), real, atol=2e-5, rtol=0
+    )
