@@ -39,7 +39,7 @@ class Timed:
         self.policy, self.times = policy, []
 
     def reset(self) -> None:
-        if hasattr(self.policy, "reset"):
+        if hasattr(type(self.policy), "reset"):
             self.policy.reset()
 
     def __call__(self, td):
@@ -78,7 +78,7 @@ def _plan_times(policy, states, repeats: int = 1) -> float:
     times = []
     for td in states:
         for _ in range(repeats):
-            if hasattr(policy, "reset"):
+            if hasattr(type(policy), "reset"):
                 policy.reset()
             start = time.perf_counter()
             policy(td.clone())
@@ -109,6 +109,7 @@ def main() -> None:
     env = make_pusher_env("deterministic")
     ours = make_mpc_policy(model, env, config)
     results["ours_deterministic"] = _episodes(env, ours, list(range(args.episodes)), "ours det")
+    write_json("planning", {"partial": True, **results})
     for variant in ("stochastic", "ood"):
         results[f"ours_{variant}"] = _episodes(
             make_pusher_env(variant),
@@ -117,6 +118,7 @@ def main() -> None:
             f"ours {variant}",
         )
 
+    write_json("planning", {"partial": True, **results})
     model_env = make_rcvae_env(model, env, pusher_reward, pusher_success, seed=0)
     stock = _stock(model_env, config)
     ours_p1 = make_mpc_policy(model, env, dataclasses.replace(config, particles=1))

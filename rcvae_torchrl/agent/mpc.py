@@ -153,7 +153,7 @@ def run_episodes(
     for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
         env.set_seed(int(seed))
         td = env.reset() if starts is None else reset_to_state(env, starts[i])
-        if hasattr(policy, "reset"):
+        if hasattr(type(policy), "reset"):  # a planner's warm start (not an env's reset)
             policy.reset()
         with torch.no_grad():
             episode = env.rollout(

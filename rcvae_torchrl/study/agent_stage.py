@@ -53,7 +53,7 @@ class PerturbedPolicy:
         self.generator = torch.Generator().manual_seed(seed)
 
     def reset(self) -> None:
-        if hasattr(self.policy, "reset"):
+        if hasattr(type(self.policy), "reset"):
             self.policy.reset()
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
@@ -119,7 +119,7 @@ def label_states(
 
     actions = []
     for part in states.split(chunk):
-        if hasattr(planner, "reset"):
+        if hasattr(type(planner), "reset"):
             planner.reset()
         td = TensorDict({"observation": part}, batch_size=[part.shape[0]])
         with torch.no_grad():

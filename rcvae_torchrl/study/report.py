@@ -150,7 +150,7 @@ def _episode_gif(run_dir: Path, policy: Callable, env: EnvBase, seed: int) -> st
     if reason is not None:
         return f"no GIF: {reason}"
     env.set_seed(seed)
-    if hasattr(policy, "reset"):
+    if hasattr(type(policy), "reset"):
         policy.reset()
     record_episode(env, policy, run_dir / "episode.gif", max_steps=600)
     return "episode.gif"
