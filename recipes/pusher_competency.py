@@ -37,8 +37,9 @@ def main(cfg: DictConfig) -> None:
     study = from_mapping(StudyConfig, values)
     device = _device(settings.get("device", "auto"))
     print(f"profile={settings.get('profile')} device={device} run_dir={settings['run_dir']}")
-    summary = run_study(study, settings["run_dir"], device=device,
-                        progress=bool(settings.get("progress", True)))
+    summary = run_study(
+        study, settings["run_dir"], device=device, progress=bool(settings.get("progress", True))
+    )
     report = summary["report"]
     for name, check in report["checks"].items():
         print(f"{'ok ' if check['met'] else 'NO '} {name}: {check['value']:.3f}")
