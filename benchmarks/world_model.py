@@ -24,7 +24,7 @@ from _report import print_table, write_json
 from rcvae_torchrl.data import load_episodes, split_episodes
 from rcvae_torchrl.envs import CONTROL_TIMESTEP, obs_indices
 from rcvae_torchrl.envs.datasets import collect_pusher_data
-from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.study.config import StudyConfig
 from rcvae_torchrl.study.pipeline import _Study
 from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
@@ -60,16 +60,8 @@ def open_loop_model(study: _Study, k: int) -> tuple[RCVAEEnsemble, dict]:
     if path.is_file():
         return load_ensemble(path), {}
     m = study.cfg.model
-    config = RCVAEConfig(
-        14,
-        2,
-        hidden_dim=m.hidden_dim,
-        mlp_dim=m.hidden_dim,
-        latent_dim=m.latent_dim,
-        passthrough_dims=tuple(obs_indices("target")),
-    )
     torch.manual_seed(study.cfg.seed)
-    ensemble = RCVAEEnsemble(config, m.ensemble_size)
+    ensemble = RCVAEEnsemble(m.rcvae_config(), m.ensemble_size)
     train_data, val_data = split_episodes(
         load_episodes(study.dir / "data" / "deterministic.pt"), 0.1, seed=study.cfg.seed
     )

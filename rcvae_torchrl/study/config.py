@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 from typing import Any, TypeVar, get_args, get_type_hints
 
 from rcvae_torchrl.agent import DistillConfig, PlannerConfig
-from rcvae_torchrl.envs import CONTROL_TIMESTEP
+from rcvae_torchrl.envs import CONTROL_TIMESTEP, OBSERVATION_DIM, obs_indices
+from rcvae_torchrl.models import RCVAEConfig
 from rcvae_torchrl.training import TrainConfig
 
 __all__ = [
@@ -73,6 +74,18 @@ class ModelConfig:
     hidden_dim: int = 64
     latent_dim: int = 8
     state_constraint: str | None = "pusher"
+
+    def rcvae_config(self) -> RCVAEConfig:
+        """The :class:`RCVAEConfig` of one member for the Pusher (target dims passed through)."""
+        return RCVAEConfig(
+            OBSERVATION_DIM,
+            2,
+            hidden_dim=self.hidden_dim,
+            mlp_dim=self.hidden_dim,
+            latent_dim=self.latent_dim,
+            passthrough_dims=tuple(obs_indices("target")),
+            state_constraint=self.state_constraint,
+        )
 
     def __post_init__(self) -> None:
         _at_least(self, ("ensemble_size",), 2)

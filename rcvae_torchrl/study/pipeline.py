@@ -29,14 +29,13 @@ from rcvae_torchrl.data import load_episodes, save_episodes, split_episodes
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     make_pusher_env,
-    obs_indices,
     pusher_reward,
     pusher_success,
 )
 from rcvae_torchrl.envs.datasets import collect_pusher_data
 from rcvae_torchrl.envs.scripted import ScriptedPusher
 from rcvae_torchrl.model_env import make_rcvae_env
-from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
 from rcvae_torchrl.training.atomic import atomic_write
 
@@ -121,17 +120,8 @@ class _Study:
             path = self.dir / "models" / f"{variant}.pt"
             if path.is_file():
                 continue
-            config = RCVAEConfig(
-                14,
-                2,
-                hidden_dim=m.hidden_dim,
-                mlp_dim=m.hidden_dim,
-                latent_dim=m.latent_dim,
-                passthrough_dims=tuple(obs_indices("target")),
-                state_constraint=m.state_constraint,
-            )
             torch.manual_seed(self.cfg.seed)
-            ensemble = RCVAEEnsemble(config, m.ensemble_size).to(self.device)
+            ensemble = RCVAEEnsemble(m.rcvae_config(), m.ensemble_size).to(self.device)
             train, val = split_episodes(
                 load_episodes(self.dir / "data" / f"{variant}.pt"), 0.1, seed=self.cfg.seed
             )
