@@ -336,7 +336,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         follows ``trajectory_sampling``, and earns Σ_t r_t up to and including its first
         success (all H steps if not ``terminate_on_success``), as an episode of the real env
         would. P' = E·⌈P/E⌉ for TS-∞ (P rounded up so that every member scores every candidate
-        equally often; particle p follows member p // ⌈P/E⌉), else P' = P. A start state with a
+        equally often; particle p follows member p // ⌈P/E⌉), except P' = 1 for P = 1 (the
+        candidates are split over the members), else P' = P. A start state with a
         non-finite entry gets NaN returns (and no success) for all its candidates.
 
         Args:

@@ -8,7 +8,9 @@ Particle layout (flat index i = g·R + r, so ``"ts_inf"`` is member-major withou
 
 - ``"ts_inf"``: G = E·k with k = ⌈P / E⌉, so P is rounded **up** to a multiple of E and every
   member scores every candidate equally often; particle g = m·k + j follows member m. The
-  tensors ``[G·R, ·]`` are viewed as ``[E, k·R, ·]``: one batched matmul per layer.
+  tensors ``[G·R, ·]`` are viewed as ``[E, k·R, ·]``: one batched matmul per layer. With
+  P = 1, G = 1: the rows (padded to a multiple of E) are split over the members in contiguous
+  blocks, one particle each, as TorchRL's stock planners get from a round-robin reset.
 - ``"ts1"``: G = P; every particle carries all members' hidden states ``[E, P·R, H]``.
 - ``"mean"``: deterministic, so G = 1 and the result is repeated P times.
 """
@@ -35,9 +37,10 @@ class SequenceScores(NamedTuple):
 
 
 def particle_groups(trajectory_sampling: Propagation, particles: int, ensemble_size: int) -> int:
-    """G, the particles computed per row: ``E·⌈P/E⌉`` (``"ts_inf"``), P (``"ts1"``), 1."""
+    """G, the particles computed per row: ``E·⌈P/E⌉`` (``"ts_inf"``; 1 when P = 1), P
+    (``"ts1"``), 1 (``"mean"``)."""
     if trajectory_sampling == "ts_inf":
-        return ensemble_size * math.ceil(particles / ensemble_size)
+        return 1 if particles == 1 else ensemble_size * math.ceil(particles / ensemble_size)
     return particles if trajectory_sampling == "ts1" else 1
 
 
@@ -76,6 +79,11 @@ def score_action_sequences(
     """
     rows, horizon = actions.shape[0], actions.shape[1]
     groups = particle_groups(trajectory_sampling, particles, ensemble.ensemble_size)
+    pad = (-rows) % ensemble.ensemble_size if trajectory_sampling == "ts_inf" and groups == 1 else 0
+    if pad:  # one particle per row: rows split over the members, padded to a multiple of E
+        start = torch.cat([start, start[-1:].expand(pad, -1)])
+        actions = torch.cat([actions, actions[-1:].expand(pad, -1, -1)])
+        rows += pad
     n = groups * rows
     obs = start.expand(groups, *start.shape).reshape(n, start.shape[-1])
     per_step = actions.transpose(0, 1)  # [H, R, A]
@@ -93,6 +101,8 @@ def score_action_sequences(
         if terminate_on_success:
             alive = alive & ~succeeded
     out = SequenceScores(returns.view(groups, rows).T, success.view(groups, rows).T)
+    if pad:
+        out = SequenceScores(*(x[: rows - pad] for x in out))
     if trajectory_sampling == "mean":
         out = SequenceScores(*(x.expand(rows, particles) for x in out))
     return out

@@ -19,7 +19,7 @@ def _start(starts, batch=(2,)):
 @pytest.mark.parametrize(
     ("mode", "particles", "expected"),
     [
-        ("ts_inf", 1, E),
+        ("ts_inf", 1, 1),  # one particle per candidate, candidates split over members
         ("ts_inf", 4, 2 * E),
         ("ts_inf", 2 * E, 2 * E),
         ("ts1", 4, 4),
