@@ -22,38 +22,34 @@ SuccessFn = Callable[[torch.Tensor], torch.Tensor]
 """``observation [..., S] -> success [...]`` bool (``[..., 1]`` accepted)."""
 
 
+def _column(name: str, value: object, observation: torch.Tensor, expected: str) -> torch.Tensor:
+    """A task function's output as ``[*B, 1]`` for observations ``[*B, S]``, or a clear error."""
+    batch = observation.shape[:-1]
+    if not isinstance(value, torch.Tensor):
+        raise TypeError(f"{name}: expected a tensor, got {type(value).__name__}.")
+    if value.shape == batch:
+        value = value.unsqueeze(-1)
+    if value.shape != (*batch, 1):
+        raise ValueError(
+            f"{name}: expected {expected} for observations {tuple(observation.shape)}, "
+            f"got {tuple(value.shape)}."
+        )
+    return value
+
+
 def task_reward(
     reward_fn: RewardFn, observation: torch.Tensor, action: torch.Tensor
 ) -> torch.Tensor:
     """``reward_fn(observation, action)`` checked and shaped ``[*B, 1]`` (observation's dtype)."""
-    batch = observation.shape[:-1]
-    reward = reward_fn(observation, action)
-    if not isinstance(reward, torch.Tensor):
-        raise TypeError(f"reward_fn: expected a tensor, got {type(reward).__name__}.")
-    if reward.shape == batch:
-        reward = reward.unsqueeze(-1)
-    if reward.shape != (*batch, 1):
-        raise ValueError(
-            f"reward_fn: expected a reward of shape [*B, 1] = {(*batch, 1)} for observations "
-            f"{tuple(observation.shape)}, got {tuple(reward.shape)}."
-        )
+    expected = f"a reward of shape [*B, 1] = {(*observation.shape[:-1], 1)}"
+    reward = _column("reward_fn", reward_fn(observation, action), observation, expected)
     return reward.to(observation.dtype)
 
 
 def task_success(success_fn: SuccessFn, observation: torch.Tensor) -> torch.Tensor:
     """``success_fn(observation)`` checked and shaped bool ``[*B, 1]``."""
-    batch = observation.shape[:-1]
-    success = success_fn(observation)
-    if not isinstance(success, torch.Tensor):
-        raise TypeError(f"success_fn: expected a tensor, got {type(success).__name__}.")
-    if success.shape == batch:
-        success = success.unsqueeze(-1)
-    if success.shape != (*batch, 1):
-        raise ValueError(
-            f"success_fn: expected a flag of shape [*B] or [*B, 1] for observations "
-            f"{tuple(observation.shape)}, got {tuple(success.shape)}."
-        )
-    return success.to(torch.bool)
+    expected = "a flag of shape [*B] or [*B, 1]"
+    return _column("success_fn", success_fn(observation), observation, expected).to(torch.bool)
 
 
 def alive_mask(done: torch.Tensor, time_dim: int = -1) -> torch.Tensor:
