@@ -19,29 +19,57 @@ from .pusher import ARENA_RADIUS, BALL_RADIUS, HUB_RADIUS, WRIST_RANGE
 
 __all__ = ["pusher_state_constraint"]
 
-_LINK = 0.12
+LINK_LENGTH = 0.12  # m, each of the two links (pusher.xml)
 _COS, _SIN = obs_indices("shoulder_cos", "wrist_cos"), obs_indices("shoulder_sin", "wrist_sin")
 _FINGER, _BALL = obs_indices("finger"), obs_indices("ball")
 
 
+# the layout the slices below rely on: the joints' (cos, sin) interleaved at 0..3, then the joint
+# velocities, the fingertip, the ball, and the rest (left as it is)
+assert _COS == [0, 2] and _SIN == [1, 3] and _FINGER == [6, 7] and _BALL == [8, 9]
+_BALL_MIN, _BALL_MAX = HUB_RADIUS + BALL_RADIUS, ARENA_RADIUS - BALL_RADIUS
+
+
 def pusher_state_constraint(previous: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
-    """``(s_{t-1} [..., 14], generated s_t [..., 14]) -> s_t [..., 14]`` made consistent."""
+    """``(s_{t-1} [..., 14], generated s_t [..., 14]) -> s_t [..., 14]`` made consistent.
+
+    Basic slices and one concatenation, no copy of the state and no advanced indexing: the
+    planner runs this on every imagined step.
+    """
     del previous  # the constraint holds state by state
-    angles = torch.atan2(state[..., _SIN], state[..., _COS])
-    wrist = angles[..., 1].clamp(-float(WRIST_RANGE), float(WRIST_RANGE))
-    angles = torch.stack([angles[..., 0], wrist], dim=-1)
-    cos, sin = angles.cos(), angles.sin()
-    out = state.clone()
-    out[..., _COS], out[..., _SIN] = cos, sin
-    elbow = angles.sum(-1)
-    out[..., _FINGER] = _LINK * torch.stack(
-        [cos[..., 0] + elbow.cos(), sin[..., 0] + elbow.sin()], dim=-1
-    )
-    ball = state[..., _BALL]
+    # contiguous operands: atan2 then takes the same (vectorised) path as on gathered columns
+    angles = torch.atan2(state[..., 1:4:2].contiguous(), state[..., 0:4:2].contiguous())
+    angles = torch.clamp(angles, *_joint_bounds(angles))  # the shoulder free, the wrist limited
+    # shoulder, wrist, shoulder + wrist; then their (cos, sin) [..., 3, 2]
+    angles = torch.cat([angles, angles.sum(-1, keepdim=True)], dim=-1)
+    cos_sin = torch.stack([angles.cos(), angles.sin()], dim=-1)
+    finger = LINK_LENGTH * (cos_sin[..., 0, :] + cos_sin[..., 2, :])
+    ball = state[..., 8:10]
     radius = torch.linalg.vector_norm(ball, dim=-1, keepdim=True).clamp_min(1e-9)
-    allowed = radius.clamp(HUB_RADIUS + BALL_RADIUS, ARENA_RADIUS - BALL_RADIUS)
-    out[..., _BALL] = ball * (allowed / radius)
-    return out
+    allowed = radius.clamp(_BALL_MIN, _BALL_MAX)
+    return torch.cat(
+        [
+            cos_sin[..., :2, :].flatten(-2),
+            state[..., 4:6],
+            finger,
+            ball * (allowed / radius),
+            state[..., 10:],
+        ],
+        dim=-1,
+    )
+
+
+_BOUNDS: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def _joint_bounds(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lower and upper bounds of (shoulder, wrist): ``∓[inf, WRIST_RANGE]``, with the dtype and
+    device of ``like`` (made once, then cached)."""
+    key = (like.dtype, like.device)
+    if key not in _BOUNDS:
+        high = torch.tensor([torch.inf, float(WRIST_RANGE)], dtype=like.dtype).to(like.device)
+        _BOUNDS[key] = (-high, high)
+    return _BOUNDS[key]
 
 
 register_state_constraint("pusher", pusher_state_constraint)

@@ -25,9 +25,17 @@ APPROACH_WEIGHT = 0.5  # weight of the fingertip-to-ball term of the reward
 CONTACT_DISTANCE = 0.025  # m, fingertip radius + ball radius: the fingertip touches the ball
 ACTION_COST = 1e-3  # weight of the squared-action penalty
 
-_BALL = obs_indices("ball")
-_TARGET = obs_indices("target")
-_FINGER = obs_indices("finger")
+
+def _positions(name: str) -> slice:
+    """The (x, y) of ``name`` as a slice: basic indexing gives views, no gather per call."""
+    x, y = obs_indices(name)
+    assert y == x + 1, name
+    return slice(x, y + 1)
+
+
+_BALL = _positions("ball")
+_TARGET = _positions("target")
+_FINGER = _positions("finger")
 
 
 def _check_observation(observation: torch.Tensor) -> None:

@@ -23,7 +23,13 @@ from typing import NamedTuple
 import torch
 
 from rcvae_torchrl.model_env.propagation import Propagation, mean_step, ts1_step
-from rcvae_torchrl.model_env.task import RewardFn, SuccessFn, task_reward, task_success
+from rcvae_torchrl.model_env.task import (
+    RewardFn,
+    SuccessFn,
+    alive_mask,
+    task_reward,
+    task_success,
+)
 from rcvae_torchrl.models import RCVAEEnsemble
 
 __all__ = ["SequenceScores", "particle_groups", "score_action_sequences"]
@@ -86,20 +92,29 @@ def score_action_sequences(
         rows += pad
     n = groups * rows
     obs = start.expand(groups, *start.shape).reshape(n, start.shape[-1])
-    per_step = actions.transpose(0, 1)  # [H, R, A]
+    # a_t of every particle, [H, n, A], one copy: each step reads a contiguous view
+    per_step = actions.transpose(0, 1).unsqueeze(1).expand(horizon, groups, rows, -1)
+    per_step = per_step.reshape(horizon, n, actions.shape[-1])
     hidden = _initial_hidden(ensemble, trajectory_sampling, n, obs)
-    returns = obs.new_zeros(n)
-    alive = torch.ones(n, dtype=torch.bool, device=obs.device)
-    success = torch.zeros_like(alive)
+    rewards, successes = [], []
     for t in range(horizon):
-        action = per_step[t].expand(groups, rows, -1).reshape(n, -1)
+        action = per_step[t]
         obs, hidden = _propagate(ensemble, trajectory_sampling, hidden, obs, action, generator)
-        reward = task_reward(reward_fn, obs, action).squeeze(-1)
-        succeeded = task_success(success_fn, obs).squeeze(-1)
-        returns = returns + reward.masked_fill(~alive, 0.0)
-        success = success | (alive & succeeded)
-        if terminate_on_success:
-            alive = alive & ~succeeded
+        if t == 0:  # the task functions' outputs checked once: the shapes never change
+            rewards.append(task_reward(reward_fn, obs, action).view(n))
+            successes.append(task_success(success_fn, obs).view(n))
+        else:
+            rewards.append(reward_fn(obs, action).reshape(n))
+            successes.append(success_fn(obs).reshape(n))
+    # the episode bookkeeping for all steps at once: [H, n]
+    reward = torch.stack(rewards).to(obs.dtype)
+    succeeded = torch.stack(successes).to(torch.bool)
+    if terminate_on_success:  # rewards count up to and including the first success
+        reward = reward.masked_fill(~alive_mask(succeeded, time_dim=0), 0.0)
+    returns = obs.new_zeros(n)
+    for r in reward.unbind(0):  # in time order, as the rewards come (not a pairwise sum)
+        returns = returns + r
+    success = succeeded.any(0)  # the first success is always within the episode
     out = SequenceScores(returns.view(groups, rows).T, success.view(groups, rows).T)
     if pad:
         out = SequenceScores(*(x[: rows - pad] for x in out))

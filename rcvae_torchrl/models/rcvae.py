@@ -30,6 +30,7 @@ import torch.nn.functional as F
 from tensordict import TensorDict
 from torch import nn
 
+from rcvae_torchrl.models import _fast
 from rcvae_torchrl.models.config import RCVAEConfig
 from rcvae_torchrl.models.constraints import get_state_constraint
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_update
@@ -85,6 +86,9 @@ class RCVAEEnsemble(nn.Module):
         self.ensemble_size = ensemble_size
         self.normalizer = StateNormalizer(config.obs_dim, config.action_dim)
         self.register_buffer("predicted_idx", torch.tensor(config.predicted_dims), persistent=False)
+        # D when the predicted dims are 0..D-1 (the passthrough ones a tail): slices suffice
+        dims = config.predicted_dims
+        self._predicted_head = len(dims) if dims == tuple(range(len(dims))) else None
         self._build_networks(config, ensemble_size)
 
     def _build_networks(self, c: RCVAEConfig, e: int) -> None:
@@ -151,9 +155,15 @@ class RCVAEEnsemble(nn.Module):
     def apply_delta(self, obs_prev: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
         """s_t from s_{t−1} ``[..., S]`` and a normalised change ``[..., D]``; passthrough exact,
         then the config's known state constraint, if any."""
-        change = self.normalizer.denormalize_delta(delta, self.predicted_idx)
-        full = obs_prev.new_zeros(obs_prev.shape).index_copy(-1, self.predicted_idx, change)
-        state = obs_prev + full
+        head = self._predicted_head
+        if head is None:
+            change = self.normalizer.denormalize_delta(delta, self.predicted_idx)
+            full = obs_prev.new_zeros(obs_prev.shape).index_copy(-1, self.predicted_idx, change)
+            state = obs_prev + full
+        else:  # predicted dims first: no scatter, the passthrough tail is copied as it is
+            norm = self.normalizer
+            change = delta * norm.delta_std[:head] + norm.delta_mean[:head]
+            state = torch.cat([obs_prev[..., :head] + change, obs_prev[..., head:]], dim=-1)
         if self.config.state_constraint is not None:
             state = get_state_constraint(self.config.state_constraint)(obs_prev, state)
         return state
@@ -196,9 +206,16 @@ class RCVAEEnsemble(nn.Module):
             noise_obs: optional ε_s ``[E, *B, D]`` (else drawn from ``generator``).
             generator: torch generator for the noise not given.
         """
-        hidden, x = self.recur(hidden, obs_prev, action_prev)
-        latent = reparameterize(*self.prior(hidden), noise_latent, generator)
-        mean, std = self.decode(hidden, x, latent)
+        # recur, prior and decode as one hot path (_fast: the same numbers, fewer ops)
+        x = self.embed_inputs(obs_prev, action_prev)
+        hidden = _fast.gru_step(self.gru, x, hidden)
+        prior = _fast.mlp(self.prior_net, hidden)
+        latent = reparameterize(
+            *gaussian_head(prior, min_std=self.config.latent_min_std), noise_latent, generator
+        )
+        raw = _fast.mlp(self.decoder, torch.cat([hidden, x, latent], dim=-1))
+        bounds = (self.config.min_log_std, self.config.max_log_std)
+        mean, std = gaussian_head(raw, log_std_bounds=bounds)
         delta = reparameterize(mean, std, noise_obs, generator)
         return StepOutput(hidden, latent, self.apply_delta(obs_prev, delta), mean, std)
 
