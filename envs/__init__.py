@@ -3,6 +3,7 @@
 from . import _gl  # noqa: F401  (sets MUJOCO_GL before dm_control loads)
 from .constraints import pusher_state_constraint
 from .factory import DEFAULT_ACTION_NOISE_STD, VARIANTS, make_pusher_env
+from .features import PUSHER_FEATURE_NAMES, pusher_input_features
 from .functions import DEFAULT_SUCCESS_RADIUS, ball_to_target, pusher_reward, pusher_success
 from .layout import (
     OBSERVATION_DIM,
@@ -43,6 +44,8 @@ __all__ = [
     "resolution_tensor",
     # pure functions of observations
     "pusher_state_constraint",
+    "PUSHER_FEATURE_NAMES",
+    "pusher_input_features",
     "ball_to_target",
     "pusher_reward",
     "pusher_success",

@@ -8,6 +8,11 @@ from rcvae_torchrl.models.constraints import (
 )
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_update
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP
+from rcvae_torchrl.models.features import (
+    InputFeatures,
+    get_input_features,
+    register_input_features,
+)
 from rcvae_torchrl.models.functional import (
     gaussian_head,
     reparameterize,
@@ -42,6 +47,10 @@ __all__ = [
     "StateConstraint",
     "get_state_constraint",
     "register_state_constraint",
+    # known input features
+    "InputFeatures",
+    "get_input_features",
+    "register_input_features",
     # building blocks
     "EnsembleGRUCell",
     "EnsembleLinear",

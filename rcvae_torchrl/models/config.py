@@ -29,6 +29,9 @@ class RCVAEConfig:
             still read by the model as inputs.
         state_constraint: name of a registered known-state constraint applied to every
             generated state (:mod:`rcvae_torchrl.models.constraints`), or ``None``.
+        input_features: name of a registered feature function of the state whose output the
+            recurrence reads besides the state and the action
+            (:mod:`rcvae_torchrl.models.features`), or ``None``.
     """
 
     obs_dim: int
@@ -41,6 +44,7 @@ class RCVAEConfig:
     latent_min_std: float = 0.1
     passthrough_dims: tuple[int, ...] = ()
     state_constraint: str | None = None
+    input_features: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("obs_dim", "action_dim", "hidden_dim", "latent_dim", "mlp_dim"):
@@ -68,6 +72,15 @@ class RCVAEConfig:
             )
         if len(dims) == self.obs_dim:
             raise ValueError("RCVAEConfig.passthrough_dims cannot cover every state dimension.")
+
+    @property
+    def feature_dim(self) -> int:
+        """Number F of input features (0 without ``input_features``)."""
+        if self.input_features is None:
+            return 0
+        from rcvae_torchrl.models.features import get_input_features
+
+        return get_input_features(self.input_features).dim
 
     @property
     def predicted_dims(self) -> tuple[int, ...]:

@@ -66,6 +66,8 @@ class StateNormalizer(nn.Module):
     Args:
         obs_dim: state dimension S.
         action_dim: action dimension A.
+        feature_dim: number F of input features (their statistics exist only when F > 0, so
+            checkpoints of models without features keep their layout).
 
     Example:
         >>> norm = StateNormalizer(3, 1)
@@ -74,8 +76,12 @@ class StateNormalizer(nn.Module):
         torch.Size([3])
     """
 
-    def __init__(self, obs_dim: int, action_dim: int) -> None:
+    def __init__(self, obs_dim: int, action_dim: int, feature_dim: int = 0) -> None:
         super().__init__()
+        self.feature_dim = feature_dim
+        if feature_dim:
+            self.register_buffer("feature_mean", torch.zeros(feature_dim))
+            self.register_buffer("feature_std", torch.ones(feature_dim))
         self.register_buffer("state_mean", torch.zeros(obs_dim))
         self.register_buffer("state_std", torch.ones(obs_dim))
         self.register_buffer("action_mean", torch.zeros(action_dim))
@@ -96,6 +102,7 @@ class StateNormalizer(nn.Module):
         actions: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
         next_observations: torch.Tensor | None = None,
+        features: torch.Tensor | None = None,
     ) -> None:
         """Fit all statistics from trajectories or from transitions.
 
@@ -110,7 +117,16 @@ class StateNormalizer(nn.Module):
                 change counts only when both of its steps are valid.
             next_observations: optional s_{t+1} ``[..., S]`` of each step (TorchRL's
                 ``("next", "observation")``); state changes are ``next − observation``.
+            features: the input features of ``observations`` ``[..., F]``; required when
+                ``feature_dim > 0``.
         """
+        if self.feature_dim:
+            if features is None or features.shape[-1] != self.feature_dim:
+                got = None if features is None else tuple(features.shape)
+                raise ValueError(
+                    f"features: expected [..., F={self.feature_dim}] input features, got {got}."
+                )
+            self._copy(self.feature_mean, self.feature_std, masked_mean_std(features, mask))
         self._copy(self.state_mean, self.state_std, masked_mean_std(observations, mask))
         delta, delta_mask = _state_changes(observations, mask, next_observations)
         self._copy(self.delta_mean, self.delta_std, masked_mean_std(delta, delta_mask))
@@ -126,6 +142,10 @@ class StateNormalizer(nn.Module):
     def normalize_state(self, s: torch.Tensor) -> torch.Tensor:
         """``[..., S]`` → ``[..., S]``."""
         return (s - self.state_mean) / self.state_std
+
+    def normalize_features(self, f: torch.Tensor) -> torch.Tensor:
+        """``[..., F]`` → ``[..., F]``."""
+        return (f - self.feature_mean) / self.feature_std
 
     def normalize_action(self, a: torch.Tensor) -> torch.Tensor:
         """``[..., A]`` → ``[..., A]``."""

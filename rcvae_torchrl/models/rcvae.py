@@ -35,6 +35,7 @@ from rcvae_torchrl.models.config import RCVAEConfig
 from rcvae_torchrl.models.constraints import get_state_constraint
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_update
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP
+from rcvae_torchrl.models.features import get_input_features
 from rcvae_torchrl.models.functional import gaussian_head, reparameterize
 from rcvae_torchrl.models.normalizer import StateNormalizer
 
@@ -84,7 +85,10 @@ class RCVAEEnsemble(nn.Module):
             raise ValueError(f"ensemble_size: expected a positive int, got {ensemble_size!r}.")
         self.config = config
         self.ensemble_size = ensemble_size
-        self.normalizer = StateNormalizer(config.obs_dim, config.action_dim)
+        self.normalizer = StateNormalizer(config.obs_dim, config.action_dim, config.feature_dim)
+        self._features = (
+            None if config.input_features is None else get_input_features(config.input_features).fn
+        )
         self.register_buffer("predicted_idx", torch.tensor(config.predicted_dims), persistent=False)
         # D when the predicted dims are 0..D-1 (the passthrough ones a tail): slices suffice
         dims = config.predicted_dims
@@ -93,7 +97,7 @@ class RCVAEEnsemble(nn.Module):
 
     def _build_networks(self, c: RCVAEConfig, e: int) -> None:
         h, m, z, d = c.hidden_dim, c.mlp_dim, c.latent_dim, c.predicted_dim
-        self.embed = EnsembleLinear(e, c.obs_dim + c.action_dim, m)
+        self.embed = EnsembleLinear(e, c.obs_dim + c.action_dim + c.feature_dim, m)
         self.gru = EnsembleGRUCell(e, m, h)
         self.prior_net = EnsembleMLP(e, h, m, 2 * z, depth=1)
         self.posterior_net = EnsembleMLP(e, h + d, m, 2 * z, depth=1)
@@ -116,15 +120,15 @@ class RCVAEEnsemble(nn.Module):
         return like.new_zeros(shape)
 
     def embed_inputs(self, obs_prev: torch.Tensor, action_prev: torch.Tensor) -> torch.Tensor:
-        """x_t = SiLU(W [ŝ_{t−1}, â_{t−1}] + b): ``[E, *B, S]``, ``[E, *B, A]`` → ``[E, *B, M]``."""
-        inputs = torch.cat(
-            [
-                self.normalizer.normalize_state(obs_prev),
-                self.normalizer.normalize_action(action_prev),
-            ],
-            dim=-1,
-        )
-        return F.silu(self.embed(inputs))
+        """x_t = SiLU(W [ŝ_{t−1}, â_{t−1}, f̂(s_{t−1})] + b) ``[E, *B, M]`` from ``[E, *B, S]``,
+        ``[E, *B, A]``; f̂ are the config's normalised input features, if any."""
+        parts = [
+            self.normalizer.normalize_state(obs_prev),
+            self.normalizer.normalize_action(action_prev),
+        ]
+        if self._features is not None:
+            parts.append(self.normalizer.normalize_features(self._features(obs_prev)))
+        return F.silu(self.embed(torch.cat(parts, dim=-1)))
 
     def recur(
         self, hidden: torch.Tensor, obs_prev: torch.Tensor, action_prev: torch.Tensor
@@ -377,7 +381,8 @@ class RCVAEEnsemble(nn.Module):
         For flat TorchRL frames ``[F]`` pass ``next_observations=td["next", "observation"]``,
         so that the jumps between concatenated episodes are not taken for state changes.
         """
-        self.normalizer.fit(observations, actions, mask, next_observations)
+        features = None if self._features is None else self._features(observations)
+        self.normalizer.fit(observations, actions, mask, next_observations, features)
 
     def select_members(self, indices: Sequence[int] | torch.Tensor) -> RCVAEEnsemble:
         """A new ensemble holding copies of the chosen members (and the same normaliser).

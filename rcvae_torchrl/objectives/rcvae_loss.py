@@ -53,6 +53,13 @@ class RCVAELoss(LossModule):
             1.08–1.33 × the analytic one, against 1.03 σ and 0.99–1.03 × with K = 0. Keep K
             small (or 0) where aleatoric calibration matters.
         detach_open_loop: stop gradients through the fed-back samples.
+        nll_beta: β of the β-NLL (Seitzer et al. 2022): each element's NLL in the training loss
+            is weighted by its detached decoder variance to the power β. With a learned variance
+            the plain NLL (β = 0) scales the mean's gradient by 1/σ², so a dimension the model
+            finds hard early gets a large σ and then hardly any gradient on its mean: the model
+            explains learnable dynamics as noise. β = 0.5 gives the mean a 1/σ gradient, β = 1 an
+            MSE-like one. The optimum of σ (the residual's std) is unchanged. The validation
+            figures (``loss_per_member``, ``nll``) stay the plain ELBO.
         generator: torch generator for the latent and fed-back samples.
 
     Returns (``forward``): a TensorDict with ``loss_reconstruction`` and ``loss_kl`` (scalars
@@ -99,6 +106,7 @@ class RCVAELoss(LossModule):
         free_nats: float = 0.0,
         open_loop_steps: int = 0,
         detach_open_loop: bool = False,
+        nll_beta: float = 0.0,
         generator: torch.Generator | None = None,
     ) -> None:
         super().__init__()
@@ -107,6 +115,9 @@ class RCVAELoss(LossModule):
                 "beta, free_nats and open_loop_steps must be >= 0, got "
                 f"{beta}, {free_nats}, {open_loop_steps}."
             )
+        if not 0.0 <= nll_beta <= 1.0:
+            raise ValueError(f"nll_beta: expected a value in [0, 1], got {nll_beta}.")
+        self.nll_beta = float(nll_beta)
         self.ensemble = ensemble
         self.beta = float(beta)
         self.free_nats = float(free_nats)
@@ -154,18 +165,24 @@ class RCVAELoss(LossModule):
 
     def _reduce(self, seq: SequenceOutput, valid: torch.Tensor | None) -> TensorDict:
         """Per-step terms ``[E, W, L−1]`` → per-member means ``[E]`` → scalars."""
-        nll = gaussian_nll(seq.target, seq.decoder_mean, seq.decoder_std).sum(-1)
+        nll_elem = gaussian_nll(seq.target, seq.decoder_mean, seq.decoder_std)
+        nll = nll_elem.sum(-1)
         kl = gaussian_kl(seq.posterior_mean, seq.posterior_std, seq.prior_mean, seq.prior_std)
         kl = kl.sum(-1)
         dims = tuple(range(1, nll.dim()))
         nll_m = masked_mean(nll, valid, dims)
         kl_m = masked_mean(free_bits(kl, self.free_nats), valid, dims)
+        if self.nll_beta > 0:
+            weight = seq.decoder_std.detach().pow(2.0 * self.nll_beta)
+            train_nll_m = masked_mean((nll_elem * weight).sum(-1), valid, dims)
+        else:
+            train_nll_m = nll_m
         with torch.no_grad():
             mse = masked_mean((seq.decoder_mean - seq.target).square().mean(-1), valid, dims)
             std = masked_mean(seq.decoder_std.mean(-1), valid, dims)
             kl_raw = masked_mean(kl, valid, dims)
         return TensorDict(
-            loss_reconstruction=nll_m.sum(),
+            loss_reconstruction=train_nll_m.sum(),
             loss_kl=self.beta * kl_m.sum(),
             kl_raw=kl_raw.mean(),
             nll=nll_m.detach().mean(),

@@ -45,6 +45,7 @@ class TrainConfig:
         beta: KL weight.
         free_nats: per-step free nats of the KL.
         open_loop_steps: trailing transitions of each window fed with the model's own samples.
+        nll_beta: β of the β-NLL weighting of the reconstruction term (see :class:`RCVAELoss`).
         val_every: steps between validations (and checkpoints).
         val_windows: fixed validation windows (shared by all members).
         patience: validations without improvement of any member before stopping early.
@@ -59,6 +60,7 @@ class TrainConfig:
     beta: float = 1.0
     free_nats: float = 0.0
     open_loop_steps: int = 0
+    nll_beta: float = 0.0
     val_every: int = 100
     val_windows: int = 256
     patience: int = 5
@@ -137,6 +139,7 @@ def train_ensemble(
         beta=config.beta,
         free_nats=config.free_nats,
         open_loop_steps=config.open_loop_steps,
+        nll_beta=config.nll_beta,
     )
     optimizer = torch.optim.Adam(ensemble.parameters(), lr=config.lr)
     state = _State(0, torch.full((ensemble.ensemble_size,), math.inf), _weights(ensemble))

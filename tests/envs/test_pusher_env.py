@@ -204,3 +204,22 @@ def test_pusher_state_constraint_holds_on_real_states_and_repairs_others():
     torch.testing.assert_close(
         pusher_state_constraint(td["observation"], only_finger), real, atol=2e-5, rtol=0
     )
+
+
+def test_pusher_input_features_match_the_simulated_geometry():
+    from rcvae_torchrl.envs import CONTROL_TIMESTEP, obs_indices, pusher_input_features
+    from rcvae_torchrl.models import get_input_features
+
+    assert get_input_features("pusher").fn is pusher_input_features
+    td = _rollout(make_pusher_env(seed=5), steps=120)
+    obs, nxt = td["observation"], td["next", "observation"]
+    feats = pusher_input_features(obs)
+    assert feats.shape == (120, get_input_features("pusher").dim)
+    rel = obs[:, obs_indices("finger")] - obs[:, obs_indices("ball")]
+    torch.testing.assert_close(feats[:, :2], rel)
+    torch.testing.assert_close(feats[:, 2], rel.norm(dim=-1))
+    # the Jacobian velocity, averaged over a control step, is the fingertip's displacement rate
+    mean_vel = 0.5 * (feats[:, 3:5] + pusher_input_features(nxt)[:, 3:5])
+    moved = (nxt[:, obs_indices("finger")] - obs[:, obs_indices("finger")]) / CONTROL_TIMESTEP
+    for k in range(2):
+        assert torch.corrcoef(torch.stack([mean_vel[:, k], moved[:, k]]))[0, 1] > 0.9

@@ -96,6 +96,23 @@ def test_beta_and_free_nats(ensemble, windows):
     torch.testing.assert_close(free["kl_raw"], base["kl_raw"])
 
 
+def test_beta_nll_reweights_only_the_training_reconstruction(ensemble, windows):
+    base = _seeded(ensemble)(windows)
+    weighted = _seeded(ensemble, nll_beta=0.5)(windows)
+    torch.testing.assert_close(weighted["nll"], base["nll"])  # diagnostics stay the plain NLL
+    torch.testing.assert_close(weighted["loss_per_member"], base["loss_per_member"])
+    assert not torch.allclose(weighted["loss_reconstruction"], base["loss_reconstruction"])
+
+
+def test_beta_nll_of_one_gives_the_mean_a_squared_error_gradient():
+    from rcvae_torchrl.objectives.functional import gaussian_nll
+
+    target, mean = torch.tensor([1.0, 1.0]), torch.zeros(2, requires_grad=True)
+    std = torch.tensor([0.1, 10.0])
+    (gaussian_nll(target, mean, std) * std.pow(2.0)).sum().backward()
+    torch.testing.assert_close(mean.grad, torch.tensor([-1.0, -1.0]))  # same for both stds
+
+
 def test_mask_excludes_padded_steps(ensemble, windows):
     mask = torch.ones(5, 8, dtype=torch.bool)
     mask[:, 6:] = False  # right padding
@@ -197,5 +214,7 @@ def test_input_errors(ensemble, windows, mutate, error, match):
 
 
 def test_constructor_errors(ensemble):
+    with pytest.raises(ValueError, match=r"nll_beta: expected a value in \[0, 1\], got 2"):
+        RCVAELoss(ensemble, nll_beta=2.0)
     with pytest.raises(ValueError, match="must be >= 0"):
         RCVAELoss(ensemble, beta=-1.0)
