@@ -15,6 +15,7 @@ from rcvae_torchrl.envs import pusher_reward, pusher_success
 from rcvae_torchrl.envs.scripted import ScriptedPusher
 from rcvae_torchrl.envs.state import reset_to_state
 from rcvae_torchrl.model_env import RCVAEEnsembleEnv, make_rcvae_env
+from rcvae_torchrl.model_env.imagine import as_tensor_policy
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.planners import OBJECTIVES, CEMPlanner
 
@@ -79,9 +80,15 @@ def make_mpc_policy(
     reward_fn: Callable = pusher_reward,
     success_fn: Callable = pusher_success,
     seed: int = 0,
+    compile: bool = False,
 ) -> CEMPlanner:
     """A CEM planner over an :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv` of ``ensemble``
     with the specs of ``real_env``; use it as a TorchRL policy in ``real_env``.
+
+    ``compile``: score candidates with the ``torch.compile``-d model step (``"ts_inf"`` only;
+    the env's ``compile_scoring``). The first plan compiles (seconds to tens of seconds on a
+    CPU), later ones are faster; the plans agree with the eager ones up to float rounding. An
+    execution setting, so not part of :class:`PlannerConfig` (recorded with the results).
     """
     model_env = make_rcvae_env(
         ensemble,
@@ -90,6 +97,7 @@ def make_mpc_policy(
         success_fn,
         trajectory_sampling=config.trajectory_sampling,
         seed=seed,
+        compile_scoring=compile,
     )
     skip = ("trajectory_sampling", "policy_prior", "prior_std")
     kwargs = {k: v for k, v in asdict(config).items() if k not in skip}
@@ -104,15 +112,40 @@ def policy_proposal(
     model_env: RCVAEEnsembleEnv, policy: Callable[[torch.Tensor], torch.Tensor], horizon: int
 ) -> Callable[[TensorDictBase], torch.Tensor]:
     """A planner proposal: ``policy``'s actions along one imagined rollout (member 0),
-    ``[*B, H, A]`` from the input's observations ``[*B, S]``."""
+    ``[*B, H, A]`` from the input's observations ``[*B, S]``.
+
+    The same actions as ``model_env.imagine(obs, policy=policy, horizon=horizon)["action"][0,
+    0]`` from the same generator state (the same model steps and noise, all members stepped),
+    without what the planner does not use: the decoder's state distribution, the task's reward
+    and success, the TensorDict of the whole rollout.
+    """
+    tensor_policy = as_tensor_policy(policy)
+    ensemble = model_env.ensemble
 
     def propose(td: TensorDictBase) -> torch.Tensor:
-        rollout = model_env.imagine(
-            td["observation"], policy=policy, horizon=horizon, samples_per_member=1
-        )
-        return rollout["action"][0, 0]
+        obs = td["observation"]
+        starts = obs.reshape(-1, obs.shape[-1])
+        if starts.shape[0] > _IMAGINE_CHUNK:  # imagine rolls out in chunks: its own noise
+            rollout = model_env.imagine(obs, policy=policy, horizon=horizon, samples_per_member=1)
+            return rollout["action"][0, 0]
+        with torch.no_grad():
+            state = starts.expand(ensemble.ensemble_size, *starts.shape)
+            hidden = ensemble.initial_hidden(starts.shape[:1], state)
+            actions = []
+            for _ in range(horizon):
+                action = tensor_policy(state)
+                actions.append(action[0])
+                out = ensemble.step(hidden, state, action, generator=model_env.generator)
+                state, hidden = out.observation, out.hidden
+            plan = torch.stack(actions, dim=-2).reshape(*obs.shape[:-1], horizon, -1)
+        if not bool(torch.isfinite(plan).all()):
+            raise ValueError("policy_proposal: non-finite actions along the imagined rollout.")
+        return plan
 
     return propose
+
+
+_IMAGINE_CHUNK = 1024  # RCVAEEnsembleEnv.imagine's default chunk_size
 
 
 @dataclass

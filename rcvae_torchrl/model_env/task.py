@@ -13,7 +13,15 @@ from collections.abc import Callable
 
 import torch
 
-__all__ = ["RewardFn", "SuccessFn", "alive_mask", "task_reward", "task_success"]
+__all__ = [
+    "RewardFn",
+    "SuccessFn",
+    "alive_mask",
+    "checked_reward",
+    "checked_success",
+    "task_reward",
+    "task_success",
+]
 
 RewardFn = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 """``(observation_next [..., S], action [..., A]) -> reward [..., 1]`` (``[...]`` accepted)."""
@@ -41,15 +49,26 @@ def task_reward(
     reward_fn: RewardFn, observation: torch.Tensor, action: torch.Tensor
 ) -> torch.Tensor:
     """``reward_fn(observation, action)`` checked and shaped ``[*B, 1]`` (observation's dtype)."""
-    expected = f"a reward of shape [*B, 1] = {(*observation.shape[:-1], 1)}"
-    reward = _column("reward_fn", reward_fn(observation, action), observation, expected)
-    return reward.to(observation.dtype)
+    return checked_reward(reward_fn(observation, action), observation)
 
 
 def task_success(success_fn: SuccessFn, observation: torch.Tensor) -> torch.Tensor:
     """``success_fn(observation)`` checked and shaped bool ``[*B, 1]``."""
+    return checked_success(success_fn(observation), observation)
+
+
+def checked_reward(reward: object, observation: torch.Tensor) -> torch.Tensor:
+    """A reward function's output for ``observation`` ``[*B, S]``, checked and shaped
+    ``[*B, 1]`` (observation's dtype)."""
+    expected = f"a reward of shape [*B, 1] = {(*observation.shape[:-1], 1)}"
+    return _column("reward_fn", reward, observation, expected).to(observation.dtype)
+
+
+def checked_success(success: object, observation: torch.Tensor) -> torch.Tensor:
+    """A success function's output for ``observation`` ``[*B, S]``, checked and shaped bool
+    ``[*B, 1]``."""
     expected = "a flag of shape [*B] or [*B, 1]"
-    return _column("success_fn", success_fn(observation), observation, expected).to(torch.bool)
+    return _column("success_fn", success, observation, expected).to(torch.bool)
 
 
 def alive_mask(done: torch.Tensor, time_dim: int = -1) -> torch.Tensor:

@@ -154,3 +154,27 @@ def test_bad_start_is_a_clear_error(make_env, starts):
         )
     with pytest.raises(TypeError, match="dtype"):
         env.evaluate_action_sequences(_start(starts), torch.zeros(2, 5, 4, 2).double(), 1)
+
+
+@pytest.mark.slow  # compiles the model step (tens of seconds on a CPU)
+@pytest.mark.parametrize("particles", [1, 2 * E])
+def test_compiled_scoring_matches_eager_under_the_same_seed(ensemble, real_env, starts, particles):
+    """compile_scoring draws the same noise in the same order as the eager step, so the returns
+    agree up to the float rounding of the fused kernels, and successes (ball past x = 0.0,
+    reached by some particles) exactly unless a state lies at the threshold."""
+    kwargs = {"trajectory_sampling": "ts_inf", "seed": 0}
+    success = lambda obs: obs[..., 8] > 0.0  # noqa: E731
+    eager = make_rcvae_env(ensemble, real_env, pusher_reward, success, **kwargs)
+    compiled = make_rcvae_env(
+        ensemble, real_env, pusher_reward, success, compile_scoring=True, **kwargs
+    )
+    actions = torch.rand(2, 9, 6, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    td_start = _start(starts, (2,))
+    for env in (eager, compiled):
+        env.set_seed(3)
+    want = eager.evaluate_action_sequences(td_start, actions, particles, return_success=True)
+    got = compiled.evaluate_action_sequences(td_start, actions, particles, return_success=True)
+    torch.testing.assert_close(got[0], want[0], rtol=1e-4, atol=1e-5)
+    assert torch.equal(got[1], want[1])
+    # the generator advanced by the same draws
+    assert torch.equal(eager.generator.get_state(), compiled.generator.get_state())
