@@ -55,7 +55,7 @@ class DataConfig:
     exploration_std: float = 0.3
     time_limit: float = 15.0
     random_time_limit: float = 10.0
-    stochastic_noise_std: float = 0.5
+    stochastic_noise_std: float = 1.5
 
     def __post_init__(self) -> None:
         _at_least(self, ("scripted_episodes", "random_episodes"), 0)
@@ -68,12 +68,14 @@ class DataConfig:
 @dataclass(frozen=True)
 class ModelConfig:
     """The RCVAE ensemble; ``state_constraint`` names the known-state constraint applied to
-    generated states (``"pusher"``: unit-circle angles, forward kinematics, ball in the arena)."""
+    generated states (``"pusher"``: unit-circle angles, forward kinematics, ball in the arena) and
+    ``input_features`` the known input features (``"pusher"``: fingertip-ball contact geometry)."""
 
     ensemble_size: int = 5
     hidden_dim: int = 64
     latent_dim: int = 8
     state_constraint: str | None = "pusher"
+    input_features: str | None = "pusher"
 
     def rcvae_config(self) -> RCVAEConfig:
         """The :class:`RCVAEConfig` of one member for the Pusher (target dims passed through)."""
@@ -85,6 +87,7 @@ class ModelConfig:
             latent_dim=self.latent_dim,
             passthrough_dims=tuple(obs_indices("target")),
             state_constraint=self.state_constraint,
+            input_features=self.input_features,
         )
 
     def __post_init__(self) -> None:
@@ -153,7 +156,13 @@ class StudyConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainConfig = field(
         default_factory=lambda: TrainConfig(
-            max_steps=5000, batch_windows=32, window=32, lr=3e-3, val_every=250, patience=6
+            max_steps=5000,
+            batch_windows=32,
+            window=32,
+            lr=3e-3,
+            nll_beta=0.5,
+            val_every=250,
+            patience=6,
         )
     )
     planner: PlannerConfig = field(default_factory=PlannerConfig)
