@@ -41,6 +41,9 @@ class TrainConfig:
         batch_windows: windows per member per step.
         window: window length L (steps).
         lr: Adam learning rate.
+        lr_final_fraction: the learning rate follows a cosine from ``lr`` at step 0 to
+            ``lr * lr_final_fraction`` at ``max_steps`` (1 keeps it constant). It is a function
+            of the step alone, so a resumed run continues on the same schedule.
         grad_clip: max global gradient norm.
         beta: KL weight.
         free_nats: per-step free nats of the KL.
@@ -56,6 +59,7 @@ class TrainConfig:
     batch_windows: int = 64
     window: int = 32
     lr: float = 1e-3
+    lr_final_fraction: float = 1.0
     grad_clip: float = 100.0
     beta: float = 1.0
     free_nats: float = 0.0
@@ -74,6 +78,16 @@ class TrainConfig:
             raise ValueError(f"window: expected >= 2 steps, got {self.window}")
         if not (self.lr > 0 and self.grad_clip > 0):
             raise ValueError(f"lr, grad_clip: expected > 0, got {self.lr}, {self.grad_clip}")
+        if not 0 < self.lr_final_fraction <= 1:
+            raise ValueError(
+                f"lr_final_fraction: expected a value in (0, 1], got {self.lr_final_fraction}"
+            )
+
+    def lr_at(self, step: int) -> float:
+        """The learning rate of optimiser step ``step`` (0-based): cosine decay."""
+        progress = min(step / self.max_steps, 1.0)
+        fraction = self.lr_final_fraction
+        return self.lr * (fraction + (1 - fraction) * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
 @dataclass
@@ -157,6 +171,8 @@ def train_ensemble(
         windows = sample_windows(
             buffer, config.batch_windows, config.window, members=ensemble.ensemble_size
         ).to(device)
+        for group in optimizer.param_groups:
+            group["lr"] = config.lr_at(state.step)
         train_loss = _train_step(loss_fn, optimizer, windows, config.grad_clip)
         state.step += 1
         bar.update(1)

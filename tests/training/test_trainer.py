@@ -1,5 +1,6 @@
 """train_ensemble: learning, determinism, early stopping, logging, resume after kill -9."""
 
+import itertools
 import signal
 import subprocess
 import sys
@@ -65,7 +66,8 @@ _SCRIPT = textwrap.dedent(
     val[TRAJ_KEY] += 100
     torch.manual_seed(0)
     model = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=16, latent_dim=2, mlp_dim=16), 3)
-    config = TrainConfig(max_steps=40, batch_windows=16, window=8, val_every=10, val_windows=32)
+    config = TrainConfig(max_steps=40, batch_windows=16, window=8, val_every=10, val_windows=32,
+                         lr_final_fraction=0.1)
     result = train_ensemble(model, train, val, config, checkpoint_path={ckpt!r},
                             resume=True, logger=KillAt(), progress=False)
     torch.save(result.ensemble.state_dict(), {out!r})
@@ -91,6 +93,27 @@ def test_resume_after_kill_matches_an_uninterrupted_run(tmp_path):
     a, b = torch.load(out), torch.load(tmp_path / "ref_final.pt")
     for name in a:
         assert torch.equal(a[name], b[name]), name
+
+
+def test_cosine_learning_rate_schedule():
+    config = TrainConfig(max_steps=100, lr=2e-3, lr_final_fraction=0.1)
+    assert config.lr_at(0) == pytest.approx(2e-3)
+    assert config.lr_at(50) == pytest.approx(0.5 * (2e-3 + 2e-4))
+    assert config.lr_at(100) == pytest.approx(2e-4)
+    rates = [config.lr_at(s) for s in range(101)]
+    assert all(a >= b for a, b in itertools.pairwise(rates))
+    constant = TrainConfig(max_steps=100, lr=2e-3)
+    assert {constant.lr_at(s) for s in (0, 37, 100)} == {2e-3}
+    with pytest.raises(ValueError, match=r"lr_final_fraction: expected a value in \(0, 1\]"):
+        TrainConfig(lr_final_fraction=0.0)
+
+
+def test_decayed_learning_rate_changes_training(linear_data, small_ensemble):
+    train, val = linear_data
+    decayed = TrainConfig(**{**CONFIG.__dict__, "lr_final_fraction": 0.01})
+    a = train_ensemble(small_ensemble(seed=1), train, val, CONFIG, progress=False).ensemble
+    b = train_ensemble(small_ensemble(seed=1), train, val, decayed, progress=False).ensemble
+    assert not torch.equal(a.embed.weight, b.embed.weight)
 
 
 def test_finished_run_is_not_trained_again(linear_data, small_ensemble, tmp_path):
