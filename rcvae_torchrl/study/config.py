@@ -160,6 +160,7 @@ class StudyConfig:
             batch_windows=32,
             window=32,
             lr=3e-3,
+            lr_final_fraction=0.05,
             nll_beta=0.5,
             val_every=250,
             patience=6,
