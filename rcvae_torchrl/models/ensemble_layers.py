@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import nn
@@ -59,6 +60,29 @@ class EnsembleLinear(nn.Module):
         out = torch.baddbmm(self.bias.unsqueeze(1), flat, self.weight)
         return out.view(*x.shape[:-1], self.out_features)
 
+    def forward_split(self, parts: Sequence[torch.Tensor]) -> torch.Tensor:
+        """``forward(torch.cat(parts, dim=-1))`` without the concatenation.
+
+        Each part multiplies its own rows of ``weight`` (one ``baddbmm`` per part, summed), so
+        neither the concatenated input nor, in backward, its split gradient is materialised.
+        Parts are ``[E, *B, in_i]`` with the same ``*B`` and ``Σ in_i = in``.
+        """
+        if sum(p.shape[-1] for p in parts) != self.in_features:
+            raise ValueError(
+                f"forward_split: part sizes {[p.shape[-1] for p in parts]} do not sum to "
+                f"in={self.in_features}."
+            )
+        batch = parts[0].shape[:-1]
+        out, start = self.bias.unsqueeze(1), 0
+        for i, part in enumerate(parts):
+            size = part.shape[-1]
+            flat = part.reshape(part.shape[0], -1, size)
+            weight = self.weight[:, start : start + size]
+            # accumulate in place after the first part (baddbmm's backward needs neither sum)
+            out = torch.baddbmm(out, flat, weight) if i == 0 else out.baddbmm_(flat, weight)
+            start += size
+        return out.view(*batch, self.out_features)
+
     def extra_repr(self) -> str:
         return f"ensemble_size={self.ensemble_size}, in={self.in_features}, out={self.out_features}"
 
@@ -92,3 +116,11 @@ class EnsembleMLP(nn.Sequential):
             if i < depth:
                 layers.append(nn.SiLU())
         super().__init__(*layers)
+
+    def forward_split(self, parts: Sequence[torch.Tensor]) -> torch.Tensor:
+        """``self(torch.cat(parts, dim=-1))`` without the concatenation (see
+        :meth:`EnsembleLinear.forward_split`)."""
+        x = self[0].forward_split(parts)
+        for layer in list(self)[1:]:
+            x = layer(x)
+        return x

@@ -145,14 +145,15 @@ class RCVAEEnsemble(nn.Module):
         self, hidden: torch.Tensor, target: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """q(z_t | h_t, Δ̂_t): ``[E, *B, H]``, ``[E, *B, D]`` → ``(mean, std)`` ``[E, *B, Z]``."""
-        raw = self.posterior_net(torch.cat([hidden, target], dim=-1))
+        # forward_split: the same affine map as on the concatenation, without materialising it
+        raw = self.posterior_net.forward_split((hidden, target))
         return gaussian_head(raw, min_std=self.config.latent_min_std)
 
     def decode(
         self, hidden: torch.Tensor, x: torch.Tensor, latent: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """p(Δ̂_t | h_t, x_t, z_t) → ``(mean, std)`` ``[E, *B, D]``, normalised units."""
-        raw = self.decoder(torch.cat([hidden, x, latent], dim=-1))
+        raw = self.decoder.forward_split((hidden, x, latent))
         bounds = (self.config.min_log_std, self.config.max_log_std)
         return gaussian_head(raw, log_std_bounds=bounds)
 

@@ -36,6 +36,22 @@ def test_ensemble_mlp_depth_and_shapes():
     assert mlp(torch.randn(2, 5, 3)).shape == (2, 5, 4)
 
 
+def test_forward_split_matches_forward_on_the_concatenation():
+    torch.manual_seed(0)
+    mlp = EnsembleMLP(3, 4 + 2 + 1, 8, 5, depth=2)
+    parts = [torch.randn(3, 2, 6, n, requires_grad=True) for n in (4, 2, 1)]
+    split = mlp.forward_split(parts)
+    whole = mlp(torch.cat(parts, dim=-1))
+    torch.testing.assert_close(split, whole)
+    weights = torch.randn_like(whole)
+    grads_split = torch.autograd.grad((split * weights).sum(), [*parts, *mlp.parameters()])
+    grads_whole = torch.autograd.grad((whole * weights).sum(), [*parts, *mlp.parameters()])
+    for got, want in zip(grads_split, grads_whole, strict=True):
+        torch.testing.assert_close(got, want)
+    with pytest.raises(ValueError, match="do not sum"):
+        mlp.forward_split(parts[:2])
+
+
 def test_gru_cell_matches_torch_gru_cell():
     torch.manual_seed(0)
     cell = EnsembleGRUCell(2, 3, 6)
