@@ -1,14 +1,18 @@
 """World-model speed: one vectorised training step for E members, and generation throughput.
 
-Pusher-sized model (S = 14, A = 2, the defaults of ``RCVAEConfig``: H = 128, Z = 8, MLP 128).
-On a shared machine, OpenMP threads that wait for busy cores distort timings badly; compare
-``--threads 1`` runs there (the JSON records the load average).
+Pusher-sized models (S = 14, A = 2, Z = 8): ``RCVAEConfig``'s defaults (H = MLP = 128), the
+study's default world model (``ModelConfig().rcvae_config()``: H = MLP = 64, Pusher input
+features) and a small one (H = MLP = 32). On a shared machine, OpenMP threads that wait for busy
+cores distort timings badly; compare ``--threads 1`` runs there (the JSON records the load
+average).
 
 All timings are medians of repeats taken round-robin across the variants compared.
 
 1. Training step (loss forward + backward + Adam) on 64 windows × L = 32 per member, E = 1 vs
-   E = 5, median of repeats; target: E = 5 step ≤ 3 × E = 1 step. Also for a small model
-   (H = MLP = 32): the ratio depends on whether an E = 1 step is overhead- or FLOP-bound.
+   E = 5, median of repeats; target: E = 5 step ≤ 3 × E = 1 step. The ratio depends on whether
+   an E = 1 step is overhead- or work-bound, so the same step of one member on 5 × 64 windows
+   (the E = 5 step's rows, no ensemble) is timed as a reference: a ratio near its own means the
+   member dimension costs no more than a larger batch.
 2. Generation throughput in model-steps/s (member × sample × step) at N = 16, 256, 4096 samples
    per member: the vectorised ``generate`` (default chunks of 1024 trajectories per member, and
    all in one chunk) against a Python loop over single members, same run.
@@ -31,6 +35,7 @@ import torch
 from _report import print_table, write_json
 from tensordict import TensorDict
 
+import rcvae_torchrl.envs  # noqa: F401  (registers the Pusher features and state constraint)
 from rcvae_torchrl.models import (
     RCVAEConfig,
     RCVAEEnsemble,
@@ -38,13 +43,12 @@ from rcvae_torchrl.models import (
     make_transition_module,
 )
 from rcvae_torchrl.objectives import RCVAELoss
+from rcvae_torchrl.study.config import ModelConfig
 
 CONFIG = RCVAEConfig(obs_dim=14, action_dim=2, passthrough_dims=(12, 13))
 SMALL = RCVAEConfig(obs_dim=14, action_dim=2, hidden_dim=32, mlp_dim=32, passthrough_dims=(12, 13))
-# The study's default world model (recipes/config/profile/default.yaml).
-DEFAULT = RCVAEConfig(
-    obs_dim=14, action_dim=2, hidden_dim=64, mlp_dim=64, passthrough_dims=(12, 13)
-)
+# The study's default world model (H = MLP = 64, Pusher input features and state constraint).
+DEFAULT = ModelConfig().rcvae_config()
 
 
 def interleaved_medians(
@@ -67,7 +71,8 @@ def interleaved_medians(
 def make_model(ensemble_size: int, config: RCVAEConfig = CONFIG) -> RCVAEEnsemble:
     torch.manual_seed(0)
     model = RCVAEEnsemble(config, ensemble_size)
-    model.fit_normalizer(torch.randn(16, 50, 14), torch.rand(16, 50, 2) * 2 - 1)
+    s, a = config.obs_dim, config.action_dim
+    model.fit_normalizer(torch.randn(16, 50, s), torch.rand(16, 50, a) * 2 - 1)
     return model
 
 
@@ -78,7 +83,9 @@ def train_step(config: RCVAEConfig, ensemble_size: int, windows: int = 64, lengt
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     batch = (ensemble_size, windows, length)
     td = TensorDict(
-        observation=torch.randn(*batch, 14), action=torch.rand(*batch, 2), batch_size=batch
+        observation=torch.randn(*batch, config.obs_dim),
+        action=torch.rand(*batch, config.action_dim),
+        batch_size=batch,
     )
 
     def step() -> None:
@@ -90,9 +97,12 @@ def train_step(config: RCVAEConfig, ensemble_size: int, windows: int = 64, lengt
     return step
 
 
-def train_step_times(config: RCVAEConfig, repeats: int) -> dict[int, float]:
+def train_step_times(config: RCVAEConfig, repeats: int) -> dict[str, float]:
+    """Median step seconds for E = 1 and E = 5 (64 windows per member), and for one member on
+    5 × 64 windows (``"1x5w"``)."""
     runs = {str(e): train_step(config, e) for e in (1, 5)}
-    return {int(e): t for e, t in interleaved_medians(runs, repeats, warmup=2).items()}
+    runs["1x5w"] = train_step(config, 1, windows=5 * 64)
+    return interleaved_medians(runs, repeats, warmup=2)
 
 
 def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int) -> dict[str, float]:
@@ -142,11 +152,12 @@ def main() -> None:
 
     configs = {"pusher_H128": CONFIG, "study_default_H64": DEFAULT, "small_H32": SMALL}
     train = {name: train_step_times(cfg, repeats) for name, cfg in configs.items()}
-    ratio = {name: t[5] / t[1] for name, t in train.items()}
+    ratio = {name: t["5"] / t["1"] for name, t in train.items()}
+    batch_ratio = {name: t["1x5w"] / t["1"] for name, t in train.items()}
     print_table(
         "Training step, 64 windows x L=32 per member (median s)",
-        ["model", "E1_step_s", "E5_step_s", "ratio_E5_E1"],
-        [[name, t[1], t[5], ratio[name]] for name, t in train.items()],
+        ["model", "E1_step_s", "E5_step_s", "ratio_E5_E1", "E1_5x_windows_s", "ratio_5x_windows"],
+        [[n, t["1"], t["5"], ratio[n], t["1x5w"], batch_ratio[n]] for n, t in train.items()],
     )
 
     model = make_model(5)
@@ -178,8 +189,9 @@ def main() -> None:
         {
             "configs": {name: asdict(cfg) for name, cfg in configs.items()},
             "load_average_1min": os.getloadavg()[0],
-            "train_step_s": {name: {str(e): v for e, v in t.items()} for name, t in train.items()},
+            "train_step_s": train,
             "train_step_ratio_e5_over_e1": ratio,
+            "train_step_ratio_one_member_5x_windows": batch_ratio,
             "train_ratio_target_le_3": {name: r <= 3.0 for name, r in ratio.items()},
             "generation_steps_per_s": {str(n): r for n, r in gen.items()},
             "transition_step_s": {str(n): t for n, t in trans.items()},
