@@ -183,12 +183,21 @@ def write_report(
         run_dir / "summary.json",
         lambda f: f.write(json.dumps(summary, indent=2, default=str).encode()),
     )
-    text = _markdown(rows, overall, checks, figures, gif, run_dir)
+    residual = bool(getattr(getattr(config, "planner", None), "policy_prior", False))
+    text = _markdown(rows, overall, checks, figures, gif, run_dir, residual)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
 
 
-def _markdown(rows, overall, checks, figures, gif, run_dir: Path) -> str:
+_AGENT_TEXT = {
+    True: "The scripted pusher plus a small MLP correction distilled from the policy-guided "
+    "CEM/MPC planner over the deterministic model (MPC episodes, then DAgger rounds)",
+    False: "An MLP policy distilled from the CEM/MPC planner over the deterministic model (MPC "
+    "episodes, then DAgger rounds)",
+}
+
+
+def _markdown(rows, overall, checks, figures, gif, run_dir: Path, residual: bool) -> str:
     table = (run_dir / "table.md").read_text()
     order = ("data", "models", "agent", "forecast", "truth", "report")
     found = {p.stem: p for p in (run_dir / "stages").glob("*.json")}
@@ -235,8 +244,7 @@ def _markdown(rows, overall, checks, figures, gif, run_dir: Path) -> str:
         "",
         "## The agent",
         "",
-        "An MLP policy distilled from the CEM/MPC planner's actions in MPC episodes with the "
-        "deterministic model; it is the agent that acts in the real env and the one forecast.",
+        f"{_AGENT_TEXT[residual]}; it is the agent that acts in the real env and the one forecast.",
         "",
         *[f"- {k}: {v}" for k, v in agent.items()],
         "",
