@@ -167,7 +167,10 @@ def test_report_references_the_outputs(runs):
 
 def test_summary_json(runs):
     summary = json.loads((runs["dir"] / "summary.json").read_text())
-    assert {"rows", "overall", "checks"} <= set(summary)
+    assert {"rows", "overall", "checks", "pattern_by_window"} <= set(summary)
+    windows = summary["pattern_by_window"]
+    assert list(windows) == ["1s", "2s"]  # windows up to the horizon (2 s here), which closes them
+    assert all(len(r) == 3 and all(v > 0 for v in r.values()) for r in windows.values())
     assert list(summary["rows"]) == list(CONDITIONS)
     assert all(set(COLUMNS) <= set(row) for row in summary["rows"].values())
     assert set(summary["overall"]) == {"brier", "constant_brier", "success_rate"}
