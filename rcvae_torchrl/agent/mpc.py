@@ -85,8 +85,8 @@ def make_mpc_policy(
     """A CEM planner over an :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv` of ``ensemble``
     with the specs of ``real_env``; use it as a TorchRL policy in ``real_env``.
 
-    ``compile``: score candidates with the ``torch.compile``-d model step (``"ts_inf"`` only;
-    the env's ``compile_scoring``). The first plan compiles (seconds to tens of seconds on a
+    ``compile``: score candidates with the ``torch.compile``-d rollout (``"ts_inf"`` only;
+    the env's ``compile_scoring``). The first plan compiles (tens of seconds to minutes on a
     CPU), later ones are faster; the plans agree with the eager ones up to float rounding. An
     execution setting, so not part of :class:`PlannerConfig` (recorded with the results).
     """

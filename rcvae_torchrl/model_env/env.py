@@ -91,10 +91,11 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         validate: check shapes, dtypes and finiteness of the inputs at every step.
         requires_grad: let ``step`` record the autograd graph (off: rollouts are for
             planning and evaluation, and a graph over a whole rollout costs memory).
-        compile_scoring: :meth:`evaluate_action_sequences` runs each ``"ts_inf"`` step as one
-            ``torch.compile``-d function (:func:`~rcvae_torchrl.model_env.scoring.compiled_step`):
-            faster once compiled, which takes seconds per new batch size; the same samples up
-            to float rounding. Other modes and ``step`` are unaffected.
+        compile_scoring: :meth:`evaluate_action_sequences` runs the ``"ts_inf"`` rollout (all
+            H steps: model, constraint, reward, success) as one ``torch.compile``-d function
+            (:func:`~rcvae_torchrl.model_env.scoring.compiled_rollout`): faster once compiled,
+            which takes tens of seconds to minutes on a CPU per new horizon or batch size; the
+            same samples up to float rounding. Other modes and ``step`` are unaffected.
 
     Example:
         >>> import torch

@@ -32,9 +32,8 @@ from rcvae_torchrl.model_env.task import (
     checked_success,
 )
 from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.models.functional import standard_normal
 
-__all__ = ["SequenceScores", "compiled_step", "particle_groups", "score_action_sequences"]
+__all__ = ["SequenceScores", "compiled_rollout", "particle_groups", "score_action_sequences"]
 
 
 class SequenceScores(NamedTuple):
@@ -83,7 +82,7 @@ def score_action_sequences(
         terminate_on_success: success ends a particle's episode.
         generator: source of all sampling noise.
         compile: run each ``"ts_inf"`` step (model, state constraint, reward, success) as one
-            ``torch.compile``-d function (see :func:`compiled_step`); other modes ignore it.
+            ``torch.compile``-d function (see :func:`compiled_rollout`); other modes ignore it.
 
     Returns:
         :class:`SequenceScores`, each ``[R, P']``.
@@ -101,18 +100,49 @@ def score_action_sequences(
     per_step = actions.transpose(0, 1).unsqueeze(1).expand(horizon, groups, rows, -1)
     per_step = per_step.reshape(horizon, n, actions.shape[-1])
     hidden = _initial_hidden(ensemble, trajectory_sampling, n, obs)
+    if compile and trajectory_sampling == "ts_inf":  # the noise drawn here, as the steps would
+        noise = _ts_inf_noise(ensemble, hidden, horizon, generator)
+        returns, success = compiled_rollout()(
+            ensemble, reward_fn, success_fn, hidden, obs, per_step, *noise, terminate_on_success
+        )
+    else:
+        returns, success = _rollout(
+            ensemble,
+            trajectory_sampling,
+            reward_fn,
+            success_fn,
+            hidden,
+            obs,
+            per_step,
+            generator,
+            terminate_on_success,
+        )
+    out = SequenceScores(returns.view(groups, rows).T, success.view(groups, rows).T)
+    if pad:
+        out = SequenceScores(*(x[: rows - pad] for x in out))
+    if trajectory_sampling == "mean":
+        out = SequenceScores(*(x.expand(rows, particles) for x in out))
+    return out
+
+
+def _rollout(
+    ensemble: RCVAEEnsemble,
+    trajectory_sampling: Propagation,
+    reward_fn: RewardFn,
+    success_fn: SuccessFn,
+    hidden: torch.Tensor,
+    obs: torch.Tensor,
+    per_step: torch.Tensor,
+    generator: torch.Generator | None,
+    terminate_on_success: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The eager rollout of all particles ``[n, ·]`` over ``per_step`` ``[H, n, A]``:
+    ``(returns [n], success [n])``."""
+    n = obs.shape[0]
     rewards, successes = [], []
-    step = compiled_step() if compile and trajectory_sampling == "ts_inf" else None
-    for t in range(horizon):
-        action = per_step[t]
-        if step is None:
-            obs, hidden = _propagate(ensemble, trajectory_sampling, hidden, obs, action, generator)
-            reward, succeeded = reward_fn(obs, action), success_fn(obs)
-        else:  # the noise drawn here, in the order (and shapes) ensemble.step draws it
-            noise = _ts_inf_noise(ensemble, hidden, generator)
-            hidden, obs, reward, succeeded = step(
-                ensemble, reward_fn, success_fn, hidden, obs, action, *noise
-            )
+    for t, action in enumerate(per_step.unbind(0)):
+        obs, hidden = _propagate(ensemble, trajectory_sampling, hidden, obs, action, generator)
+        reward, succeeded = reward_fn(obs, action), success_fn(obs)
         if t == 0:  # the task functions' outputs checked once: the shapes never change
             reward, succeeded = checked_reward(reward, obs), checked_success(succeeded, obs)
         rewards.append(reward.reshape(n))
@@ -125,13 +155,7 @@ def score_action_sequences(
     returns = obs.new_zeros(n)
     for r in reward.unbind(0):  # in time order, as the rewards come (not a pairwise sum)
         returns = returns + r
-    success = succeeded.any(0)  # the first success is always within the episode
-    out = SequenceScores(returns.view(groups, rows).T, success.view(groups, rows).T)
-    if pad:
-        out = SequenceScores(*(x[: rows - pad] for x in out))
-    if trajectory_sampling == "mean":
-        out = SequenceScores(*(x.expand(rows, particles) for x in out))
-    return out
+    return returns, succeeded.any(0)  # the first success is always within the episode
 
 
 def _initial_hidden(
@@ -168,50 +192,88 @@ def _propagate(
     return out.observation, out.hidden
 
 
-def ts_inf_step(
+def ts_inf_rollout(
     ensemble: RCVAEEnsemble,
     reward_fn: RewardFn,
     success_fn: SuccessFn,
     hidden: torch.Tensor,
     obs: torch.Tensor,
-    action: torch.Tensor,
+    per_step: torch.Tensor,
     noise_latent: torch.Tensor,
     noise_obs: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One TS-∞ step of all particles ``[n, ·]`` (member-major) with the given noise, scored:
-    ``(hidden [E, n/E, H], s_{t+1} [n, S], reward_fn(s_{t+1}, a_t), success_fn(s_{t+1}))``."""
-    e = ensemble.ensemble_size
-    out = ensemble.step(
-        hidden,
-        obs.view(e, -1, obs.shape[-1]),
-        action.view(e, -1, action.shape[-1]),
-        noise_latent=noise_latent,
-        noise_obs=noise_obs,
-    )
-    obs = out.observation.view(obs.shape)
-    return out.hidden, obs, reward_fn(obs, action), success_fn(obs)
+    terminate_on_success: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """All H TS-∞ steps of all particles ``[n, ·]`` (member-major) with the given noise
+    (``[H, E, n/E, ·]``), scored: ``(returns [n], success [n])``.
+
+    The same arithmetic as the eager rollout: each step's reward, zeroed after the first
+    success when ``terminate_on_success``, added to the returns in time order.
+    """
+    e, n = ensemble.ensemble_size, obs.shape[0]
+    returns = obs.new_zeros(n)
+    alive = torch.ones(n, dtype=torch.bool, device=obs.device)
+    success = torch.zeros(n, dtype=torch.bool, device=obs.device)
+    for t in range(per_step.shape[0]):  # unrolled under torch.compile (static H)
+        action = per_step[t]
+        out = ensemble.step(
+            hidden,
+            obs.view(e, -1, obs.shape[-1]),
+            action.view(e, -1, action.shape[-1]),
+            noise_latent=noise_latent[t],
+            noise_obs=noise_obs[t],
+        )
+        hidden, obs = out.hidden, out.observation.view(obs.shape)
+        reward, succeeded = reward_fn(obs, action), success_fn(obs)
+        if t == 0:  # checked while tracing: the shapes are static
+            reward, succeeded = checked_reward(reward, obs), checked_success(succeeded, obs)
+        reward, succeeded = reward.reshape(n).to(obs.dtype), succeeded.reshape(n).to(torch.bool)
+        if terminate_on_success:  # rewards count up to and including the first success
+            returns = returns + reward.masked_fill(~alive, 0.0)
+            alive = alive & ~succeeded
+        else:
+            returns = returns + reward
+        success = success | succeeded
+    return returns, success
 
 
 _COMPILED: list = []
 
 
-def compiled_step() -> Callable[..., tuple[torch.Tensor, ...]]:
-    """:func:`ts_inf_step` under ``torch.compile`` (inductor, static shapes), made once.
+def compiled_rollout() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+    """:func:`ts_inf_rollout` under ``torch.compile`` (inductor, static shapes), made once.
 
-    The first call for a new model, task function or batch size compiles it (seconds to tens
-    of seconds on a CPU); later calls run a few fused kernels and the matmuls instead of some
-    sixty small ops. The numbers agree with the eager step up to float rounding (fused
-    kernels), not bit for bit. Dynamo recompiles for each new shape, up to its cache limit.
+    One compiled call per scoring: the H steps unrolled into one graph (fused kernels and the
+    matmuls instead of some sixty small ops per step, and one guard check instead of H). The
+    first call for a new model, task function, horizon or batch size compiles it (seconds to
+    tens of seconds on a CPU). The numbers agree with the eager rollout up to float rounding
+    (fused kernels), not bit for bit. Dynamo recompiles for each new shape, up to its cache
+    limit.
     """
     if not _COMPILED:
-        _COMPILED.append(torch.compile(ts_inf_step, dynamic=False))
+        _COMPILED.append(torch.compile(ts_inf_rollout, dynamic=False))
     return _COMPILED[0]
 
 
 def _ts_inf_noise(
-    ensemble: RCVAEEnsemble, hidden: torch.Tensor, generator: torch.Generator | None
+    ensemble: RCVAEEnsemble, hidden: torch.Tensor, horizon: int, generator: torch.Generator | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """ε_z ``[E, n/E, Z]`` then ε_s ``[E, n/E, D]``: what ``ensemble.step`` would draw."""
+    """ε_z ``[H, E, n/E, Z]`` and ε_s ``[H, E, n/E, D]``: what ``ensemble.step`` would draw at
+    each step (ε_z then ε_s), in the same order.
+
+    On a CPU, ``normal_`` turns consecutive uniforms into normals in blocks of 16, so when every
+    per-step draw is a multiple of 16 numbers one draw for the whole horizon gives the same
+    numbers (and generator state) as the 2·H draws; otherwise the draws are made one by one.
+    """
     batch, cfg = hidden.shape[:-1], ensemble.config
-    latent = standard_normal((*batch, cfg.latent_dim), hidden, generator)
-    return latent, standard_normal((*batch, cfg.predicted_dim), hidden, generator)
+    latent, predicted = batch.numel() * cfg.latent_dim, batch.numel() * cfg.predicted_dim
+    flat = hidden.new_empty(horizon, latent + predicted)
+    if hidden.device.type == "cpu" and latent % 16 == 0 and predicted % 16 == 0:
+        flat.normal_(generator=generator)
+    else:
+        for t in range(horizon):
+            flat[t, :latent].normal_(generator=generator)
+            flat[t, latent:].normal_(generator=generator)
+    return (
+        flat[:, :latent].view(horizon, *batch, cfg.latent_dim),
+        flat[:, latent:].view(horizon, *batch, cfg.predicted_dim),
+    )
