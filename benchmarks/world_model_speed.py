@@ -20,6 +20,7 @@ All timings are medians of repeats taken round-robin across the variants compare
    layout (``RCVAETransition``, TS-∞ with round-robin and random members, and TS-1).
 
     python benchmarks/world_model_speed.py [--repeats 7] [--horizon 20] [--threads N] [--quick]
+                                           [--out world_model_speed_2threads]
 """
 
 from __future__ import annotations
@@ -145,6 +146,9 @@ def main() -> None:
     parser.add_argument("--horizon", type=int, default=20)
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     parser.add_argument("--quick", action="store_true", help="fewer repeats, smallest N only")
+    parser.add_argument(
+        "--out", default="world_model_speed", help="results name (benchmarks/results/<out>.json)"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     repeats = 3 if args.quick else args.repeats
@@ -185,7 +189,7 @@ def main() -> None:
         [[n, *(1e3 * t[k] for k in layouts)] for n, t in trans.items()],
     )
     write_json(
-        "world_model_speed",
+        args.out,
         {
             "configs": {name: asdict(cfg) for name, cfg in configs.items()},
             "load_average_1min": os.getloadavg()[0],
@@ -197,6 +201,7 @@ def main() -> None:
             "transition_step_s": {str(n): t for n, t in trans.items()},
             "horizon": args.horizon,
             "repeats": repeats,
+            "threads": args.threads,
         },
     )
 
