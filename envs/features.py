@@ -13,8 +13,8 @@ import torch
 
 from rcvae_torchrl.models.features import register_input_features
 
-from .constraints import LINK_LENGTH
 from .layout import obs_indices
+from .scripted import arm_jacobian
 
 __all__ = ["PUSHER_FEATURE_NAMES", "pusher_input_features"]
 
@@ -28,10 +28,17 @@ PUSHER_FEATURE_NAMES: tuple[str, ...] = (
     "closing_speed",
 )
 
-_SC, _SS, _WC, _WS, _SV, _WV = obs_indices(
-    "shoulder_cos", "shoulder_sin", "wrist_cos", "wrist_sin", "shoulder_vel", "wrist_vel"
-)
-_FINGER, _BALL, _BALL_VEL = obs_indices("finger"), obs_indices("ball"), obs_indices("ball_vel")
+
+def _span(name: str) -> slice:
+    """The group ``name``'s two adjacent dimensions as a slice (views, no gather per call)."""
+    first, second = obs_indices(name)
+    assert second == first + 1, name
+    return slice(first, second + 1)
+
+
+_COS, _SIN = obs_indices("shoulder_cos", "wrist_cos"), obs_indices("shoulder_sin", "wrist_sin")
+_JOINT_VEL, _FINGER = _span("joint_vel"), _span("finger")
+_BALL, _BALL_VEL = _span("ball"), _span("ball_vel")
 
 
 def pusher_input_features(observation: torch.Tensor) -> torch.Tensor:
@@ -43,12 +50,8 @@ def pusher_input_features(observation: torch.Tensor) -> torch.Tensor:
       approach).
     """
     o = observation
-    c0, s0, c1, s1 = o[..., _SC], o[..., _SS], o[..., _WC], o[..., _WS]
-    w0, w01 = o[..., _SV], o[..., _SV] + o[..., _WV]
-    elbow_cos, elbow_sin = c0 * c1 - s0 * s1, s0 * c1 + c0 * s1
-    finger_vel = LINK_LENGTH * torch.stack(
-        [-s0 * w0 - elbow_sin * w01, c0 * w0 + elbow_cos * w01], dim=-1
-    )
+    jacobian = arm_jacobian(o[..., _COS], o[..., _SIN])
+    finger_vel = (jacobian @ o[..., _JOINT_VEL].unsqueeze(-1)).squeeze(-1)
     rel = o[..., _FINGER] - o[..., _BALL]
     dist = torch.linalg.vector_norm(rel, dim=-1, keepdim=True)
     unit = rel / dist.clamp_min(1e-6)

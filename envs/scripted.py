@@ -13,12 +13,12 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from .constraints import LINK_LENGTH as _LINK
 from .functions import CONTACT_DISTANCE
 from .layout import obs_indices
 
 __all__ = ["ScriptedPusher", "make_scripted_policy"]
 
-_LINK = 0.12  # m, both links
 _HUB_CLEARANCE = 0.09  # m: ball paths closer than this to the base would hit the hub
 _WAYPOINT_RADIUS = 0.13  # m
 _NEAR_HUB = 0.095  # m: a ball closer to the base than this is pushed around, not across

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from rcvae_torchrl.models.features import get_input_features
+
 __all__ = ["RCVAEConfig"]
 
 
@@ -78,8 +80,6 @@ class RCVAEConfig:
         """Number F of input features (0 without ``input_features``)."""
         if self.input_features is None:
             return 0
-        from rcvae_torchrl.models.features import get_input_features
-
         return get_input_features(self.input_features).dim
 
     @property

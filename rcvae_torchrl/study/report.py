@@ -219,7 +219,7 @@ def write_report(
         "success_rate": y.mean().item(),
     }
     checks = pattern_checks(rows, overall)
-    by_window = pattern_by_window(forecasts, config.assess.horizon_s / _steps(forecasts))
+    by_window = pattern_by_window(forecasts, CONTROL_TIMESTEP)
     figures = _figures(
         run_dir, forecasts, truths, config.assess.forecast_panels, config.assess.success_radius
     )
@@ -235,7 +235,7 @@ def write_report(
         run_dir / "summary.json",
         lambda f: f.write(json.dumps(summary, indent=2, default=str).encode()),
     )
-    residual = bool(getattr(getattr(config, "planner", None), "policy_prior", False))
+    residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
     text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
@@ -247,10 +247,6 @@ _AGENT_TEXT = {
     False: "An MLP policy distilled from the CEM/MPC planner over the deterministic model (MPC "
     "episodes, then DAgger rounds)",
 }
-
-
-def _steps(forecasts: Mapping[str, Mapping[str, torch.Tensor]]) -> int:
-    return next(iter(forecasts.values()))["aleatoric"].shape[-2]
 
 
 def _markdown(rows, overall, checks, by_window, figures, gif, run_dir: Path, residual: bool) -> str:
