@@ -117,6 +117,25 @@ class SuccessBoundary:
             return success_over_time, success, torch.zeros_like(success)
         return success_over_time, success, self._failed_by_step(observation)[..., -1] & ~success
 
+    def ended_over_time(self, observation: Tensor) -> Tensor:
+        """Bool ``[..., T]``: the episode has ended before step ``t``.
+
+        An episode ends at its first success or failure (the step after it is the first one
+        marked) and at the time limit (steps ``t >= time_limit`` are marked), as a TorchRL
+        ``done`` ends a rollout. Pass it as ``ended`` to
+        :func:`~rcvae_torchrl.competency.decompose_uncertainty` (or as the ``"ended"`` entry of
+        :class:`~rcvae_torchrl.competency.UncertaintyMetric`'s input) to measure the uncertainty
+        of the episode, which has none left once it is over.
+        """
+        decided = self.success_over_time(observation)
+        if self.failure is not None:
+            decided = decided | self._failed_by_step(observation)
+        over = decided.cummax(dim=-1).values
+        ended = torch.zeros_like(over)
+        ended[..., 1:] = over[..., :-1]
+        steps = torch.arange(ended.shape[-1], device=ended.device)
+        return ended | (steps >= self.time_limit)
+
     def _failed_by_step(self, observation: Tensor) -> Tensor:
         """Bool ``[..., T]``: a failure occurred at or before step ``t`` within the limit."""
         failed = self._evaluate(self.failure, "failure", observation)

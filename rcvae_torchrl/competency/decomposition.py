@@ -58,15 +58,22 @@ class UncertaintyDecomposition:
 
 
 def decompose_uncertainty(
-    samples: Tensor, estimator: Estimator = "histogram", **estimator_args: Any
+    samples: Tensor,
+    estimator: Estimator = "histogram",
+    *,
+    ended: Tensor | None = None,
+    **estimator_args: Any,
 ) -> UncertaintyDecomposition:
     """Split the entropy of ensemble samples into aleatoric and epistemic parts, in bits.
 
     Estimators and their arguments:
 
-    - ``"histogram"`` (``bin_width``, required): per dimension, bins shared by all members
+    - ``"histogram"`` (``bin_width``, required; ``bias_correction``, ``shuffles``,
+      ``generator``): per dimension, bins shared by all members
       (:func:`~rcvae_torchrl.competency.histogram_entropy`). The epistemic part is then a
       Jensen–Shannon divergence, ``0 <= epistemic <= log2 E`` (float round-off clamped).
+      With ``bias_correction="shuffle"`` the plug-in divergence is corrected for its sampling
+      bias (see below).
     - ``"gaussian"`` (``joint``, ``bin_width``, ``min_variance``): moment-matched Gaussians
       (:func:`~rcvae_torchrl.competency.gaussian_entropy`); ``epistemic >= 0`` (clamped).
     - ``"knn"`` (``k``, ``bin_width``, ``min_distance``): Kozachenko–Leonenko, joint over
@@ -79,9 +86,31 @@ def decompose_uncertainty(
       epistemic is an upper (lower) bound on the mixture's mutual information, in
       ``[0, log2 E]``.
 
+    **Ended episodes** (histogram only). Samples of trajectories that have ended (success,
+    failure or time limit: an absorbing terminal state, as a TorchRL ``done``) have no state
+    left to be uncertain about. With ``ended`` they all count in one extra bin per dimension,
+    shared by all members: the entropy at a step is then that of the process over
+    ``states ∪ {ended}``, so a step where every sample has ended has no uncertainty, and
+    members that disagree on *when* episodes end contribute epistemic uncertainty.
+
+    **Sampling bias of the epistemic part** (histogram, ``bias_correction="shuffle"``). With
+    ``N`` samples spread over many bins the plug-in entropy of each member is biased low far
+    more than the pooled one (``E·N`` samples), so the plug-in Jensen–Shannon divergence is
+    positive even when all members forecast the same distribution (it reaches ``log2 E`` when
+    every sample has a bin of its own). The shuffle correction (Panzeri et al., 2007, *J.
+    Neurophysiol.* 98: 1064) subtracts the divergence of the same pooled samples with the
+    member labels randomly permuted (``shuffles`` permutations, drawn with ``generator``): the
+    value the estimator gives when the members do not disagree. ``epistemic = clamp(JS -
+    JS_shuffled, 0, log2 E)`` and ``aleatoric = total - epistemic`` (the per-member entropies
+    are the biased ones). When the members are sampled well (``N`` much larger than the bins
+    they occupy) the correction vanishes; when they disagree completely and are undersampled
+    it under-estimates the divergence, as the null bias then over-states the real one.
+
     Args:
         samples: ``[E, N, *batch, D]``, ``E >= 2`` members, ``N`` samples each.
         estimator: one of :data:`ESTIMATORS`.
+        ended: optional bool ``[E, N, *batch]``, True for samples whose trajectory has ended
+            (histogram estimator only).
         **estimator_args: passed to the estimator.
 
     Returns:
@@ -97,6 +126,14 @@ def decompose_uncertainty(
     _checks.check_choice("estimator", estimator, tuple(ESTIMATORS))
     _checks.check_samples("samples", samples, 3, _LAYOUT)
     _checks.check_members("samples", samples, _LAYOUT)
+    if ended is not None:
+        if estimator != "histogram":
+            raise ValueError(
+                f"ended: only the histogram estimator has a bin for ended trajectories, got "
+                f"estimator={estimator!r}"
+            )
+        _check_ended(ended, samples)
+        estimator_args["ended"] = ended
     total, aleatoric, upper = ESTIMATORS[estimator](samples, **estimator_args)
     epistemic = total - aleatoric
     if upper is not None:
@@ -104,8 +141,29 @@ def decompose_uncertainty(
     return UncertaintyDecomposition(total, aleatoric, epistemic)
 
 
+def _check_ended(ended: Tensor, samples: Tensor) -> None:
+    if not isinstance(ended, Tensor) or ended.dtype != torch.bool:
+        got = ended.dtype if isinstance(ended, Tensor) else type(ended).__name__
+        raise TypeError(f"ended: expected a bool tensor, got {got}")
+    if ended.shape != samples.shape[:-1]:
+        raise ValueError(
+            f"ended: expected shape {tuple(samples.shape[:-1])} (the samples' [E, N, *batch]), "
+            f"got {tuple(ended.shape)}"
+        )
+
+
+BiasCorrection = Literal["none", "shuffle"]
+
+
 def _histogram(
-    samples: Tensor, *, bin_width: BinWidth | None = None, chunk_elements: int = CHUNK_ELEMENTS
+    samples: Tensor,
+    *,
+    bin_width: BinWidth | None = None,
+    ended: Tensor | None = None,
+    bias_correction: BiasCorrection = "none",
+    shuffles: int = 4,
+    generator: torch.Generator | None = None,
+    chunk_elements: int = CHUNK_ELEMENTS,
 ) -> tuple[Tensor, Tensor, float]:
     """Total and aleatoric histogram entropies; bins shared by all members."""
     if bin_width is None:
@@ -113,17 +171,51 @@ def _histogram(
             "bin_width: expected a positive width for the histogram estimator, got None"
         )
     _checks.check_positive_int("chunk_elements", chunk_elements)
+    _checks.check_choice("bias_correction", bias_correction, ("none", "shuffle"))
+    _checks.check_positive_int("shuffles", shuffles)
     width = _checks.bin_width_tensor(bin_width, samples.shape[-1], samples)
     members, n, dim = samples.shape[0], samples.shape[1], samples.shape[-1]
     flat = samples.reshape(members, n, -1, dim)
-    parts = [
-        grouped_entropies(bin_ids(flat[:, :, part], width))
-        for part in batch_chunks(flat.shape[2], members * n * dim, chunk_elements)
-    ]
+    flat_ended = None if ended is None else ended.reshape(members, n, -1, 1)
+    perms = None
+    if bias_correction == "shuffle":
+        perms = [
+            torch.randperm(members * n, generator=generator).to(samples.device)
+            for _ in range(shuffles)
+        ]
+    parts = []
+    for part in batch_chunks(flat.shape[2], members * n * dim, chunk_elements):
+        ids = bin_ids(flat[:, :, part], width)
+        if flat_ended is not None:
+            ids = _with_ended_bin(ids, flat_ended[:, :, part])
+        total, aleatoric = grouped_entropies(ids)
+        if perms is not None:
+            aleatoric = _shuffle_corrected(ids, total, aleatoric, perms)
+        parts.append((total, aleatoric))
     total, aleatoric = (
         torch.cat(p).reshape(samples.shape[2:]).to(samples.dtype) for p in zip(*parts)
     )
     return total, aleatoric, math.log2(members)
+
+
+def _with_ended_bin(ids: Tensor, ended: Tensor) -> Tensor:
+    """Bin ids with ended samples moved to one extra bin per column, below the lowest bin."""
+    terminal = ids.amin(dim=(0, 1), keepdim=True) - 1
+    return torch.where(ended, terminal, ids)
+
+
+def _shuffle_corrected(
+    ids: Tensor, total: Tensor, aleatoric: Tensor, perms: list[Tensor]
+) -> Tensor:
+    """Aleatoric entropy after subtracting the shuffled-label Jensen–Shannon divergence."""
+    members, n = ids.shape[0], ids.shape[1]
+    pooled = ids.reshape(members * n, *ids.shape[2:])
+    null = torch.zeros_like(total)
+    for perm in perms:
+        _, shuffled = grouped_entropies(pooled[perm].reshape(ids.shape))
+        null += (total - shuffled) / len(perms)
+    epistemic = (total - aleatoric - null).clamp(0.0, math.log2(members))
+    return total - epistemic
 
 
 def _per_member(

@@ -60,12 +60,18 @@ class UncertaintyMetric(LossModule):
     - ``"by_dim"`` (only with ``dim_names``): ``{name: {"total", "aleatoric", "epistemic"}}``
       time series ``[*B, T]`` for each named dimension.
 
+    With ``episode_end=True`` the metric also reads ``tensordict["ended"]`` (bool
+    ``[E, N, *B, T]``, e.g. from :meth:`SuccessBoundary.ended_over_time`): samples of episodes
+    that have ended count in one shared terminal bin (histogram estimator only; see
+    :func:`~rcvae_torchrl.competency.decompose_uncertainty`).
+
     Args:
         bin_width: histogram bin width, scalar or ``[D]`` (required by ``"histogram"``; optional
             discretisation for ``"gaussian"`` / ``"knn"``).
         estimator: ``"histogram"`` (default), ``"gaussian"``, ``"knn"`` or ``"mixture"``.
         dim_names: optional names of the ``D`` observation dimensions.
         dim_reduction: ``"sum"`` or ``"mean"`` for ``"summary"``.
+        episode_end: read the ``ended`` entry and give ended episodes a terminal bin.
         **estimator_args: other estimator arguments (e.g. ``k``, ``joint``, ``bound``).
 
     Example:
@@ -79,9 +85,11 @@ class UncertaintyMetric(LossModule):
 
     @dataclass
     class _AcceptedKeys:
-        """Configurable keys: ``observation`` (input), ``uncertainty`` (output root)."""
+        """Configurable keys: ``observation`` and ``ended`` (inputs), ``uncertainty`` (output
+        root)."""
 
         observation: NestedKey = "observation"
+        ended: NestedKey = "ended"
         uncertainty: NestedKey = "uncertainty"
 
     default_keys = _AcceptedKeys
@@ -94,11 +102,17 @@ class UncertaintyMetric(LossModule):
         estimator: str = "histogram",
         dim_names: Sequence[str] | None = None,
         dim_reduction: Literal["sum", "mean"] = "sum",
+        episode_end: bool = False,
         **estimator_args: Any,
     ) -> None:
         super().__init__()
         _checks.check_choice("estimator", estimator, tuple(ESTIMATORS))
         _checks.check_choice("dim_reduction", dim_reduction, ("sum", "mean"))
+        if episode_end and estimator != "histogram":
+            raise ValueError(
+                f"episode_end: only the histogram estimator has a bin for ended episodes, got "
+                f"estimator={estimator!r}"
+            )
         if estimator == "histogram" and bin_width is None:
             raise ValueError(
                 "bin_width: expected a positive width for the histogram estimator, got None"
@@ -114,6 +128,7 @@ class UncertaintyMetric(LossModule):
         self.estimator_args = estimator_args
         self.dim_names = None if dim_names is None else tuple(dim_names)
         self.dim_reduction = dim_reduction
+        self.episode_end = bool(episode_end)
 
     def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
         pass
@@ -129,6 +144,14 @@ class UncertaintyMetric(LossModule):
         args = dict(self.estimator_args)
         if self.bin_width is not None:
             args["bin_width"] = self.bin_width
+        if self.episode_end:
+            key = self.tensor_keys.ended
+            if key not in tensordict.keys(include_nested=True):
+                raise KeyError(
+                    f"tensordict: expected an {key!r} entry (bool [E, N, *B, T]) with "
+                    f"episode_end=True, got keys {sorted(map(str, tensordict.keys()))}"
+                )
+            args["ended"] = tensordict.get(key)
         parts = decompose_uncertainty(obs, self.estimator, **args).as_dict()
         per_dim = parts["total"].ndim == obs.ndim - 2
         out = TensorDict(parts)
