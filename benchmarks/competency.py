@@ -44,6 +44,11 @@ ASSESSOR_TARGET_S = 2.0
 CASES: list[tuple[str, str, dict[str, Any]]] = [
     ("histogram", "histogram", {"bin_width": 0.1}),
     ("histogram, fine bins (sort path)", "histogram", {"bin_width": 0.002}),
+    (
+        "histogram, shuffle-corrected (4 permutations)",
+        "histogram",
+        {"bin_width": 0.1, "bias_correction": "shuffle"},
+    ),
     ("gaussian per dim", "gaussian", {}),
     ("gaussian joint", "gaussian", {"joint": True}),
     ("mixture bounds (diagonal)", "mixture", {}),

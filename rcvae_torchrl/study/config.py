@@ -55,7 +55,7 @@ class DataConfig:
     exploration_std: float = 0.3
     time_limit: float = 15.0
     random_time_limit: float = 10.0
-    stochastic_noise_std: float = 1.5
+    stochastic_noise_std: float = 2.5
 
     def __post_init__(self) -> None:
         _at_least(self, ("scripted_episodes", "random_episodes"), 0)
@@ -120,7 +120,13 @@ class AgentStudyConfig:
 
 @dataclass(frozen=True)
 class AssessConfig:
-    """The competency assessment and its ground truth."""
+    """The competency assessment and its ground truth.
+
+    ``episode_end``: measure the uncertainty of the episode, which ends at success as in the
+    real env (ended samples share a terminal bin). ``bias_correction``: ``"none"`` or
+    ``"shuffle"`` (the histogram's epistemic part corrected for its sampling bias, see
+    :func:`~rcvae_torchrl.competency.decompose_uncertainty`).
+    """
 
     start_states: int = 20
     samples_per_member: int = 50
@@ -129,6 +135,8 @@ class AssessConfig:
     stochastic_seeds_per_start: int = 5
     success_radius: float = 0.03
     open_loop: bool = False
+    episode_end: bool = True
+    bias_correction: str = "shuffle"
     forecast_panels: int = 3
 
     def __post_init__(self) -> None:
@@ -146,6 +154,10 @@ class AssessConfig:
         _whole_steps(self, ("horizon_s",))
         if not self.success_radius > 0:
             raise ValueError(f"success_radius: expected > 0 m, got {self.success_radius!r}")
+        if self.bias_correction not in ("none", "shuffle"):
+            raise ValueError(
+                f"bias_correction: expected 'none' or 'shuffle', got {self.bias_correction!r}"
+            )
 
 
 @dataclass(frozen=True)

@@ -3,8 +3,11 @@
 Closed loop (default): the agent's policy acts inside the imagined rollouts, so the forecast is
 about the same agent that later runs in the real env. Open loop (the paper's
 p(s_1:T | s_0, a_0:T-1)): the action sequence is the policy's plan in the model's mean rollout.
-Rollouts run the whole horizon (the state keeps evolving after a success); success is reaching
-the boundary at any step within the time limit.
+Rollouts run the whole horizon; success is reaching the boundary at any step within the time
+limit. With ``episode_end`` (the study's default) the uncertainty is that of the episode, which
+the real env ends at success: from the step after a sample's success on, the sample counts in a
+shared terminal bin (:meth:`SuccessBoundary.ended_over_time`) instead of the states the model
+would imagine for a finished episode.
 """
 
 from __future__ import annotations
@@ -52,14 +55,17 @@ def forecast_condition(
     dt: float,
     radius: float,
     open_loop: bool = False,
+    episode_end: bool = True,
+    bias_correction: str = "none",
     seed: int = 0,
 ) -> dict[str, torch.Tensor]:
     """Imagine ``[E, N, B, T]`` rollouts from ``starts [B, S]`` and measure them.
 
     Returns CPU tensors: ``aleatoric``/``epistemic``/``total`` bits ``[B, T, D]`` (histogram
-    estimator at the Pusher's declared resolution), ``p_success`` ``[B]`` with its interval and
-    per-member values ``[E, B]``, the outcome's entropy decomposition ``[B]``, the forecast
-    success ``[E, N, B]`` and the ball-to-target distance of every sample ``[E·N, B, T]``.
+    estimator at the Pusher's declared resolution; ``bias_correction`` as in
+    :func:`~rcvae_torchrl.competency.decompose_uncertainty`), ``p_success`` ``[B]`` with its
+    interval and per-member values ``[E, B]``, the outcome's entropy decomposition ``[B]``, the
+    forecast success ``[E, N, B]`` and the ball-to-target distance of every sample ``[E·N, B, T]``.
     """
     steps = round(horizon_s / dt)
     generator = torch.Generator(device=starts.device).manual_seed(seed)
@@ -77,9 +83,18 @@ def forecast_condition(
             generator=generator,
         )
     td = TensorDict({"observation": td["observation"]}, batch_size=td.batch_size).cpu()
-    uncertainty = UncertaintyMetric(bin_width=resolution_tensor(), dim_names=OBSERVATION_NAMES)
+    boundary = pusher_boundary(radius, horizon_s, dt)
+    if episode_end:
+        td["ended"] = boundary.ended_over_time(td["observation"])
+    uncertainty = UncertaintyMetric(
+        bin_width=resolution_tensor(),
+        dim_names=OBSERVATION_NAMES,
+        episode_end=episode_end,
+        bias_correction=bias_correction,
+        generator=torch.Generator().manual_seed(seed),
+    )
     u = uncertainty(td)["uncertainty"]
-    c = SuccessMetric(pusher_boundary(radius, horizon_s, dt))(td)["competency"]
+    c = SuccessMetric(boundary)(td)["competency"]
     obs = td["observation"]
     return {
         "total": u["total"],

@@ -234,6 +234,8 @@ class _Study:
                     dt=CONTROL_TIMESTEP,
                     radius=s.success_radius,
                     open_loop=s.open_loop,
+                    episode_end=s.episode_end,
+                    bias_correction=s.bias_correction,
                     seed=self.cfg.seed,
                 )
                 _save({"starts": starts, **result}, path)

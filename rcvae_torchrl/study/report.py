@@ -236,7 +236,9 @@ def write_report(
         lambda f: f.write(json.dumps(summary, indent=2, default=str).encode()),
     )
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
-    text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual)
+    text = _markdown(
+        rows, overall, checks, by_window, figures, gif, run_dir, residual, _bits_text(config.assess)
+    )
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
 
@@ -249,7 +251,31 @@ _AGENT_TEXT = {
 }
 
 
-def _markdown(rows, overall, checks, by_window, figures, gif, run_dir: Path, residual: bool) -> str:
+def _bits_text(assess: Any) -> str:
+    """How the table's bits were measured, from the assessment's settings."""
+    text = (
+        "Bits: per-dimension histogram entropies at the declared resolution, summed over the "
+        "state dimensions, averaged over time and start states."
+    )
+    if getattr(assess, "episode_end", False):
+        text += (
+            " An episode ends at success, as in the real env: from the next step on, its samples "
+            "count in one shared terminal bin, so a forecast whose episodes have all ended has "
+            "no uncertainty left."
+        )
+    if getattr(assess, "bias_correction", "none") == "shuffle":
+        text += (
+            " The epistemic part is corrected for the histogram's sampling bias (minus the "
+            "divergence of the same samples with shuffled member labels)."
+        )
+    return text + (
+        " Brier and ECE compare each start state's forecast with the outcomes of its real episodes."
+    )
+
+
+def _markdown(
+    rows, overall, checks, by_window, figures, gif, run_dir: Path, residual: bool, bits_text: str
+) -> str:
     table = (run_dir / "table.md").read_text()
     order = ("data", "models", "agent", "forecast", "truth", "report")
     found = {p.stem: p for p in (run_dir / "stages").glob("*.json")}
@@ -264,9 +290,7 @@ def _markdown(rows, overall, checks, by_window, figures, gif, run_dir: Path, res
         "",
         "## Table (the paper's Table 1, plus the check against reality)",
         "",
-        "Bits: per-dimension histogram entropies at the declared resolution, summed over the "
-        "state dimensions, averaged over time and start states. Brier and ECE compare each "
-        "start state's forecast with the outcomes of its real episodes.",
+        bits_text,
         "",
         table,
         f"Over all start states: Brier {overall['brier']:.4f} against "

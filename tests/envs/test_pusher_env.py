@@ -1,5 +1,6 @@
 """Contract tests of the Pusher env: specs, determinism, regions, reward/success, arguments."""
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -21,6 +22,7 @@ from rcvae_torchrl.envs import (
 from rcvae_torchrl.envs.scripted import make_scripted_policy
 
 BALL, BALL_VEL, JOINT_VEL = obs_indices("ball"), obs_indices("ball_vel"), obs_indices("joint_vel")
+TARGET = obs_indices("target")
 
 
 def _rollout(env, steps=60, policy=None):
@@ -61,18 +63,30 @@ def _starts(variant, n=40):
     return torch.stack([env.reset()["observation"] for _ in range(n)])
 
 
+def _polar_angle_deg(xy):
+    return torch.rad2deg(torch.atan2(xy[:, 1], xy[:, 0]))
+
+
 def test_ood_starts_lie_outside_the_training_region():
     ind, ood = _starts("deterministic"), _starts("ood")
-    r_ind = ind[:, BALL].norm(dim=-1)
-    r_ood = ood[:, BALL].norm(dim=-1)
-    lo, hi = IN_DISTRIBUTION.ball_radius
-    assert ((r_ind >= lo - 1e-4) & (r_ind <= hi + 1e-4)).all()
-    assert (ind[:, BALL_VEL].abs().max() == 0) and (ind[:, JOINT_VEL].abs().max() == 0)
-    lo, hi = OUT_OF_DISTRIBUTION.ball_radius
-    assert ((r_ood >= lo - 1e-4) & (r_ood <= hi + 1e-4)).all()
-    assert r_ood.min() > IN_DISTRIBUTION.ball_radius[1]
-    assert (ood[:, BALL_VEL].norm(dim=-1) >= OUT_OF_DISTRIBUTION.ball_speed[0] - 1e-4).all()
-    assert (ood[:, JOINT_VEL].abs() >= OUT_OF_DISTRIBUTION.joint_speed[0] - 1e-4).all()
+    for obs in (ind, ood):
+        for group in (BALL, TARGET):
+            r = obs[:, group].norm(dim=-1)
+            lo, hi = IN_DISTRIBUTION.ball_radius
+            assert ((r >= lo - 1e-4) & (r <= hi + 1e-4)).all()
+        assert (obs[:, BALL_VEL].abs().max() == 0) and (obs[:, JOINT_VEL].abs().max() == 0)
+    for group in (BALL, TARGET):
+        a_ind, a_ood = _polar_angle_deg(ind[:, group]), _polar_angle_deg(ood[:, group])
+        assert (a_ind.abs() <= 90.0 + 1e-3).all()  # the half of the arena in front of the arm
+        assert ((a_ood >= 100.0 - 1e-3) & (a_ood <= 130.0 + 1e-3)).all()  # disjoint sector
+        assert a_ind.max() - a_ind.min() > 120.0  # spread over the half, not a corner of it
+
+
+def test_region_angle_must_be_an_interval_of_at_most_a_turn():
+    with pytest.raises(ValueError, match="angle: expected"):
+        dataclasses.replace(OUT_OF_DISTRIBUTION, angle=(1.0, 0.5))
+    with pytest.raises(ValueError, match="angle: expected"):
+        dataclasses.replace(OUT_OF_DISTRIBUTION, angle=(0.0, 7.0))
 
 
 @pytest.mark.parametrize("variant", ["deterministic", "stochastic"])
@@ -198,7 +212,7 @@ def test_pusher_state_constraint_holds_on_real_states_and_repairs_others():
     fixed = pusher_state_constraint(td["observation"], broken)
     cos, sin = obs_indices("shoulder_cos", "wrist_cos"), obs_indices("shoulder_sin", "wrist_sin")
     torch.testing.assert_close(fixed[:, cos] ** 2 + fixed[:, sin] ** 2, torch.ones(80, 2))
-    assert (fixed[:, obs_indices("ball")].norm(dim=-1) <= 0.195 + 1e-6).all()
+    assert (fixed[:, obs_indices("ball")].norm(dim=-1) <= 0.199 + 1e-6).all()
     only_finger = real.clone()
     only_finger[:, obs_indices("finger")] += 0.05
     torch.testing.assert_close(

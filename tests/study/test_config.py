@@ -122,6 +122,11 @@ def test_configs_are_frozen():
         ({"train": {"window": 1}}, r"config\.train: window: expected >= 2 steps, got 1"),
         ({"train": {"lr": -1.0}}, r"config\.train: lr, grad_clip: expected > 0"),
         ({"train": {"max_steps": "ten"}}, r"config\.train\.max_steps: expected int"),
+        (
+            {"assess": {"bias_correction": "jackknife"}},
+            r"config\.assess: bias_correction: expected 'none' or 'shuffle', got 'jackknife'",
+        ),
+        ({"assess": {"episode_end": "yes"}}, r"config\.assess\.episode_end: expected bool"),
     ],
 )
 def test_invalid_values_are_rejected_with_their_path(values, match):
