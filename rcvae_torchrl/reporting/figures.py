@@ -41,7 +41,11 @@ def plot_uncertainty_over_time(
     dt: float,
     path: str | Path,
 ) -> Path:
-    """Aleatoric (dashed) and epistemic (solid) entropy over time, one panel per dim group.
+    """Aleatoric (dashed, top row) and epistemic (solid, bottom row) entropy over time.
+
+    One column per group of state dimensions, one colour per condition. The two parts get their
+    own rows (and y scales): the epistemic bits are often an order of magnitude below the
+    aleatoric ones and would lie flat on a shared axis.
 
     Args:
         curves: condition -> ``{"aleatoric": [T, D], "epistemic": [T, D]}`` bits per dimension
@@ -50,29 +54,28 @@ def plot_uncertainty_over_time(
         dt: seconds per step.
         path: PNG file.
     """
-    fig, axes = _figure(len(panels), 4.2, 3.4)
-    for ax, (title, dims) in zip(axes, panels.items()):
-        for colour, (condition, parts) in zip(_COLOURS, curves.items()):
-            steps = parts["aleatoric"].shape[0]
-            t = torch.arange(1, steps + 1) * dt
-            ax.plot(
-                t,
-                parts["epistemic"][:, list(dims)].sum(-1),
-                color=colour,
-                lw=1.4,
-                label=f"{condition} epistemic",
-            )
-            ax.plot(
-                t,
-                parts["aleatoric"][:, list(dims)].sum(-1),
-                color=colour,
-                lw=1.4,
-                ls="--",
-                label=f"{condition} aleatoric",
-            )
-        ax.set(title=title, xlabel="time (s)", ylabel="entropy (bits)")
-        ax.grid(alpha=0.3)
-    axes[-1].legend(fontsize=7, loc="best")
+    fig = Figure(figsize=(4.2 * len(panels), 5.6))
+    grid = fig.subplots(2, len(panels), squeeze=False, sharex=True)
+    for column, (title, dims) in enumerate(panels.items()):
+        for row, (part, style) in enumerate((("aleatoric", "--"), ("epistemic", "-"))):
+            ax = grid[row][column]
+            for colour, (condition, parts) in zip(_COLOURS, curves.items()):
+                t = torch.arange(1, parts[part].shape[0] + 1) * dt
+                ax.plot(
+                    t,
+                    parts[part][:, list(dims)].sum(-1),
+                    color=colour,
+                    lw=1.4,
+                    ls=style,
+                    label=f"{condition} {part}",
+                )
+            ax.set(ylabel=f"{part} (bits)")
+            ax.grid(alpha=0.3)
+        grid[0][column].set(title=title)
+        grid[1][column].set(xlabel="time (s)")
+    for row in grid:
+        row[-1].legend(fontsize=7, loc="best")
+    fig.tight_layout()
     return _save(fig, path)
 
 
