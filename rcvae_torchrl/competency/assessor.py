@@ -238,7 +238,10 @@ class CompetencyAssessor(LossModule):
         interval: ``"jeffreys"`` or ``"wilson"``.
         top_k: dimensions named in the summary.
         start_chunk: start states imagined together.
-        **estimator_args: other estimator arguments (e.g. ``k``, ``joint``).
+        episode_end: measure the uncertainty of the episode, which ends when ``boundary``
+            decides the outcome (:meth:`SuccessBoundary.ended_over_time`; histogram only).
+        **estimator_args: other estimator arguments (e.g. ``k``, ``joint``,
+            ``bias_correction="shuffle"``).
 
     Example:
         >>> from rcvae_torchrl.model_env import RCVAEEnsembleEnv
@@ -283,6 +286,7 @@ class CompetencyAssessor(LossModule):
         interval: Literal["jeffreys", "wilson"] = "jeffreys",
         top_k: int = 2,
         start_chunk: int = 16,
+        episode_end: bool = False,
         **estimator_args: Any,
     ) -> None:
         super().__init__()
@@ -298,7 +302,7 @@ class CompetencyAssessor(LossModule):
         self.model_env = model_env
         self.success_metric = SuccessMetric(boundary, confidence, interval)
         self.uncertainty_metric = UncertaintyMetric(
-            bin_width, estimator, dim_names, **estimator_args
+            bin_width, estimator, dim_names, episode_end=episode_end, **estimator_args
         )
         self.dim_names = _dim_names(dim_names, obs_dim)
         self.horizon = _horizon(horizon, boundary)
@@ -388,6 +392,11 @@ class CompetencyAssessor(LossModule):
         observed = TensorDict(
             {"observation": rollout.get("observation")}, batch_size=rollout.batch_size
         )
+        if self.uncertainty_metric.episode_end:
+            observed.set(
+                self.uncertainty_metric.tensor_keys.ended,
+                self.boundary.ended_over_time(observed.get("observation")),
+            )
         out = TensorDict(batch_size=starts.shape[:1])
         out.set(self.tensor_keys.observation, starts)
         out.set(self.tensor_keys.uncertainty, self._uncertainty(observed, starts.shape[0]))

@@ -411,3 +411,19 @@ def test_docstring_example():
     )
     assert result.attempted > 0
     assert result.failed == 0
+
+
+def test_episode_end_measures_the_uncertainty_of_the_episode(env, starts, plan):
+    # A success region every imagined state is in: every episode ends at step 0, so from step 1
+    # on no uncertainty is left; without episode_end the imagined states still spread.
+    always = SuccessBoundary(lambda s: s[..., 0] > -1e9, time_limit=T, dt=DT)
+    ended = make_assessor(env, boundary=always, episode_end=True)
+    free = make_assessor(env, boundary=always)
+    a = ended.assess(starts, actions=plan, generator=seeded()).data["uncertainty", "total"]
+    b = free.assess(starts, actions=plan, generator=seeded()).data["uncertainty", "total"]
+    assert torch.equal(a[:, 0], b[:, 0])  # the step where the outcome is decided is still live
+    assert a[:, 1:].abs().max().item() < 1e-9
+    assert b[:, 1:].sum().item() > 1.0
+    shuffled = make_assessor(env, episode_end=True, bias_correction="shuffle", generator=seeded())
+    out = shuffled.assess(starts, actions=plan, generator=seeded()).data["uncertainty"]
+    assert torch.allclose(out["aleatoric"] + out["epistemic"], out["total"], atol=1e-5)
