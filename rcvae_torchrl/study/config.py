@@ -50,7 +50,7 @@ def _whole_steps(obj: object, names: tuple[str, ...]) -> None:
 class DataConfig:
     """World-model data per variant: scripted pushing with exploration noise, and random play."""
 
-    scripted_episodes: int = 100
+    scripted_episodes: int = 300
     random_episodes: int = 20
     exploration_std: float = 0.3
     time_limit: float = 15.0
