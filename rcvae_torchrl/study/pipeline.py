@@ -14,6 +14,7 @@ last checkpoint).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 from collections.abc import Callable
@@ -36,7 +37,7 @@ from rcvae_torchrl.envs.datasets import collect_pusher_data
 from rcvae_torchrl.envs.scripted import ScriptedPusher
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
+from rcvae_torchrl.training import TrainConfig, load_ensemble, save_ensemble, train_ensemble
 from rcvae_torchrl.training.atomic import atomic_write
 
 from .agent_stage import collect_mpc_demonstrations, dagger
@@ -114,6 +115,15 @@ class _Study:
             summary[f"{variant}_frames"] = int(load_episodes(path).shape[0])
         return summary
 
+    def _train_config(self, variant: str) -> TrainConfig:
+        steps = self.cfg.model.stochastic_open_loop_steps
+        if variant != "stochastic" or steps is None:
+            return self.cfg.train
+        try:
+            return dataclasses.replace(self.cfg.train, open_loop_steps=steps)
+        except ValueError as err:
+            raise ValueError(f"model.stochastic_open_loop_steps: {err}") from err
+
     def models(self) -> dict[str, Any]:
         m, summary = self.cfg.model, {}
         for variant in VARIANTS:
@@ -129,7 +139,7 @@ class _Study:
                 ensemble,
                 train,
                 val,
-                self.cfg.train,
+                self._train_config(variant),
                 checkpoint_path=self.dir / "models" / f"{variant}_train.pt",
                 resume=True,
                 progress=self.progress,

@@ -201,3 +201,21 @@ def test_device_option():
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="CUDA is not available"):
             recipe._device("cuda:0")
+
+
+def test_stochastic_open_loop_steps_apply_to_the_stochastic_ensemble_only(tmp_path):
+    import torch
+
+    from rcvae_torchrl.study.pipeline import _Study
+
+    config = from_mapping(StudyConfig, {"model": {"stochastic_open_loop_steps": 8}})
+    study = _Study(config, tmp_path, torch.device("cpu"), progress=False)
+    assert study._train_config("stochastic").open_loop_steps == 8
+    assert study._train_config("deterministic") == config.train
+    assert study._train_config("deterministic").open_loop_steps == 0
+    values = {"model": {"stochastic_open_loop_steps": None}, "train": {"open_loop_steps": 2}}
+    shared = from_mapping(StudyConfig, values)
+    study = _Study(shared, tmp_path, torch.device("cpu"), progress=False)
+    assert study._train_config("stochastic").open_loop_steps == 2
+    with pytest.raises(ValueError, match="stochastic_open_loop_steps: expected a number >= 0"):
+        from_mapping(StudyConfig, {"model": {"stochastic_open_loop_steps": -1}})
