@@ -24,7 +24,13 @@ import torch
 from _report import print_table, write_json
 
 from rcvae_torchrl.competency import decompose_uncertainty
-from rcvae_torchrl.envs import make_pusher_env, pusher_reward, pusher_success, resolution_tensor
+from rcvae_torchrl.envs import (
+    CONTROL_TIMESTEP,
+    make_pusher_env,
+    pusher_reward,
+    pusher_success,
+    resolution_tensor,
+)
 from rcvae_torchrl.envs.pusher import IN_DISTRIBUTION, OUT_OF_DISTRIBUTION, InitialStateRegion
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.study import StudyConfig, from_mapping
@@ -44,7 +50,7 @@ EARLIER_OOD_NAME = "earlier out-of-distribution"
 SETTINGS = [(end, bias) for end in (False, True) for bias in ("none", "shuffle")]
 
 
-def _starts(study: _Study, condition: str, run_dir: Path, count: int) -> torch.Tensor:
+def _starts(condition: str, run_dir: Path, count: int) -> torch.Tensor:
     if condition != EARLIER_OOD_NAME:
         return torch.load(run_dir / "forecast" / f"{condition}.pt", weights_only=True)["starts"]
     env = make_pusher_env("deterministic", region=EARLIER_OOD)
@@ -65,11 +71,11 @@ def main() -> None:
     study = _Study(config, run_dir, torch.device("cpu"), progress=False)
     policy = study.policy()
     a = config.assess
-    boundary = pusher_boundary(a.success_radius, a.horizon_s, 0.05)
+    boundary = pusher_boundary(a.success_radius, a.horizon_s, CONTROL_TIMESTEP)
     conditions = {**CONDITIONS, EARLIER_OOD_NAME: ("deterministic", "deterministic")}
     bits: dict[str, dict[str, list[float]]] = {}
     for condition, (model_name, variant) in conditions.items():
-        starts = _starts(study, condition, run_dir, a.start_states)
+        starts = _starts(condition, run_dir, a.start_states)
         env = make_rcvae_env(
             study.model(model_name),
             study.env(variant),
@@ -81,7 +87,7 @@ def main() -> None:
             obs = env.imagine(
                 starts,
                 policy=policy,
-                horizon=round(a.horizon_s / 0.05),
+                horizon=round(a.horizon_s / CONTROL_TIMESTEP),
                 samples_per_member=args.samples,
                 generator=torch.Generator().manual_seed(config.seed),
             )["observation"]

@@ -119,10 +119,7 @@ class _Study:
         steps = self.cfg.model.stochastic_open_loop_steps
         if variant != "stochastic" or steps is None:
             return self.cfg.train
-        try:
-            return dataclasses.replace(self.cfg.train, open_loop_steps=steps)
-        except ValueError as err:
-            raise ValueError(f"model.stochastic_open_loop_steps: {err}") from err
+        return dataclasses.replace(self.cfg.train, open_loop_steps=steps)
 
     def models(self) -> dict[str, Any]:
         m, summary = self.cfg.model, {}

@@ -21,6 +21,8 @@ from rcvae_torchrl.reporting import (
 )
 from rcvae_torchrl.training.atomic import atomic_write
 
+from .config import AssessConfig
+
 __all__ = ["COLUMNS", "FIGURE_PANELS", "condition_row", "pattern_checks", "write_report"]
 
 COLUMNS = (
@@ -123,15 +125,14 @@ def pattern_checks(
 ) -> dict[str, dict[str, Any]]:
     """The qualitative pattern of the paper and the calibration targets, as measured."""
     det, sto, ood = rows["deterministic"], rows["stochastic"], rows["out-of-distribution"]
-    ratio = lambda a, b: a / b if b > 0 else float("inf")  # noqa: E731
     checks = {
-        "aleatoric stochastic / deterministic >= 1.5": ratio(
+        "aleatoric stochastic / deterministic >= 1.5": _ratio(
             sto["aleatoric_bits"], det["aleatoric_bits"]
         ),
-        "epistemic out-of-distribution / deterministic >= 1.3": ratio(
+        "epistemic out-of-distribution / deterministic >= 1.3": _ratio(
             ood["epistemic_bits"], det["epistemic_bits"]
         ),
-        "aleatoric out-of-distribution / deterministic within 0.7-1.3": ratio(
+        "aleatoric out-of-distribution / deterministic within 0.7-1.3": _ratio(
             ood["aleatoric_bits"], det["aleatoric_bits"]
         ),
     }
@@ -251,19 +252,19 @@ _AGENT_TEXT = {
 }
 
 
-def _bits_text(assess: Any) -> str:
+def _bits_text(assess: AssessConfig) -> str:
     """How the table's bits were measured, from the assessment's settings."""
     text = (
         "Bits: per-dimension histogram entropies at the declared resolution, summed over the "
         "state dimensions, averaged over time and start states."
     )
-    if getattr(assess, "episode_end", False):
+    if assess.episode_end:
         text += (
             " An episode ends at success, as in the real env: from the next step on, its samples "
             "count in one shared terminal bin, so a forecast whose episodes have all ended has "
             "no uncertainty left."
         )
-    if getattr(assess, "bias_correction", "none") == "shuffle":
+    if assess.bias_correction == "shuffle":
         text += (
             " The epistemic part is corrected for the histogram's sampling bias (minus the "
             "divergence of the same samples with shuffled member labels)."
