@@ -6,17 +6,17 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-EXTRAS ?= test,dev,docs
+EXTRAS ?= recipes,test,dev,docs
 export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 
 .PHONY: run run-quick demo test test-slow test-all lint format docs bench system-deps setup clean
 
 run: setup
-	$(PY) recipes/pusher_competency.py
+	$(PY) recipes/pusher_competency/main.py
 
 run-quick: setup
-	$(PY) recipes/pusher_competency.py profile=quick
+	$(PY) recipes/pusher_competency/main.py profile=quick
 
 demo: setup
 	$(PY) recipes/pusher_demo.py

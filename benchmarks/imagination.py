@@ -51,7 +51,9 @@ def make_env() -> RCVAEEnsembleEnv:
     model = RCVAEEnsemble(CONFIG, ENSEMBLE_SIZE)
     obs = torch.randn(16, 50, 14) * 0.1
     model.fit_normalizer(obs, torch.rand(16, 50, 2) * 2 - 1)
-    return RCVAEEnsembleEnv(model, pusher_reward, pusher_success, seed=0, validate=False)
+    return RCVAEEnsembleEnv(
+        model, pusher_reward, pusher_success, terminate_on_success=True, seed=0, validate=False
+    )
 
 
 def start_state(batch: tuple[int, ...] = ()) -> torch.Tensor:

@@ -15,8 +15,6 @@ per setting and writes ``benchmarks/results/pattern_ablation.json``.
 from __future__ import annotations
 
 import argparse
-import functools
-import json
 import math
 from pathlib import Path
 
@@ -28,14 +26,14 @@ from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     make_pusher_env,
     pusher_reward,
-    pusher_success,
     resolution_tensor,
 )
 from rcvae_torchrl.envs.pusher import IN_DISTRIBUTION, OUT_OF_DISTRIBUTION, InitialStateRegion
+from rcvae_torchrl.io import load_torch, read_json
 from rcvae_torchrl.model_env import make_rcvae_env
-from rcvae_torchrl.study import StudyConfig, from_mapping
-from rcvae_torchrl.study.forecast import pusher_boundary
-from rcvae_torchrl.study.pipeline import CONDITIONS, _Study
+from recipes.pusher_competency.config import study_config
+from recipes.pusher_competency.pipeline import Study
+from recipes.pusher_competency.pusher import CONDITIONS, success_boundary, success_fn
 
 #: The study's earlier out-of-distribution region: disjoint from the training starts, not from
 #: the states the training episodes visit.
@@ -52,7 +50,7 @@ SETTINGS = [(end, bias) for end in (False, True) for bias in ("none", "shuffle")
 
 def _starts(condition: str, run_dir: Path, count: int) -> torch.Tensor:
     if condition != EARLIER_OOD_NAME:
-        return torch.load(run_dir / "forecast" / f"{condition}.pt", weights_only=True)["starts"]
+        return load_torch(run_dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
     env = make_pusher_env("deterministic", region=EARLIER_OOD)
     starts = []
     for i in range(count):
@@ -67,20 +65,21 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=50, help="samples per member")
     args = parser.parse_args()
     run_dir = Path(args.run_dir)
-    config = from_mapping(StudyConfig, json.loads((run_dir / "study_config.json").read_text()))
-    study = _Study(config, run_dir, torch.device("cpu"), progress=False)
-    policy = study.policy()
+    config = study_config(read_json(run_dir / "study_config.json", "run config"))
+    study = Study(config, run_dir, torch.device("cpu"), progress=False)
+    policy = study.load_policy()
     a = config.assess
-    boundary = pusher_boundary(a.success_radius, a.horizon_s, CONTROL_TIMESTEP)
+    boundary = success_boundary(a.success_radius, a.horizon_s)
     conditions = {**CONDITIONS, EARLIER_OOD_NAME: ("deterministic", "deterministic")}
     bits: dict[str, dict[str, list[float]]] = {}
     for condition, (model_name, variant) in conditions.items():
         starts = _starts(condition, run_dir, a.start_states)
         env = make_rcvae_env(
-            study.model(model_name),
+            study.load_model(model_name),
             study.env(variant),
             pusher_reward,
-            functools.partial(pusher_success, radius=a.success_radius),
+            success_fn(a.success_radius),
+            terminate_on_success=True,
             seed=config.seed,
         )
         with torch.no_grad():

@@ -31,12 +31,13 @@ import torch
 from _report import RESULTS_DIR, print_table, write_json
 from torchrl.modules.planners import CEMPlanner as StockCEMPlanner
 
-from rcvae_torchrl.agent import PlannerConfig, make_mpc_policy, run_episodes
+from rcvae_torchrl.agent import PlannerConfig, run_episodes
 from rcvae_torchrl.envs import CONTROL_TIMESTEP, make_pusher_env, pusher_reward, pusher_success
 from rcvae_torchrl.model_env import make_rcvae_env
-from rcvae_torchrl.study.config import StudyConfig
-from rcvae_torchrl.study.pipeline import _Study
-from rcvae_torchrl.training.checkpoint import load_ensemble
+from rcvae_torchrl.training import load_ensemble
+from recipes.pusher_competency.config import StudyConfig
+from recipes.pusher_competency.pipeline import Study
+from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, make_planner
 
 SPEED_BUDGETS = ((64, 2, 12), (200, 4, 15))  # candidates, iterations, horizon
 
@@ -70,7 +71,7 @@ def _stock(model_env, config: PlannerConfig) -> StockCEMPlanner:
 
 def _episodes(env, policy, seeds, label):
     timed = Timed(policy)
-    stats = run_episodes(env, timed, seeds=seeds, progress=True, desc=label)
+    stats = run_episodes(env, timed, seeds=seeds, max_steps=600, progress=True, desc=label)
     times = sorted(timed.times)
     return {
         "episodes": len(seeds),
@@ -113,29 +114,31 @@ def main() -> None:
         return
     if args.quick:
         args.episodes, args.other_episodes, args.compare_episodes = 4, 2, 2
-    study = _Study(StudyConfig(), args.work_dir, torch.device("cpu"), progress=True)
+    study = Study(StudyConfig(), args.work_dir, torch.device("cpu"), progress=True)
     study.data()
     study.models()
-    model = study.model("deterministic")
-    config = PlannerConfig()
+    model = study.load_model("deterministic")
+    config = StudyConfig().planner
     results = {"planner_config": dataclasses.asdict(config), "control_step_s": CONTROL_TIMESTEP}
 
     env = make_pusher_env("deterministic")
-    ours = make_mpc_policy(model, env, config)
+    ours = make_planner(model, env, config)
     results["ours_deterministic"] = _episodes(env, ours, list(range(args.episodes)), "ours det")
     write_json("planning", {"partial": True, **results})
     for variant in ("stochastic", "ood"):
         results[f"ours_{variant}"] = _episodes(
             make_pusher_env(variant),
-            make_mpc_policy(model, make_pusher_env(variant), config),
+            make_planner(model, make_pusher_env(variant), config),
             list(range(1000, 1000 + args.other_episodes)),
             f"ours {variant}",
         )
 
     write_json("planning", {"partial": True, **results})
-    model_env = make_rcvae_env(model, env, pusher_reward, pusher_success, seed=0)
+    model_env = make_rcvae_env(
+        model, env, pusher_reward, pusher_success, terminate_on_success=True, seed=0
+    )
     stock = _stock(model_env, config)
-    ours_p1 = make_mpc_policy(model, env, dataclasses.replace(config, particles=1))
+    ours_p1 = make_planner(model, env, dataclasses.replace(config, particles=1))
     seeds = list(range(args.compare_episodes))
     states = [env.reset() for _ in range(10)]
     t = {
@@ -200,7 +203,7 @@ def _latency(policy, states, calls: int = 5) -> dict[str, float]:
 
 def speed(args) -> None:
     """Time per plan vs TorchRL's stock CEMPlanner, and the default budget's latency."""
-    model = load_ensemble(args.work_dir / "models" / "deterministic.pt")
+    model = load_ensemble(args.work_dir / "models" / "deterministic.pt", functions=MODEL_FUNCTIONS)
     env = make_pusher_env("deterministic")
     torch.manual_seed(0)
     states = [env.reset() for _ in range(10)]
@@ -209,13 +212,15 @@ def speed(args) -> None:
         budget = PlannerConfig(
             horizon=h, num_candidates=c, iterations=i, top_k=8, policy_prior=False
         )
-        model_env = make_rcvae_env(model, env, pusher_reward, pusher_success, seed=0)
+        model_env = make_rcvae_env(
+            model, env, pusher_reward, pusher_success, terminate_on_success=True, seed=0
+        )
         for p in (1, 5):
             config = dataclasses.replace(budget, particles=p)
             planners = {
                 "stock": _stock(model_env, config),
-                "ours": make_mpc_policy(model, env, config),
-                "ours_compiled": make_mpc_policy(model, env, config, compile=True),
+                "ours": make_planner(model, env, config),
+                "ours_compiled": make_planner(model, env, config, compile=True),
             }
             start = time.perf_counter()
             planners["ours_compiled"](states[0].clone())  # compiles
@@ -235,7 +240,7 @@ def speed(args) -> None:
             print(rows[-1], flush=True)
     latency = {}
     for compiled in (False, True):
-        policy = make_mpc_policy(model, env, PlannerConfig(), compile=compiled)
+        policy = make_planner(model, env, StudyConfig().planner, compile=compiled)
         policy(states[0].clone())  # warm-up (compiles)
         latency["compiled" if compiled else "eager"] = _latency(policy, states)
     print_table(

@@ -29,19 +29,21 @@ from pathlib import Path
 import torch
 from _report import print_table, write_json
 
-from rcvae_torchrl.data import load_episodes, split_episodes
-from rcvae_torchrl.envs import CONTROL_TIMESTEP, obs_indices, pusher_input_features
-from rcvae_torchrl.envs.datasets import collect_pusher_data
-from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.study.config import StudyConfig
-from rcvae_torchrl.study.pipeline import _Study
-from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
-from rcvae_torchrl.training.forecast import (
+from rcvae_torchrl.competency import (
     band_coverage,
     constant_baseline_error,
     forecast_error,
     forecast_spread,
 )
+from rcvae_torchrl.data import load_episodes, split_episodes
+from rcvae_torchrl.envs import CONTROL_TIMESTEP, obs_indices, pusher_input_features
+from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.rollout import imagine
+from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
+from recipes.pusher_competency.config import StudyConfig
+from recipes.pusher_competency.data import collect_pusher_data
+from recipes.pusher_competency.pipeline import Study
+from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, rcvae_config
 
 HORIZONS_S = (1.0, 5.0, 30.0)
 FORECAST_S, EPISODE_S = 30.0, 40.0
@@ -82,14 +84,14 @@ def held_out(
     return out
 
 
-def open_loop_model(study: _Study, k: int) -> tuple[RCVAEEnsemble, dict]:
+def open_loop_model(study: Study, k: int) -> tuple[RCVAEEnsemble, dict]:
     """The deterministic model trained with K open-loop steps per window (cached)."""
     path = study.dir / "models" / f"deterministic_open_loop_{k}.pt"
     if path.is_file():
-        return load_ensemble(path), {}
+        return load_ensemble(path, functions=MODEL_FUNCTIONS), {}
     m = study.cfg.model
     torch.manual_seed(study.cfg.seed)
-    ensemble = RCVAEEnsemble(m.rcvae_config(), m.ensemble_size)
+    ensemble = RCVAEEnsemble(rcvae_config(m), m.ensemble_size, functions=MODEL_FUNCTIONS)
     train_data, val_data = split_episodes(
         load_episodes(study.dir / "data" / "deterministic.pt"), 0.1, seed=study.cfg.seed
     )
@@ -111,7 +113,7 @@ def open_loop_model(study: _Study, k: int) -> tuple[RCVAEEnsemble, dict]:
 def evaluate(ensemble, starts, actions, states, samples: int) -> dict:
     g = torch.Generator().manual_seed(0)
     with torch.no_grad():
-        out = ensemble.generate(starts, actions, samples_per_member=samples, generator=g)
+        out = imagine(ensemble, starts, actions, samples_per_member=samples, generator=g)
     pred, truth = out["observation"][..., BALL], states[..., BALL]
     err = forecast_error(pred, truth)
     base = constant_baseline_error(truth, starts[..., BALL])
@@ -149,13 +151,13 @@ def main() -> None:
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    study = _Study(StudyConfig(), args.work_dir, torch.device("cpu"), progress=True)
+    study = Study(StudyConfig(), args.work_dir, torch.device("cpu"), progress=True)
     study.data()
     study.models()
     test = {v: held_out(v, args.test_episodes, seed=100) for v in ("deterministic", "stochastic")}
     models = {
-        "deterministic": (study.model("deterministic"), "deterministic"),
-        "stochastic": (study.model("stochastic"), "stochastic"),
+        "deterministic": (study.load_model("deterministic"), "deterministic"),
+        "stochastic": (study.load_model("stochastic"), "stochastic"),
     }
     if args.open_loop:
         model, _ = open_loop_model(study, args.open_loop)

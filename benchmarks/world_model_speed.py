@@ -1,7 +1,7 @@
 """World-model speed: one vectorised training step for E members, and generation throughput.
 
 Pusher-sized models (S = 14, A = 2, Z = 8): ``RCVAEConfig``'s defaults (H = MLP = 128), the
-study's default world model (``ModelConfig().rcvae_config()``: H = MLP = 64, Pusher input
+study's default world model (``rcvae_config(ModelConfig())``: H = MLP = 64, Pusher input
 features) and a small one (H = MLP = 32). On a shared machine, OpenMP threads that wait for busy
 cores distort timings badly; compare ``--threads 1`` runs there (the JSON records the load
 average).
@@ -14,7 +14,7 @@ All timings are medians of repeats taken round-robin across the variants compare
    (the E = 5 step's rows, no ensemble) is timed as a reference: a ratio near its own means the
    member dimension costs no more than a larger batch.
 2. Generation throughput in model-steps/s (member × sample × step) at N = 16, 256, 4096 samples
-   per member: the vectorised ``generate`` (default chunks of 1024 trajectories per member, and
+   per member: the vectorised ``imagine`` (default chunks of 1024 trajectories per member, and
    all in one chunk) against a Python loop over single members, same run.
 3. One transition step for E·N particles: member-major ``ensemble.step`` against the indexed
    layout (``RCVAETransition``, TS-∞ with round-robin and random members, and TS-1).
@@ -36,20 +36,16 @@ import torch
 from _report import print_table, write_json
 from tensordict import TensorDict
 
-import rcvae_torchrl.envs  # noqa: F401  (registers the Pusher features and state constraint)
-from rcvae_torchrl.models import (
-    RCVAEConfig,
-    RCVAEEnsemble,
-    init_model_state,
-    make_transition_module,
-)
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
-from rcvae_torchrl.study.config import ModelConfig
+from rcvae_torchrl.rollout import imagine, init_model_state, make_transition_module
+from recipes.pusher_competency.config import ModelConfig
+from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, rcvae_config
 
 CONFIG = RCVAEConfig(obs_dim=14, action_dim=2, passthrough_dims=(12, 13))
 SMALL = RCVAEConfig(obs_dim=14, action_dim=2, hidden_dim=32, mlp_dim=32, passthrough_dims=(12, 13))
 # The study's default world model (H = MLP = 64, Pusher input features and state constraint).
-DEFAULT = ModelConfig().rcvae_config()
+DEFAULT = rcvae_config(ModelConfig())
 
 
 def interleaved_medians(
@@ -71,7 +67,7 @@ def interleaved_medians(
 
 def make_model(ensemble_size: int, config: RCVAEConfig = CONFIG) -> RCVAEEnsemble:
     torch.manual_seed(0)
-    model = RCVAEEnsemble(config, ensemble_size)
+    model = RCVAEEnsemble(config, ensemble_size, functions=MODEL_FUNCTIONS)
     s, a = config.obs_dim, config.action_dim
     model.fit_normalizer(torch.randn(16, 50, s), torch.rand(16, 50, a) * 2 - 1)
     return model
@@ -107,16 +103,16 @@ def train_step_times(config: RCVAEConfig, repeats: int) -> dict[str, float]:
 
 
 def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int) -> dict[str, float]:
-    """Model-steps/s of vectorised generate (default chunks, one chunk) and of a member loop."""
+    """Model-steps/s of vectorised imagine (default chunks, one chunk) and of a member loop."""
     obs, actions = torch.zeros(14), torch.rand(horizon, 2) * 2 - 1
     singles = [model.select_members([m]) for m in range(model.ensemble_size)]
     work = model.ensemble_size * n * horizon
     runs = {
-        "vectorised": lambda: model.generate(obs, actions, samples_per_member=n),
-        "vectorised_one_chunk": lambda: model.generate(
-            obs, actions, samples_per_member=n, chunk_size=None
+        "vectorised": lambda: imagine(model, obs, actions, samples_per_member=n),
+        "vectorised_one_chunk": lambda: imagine(
+            model, obs, actions, samples_per_member=n, chunk_size=None
         ),
-        "member_loop": lambda: [s.generate(obs, actions, samples_per_member=n) for s in singles],
+        "member_loop": lambda: [imagine(s, obs, actions, samples_per_member=n) for s in singles],
     }
     return {name: work / t for name, t in interleaved_medians(runs, repeats).items()}
 

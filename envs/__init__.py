@@ -1,4 +1,6 @@
-"""The Pusher domain (installed as ``rcvae_torchrl.envs``)."""
+"""The Pusher domain (installed as ``rcvae_torchrl.envs``): a dm_control task, its TorchRL
+factory, and pure functions of its observations. It depends on the library's dependencies only,
+never on the library itself, which never imports it."""
 
 from . import _gl  # noqa: F401  (sets MUJOCO_GL before dm_control loads)
 from .constraints import pusher_state_constraint
@@ -21,12 +23,14 @@ from .pusher import (
     OUT_OF_DISTRIBUTION,
     InitialStateRegion,
 )
+from .state import reset_to_state
 
 __all__ = [
     # factory
     "DEFAULT_ACTION_NOISE_STD",
     "VARIANTS",
     "make_pusher_env",
+    "reset_to_state",
     # task constants and regions
     "CONTROL_TIMESTEP",
     "DEFAULT_SUCCESS_RADIUS",

@@ -1,4 +1,4 @@
-"""The Pusher's known state constraints, for world models (registered as ``"pusher"``).
+"""The Pusher's known state constraints, for world models.
 
 Given the model's generated state, make it consistent with what the simulator guarantees:
 
@@ -11,8 +11,6 @@ Given the model's generated state, make it consistent with what the simulator gu
 from __future__ import annotations
 
 import torch
-
-from rcvae_torchrl.models import register_state_constraint
 
 from .layout import obs_indices
 from .pusher import ARENA_RADIUS, BALL_RADIUS, HUB_RADIUS, WRIST_RANGE
@@ -74,6 +72,3 @@ def _joint_bounds(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         high = torch.tensor([torch.inf, float(WRIST_RANGE)], dtype=like.dtype).to(like.device)
         _BOUNDS[key] = (-high, high)
     return _BOUNDS[key]
-
-
-register_state_constraint("pusher", pusher_state_constraint)

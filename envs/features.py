@@ -3,15 +3,13 @@
 Whether the fingertip pushes the ball in the next control step, and in which direction, depends
 on the fingertip's position relative to the ball and on the fingertip's velocity. Both are
 functions of the state (the velocity through the arm's Jacobian), but a small network learns
-them slowly from the raw layout. :func:`pusher_input_features` writes them down; it is registered
-as ``input_features="pusher"`` (:mod:`rcvae_torchrl.models.features`).
+them slowly from the raw layout. :func:`pusher_input_features` writes them down, for a world
+model to read besides the state.
 """
 
 from __future__ import annotations
 
 import torch
-
-from rcvae_torchrl.models.features import register_input_features
 
 from .layout import obs_indices
 from .scripted import arm_jacobian
@@ -57,6 +55,3 @@ def pusher_input_features(observation: torch.Tensor) -> torch.Tensor:
     unit = rel / dist.clamp_min(1e-6)
     closing = -((finger_vel - o[..., _BALL_VEL]) * unit).sum(-1, keepdim=True)
     return torch.cat([rel, dist, finger_vel, closing], dim=-1)
-
-
-register_input_features("pusher", pusher_input_features, len(PUSHER_FEATURE_NAMES))

@@ -1,16 +1,15 @@
 """rcvae_torchrl: competency assessment for model-based RL agents in TorchRL.
 
 The main public API is re-exported here, grouped as the data flows: world model, loss, data,
-training, the model as a TorchRL env, planning, competency. Everything else lives in the
-subpackages (:mod:`rcvae_torchrl.models`, ``.objectives``, ``.data``, ``.training``,
-``.model_env``, ``.planners``, ``.competency``), and four more are imported on their own because
-they pull in heavier dependencies:
+training, the rollout engine, the model as a TorchRL env, planning, competency. Everything else
+lives in the subpackages (:mod:`rcvae_torchrl.models`, ``.objectives``, ``.data``,
+``.training``, ``.rollout``, ``.model_env``, ``.planners``, ``.competency``, ``.io``), and three
+more are imported on their own because they pull in heavier dependencies:
 
-- :mod:`rcvae_torchrl.envs`: the MuJoCo Pusher (dm_control);
-- :mod:`rcvae_torchrl.agent`: the MPC agent and the model-based RL loop on the Pusher;
+- :mod:`rcvae_torchrl.agent`: the MPC agent, its distillation into a policy, real episodes;
 - :mod:`rcvae_torchrl.reporting`: tables and figures (matplotlib);
-- :mod:`rcvae_torchrl.study`: the Pusher competency study behind
-  ``recipes/pusher_competency.py``.
+- :mod:`rcvae_torchrl.envs`: an example MuJoCo domain, which the library itself
+  never imports.
 
 Example:
     >>> import rcvae_torchrl as rt
@@ -45,16 +44,18 @@ from rcvae_torchrl.data import (
     save_episodes,
     split_episodes,
 )
-from rcvae_torchrl.model_env import RCVAEEnsembleEnv, imagine_rollouts, make_rcvae_env
-from rcvae_torchrl.models import (
-    RCVAEConfig,
-    RCVAEEnsemble,
-    RCVAETransition,
-    generate,
-    make_transition_module,
-)
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv, make_rcvae_env
+from rcvae_torchrl.models import InputFeatures, ModelFunctions, RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
 from rcvae_torchrl.planners import CEMPlanner, make_cem_planner
+from rcvae_torchrl.rollout import (
+    ParticleTransition,
+    Task,
+    evaluate_action_sequences,
+    imagine,
+    make_transition_module,
+    plan_actions,
+)
 from rcvae_torchrl.training import (
     CheckpointError,
     TrainConfig,
@@ -69,11 +70,10 @@ __version__ = "0.1.0"
 __all__ = [
     "__version__",
     # world model
+    "InputFeatures",
+    "ModelFunctions",
     "RCVAEConfig",
     "RCVAEEnsemble",
-    "RCVAETransition",
-    "generate",
-    "make_transition_module",
     # loss
     "RCVAELoss",
     # data
@@ -91,9 +91,15 @@ __all__ = [
     "load_ensemble",
     "save_ensemble",
     "train_ensemble",
+    # the rollout engine
+    "ParticleTransition",
+    "Task",
+    "evaluate_action_sequences",
+    "imagine",
+    "make_transition_module",
+    "plan_actions",
     # the ensemble as a TorchRL env
     "RCVAEEnsembleEnv",
-    "imagine_rollouts",
     "make_rcvae_env",
     # planning
     "CEMPlanner",

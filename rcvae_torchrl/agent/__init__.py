@@ -1,25 +1,44 @@
-"""The agent: an amortised policy and its distillation from the planner."""
+"""The agent: MPC over the world model, its distillation into an amortised policy, episodes."""
 
+from .dagger import PerturbedPolicy, dagger, label_states
 from .distill import DistillConfig, distill_policy
-from .loop import AgentConfig, AgentResult, run_model_based_agent
-from .mpc import EpisodeStats, PlannerConfig, make_mpc_policy, run_episodes
-from .policy import MLPPolicy, ResidualPolicy, make_policy_module
+from .episodes import EpisodeStats, ResetToState, run_episodes
+from .loop import AgentConfig, AgentResult, AgentTask, run_model_based_agent
+from .mpc import PlannerConfig, make_mpc_policy, policy_proposal
+from .policy import (
+    POLICY_FORMAT_VERSION,
+    MLPPolicy,
+    ResidualPolicy,
+    load_policy,
+    make_policy_module,
+    save_policy,
+)
 
 __all__ = [
     # amortised policy
+    "POLICY_FORMAT_VERSION",
     "MLPPolicy",
     "ResidualPolicy",
+    "load_policy",
     "make_policy_module",
-    # MPC agent
+    "save_policy",
+    # episodes in the real env
     "EpisodeStats",
+    "ResetToState",
+    "run_episodes",
+    # MPC agent
     "PlannerConfig",
     "make_mpc_policy",
-    "run_episodes",
+    "policy_proposal",
+    # distillation
+    "DistillConfig",
+    "PerturbedPolicy",
+    "dagger",
+    "distill_policy",
+    "label_states",
     # model-based RL loop
     "AgentConfig",
     "AgentResult",
+    "AgentTask",
     "run_model_based_agent",
-    # distillation
-    "DistillConfig",
-    "distill_policy",
 ]

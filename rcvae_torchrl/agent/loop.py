@@ -1,61 +1,52 @@
-"""The model-based RL loop: collect, train the ensemble, act with MPC, add the data, retrain.
+"""The model-based RL loop: train the ensemble, act with MPC, add the data, retrain.
 
-Every stage writes its result atomically under ``out_dir`` (data, per-round training checkpoints
-and models, MPC episodes, ``history.json``), so a run that is stopped, even by ``kill -9``,
-resumes where it was and never redoes finished rounds.
+Every stage writes its result atomically under ``out_dir`` (per-round training checkpoints and
+models, MPC episodes, ``history.json``), so a run that is stopped, even by ``kill -9``, resumes
+where it was and never redoes finished rounds.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 from tensordict import TensorDict
+from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 from rcvae_torchrl.data import TRAJ_KEY, load_episodes, save_episodes, split_episodes
-from rcvae_torchrl.envs import CONTROL_TIMESTEP, make_pusher_env, obs_indices
-from rcvae_torchrl.envs.datasets import collect_pusher_data
-from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.io import read_json, record_run_config, write_json
+from rcvae_torchrl.models import ModelFunctions, RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.rollout import ImaginePolicy, RewardFn, SuccessFn
 from rcvae_torchrl.training import TrainConfig, load_ensemble, save_ensemble, train_ensemble
-from rcvae_torchrl.training.atomic import atomic_write
 
-from .mpc import PlannerConfig, make_mpc_policy, run_episodes
+from .episodes import run_episodes
+from .mpc import PlannerConfig, make_mpc_policy
 
-__all__ = ["AgentConfig", "AgentResult", "run_model_based_agent"]
+__all__ = ["AgentConfig", "AgentResult", "AgentTask", "run_model_based_agent"]
 
 
 @dataclass(frozen=True)
 class AgentConfig:
-    """Budget of :func:`run_model_based_agent` on the Pusher.
+    """Budget of :func:`run_model_based_agent`.
 
     Args:
-        variant: Pusher variant the agent acts in (``"deterministic"``, ``"stochastic"``).
         rounds: K rounds of train -> act -> add data.
-        scripted_episodes, random_episodes: initial data (scripted pusher with Gaussian
-            exploration noise ``exploration_std``, and random play).
-        data_time_limit: length (s) of the initial scripted episodes (they run past success).
         mpc_episodes: real episodes acted with MPC per round (their data is added).
-        mpc_time_limit: length (s) of those episodes.
-        ensemble_size, hidden_dim: the world model.
+        max_steps: length of those episodes (steps).
+        ensemble_size: members of the world model.
         train: training budget per round (later rounds continue from the previous weights).
         planner: the MPC budget.
         seed: seeds everything.
     """
 
-    variant: str = "deterministic"
     rounds: int = 2
-    scripted_episodes: int = 100
-    random_episodes: int = 20
-    exploration_std: float = 0.3
-    data_time_limit: float = 15.0
     mpc_episodes: int = 5
-    mpc_time_limit: float = 30.0
+    max_steps: int = 600
     ensemble_size: int = 5
-    hidden_dim: int = 64
     train: TrainConfig = field(
         default_factory=lambda: TrainConfig(
             max_steps=1500, batch_windows=32, window=32, val_every=100
@@ -63,6 +54,28 @@ class AgentConfig:
     )
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     seed: int = 0
+
+
+@dataclass(frozen=True)
+class AgentTask:
+    """What the loop needs of the problem: the env, the model's shape and the task.
+
+    Args:
+        make_env: a factory of the real env the agent acts in.
+        model: the config of one ensemble member.
+        reward_fn, success_fn: the task (:class:`~rcvae_torchrl.rollout.Task`).
+        terminate_on_success: whether success ends the real env's episodes.
+        functions: the state constraint and input features ``model`` names.
+        prior: the planner's prior policy (with ``PlannerConfig.policy_prior``).
+    """
+
+    make_env: Callable[[], EnvBase]
+    model: RCVAEConfig
+    reward_fn: RewardFn
+    success_fn: SuccessFn
+    terminate_on_success: bool = False
+    functions: ModelFunctions | None = None
+    prior: ImaginePolicy | None = None
 
 
 @dataclass
@@ -74,36 +87,9 @@ class AgentResult:
     history: list[dict[str, float]] = field(default_factory=list)
 
 
-def _new_ensemble(config: AgentConfig) -> RCVAEEnsemble:
-    model = RCVAEConfig(
-        14,
-        2,
-        hidden_dim=config.hidden_dim,
-        mlp_dim=config.hidden_dim,
-        passthrough_dims=tuple(obs_indices("target")),
-    )
-    torch.manual_seed(config.seed)
-    return RCVAEEnsemble(model, config.ensemble_size)
-
-
-def _initial_data(config: AgentConfig, path: Path, progress: bool) -> TensorDict:
-    if path.is_file():
-        return load_episodes(path)
-    data = collect_pusher_data(
-        config.variant,
-        scripted_episodes=config.scripted_episodes,
-        random_episodes=config.random_episodes,
-        exploration_std=config.exploration_std,
-        time_limit=config.data_time_limit,
-        seed=config.seed,
-        progress=progress,
-    )
-    save_episodes(data, path)
-    return data
-
-
 def _train_round(
     config: AgentConfig,
+    task: AgentTask,
     data: TensorDict,
     previous: RCVAEEnsemble | None,
     round_dir: Path,
@@ -111,8 +97,9 @@ def _train_round(
 ) -> tuple[RCVAEEnsemble, dict]:
     model_path = round_dir / "model.pt"
     if model_path.is_file():
-        return load_ensemble(model_path), {}
-    ensemble = _new_ensemble(config)
+        return load_ensemble(model_path, functions=task.functions), {}
+    torch.manual_seed(config.seed)
+    ensemble = RCVAEEnsemble(task.model, config.ensemble_size, functions=task.functions)
     if previous is not None:
         ensemble.load_state_dict(previous.state_dict())
     train, val = split_episodes(data, 0.1, seed=config.seed)
@@ -129,50 +116,54 @@ def _train_round(
     return result.ensemble, {"train_steps": result.steps, "val_loss": result.best_val.mean().item()}
 
 
-def _record_config(path: Path, config: dict) -> None:
-    """Write the loop's config; an output folder made with other settings is an error (more
-    ``rounds`` is fine: a run can be extended)."""
-    if path.is_file():
-        saved, current = json.loads(path.read_text()), json.loads(json.dumps(config))
-        saved.pop("rounds", None)
-        if saved != {k: v for k, v in current.items() if k != "rounds"}:
-            raise ValueError(
-                f"out_dir: {str(path.parent)!r} holds a run made with other settings; "
-                "finished rounds would be reused: use a new out_dir"
-            )
-    atomic_write(path, lambda f: f.write(json.dumps(config, indent=2).encode()))
+def _episode_seeds(config: AgentConfig, k: int) -> Sequence[int]:
+    return [10_000 * (k + 1) + config.seed * 100 + i for i in range(config.mpc_episodes)]
 
 
 def run_model_based_agent(
-    config: AgentConfig, out_dir: str | Path, *, progress: bool = True
+    config: AgentConfig,
+    task: AgentTask,
+    initial_data: TensorDict,
+    out_dir: str | Path,
+    *,
+    progress: bool = True,
 ) -> AgentResult:
-    """Run K rounds of model-based RL on the Pusher; resumable from ``out_dir``.
+    """Run K rounds of model-based RL; resumable from ``out_dir``.
 
     Round k trains the ensemble on all data so far (continuing from round k-1's weights), acts
     ``mpc_episodes`` episodes with the CEM planner in the real env, and adds them to the data.
+    ``out_dir`` records the config; a directory made with other settings is an error (more
+    ``rounds`` is fine: a run can be extended).
     """
     out = Path(out_dir)
-    _record_config(out / "config.json", dataclasses.asdict(config))
+    record_run_config(out / "config.json", dataclasses.asdict(config), may_change=("rounds",))
     history_path = out / "history.json"
-    history = json.loads(history_path.read_text()) if history_path.is_file() else []
-    data = _initial_data(config, out / "data_initial.pt", progress)
-    env = make_pusher_env(config.variant, time_limit=config.mpc_time_limit)
-    max_steps = round(config.mpc_time_limit / CONTROL_TIMESTEP)
+    history = read_json(history_path, "agent history") if history_path.is_file() else []
+    data = initial_data
+    env = task.make_env()
     ensemble = None
     for k in tqdm(range(config.rounds), desc="agent rounds", disable=not progress):
         round_dir = out / f"round_{k}"
-        ensemble, train_info = _train_round(config, data, ensemble, round_dir, progress)
+        ensemble, train_info = _train_round(config, task, data, ensemble, round_dir, progress)
         episodes_path = round_dir / "mpc_episodes.pt"
         if episodes_path.is_file():
             data = torch.cat([data, load_episodes(episodes_path)])
             continue
-        policy = make_mpc_policy(ensemble, env, config.planner, seed=config.seed + k)
-        seeds = [10_000 * (k + 1) + config.seed * 100 + i for i in range(config.mpc_episodes)]
+        policy = make_mpc_policy(
+            ensemble,
+            env,
+            config.planner,
+            reward_fn=task.reward_fn,
+            success_fn=task.success_fn,
+            terminate_on_success=task.terminate_on_success,
+            prior=task.prior,
+            seed=config.seed + k,
+        )
         stats = run_episodes(
             env,
             policy,
-            seeds=seeds,
-            max_steps=max_steps,
+            seeds=_episode_seeds(config, k),
+            max_steps=config.max_steps,
             first_id=int(data[TRAJ_KEY].max()) + 1,
             progress=progress,
             desc=f"round {k}: MPC",
@@ -190,8 +181,7 @@ def run_model_based_agent(
                 "frames": int(data.shape[0] + episodes.shape[0]),
             }
         )
-        text = json.dumps(history, indent=2).encode()
-        atomic_write(history_path, lambda f, text=text: f.write(text))
+        write_json(history_path, history)
         save_episodes(episodes, episodes_path)
         data = torch.cat([data, episodes])
     return AgentResult(ensemble, data, history)

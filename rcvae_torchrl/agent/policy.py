@@ -2,16 +2,31 @@
 
 It stands in for the MPC planner where planning at every step is too slow: inside imagined
 rollouts of thousands of particles (closed-loop competency forecasts) and as a real-time agent.
-Observations are normalised with statistics fitted from data and saved with the weights.
+Observations are normalised with statistics fitted from data and saved with the weights
+(:func:`save_policy` / :func:`load_policy`, a versioned file like the ensemble checkpoints).
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-__all__ = ["MLPPolicy", "ResidualPolicy", "make_policy_module"]
+from rcvae_torchrl.io import StoredFileError, load_torch, save_torch
+
+__all__ = [
+    "POLICY_FORMAT_VERSION",
+    "MLPPolicy",
+    "ResidualPolicy",
+    "load_policy",
+    "make_policy_module",
+    "save_policy",
+]
+
+POLICY_FORMAT_VERSION = 1
+_KIND = "rcvae_torchrl.MLPPolicy"
 
 
 class MLPPolicy(nn.Module):
@@ -25,7 +40,7 @@ class MLPPolicy(nn.Module):
 
     def __init__(self, obs_dim: int, action_dim: int, hidden: int = 256) -> None:
         super().__init__()
-        self.obs_dim, self.action_dim = obs_dim, action_dim
+        self.obs_dim, self.action_dim, self.hidden = obs_dim, action_dim, hidden
         self.net = nn.Sequential(
             nn.Linear(obs_dim, hidden),
             nn.ELU(),
@@ -55,7 +70,9 @@ class ResidualPolicy(nn.Module):
 
     Distilling a planner that refines a prior policy (policy-guided CEM) into the residual is far
     easier than into a whole policy: the correction is small and smooth where the prior switches
-    modes abruptly (residual policy learning, Silver et al. 2018; Johannink et al. 2019).
+    modes abruptly (residual policy learning, Silver et al. 2018; Johannink et al. 2019). The
+    base is code, not weights: :func:`save_policy` stores the residual and :func:`load_policy`
+    takes the base again.
     """
 
     def __init__(self, base: nn.Module, residual: MLPPolicy) -> None:
@@ -70,3 +87,56 @@ class ResidualPolicy(nn.Module):
 def make_policy_module(policy: nn.Module) -> TensorDictModule:
     """Wire a policy to TorchRL keys: reads ``"observation"``, writes ``"action"``."""
     return TensorDictModule(policy, in_keys=["observation"], out_keys=["action"])
+
+
+def save_policy(policy: MLPPolicy | ResidualPolicy, path: str | Path) -> Path:
+    """Write the policy's weights, sizes and normaliser (and whether it is a residual on a base
+    policy) to ``path`` atomically, with a kind and a format version."""
+    mlp = policy.residual if isinstance(policy, ResidualPolicy) else policy
+    if not isinstance(mlp, MLPPolicy):
+        raise TypeError(
+            f"policy: expected an MLPPolicy or a ResidualPolicy, got {type(policy).__name__}"
+        )
+    payload = {
+        "kind": _KIND,
+        "format_version": POLICY_FORMAT_VERSION,
+        "obs_dim": mlp.obs_dim,
+        "action_dim": mlp.action_dim,
+        "hidden": mlp.hidden,
+        "residual": isinstance(policy, ResidualPolicy),
+        "state_dict": {k: v.detach().cpu() for k, v in mlp.state_dict().items()},
+    }
+    return save_torch(path, payload)
+
+
+def load_policy(path: str | Path, *, base: nn.Module | None = None) -> MLPPolicy | ResidualPolicy:
+    """Rebuild the policy :func:`save_policy` wrote (in eval mode).
+
+    Args:
+        path: the policy file.
+        base: the base policy, required when the file holds a residual policy.
+
+    Raises:
+        StoredFileError: a missing, truncated, corrupt or foreign file, an unknown format
+            version, or weights that do not match.
+        ValueError: a residual policy without ``base``.
+    """
+    payload = load_torch(path, "policy file")
+    where = f"policy file {str(path)!r}"
+    if not isinstance(payload, dict) or payload.get("kind") != _KIND:
+        raise StoredFileError(f"{where}: expected a policy saved by save_policy")
+    if payload.get("format_version") != POLICY_FORMAT_VERSION:
+        raise StoredFileError(
+            f"{where}: expected format version {POLICY_FORMAT_VERSION}, "
+            f"got {payload.get('format_version')!r}"
+        )
+    mlp = MLPPolicy(payload["obs_dim"], payload["action_dim"], payload["hidden"])
+    try:
+        mlp.load_state_dict(payload["state_dict"])
+    except RuntimeError as err:
+        raise StoredFileError(f"{where}: weights do not match: {err}") from err
+    if not payload["residual"]:
+        return mlp.eval()
+    if base is None:
+        raise ValueError(f"base: {where} holds a residual policy; pass its base policy")
+    return ResidualPolicy(base, mlp).eval()

@@ -5,7 +5,17 @@ TorchRL-style metric modules built on them. Reference: Acharya, Russell & Ahmed 
 equations 2 and 3 and Table 1.
 """
 
-from rcvae_torchrl.competency.assessor import CompetencyAssessor, CompetencyReport
+from rcvae_torchrl.competency.accuracy import (
+    band_coverage,
+    constant_baseline_error,
+    forecast_error,
+    forecast_spread,
+)
+from rcvae_torchrl.competency.assessor import (
+    CompetencyAssessor,
+    ImaginesRollouts,
+    PerSample,
+)
 from rcvae_torchrl.competency.boundary import Predicate, SuccessBoundary
 from rcvae_torchrl.competency.calibration import (
     BrierDecomposition,
@@ -43,6 +53,7 @@ from rcvae_torchrl.competency.outcome_assessment import (
     ordinal_distribution,
     partial_moments,
 )
+from rcvae_torchrl.competency.report import CompetencyReport
 
 __all__ = [
     # entropy estimators (bits)
@@ -77,6 +88,11 @@ __all__ = [
     "brier_score",
     "expected_calibration_error",
     "reliability_diagram",
+    # imagined trajectories against real ones
+    "band_coverage",
+    "constant_baseline_error",
+    "forecast_error",
+    "forecast_spread",
     # metric modules
     "Predicate",
     "SuccessBoundary",
@@ -85,4 +101,6 @@ __all__ = [
     # one-call assessment from start states
     "CompetencyAssessor",
     "CompetencyReport",
+    "ImaginesRollouts",
+    "PerSample",
 ]

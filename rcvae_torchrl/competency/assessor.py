@@ -1,214 +1,67 @@
 """One call from start states to a competency report: forecast, uncertainty, plain words.
 
-:class:`CompetencyAssessor` imagines ``E·N`` TS-∞ rollouts per start state with an
-:class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv`, either closed loop (a policy acts on the
+:class:`CompetencyAssessor` imagines ``E·N`` TS-∞ rollouts per start state with any world model
+that can imagine rollouts (:class:`ImaginesRollouts`, e.g. an
+:class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv`), either closed loop (a policy acts on the
 imagined states, e.g. the MPC planner) or open loop (an action sequence: the paper's
 p(s_1:T | s_0, a_0:T−1)), measures them with :class:`~rcvae_torchrl.competency.UncertaintyMetric`
-and :class:`~rcvae_torchrl.competency.SuccessMetric`, and returns a :class:`CompetencyReport`:
-one TensorDict with the start states as its batch, and a plain-language summary of it
-(Acharya, Russell & Ahmed, 2022: Table 1 per start state, Figure 1 per dimension and time).
+and :class:`~rcvae_torchrl.competency.SuccessMetric`, and returns a
+:class:`~rcvae_torchrl.competency.CompetencyReport`: one TensorDict with the start states as its
+batch, and a plain-language summary of it (Acharya, Russell & Ahmed, 2022: Table 1 per start
+state, Figure 1 per dimension and time).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
-from typing import Any, Literal
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol, runtime_checkable
 
-import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
-from torchrl.objectives import LossModule
 
 from rcvae_torchrl.competency import _checks
+from rcvae_torchrl.competency._keys import KeyedModule
 from rcvae_torchrl.competency.boundary import SuccessBoundary
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
-from rcvae_torchrl.model_env import ImaginePolicy, RCVAEEnsembleEnv
+from rcvae_torchrl.competency.report import CompetencyReport
 
-__all__ = ["CompetencyAssessor", "CompetencyReport"]
+__all__ = ["CompetencyAssessor", "ImaginesRollouts", "PerSample", "Policy"]
 
 _MEMBER_FIRST = ("success", "failure", ("time_to_success", "first_step"))  # [E, N, b] entries
-_REASONS = {
-    "epistemic": "the model has not seen states like this",
-    "aleatoric": "the members agree that the states vary by chance, which more data would not "
-    "remove",
-}
+
+#: ``observation [E, N, b, T, S] -> [E, N, b, T, ...]``: a per-sample output the report keeps.
+PerSample = Callable[[Tensor], Tensor]
+#: A closed-loop policy: a TensorDict module (``"observation"`` -> ``"action"``) or a tensor
+#: callable ``[..., S] -> [..., A]``; passed on to the world model's ``imagine``.
+Policy = Any
 
 
-@dataclass(frozen=True)
-class CompetencyReport:
-    """The assessment of a batch of start states, and its plain-language summary.
+@runtime_checkable
+class ImaginesRollouts(Protocol):
+    """What the assessor needs of a world model: its ensemble, and imagined rollouts.
 
-    ``data`` has batch ``[*B]`` (one entry per start state; ``report[i]`` is start state i)
-    and holds, with ``E`` members, ``N`` samples per member, ``T`` steps, ``D`` dimensions:
-
-    - ``"observation"`` ``[*B, D]``: the start states;
-    - ``"uncertainty"``: :class:`~rcvae_torchrl.competency.UncertaintyMetric`'s entries
-      (``"total"`` / ``"aleatoric"`` / ``"epistemic"`` bits ``[*B, T, D]``, ``"time_mean"``
-      ``[*B, D]``, ``"summary"`` ``[*B]`` summed over dimensions, ``"by_dim"`` with names),
-      plus ``"peak_step"`` int64 ``[*B, D]``, the time index of each dimension's largest total
-      bits, and with ``dt`` ``"peak_time_s"`` = (peak_step + 1)·dt (index t holds s_{t+1});
-      joint estimators give ``[*B, T]``, ``[*B]``, ``[*B]`` and no peaks;
-    - ``"competency"``: :class:`~rcvae_torchrl.competency.SuccessMetric`'s entries with the
-      start state first: ``"p_success"``, ``"p_success_low"``, ``"p_success_high"`` ``[*B]``,
-      ``"p_success_member"`` ``[*B, E]``, ``"success"`` / ``"failure"`` ``[*B, E, N]``,
-      ``"outcome_uncertainty"`` ``[*B]``, ``"time_to_success"`` (``"first_step"``
-      ``[*B, E, N]``, per-step entries ``[*B, T]``, statistics ``[*B]``);
-    - ``"rollout"`` (only when asked for): the imagined rollouts ``[*B, E, N, T]``.
-
-    **Summary rules** (:meth:`summary`), one paragraph per start state:
-
-    1. ``P(success within L) = p (c% interval low–high).`` L = min(time limit, T) steps, in
-       seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
-    2. The dominant type is the larger of the aleatoric and epistemic time-mean bits summed
-       over dimensions (``("uncertainty", "summary", ·)``; a tie counts as aleatoric), given
-       with its share of the total: ``Most of the doubt is epistemic (0.70 of 1.10 bits): the
-       model has not seen states like this.`` When all three are 0 the sentence says so.
-    3. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
-       each with its mean bits and the time of its peak. Left out for joint estimators.
-
-    The words are only as good as the estimate: with the histogram estimator, a member's
-    entropy from ``N`` samples is at most log2 N bits, so when the samples spread over many
-    more bins than ``N`` the epistemic part is inflated (up to log2 E bits per dimension).
-    Coarser bins or more samples per member help.
-
-    Args:
-        data: the report TensorDict described above.
-        dim_names: names of the ``D`` dimensions.
-        time_limit: L in steps.
-        dt: seconds per step, or ``None`` (times in steps).
-        confidence: coverage of the P(success) interval.
-        top_k: number of dimensions named in the summary.
-        uncertainty_key, competency_key, observation_key: where ``data`` holds each part.
+    ``ensemble`` has ``ensemble_size`` (E) and ``config.obs_dim`` / ``config.action_dim``;
+    ``imagine(start [b, S], actions [b, T, A] | None, *, policy, horizon, samples_per_member,
+    generator)`` returns a TensorDict ``[E, N, b, T]`` holding ``"observation"`` ``[..., S]``
+    (sample ``(m, n, b)`` following member m). :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv`
+    is one.
     """
 
-    data: TensorDictBase
-    dim_names: tuple[str, ...]
-    time_limit: int
-    dt: float | None
-    confidence: float
-    top_k: int = 2
-    uncertainty_key: NestedKey = "uncertainty"
-    competency_key: NestedKey = "competency"
-    observation_key: NestedKey = "observation"
+    ensemble: Any
 
-    @property
-    def batch_size(self) -> torch.Size:
-        """``[*B]``, the start states' batch."""
-        return self.data.batch_size
-
-    @property
-    def uncertainty(self) -> TensorDictBase:
-        """The ``"uncertainty"`` entries."""
-        return self.data.get(self.uncertainty_key)
-
-    @property
-    def competency(self) -> TensorDictBase:
-        """The ``"competency"`` entries."""
-        return self.data.get(self.competency_key)
-
-    def __getitem__(self, index: Any) -> CompetencyReport:
-        """The report of some start states (``data[index]``)."""
-        return replace(self, data=self.data[index])
-
-    def summary(self, index: int | tuple[int, ...] | None = None) -> str:
-        """Plain-language summary (see the class docstring for the rules).
-
-        Args:
-            index: one start state (an int, or a tuple for a multi-dimensional batch). ``None``:
-                the one paragraph of an unbatched report, else one paragraph per start state,
-                each headed ``Start state i:``.
-        """
-        if index is not None:
-            one = self.data[index]
-            if one.batch_dims:
-                raise ValueError(
-                    f"index: expected one start state of the batch {tuple(self.batch_size)}, "
-                    f"got {index!r} (selects {tuple(one.batch_size)})"
-                )
-            return self._paragraph(one)
-        if not self.data.batch_dims:
-            return self._paragraph(self.data)
-        return "\n\n".join(
-            f"Start state {i[0] if len(i) == 1 else i}: {self._paragraph(self.data[i])}"
-            for i in np.ndindex(*self.batch_size)
-        )
-
-    def __str__(self) -> str:
-        return self.summary()
-
-    def _paragraph(self, one: TensorDictBase) -> str:
-        competency, uncertainty = one.get(self.competency_key), one.get(self.uncertainty_key)
-        sentences = [
-            _success_sentence(
-                float(competency.get("p_success")),
-                float(competency.get("p_success_low")),
-                float(competency.get("p_success_high")),
-                self.confidence,
-                _duration(self.time_limit, self.dt),
-            ),
-            _doubt_sentence(
-                *(float(uncertainty.get(("summary", k))) for k in ("aleatoric", "epistemic")),
-                float(uncertainty.get(("summary", "total"))),
-            ),
-        ]
-        if "peak_step" in uncertainty.keys():
-            sentences.append(
-                _dims_sentence(
-                    uncertainty.get(("time_mean", "total")),
-                    uncertainty.get("peak_step"),
-                    self.dim_names,
-                    self.dt,
-                    self.top_k,
-                )
-            )
-        return " ".join(s for s in sentences if s)
+    def imagine(self, start: Any, actions: Any = None, **kwargs: Any) -> TensorDictBase: ...
 
 
-def _success_sentence(p: float, low: float, high: float, confidence: float, within: str) -> str:
-    """``P(success within 30 s) = 0.84 (95% interval 0.78–0.89).``"""
-    return f"P(success within {within}) = {p:.2f} ({confidence:.0%} interval {low:.2f}–{high:.2f})."
-
-
-def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:
-    """The dominant uncertainty type (larger of the two; a tie is aleatoric) and its share."""
-    if aleatoric == epistemic == total == 0.0:
-        return "No doubt about the imagined states (0.00 bits): all samples agree."
-    kind, bits = ("epistemic", epistemic) if epistemic > aleatoric else ("aleatoric", aleatoric)
-    return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {_REASONS[kind]}."
-
-
-def _dims_sentence(
-    time_mean: Tensor, peak_step: Tensor, names: Sequence[str], dt: float | None, top_k: int
-) -> str:
-    """The ``top_k`` dimensions by time-mean bits ``[D]`` (above 0) with their peak ``[D]``."""
-    order = torch.argsort(time_mean, descending=True, stable=True)[:top_k].tolist()
-    parts = [
-        f"{names[d]} (mean {float(time_mean[d]):.2f} bits, peak at {_when(int(peak_step[d]), dt)})"
-        for d in order
-        if float(time_mean[d]) > 0
-    ]
-    return f"Most uncertain: {', '.join(parts)}." if parts else ""
-
-
-def _duration(steps: int, dt: float | None) -> str:
-    return f"{steps} steps" if dt is None else f"{round(steps * dt, 6):g} s"
-
-
-def _when(index: int, dt: float | None) -> str:
-    """Index t of the time axis holds s_{t+1}: step t + 1, time (t + 1)·dt."""
-    return f"step {index + 1}" if dt is None else f"t = {round((index + 1) * dt, 6):g} s"
-
-
-class CompetencyAssessor(LossModule):
+class CompetencyAssessor(KeyedModule):
     """Forecast success and its uncertainty for start states, closed or open loop.
 
-    Each start state gets ``samples_per_member`` TS-∞ rollouts from every member of the model
-    env's ensemble (:meth:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv.imagine`) over
+    Each start state gets ``samples_per_member`` TS-∞ rollouts from every member of the world
+    model's ensemble (its ``imagine``, see :class:`ImaginesRollouts`) over
     ``horizon`` steps, measured by :class:`~rcvae_torchrl.competency.UncertaintyMetric` (bits
     per dimension and time, the paper's equations 2 and 3) and
     :class:`~rcvae_torchrl.competency.SuccessMetric` (P(success) against ``boundary``), in
@@ -217,15 +70,17 @@ class CompetencyAssessor(LossModule):
     reaching the boundary at any step within its time limit.
 
     Use :meth:`assess` (start states as a tensor or a tensordict, policy or actions as
-    arguments) or ``forward(td)`` (the TorchRL ``LossModule`` contract: start states under
-    ``"observation"`` ``[*B, S]``, an optional open-loop plan under ``"actions"``
-    ``[*B, T, A]``, else the ``policy`` given here; keys configurable with ``set_keys``).
+    arguments) or ``forward(td)`` (a TensorDict module: start states under ``"observation"``
+    ``[*B, S]``, an optional open-loop plan under ``"actions"`` ``[*B, T, A]``, else the
+    ``policy`` given here; keys renamed with ``set_keys``).
 
     Args:
-        model_env: the ensemble world model as an env (``E >= 2`` members).
+        model_env: the world model (:class:`ImaginesRollouts`, ``E >= 2`` members), e.g. an
+            :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv`.
         boundary: the task's success / failure boundary.
-        bin_width: histogram bin width, scalar or ``[S]`` (e.g. the Pusher's
-            ``resolution_tensor()``); see :class:`~rcvae_torchrl.competency.UncertaintyMetric`.
+        bin_width: histogram bin width, scalar or ``[S]`` (the smallest difference that
+            matters in each dimension, in its own units); see
+            :class:`~rcvae_torchrl.competency.UncertaintyMetric`.
         dim_names: names of the ``S`` observation dimensions (default ``obs[i]``).
         samples_per_member: N.
         horizon: T, steps imagined; default the boundary's time limit. Open-loop action
@@ -240,6 +95,10 @@ class CompetencyAssessor(LossModule):
         start_chunk: start states imagined together.
         episode_end: measure the uncertainty of the episode, which ends when ``boundary``
             decides the outcome (:meth:`SuccessBoundary.ended_over_time`; histogram only).
+        per_sample: extra outputs kept per imagined sample: name -> function of the imagined
+            observations ``[E, N, b, T, S] -> [E, N, b, T, ...]`` (e.g. a distance to a goal
+            for forecast bands); the report holds them under ``("per_sample", name)`` with the
+            start state first, ``[*B, E, N, T, ...]``.
         **estimator_args: other estimator arguments (e.g. ``k``, ``joint``,
             ``bias_correction="shuffle"``).
 
@@ -247,7 +106,11 @@ class CompetencyAssessor(LossModule):
         >>> from rcvae_torchrl.model_env import RCVAEEnsembleEnv
         >>> from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
         >>> model = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=8, mlp_dim=8), ensemble_size=3)
-        >>> env = RCVAEEnsembleEnv(model, lambda s, a: -s[..., :1], lambda s: s[..., 0] > 1)
+        >>> env = RCVAEEnsembleEnv(
+        ...     model,
+        ...     lambda observation, action: -observation[..., :1],
+        ...     lambda observation: observation[..., 0] > 1,
+        ... )
         >>> boundary = SuccessBoundary(lambda s: s[..., 0] > 1.0, time_limit_s=1.0, dt=0.1)
         >>> assessor = CompetencyAssessor(env, boundary, bin_width=0.5, dim_names=["x", "y", "v"])
         >>> report = assessor.assess(torch.zeros(2, 3), actions=torch.zeros(10, 1))
@@ -267,12 +130,13 @@ class CompetencyAssessor(LossModule):
         uncertainty: NestedKey = "uncertainty"
         competency: NestedKey = "competency"
 
-    default_keys = _AcceptedKeys
+    _inputs = ("observation",)
+    _outputs = ("uncertainty", "competency")
     tensor_keys: _AcceptedKeys
 
     def __init__(
         self,
-        model_env: RCVAEEnsembleEnv,
+        model_env: ImaginesRollouts,
         boundary: SuccessBoundary,
         *,
         bin_width: BinWidth | None = None,
@@ -281,12 +145,13 @@ class CompetencyAssessor(LossModule):
         horizon: int | None = None,
         estimator: str = "histogram",
         dt: float | None = None,
-        policy: ImaginePolicy | None = None,
+        policy: Policy | None = None,
         confidence: float = 0.95,
         interval: Literal["jeffreys", "wilson"] = "jeffreys",
         top_k: int = 2,
         start_chunk: int = 16,
         episode_end: bool = False,
+        per_sample: Mapping[str, PerSample] | None = None,
         **estimator_args: Any,
     ) -> None:
         super().__init__()
@@ -310,13 +175,11 @@ class CompetencyAssessor(LossModule):
         self.policy = policy
         self.samples_per_member = samples_per_member
         self.top_k, self.start_chunk = top_k, start_chunk
+        self.per_sample = _per_sample(per_sample)
 
     @property
     def boundary(self) -> SuccessBoundary:
         return self.success_metric.boundary
-
-    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
-        pass
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """The report's ``data`` for ``tensordict[observation]`` (see the class docstring)."""
@@ -327,7 +190,7 @@ class CompetencyAssessor(LossModule):
         self,
         start: Tensor | TensorDictBase,
         *,
-        policy: ImaginePolicy | None = None,
+        policy: Policy | None = None,
         actions: Tensor | None = None,
         generator: torch.Generator | None = None,
         return_rollouts: bool = False,
@@ -376,7 +239,7 @@ class CompetencyAssessor(LossModule):
         self,
         starts: Tensor,
         plan: Tensor | None,
-        policy: ImaginePolicy | None,
+        policy: Policy | None,
         generator: torch.Generator | None,
         keep_rollouts: bool,
     ) -> TensorDictBase:
@@ -401,6 +264,8 @@ class CompetencyAssessor(LossModule):
         out.set(self.tensor_keys.observation, starts)
         out.set(self.tensor_keys.uncertainty, self._uncertainty(observed, starts.shape[0]))
         out.set(self.tensor_keys.competency, self._competency(observed, starts.shape[0]))
+        for name, fn in self.per_sample.items():
+            out.set(("per_sample", name), _per_sample_value(name, fn, observed, starts.shape[0]))
         if keep_rollouts:
             out.set("rollout", rollout.permute(2, 0, 1, 3))
         return out
@@ -458,8 +323,8 @@ class CompetencyAssessor(LossModule):
         return start
 
     def _controls(
-        self, policy: ImaginePolicy | None, actions: Tensor | None, batch: torch.Size
-    ) -> tuple[ImaginePolicy | None, Tensor | None]:
+        self, policy: Policy | None, actions: Tensor | None, batch: torch.Size
+    ) -> tuple[Policy | None, Tensor | None]:
         """``(policy, None)`` for closed loop or ``(None, actions [B', T, A])`` for open loop."""
         if policy is not None and actions is not None:
             raise ValueError(
@@ -508,9 +373,12 @@ class CompetencyAssessor(LossModule):
 
 
 def _check_model_env(model_env: object) -> int:
-    """An :class:`RCVAEEnsembleEnv` over ``E >= 2`` members; returns its state dimension."""
-    if not isinstance(model_env, RCVAEEnsembleEnv):
-        raise TypeError(f"model_env: expected an RCVAEEnsembleEnv, got {type(model_env).__name__}")
+    """A world model that imagines rollouts over ``E >= 2`` members; returns its state dim."""
+    if not isinstance(model_env, ImaginesRollouts) or not hasattr(model_env.ensemble, "config"):
+        raise TypeError(
+            "model_env: expected a world model with an ensemble and an imagine method (e.g. an "
+            f"RCVAEEnsembleEnv), got {type(model_env).__name__}"
+        )
     if model_env.ensemble.ensemble_size < 2:
         raise ValueError(
             "model_env: expected an ensemble of E >= 2 members (the aleatoric / epistemic split "
@@ -547,3 +415,27 @@ def _dt(dt: float | None, boundary: SuccessBoundary) -> float | None:
     if boundary.dt is not None and not math.isclose(dt, boundary.dt):
         raise ValueError(f"dt: expected the boundary's dt = {boundary.dt}, got {dt!r}")
     return float(dt)
+
+
+def _per_sample(per_sample: Mapping[str, PerSample] | None) -> dict[str, PerSample]:
+    out = dict(per_sample or {})
+    for name, fn in out.items():
+        if not isinstance(name, str) or not callable(fn):
+            raise TypeError(
+                f"per_sample[{name!r}]: expected a name -> callable mapping, got "
+                f"{type(fn).__name__}"
+            )
+    return out
+
+
+def _per_sample_value(name: str, fn: PerSample, observed: TensorDictBase, b: int) -> Tensor:
+    """``fn`` of the imagined observations ``[E, N, b, T, S]``, start state first."""
+    observation = observed.get("observation")
+    value = fn(observation)
+    if not isinstance(value, Tensor) or value.shape[:4] != observation.shape[:4]:
+        got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+        raise ValueError(
+            f"per_sample[{name!r}]: expected a tensor of shape {tuple(observation.shape[:4])} + "
+            f"(...) for observations {tuple(observation.shape)}, got {got}"
+        )
+    return value.movedim(2, 0)

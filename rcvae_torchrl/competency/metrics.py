@@ -1,11 +1,11 @@
-"""Competency metrics as TorchRL ``LossModule`` s over imagined rollouts.
+"""Competency metrics over imagined rollouts, as TensorDict modules with configurable keys.
 
 Both modules read a TensorDict with batch dims ``[E, N, *B, T]`` (ensemble member, sample per
 member, start state(s), time) holding observations ``[E, N, *B, T, D]`` and return a new
 TensorDict with no batch dims: :class:`UncertaintyMetric` under ``"uncertainty"``,
-:class:`SuccessMetric` under ``"competency"`` (both keys configurable with ``set_keys``). They are
-thin wrappers over :func:`~rcvae_torchrl.competency.decompose_uncertainty` and the outcome
-functions.
+:class:`SuccessMetric` under ``"competency"`` (keys renamed with ``set_keys``, as TorchRL's
+losses do). They are thin wrappers over
+:func:`~rcvae_torchrl.competency.decompose_uncertainty` and the outcome functions.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
-from torchrl.objectives import LossModule
 
 from rcvae_torchrl.competency import _checks
+from rcvae_torchrl.competency._keys import KeyedModule
 from rcvae_torchrl.competency.boundary import SuccessBoundary
 from rcvae_torchrl.competency.decomposition import ESTIMATORS, decompose_uncertainty
 from rcvae_torchrl.competency.entropy import BinWidth
@@ -42,7 +42,7 @@ def _observation(tensordict: TensorDictBase, key: NestedKey) -> Tensor:
     return obs
 
 
-class UncertaintyMetric(LossModule):
+class UncertaintyMetric(KeyedModule):
     """Total / aleatoric / epistemic uncertainty of imagined observations, in bits.
 
     The paper's equations 2 and 3 per time step (its Figure 1) and averaged over time (its
@@ -92,7 +92,8 @@ class UncertaintyMetric(LossModule):
         ended: NestedKey = "ended"
         uncertainty: NestedKey = "uncertainty"
 
-    default_keys = _AcceptedKeys
+    _inputs = ("observation",)
+    _outputs = ("uncertainty",)
     tensor_keys: _AcceptedKeys
     bin_width: Tensor | None
 
@@ -129,9 +130,12 @@ class UncertaintyMetric(LossModule):
         self.dim_names = None if dim_names is None else tuple(dim_names)
         self.dim_reduction = dim_reduction
         self.episode_end = bool(episode_end)
+        self._sync_keys()
 
-    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
-        pass
+    def _sync_keys(self) -> None:
+        super()._sync_keys()
+        if getattr(self, "episode_end", False):
+            self.in_keys = [*self.in_keys, self.tensor_keys.ended]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Decompose ``tensordict[observation]`` ``[E, N, *B, T, D]``; see the class docstring."""
@@ -176,7 +180,7 @@ class UncertaintyMetric(LossModule):
         return reduced.mean(dim=-1)
 
 
-class SuccessMetric(LossModule):
+class SuccessMetric(KeyedModule):
     """Forecast P(success) of imagined rollouts against a :class:`SuccessBoundary`.
 
     Output entries under ``"competency"``:
@@ -216,7 +220,8 @@ class SuccessMetric(LossModule):
         observation: NestedKey = "observation"
         competency: NestedKey = "competency"
 
-    default_keys = _AcceptedKeys
+    _inputs = ("observation",)
+    _outputs = ("competency",)
     tensor_keys: _AcceptedKeys
 
     def __init__(
@@ -232,9 +237,6 @@ class SuccessMetric(LossModule):
         self.boundary = boundary
         self.confidence = confidence
         self.interval = interval
-
-    def _forward_value_estimator_keys(self, **kwargs: Any) -> None:
-        pass
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Evaluate ``tensordict[observation]`` ``[E, N, *B, T, D]``; see the class docstring."""

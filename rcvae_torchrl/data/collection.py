@@ -35,7 +35,8 @@ def collect_episodes(
     (``("collector", "traj_ids")``). Unfinished episodes are dropped.
 
     Args:
-        make_env: zero-argument env factory (e.g. ``functools.partial(make_pusher_env, ...)``).
+        make_env: zero-argument env factory (e.g. a ``functools.partial`` of an env
+            constructor).
         policy: a TorchRL policy (TensorDictModule or callable on tensordicts).
         num_episodes: episodes to collect (>= 1).
         seed: seeds the env(s) (start states and noise).

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 
-import torch
 from tensordict import TensorDict, TensorDictBase
 
-from rcvae_torchrl.training.atomic import atomic_write
+from rcvae_torchrl.io import StoredFileError, load_torch, save_torch
 
 __all__ = ["load_episodes", "save_episodes"]
 
@@ -18,16 +16,16 @@ def save_episodes(data: TensorDictBase, path: str | Path) -> Path:
     if data.ndim != 1:
         raise ValueError(f"data: expected a flat TensorDict [frames], got {tuple(data.shape)}")
     payload = {"batch_size": list(data.shape), "data": data.to_dict()}
-    return atomic_write(path, lambda f: torch.save(payload, f))
+    return save_torch(path, payload)
 
 
 def load_episodes(path: str | Path) -> TensorDict:
-    """Load what :func:`save_episodes` wrote, with a clear error for a damaged file."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"path: expected an episodes file, got {str(path)!r}")
+    """Load what :func:`save_episodes` wrote; a missing, truncated or corrupt file is a
+    :class:`~rcvae_torchrl.io.StoredFileError` naming it."""
+    payload = load_torch(path, "episodes file")
     try:
-        payload = torch.load(io.BytesIO(path.read_bytes()), weights_only=True)
         return TensorDict(payload["data"], batch_size=payload["batch_size"])
     except Exception as err:
-        raise ValueError(f"episodes file {str(path)!r} is corrupt or truncated: {err}") from err
+        raise StoredFileError(
+            f"episodes file {str(path)!r}: expected what save_episodes writes: {err}"
+        ) from err

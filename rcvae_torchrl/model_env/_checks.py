@@ -5,30 +5,22 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
-from rcvae_torchrl.model_env.propagation import PROPAGATIONS
+from rcvae_torchrl._checks import check_dtype, check_finite, check_trailing
 from rcvae_torchrl.model_env.specs import OBSERVATION_KEY
 from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.models.validation import check_dtype, check_finite, check_trailing
+from rcvae_torchrl.rollout import TRAJECTORY_SAMPLINGS
 
 MEMBER_ASSIGNMENTS = ("round_robin", "random")
 
 
-def check_arguments(
-    ensemble: object,
-    reward_fn: object,
-    success_fn: object,
-    trajectory_sampling: str,
-    member_assignment: str,
-) -> None:
-    """The constructor arguments of :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv`."""
+def check_arguments(ensemble: object, trajectory_sampling: str, member_assignment: str) -> None:
+    """The constructor arguments of :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv` (the
+    task functions are checked by :class:`~rcvae_torchrl.rollout.Task`)."""
     if not isinstance(ensemble, RCVAEEnsemble):
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}.")
-    for name, fn in (("reward_fn", reward_fn), ("success_fn", success_fn)):
-        if not callable(fn):
-            raise TypeError(f"{name}: expected a callable, got {type(fn).__name__}.")
-    if trajectory_sampling not in PROPAGATIONS:
+    if trajectory_sampling not in TRAJECTORY_SAMPLINGS:
         raise ValueError(
-            f"trajectory_sampling: expected one of {list(PROPAGATIONS)}, "
+            f"trajectory_sampling: expected one of {list(TRAJECTORY_SAMPLINGS)}, "
             f"got {trajectory_sampling!r}."
         )
     if member_assignment not in MEMBER_ASSIGNMENTS:
@@ -36,17 +28,6 @@ def check_arguments(
             f"member_assignment: expected one of {list(MEMBER_ASSIGNMENTS)}, "
             f"got {member_assignment!r}."
         )
-
-
-def make_generator(
-    generator: torch.Generator | None, seed: int | None, device: torch.device
-) -> torch.Generator | None:
-    """``generator``, or a new one seeded with ``seed`` (not both)."""
-    if generator is not None and seed is not None:
-        raise ValueError(f"seed: expected None when a generator is given, got {seed!r}.")
-    if seed is None:
-        return generator
-    return torch.Generator(device=device).manual_seed(int(seed))
 
 
 def check_start_states(ensemble: RCVAEEnsemble, start_states: torch.Tensor) -> None:

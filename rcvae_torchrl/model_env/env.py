@@ -9,23 +9,32 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
+from rcvae_torchrl._checks import make_generator
 from rcvae_torchrl.model_env import _checks
-from rcvae_torchrl.model_env.imagine import ImaginePolicy, imagine_rollouts
-from rcvae_torchrl.model_env.propagation import Propagation, make_step_module
-from rcvae_torchrl.model_env.scoring import score_action_sequences
 from rcvae_torchrl.model_env.specs import (
     ACTION_KEY,
     HIDDEN_KEY,
     LATENT_KEY,
     MEMBER_KEY,
     OBSERVATION_KEY,
-    REWARD_KEY,
     SUCCESS_KEY,
     ModelEnvSpecs,
     model_env_specs,
 )
-from rcvae_torchrl.model_env.task import RewardFn, SuccessFn, task_reward, task_success
-from rcvae_torchrl.models import RCVAEEnsemble, init_model_state
+from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.rollout import (
+    ActionBounds,
+    ImaginePolicy,
+    RewardFn,
+    SuccessFn,
+    Task,
+    TrajectorySampling,
+    evaluate_action_sequences,
+    imagine,
+    init_model_state,
+    make_transition_module,
+    plan_actions,
+)
 
 __all__ = ["MemberAssignment", "RCVAEEnsembleEnv"]
 
@@ -37,10 +46,13 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     """The RCVAE ensemble as a TorchRL environment (``batch_size=()``: any leading batch).
 
     A step samples s_{t+1} for every particle of the input (particles are batch elements),
-    then scores it with the task functions: ``"reward"`` = ``reward_fn(s_{t+1}, a_t)``,
-    ``"success"`` = ``success_fn(s_{t+1})``; success sets ``"terminated"`` and ``"done"`` when
-    ``terminate_on_success`` (default, as the real Pusher). ``"truncated"`` is always False: the
-    model has no clock (append a ``StepCounter(max_steps)`` transform for a time limit).
+    then scores it with the task functions (:class:`~rcvae_torchrl.rollout.Task`, called by
+    keyword): ``"reward"`` = ``reward_fn(observation=s_{t+1}, action=a_t)``, ``"success"`` =
+    ``success_fn(observation=s_{t+1})``; success sets ``"terminated"`` and ``"done"`` only when
+    ``terminate_on_success`` (mirror the real env: most envs never end at success). Actions
+    are clipped to the action spec's bounds, as a real env clips them. ``"truncated"`` is
+    False in ``step``: the model has no clock (append a ``StepCounter(max_steps)`` transform
+    for a time limit); :meth:`imagine` marks the horizon's last step ``truncated``.
 
     **Keys.** ``"observation"`` ``[*B, S]``, ``"action"`` ``[*B, A]``, ``"reward"`` ``[*B, 1]``,
     ``"success"`` / ``"done"`` / ``"terminated"`` / ``"truncated"`` bool ``[*B, 1]`` and the
@@ -50,15 +62,17 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     drawn at the last step; absent for ``"mean"``).
 
     **Trajectory sampling** (Chua et al. 2018, PETS; see
-    :mod:`rcvae_torchrl.model_env.propagation`): ``"ts_inf"`` (TS-∞, default) keeps the member
+    :mod:`rcvae_torchrl.rollout.sampling`): ``"ts_inf"`` (TS-∞, default) keeps the member
     assigned at reset, ``"ts1"`` redraws it every step, ``"mean"`` steps deterministically with
     the mean of the members' noise-free predictions.
 
     **Reset.** ``_reset`` returns a new tensordict. Start observations come from, in order:
     the input's ``"observation"`` (e.g. the real env's current state; the particle batch is
     the input's batch), else ``start_states`` ``[K, S]`` sampled uniformly with the env's
-    generator, else a ``ValueError``. Auto-resets of done particles inside
-    ``rollout(..., break_when_any_done=False)`` (TorchRL's planners run it so) go through
+    generator, else (when ``real_env`` was given) one ``real_env.reset()`` per start state, so
+    ``check_env_specs(model_env)`` works out of the box, else a ``ValueError``. Auto-resets of
+    done particles inside ``rollout(..., break_when_any_done=False)`` (TorchRL's planners run
+    it so) go through
     :meth:`maybe_reset`: without ``start_states`` the particles restart from their own last
     observation. Through a ``TransformedEnv``, TorchRL strips such resets down to ``"_reset"``,
     so there they need ``start_states``. The model state restarts at h_0 = 0;
@@ -70,21 +84,22 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     TorchRL's ``rollout`` stops the whole batch at the first done unless
     ``break_when_any_done=False``; :meth:`imagine` has no such coupling.
 
-    **Fast paths.** :meth:`imagine` (rollouts ``[E, N, *B, T]`` for the competency metrics) and
-    :meth:`evaluate_action_sequences` (the planner seam of :mod:`rcvae_torchrl.planners`) skip
-    TensorDict and TorchRL bookkeeping and step member-major tensors directly.
+    **Fast paths.** :meth:`imagine` (rollouts ``[E, N, *B, T]`` for the competency metrics),
+    :meth:`plan_actions` (a policy's plan) and :meth:`evaluate_action_sequences` (the planner
+    seam of :mod:`rcvae_torchrl.planners`) skip TensorDict and TorchRL bookkeeping: they call
+    the rollout engine (:mod:`rcvae_torchrl.rollout`) on member-major tensors directly.
 
     Args:
         ensemble: the trained world model (its device is the env's).
-        reward_fn: ``(observation_next [..., S], action [..., A]) -> [..., 1]``, e.g.
-            :func:`rcvae_torchrl.envs.pusher_reward`.
-        success_fn: ``observation [..., S] -> [...]`` bool, e.g.
-            :func:`rcvae_torchrl.envs.pusher_success`.
-        real_env: copy the task specs from it (:meth:`set_specs_from_env`); without it,
-            defaults (actions bounded in [-1, 1]).
+        reward_fn: ``reward_fn(observation=s_{t+1} [..., S], action=a_t [..., A]) -> [..., 1]``.
+        success_fn: ``success_fn(observation=s [..., S]) -> [...]`` bool.
+        real_env: copy the task specs from it (:meth:`set_specs_from_env`) and draw start
+            states from its ``reset()`` when no others are given; without it, default specs
+            (actions bounded in [-1, 1]).
         trajectory_sampling: ``"ts_inf"``, ``"ts1"`` or ``"mean"``.
         member_assignment: ``"round_robin"`` or ``"random"`` members at reset.
-        terminate_on_success: success ends an imagined episode (mirror the real env's setting).
+        terminate_on_success: success ends an imagined episode (mirror the real env's setting;
+            off by default, as in most envs).
         start_states: ``[K, S]`` start observations for resets without an ``"observation"``.
         generator: source of all randomness of the env (sampling noise, members, start
             states); or ``seed`` to make one. ``set_seed`` reseeds it. ``None``: global RNG.
@@ -93,26 +108,27 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             planning and evaluation, and a graph over a whole rollout costs memory).
         compile_scoring: :meth:`evaluate_action_sequences` runs the ``"ts_inf"`` rollout (all
             H steps: model, constraint, reward, success) as one ``torch.compile``-d function
-            (:func:`~rcvae_torchrl.model_env.scoring.compiled_rollout`): faster once compiled,
+            (:func:`~rcvae_torchrl.rollout.compiled_scoring`): faster once compiled,
             which takes tens of seconds to minutes on a CPU per new horizon or batch size; the
             same samples up to float rounding. Other modes and ``step`` are unaffected.
 
     Example:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from rcvae_torchrl.envs import pusher_reward, pusher_success
         >>> from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
-        >>> model = RCVAEEnsemble(RCVAEConfig(14, 2, hidden_dim=16, mlp_dim=16), ensemble_size=5)
-        >>> starts = torch.rand(100, 14) * 0.2 - 0.1
-        >>> env = RCVAEEnsembleEnv(
-        ...     model, pusher_reward, pusher_success, start_states=starts, seed=0
-        ... )
+        >>> model = RCVAEEnsemble(RCVAEConfig(4, 2, hidden_dim=16, mlp_dim=16), ensemble_size=5)
+        >>> def reward(observation, action):
+        ...     return -observation[..., :1].abs()
+        >>> def success(observation):
+        ...     return observation[..., 0].abs() < 0.01
+        >>> starts = torch.rand(100, 4) * 0.2 - 0.1
+        >>> env = RCVAEEnsembleEnv(model, reward, success, start_states=starts, seed=0)
         >>> td = env.reset(TensorDict(batch_size=[8]))
         >>> td["member"].tolist()
         [0, 1, 2, 3, 4, 0, 1, 2]
         >>> rollout = env.rollout(6, tensordict=td, auto_reset=False, break_when_any_done=False)
         >>> rollout["next", "observation"].shape
-        torch.Size([8, 6, 14])
+        torch.Size([8, 6, 4])
         >>> env.imagine(starts[:3], torch.zeros(3, 6, 2), samples_per_member=4).batch_size
         torch.Size([5, 4, 3, 6])
         >>> env.evaluate_action_sequences(td, torch.zeros(8, 30, 15, 2), particles=10).shape
@@ -126,9 +142,9 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         success_fn: SuccessFn,
         *,
         real_env: EnvBase | None = None,
-        trajectory_sampling: Propagation = "ts_inf",
+        trajectory_sampling: TrajectorySampling = "ts_inf",
         member_assignment: MemberAssignment = "round_robin",
-        terminate_on_success: bool = True,
+        terminate_on_success: bool = False,
         start_states: torch.Tensor | None = None,
         generator: torch.Generator | None = None,
         seed: int | None = None,
@@ -136,29 +152,44 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         requires_grad: bool = False,
         compile_scoring: bool = False,
     ) -> None:
-        _checks.check_arguments(
-            ensemble, reward_fn, success_fn, trajectory_sampling, member_assignment
-        )
+        _checks.check_arguments(ensemble, trajectory_sampling, member_assignment)
+        task = Task(reward_fn, success_fn, terminate_on_success)
         device = ensemble.device
-        generator = _checks.make_generator(generator, seed, device)
-        transition = make_step_module(
-            ensemble, trajectory_sampling, generator=generator, validate=validate
+        generator = make_generator(generator, seed, device)
+        transition = make_transition_module(
+            ensemble,
+            trajectory_sampling=trajectory_sampling,
+            generator=generator,
+            validate=validate,
+            out_prefix=(),
         )
         super().__init__(transition, device=device, batch_size=torch.Size([]))
         self.ensemble = ensemble
-        self.reward_fn, self.success_fn = reward_fn, success_fn
-        self.trajectory_sampling: Propagation = trajectory_sampling
+        self.task = task
+        self.trajectory_sampling: TrajectorySampling = trajectory_sampling
         self.member_assignment: MemberAssignment = member_assignment
-        self.terminate_on_success = bool(terminate_on_success)
         self.requires_grad = bool(requires_grad)
         self.compile_scoring = bool(compile_scoring)
         self.generator = generator
         self.start_states: torch.Tensor | None = None
         self.set_start_states(start_states)
+        self._real_env = real_env
         if real_env is None:
             self._apply_specs(model_env_specs(ensemble, trajectory_sampling, device))
         else:
             self.set_specs_from_env(real_env)
+
+    @property
+    def reward_fn(self) -> RewardFn:
+        return self.task.reward_fn
+
+    @property
+    def success_fn(self) -> SuccessFn:
+        return self.task.success_fn
+
+    @property
+    def terminate_on_success(self) -> bool:
+        return self.task.terminate_on_success
 
     # ----------------------------------------------------------------- configuration
     def set_specs_from_env(self, env: EnvBase) -> None:
@@ -178,6 +209,14 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         self.reward_spec = specs.reward
         self.full_done_spec = specs.done
         self.state_spec = specs.state
+        space = getattr(specs.action, "space", None)
+        low, high = getattr(space, "low", None), getattr(space, "high", None)
+        self.action_bounds = None
+        if low is not None and high is not None:
+            dtype = self.ensemble.dtype
+            self.action_bounds = ActionBounds(
+                low.to(self.device, dtype), high.to(self.device, dtype)
+            )
 
     def set_start_states(self, start_states: torch.Tensor | None) -> None:
         """Set (or clear, with ``None``) the start observations ``[K, S]`` sampled at reset."""
@@ -207,7 +246,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         member = None if tensordict is None else tensordict.get(MEMBER_KEY, None)
         state = self._initial_state(observation, member)
         flag = torch.zeros(*batch, 1, dtype=torch.bool, device=self.device)
-        state.set(SUCCESS_KEY, task_success(self.success_fn, observation))
+        state.set(SUCCESS_KEY, self.task.success(observation))
         for key in self.done_keys:
             state.set(key, flag.clone())
         return state
@@ -227,26 +266,23 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = _STATE_KEYS if self.trajectory_sampling != "mean" else _STATE_KEYS[:-1]
         state = tensordict.select(*keys, strict=False)
-        if OBSERVATION_KEY not in state.keys():
-            raise KeyError(f"RCVAEEnsembleEnv.step: the input has no {OBSERVATION_KEY!r} entry.")
+        for key in (OBSERVATION_KEY, ACTION_KEY):
+            if key not in state.keys():
+                raise KeyError(
+                    f"RCVAEEnsembleEnv.step: the input has no {key!r} entry (got keys "
+                    f"{sorted(map(str, tensordict.keys()))})"
+                )
+        if self.action_bounds is not None:
+            action, a = state.get(ACTION_KEY), self.ensemble.config.action_dim
+            _checks.check_trailing(ACTION_KEY, action, (a,), f"[*B, A={a}]")
+            state.set(ACTION_KEY, torch.clamp(action, *self.action_bounds))
         if HIDDEN_KEY not in state.keys(include_nested=True):
             start = self._initial_state(state.get(OBSERVATION_KEY), state.get(MEMBER_KEY, None))
             state.update(start.exclude(OBSERVATION_KEY))
         with torch.set_grad_enabled(self.requires_grad and torch.is_grad_enabled()):
             out = self.world_model(state)
-        observation = out.get(OBSERVATION_KEY)
-        success = task_success(self.success_fn, observation)
-        terminated = success if self.terminate_on_success else torch.zeros_like(success)
         result = out.select(OBSERVATION_KEY, "rcvae", MEMBER_KEY, strict=False)
-        result.update(
-            {
-                REWARD_KEY: task_reward(self.reward_fn, observation, out.get(ACTION_KEY)),
-                SUCCESS_KEY: success,
-                "terminated": terminated,
-                "truncated": torch.zeros_like(terminated),
-                "done": terminated.clone(),
-            }
-        )
+        result.update(self.task.transitions(out.get(OBSERVATION_KEY), out.get(ACTION_KEY)))
         return result
 
     def _initial_state(
@@ -254,27 +290,40 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     ) -> TensorDictBase:
         """Model state at h_0 for ``observation [*B, S]`` (with ``member [*B]`` if given)."""
         ts_inf = self.trajectory_sampling == "ts_inf"
-        state = init_model_state(
+        return init_model_state(
             self.ensemble,
             observation,
-            trajectory_sampling="ts_inf" if ts_inf else "ts1",
+            trajectory_sampling=self.trajectory_sampling,
             member=member if (member is not None and ts_inf) else self.member_assignment,
             generator=self.generator,
         )
-        return state if self.trajectory_sampling != "mean" else state.exclude(MEMBER_KEY)
 
     def _sample_start_states(self, batch: torch.Size) -> torch.Tensor:
+        if self.start_states is None and self._real_env is not None:
+            return self._real_start_states(batch)
         if self.start_states is None:
             raise ValueError(
                 "RCVAEEnsembleEnv.reset: no start observations. Pass a tensordict holding "
                 f"{OBSERVATION_KEY!r} [*B, {self.ensemble.config.obs_dim}] (e.g. the real env's "
-                "current state), or give the env start_states [K, S] to sample from (needed "
-                "for resets that only hold '_reset', e.g. auto-resets inside rollouts)."
+                "current state), give the env start_states [K, S] to sample from, or a "
+                "real_env to reset (needed for resets that only hold '_reset', e.g. auto-resets "
+                "inside rollouts)."
             )
         index = torch.randint(
             self.start_states.shape[0], batch, generator=self.generator, device=self.device
         )
         return self.start_states[index]
+
+    def _real_start_states(self, batch: torch.Size) -> torch.Tensor:
+        """One ``real_env.reset()`` per start state needed (its observations, checked)."""
+        n = max(batch.numel(), 1)
+        states = []
+        for _ in range(n):
+            obs = self._real_env.reset().get(OBSERVATION_KEY)
+            states.append(obs.reshape(-1, obs.shape[-1])[0])
+        observation = torch.stack(states).to(self.device)
+        _checks.check_observation(self.ensemble, "real_env.reset()['observation']", observation)
+        return observation.reshape(*batch, -1)
 
     # ----------------------------------------------------------------- fast paths
     def imagine(
@@ -288,45 +337,65 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         generator: torch.Generator | None = None,
         chunk_size: int | None = 1024,
     ) -> TensorDictBase:
-        """Imagined rollouts ``[E, N, *B, T]`` from start states, open or closed loop.
+        """Imagined rollouts ``[E, N, *B, T]`` from start states, open or closed loop, scored.
 
         Always TS-∞ (sample ``(m, n, b)`` follows member m), whatever ``trajectory_sampling``
-        says: the per-member layout is what the uncertainty decomposition needs. Entries:
-        see :func:`~rcvae_torchrl.model_env.imagine_rollouts`; entry t is the transition
-        s_t → s_{t+1}, the same numbers as ``env.rollout``'s ``("next", ·)`` (and ``"action"``).
+        says: the per-member layout is what the uncertainty decomposition needs. Entries: see
+        :func:`~rcvae_torchrl.rollout.imagine` (with this env's task and action bounds); entry
+        t is the transition s_t -> s_{t+1}, the same numbers as ``env.rollout``'s
+        ``("next", ·)`` (and ``"action"``).
 
         **Equivalence with ``env.rollout``.** With the same generator state, a TS-∞ rollout of
         the tensordict ``[E, N, *B]`` whose ``"member"`` is e along dim 0 (flattened in that
         order, member-major) and whose observations are the start states broadcast over
         ``[E, N]``, gives the same trajectories when all ``N·|B|`` trajectories per member are
-        rolled out in one chunk (``chunk_size=None`` or ≥ ``N·|B|``).
+        rolled out in one chunk (``chunk_size=None`` or >= ``N·|B|``).
 
         Args:
             start: start states ``[*B, S]``, or a tensordict ``[*B]`` holding ``"observation"``.
-            actions: a_0..a_{T−1} ``[*B, T, A]`` (open loop).
-            policy: closed loop instead: a TensorDict module (``"observation"`` →
+            actions: a_0..a_{T-1} ``[*B, T, A]`` (open loop).
+            policy: closed loop instead: a TensorDict module (``"observation"`` ->
                 ``"action"``) or a callable on tensors ``[..., S] -> [..., A]``.
             horizon: T (closed loop).
             samples_per_member: N.
             generator: default: the env's.
-            chunk_size: trajectories per member rolled out together (see
-                :func:`~rcvae_torchrl.models.generate`); the noise drawn depends on it.
+            chunk_size: trajectories per member rolled out together; the noise drawn depends
+                on it.
         """
         observation = start.get(OBSERVATION_KEY) if isinstance(start, TensorDictBase) else start
         with torch.no_grad():
-            return imagine_rollouts(
+            return imagine(
                 self.ensemble,
                 observation,
                 actions,
-                reward_fn=self.reward_fn,
-                success_fn=self.success_fn,
                 policy=policy,
                 horizon=horizon,
                 samples_per_member=samples_per_member,
-                terminate_on_success=self.terminate_on_success,
+                task=self.task,
+                bounds=self.action_bounds,
                 generator=self.generator if generator is None else generator,
                 chunk_size=chunk_size,
             )
+
+    def plan_actions(
+        self,
+        start: TensorDictBase | torch.Tensor,
+        policy: ImaginePolicy,
+        horizon: int,
+        *,
+        generator: torch.Generator | None = None,
+    ) -> torch.Tensor:
+        """``policy``'s actions ``[*B, H, A]`` along one imagined rollout per start (member 0);
+        see :func:`~rcvae_torchrl.rollout.plan_actions`."""
+        observation = start.get(OBSERVATION_KEY) if isinstance(start, TensorDictBase) else start
+        return plan_actions(
+            self.ensemble,
+            observation,
+            policy,
+            horizon,
+            bounds=self.action_bounds,
+            generator=self.generator if generator is None else generator,
+        )
 
     def evaluate_action_sequences(
         self,
@@ -341,16 +410,16 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         The planner seam of :mod:`rcvae_torchrl.planners.evaluation`. Every particle starts
         from ``td_start["observation"]`` at h_0 = 0 (model state in ``td_start`` is ignored),
         follows ``trajectory_sampling``, and earns Σ_t r_t up to and including its first
-        success (all H steps if not ``terminate_on_success``), as an episode of the real env
-        would. P' = E·⌈P/E⌉ for TS-∞ (P rounded up so that every member scores every candidate
-        equally often; particle p follows member p // ⌈P/E⌉), except P' = 1 for P = 1 (the
-        candidates are split over the members), else P' = P. A start state with a
+        success when ``terminate_on_success`` (else over all H steps), as an episode of the
+        real env would. P' = E·⌈P/E⌉ for TS-∞ (P rounded up so that every member scores every
+        candidate equally often; particle p follows member p // ⌈P/E⌉), except P' = 1 for P = 1
+        (the candidates are split over the members), else P' = P. A start state with a
         non-finite entry gets NaN returns (and no success) for all its candidates.
 
         Args:
             td_start: batch ``[*B]`` with ``"observation"`` ``[*B, S]``.
             actions: ``[*B, C, H, A]``.
-            particles: P ≥ 1.
+            particles: P >= 1.
             return_success: also return whether each particle succeeds within H steps.
 
         Returns:
@@ -362,15 +431,14 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         start = torch.where(finite.unsqueeze(-1), observation, torch.zeros_like(observation))
         start = start.unsqueeze(-2).expand(*batch, c, start.shape[-1])
         with torch.no_grad():
-            scores = score_action_sequences(
+            scores = evaluate_action_sequences(
                 self.ensemble,
                 start.reshape(-1, start.shape[-1]),
                 actions.reshape(-1, h, a),
                 particles,
-                reward_fn=self.reward_fn,
-                success_fn=self.success_fn,
+                task=self.task,
                 trajectory_sampling=self.trajectory_sampling,
-                terminate_on_success=self.terminate_on_success,
+                bounds=self.action_bounds,
                 generator=self.generator,
                 compile=self.compile_scoring,
             )

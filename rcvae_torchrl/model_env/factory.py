@@ -8,8 +8,8 @@ from typing import Any
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 
 from rcvae_torchrl.model_env.env import RCVAEEnsembleEnv
-from rcvae_torchrl.model_env.task import RewardFn, SuccessFn
 from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.rollout import RewardFn, SuccessFn
 
 __all__ = ["make_rcvae_env"]
 
@@ -29,23 +29,24 @@ def make_rcvae_env(
         ensemble: the trained world model.
         real_env: the env the agent acts in; its specs are copied, it is neither stepped nor
             reset (``None``: default specs).
-        reward_fn: ``(observation_next, action) -> [..., 1]`` (Pusher: ``pusher_reward``).
-        success_fn: ``observation -> [...]`` bool (Pusher: ``pusher_success``; use
-            ``functools.partial(pusher_success, radius=r)`` to match a non-default radius).
+        reward_fn: ``reward_fn(observation=s_{t+1}, action=a_t) -> [..., 1]``.
+        success_fn: ``success_fn(observation=s) -> [...]`` bool (e.g. a
+            ``functools.partial`` of a function with a radius argument).
         transforms: optional transforms; the env is then wrapped in a ``TransformedEnv``, whose
             class has no fast path, so planners score plans through ``step``.
         **kwargs: keyword arguments of :class:`RCVAEEnsembleEnv` (``trajectory_sampling``,
             ``start_states``, ``terminate_on_success``, ``seed``, ...).
 
     Example:
-        >>> import torch
-        >>> from rcvae_torchrl.envs import make_pusher_env, pusher_reward, pusher_success
         >>> from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
-        >>> model = RCVAEEnsemble(RCVAEConfig(14, 2, hidden_dim=16, mlp_dim=16), ensemble_size=5)
-        >>> real = make_pusher_env(seed=0)
-        >>> env = make_rcvae_env(model, real, pusher_reward, pusher_success, seed=0)
-        >>> env.action_spec == real.action_spec, env.trajectory_sampling
-        (True, 'ts_inf')
+        >>> model = RCVAEEnsemble(RCVAEConfig(2, 1, hidden_dim=16, mlp_dim=16), ensemble_size=5)
+        >>> def reward(observation, action):
+        ...     return -observation[..., :1].abs()
+        >>> def success(observation):
+        ...     return observation[..., 0].abs() < 0.1
+        >>> env = make_rcvae_env(model, None, reward, success, seed=0)
+        >>> env.action_spec.shape, env.trajectory_sampling
+        (torch.Size([1]), 'ts_inf')
     """
     env = RCVAEEnsembleEnv(ensemble, reward_fn, success_fn, real_env=real_env, **kwargs)
     if transforms is None:

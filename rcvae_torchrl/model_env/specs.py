@@ -17,8 +17,8 @@ import torch
 from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl.model_env.propagation import Propagation
 from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.rollout import TrajectorySampling
 
 __all__ = [
     "ACTION_KEY",
@@ -53,7 +53,7 @@ class ModelEnvSpecs(NamedTuple):
 
 def model_env_specs(
     ensemble: RCVAEEnsemble,
-    trajectory_sampling: Propagation,
+    trajectory_sampling: TrajectorySampling,
     device: torch.device,
     real_env: EnvBase | None = None,
 ) -> ModelEnvSpecs:
@@ -74,7 +74,7 @@ def model_env_specs(
 
 
 def _model_state_spec(
-    ensemble: RCVAEEnsemble, trajectory_sampling: Propagation, dtype: torch.dtype, device
+    ensemble: RCVAEEnsemble, trajectory_sampling: TrajectorySampling, dtype: torch.dtype, device
 ) -> dict[str, TensorSpec]:
     cfg, e = ensemble.config, ensemble.ensemble_size
     hidden = (cfg.hidden_dim,) if trajectory_sampling == "ts_inf" else (e, cfg.hidden_dim)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from rcvae_torchrl.models.features import get_input_features
-
 __all__ = ["RCVAEConfig"]
 
 
@@ -26,14 +24,14 @@ class RCVAEConfig:
         latent_min_std: floor added to the softplus std of the prior and posterior latents
             (as in Dreamer's RSSM), which keeps the KL finite.
         passthrough_dims: indices of state dimensions that are constant within an episode
-            (e.g. the Pusher's target position). They are copied from s_{t-1} to s_t exactly,
+            (e.g. a target position). They are copied from s_{t-1} to s_t exactly,
             are not predicted by the decoder and are excluded from the likelihood. They are
             still read by the model as inputs.
-        state_constraint: name of a registered known-state constraint applied to every
-            generated state (:mod:`rcvae_torchrl.models.constraints`), or ``None``.
-        input_features: name of a registered feature function of the state whose output the
-            recurrence reads besides the state and the action
-            (:mod:`rcvae_torchrl.models.features`), or ``None``.
+        state_constraint: name of a known-state constraint applied to every generated state,
+            or ``None``; the function is passed to the ensemble in a
+            :class:`~rcvae_torchrl.models.ModelFunctions`.
+        input_features: name of a feature function of the state whose output the recurrence
+            reads besides the state and the action (passed the same way), or ``None``.
     """
 
     obs_dim: int
@@ -74,13 +72,6 @@ class RCVAEConfig:
             )
         if len(dims) == self.obs_dim:
             raise ValueError("RCVAEConfig.passthrough_dims cannot cover every state dimension.")
-
-    @property
-    def feature_dim(self) -> int:
-        """Number F of input features (0 without ``input_features``)."""
-        if self.input_features is None:
-            return 0
-        return get_input_features(self.input_features).dim
 
     @property
     def predicted_dims(self) -> tuple[int, ...]:

@@ -22,21 +22,18 @@ gives the epistemic part of the uncertainty (Lakshminarayanan et al. 2017).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
-from tensordict import TensorDict
 from torch import nn
 
-from rcvae_torchrl.models import _fast
 from rcvae_torchrl.models.config import RCVAEConfig
-from rcvae_torchrl.models.constraints import get_state_constraint
-from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_update
-from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP
-from rcvae_torchrl.models.features import get_input_features
+from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_step, gru_update
+from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP, ensemble_mlp
 from rcvae_torchrl.models.functional import gaussian_head, reparameterize
+from rcvae_torchrl.models.functions import ModelFunctions
 from rcvae_torchrl.models.normalizer import StateNormalizer
 
 __all__ = ["RCVAEEnsemble", "SequenceOutput", "StepOutput"]
@@ -67,28 +64,48 @@ class SequenceOutput(NamedTuple):
 class RCVAEEnsemble(nn.Module):
     """E independently initialised RCVAE members with stacked parameters.
 
+    The training pass is ``forward`` (teacher forcing, optionally open loop, for the ELBO);
+    generation is :meth:`step`, which :mod:`rcvae_torchrl.rollout` calls for every imagined
+    step.
+
     Args:
         config: sizes and bounds of one member.
         ensemble_size: number of members E (1 gives a single RCVAE).
+        functions: the state constraint and input features named in ``config``
+            (:class:`~rcvae_torchrl.models.ModelFunctions`); needed only when it names any.
 
     Example:
         >>> cfg = RCVAEConfig(obs_dim=4, action_dim=2, hidden_dim=16, mlp_dim=16)
         >>> model = RCVAEEnsemble(cfg, ensemble_size=3)
-        >>> td = model.generate(torch.zeros(4), torch.zeros(10, 2), samples_per_member=8)
-        >>> td.batch_size
-        torch.Size([3, 8, 10])
+        >>> out = model(torch.zeros(3, 8, 10, 4), torch.zeros(3, 8, 10, 2))  # [E, W, L, ·]
+        >>> out.decoder_mean.shape
+        torch.Size([3, 8, 9, 4])
     """
 
-    def __init__(self, config: RCVAEConfig, ensemble_size: int = 5) -> None:
+    def __init__(
+        self,
+        config: RCVAEConfig,
+        ensemble_size: int = 5,
+        *,
+        functions: ModelFunctions | None = None,
+    ) -> None:
         super().__init__()
-        if not isinstance(ensemble_size, int) or ensemble_size < 1:
+        if not isinstance(config, RCVAEConfig):
+            raise TypeError(f"config: expected an RCVAEConfig, got {type(config).__name__}")
+        if (
+            isinstance(ensemble_size, bool)
+            or not isinstance(ensemble_size, int)
+            or ensemble_size < 1
+        ):
             raise ValueError(f"ensemble_size: expected a positive int, got {ensemble_size!r}.")
         self.config = config
         self.ensemble_size = ensemble_size
-        self.normalizer = StateNormalizer(config.obs_dim, config.action_dim, config.feature_dim)
-        self._features = (
-            None if config.input_features is None else get_input_features(config.input_features).fn
-        )
+        self.functions = functions if functions is not None else ModelFunctions()
+        self.state_constraint = self.functions.state_constraint(config.state_constraint)
+        features = self.functions.features(config.input_features)
+        self._features = None if features is None else features.fn
+        self.feature_dim = 0 if features is None else features.dim
+        self.normalizer = StateNormalizer(config.obs_dim, config.action_dim, self.feature_dim)
         self.register_buffer("predicted_idx", torch.tensor(config.predicted_dims), persistent=False)
         # D when the predicted dims are 0..D-1 (the passthrough ones a tail): slices suffice
         dims = config.predicted_dims
@@ -97,7 +114,7 @@ class RCVAEEnsemble(nn.Module):
 
     def _build_networks(self, c: RCVAEConfig, e: int) -> None:
         h, m, z, d = c.hidden_dim, c.mlp_dim, c.latent_dim, c.predicted_dim
-        self.embed = EnsembleLinear(e, c.obs_dim + c.action_dim + c.feature_dim, m)
+        self.embed = EnsembleLinear(e, c.obs_dim + c.action_dim + self.feature_dim, m)
         self.gru = EnsembleGRUCell(e, m, h)
         self.prior_net = EnsembleMLP(e, h, m, 2 * z, depth=1)
         self.posterior_net = EnsembleMLP(e, h + d, m, 2 * z, depth=1)
@@ -169,8 +186,8 @@ class RCVAEEnsemble(nn.Module):
             norm = self.normalizer
             change = delta * norm.delta_std[:head] + norm.delta_mean[:head]
             state = torch.cat([obs_prev[..., :head] + change, obs_prev[..., head:]], dim=-1)
-        if self.config.state_constraint is not None:
-            state = get_state_constraint(self.config.state_constraint)(obs_prev, state)
+        if self.state_constraint is not None:
+            state = self.state_constraint(obs_prev, state)
         return state
 
     def target_delta(self, obs_prev: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
@@ -211,48 +228,21 @@ class RCVAEEnsemble(nn.Module):
             noise_obs: optional ε_s ``[E, *B, D]`` (else drawn from ``generator``).
             generator: torch generator for the noise not given.
         """
-        # recur, prior and decode as one hot path (_fast: the same numbers, fewer ops)
+        # recur, prior and decode as one hot path (the modules' numbers, fewer ops and calls)
         x = self.embed_inputs(obs_prev, action_prev)
-        hidden = _fast.gru_step(self.gru, x, hidden)
-        prior = _fast.mlp(self.prior_net, hidden)
+        hidden = gru_step(self.gru, x, hidden)
+        prior = ensemble_mlp(self.prior_net, hidden)
         latent = reparameterize(
             *gaussian_head(prior, min_std=self.config.latent_min_std), noise_latent, generator
         )
-        raw = _fast.mlp(self.decoder, torch.cat([hidden, x, latent], dim=-1))
+        raw = ensemble_mlp(self.decoder, torch.cat([hidden, x, latent], dim=-1))
         bounds = (self.config.min_log_std, self.config.max_log_std)
         mean, std = gaussian_head(raw, log_std_bounds=bounds)
         delta = reparameterize(mean, std, noise_obs, generator)
         return StepOutput(hidden, latent, self.apply_delta(obs_prev, delta), mean, std)
 
-    def generate(
-        self,
-        observation: torch.Tensor,
-        actions: torch.Tensor | None = None,
-        *,
-        samples_per_member: int = 1,
-        generator: torch.Generator | None = None,
-        policy: Callable[[torch.Tensor], torch.Tensor] | None = None,
-        horizon: int | None = None,
-        requires_grad: bool = False,
-        chunk_size: int | None = 1024,
-    ) -> TensorDict:
-        """Imagined rollouts ``[E, N, *B, T]``; see :func:`rcvae_torchrl.models.generate`."""
-        from rcvae_torchrl.models.generate import generate
-
-        return generate(
-            self,
-            observation,
-            actions,
-            samples_per_member=samples_per_member,
-            generator=generator,
-            policy=policy,
-            horizon=horizon,
-            requires_grad=requires_grad,
-            chunk_size=chunk_size,
-        )
-
     # ----------------------------------------------------------------- training pass
-    def observe(
+    def forward(
         self,
         observations: torch.Tensor,
         actions: torch.Tensor,
@@ -263,7 +253,8 @@ class RCVAEEnsemble(nn.Module):
         detach_open_loop: bool = False,
         generator: torch.Generator | None = None,
     ) -> SequenceOutput:
-        """Run windows through the model for the ELBO (teacher forcing, optionally open loop).
+        """The training pass: windows through the model for the ELBO (teacher forcing,
+        optionally open loop).
 
         Transition t reads state s_t and action a_t and explains s_{t+1}: taken from
         ``next_observations[t]`` when given (L transitions), else from ``observations[t + 1]``
@@ -391,7 +382,8 @@ class RCVAEEnsemble(nn.Module):
         ``select_members([i])`` is member i as a stand-alone RCVAE.
         """
         idx = torch.as_tensor(indices, dtype=torch.long, device=self.device)
-        out = RCVAEEnsemble(self.config, int(idx.numel())).to(self.device, self.dtype)
+        out = RCVAEEnsemble(self.config, int(idx.numel()), functions=self.functions)
+        out = out.to(self.device, self.dtype)
         params = {name for name, _ in self.named_parameters()}
         state = {k: (v[idx] if k in params else v) for k, v in self.state_dict().items()}
         out.load_state_dict(state)

@@ -9,13 +9,8 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
+from rcvae_torchrl._checks import check_batch_shapes, check_dtype, check_finite, check_trailing
 from rcvae_torchrl.models.rcvae import RCVAEEnsemble, SequenceOutput
-from rcvae_torchrl.models.validation import (
-    check_batch_shapes,
-    check_dtype,
-    check_finite,
-    check_trailing,
-)
 from rcvae_torchrl.objectives.functional import free_bits, gaussian_kl, gaussian_nll, masked_mean
 
 __all__ = ["RCVAELoss"]
@@ -152,7 +147,7 @@ class RCVAELoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         obs, action, next_obs, mask = self._read(tensordict)
-        seq = self.ensemble.observe(
+        seq = self.ensemble(
             obs,
             action,
             next_observations=next_obs,

@@ -30,7 +30,7 @@ from rcvae_torchrl.planners.reductions import (
     lexicographic_score,
     quantile_return,
     reduce_particles,
-    success_probability,
+    success_fraction,
 )
 
 __all__ = [
@@ -58,5 +58,5 @@ __all__ = [
     "lexicographic_score",
     "quantile_return",
     "reduce_particles",
-    "success_probability",
+    "success_fraction",
 ]

@@ -12,6 +12,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase
 from torchrl.modules.planners.common import MPCPlannerBase
 
+from rcvae_torchrl._checks import make_generator
 from rcvae_torchrl.planners import _checks
 from rcvae_torchrl.planners.evaluation import (
     ParticleReturns,
@@ -136,7 +137,7 @@ class CEMPlanner(MPCPlannerBase):
             reward_key = env.reward_key
         self.reward_key = None if reward_key is None else unravel_key(reward_key)
         self.success_key, self.discount = success_key, discount
-        self.generator = _make_generator(generator, seed, env.device)
+        self.generator = make_generator(generator, seed, env.device)
         self._register_bounds(init_std)
         self._plan: tuple[Tensor, Tensor] | None = None
         if proposal is not None and not callable(proposal):
@@ -339,16 +340,6 @@ def _check_success_source(env: EnvBase, evaluation: str, success_key: NestedKey 
             "success_key: expected the key of a success flag (under 'next') for "
             "objective='success' on the rollout path, got None"
         )
-
-
-def _make_generator(
-    generator: torch.Generator | None, seed: int | None, device: torch.device | None
-) -> torch.Generator | None:
-    if generator is not None and seed is not None:
-        raise ValueError(f"seed: expected None when a generator is given, got {seed!r}")
-    if seed is None:
-        return generator
-    return torch.Generator(device=device or "cpu").manual_seed(seed)
 
 
 def make_cem_planner(env: EnvBase, horizon: int, **kwargs) -> CEMPlanner:

@@ -26,7 +26,7 @@ __all__ = [
     "lexicographic_score",
     "quantile_return",
     "reduce_particles",
-    "success_probability",
+    "success_fraction",
 ]
 
 OBJECTIVES = ("mean", "quantile", "cvar", "success")
@@ -94,11 +94,11 @@ def cvar_return(returns: Tensor, risk_level: float) -> Tensor:
     return _nan_where_nonfinite((worst_first * weight).sum(dim=-1) / k, returns)
 
 
-def success_probability(success: Tensor) -> Tensor:
+def success_fraction(success: Tensor) -> Tensor:
     """Fraction of successful particles: ``[*B, C, P]`` bool (or [0, 1] floats) ``-> [*B, C]``.
 
     Example:
-        >>> success_probability(torch.tensor([[True, False, True, True]]))
+        >>> success_fraction(torch.tensor([[True, False, True, True]]))
         tensor([0.7500])
     """
     if success.ndim < 2:
@@ -152,5 +152,5 @@ def reduce_particles(
         )
     _checks.check_shape("success", success, returns.shape, "[*B, C, P] (the shape of returns)")
     mean = expected_return(returns)
-    score = lexicographic_score(success_probability(success), mean)
+    score = lexicographic_score(success_fraction(success), mean)
     return torch.where(torch.isfinite(mean), score, torch.full_like(score, torch.nan))

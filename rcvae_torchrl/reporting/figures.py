@@ -16,7 +16,7 @@ import torch
 from matplotlib.figure import Figure
 
 from rcvae_torchrl.competency import ReliabilityDiagram
-from rcvae_torchrl.training.atomic import atomic_write
+from rcvae_torchrl.io import atomic_write
 
 __all__ = ["plot_forecast_vs_reality", "plot_reliability", "plot_uncertainty_over_time"]
 

@@ -7,7 +7,7 @@ import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from rcvae_torchrl.training.atomic import atomic_write
+from rcvae_torchrl.io import atomic_write
 
 __all__ = ["format_table", "write_table"]
 

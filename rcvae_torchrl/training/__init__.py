@@ -1,6 +1,5 @@
-"""Training the world model: the loop, checkpoints, atomic writes."""
+"""Training the world model: the loop and its checkpoints."""
 
-from .atomic import atomic_write
 from .checkpoint import FORMAT_VERSION, CheckpointError, load_ensemble, save_ensemble
 from .trainer import TrainConfig, TrainResult, train_ensemble
 
@@ -14,6 +13,4 @@ __all__ = [
     "CheckpointError",
     "load_ensemble",
     "save_ensemble",
-    # files
-    "atomic_write",
 ]

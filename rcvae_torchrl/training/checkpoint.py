@@ -8,15 +8,13 @@ mismatched file.
 from __future__ import annotations
 
 import dataclasses
-import io
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
-
-from .atomic import atomic_write
+from rcvae_torchrl.io import StoredFileError, atomic_write, load_torch
+from rcvae_torchrl.models import ModelFunctions, RCVAEConfig, RCVAEEnsemble
 
 __all__ = ["FORMAT_VERSION", "CheckpointError", "load_ensemble", "save_ensemble"]
 
@@ -24,7 +22,7 @@ FORMAT_VERSION = 1
 _KIND = "rcvae_torchrl.RCVAEEnsemble"
 
 
-class CheckpointError(ValueError):
+class CheckpointError(StoredFileError):
     """A checkpoint file cannot be used: missing, corrupt, truncated, foreign or mismatched."""
 
 
@@ -57,15 +55,10 @@ def save_ensemble(
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """Load a checkpoint dict from ``path`` with clear errors (no model is built)."""
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"path: expected an existing checkpoint file, got {str(path)!r}")
-    data = path.read_bytes()
     try:
-        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
-    except Exception as err:  # torch raises several types for damaged archives
-        raise CheckpointError(
-            f"checkpoint {str(path)!r} is corrupt or truncated ({len(data)} bytes): {err}"
-        ) from err
+        payload = load_torch(path, "checkpoint")
+    except StoredFileError as err:
+        raise CheckpointError(str(err)) from err.__cause__
     if not isinstance(payload, dict) or "kind" not in payload:
         raise CheckpointError(f"checkpoint {str(path)!r}: expected an rcvae_torchrl checkpoint")
     return payload
@@ -76,6 +69,7 @@ def load_ensemble(
     *,
     map_location: str | torch.device = "cpu",
     expected_config: RCVAEConfig | None = None,
+    functions: ModelFunctions | None = None,
 ) -> RCVAEEnsemble:
     """Rebuild the ensemble saved by :func:`save_ensemble`.
 
@@ -83,17 +77,23 @@ def load_ensemble(
         path: the checkpoint file.
         map_location: device of the returned ensemble.
         expected_config: if given, the saved config must equal it.
+        functions: the state constraint and input features the saved config names (a
+            :class:`~rcvae_torchrl.models.ModelFunctions`); needed when it names any.
 
     Raises:
         CheckpointError: missing, corrupt or truncated file; another kind of file; an unknown
             format version; a config or weights that do not match.
     """
     payload = read_checkpoint(path)
-    return ensemble_from_payload(payload, str(path), expected_config).to(map_location)
+    ensemble = ensemble_from_payload(payload, str(path), expected_config, functions)
+    return ensemble.to(map_location)
 
 
 def ensemble_from_payload(
-    payload: dict[str, Any], source: str, expected_config: RCVAEConfig | None = None
+    payload: dict[str, Any],
+    source: str,
+    expected_config: RCVAEConfig | None = None,
+    functions: ModelFunctions | None = None,
 ) -> RCVAEEnsemble:
     """Build an ensemble from a checkpoint dict, checking kind, version, config and weights."""
     if payload.get("kind") != _KIND:
@@ -113,7 +113,10 @@ def ensemble_from_payload(
         raise CheckpointError(
             f"checkpoint {source!r}: config mismatch: expected {expected_config}, got {config}"
         )
-    ensemble = RCVAEEnsemble(config, int(payload["ensemble_size"]))
+    try:
+        ensemble = RCVAEEnsemble(config, int(payload["ensemble_size"]), functions=functions)
+    except KeyError as err:
+        raise CheckpointError(f"checkpoint {source!r}: {err.args[0]}") from err
     try:
         ensemble.load_state_dict(payload["state_dict"], strict=True)
     except RuntimeError as err:

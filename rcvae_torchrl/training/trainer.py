@@ -23,10 +23,10 @@ from torchrl.record.loggers.csv import CSVLogger
 from tqdm.auto import tqdm
 
 from rcvae_torchrl.data import make_window_buffer, sample_windows
+from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
 
-from .atomic import atomic_write
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 
 __all__ = ["TrainConfig", "TrainResult", "train_ensemble"]

@@ -1,8 +1,5 @@
-"""The model-based RL loop with micro budgets: history rows, files on disk, resuming rounds.
-
-The loop has no length knob for its MPC episodes: each runs to the Pusher's 30 s limit (600
-steps; the tiny untrained model never succeeds), about 3 s with this planner budget.
-"""
+"""The model-based RL loop with micro budgets on the Pusher: history rows, files on disk,
+resuming rounds."""
 
 from __future__ import annotations
 
@@ -14,22 +11,35 @@ from pathlib import Path
 import pytest
 import torch
 
-from rcvae_torchrl.agent import AgentConfig, PlannerConfig, run_model_based_agent
+from rcvae_torchrl.agent import AgentConfig, AgentTask, PlannerConfig, run_model_based_agent
 from rcvae_torchrl.data import TRAJ_KEY, load_episodes
+from rcvae_torchrl.envs import make_pusher_env, obs_indices, pusher_reward, pusher_success
+from rcvae_torchrl.envs.scripted import ScriptedPusher
+from rcvae_torchrl.models import RCVAEConfig
 from rcvae_torchrl.training import TrainConfig, load_ensemble
+from recipes.pusher_competency.data import collect_pusher_data
 
 CONFIG = AgentConfig(
     rounds=2,
-    scripted_episodes=2,
-    random_episodes=1,
-    data_time_limit=2.0,
     mpc_episodes=1,
-    mpc_time_limit=1.0,
+    max_steps=20,
     ensemble_size=2,
-    hidden_dim=16,
     train=TrainConfig(max_steps=10, batch_windows=4, window=8, val_every=5, val_windows=8),
-    planner=PlannerConfig(horizon=4, num_candidates=16, top_k=4, iterations=1, particles=2),
+    planner=PlannerConfig(
+        horizon=4, num_candidates=16, top_k=4, iterations=1, particles=2, policy_prior=True
+    ),
 )
+TASK = AgentTask(
+    make_env=lambda: make_pusher_env(time_limit=1.0),
+    model=RCVAEConfig(
+        14, 2, hidden_dim=16, mlp_dim=16, passthrough_dims=tuple(obs_indices("target"))
+    ),
+    reward_fn=pusher_reward,
+    success_fn=pusher_success,
+    terminate_on_success=True,
+    prior=ScriptedPusher(),
+)
+INITIAL_EPISODES = 3
 ROUND_FILES = ("model.pt", "train.pt", "mpc_episodes.pt")
 HISTORY_KEYS = {
     "round",
@@ -39,14 +49,6 @@ HISTORY_KEYS = {
     "mpc_median_steps",
     "frames",
 }
-
-
-@pytest.fixture(autouse=True)
-def single_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _snapshot(out: Path) -> dict[str, tuple[int, int]]:
@@ -62,12 +64,24 @@ def runs(tmp_path_factory):
     """One round, then two (the first reused), then two again (both reused)."""
     out = tmp_path_factory.mktemp("agent")
     torch.set_num_threads(1)
-    one = run_model_based_agent(replace(CONFIG, rounds=1), out, progress=False)
+    initial = collect_pusher_data(
+        scripted_episodes=2,
+        random_episodes=1,
+        time_limit=2.0,
+        random_time_limit=2.0,
+        num_envs=1,
+        progress=False,
+    )
+
+    def run(config):
+        return run_model_based_agent(config, TASK, initial, out, progress=False)
+
+    one = run(replace(CONFIG, rounds=1))
     after_one = _snapshot(out)
-    two = run_model_based_agent(CONFIG, out, progress=False)
+    two = run(CONFIG)
     after_two = _snapshot(out)
     start = time.perf_counter()
-    again = run_model_based_agent(CONFIG, out, progress=False)
+    again = run(CONFIG)
     seconds = time.perf_counter() - start
     return {
         "out": out,
@@ -78,6 +92,7 @@ def runs(tmp_path_factory):
         "after_two": after_two,
         "after_again": _snapshot(out),
         "again_s": seconds,
+        "initial": initial,
     }
 
 
@@ -89,14 +104,13 @@ def test_history_has_one_row_per_round(runs):
         assert row["train_steps"] == CONFIG.train.max_steps
         assert torch.isfinite(torch.tensor(row["val_loss"]))
         assert 0.0 <= row["mpc_success_rate"] <= 1.0
-        assert 1 <= row["mpc_median_steps"] <= 600
+        assert 1 <= row["mpc_median_steps"] <= CONFIG.max_steps
     assert history[0]["frames"] < history[1]["frames"] == runs["two"].data.shape[0]
     assert json.loads((runs["out"] / "history.json").read_text()) == history
 
 
 def test_files_on_disk(runs):
     out = runs["out"]
-    assert (out / "data_initial.pt").is_file()
     for k in range(CONFIG.rounds):
         for name in ROUND_FILES:
             assert (out / f"round_{k}" / name).is_file()
@@ -107,12 +121,11 @@ def test_files_on_disk(runs):
 
 
 def test_data_gathers_the_initial_and_the_mpc_episodes(runs):
-    out, data = runs["out"], runs["two"].data
-    initial = load_episodes(out / "data_initial.pt")
+    out, data, initial = runs["out"], runs["two"].data, runs["initial"]
     episodes = [load_episodes(out / f"round_{k}" / "mpc_episodes.pt") for k in range(2)]
     assert data.shape[0] == initial.shape[0] + sum(e.shape[0] for e in episodes)
     ids = torch.unique(data[TRAJ_KEY])
-    expected = CONFIG.scripted_episodes + CONFIG.random_episodes + 2 * CONFIG.mpc_episodes
+    expected = INITIAL_EPISODES + 2 * CONFIG.mpc_episodes
     assert ids.numel() == expected  # MPC episodes got new ids
     assert int(episodes[0][TRAJ_KEY].min()) > int(initial[TRAJ_KEY].max())
     assert set(episodes[0].keys(True, True)) == set(initial.keys(True, True))

@@ -41,3 +41,32 @@ def test_bad_pairs():
     bad[3, 1] = float("nan")
     with pytest.raises(ValueError, match="finite"):
         distill_policy(bad, torch.zeros(20, 2))
+
+
+def test_policy_files_round_trip_and_refuse_bad_files(tmp_path):
+    from rcvae_torchrl.agent import ResidualPolicy, load_policy, save_policy
+    from rcvae_torchrl.io import StoredFileError
+
+    policy = MLPPolicy(5, 2, hidden=16)
+    policy.fit_normalizer(torch.randn(40, 5) * 3 + 1)
+    obs = torch.randn(6, 5)
+    save_policy(policy, tmp_path / "mlp.pt")
+    torch.testing.assert_close(load_policy(tmp_path / "mlp.pt")(obs), policy(obs))
+
+    base = torch.nn.Linear(5, 2)
+    save_policy(ResidualPolicy(base, policy), tmp_path / "residual.pt")
+    with pytest.raises(ValueError, match=r"base: .*residual policy"):
+        load_policy(tmp_path / "residual.pt")
+    loaded = load_policy(tmp_path / "residual.pt", base=base)
+    assert isinstance(loaded, ResidualPolicy)
+    torch.testing.assert_close(loaded(obs), ResidualPolicy(base, policy)(obs))
+
+    data = (tmp_path / "mlp.pt").read_bytes()
+    (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(StoredFileError, match=r"policy file .*cut\.pt.* truncated or corrupt"):
+        load_policy(tmp_path / "cut.pt")
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "foreign.pt")
+    with pytest.raises(StoredFileError, match="expected a policy saved by save_policy"):
+        load_policy(tmp_path / "foreign.pt")
+    with pytest.raises(StoredFileError, match="the file is missing"):
+        load_policy(tmp_path / "none.pt")

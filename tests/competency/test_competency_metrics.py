@@ -59,7 +59,7 @@ def test_uncertainty_metric_set_keys(rollout):
     td = TensorDict({("imagined", "obs"): rollout["observation"]}, batch_size=[E, N, B, T])
     out = metric(td)
     assert out["metrics", "bits", "epistemic"].shape == (B, T, D)
-    with pytest.raises(ValueError, match="not an accepted tensordict key"):
+    with pytest.raises(ValueError, match="reward: not a key of"):
         metric.set_keys(reward="r")
 
 

@@ -197,9 +197,7 @@ def test_reset_to_state_reproduces_an_episode():
 
 def test_pusher_state_constraint_holds_on_real_states_and_repairs_others():
     from rcvae_torchrl.envs import obs_indices, pusher_state_constraint
-    from rcvae_torchrl.models import get_state_constraint
 
-    assert get_state_constraint("pusher") is pusher_state_constraint
     td = _rollout(make_pusher_env(seed=4), steps=80)
     real = td["next", "observation"]
     torch.testing.assert_close(
@@ -221,14 +219,17 @@ def test_pusher_state_constraint_holds_on_real_states_and_repairs_others():
 
 
 def test_pusher_input_features_match_the_simulated_geometry():
-    from rcvae_torchrl.envs import CONTROL_TIMESTEP, obs_indices, pusher_input_features
-    from rcvae_torchrl.models import get_input_features
+    from rcvae_torchrl.envs import (
+        CONTROL_TIMESTEP,
+        PUSHER_FEATURE_NAMES,
+        obs_indices,
+        pusher_input_features,
+    )
 
-    assert get_input_features("pusher").fn is pusher_input_features
     td = _rollout(make_pusher_env(seed=5), steps=120)
     obs, nxt = td["observation"], td["next", "observation"]
     feats = pusher_input_features(obs)
-    assert feats.shape == (120, get_input_features("pusher").dim)
+    assert feats.shape == (120, len(PUSHER_FEATURE_NAMES))
     rel = obs[:, obs_indices("finger")] - obs[:, obs_indices("ball")]
     torch.testing.assert_close(feats[:, :2], rel)
     torch.testing.assert_close(feats[:, 2], rel.norm(dim=-1))

@@ -14,15 +14,6 @@ from rcvae_torchrl.model_env import RCVAEEnsembleEnv, make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    """Tiny tensor ops on a shared 2-core machine: one intra-op thread (restored after)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture(scope="session")
 def pusher_data():
     """60 real Pusher transitions under a fixed random policy (normaliser and start states)."""
@@ -61,6 +52,7 @@ def make_env(ensemble, real_env, starts):
     def make(**kwargs) -> RCVAEEnsembleEnv:
         kwargs.setdefault("start_states", starts)
         kwargs.setdefault("seed", 0)
+        kwargs.setdefault("terminate_on_success", True)  # as the real Pusher
         return make_rcvae_env(ensemble, real_env, pusher_reward, pusher_success, **kwargs)
 
     return make
@@ -79,6 +71,7 @@ def still_ball_env(pusher_data, real_env):
     )
 
     def make(**kwargs):
+        kwargs.setdefault("terminate_on_success", True)  # as the real Pusher
         return make_rcvae_env(model, real_env, pusher_reward, pusher_success, seed=0, **kwargs)
 
     return make

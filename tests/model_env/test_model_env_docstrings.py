@@ -1,4 +1,4 @@
-"""The runnable examples in the model-env docstrings give the outputs they show."""
+"""The runnable examples in the model-env and rollout docstrings give the outputs they show."""
 
 import doctest
 import importlib
@@ -6,9 +6,19 @@ import importlib
 import pytest
 
 
-@pytest.mark.parametrize("name", ["env", "factory", "propagation", "task"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "model_env.env",
+        "model_env.factory",
+        "rollout.task",
+        "rollout.imagine",
+        "rollout.transition",
+        "rollout.layout",
+    ],
+)
 def test_docstring_examples(name):
-    module = importlib.import_module(f"rcvae_torchrl.model_env.{name}")
+    module = importlib.import_module(f"rcvae_torchrl.{name}")
     result = doctest.testmod(module, optionflags=doctest.NORMALIZE_WHITESPACE)
     assert result.attempted > 0
     assert result.failed == 0

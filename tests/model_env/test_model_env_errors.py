@@ -91,12 +91,12 @@ def test_reset_inputs(make_env, starts):
 
 def test_task_functions_with_wrong_outputs(ensemble, starts):
     td = TensorDict({"observation": starts[:3], "action": torch.zeros(3, 2)}, batch_size=[3])
-    env = RCVAEEnsembleEnv(ensemble, lambda o, a: o, pusher_success)
+    env = RCVAEEnsembleEnv(ensemble, lambda observation, action: observation, pusher_success)
     with pytest.raises(ValueError, match="reward_fn: expected a reward of shape"):
         env.step(td)
-    env = RCVAEEnsembleEnv(ensemble, pusher_reward, lambda o: o[..., :2] > 0)
+    env = RCVAEEnsembleEnv(ensemble, pusher_reward, lambda observation: observation[..., :2] > 0)
     with pytest.raises(ValueError, match="success_fn: expected a flag"):
         env.step(td)
-    env = RCVAEEnsembleEnv(ensemble, lambda o, a: 0.0, pusher_success)
+    env = RCVAEEnsembleEnv(ensemble, lambda observation, action: 0.0, pusher_success)
     with pytest.raises(TypeError, match="reward_fn: expected a tensor"):
         env.step(td)

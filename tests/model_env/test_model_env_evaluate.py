@@ -8,7 +8,8 @@ from model_env_utils import E, Replay, at_target
 from tensordict import TensorDict
 
 from rcvae_torchrl.envs import pusher_reward, pusher_success
-from rcvae_torchrl.model_env import alive_mask, make_rcvae_env
+from rcvae_torchrl.model_env import make_rcvae_env
+from rcvae_torchrl.rollout import alive_mask
 
 
 def _start(starts, batch=(2,)):
@@ -53,7 +54,7 @@ def test_fast_path_equals_env_rollout_under_the_same_seed(
         ensemble,
         real_env,
         pusher_reward,
-        lambda obs: obs[..., 8] > 0.3,
+        lambda observation: observation[..., 8] > 0.3,
         trajectory_sampling=mode,
         terminate_on_success=terminate,
         seed=0,
@@ -163,7 +164,7 @@ def test_compiled_scoring_matches_eager_under_the_same_seed(ensemble, real_env, 
     agree up to the float rounding of the fused kernels, and successes (ball past x = 0.0,
     reached by some particles) exactly unless a state lies at the threshold."""
     kwargs = {"trajectory_sampling": "ts_inf", "seed": 0}
-    success = lambda obs: obs[..., 8] > 0.0  # noqa: E731
+    success = lambda observation: observation[..., 8] > 0.0  # noqa: E731
     eager = make_rcvae_env(ensemble, real_env, pusher_reward, success, **kwargs)
     compiled = make_rcvae_env(
         ensemble, real_env, pusher_reward, success, compile_scoring=True, **kwargs

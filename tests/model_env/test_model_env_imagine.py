@@ -54,9 +54,14 @@ def test_mask_and_done_after_success(make_env, starts):
     steps = torch.arange(T)
     expected = torch.where(done.any(-1, keepdim=True), steps <= first.unsqueeze(-1), True)
     assert torch.equal(td["mask"], expected)
-    assert torch.equal(td["done"], td["success"])
+    horizon = torch.zeros_like(td["done"])
+    horizon[..., -1, :] = True
+    assert torch.equal(td["terminated"], td["success"])
+    assert torch.equal(td["truncated"], horizon & ~td["success"])
+    assert torch.equal(td["done"], td["success"] | horizon)
     free = make_env(terminate_on_success=False).imagine(obs, torch.zeros(2, T, 2))
-    assert not free["done"].any() and free["mask"].all()
+    assert not free["terminated"].any() and free["mask"].all()
+    assert torch.equal(free["done"], free["truncated"]) and free["truncated"][..., -1, :].all()
 
 
 @pytest.mark.parametrize("terminate", [False, True])
@@ -71,14 +76,14 @@ def test_open_loop_imagine_equals_env_rollout_under_the_same_seed(
         ensemble,
         real_env,
         pusher_reward,
-        lambda obs: obs[..., 8] > 0.3,
+        lambda observation: observation[..., 8] > 0.3,
         terminate_on_success=terminate,
         seed=0,
     )
     actions = torch.rand(B, T, 2, generator=_g(2)) * 2 - 1
     env.set_seed(11)
     imagined = env.imagine(starts[:B], actions, samples_per_member=N, chunk_size=None)
-    assert bool(imagined["done"].any()) == terminate
+    assert bool(imagined["terminated"].any()) == terminate
     assert bool(imagined["mask"].all()) != terminate
     env.set_seed(11)
     td = env.reset(_member_major_start(starts))
@@ -94,7 +99,11 @@ def test_open_loop_imagine_equals_env_rollout_under_the_same_seed(
     assert torch.equal(imagined["observation"][mask], nxt["observation"][mask])
     assert torch.equal(imagined["reward"][mask], nxt["reward"][mask])
     assert torch.equal(imagined["success"][mask], nxt["success"][mask])
-    assert torch.equal(imagined["done"][mask], nxt["done"][mask])
+    assert torch.equal(imagined["terminated"][mask], nxt["terminated"][mask])
+    # the model env has no clock: only imagine marks the horizon's last step as truncated
+    assert torch.equal(
+        imagined["done"][..., :-1, :][mask[..., :-1]], nxt["done"][..., :-1, :][mask[..., :-1]]
+    )
     assert torch.equal(imagined["rcvae", "latent"][mask], nxt["rcvae", "latent"][mask])
     assert torch.equal(imagined["action"], rollout["action"])
     assert torch.equal(imagined["member"], rollout["member"])
@@ -148,7 +157,7 @@ def test_chunked_imagine_keeps_the_layout(make_env, starts):
 
 def test_imagine_errors(make_env, starts):
     env = make_env()
-    with pytest.raises(ValueError, match="exactly one of actions"):
+    with pytest.raises(ValueError, match="actions, policy: expected exactly one"):
         env.imagine(starts[:2])
     with pytest.raises(ValueError, match="actions"):
         env.imagine(starts[:2], torch.zeros(2, 3, 5))

@@ -7,6 +7,10 @@ import torch
 from model_env_utils import at_target
 from tensordict import TensorDict
 from torchrl.envs import StepCounter, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv, make_rcvae_env
 
 
 def test_reset_takes_the_input_observations_and_returns_a_new_tensordict(make_env, starts):
@@ -76,12 +80,24 @@ def test_partial_reset_with_only_reset_key(make_env, starts):
     assert not out["done"].any()
 
 
-def test_reset_without_any_start_state_is_a_clear_error(make_env):
-    env = make_env(start_states=None)
+def test_reset_without_any_start_state_is_a_clear_error(ensemble):
+    env = RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success)
     with pytest.raises(ValueError, match="no start observations"):
         env.reset()
     with pytest.raises(ValueError, match="no start observations"):
         env._reset(TensorDict({"_reset": torch.ones(3, 1, dtype=torch.bool)}, batch_size=[3]))
+
+
+def test_reset_without_start_states_draws_them_from_the_real_env(ensemble, real_env):
+    """With a real env and no start states, reset() starts from real_env.reset(), so the model
+    env passes TorchRL's spec check out of the box."""
+    env = make_rcvae_env(ensemble, real_env, pusher_reward, pusher_success, seed=0)
+    check_env_specs(env)
+    real_env.set_seed(3)
+    expected = torch.stack([real_env.reset()["observation"] for _ in range(2)])
+    real_env.set_seed(3)
+    td = env.reset(TensorDict(batch_size=[2]))
+    assert torch.equal(td["observation"], expected)
 
 
 def test_auto_reset_without_start_states_restarts_from_the_last_observation(make_env, starts):

@@ -6,7 +6,8 @@ import pytest
 import torch
 from torch import nn
 
-from rcvae_torchrl.models import EnsembleGRUCell, EnsembleLinear, EnsembleMLP, MemberLayout
+from rcvae_torchrl.models import EnsembleGRUCell, EnsembleLinear, EnsembleMLP
+from rcvae_torchrl.rollout import MemberLayout
 
 
 def test_ensemble_linear_matches_per_member_affine_maps():

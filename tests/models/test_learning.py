@@ -12,6 +12,7 @@ from tensordict import TensorDict
 
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
+from rcvae_torchrl.rollout import imagine
 
 
 def _sample_windows(obs, act, shape, length, g):
@@ -45,14 +46,14 @@ def _check_aleatoric(model, system, g, one_step_tol, spread_tol):
     with torch.no_grad():
         starts = torch.randn(32, system.obs_dim, generator=g)
         a = torch.rand(32, 1, 1, generator=g) * 2 - 1
-        first = model.generate(starts, a, samples_per_member=2000, generator=g)
+        first = imagine(model, starts, a, samples_per_member=2000, generator=g)
         std = first["observation"][..., 0, :].std(dim=1)  # [E, 32, S]
         ratio = std.mean(dim=(1, 2)) / system.sigma
         assert ((ratio - 1).abs() < one_step_tol).all(), f"one-step std / sigma: {ratio}"
 
         actions = torch.rand(20, 1, generator=g) * 2 - 1
         s0 = torch.zeros(system.obs_dim)
-        rollout = model.generate(s0, actions, samples_per_member=4000, generator=g)
+        rollout = imagine(model, s0, actions, samples_per_member=4000, generator=g)
         final = rollout["observation"][:, :, -1]  # [E, N, S]
         _, cov = system.open_loop_moments(s0, actions)
         spread = final.std(dim=1) / cov.diagonal().sqrt()
@@ -84,7 +85,7 @@ def test_epistemic_disagreement_off_distribution(linear_system):
 
     def disagreement(starts):
         with torch.no_grad():
-            td = model.generate(starts, actions, samples_per_member=200, generator=g)
+            td = imagine(model, starts, actions, samples_per_member=200, generator=g)
         member_means = td["observation"][:, :, :, 0].mean(dim=1)  # [E, 64, S]
         return member_means.std(dim=0).mean()
 

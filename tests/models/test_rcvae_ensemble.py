@@ -8,6 +8,7 @@ from tensordict import TensorDict
 
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss, gaussian_nll
+from rcvae_torchrl.rollout import imagine
 
 
 @pytest.mark.parametrize(
@@ -53,15 +54,15 @@ def test_step_equals_each_member_alone(ensemble):
             torch.testing.assert_close(got[sl], want, rtol=1e-6, atol=1e-6)
 
 
-def test_observe_distributions_equal_each_member_alone(ensemble):
+def test_training_pass_distributions_equal_each_member_alone(ensemble):
     g = torch.Generator().manual_seed(3)
     obs = torch.randn(4, 3, 7, 5, generator=g)
     act = torch.rand(4, 3, 7, 2, generator=g)
-    seq = ensemble.observe(obs, act)
+    seq = ensemble(obs, act)
     assert seq.prior_mean.shape == (4, 3, 6, 3)
     assert seq.decoder_mean.shape == seq.target.shape == (4, 3, 6, 3)  # 2 of 5 dims pass through
     for e in range(4):
-        ref = ensemble.select_members([e]).observe(obs[e : e + 1], act[e : e + 1])
+        ref = ensemble.select_members([e])(obs[e : e + 1], act[e : e + 1])
         for name in ("prior_mean", "prior_std", "posterior_mean", "posterior_std", "target"):
             torch.testing.assert_close(
                 getattr(seq, name)[e : e + 1], getattr(ref, name), rtol=1e-6, atol=1e-6
@@ -107,7 +108,7 @@ def test_members_do_not_see_each_others_windows(ensemble):
 
 def test_member_gradients_do_not_mix(ensemble):
     td = _windows()
-    seq = ensemble.observe(td["observation"], td["action"], open_loop_steps=2)
+    seq = ensemble(td["observation"], td["action"], open_loop_steps=2)
     gaussian_nll(seq.target, seq.decoder_mean, seq.decoder_std)[0].sum().backward()
     for name, param in ensemble.named_parameters():
         assert param.grad[1:].abs().max() == 0, name
@@ -130,7 +131,7 @@ def test_double_precision_model(ensemble):
     model = ensemble.double()
     assert model.dtype == torch.float64 and model.device.type == "cpu"
     assert model.select_members([1]).dtype == torch.float64
-    td = model.generate(torch.zeros(5, dtype=torch.float64), torch.zeros(3, 2).double())
+    td = imagine(model, torch.zeros(5, dtype=torch.float64), torch.zeros(3, 2).double())
     assert td["observation"].dtype == torch.float64
 
 

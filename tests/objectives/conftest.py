@@ -9,15 +9,6 @@ from tensordict import TensorDict
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    """Tiny tensor ops: one intra-op thread avoids OpenMP overhead on a shared 2-core machine."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 @pytest.fixture
 def ensemble() -> RCVAEEnsemble:
     torch.manual_seed(0)

@@ -59,12 +59,12 @@ def test_next_observations_add_the_last_transition(ensemble, windows):
     with_next = windows.clone()
     following = torch.randn(5, 1, 4)
     with_next["next", "observation"] = torch.cat([windows["observation"][:, 1:], following], 1)
-    seq = ensemble.observe(
+    seq = ensemble(
         with_next["observation"].expand(3, 5, 8, 4),
         with_next["action"].expand(3, 5, 8, 2),
         next_observations=with_next["next", "observation"].expand(3, 5, 8, 4),
     )
-    short = ensemble.observe(
+    short = ensemble(
         windows["observation"].expand(3, 5, 8, 4), windows["action"].expand(3, 5, 8, 2)
     )
     assert seq.target.shape[-2] == 8 and short.target.shape[-2] == 7
@@ -129,12 +129,12 @@ def test_mask_excludes_padded_steps(ensemble, windows):
 
 def test_left_padding_resets_the_hidden_state(ensemble, windows):
     """With the first 3 steps masked, the model state is that of the window starting at 3."""
-    seq_full = ensemble.observe(
+    seq_full = ensemble(
         windows["observation"].expand(3, 5, 8, 4),
         windows["action"].expand(3, 5, 8, 2),
         mask=torch.arange(8).ge(3).expand(1, 5, 8),
     )
-    seq_cut = ensemble.observe(
+    seq_cut = ensemble(
         windows["observation"][:, 3:].expand(3, 5, 5, 4),
         windows["action"][:, 3:].expand(3, 5, 5, 2),
     )

@@ -13,7 +13,7 @@ from rcvae_torchrl.planners import (
     lexicographic_score,
     quantile_return,
     reduce_particles,
-    success_probability,
+    success_fraction,
 )
 
 RETURNS = torch.tensor([[[4.0, 1.0, 3.0, 2.0], [0.0, 10.0, -6.0, 4.0]]])  # [B=1, C=2, P=4]
@@ -47,7 +47,7 @@ def test_cvar_return(level, expected):
 
 def test_success_probability_and_lexicographic_ties():
     success = torch.tensor([[True, False], [True, False], [True, True], [False, False]])
-    p = success_probability(success)
+    p = success_fraction(success)
     torch.testing.assert_close(p, torch.tensor([0.5, 0.5, 1.0, 0.0]))
     score = lexicographic_score(p, torch.tensor([3.0, 5.0, -1.0, 100.0]))
     assert score.dtype == torch.float64

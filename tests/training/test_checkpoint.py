@@ -3,11 +3,12 @@
 import pytest
 import torch
 
+from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.models import RCVAEConfig
+from rcvae_torchrl.rollout import imagine
 from rcvae_torchrl.training import (
     FORMAT_VERSION,
     CheckpointError,
-    atomic_write,
     load_ensemble,
     save_ensemble,
 )
@@ -15,8 +16,8 @@ from rcvae_torchrl.training import (
 
 def _samples(ensemble):
     g = torch.Generator().manual_seed(5)
-    return ensemble.generate(
-        torch.ones(2, 3), torch.zeros(2, 6, 1), samples_per_member=4, generator=g
+    return imagine(
+        ensemble, torch.ones(2, 3), torch.zeros(2, 6, 1), samples_per_member=4, generator=g
     )["observation"]
 
 
@@ -31,15 +32,15 @@ def test_round_trip_keeps_weights_normaliser_and_config(tmp_path, small_ensemble
 
 
 def test_missing_truncated_and_foreign_files(tmp_path, small_ensemble):
-    with pytest.raises(CheckpointError, match="expected an existing checkpoint file"):
+    with pytest.raises(CheckpointError, match=r"none\.pt.*the file is missing"):
         load_ensemble(tmp_path / "none.pt")
     path = save_ensemble(small_ensemble(), tmp_path / "m.pt")
     data = path.read_bytes()
     (tmp_path / "cut.pt").write_bytes(data[: len(data) // 2])
-    with pytest.raises(CheckpointError, match="corrupt or truncated"):
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
         load_ensemble(tmp_path / "cut.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint at all")
-    with pytest.raises(CheckpointError, match="corrupt or truncated"):
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
         load_ensemble(tmp_path / "junk.pt")
     torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
     with pytest.raises(CheckpointError, match="expected an rcvae_torchrl checkpoint"):

@@ -1,0 +1,222 @@
+"""Argument checks shared by every package of the library (one home for them).
+
+Every check raises ``ValueError`` (``TypeError`` for a value of the wrong kind) whose message
+names the argument, what was expected and what was given. Checks that only one package needs
+live beside it (e.g. ``model_env/_checks.py``) and are built from these.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "as_tensor",
+    "check_batch_shapes",
+    "check_bool",
+    "check_choice",
+    "check_dtype",
+    "check_finite",
+    "check_floating",
+    "check_member",
+    "check_min_rank",
+    "check_non_negative",
+    "check_positive",
+    "check_positive_int",
+    "check_positive_int_or_none",
+    "check_rank",
+    "check_same_shape",
+    "check_shape",
+    "check_tensor",
+    "check_trailing",
+    "check_unit_interval",
+    "make_generator",
+]
+
+
+# ----------------------------------------------------------------------------- scalars
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def check_positive_int(name: str, value: object) -> None:
+    """Require a Python integer >= 1 (``bool`` is not an integer here)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+
+
+def check_positive_int_or_none(name: str, value: object) -> None:
+    """Require ``None`` or a Python integer >= 1."""
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+        raise ValueError(f"{name}: expected a positive integer or None, got {value!r}")
+
+
+def check_positive(name: str, value: object) -> None:
+    """Require a finite number > 0."""
+    if not _is_number(value) or not math.isfinite(value) or not value > 0:
+        raise ValueError(f"{name}: expected a positive number, got {value!r}")
+
+
+def check_non_negative(name: str, value: object) -> None:
+    """Require a finite number >= 0."""
+    if not _is_number(value) or not math.isfinite(value) or value < 0:
+        raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+
+
+def check_bool(name: str, value: object) -> None:
+    """Require a Python bool (not a string or a number that happens to be truthy)."""
+    if not isinstance(value, bool):
+        raise TypeError(f"{name}: expected True or False, got {value!r}")
+
+
+def check_unit_interval(name: str, value: object, *, include_zero: bool = True) -> None:
+    """Require a number in [0, 1] (``include_zero``) or (0, 1]."""
+    interval = "[0, 1]" if include_zero else "(0, 1]"
+    if not _is_number(value):
+        raise TypeError(f"{name}: expected a float in {interval}, got {value!r}")
+    low_ok = value >= 0.0 if include_zero else value > 0.0
+    if not (low_ok and value <= 1.0):
+        raise ValueError(f"{name}: expected a float in {interval}, got {value!r}")
+
+
+def check_choice(name: str, value: object, choices: Sequence[str]) -> None:
+    """Require ``value`` to be one of ``choices``."""
+    if not isinstance(value, str) or value not in choices:
+        raise ValueError(f"{name}: expected one of {sorted(choices)}, got {value!r}")
+
+
+# ----------------------------------------------------------------------------- tensors
+def check_tensor(name: str, x: object) -> Tensor:
+    """Require a ``torch.Tensor``; returns it."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    return x
+
+
+def as_tensor(name: str, x: object) -> Tensor:
+    """``x`` as a tensor (numbers and sequences are converted), or ``TypeError`` naming it."""
+    if isinstance(x, Tensor):
+        return x
+    if isinstance(x, (int, float, bool, Sequence)) and not isinstance(x, str):
+        return torch.as_tensor(x)
+    raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+
+
+def check_floating(name: str, x: Tensor) -> None:
+    """Require a floating-point tensor."""
+    if not x.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+
+
+def check_dtype(name: str, x: Tensor, dtype: torch.dtype, owner: str = "the model's") -> None:
+    """Require ``x.dtype == dtype``; the message says where it comes from and how to convert."""
+    if x.dtype != dtype:
+        hint = ""
+        if x.is_floating_point() and dtype.is_floating_point:
+            hint = (
+                f"; convert the inputs (x.to({dtype})), or for a TorchRL env append a "
+                "DoubleToFloat transform"
+            )
+        raise TypeError(f"{name}: expected dtype {dtype} ({owner}), got {x.dtype}{hint}")
+
+
+def _all_finite(x: Tensor) -> bool:
+    """True when no entry is NaN or ±inf; ``aminmax`` allocates nothing of the input's size."""
+    if x.numel() == 0:
+        return True
+    low, high = torch.aminmax(x)
+    return bool(torch.isfinite(low)) and bool(torch.isfinite(high))
+
+
+def check_finite(name: str, x: Tensor) -> None:
+    """Require every entry of a floating tensor to be finite (no NaN, no inf)."""
+    if x.is_floating_point() and not _all_finite(x):
+        n_nan = int(torch.isnan(x).sum())
+        n_inf = int(torch.isinf(x).sum())
+        raise ValueError(
+            f"{name}: expected finite values, got {n_nan} NaN and {n_inf} inf "
+            f"entries in a tensor of shape {tuple(x.shape)}"
+        )
+
+
+def check_min_rank(name: str, x: Tensor, min_rank: int, layout: str) -> None:
+    """Require ``x.ndim >= min_rank``; ``layout`` describes the expected shape."""
+    if x.ndim < min_rank:
+        raise ValueError(
+            f"{name}: expected shape {layout} (at least {min_rank} dims), "
+            f"got shape {tuple(x.shape)} ({x.ndim} dims)"
+        )
+
+
+def check_rank(name: str, x: Tensor, rank: int, layout: str) -> None:
+    """Require ``x.ndim == rank``; ``layout`` describes the expected shape."""
+    if x.ndim != rank:
+        raise ValueError(
+            f"{name}: expected shape {layout} ({rank} dims), "
+            f"got shape {tuple(x.shape)} ({x.ndim} dims)"
+        )
+
+
+def check_shape(name: str, x: Tensor, expected: Sequence[int], layout: str) -> None:
+    """Require ``x.shape == expected``; ``layout`` names the axes, e.g. ``"[*B, C, H, *A]"``."""
+    if tuple(x.shape) != tuple(expected):
+        raise ValueError(
+            f"{name}: expected shape {layout} = {tuple(expected)}, got {tuple(x.shape)}"
+        )
+
+
+def check_trailing(name: str, x: Tensor, trailing: Sequence[int], layout: str) -> None:
+    """Require ``x.shape`` to end with ``trailing``; ``layout`` describes it (``[*B, S=14]``)."""
+    n = len(trailing)
+    if x.dim() < n or tuple(x.shape[x.dim() - n :]) != tuple(trailing):
+        raise ValueError(f"{name}: expected shape {layout}, got {tuple(x.shape)}")
+
+
+def check_same_shape(name_a: str, a: Tensor, name_b: str, b: Tensor) -> None:
+    """Require ``a`` and ``b`` to have the same shape."""
+    if a.shape != b.shape:
+        raise ValueError(
+            f"{name_a} and {name_b}: expected the same shape, "
+            f"got {tuple(a.shape)} and {tuple(b.shape)}"
+        )
+
+
+def check_batch_shapes(names: tuple[str, str], a: Sequence[int], b: Sequence[int]) -> None:
+    """Require the batch shapes of two arguments to be equal."""
+    if tuple(a) != tuple(b):
+        raise ValueError(
+            f"{names[1]}: expected batch shape {tuple(a)} (that of {names[0]}), got {tuple(b)}"
+        )
+
+
+def check_member(member: Tensor, ensemble_size: int, name: str = "member") -> None:
+    """Require an integer tensor with values in ``[0, ensemble_size)``."""
+    if member.dtype not in (torch.int64, torch.int32):
+        raise TypeError(f"{name}: expected an int64 tensor, got dtype {member.dtype}")
+    if member.numel() and (int(member.min()) < 0 or int(member.max()) >= ensemble_size):
+        raise ValueError(
+            f"{name}: expected values in [0, {ensemble_size}), got range "
+            f"[{int(member.min())}, {int(member.max())}]"
+        )
+
+
+# ----------------------------------------------------------------------------- randomness
+def make_generator(
+    generator: torch.Generator | None,
+    seed: int | None,
+    device: torch.device | str | None = None,
+) -> torch.Generator | None:
+    """``generator``, or a new one on ``device`` seeded with ``seed`` (not both; neither: None).
+
+    A seed must be an integer in ``[0, 2**63)``, the range torch's generators accept.
+    """
+    if generator is not None and seed is not None:
+        raise ValueError(f"seed: expected None when a generator is given, got {seed!r}")
+    if seed is None:
+        return generator
+    if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
+        raise ValueError(f"seed: expected an integer in [0, 2**63), got {seed!r}")
+    return torch.Generator(device=device or "cpu").manual_seed(seed)

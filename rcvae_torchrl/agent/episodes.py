@@ -1,0 +1,77 @@
+"""Running a policy for whole episodes in a real env, from its own starts or from given ones."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+from tqdm.auto import tqdm
+
+from rcvae_torchrl.data import TRAJ_KEY
+
+__all__ = ["EpisodeStats", "ResetToState", "run_episodes"]
+
+#: ``(env, observation [S]) -> tensordict``: reset ``env`` and put it in the given state.
+ResetToState = Callable[[EnvBase, torch.Tensor], TensorDictBase]
+
+
+@dataclass
+class EpisodeStats:
+    """Outcomes of episodes run by :func:`run_episodes`."""
+
+    success: torch.Tensor  #: ``[n]`` bool: the success flag was raised during the episode
+    steps: torch.Tensor  #: ``[n]`` int64: steps to success, or the episode's length
+    data: TensorDict  #: flat transitions ``[frames]`` with episode ids under ``TRAJ_KEY``
+
+    @property
+    def success_rate(self) -> float:
+        return self.success.float().mean().item()
+
+
+def run_episodes(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    *,
+    seeds: Sequence[int],
+    starts: torch.Tensor | None = None,
+    reset_to_state: ResetToState | None = None,
+    max_steps: int,
+    success_key: str = "success",
+    first_id: int = 0,
+    progress: bool = True,
+    desc: str = "episodes",
+) -> EpisodeStats:
+    """One episode per seed: ``env.set_seed(seed)`` then reset (drawing the start state and the
+    noise), or reset to the given start observations ``starts [n, S]`` with
+    ``reset_to_state`` (the seed then only draws the noise).
+
+    Calls ``policy.reset()`` before each episode when the policy's class has one (a planner's
+    warm start must not leak across episodes). An episode ends at the env's ``done`` or after
+    ``max_steps``; it succeeds when ``("next", success_key)`` is raised at any step.
+    """
+    if starts is not None:
+        if len(starts) != len(seeds):
+            raise ValueError(
+                f"starts: expected one start state per seed ({len(seeds)}), got {len(starts)}"
+            )
+        if reset_to_state is None:
+            raise ValueError("reset_to_state: expected a function to start from given states")
+    success, steps, parts = [], [], []
+    for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
+        env.set_seed(int(seed))
+        td = env.reset() if starts is None else reset_to_state(env, starts[i])
+        if hasattr(type(policy), "reset"):  # a planner's warm start (not an env's reset)
+            policy.reset()
+        with torch.no_grad():
+            episode = env.rollout(
+                max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
+            )
+        won = episode["next", success_key].reshape(-1)
+        success.append(bool(won.any()))
+        steps.append(int(won.float().argmax()) + 1 if won.any() else episode.shape[0])
+        episode[TRAJ_KEY] = torch.full(episode.shape, first_id + i, dtype=torch.int64)
+        parts.append(episode.exclude("is_init"))
+    return EpisodeStats(torch.tensor(success), torch.tensor(steps), torch.cat(parts))

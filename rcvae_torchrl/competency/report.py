@@ -1,0 +1,190 @@
+"""The competency report: a TensorDict per start state, and its plain-language summary.
+
+:class:`CompetencyReport` is what :class:`~rcvae_torchrl.competency.CompetencyAssessor` returns
+(Acharya, Russell & Ahmed, 2022: Table 1 per start state, Figure 1 per dimension and time).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torch import Tensor
+
+__all__ = ["CompetencyReport"]
+
+_REASONS = {
+    "epistemic": "the model has not seen states like this",
+    "aleatoric": "the members agree that the states vary by chance, which more data would not "
+    "remove",
+}
+
+
+@dataclass(frozen=True)
+class CompetencyReport:
+    """The assessment of a batch of start states, and its plain-language summary.
+
+    ``data`` has batch ``[*B]`` (one entry per start state; ``report[i]`` is start state i)
+    and holds, with ``E`` members, ``N`` samples per member, ``T`` steps, ``D`` dimensions:
+
+    - ``"observation"`` ``[*B, D]``: the start states;
+    - ``"uncertainty"``: :class:`~rcvae_torchrl.competency.UncertaintyMetric`'s entries
+      (``"total"`` / ``"aleatoric"`` / ``"epistemic"`` bits ``[*B, T, D]``, ``"time_mean"``
+      ``[*B, D]``, ``"summary"`` ``[*B]`` summed over dimensions, ``"by_dim"`` with names),
+      plus ``"peak_step"`` int64 ``[*B, D]``, the time index of each dimension's largest total
+      bits, and with ``dt`` ``"peak_time_s"`` = (peak_step + 1)·dt (index t holds s_{t+1});
+      joint estimators give ``[*B, T]``, ``[*B]``, ``[*B]`` and no peaks;
+    - ``"competency"``: :class:`~rcvae_torchrl.competency.SuccessMetric`'s entries with the
+      start state first: ``"p_success"``, ``"p_success_low"``, ``"p_success_high"`` ``[*B]``,
+      ``"p_success_member"`` ``[*B, E]``, ``"success"`` / ``"failure"`` ``[*B, E, N]``,
+      ``"outcome_uncertainty"`` ``[*B]``, ``"time_to_success"`` (``"first_step"``
+      ``[*B, E, N]``, per-step entries ``[*B, T]``, statistics ``[*B]``);
+    - ``"rollout"`` (only when asked for): the imagined rollouts ``[*B, E, N, T]``.
+
+    **Summary rules** (:meth:`summary`), one paragraph per start state:
+
+    1. ``P(success within L) = p (c% interval low–high).`` L = min(time limit, T) steps, in
+       seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
+    2. The dominant type is the larger of the aleatoric and epistemic time-mean bits summed
+       over dimensions (``("uncertainty", "summary", ·)``; a tie counts as aleatoric), given
+       with its share of the total: ``Most of the doubt is epistemic (0.70 of 1.10 bits): the
+       model has not seen states like this.`` When all three are 0 the sentence says so.
+    3. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
+       each with its mean bits and the time of its peak. Left out for joint estimators.
+
+    The words are only as good as the estimate: with the histogram estimator, a member's
+    entropy from ``N`` samples is at most log2 N bits, so when the samples spread over many
+    more bins than ``N`` the epistemic part is inflated (up to log2 E bits per dimension).
+    Coarser bins or more samples per member help.
+
+    Args:
+        data: the report TensorDict described above.
+        dim_names: names of the ``D`` dimensions.
+        time_limit: L in steps.
+        dt: seconds per step, or ``None`` (times in steps).
+        confidence: coverage of the P(success) interval.
+        top_k: number of dimensions named in the summary.
+        uncertainty_key, competency_key, observation_key: where ``data`` holds each part.
+    """
+
+    data: TensorDictBase
+    dim_names: tuple[str, ...]
+    time_limit: int
+    dt: float | None
+    confidence: float
+    top_k: int = 2
+    uncertainty_key: NestedKey = "uncertainty"
+    competency_key: NestedKey = "competency"
+    observation_key: NestedKey = "observation"
+
+    @property
+    def batch_size(self) -> torch.Size:
+        """``[*B]``, the start states' batch."""
+        return self.data.batch_size
+
+    @property
+    def uncertainty(self) -> TensorDictBase:
+        """The ``"uncertainty"`` entries."""
+        return self.data.get(self.uncertainty_key)
+
+    @property
+    def competency(self) -> TensorDictBase:
+        """The ``"competency"`` entries."""
+        return self.data.get(self.competency_key)
+
+    def __getitem__(self, index: Any) -> CompetencyReport:
+        """The report of some start states (``data[index]``)."""
+        return replace(self, data=self.data[index])
+
+    def summary(self, index: int | tuple[int, ...] | None = None) -> str:
+        """Plain-language summary (see the class docstring for the rules).
+
+        Args:
+            index: one start state (an int, or a tuple for a multi-dimensional batch). ``None``:
+                the one paragraph of an unbatched report, else one paragraph per start state,
+                each headed ``Start state i:``.
+        """
+        if index is not None:
+            one = self.data[index]
+            if one.batch_dims:
+                raise ValueError(
+                    f"index: expected one start state of the batch {tuple(self.batch_size)}, "
+                    f"got {index!r} (selects {tuple(one.batch_size)})"
+                )
+            return self._paragraph(one)
+        if not self.data.batch_dims:
+            return self._paragraph(self.data)
+        return "\n\n".join(
+            f"Start state {i[0] if len(i) == 1 else i}: {self._paragraph(self.data[i])}"
+            for i in np.ndindex(*self.batch_size)
+        )
+
+    def __str__(self) -> str:
+        return self.summary()
+
+    def _paragraph(self, one: TensorDictBase) -> str:
+        competency, uncertainty = one.get(self.competency_key), one.get(self.uncertainty_key)
+        sentences = [
+            _success_sentence(
+                float(competency.get("p_success")),
+                float(competency.get("p_success_low")),
+                float(competency.get("p_success_high")),
+                self.confidence,
+                _duration(self.time_limit, self.dt),
+            ),
+            _doubt_sentence(
+                *(float(uncertainty.get(("summary", k))) for k in ("aleatoric", "epistemic")),
+                float(uncertainty.get(("summary", "total"))),
+            ),
+        ]
+        if "peak_step" in uncertainty.keys():
+            sentences.append(
+                _dims_sentence(
+                    uncertainty.get(("time_mean", "total")),
+                    uncertainty.get("peak_step"),
+                    self.dim_names,
+                    self.dt,
+                    self.top_k,
+                )
+            )
+        return " ".join(s for s in sentences if s)
+
+
+def _success_sentence(p: float, low: float, high: float, confidence: float, within: str) -> str:
+    """``P(success within 30 s) = 0.84 (95% interval 0.78–0.89).``"""
+    return f"P(success within {within}) = {p:.2f} ({confidence:.0%} interval {low:.2f}–{high:.2f})."
+
+
+def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:
+    """The dominant uncertainty type (larger of the two; a tie is aleatoric) and its share."""
+    if aleatoric == epistemic == total == 0.0:
+        return "No doubt about the imagined states (0.00 bits): all samples agree."
+    kind, bits = ("epistemic", epistemic) if epistemic > aleatoric else ("aleatoric", aleatoric)
+    return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {_REASONS[kind]}."
+
+
+def _dims_sentence(
+    time_mean: Tensor, peak_step: Tensor, names: Sequence[str], dt: float | None, top_k: int
+) -> str:
+    """The ``top_k`` dimensions by time-mean bits ``[D]`` (above 0) with their peak ``[D]``."""
+    order = torch.argsort(time_mean, descending=True, stable=True)[:top_k].tolist()
+    parts = [
+        f"{names[d]} (mean {float(time_mean[d]):.2f} bits, peak at {_when(int(peak_step[d]), dt)})"
+        for d in order
+        if float(time_mean[d]) > 0
+    ]
+    return f"Most uncertain: {', '.join(parts)}." if parts else ""
+
+
+def _duration(steps: int, dt: float | None) -> str:
+    return f"{steps} steps" if dt is None else f"{round(steps * dt, 6):g} s"
+
+
+def _when(index: int, dt: float | None) -> str:
+    """Index t of the time axis holds s_{t+1}: step t + 1, time (t + 1)·dt."""
+    return f"step {index + 1}" if dt is None else f"t = {round((index + 1) * dt, 6):g} s"

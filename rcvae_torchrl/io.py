@@ -1,0 +1,133 @@
+"""Files the library writes and reads: atomic writes, JSON, torch payloads, run configs.
+
+- :func:`atomic_write`: a crash (even ``kill -9``) leaves either the old file or the new one,
+  never half of one; the new file gets the permissions the user's umask gives a new file.
+- :func:`write_json` / :func:`read_json`, :func:`save_torch` / :func:`load_torch`: the one way
+  to store and read back small records and tensors; a missing, truncated or corrupt file is a
+  :class:`StoredFileError` that names the file and what it should hold.
+- :func:`record_run_config`: the settings a run directory was made with, so that a rerun with
+  other settings cannot silently reuse its results.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import IO, Any
+
+import torch
+
+__all__ = [
+    "StoredFileError",
+    "atomic_write",
+    "load_torch",
+    "read_json",
+    "record_run_config",
+    "save_torch",
+    "write_json",
+]
+
+
+class StoredFileError(ValueError):
+    """A stored file cannot be used: missing, truncated, corrupt or of another kind."""
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
+    """Call ``write(f)`` on a temp file beside ``path``, fsync it, then rename it over ``path``.
+
+    The file gets mode ``0o666 & ~umask`` (what ``open`` would give it), not the private mode
+    of a temporary file.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return path
+
+
+def write_json(path: str | Path, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON, atomically (non-JSON values are written as strings)."""
+    text = json.dumps(obj, indent=2, default=str).encode()
+    return atomic_write(path, lambda f: f.write(text))
+
+
+def read_json(path: str | Path, what: str = "a JSON file") -> Any:
+    """The JSON content of ``path``; :class:`StoredFileError` naming the file when it is
+    missing or not valid JSON (e.g. truncated)."""
+    path = Path(path)
+    if not path.is_file():
+        raise StoredFileError(f"{what} {str(path)!r}: the file is missing")
+    try:
+        return json.loads(path.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise StoredFileError(
+            f"{what} {str(path)!r} is truncated or corrupt (not valid JSON: {err})"
+        ) from err
+
+
+def save_torch(path: str | Path, obj: Any) -> Path:
+    """``torch.save(obj)`` to ``path``, atomically."""
+    return atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def load_torch(path: str | Path, what: str = "a torch file", map_location: Any = "cpu") -> Any:
+    """``torch.load(path, weights_only=True)``; :class:`StoredFileError` naming the file when it
+    is missing, truncated or corrupt."""
+    path = Path(path)
+    if not path.is_file():
+        raise StoredFileError(f"{what} {str(path)!r}: the file is missing")
+    data = path.read_bytes()
+    try:
+        return torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
+    except Exception as err:  # torch raises several types for damaged archives
+        raise StoredFileError(
+            f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): {err}"
+        ) from err
+
+
+def record_run_config(
+    path: str | Path, config: Mapping[str, Any], *, may_change: Iterable[str] = ()
+) -> None:
+    """Write a run's settings to ``path``, or check them against the ones already there.
+
+    A run directory holds results made with the settings recorded in it; reusing them under
+    other settings would mix results silently, so that is a ``ValueError`` naming the settings
+    that differ. Top-level keys in ``may_change`` may differ (e.g. a number of rounds a run can
+    be extended by); the new values are recorded.
+    """
+    path = Path(path)
+    current = json.loads(json.dumps(dict(config), default=str))
+    if path.is_file():
+        saved = read_json(path, "run config")
+        skip = set(may_change)
+        changed = sorted(
+            k for k in set(saved) | set(current) if k not in skip and saved.get(k) != current.get(k)
+        )
+        if changed:
+            raise ValueError(
+                f"run directory {str(path.parent)!r} holds a run made with other settings "
+                f"({changed} differ); its results would be reused: use a new directory"
+            )
+        if saved == current:
+            return
+    write_json(path, current)

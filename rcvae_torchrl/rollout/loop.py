@@ -1,0 +1,111 @@
+"""The rollout loop: H steps of particles through the ensemble, with a hook per step.
+
+Every imagined rollout of the library runs here: :func:`~rcvae_torchrl.rollout.imagine`
+(records every step), plan scoring (:func:`~rcvae_torchrl.rollout.evaluate_action_sequences`,
+accumulates rewards), the policy's plan (:func:`~rcvae_torchrl.rollout.plan_actions`, records
+actions). They differ only in where the actions come from and in what the hook keeps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple, Protocol
+
+import torch
+
+from rcvae_torchrl._checks import check_finite
+from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.rollout.sampling import Propagated, TrajectorySampling, propagate
+
+__all__ = ["ActionBounds", "Policy", "RolloutHook", "StepRecord", "rollout"]
+
+Policy = Callable[[torch.Tensor], torch.Tensor]
+"""A closed-loop policy on tensors: observations ``[..., S]`` -> actions ``[..., A]``."""
+
+
+class ActionBounds(NamedTuple):
+    """Bounds every action is clipped to, as the real env clips them (each ``[A]``)."""
+
+    low: torch.Tensor
+    high: torch.Tensor
+
+
+class StepRecord(NamedTuple):
+    """What a hook sees of step t: a_t applied in s_t, and the model's step to s_{t+1}."""
+
+    t: int
+    previous: torch.Tensor  #: s_t
+    action: torch.Tensor  #: a_t (clipped to the bounds)
+    out: Propagated  #: s_{t+1} and the model's internals
+
+
+class RolloutHook(Protocol):
+    """Called once per step with its :class:`StepRecord`."""
+
+    def __call__(self, step: StepRecord) -> None: ...
+
+
+def _policy_action(policy: Policy, state: torch.Tensor, t: int, action_dim: int) -> torch.Tensor:
+    """The policy's actions ``[*P, A]`` for states ``[*P, S]``, checked."""
+    action = policy(state)
+    want = (*state.shape[:-1], action_dim)
+    if not isinstance(action, torch.Tensor) or tuple(action.shape) != want:
+        got = tuple(action.shape) if isinstance(action, torch.Tensor) else type(action).__name__
+        raise ValueError(f"policy: expected actions of shape {want}, got {got}")
+    check_finite(f"policy output at step {t}", action)
+    return action
+
+
+def rollout(
+    ensemble: RCVAEEnsemble,
+    mode: TrajectorySampling,
+    observation: torch.Tensor,
+    hidden: torch.Tensor,
+    horizon: int,
+    hook: RolloutHook,
+    *,
+    actions: torch.Tensor | None = None,
+    policy: Policy | None = None,
+    bounds: ActionBounds | None = None,
+    generator: torch.Generator | None = None,
+    noise: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Step particles ``horizon`` times and call ``hook`` after each step.
+
+    Args:
+        ensemble: the world model.
+        mode: trajectory sampling (:mod:`~rcvae_torchrl.rollout.sampling` gives the layouts).
+        observation: s_0 of the particles.
+        hidden: h_0 (``[E, M, H]``).
+        horizon: H steps.
+        hook: called with a :class:`StepRecord` after every step.
+        actions: open loop: ``[H, *P, A]`` (index t gives a_t for every particle; a view of an
+            expanded tensor is fine).
+        policy: closed loop instead: called on s_t ``[*P, S]``, must return finite ``[*P, A]``.
+        bounds: clip every action to these bounds (the real env's action spec).
+        generator: source of the sampling noise.
+        noise: pre-drawn ``(ε_z [H, ...], ε_s [H, ...])`` instead of ``generator``.
+
+    Returns:
+        ``(s_H, h_H)``.
+    """
+    action_dim = ensemble.config.action_dim
+    for t in range(horizon):
+        if actions is not None:
+            action = actions[t]
+        else:
+            action = _policy_action(policy, observation, t, action_dim)
+        if bounds is not None:
+            action = torch.clamp(action, bounds.low, bounds.high)
+        out = propagate(
+            ensemble,
+            mode,
+            hidden,
+            observation,
+            action,
+            noise=None if noise is None else (noise[0][t], noise[1][t]),
+            generator=generator,
+        )
+        hook(StepRecord(t, observation, action, out))
+        observation, hidden = out.observation, out.hidden
+    return observation, hidden

@@ -1,0 +1,206 @@
+"""Returns of candidate action sequences under the ensemble: the planner's fast path.
+
+Mirrors mbrl-lib's ``ModelEnv.evaluate_action_sequences``: ``R = |B|·C`` rows (start state x
+candidate), G particle groups per row, all G·R particles stepped together by the rollout loop,
+rewards kept per step and summed at the end; no TensorDict.
+
+Particle layout (flat index i = g·R + r, so ``"ts_inf"`` is member-major without copies):
+
+- ``"ts_inf"``: G = E·k with k = ⌈P / E⌉, so P is rounded **up** to a multiple of E and every
+  member scores every candidate equally often; particle g = m·k + j follows member m. The
+  tensors ``[G·R, ·]`` are viewed as ``[E, k·R, ·]``: one batched matmul per layer. With
+  P = 1, G = 1: the rows (padded to a multiple of E) are split over the members in contiguous
+  blocks, one particle each, as TorchRL's stock planners get from a round-robin reset.
+- ``"ts1"``: G = P; every particle carries all members' hidden states ``[E, P·R, H]``.
+- ``"mean"``: deterministic, so G = 1 and the result is repeated P times.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+
+from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.rollout.loop import ActionBounds, StepRecord, rollout
+from rcvae_torchrl.rollout.sampling import TrajectorySampling, initial_hidden
+from rcvae_torchrl.rollout.task import Task
+
+__all__ = [
+    "SequenceReturns",
+    "compiled_scoring",
+    "evaluate_action_sequences",
+    "particle_groups",
+]
+
+
+class SequenceReturns(NamedTuple):
+    """Per-particle outcome of each row's action sequence."""
+
+    returns: torch.Tensor  #: sum of rewards up to and including the episode's end ``[R, P']``
+    success: torch.Tensor  #: success reached within the horizon, bool ``[R, P']``
+
+
+def particle_groups(
+    trajectory_sampling: TrajectorySampling, particles: int, ensemble_size: int
+) -> int:
+    """G, the particles computed per row: ``E·⌈P/E⌉`` (``"ts_inf"``; 1 when P = 1), P
+    (``"ts1"``), 1 (``"mean"``)."""
+    if trajectory_sampling == "ts_inf":
+        return 1 if particles == 1 else ensemble_size * math.ceil(particles / ensemble_size)
+    return particles if trajectory_sampling == "ts1" else 1
+
+
+class _Scores:
+    """Keeps each step's reward and success of every particle ``[n]``."""
+
+    def __init__(self, task: Task, n: int) -> None:
+        self.task, self.n = task, n
+        self.rewards: list[torch.Tensor] = []
+        self.successes: list[torch.Tensor] = []
+
+    def __call__(self, step: StepRecord) -> None:
+        obs = step.out.observation.reshape(self.n, -1)
+        action = step.action.reshape(self.n, -1)
+        reward = self.task.reward_fn(observation=obs, action=action)
+        success = self.task.success_fn(observation=obs)
+        if step.t == 0:  # the task functions' outputs checked once: the shapes never change
+            reward = self.task.checked_reward(reward, obs)
+            success = self.task.checked_success(success, obs)
+        self.rewards.append(reward.reshape(self.n).to(obs.dtype))
+        self.successes.append(success.reshape(self.n))
+
+    def result(self) -> tuple[torch.Tensor, torch.Tensor]:
+        success = torch.stack(self.successes)
+        returns = self.task.returns(torch.stack(self.rewards), success)
+        return returns, success.any(0)  # the first success is always within the episode
+
+
+def _score(ensemble, mode, task, hidden, obs, per_step, bounds, generator, noise):
+    """All H steps of all particles, scored: ``(returns [n], success [n])``."""
+    hook = _Scores(task, per_step.shape[1])
+    if mode == "ts_inf":  # member-major views of the flat particles, no copies
+        e = ensemble.ensemble_size
+        obs = obs.view(e, -1, obs.shape[-1])
+        per_step = per_step.view(per_step.shape[0], e, -1, per_step.shape[-1])
+    rollout(
+        ensemble,
+        mode,
+        obs,
+        hidden,
+        per_step.shape[0],
+        hook,
+        actions=per_step,
+        bounds=bounds,
+        generator=generator,
+        noise=noise,
+    )
+    return hook.result()
+
+
+def evaluate_action_sequences(
+    ensemble: RCVAEEnsemble,
+    start: torch.Tensor,
+    actions: torch.Tensor,
+    particles: int,
+    *,
+    task: Task,
+    trajectory_sampling: TrajectorySampling = "ts_inf",
+    bounds: ActionBounds | None = None,
+    generator: torch.Generator | None = None,
+    compile: bool = False,
+) -> SequenceReturns:
+    """Roll every row's action sequence out for its particles and score it.
+
+    The return of a particle is Σ_t r_t over the steps up to and including its first success
+    when the task terminates on success, else over all H steps; ``success`` says whether any
+    step within the horizon succeeded. Non-finite states give non-finite rewards and returns;
+    callers mask rows with non-finite starts themselves.
+
+    Args:
+        ensemble: the world model.
+        start: s_0 of each row ``[R, S]`` (every particle starts from h_0 = 0).
+        actions: a_0..a_{H-1} of each row ``[R, H, A]``.
+        particles: P requested per row (see the module docstring for P').
+        task: reward, success and whether success ends an episode.
+        trajectory_sampling: ``"ts_inf"``, ``"ts1"`` or ``"mean"``.
+        bounds: clip actions to these bounds.
+        generator: source of all sampling noise.
+        compile: run the ``"ts_inf"`` rollout as one ``torch.compile``-d function
+            (:func:`compiled_scoring`); other modes ignore it.
+
+    Returns:
+        :class:`SequenceReturns`, each ``[R, P']``.
+    """
+    rows, horizon = actions.shape[0], actions.shape[1]
+    e = ensemble.ensemble_size
+    groups = particle_groups(trajectory_sampling, particles, e)
+    pad = (-rows) % e if trajectory_sampling == "ts_inf" and groups == 1 else 0
+    if pad:  # one particle per row: rows split over the members, padded to a multiple of E
+        start = torch.cat([start, start[-1:].expand(pad, -1)])
+        actions = torch.cat([actions, actions[-1:].expand(pad, -1, -1)])
+        rows += pad
+    n = groups * rows
+    obs = start.expand(groups, *start.shape).reshape(n, start.shape[-1])
+    # a_t of every particle, [H, n, A], one copy: each step reads a contiguous view
+    per_step = actions.transpose(0, 1).unsqueeze(1).expand(horizon, groups, rows, -1)
+    per_step = per_step.reshape(horizon, n, actions.shape[-1])
+    ts_inf = trajectory_sampling == "ts_inf"
+    hidden = initial_hidden(ensemble, n, obs, ts_inf)
+    args = (ensemble, trajectory_sampling, task, hidden, obs, per_step, bounds)
+    if compile and ts_inf:  # the noise drawn here, as the steps would draw it
+        returns, success = compiled_scoring()(
+            *args, None, _ts_inf_noise(ensemble, hidden, horizon, generator)
+        )
+    else:
+        returns, success = _score(*args, generator, None)
+    out = SequenceReturns(returns.view(groups, rows).T, success.view(groups, rows).T)
+    if pad:
+        out = SequenceReturns(*(x[: rows - pad] for x in out))
+    if trajectory_sampling == "mean":
+        out = SequenceReturns(*(x.expand(rows, particles) for x in out))
+    return out
+
+
+_COMPILED: list = []
+
+
+def compiled_scoring() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
+    """The scoring rollout under ``torch.compile`` (inductor, static shapes), made once.
+
+    One compiled call per scoring: the H steps unrolled into one graph (fused kernels and the
+    matmuls instead of some sixty small ops per step, and one guard check instead of H). The
+    first call for a new model, task function, horizon or batch size compiles it (seconds to
+    minutes on a CPU). The numbers agree with the eager rollout up to float rounding (fused
+    kernels), not bit for bit. Dynamo recompiles for each new shape, up to its cache limit.
+    """
+    if not _COMPILED:
+        _COMPILED.append(torch.compile(_score, dynamic=False))
+    return _COMPILED[0]
+
+
+def _ts_inf_noise(
+    ensemble: RCVAEEnsemble, hidden: torch.Tensor, horizon: int, generator: torch.Generator | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """ε_z ``[H, E, n/E, Z]`` and ε_s ``[H, E, n/E, D]``: what ``ensemble.step`` would draw at
+    each step (ε_z then ε_s), in the same order.
+
+    On a CPU, ``normal_`` turns consecutive uniforms into normals in blocks of 16, so when every
+    per-step draw is a multiple of 16 numbers one draw for the whole horizon gives the same
+    numbers (and generator state) as the 2·H draws; otherwise the draws are made one by one.
+    """
+    batch, cfg = hidden.shape[:-1], ensemble.config
+    latent, predicted = batch.numel() * cfg.latent_dim, batch.numel() * cfg.predicted_dim
+    flat = hidden.new_empty(horizon, latent + predicted)
+    if hidden.device.type == "cpu" and latent % 16 == 0 and predicted % 16 == 0:
+        flat.normal_(generator=generator)
+    else:
+        for t in range(horizon):
+            flat[t, :latent].normal_(generator=generator)
+            flat[t, latent:].normal_(generator=generator)
+    return (
+        flat[:, :latent].view(horizon, *batch, cfg.latent_dim),
+        flat[:, latent:].view(horizon, *batch, cfg.predicted_dim),
+    )

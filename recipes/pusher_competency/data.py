@@ -1,0 +1,89 @@
+"""Pusher datasets for the world model: scripted pushing with exploration noise, random play."""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+from tensordict import TensorDict
+
+from rcvae_torchrl.data import (
+    TRAJ_KEY,
+    GaussianExploration,
+    UniformRandomPolicy,
+    collect_episodes,
+    make_exploration_policy,
+)
+from rcvae_torchrl.envs import make_pusher_env
+from rcvae_torchrl.envs.scripted import ScriptedPusher
+
+__all__ = ["collect_pusher_data"]
+
+
+def collect_pusher_data(
+    variant: str = "deterministic",
+    *,
+    scripted_episodes: int = 100,
+    random_episodes: int = 20,
+    exploration_std: float = 0.3,
+    random_hold: int = 5,
+    time_limit: float = 30.0,
+    random_time_limit: float = 10.0,
+    terminate_on_success: bool = False,
+    seed: int = 0,
+    num_envs: int = 4,
+    progress: bool = True,
+    **env_kwargs,
+) -> TensorDict:
+    """Episodes ``[frames]`` of the scripted pusher with Gaussian exploration noise, then of
+    uniformly random actions (held for ``random_hold`` steps), in one Pusher variant.
+
+    Episode ids (:data:`rcvae_torchrl.data.TRAJ_KEY`) are unique across both parts. By default
+    episodes run past success (``terminate_on_success=False``), so the data also shows the ball
+    at rest on the target and long-horizon behaviour. ``num_envs`` envs are stepped together
+    (see :func:`~rcvae_torchrl.data.collect_episodes`).
+    """
+    make_env = functools.partial(
+        make_pusher_env,
+        variant,
+        time_limit=time_limit,
+        terminate_on_success=terminate_on_success,
+        **env_kwargs,
+    )
+    parts = []
+    if scripted_episodes:
+        policy = make_exploration_policy(
+            GaussianExploration(ScriptedPusher(), exploration_std, seed=seed)
+        )
+        parts.append(
+            collect_episodes(
+                make_env,
+                policy,
+                scripted_episodes,
+                seed=seed,
+                num_envs=num_envs,
+                progress=progress,
+                desc=f"{variant}: scripted",
+            )
+        )
+    if random_episodes:
+        make_random_env = functools.partial(make_env, time_limit=random_time_limit)
+        policy = make_exploration_policy(UniformRandomPolicy(2, random_hold, seed=seed + 1))
+        parts.append(
+            collect_episodes(
+                make_random_env,
+                policy,
+                random_episodes,
+                seed=seed + 1,
+                num_envs=num_envs,
+                progress=progress,
+                desc=f"{variant}: random",
+            )
+        )
+    if not parts:
+        raise ValueError("scripted_episodes, random_episodes: expected at least one episode")
+    offset = 0
+    for part in parts:
+        part[TRAJ_KEY] = part[TRAJ_KEY] - part[TRAJ_KEY].min() + offset
+        offset = int(part[TRAJ_KEY].max()) + 1
+    return torch.cat(parts)

@@ -1,0 +1,428 @@
+"""The Pusher competency study, stage by stage.
+
+1. ``data``: world-model data in the deterministic and the stochastic Pusher.
+2. ``models``: an RCVAE ensemble trained on each.
+3. ``agent``: MPC episodes with the deterministic model teach the agent's amortised policy.
+4. ``forecast``: the paper's three conditions, forecast in imagination with the agent's policy
+   (:class:`~rcvae_torchrl.competency.CompetencyAssessor`).
+5. ``truth``: the same agent in the real env from the same start states.
+6. ``report``: the paper's table plus calibration, the figures, a GIF and ``report.md``.
+
+Every stage writes its outputs atomically under the run directory and a marker when done
+(:class:`~rcvae_torchrl.stages.StageRunner`); running again with the same directory reuses
+finished stages (and training resumes from its last checkpoint).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import torch
+from torchrl.envs import EnvBase
+
+from rcvae_torchrl.agent import (
+    PerturbedPolicy,
+    dagger,
+    load_policy,
+    make_policy_module,
+    run_episodes,
+    save_policy,
+)
+from rcvae_torchrl.competency import CompetencyAssessor
+from rcvae_torchrl.data import load_episodes, save_episodes, split_episodes
+from rcvae_torchrl.envs import (
+    CONTROL_TIMESTEP,
+    OBSERVATION_NAMES,
+    ball_to_target,
+    pusher_reward,
+    reset_to_state,
+    resolution_tensor,
+)
+from rcvae_torchrl.envs.scripted import ScriptedPusher
+from rcvae_torchrl.io import load_torch, record_run_config, save_torch
+from rcvae_torchrl.model_env import make_rcvae_env
+from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.stages import StageRunner
+from rcvae_torchrl.training import TrainConfig, load_ensemble, save_ensemble, train_ensemble
+
+from .config import StudyConfig
+from .data import collect_pusher_data
+from .pusher import (
+    CONDITIONS,
+    MODEL_FUNCTIONS,
+    WORLD_MODELS,
+    make_env,
+    make_planner,
+    rcvae_config,
+    success_boundary,
+    success_fn,
+)
+from .report import write_report
+
+__all__ = ["STAGES", "Study", "resolve_device", "run_study", "set_threads"]
+
+STAGES = ("data", "models", "agent", "forecast", "truth", "report")
+
+# Disjoint seed ranges of the real episodes, per purpose (offset by 1000 per study seed).
+DEMONSTRATION_SEEDS = 50_000
+EVALUATION_SEEDS = 70_000
+DAGGER_SEEDS = 80_000
+# Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i.
+START_SEED_STRIDE = 7919
+
+
+def resolve_device(name: str) -> str:
+    """``"auto"`` -> ``"cuda"`` when available, else ``"cpu"``; other names are checked."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device: {name!r} asked for, but CUDA is not available here")
+    return name
+
+
+def set_threads(threads: int | None) -> None:
+    """Set torch's intra-op threads (``None``: leave torch's default)."""
+    if threads is not None:
+        torch.set_num_threads(threads)
+
+
+class Study:
+    """The stages of one study in one run directory (see the module docstring)."""
+
+    def __init__(
+        self, config: StudyConfig, run_dir: Path, device: torch.device, progress: bool
+    ) -> None:
+        self.cfg, self.dir, self.device, self.progress = config, run_dir, device, progress
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def max_steps(self) -> int:
+        return round(self.cfg.assess.horizon_s / CONTROL_TIMESTEP)
+
+    def env(self, variant: str, **kwargs: Any) -> EnvBase:
+        """The real Pusher of ``variant`` with the study's noise and success radius."""
+        return make_env(variant, self.cfg.data, self.cfg.assess.success_radius, **kwargs)
+
+    def load_model(self, name: str) -> RCVAEEnsemble:
+        """The trained world model ``name`` (``"deterministic"`` or ``"stochastic"``)."""
+        return load_ensemble(
+            self.dir / "models" / f"{name}.pt", map_location=self.device, functions=MODEL_FUNCTIONS
+        )
+
+    def load_policy(self) -> torch.nn.Module:
+        """The agent: the distilled MLP, or the scripted prior plus the distilled correction."""
+        base = ScriptedPusher() if self.cfg.planner.policy_prior else None
+        return load_policy(self.dir / "agent" / "policy.pt", base=base)
+
+    def planner(self, model: RCVAEEnsemble, env: EnvBase) -> Callable:
+        """The MPC planner over ``model`` acting in ``env`` (guided by the scripted pusher)."""
+        return make_planner(
+            model, env, self.cfg.planner, radius=self.cfg.assess.success_radius, seed=self.cfg.seed
+        )
+
+    def starts(self, condition: str) -> torch.Tensor:
+        """The condition's start states ``[B, 14]``, drawn by the real env's own reset."""
+        env = self.env(CONDITIONS[condition][1])
+        index = list(CONDITIONS).index(condition)
+        starts = []
+        for i in range(self.cfg.assess.start_states):
+            env.set_seed(self.cfg.seed * START_SEED_STRIDE + 1000 * index + i)
+            starts.append(env.reset()["observation"])
+        return torch.stack(starts)
+
+    # ------------------------------------------------------------------ stages
+    def data(self) -> dict[str, Any]:
+        d, summary = self.cfg.data, {}
+        for variant in WORLD_MODELS:
+            path = self.dir / "data" / f"{variant}.pt"
+            if not path.is_file():
+                noise = (
+                    {"action_noise_std": d.stochastic_noise_std} if variant == "stochastic" else {}
+                )
+                data = collect_pusher_data(
+                    variant,
+                    scripted_episodes=d.scripted_episodes,
+                    random_episodes=d.random_episodes,
+                    exploration_std=d.exploration_std,
+                    time_limit=d.time_limit,
+                    random_time_limit=d.random_time_limit,
+                    seed=self.cfg.seed,
+                    progress=self.progress,
+                    **noise,
+                )
+                save_episodes(data, path)
+            summary[f"{variant}_frames"] = int(load_episodes(path).shape[0])
+        return summary
+
+    def _train_config(self, name: str) -> TrainConfig:
+        steps = self.cfg.model.stochastic_open_loop_steps
+        if name != "stochastic" or steps is None:
+            return self.cfg.train
+        return dataclasses.replace(self.cfg.train, open_loop_steps=steps)
+
+    def models(self) -> dict[str, Any]:
+        m, summary = self.cfg.model, {}
+        for name in WORLD_MODELS:
+            path = self.dir / "models" / f"{name}.pt"
+            if path.is_file():
+                continue
+            torch.manual_seed(self.cfg.seed)
+            ensemble = RCVAEEnsemble(rcvae_config(m), m.ensemble_size, functions=MODEL_FUNCTIONS)
+            ensemble = ensemble.to(self.device)
+            train, val = split_episodes(
+                load_episodes(self.dir / "data" / f"{name}.pt"), 0.1, seed=self.cfg.seed
+            )
+            result = train_ensemble(
+                ensemble,
+                train,
+                val,
+                self._train_config(name),
+                checkpoint_path=self.dir / "models" / f"{name}_train.pt",
+                resume=True,
+                progress=self.progress,
+            )
+            info = {
+                "steps": result.steps,
+                "stopped_early": result.stopped_early,
+                "best_val_loss": result.best_val.mean().item(),
+            }
+            save_ensemble(result.ensemble, path, extra={"variant": name, "training": info})
+        for name in WORLD_MODELS:
+            saved = load_torch(self.dir / "models" / f"{name}.pt", "model checkpoint")
+            summary[name] = saved["extra"].get("training", {})
+        return summary
+
+    def _demonstrations(self, model: RCVAEEnsemble, env: EnvBase) -> dict[str, Any]:
+        """MPC episodes with the executed action perturbed: observations and planner labels."""
+        a, seed = self.cfg.agent, self.cfg.seed
+        behaviour = PerturbedPolicy(self.planner(model, env), a.action_noise, seed=seed)
+        stats = run_episodes(
+            env,
+            behaviour,
+            seeds=[DEMONSTRATION_SEEDS + seed * 1000 + i for i in range(a.mpc_episodes)],
+            max_steps=self.max_steps,
+            progress=self.progress,
+            desc="MPC demos",
+        )
+        info = {
+            "mpc_noisy_success_rate": stats.success_rate,
+            "mpc_median_steps": stats.steps.float().median().item(),
+            "pairs": float(stats.data.shape[0]),
+        }
+        return {
+            "observations": stats.data["observation"],
+            "labels": stats.data["label"],
+            "info": info,
+        }
+
+    def agent(self) -> dict[str, Any]:
+        a, seed = self.cfg.agent, self.cfg.seed
+        env = self.env("deterministic", time_limit=self.cfg.assess.horizon_s)
+        model = self.load_model("deterministic").cpu()
+        demos_path = self.dir / "agent" / "demonstrations.pt"
+        if not demos_path.is_file():
+            save_torch(demos_path, self._demonstrations(model, env))
+        demos = load_torch(demos_path, "demonstrations")
+        policy, obs, labels, rounds = dagger(
+            self.planner(model, env),
+            env,
+            demos["observations"],
+            demos["labels"],
+            a.distill,
+            rounds=a.dagger_rounds,
+            episode_seeds=lambda k: [
+                DAGGER_SEEDS + seed * 1000 + 100 * k + i for i in range(a.dagger_episodes)
+            ],
+            max_steps=self.max_steps,
+            base=ScriptedPusher() if self.cfg.planner.policy_prior else None,
+            progress=self.progress,
+        )
+        save_torch(self.dir / "agent" / "dagger_data.pt", {"observations": obs, "labels": labels})
+        evaluation = run_episodes(
+            env,
+            make_policy_module(policy),
+            seeds=[EVALUATION_SEEDS + seed * 1000 + i for i in range(a.eval_episodes)],
+            max_steps=self.max_steps,
+            progress=self.progress,
+            desc="policy eval",
+        )
+        save_policy(policy, self.dir / "agent" / "policy.pt")
+        return {
+            **demos["info"],
+            **{k: v for k, v in rounds[-1].items() if k != "round"},
+            "dagger": rounds,
+            "policy_success_rate": evaluation.success_rate,
+            "policy_median_steps": evaluation.steps.float().median().item(),
+        }
+
+    def assessor(self, model_name: str, variant: str) -> CompetencyAssessor:
+        """The competency assessor of a condition: the agent's closed-loop forecast."""
+        s = self.cfg.assess
+        model_env = make_rcvae_env(
+            self.load_model(model_name),
+            self.env(variant),
+            pusher_reward,
+            success_fn(s.success_radius),
+            terminate_on_success=True,
+            seed=self.cfg.seed,
+        )
+        return CompetencyAssessor(
+            model_env,
+            success_boundary(s.success_radius, s.horizon_s),
+            bin_width=resolution_tensor(),
+            dim_names=OBSERVATION_NAMES,
+            samples_per_member=s.samples_per_member,
+            start_chunk=s.start_states,
+            episode_end=s.episode_end,
+            bias_correction=s.bias_correction,
+            generator=torch.Generator().manual_seed(self.cfg.seed),
+            per_sample={"ball_to_target": ball_to_target},
+        )
+
+    def forecast(self) -> dict[str, Any]:
+        s, summary = self.cfg.assess, {}
+        policy = self.load_policy().to(self.device)
+        for condition, (model_name, variant) in CONDITIONS.items():
+            path = self.dir / "forecast" / f"{condition}.pt"
+            if not path.is_file():
+                starts = self.starts(condition)
+                assessor = self.assessor(model_name, variant)
+                generator = torch.Generator(device=self.device).manual_seed(self.cfg.seed)
+                start = starts.to(self.device)
+                if s.open_loop:
+                    plan = assessor.model_env.plan_actions(
+                        start, policy, assessor.horizon, generator=generator
+                    )
+                    report = assessor.assess(start, actions=plan, generator=generator)
+                else:
+                    report = assessor.assess(start, policy=policy, generator=generator)
+                save_torch(path, {"starts": starts, **_forecast_record(report.data.cpu())})
+            saved = load_torch(path, "forecast")
+            summary[condition] = {"p_success": saved["p_success"].mean().item()}
+        return summary
+
+    def truth(self) -> dict[str, Any]:
+        s, summary = self.cfg.assess, {}
+        policy = make_policy_module(self.load_policy())
+        for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
+            path = self.dir / "truth" / f"{condition}.pt"
+            if not path.is_file():
+                runs = (
+                    s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
+                )
+                starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
+                result = real_outcomes(
+                    self.env(variant, time_limit=s.horizon_s),
+                    policy,
+                    starts,
+                    runs_per_start=runs,
+                    max_steps=self.max_steps,
+                    seed=self.cfg.seed + 1 + index,
+                    progress=self.progress,
+                    desc=f"real: {condition}",
+                )
+                save_torch(path, result)
+            saved = load_torch(path, "real outcomes")
+            summary[condition] = {"success_rate": saved["success"].float().mean().item()}
+        return summary
+
+    def report(self) -> dict[str, Any]:
+        forecasts = {
+            c: load_torch(self.dir / "forecast" / f"{c}.pt", "forecast") for c in CONDITIONS
+        }
+        truths = {
+            c: load_torch(self.dir / "truth" / f"{c}.pt", "real outcomes") for c in CONDITIONS
+        }
+        episode_env = self.env("deterministic", time_limit=self.cfg.assess.horizon_s)
+        policy = make_policy_module(self.load_policy())
+        return write_report(self.dir, forecasts, truths, self.cfg, policy, episode_env)
+
+
+def _forecast_record(data) -> dict[str, torch.Tensor]:
+    """The forecast of a condition as stored: the report's entries the later stages read."""
+    u, c = data["uncertainty"], data["competency"]
+    return {
+        "total": u["total"],
+        "aleatoric": u["aleatoric"],
+        "epistemic": u["epistemic"],
+        "p_success": c["p_success"],
+        "p_success_low": c["p_success_low"],
+        "p_success_high": c["p_success_high"],
+        "p_success_member": c["p_success_member"],
+        "outcome_total": c["outcome_uncertainty", "total"],
+        "outcome_aleatoric": c["outcome_uncertainty", "aleatoric"],
+        "outcome_epistemic": c["outcome_uncertainty", "epistemic"],
+        "success": c["success"],
+        "median_time_s": c["time_to_success", "median_s"],
+        "ball_to_target": data["per_sample", "ball_to_target"].flatten(1, 2),
+    }
+
+
+def real_outcomes(
+    env: EnvBase,
+    policy: Callable,
+    starts: torch.Tensor,
+    *,
+    runs_per_start: int,
+    max_steps: int,
+    seed: int = 0,
+    progress: bool = True,
+    desc: str = "real",
+) -> dict[str, torch.Tensor]:
+    """Run ``policy`` from each start ``[B, S]`` with ``runs_per_start`` noise seeds.
+
+    Returns ``success`` ``[B, R]`` bool, ``steps`` ``[B, R]`` (to success, or the episode length)
+    and ``ball_to_target`` ``[B, R, T]`` padded with NaN after the episode ended.
+    """
+    b, r = starts.shape[0], runs_per_start
+    stats = run_episodes(
+        env,
+        policy,
+        seeds=[seed * 100_003 + i for i in range(b * r)],
+        starts=starts.repeat_interleave(r, dim=0),
+        reset_to_state=reset_to_state,
+        max_steps=max_steps,
+        progress=progress,
+        desc=desc,
+    )
+    distance = torch.full((b * r, max_steps), float("nan"))
+    ids = stats.data["collector", "traj_ids"]
+    d = ball_to_target(stats.data["next", "observation"])
+    for i in range(b * r):
+        trace = d[ids == i]
+        distance[i, : trace.numel()] = trace
+    return {
+        "success": stats.success.reshape(b, r),
+        "steps": stats.steps.reshape(b, r),
+        "ball_to_target": distance.reshape(b, r, max_steps),
+    }
+
+
+def run_study(
+    config: StudyConfig,
+    run_dir: str | Path,
+    *,
+    device: str | torch.device = "cpu",
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Run (or resume) the study in ``run_dir``; returns every stage's summary."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
+    record_run_config(run_dir / "study_config.json", settings)
+    study = Study(config, run_dir, torch.device(device), progress)
+    runner = StageRunner(run_dir, log)
+    for name in STAGES:
+        runner.run(name, getattr(study, name))
+    return runner.summaries
+
+
+def _values(config: StudyConfig) -> list[Any]:
+    """The study settings of ``config`` (a recipe config's run settings are left out)."""
+    values = asdict(config)
+    return [values[f.name] for f in dataclasses.fields(StudyConfig)]

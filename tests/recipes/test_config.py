@@ -1,0 +1,156 @@
+"""The study's typed configuration: Hydra structured configs, profiles, checks up front."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+from recipes.pusher_competency.config import (
+    RecipeConfig,
+    StudyConfig,
+    register_configs,
+    study_config,
+)
+from recipes.pusher_competency.pipeline import Study, resolve_device
+
+CONF = Path(__file__).resolve().parents[2] / "recipes" / "pusher_competency" / "conf"
+register_configs()
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose(config_name="pusher_competency", overrides=list(overrides))
+
+
+def _config(*overrides: str) -> RecipeConfig:
+    return study_config(_compose(*overrides))
+
+
+# --------------------------------------------------------------------------- one source of defaults
+def test_the_default_profile_is_the_dataclass_defaults():
+    config = _config()
+    assert config == dataclasses.replace(RecipeConfig(), run_dir=config.run_dir)
+    assert config.run_dir == "outputs/pusher_competency/default"
+    study = {f.name: getattr(config, f.name) for f in dataclasses.fields(StudyConfig)}
+    assert StudyConfig(**study) == StudyConfig()
+
+
+@pytest.mark.parametrize("profile", ["quick", "full"])
+def test_profiles_hold_only_their_differences(profile):
+    """Every value a profile file sets differs from the dataclass default (one home per number)."""
+    values = yaml.safe_load((CONF / "profile" / f"{profile}.yaml").read_text())
+    defaults = OmegaConf.to_container(OmegaConf.structured(RecipeConfig))
+
+    def walk(node, default, path):
+        for key, value in node.items():
+            assert key in default, f"{path}{key}: not a setting"
+            if isinstance(value, dict):
+                walk(value, default[key], f"{path}{key}.")
+            else:
+                assert value != default[key], f"{path}{key}: equals the default {value!r}"
+
+    walk(values, defaults, "")
+
+
+def test_profiles_scale_up():
+    quick, default, full = (_config(f"profile={p}") for p in ("quick", "default", "full"))
+    assert quick.train.max_steps < default.train.max_steps < full.train.max_steps
+    assert quick.assess.start_states < default.assess.start_states < full.assess.start_states
+    assert quick.data.scripted_episodes < default.data.scripted_episodes
+    assert default.data.scripted_episodes < full.data.scripted_episodes
+    assert quick.run_dir == "outputs/pusher_competency/quick"
+
+
+# --------------------------------------------------------------------------- overrides
+def test_every_setting_can_be_overridden_without_plus():
+    config = _config("profile=quick", "train.lr=0.01", "agent.distill.epochs=3", "seed=4")
+    assert config.train.lr == pytest.approx(0.01)
+    assert config.agent.distill.epochs == 3 and config.seed == 4
+    assert config.train.max_steps == 60  # the profile's value stays
+
+
+@pytest.mark.parametrize(
+    "override",
+    ["trian.max_steps=3", "train.max_step=3", "agent.distill.epoch=3", "bogus=1"],
+)
+def test_unknown_keys_are_rejected(override):
+    with pytest.raises(ConfigCompositionException) as info:
+        _compose(override)
+    message = str(info.value.__cause__ or info.value)
+    assert any(part in message for part in ("trian", "max_step", "epoch", "bogus"))
+
+
+@pytest.mark.parametrize(
+    "override",
+    [
+        "train.max_steps=ten",
+        "progress=maybe",
+        "threads=abc",
+        "threads=1.5",
+        "seed=1.5",
+        "assess.episode_end=perhaps",
+    ],
+)
+def test_values_of_the_wrong_type_are_rejected(override):
+    with pytest.raises(ConfigCompositionException):
+        _compose(override)
+
+
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        ("train.max_steps=0", r"^train\.max_steps: expected >= 1, got 0"),
+        ("train.window=1", r"^train\.window: expected >= 2 steps"),
+        ("train.lr=-1", r"^train\.lr, grad_clip: expected > 0"),
+        ("assess.bias_correction=jackknife", r"^assess\.bias_correction: expected 'none'"),
+        ("assess.horizon_s=2.03", r"^assess\.horizon_s: expected a positive whole number"),
+        ("assess.horizon_s=inf", r"^assess\.horizon_s: expected a positive whole number"),
+        ("data.scripted_episodes=-1", r"^data\.scripted_episodes: expected a finite number"),
+        ("model.ensemble_size=1", r"^model\.ensemble_size: expected a finite number >= 2"),
+        ("model.state_constraint=bogus", r"^model\.state_constraint: expected 'pusher' or None"),
+        ("planner.top_k=500", r"^planner\.top_k: expected at most num_candidates"),
+        ("planner.objective=best", r"^planner\.objective: expected one of"),
+        ("seed=-1", r"seed: expected an integer >= 0"),
+        ("device=3", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
+        ("device=tpu", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
+        ("threads=0", r"^threads: expected a positive integer or null"),
+        ("threads=-1", r"^threads: expected a positive integer or null"),
+        ("run_dir=''", r"^run_dir: expected a directory path"),
+        ("train.window=100000", r"train\.window: expected at most the longest data episode"),
+        (
+            "model.stochastic_open_loop_steps=-1",
+            r"^model\.stochastic_open_loop_steps: expected a finite number >= 0",
+        ),
+    ],
+)
+def test_out_of_range_values_name_their_setting(override, match):
+    cfg = _compose(override)
+    with pytest.raises(ValueError, match=match):
+        study_config(cfg)
+
+
+# --------------------------------------------------------------------------- run settings
+def test_device_option():
+    assert resolve_device("cpu") == "cpu"
+    assert resolve_device("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            resolve_device("cuda:0")
+
+
+def test_stochastic_open_loop_steps_apply_to_the_stochastic_ensemble_only(tmp_path):
+    config = _config("model.stochastic_open_loop_steps=8")
+    study = Study(config, tmp_path, torch.device("cpu"), progress=False)
+    assert study._train_config("stochastic").open_loop_steps == 8
+    assert study._train_config("deterministic") == config.train
+    assert study._train_config("deterministic").open_loop_steps == 0
+    shared = _config("train.open_loop_steps=2")
+    study = Study(shared, tmp_path, torch.device("cpu"), progress=False)
+    assert study._train_config("stochastic").open_loop_steps == 2

@@ -1,0 +1,219 @@
+"""The competency recipe end to end, with micro budgets: every output, then a resumed run.
+
+The recipe runs in a subprocess exactly as a user starts it (Hydra command line), with the quick
+profile shrunk further so that both runs take well under a minute on two loaded cores.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from doc_blocks import rst_python_blocks, run_blocks
+from PIL import Image
+
+from recipes.pusher_competency.pusher import CONDITIONS
+from recipes.pusher_competency.report import COLUMNS
+
+ROOT = Path(__file__).resolve().parents[2]
+RECIPE = ROOT / "recipes" / "pusher_competency" / "main.py"
+STAGES = ("data", "models", "agent", "forecast", "truth", "report")
+FIGURES = ("uncertainty_over_time.png", "reliability.png", "forecast_vs_reality.png")
+START_STATES = 2
+STOCHASTIC_SEEDS = 2  # the quick profile's assess.stochastic_seeds_per_start
+MICRO = (
+    "profile=quick",
+    "threads=1",
+    "progress=false",
+    "data.scripted_episodes=3",
+    "data.random_episodes=2",
+    "train.max_steps=20",
+    "train.val_every=10",
+    "agent.mpc_episodes=1",
+    "agent.eval_episodes=1",
+    "agent.distill.epochs=5",
+    f"assess.start_states={START_STATES}",
+    "assess.horizon_s=2.0",
+)
+
+
+def run_recipe(*overrides: str, timeout: float = 300) -> tuple[subprocess.CompletedProcess, float]:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    start = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, str(RECIPE), *overrides],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    return proc, time.perf_counter() - start
+
+
+def _snapshot(run_dir: Path) -> dict[str, tuple[int, int]]:
+    """(mtime_ns, size) of every file the stages wrote (study_config.json is rewritten)."""
+    return {
+        str(p.relative_to(run_dir)): (p.stat().st_mtime_ns, p.stat().st_size)
+        for p in run_dir.rglob("*")
+        if p.is_file() and p.name != "study_config.json" and ".hydra_run" not in p.parts
+    }
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """The recipe run twice in the same run directory: (run_dir, first, second)."""
+    run_dir = tmp_path_factory.mktemp("recipe") / "run"
+    first, first_s = run_recipe(*MICRO, f"run_dir={run_dir}")
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    before = _snapshot(run_dir)
+    second, second_s = run_recipe(*MICRO, f"run_dir={run_dir}")
+    assert second.returncode == 0, second.stdout[-3000:] + second.stderr[-3000:]
+    return {
+        "dir": run_dir,
+        "first": first.stdout,
+        "second": second.stdout,
+        "first_s": first_s,
+        "second_s": second_s,
+        "before": before,
+        "after": _snapshot(run_dir),
+    }
+
+
+def _rows(run_dir: Path) -> list[dict[str, str]]:
+    with open(run_dir / "table.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_every_stage_ran_and_left_its_outputs(runs):
+    d = runs["dir"]
+    for stage in STAGES:
+        assert f"[{stage}] running" in runs["first"]
+        marker = json.loads((d / "stages" / f"{stage}.json").read_text())
+        assert marker["seconds"] >= 0
+    for variant in ("deterministic", "stochastic"):
+        assert (d / "data" / f"{variant}.pt").is_file()
+        assert (d / "models" / f"{variant}.pt").is_file()
+    assert (d / "agent" / "policy.pt").is_file()
+    assert (d / "agent" / "demonstrations.pt").is_file()
+    for condition in CONDITIONS:
+        forecast = torch.load(d / "forecast" / f"{condition}.pt", weights_only=True)
+        assert forecast["starts"].shape == (START_STATES, 14)
+        assert forecast["epistemic"].shape[0] == START_STATES
+        assert forecast["epistemic"].shape[-1] == 14
+        truth = torch.load(d / "truth" / f"{condition}.pt", weights_only=True)
+        assert truth["success"].shape[0] == START_STATES
+    assert json.loads((d / "study_config.json").read_text())["assess"]["horizon_s"] == 2.0
+
+
+def test_table_has_the_three_conditions_and_the_columns(runs):
+    d = runs["dir"]
+    rows = _rows(d)
+    assert [r["condition"] for r in rows] == list(CONDITIONS)
+    assert all(tuple(r) == COLUMNS for r in rows)
+    for r in rows:
+        total, aleatoric, epistemic = (float(r[k]) for k in COLUMNS[1:4])
+        assert aleatoric >= 0 and epistemic >= -1e-4
+        assert total == pytest.approx(aleatoric + epistemic, rel=1e-4, abs=1e-4)
+        for key in ("forecast_p_success", "empirical_p_success", "brier", "ece"):
+            assert 0.0 <= float(r[key]) <= 1.0
+        assert int(r["start_states"]) == START_STATES
+        seeds = STOCHASTIC_SEEDS if r["condition"] == "stochastic" else 1
+        assert int(r["real_episodes"]) == START_STATES * seeds
+    header, rule, *body = (d / "table.md").read_text().strip().splitlines()
+    assert [c.strip() for c in header.strip("|").split("|")] == list(COLUMNS)
+    assert rule.count("|") == len(COLUMNS) + 1
+    assert [line.split("|")[1].strip() for line in body] == list(CONDITIONS)
+
+
+def test_figures_and_gif_are_valid_images(runs):
+    d = runs["dir"]
+    for name in FIGURES:
+        with Image.open(d / name) as image:
+            image.verify()
+        with Image.open(d / name) as image:
+            assert image.format == "PNG"
+            assert min(image.size) >= 100
+    with Image.open(d / "uncertainty_over_time.png") as image:
+        width, height = image.size
+        assert width > 2 * height  # three panels side by side
+    summary = json.loads((d / "summary.json").read_text())
+    if summary["gif"] == "episode.gif":
+        with Image.open(d / "episode.gif") as gif:
+            assert gif.format == "GIF" and gif.n_frames > 1
+    else:
+        assert summary["gif"].startswith("no GIF: ")
+
+
+def test_report_references_the_outputs(runs):
+    d = runs["dir"]
+    report = (d / "report.md").read_text()
+    for name in FIGURES:
+        assert f"]({name})" in report
+    summary = json.loads((d / "summary.json").read_text())
+    gif = "![episode](episode.gif)" if summary["gif"] == "episode.gif" else summary["gif"]
+    assert gif in report
+    assert (d / "table.md").read_text() in report
+    for stage in ("data", "models", "agent", "forecast", "truth"):
+        assert f"- {stage}: " in report
+
+
+def test_summary_json(runs):
+    summary = json.loads((runs["dir"] / "summary.json").read_text())
+    assert {"rows", "overall", "checks", "pattern_by_window"} <= set(summary)
+    windows = summary["pattern_by_window"]
+    assert list(windows) == ["1s", "2s"]  # windows up to the horizon (2 s here), which closes them
+    assert all(len(r) == 3 and all(v > 0 for v in r.values()) for r in windows.values())
+    assert list(summary["rows"]) == list(CONDITIONS)
+    assert all(set(COLUMNS) <= set(row) for row in summary["rows"].values())
+    assert set(summary["overall"]) == {"brier", "constant_brier", "success_rate"}
+    assert len(summary["checks"]) == 3 + len(CONDITIONS) + 1
+    for check in summary["checks"].values():
+        assert isinstance(check["met"], bool) and isinstance(check["value"], float)
+    rows = {r["condition"]: r for r in _rows(runs["dir"])}
+    for condition, row in summary["rows"].items():
+        assert float(rows[condition]["brier"]) == pytest.approx(row["brier"])
+
+
+def test_second_run_reuses_every_stage(runs):
+    log = runs["second"]
+    for stage in STAGES:
+        assert f"[{stage}] done earlier" in log
+    assert "] running" not in log
+    assert runs["after"] == runs["before"]  # nothing rewritten
+    assert runs["second_s"] < 120  # imports and the report's printout only
+
+
+def test_tutorial_python_example_reads_the_run(runs):
+    """The tutorial's "closer look" block, pointed at this run directory."""
+    page = ROOT / "docs" / "tutorial.rst"
+    blocks = [
+        block.replace("outputs/pusher_competency/default", str(runs["dir"]))
+        for block in rst_python_blocks(page)
+    ]
+    assert blocks
+    namespace = run_blocks(blocks, "tutorial")
+    assert namespace["forecast"]["epistemic"].shape[0] == START_STATES
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ("train.max_step=3", "max_step"),  # not in TrainConfig's schema
+        ("train.lr=-1", "train.lr, grad_clip: expected > 0"),  # out of range
+        ("device=tpu", "device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
+    ],
+)
+def test_bad_settings_fail_clearly_before_anything_is_written(tmp_path, override, expected):
+    proc, _ = run_recipe("profile=quick", f"run_dir={tmp_path / 'run'}", override, timeout=120)
+    output = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert expected in output
+    assert not (tmp_path / "run").exists()  # failed before the run directory was made

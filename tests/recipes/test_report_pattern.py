@@ -1,0 +1,36 @@
+"""The pattern diagnostic over the first seconds of the forecasts."""
+
+import pytest
+import torch
+
+from recipes.pusher_competency.report import pattern_by_window
+
+
+def _forecast(aleatoric_early, aleatoric_late, epistemic_early, epistemic_late, steps=40):
+    t = torch.arange(steps)
+    ale = torch.where(t < 10, aleatoric_early, aleatoric_late).float()
+    epi = torch.where(t < 10, epistemic_early, epistemic_late).float()
+    # [B=3, T, D=2]: each of the two dims carries half of the bits
+    return {
+        "aleatoric": (ale / 2)[None, :, None].expand(3, steps, 2),
+        "epistemic": (epi / 2)[None, :, None].expand(3, steps, 2),
+    }
+
+
+def test_ratios_per_window_match_the_bits_averaged_over_that_window():
+    forecasts = {
+        "deterministic": _forecast(1.0, 4.0, 1.0, 2.0),
+        "stochastic": _forecast(3.0, 4.0, 1.0, 2.0),
+        "out-of-distribution": _forecast(1.0, 4.0, 2.0, 2.0),
+    }
+    out = pattern_by_window(forecasts, dt=0.1, windows_s=(1.0, 2.0))
+    assert list(out) == ["1s", "2s", "4s"]  # the horizon (40 steps of 0.1 s) is added
+    early = out["1s"]
+    assert early["aleatoric_stochastic_over_deterministic"] == pytest.approx(3.0)
+    assert early["epistemic_ood_over_deterministic"] == pytest.approx(2.0)
+    assert early["aleatoric_ood_over_deterministic"] == pytest.approx(1.0)
+    # over 2 s: (10·3 + 10·4) / (10·1 + 10·4) for aleatoric
+    assert out["2s"]["aleatoric_stochastic_over_deterministic"] == pytest.approx(70 / 50)
+    whole = out["4s"]
+    assert whole["aleatoric_stochastic_over_deterministic"] == pytest.approx(150 / 130)
+    assert whole["epistemic_ood_over_deterministic"] == pytest.approx(80 / 70)

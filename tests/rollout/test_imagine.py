@@ -1,0 +1,162 @@
+"""imagine(): layout [E, N, *B, T], determinism, closed loop, input errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rcvae_torchrl.rollout import imagine
+
+
+@pytest.mark.parametrize("batch", [(), (3,), (2, 3)])
+def test_shapes_and_keys(ensemble, batch):
+    obs, actions = torch.randn(*batch, 5), torch.rand(*batch, 7, 2)
+    td = imagine(ensemble, obs, actions, samples_per_member=6)
+    assert td.batch_size == (4, 6, *batch, 7)
+    assert td["observation"].shape == (4, 6, *batch, 7, 5)
+    assert td["rcvae", "loc"].shape == td["rcvae", "scale"].shape == (4, 6, *batch, 7, 5)
+    assert td["rcvae", "latent"].shape == (4, 6, *batch, 7, 3)
+    assert torch.equal(td["action"][0, 0], actions)
+    assert not td["observation"].requires_grad
+
+
+def test_passthrough_dims_constant_and_zero_scale(ensemble):
+    obs = torch.randn(3, 5)
+    td = imagine(ensemble, obs, torch.rand(3, 9, 2), samples_per_member=4)
+    assert torch.equal(td["observation"][..., 3:], obs[:, None, 3:].expand(4, 4, 3, 9, 2))
+    assert (td["rcvae", "scale"][..., 3:] == 0).all()
+    assert (td["rcvae", "scale"][..., :3] > 0).all()
+
+
+def test_start_states_and_samples_are_laid_out_in_order(ensemble):
+    """Sample n of start state b of member m must start from observation[b]."""
+    obs = torch.tensor([[0.0] * 5, [100.0] * 5])
+    td = imagine(ensemble, obs, torch.zeros(2, 1, 2), samples_per_member=3)
+    assert (td["observation"][:, :, 0, 0, 3:] == 0).all()
+    assert (td["observation"][:, :, 1, 0, 3:] == 100).all()
+
+
+@pytest.mark.parametrize("chunk_size", [None, 1, 5, 1024])
+def test_chunks_keep_the_layout(ensemble, chunk_size):
+    """Trajectory n of start b lands at [:, n, b] whatever the chunking; the passthrough dims
+    carry the start's index."""
+    obs = torch.zeros(2, 2, 5)
+    obs[..., 3] = torch.arange(4.0).reshape(2, 2)
+    actions = torch.rand(2, 2, 3, 2)
+    td = imagine(ensemble, obs, actions, samples_per_member=3, chunk_size=chunk_size)
+    assert td.batch_size == (4, 3, 2, 2, 3)
+    index = torch.arange(4.0).reshape(1, 1, 2, 2, 1)
+    assert (td["observation"][..., 3] == index).all()
+    assert torch.equal(td["action"], actions.expand(4, 3, 2, 2, 3, 2))
+
+
+def test_determinism_under_generator(ensemble):
+    obs, actions = torch.randn(2, 5), torch.rand(2, 6, 2)
+
+    def run(seed):
+        g = torch.Generator().manual_seed(seed)
+        return imagine(ensemble, obs, actions, samples_per_member=5, generator=g)["observation"]
+
+    assert torch.equal(run(0), run(0))
+    assert not torch.equal(run(0), run(1))
+
+
+def test_closed_loop_with_constant_policy_equals_open_loop(ensemble):
+    obs = torch.randn(2, 5)
+    action = torch.tensor([0.3, -0.7])
+    open_loop = imagine(
+        ensemble,
+        obs,
+        action.expand(2, 4, 2),
+        samples_per_member=3,
+        generator=torch.Generator().manual_seed(0),
+    )
+    calls = []
+
+    def policy(state):
+        calls.append(state.shape)
+        return action.expand(*state.shape[:-1], 2)
+
+    closed = imagine(
+        ensemble,
+        obs,
+        policy=policy,
+        horizon=4,
+        samples_per_member=3,
+        generator=torch.Generator().manual_seed(0),
+    )
+    assert calls == [(4, 6, 5)] * 4  # [E, trajectories per member, S]
+    assert torch.equal(open_loop["observation"], closed["observation"])
+
+
+def test_closed_loop_policy_sees_current_state(ensemble):
+    seen = []
+
+    def policy(state):
+        seen.append(state.clone())
+        return torch.zeros(*state.shape[:-1], 2)
+
+    td = imagine(ensemble, torch.zeros(5), policy=policy, horizon=3, samples_per_member=2)
+    torch.testing.assert_close(seen[1], td["observation"][..., 0, :])
+    torch.testing.assert_close(seen[2], td["observation"][..., 1, :])
+
+
+def test_requires_grad_keeps_graph(ensemble):
+    td = imagine(ensemble, torch.zeros(5), torch.zeros(3, 2), requires_grad=True)
+    td["observation"].sum().backward()
+    assert ensemble.decoder[0].weight.grad is not None
+
+
+def _nan(shape, where=0):
+    x = torch.zeros(shape)
+    x.view(-1)[where] = float("nan")
+    return x
+
+
+@pytest.mark.parametrize(
+    ("obs", "actions", "kwargs", "error", "match"),
+    [
+        (_nan((2, 5)), torch.zeros(2, 3, 2), {}, ValueError, "observation: expected finite"),
+        (torch.zeros(2, 5), _nan((2, 3, 2), 4), {}, ValueError, "actions: expected finite"),
+        (
+            torch.zeros(2, 5),
+            torch.full((2, 3, 2), float("inf")),
+            {},
+            ValueError,
+            "actions: expected finite",
+        ),
+        (torch.zeros(2, 4), torch.zeros(2, 3, 2), {}, ValueError, r"observation: expected shape"),
+        (torch.zeros(2, 5), torch.zeros(2, 3, 3), {}, ValueError, r"actions: expected shape"),
+        (torch.zeros(2, 5), torch.zeros(3, 3, 2), {}, ValueError, r"actions: expected batch shape"),
+        (torch.zeros(2, 5), torch.zeros(2, 0, 2), {}, ValueError, r"T >= 1"),
+        (torch.zeros(2, 5), torch.zeros(2, 3, 2), {"samples_per_member": 0}, ValueError, "samples"),
+        (torch.zeros(5), None, {}, ValueError, "actions, policy: expected exactly one"),
+        (torch.zeros(5), None, {"policy": torch.tanh}, ValueError, "horizon"),
+        (torch.zeros(5).long(), torch.zeros(3, 2), {}, TypeError, "floating-point"),
+        (torch.zeros(5), torch.zeros(3, 2), {"chunk_size": 0}, ValueError, "chunk_size"),
+        (torch.zeros(5).double(), torch.zeros(3, 2), {}, TypeError, "observation: expected dtype"),
+        (torch.zeros(5), torch.zeros(3, 2).double(), {}, TypeError, "actions: expected dtype"),
+    ],
+)
+def test_input_errors(ensemble, obs, actions, kwargs, error, match):
+    with pytest.raises(error, match=match):
+        imagine(ensemble, obs, actions, **kwargs)
+
+
+def test_policy_with_wrong_output_is_rejected(ensemble):
+    with pytest.raises(ValueError, match="policy: expected actions of shape"):
+        imagine(ensemble, torch.zeros(5), policy=lambda s: s, horizon=2)
+    with pytest.raises(ValueError, match="policy output at step 0: expected finite"):
+        imagine(
+            ensemble,
+            torch.zeros(5),
+            policy=lambda s: torch.full((*s.shape[:-1], 2), torch.nan),
+            horizon=2,
+        )
+
+
+def test_non_finite_model_output_is_an_error(ensemble):
+    with torch.no_grad():
+        ensemble.decoder[-1].bias.fill_(float("inf"))
+    with pytest.raises(ValueError, match="non-finite states from step 1"):
+        imagine(ensemble, torch.zeros(5), torch.zeros(3, 2))
