@@ -13,6 +13,7 @@ from .policy import (
     make_policy_module,
     save_policy,
 )
+from .starts import MODEL_FIELDS, draw_starts, physics_of, reset_by_seed, reset_to_physics
 
 __all__ = [
     # amortised policy
@@ -26,6 +27,12 @@ __all__ = [
     "EpisodeStats",
     "ResetToState",
     "run_episodes",
+    # start states in the real env
+    "MODEL_FIELDS",
+    "draw_starts",
+    "physics_of",
+    "reset_by_seed",
+    "reset_to_physics",
     # MPC agent
     "PlannerConfig",
     "make_mpc_policy",

@@ -4,18 +4,20 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
-from rcvae_torchrl.data import TRAJ_KEY
+from rcvae_torchrl.data import TRAJ_KEY, seed_env
 
 __all__ = ["EpisodeStats", "ResetToState", "run_episodes"]
 
-#: ``(env, observation [S]) -> tensordict``: reset ``env`` and put it in the given state.
-ResetToState = Callable[[EnvBase, torch.Tensor], TensorDictBase]
+#: ``(env, start) -> tensordict``: reset ``env`` and put it in the given start state (a row of
+#: ``starts``: an observation, or a TensorDict from :func:`~rcvae_torchrl.agent.draw_starts`).
+ResetToState = Callable[[EnvBase, Any], TensorDictBase]
 
 
 @dataclass
@@ -36,7 +38,7 @@ def run_episodes(
     policy: Callable[[TensorDictBase], TensorDictBase],
     *,
     seeds: Sequence[int],
-    starts: torch.Tensor | None = None,
+    starts: torch.Tensor | TensorDictBase | None = None,
     reset_to_state: ResetToState | None = None,
     max_steps: int,
     success_key: str = "success",
@@ -44,9 +46,10 @@ def run_episodes(
     progress: bool = True,
     desc: str = "episodes",
 ) -> EpisodeStats:
-    """One episode per seed: ``env.set_seed(seed)`` then reset (drawing the start state and the
-    noise), or reset to the given start observations ``starts [n, S]`` with
-    ``reset_to_state`` (the seed then only draws the noise).
+    """One episode per seed: seed ``env`` (:func:`~rcvae_torchrl.data.seed_env`, which also
+    restarts transforms with their own noise) then reset, drawing the start state and the noise,
+    or reset to the given start states ``starts`` (``[n, S]`` observations or a TensorDict
+    ``[n]``) with ``reset_to_state`` (see :mod:`rcvae_torchrl.agent.starts`).
 
     Calls ``policy.reset()`` before each episode when the policy's class has one (a planner's
     warm start must not leak across episodes). An episode ends at the env's ``done`` or after
@@ -61,7 +64,7 @@ def run_episodes(
             raise ValueError("reset_to_state: expected a function to start from given states")
     success, steps, parts = [], [], []
     for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
-        env.set_seed(int(seed))
+        seed_env(env, int(seed))
         td = env.reset() if starts is None else reset_to_state(env, starts[i])
         if hasattr(type(policy), "reset"):  # a planner's warm start (not an env's reset)
             policy.reset()

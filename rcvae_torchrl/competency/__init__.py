@@ -54,6 +54,17 @@ from rcvae_torchrl.competency.outcome_assessment import (
     partial_moments,
 )
 from rcvae_torchrl.competency.report import CompetencyReport
+from rcvae_torchrl.competency.validation import (
+    StartReliability,
+    auroc,
+    brier_skill_score,
+    crps_samples,
+    episode_brier,
+    per_start_rates,
+    rank_correlation,
+    start_reliability,
+    validate_forecasts,
+)
 
 __all__ = [
     # entropy estimators (bits)
@@ -88,6 +99,16 @@ __all__ = [
     "brier_score",
     "expected_calibration_error",
     "reliability_diagram",
+    # forecasts against real episodes, start by start
+    "StartReliability",
+    "auroc",
+    "brier_skill_score",
+    "crps_samples",
+    "episode_brier",
+    "per_start_rates",
+    "rank_correlation",
+    "start_reliability",
+    "validate_forecasts",
     # imagined trajectories against real ones
     "band_coverage",
     "constant_baseline_error",

@@ -2,8 +2,10 @@
 
 Forecasts ``f`` (e.g. the forecast P(success) per start state) and outcomes ``o`` (did the real
 agent succeed from that start state) have the layout ``[N, *batch]``: ``N`` forecast cases first,
-then any batch axes (one calibration per batch element). Bins split [0, 1] into ``n_bins`` equal
-intervals ``[k/n, (k+1)/n)``, the last one closed.
+then any batch axes (one calibration per batch element). Outcomes may carry one more trailing
+axis ``R`` of repeated runs of each case (``[N, *batch, R]``, e.g. several real episodes from
+each start state): every run then counts as a case with the same forecast. Bins split [0, 1]
+into ``n_bins`` equal intervals ``[k/n, (k+1)/n)``, the last one closed.
 """
 
 from __future__ import annotations
@@ -53,9 +55,16 @@ class ReliabilityDiagram(NamedTuple):
 
 
 def _check_pair(forecast: Tensor, outcome: Tensor) -> tuple[Tensor, Tensor]:
-    """Validate forecasts in [0, 1] and binary outcomes of the same shape; return float64."""
+    """Validate forecasts in [0, 1] and binary outcomes of the same shape; return float64.
+
+    Outcomes with one more trailing axis ``R`` are repeated runs of each forecast case: every
+    run is a case of its own (the forecast repeated), ``[N·R, *batch]``.
+    """
     _checks.check_min_rank("forecast", forecast, 1, _LAYOUT)
     _checks.check_probability("forecast", forecast)
+    if outcome.ndim == forecast.ndim + 1 and outcome.shape[:-1] == forecast.shape:
+        forecast = forecast.unsqueeze(-1).expand_as(outcome).movedim(-1, 1).flatten(0, 1)
+        outcome = outcome.movedim(-1, 1).flatten(0, 1)
     _checks.check_same_shape("forecast", forecast, "outcome", outcome)
     if outcome.dtype != torch.bool and bool(((outcome != 0) & (outcome != 1)).any()):
         raise ValueError(

@@ -1,18 +1,32 @@
 """Data: exploration policies, episode collection, trajectory replay and windows."""
 
-from .collection import TRAJ_KEY, collect_episodes
-from .exploration import GaussianExploration, UniformRandomPolicy, make_exploration_policy
+from .collection import TRAJ_KEY, check_episode_ids, collect_episodes, merge_episodes
+from .exploration import (
+    GaussianExploration,
+    UniformRandomPolicy,
+    action_bounds,
+    make_exploration_policy,
+)
+from .prepare import ActionNoise, ObservationLayout, prepare_env, seed_env
 from .replay import make_window_buffer, sample_windows, split_episodes
 from .storage import load_episodes, save_episodes
 
 __all__ = [
     # collection
     "TRAJ_KEY",
+    "check_episode_ids",
     "collect_episodes",
+    "merge_episodes",
     # exploration
     "GaussianExploration",
     "UniformRandomPolicy",
+    "action_bounds",
     "make_exploration_policy",
+    # any env as the library expects it
+    "ActionNoise",
+    "ObservationLayout",
+    "prepare_env",
+    "seed_env",
     # replay
     "make_window_buffer",
     "sample_windows",

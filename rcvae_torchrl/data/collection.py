@@ -10,7 +10,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, SerialEnv
 from tqdm.auto import tqdm
 
-__all__ = ["TRAJ_KEY", "collect_episodes"]
+__all__ = ["TRAJ_KEY", "check_episode_ids", "collect_episodes", "merge_episodes"]
 
 TRAJ_KEY = ("collector", "traj_ids")
 
@@ -24,6 +24,7 @@ def collect_episodes(
     num_envs: int = 1,
     frames_per_batch: int = 1000,
     max_frames: int | None = None,
+    first_id: int = 0,
     progress: bool = True,
     desc: str = "collect",
 ) -> TensorDict:
@@ -44,11 +45,14 @@ def collect_episodes(
             all of them, which pays off when a policy call costs more than an env step.
         frames_per_batch: collector batch size (rounded up to a multiple of ``num_envs``).
         max_frames: safety cap on frames (default: 1,000 × ``num_episodes``).
+        first_id: the id of the first episode.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes: expected >= 1, got {num_episodes}")
     if num_envs < 1:
         raise ValueError(f"num_envs: expected >= 1, got {num_envs}")
+    if isinstance(first_id, bool) or not isinstance(first_id, int) or first_id < 0:
+        raise ValueError(f"first_id: expected an integer >= 0, got {first_id!r}")
     max_frames = max_frames or 1000 * num_episodes
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     env.set_seed(seed)
@@ -74,13 +78,59 @@ def collect_episodes(
     finally:
         collector.shutdown()
         bar.close()
-    return _whole_episodes(torch.cat(parts), num_episodes)
+    return _whole_episodes(torch.cat(parts), num_episodes, first_id)
 
 
-def _whole_episodes(data: TensorDict, num_episodes: int) -> TensorDict:
-    """The first ``num_episodes`` finished episodes, each contiguous, ordered by id."""
+def _whole_episodes(data: TensorDict, num_episodes: int, first_id: int) -> TensorDict:
+    """The first ``num_episodes`` finished episodes, each contiguous, ordered by id and
+    renumbered ``first_id, first_id + 1, ...``."""
     ids = data[TRAJ_KEY]
     finished = torch.unique(ids[data["next", "done"].reshape(-1)])[:num_episodes]
     data = data[torch.isin(ids, finished)]
     order = torch.sort(data[TRAJ_KEY], stable=True).indices
-    return data[order]
+    data = data[order]
+    data[TRAJ_KEY] = torch.searchsorted(finished, data[TRAJ_KEY]) + first_id
+    return data
+
+
+def check_episode_ids(data: TensorDictBase, name: str = "data") -> None:
+    """Every episode id must tag one contiguous block of frames (one episode).
+
+    Two collections concatenated without renumbering reuse ids; a window sampler would then
+    stitch different episodes together. Raises ``ValueError`` naming the repeated ids.
+    """
+    ids = data.get(TRAJ_KEY)
+    runs = torch.unique_consecutive(ids)
+    if runs.numel() != torch.unique(runs).numel():
+        values, counts = torch.unique(runs, return_counts=True)
+        repeated = values[counts > 1][:5].tolist()
+        raise ValueError(
+            f"{name}: expected one contiguous block of frames per episode id, but ids "
+            f"{repeated} tag several episodes; join collections with merge_episodes or collect "
+            "with first_id past the ids you have"
+        )
+
+
+def merge_episodes(*datasets: TensorDictBase) -> TensorDict:
+    """Concatenate flat episode datasets ``[frames]``, renumbering ids so they stay unique.
+
+    Each dataset's episodes keep their order; ids become ``0, 1, ...`` across all of them.
+
+    Example:
+        >>> from tensordict import TensorDict
+        >>> part = TensorDict({TRAJ_KEY: torch.tensor([0, 0, 1])}, batch_size=[3])
+        >>> merge_episodes(part, part)[TRAJ_KEY].tolist()
+        [0, 0, 1, 2, 2, 3]
+    """
+    if not datasets:
+        raise ValueError("datasets: expected at least one dataset, got none")
+    parts, offset = [], 0
+    for i, data in enumerate(datasets):
+        check_episode_ids(data, f"datasets[{i}]")
+        ids = data.get(TRAJ_KEY)
+        runs = torch.unique_consecutive(ids, return_inverse=True)[1]
+        renumbered = data.clone()
+        renumbered.set(TRAJ_KEY, runs + offset)
+        offset += int(runs.max()) + 1 if runs.numel() else 0
+        parts.append(renumbered)
+    return torch.cat(parts)

@@ -7,7 +7,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SliceSampler
 
-from .collection import TRAJ_KEY
+from .collection import TRAJ_KEY, check_episode_ids
 
 __all__ = ["make_window_buffer", "sample_windows", "split_episodes"]
 
@@ -81,3 +81,6 @@ def _check_flat(data: TensorDictBase) -> None:
             f"data: expected a flat TensorDict [frames] with {TRAJ_KEY} episode ids, "
             f"got batch {tuple(data.shape)} with keys {sorted(map(str, data.keys(True)))[:6]}"
         )
+    if data.shape[0] == 0:
+        raise ValueError("data: expected at least one frame, got an empty TensorDict")
+    check_episode_ids(data)

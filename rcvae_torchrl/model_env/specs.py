@@ -114,8 +114,17 @@ def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]
     observations = _unbatched(env.observation_spec, nb)
     name = type(env).__name__
     if OBSERVATION_KEY not in observations.keys():
-        raise KeyError(f"real_env: {name} has no {OBSERVATION_KEY!r} observation to model.")
+        raise KeyError(
+            f"real_env: {name} has no {OBSERVATION_KEY!r} observation to model (it has "
+            f"{sorted(map(str, observations.keys()))}); concatenate the entries to model with "
+            "rcvae_torchrl.data.prepare_env(env, observation_keys=[...]) (TorchRL's CatTensors)"
+        )
     obs = observations[OBSERVATION_KEY]
+    if obs.dtype != ensemble.dtype:
+        raise TypeError(
+            f"real_env: {name}'s {OBSERVATION_KEY!r} has dtype {obs.dtype}, the ensemble's is "
+            f"{ensemble.dtype}; cast with TorchRL's DoubleToFloat transform (prepare_env does)"
+        )
     success = observations[SUCCESS_KEY] if SUCCESS_KEY in observations.keys() else None
     if env.action_key != ACTION_KEY or env.reward_key != REWARD_KEY:
         raise ValueError(

@@ -85,3 +85,41 @@ def test_bad_inputs(episodes):
         GaussianExploration(ScriptedPusher(), -1.0)
     with pytest.raises(ValueError, match="num_episodes"):
         collect_episodes(make_pusher_env, None, 0)
+
+
+def test_collections_get_unique_ids_and_duplicates_are_refused(episodes):
+    from rcvae_torchrl.data import merge_episodes
+
+    twice = torch.cat([episodes, episodes])  # ids 0..5 twice: stitched episodes
+    with pytest.raises(ValueError, match=r"ids \[0, 1, 2, 3, 4\] tag several episodes"):
+        split_episodes(twice, 0.2)
+    with pytest.raises(ValueError, match="merge_episodes"):
+        make_window_buffer(twice, 8)
+    merged = merge_episodes(episodes, episodes)
+    assert torch.equal(torch.unique(merged[TRAJ_KEY]), torch.arange(12))
+    assert torch.equal(merged[TRAJ_KEY][: episodes.shape[0]], episodes[TRAJ_KEY])
+    split_episodes(merged, 0.2)  # accepted
+    policy = make_exploration_policy(UniformRandomPolicy(2, hold=3, seed=0))
+    make_env = functools.partial(make_pusher_env, "deterministic", time_limit=1.0)
+    more = collect_episodes(make_env, policy, 2, first_id=6, progress=False)
+    assert torch.unique(more[TRAJ_KEY]).tolist() == [6, 7]
+    with pytest.raises(ValueError, match="first_id: expected an integer >= 0"):
+        collect_episodes(make_env, policy, 1, first_id=-1, progress=False)
+
+
+def test_exploration_respects_the_action_bounds():
+    from rcvae_torchrl.data import action_bounds
+
+    low, high = torch.tensor([-2.0, 0.0]), torch.tensor([2.0, 0.5])
+    uniform = UniformRandomPolicy(2, hold=1, seed=0, low=low, high=high)
+    actions = torch.stack([uniform(torch.zeros(100, 3)) for _ in range(5)])
+    assert (actions >= low).all() and (actions <= high).all()
+    assert actions[..., 0].min() < -1.5 and actions[..., 0].max() > 1.5  # the whole range
+    base = torch.nn.Linear(3, 2)
+    noisy = GaussianExploration(base, 10.0, seed=0, low=low, high=high)(torch.randn(200, 3))
+    assert (noisy >= low).all() and (noisy <= high).all()
+    assert (noisy[:, 0] == 2.0).any() and (noisy[:, 1] == 0.0).any()  # clipped, not [-1, 1]
+    bounds = action_bounds(make_pusher_env())
+    assert torch.equal(bounds[0], -torch.ones(2)) and torch.equal(bounds[1], torch.ones(2))
+    with pytest.raises(ValueError, match="low, high: expected finite bounds with low < high"):
+        UniformRandomPolicy(2, low=1.0, high=-1.0)

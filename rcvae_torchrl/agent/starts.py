@@ -1,0 +1,133 @@
+"""Putting a real env in a given start state, so the real agent starts where a forecast did.
+
+A forecast is made from start states; checking it means running the same agent in the real env
+from the same states. Three ways, each a ``reset_to_state(env, start) -> tensordict`` function
+for :func:`~rcvae_torchrl.agent.run_episodes`, with ``start`` a row of the TensorDict that
+:func:`draw_starts` returns:
+
+- :func:`reset_by_seed` (any env whose reset is a function of its seed, e.g. every dm_control
+  task): replays the seeded reset that drew the start, and checks that it gives the same
+  observation;
+- :func:`reset_to_physics` (dm_control and other MuJoCo envs built on a dm_control
+  ``Physics``): sets the simulator's state (``qpos``, ``qvel``, ``act`` and the model fields a
+  task randomises, e.g. a target's position) inside the task's own episode initialisation, so
+  every wrapper and transform sees a normal reset; it can start from any state, not only one a
+  reset draws;
+- a function of the observation alone, where the observation holds the whole simulator state
+  (the example Pusher's ``reset_to_state``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+
+from rcvae_torchrl.data import seed_env
+
+__all__ = ["MODEL_FIELDS", "draw_starts", "physics_of", "reset_by_seed", "reset_to_physics"]
+
+#: Model fields a task may randomise per episode (positions, orientations, sizes, masses),
+#: captured with the simulator state.
+MODEL_FIELDS = (
+    "geom_pos",
+    "geom_quat",
+    "geom_size",
+    "body_pos",
+    "body_quat",
+    "body_mass",
+    "site_pos",
+    "site_quat",
+)
+
+
+def physics_of(env: EnvBase):
+    """The dm_control ``Physics`` inside a TorchRL env (through transforms and wrappers)."""
+    base = getattr(env, "base_env", env)
+    physics = getattr(getattr(base, "_env", None), "physics", None)
+    if physics is None:
+        raise TypeError(
+            f"env: expected a TorchRL env over a dm_control environment (DMControlEnv or "
+            f"DMControlWrapper, possibly transformed), got {type(env).__name__}"
+        )
+    return physics
+
+
+def _capture_physics(env: EnvBase) -> TensorDict:
+    physics = physics_of(env)
+    data, model = physics.data, physics.model
+    state = {k: torch.as_tensor(np.array(getattr(data, k))) for k in ("qpos", "qvel", "act")}
+    state["model"] = {f: torch.as_tensor(np.array(getattr(model, f))) for f in MODEL_FIELDS}
+    return TensorDict(state, batch_size=[])
+
+
+def draw_starts(env: EnvBase, seeds: Sequence[int], *, physics: bool = False) -> TensorDict:
+    """Start states drawn by the env's own reset, one per seed.
+
+    Returns a TensorDict ``[B]`` with ``"observation"`` ``[B, S]``, ``"seed"`` ``[B]`` and,
+    with ``physics=True`` (dm_control envs), the simulator state under ``"physics"`` for
+    :func:`reset_to_physics`.
+    """
+    rows = []
+    for seed in seeds:
+        seed_env(env, int(seed))
+        td = env.reset()
+        row = {"observation": td["observation"].clone(), "seed": torch.tensor(int(seed))}
+        if physics:
+            row["physics"] = _capture_physics(env)
+        rows.append(TensorDict(row, batch_size=[]))
+    if not rows:
+        raise ValueError("seeds: expected at least one seed, got none")
+    return torch.stack(rows)
+
+
+def reset_by_seed(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
+    """Reset ``env`` to ``start`` by replaying the seeded reset that drew it.
+
+    The env's random stream then continues from its state after that reset; transforms with
+    their own stream (e.g. action noise) keep theirs, so seed those per episode first. Raises
+    ``ValueError`` when the reset does not give ``start["observation"]`` (an env whose reset
+    is not a function of its seed).
+    """
+    env.set_seed(int(start["seed"]))
+    td = env.reset()
+    if not torch.equal(td["observation"], start["observation"].to(td["observation"])):
+        raise ValueError(
+            f"start: the seeded reset (seed {int(start['seed'])}) did not give the recorded "
+            "observation; this env's reset is not a function of its seed: use "
+            "reset_to_physics (dm_control) or an env-specific reset_to_state"
+        )
+    return td
+
+
+def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
+    """Reset a dm_control-based env and put its simulator in ``start["physics"]``.
+
+    The state is set inside the task's ``initialize_episode`` (after the task's own
+    initialisation), so the observation, the wrappers and the transforms all see a regular
+    reset. The task's ``after_step`` is called once more (a no-op for most dm_control tasks),
+    so tasks that cache what they observe there see the new state.
+    """
+    physics_of(env)  # a clear error for an env without a dm_control physics
+    task = getattr(env, "base_env", env)._env.task
+    state = start["physics"]
+    original = task.initialize_episode
+
+    def initialize(physics_) -> None:
+        original(physics_)
+        with physics_.reset_context():
+            for name in ("qpos", "qvel", "act"):
+                getattr(physics_.data, name)[:] = state[name].numpy()
+            for field in MODEL_FIELDS:
+                getattr(physics_.model, field)[:] = state["model", field].numpy()
+        task.after_step(physics_)  # a no-op for most tasks; refreshes those that cache
+
+    task.initialize_episode = initialize
+    try:
+        td = env.reset()
+    finally:
+        del task.initialize_episode
+    return td

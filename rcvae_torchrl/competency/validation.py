@@ -1,0 +1,253 @@
+"""Forecasts of an agent's success held against its real episodes, start state by start state.
+
+A forecast gives each start state ``b`` a probability ``f_b`` of success (and a distribution of
+the time to success); the real agent ran ``R`` episodes from the same state, with outcomes
+``o_{b,r}``. These pure functions score the forecasts on what a person relies on:
+
+- per start: the mean absolute error between ``f_b`` and the real success rate, and Spearman's
+  rank correlation between them (does the forecast rank the tasks?);
+- per episode: the Brier score (every episode counts, so repeated runs weigh as they should),
+  the Brier skill score against a reference forecast (e.g. the base rate), and the AUROC of
+  ``f_b`` as a score of single-episode outcomes;
+- reliability over start states, with binomial intervals on each bin's observed frequency;
+- time to success: the CRPS of the forecast distribution of the first-success time against
+  the real times, and that of a reference (climatological) distribution.
+
+Layouts: forecasts ``[B]``; outcomes ``[B, R]`` bool (``runs`` may differ per start through a
+``mask`` ``[B, R]``, True for the runs that exist).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from rcvae_torchrl.competency import _checks
+from rcvae_torchrl.competency.intervals import binomial_interval
+
+__all__ = [
+    "StartReliability",
+    "auroc",
+    "brier_skill_score",
+    "crps_samples",
+    "episode_brier",
+    "per_start_rates",
+    "rank_correlation",
+    "start_reliability",
+    "validate_forecasts",
+]
+
+
+def _outcomes(forecast: Tensor, outcome: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Checked forecasts ``[B]`` (float64) and outcomes ``[B, R]`` with their mask."""
+    _checks.check_rank("forecast", forecast, 1, "[B]")
+    _checks.check_probability("forecast", forecast)
+    _checks.check_rank("outcome", outcome, 2, "[B, R]")
+    if outcome.shape[0] != forecast.shape[0]:
+        raise ValueError(
+            f"outcome: expected one row of runs per forecast ({forecast.shape[0]}), got shape "
+            f"{tuple(outcome.shape)}"
+        )
+    if outcome.dtype != torch.bool:
+        raise TypeError(f"outcome: expected bool outcomes of single episodes, got {outcome.dtype}")
+    if mask is None:
+        mask = torch.ones_like(outcome)
+    elif mask.shape != outcome.shape or mask.dtype != torch.bool:
+        raise ValueError(
+            f"mask: expected a bool tensor of the outcomes' shape {tuple(outcome.shape)}, got "
+            f"{mask.dtype} {tuple(mask.shape)}"
+        )
+    if not bool(mask.any(1).all()):
+        raise ValueError("mask: expected at least one run per start state")
+    return forecast.to(torch.float64), mask
+
+
+def per_start_rates(outcome: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Real success rate ``[B]`` and number of runs ``[B]`` of outcomes ``[B, R]``."""
+    runs = outcome.shape[1] * torch.ones(outcome.shape[0]) if mask is None else mask.sum(1)
+    hits = outcome.sum(1) if mask is None else (outcome & mask).sum(1)
+    return hits.to(torch.float64) / runs.to(torch.float64), runs.to(torch.int64)
+
+
+def episode_brier(forecast: Tensor, outcome: Tensor, mask: Tensor | None = None) -> Tensor:
+    """The Brier score over single episodes: ``mean_{b,r} (f_b - o_{b,r})²``.
+
+    Example:
+        >>> episode_brier(torch.tensor([0.5, 1.0]), torch.tensor([[True, False], [True, True]]))
+        tensor(0.1250, dtype=torch.float64)
+    """
+    f, mask = _outcomes(forecast, outcome, mask)
+    errors = (f[:, None] - outcome.to(torch.float64)).square()
+    return errors[mask].mean()
+
+
+def brier_skill_score(brier: Tensor | float, reference: Tensor | float) -> Tensor:
+    """``1 - brier / reference``: 1 is perfect, 0 no better than the reference, NaN when the
+    reference is itself perfect (a reference Brier of 0 leaves nothing to improve on)."""
+    brier, reference = (
+        torch.as_tensor(brier, dtype=torch.float64),
+        torch.as_tensor(reference, dtype=torch.float64),
+    )
+    return torch.where(reference > 0, 1.0 - brier / reference.clamp_min(1e-300), math.nan)
+
+
+def _average_ranks(x: Tensor) -> Tensor:
+    """Ranks 1..n of ``x`` ``[n]``, ties given their average rank."""
+    order = torch.argsort(x, stable=True)
+    ranks = torch.empty_like(x, dtype=torch.float64)
+    ranks[order] = torch.arange(1, x.numel() + 1, dtype=torch.float64)
+    values, inverse = torch.unique(x, return_inverse=True)
+    sums = torch.zeros(values.numel(), dtype=torch.float64).index_add_(0, inverse, ranks)
+    counts = torch.zeros(values.numel(), dtype=torch.float64).index_add_(
+        0, inverse, torch.ones_like(ranks)
+    )
+    return (sums / counts)[inverse]
+
+
+def rank_correlation(x: Tensor, y: Tensor) -> Tensor:
+    """Spearman's ρ between ``x`` and ``y`` ``[n]`` (average ranks for ties); NaN when either
+    is constant (no ranking to compare).
+
+    Example:
+        >>> float(rank_correlation(torch.tensor([0.1, 0.5, 0.9]), torch.tensor([0.0, 0.2, 1.0])))
+        1.0
+    """
+    _checks.check_same_shape("x", x, "y", y)
+    _checks.check_rank("x", x, 1, "[n]")
+    rx, ry = _average_ranks(x.to(torch.float64)), _average_ranks(y.to(torch.float64))
+    rx, ry = rx - rx.mean(), ry - ry.mean()
+    denominator = (rx.square().sum() * ry.square().sum()).sqrt()
+    if float(denominator) == 0.0:
+        return torch.tensor(math.nan, dtype=torch.float64)
+    return (rx * ry).sum() / denominator
+
+
+def auroc(score: Tensor, label: Tensor) -> Tensor:
+    """Area under the ROC curve of ``score`` for bool ``label`` (both ``[n]``): the probability
+    that a random positive scores above a random negative, ties counting half (Mann-Whitney).
+    NaN when all labels are equal.
+
+    Example:
+        >>> labels = torch.tensor([True, True, False, False])
+        >>> float(auroc(torch.tensor([0.9, 0.8, 0.3, 0.8]), labels))
+        0.875
+    """
+    _checks.check_same_shape("score", score, "label", label)
+    if label.dtype != torch.bool:
+        raise TypeError(f"label: expected a bool tensor, got {label.dtype}")
+    positives, negatives = int(label.sum()), int((~label).sum())
+    if positives == 0 or negatives == 0:
+        return torch.tensor(math.nan, dtype=torch.float64)
+    ranks = _average_ranks(score.reshape(-1).to(torch.float64))
+    u = ranks[label.reshape(-1)].sum() - positives * (positives + 1) / 2
+    return u / (positives * negatives)
+
+
+class StartReliability(NamedTuple):
+    """Reliability over start states: per bin of forecasts, the episodes' observed frequency."""
+
+    bin_edges: Tensor  #: ``[n_bins + 1]``
+    mean_forecast: Tensor  #: ``[n_bins]`` (NaN for an empty bin)
+    frequency: Tensor  #: ``[n_bins]`` success frequency over the bin's episodes
+    low: Tensor  #: ``[n_bins]`` lower end of its binomial interval
+    high: Tensor  #: ``[n_bins]`` upper end
+    starts: Tensor  #: ``[n_bins]`` start states in the bin
+    episodes: Tensor  #: ``[n_bins]`` episodes in the bin
+
+
+def start_reliability(
+    forecast: Tensor,
+    outcome: Tensor,
+    mask: Tensor | None = None,
+    n_bins: int = 5,
+    confidence: float = 0.95,
+) -> StartReliability:
+    """Reliability diagram over start states, with a ``confidence`` binomial (Jeffreys)
+    interval on each bin's frequency (all the bin's episodes pooled)."""
+    _checks.check_positive_int("n_bins", n_bins)
+    f, mask = _outcomes(forecast, outcome, mask)
+    index = (f * n_bins).long().clamp(0, n_bins - 1)
+    hits = (outcome & mask).sum(1).to(torch.float64)
+    runs = mask.sum(1).to(torch.float64)
+
+    def per_bin(values: Tensor) -> Tensor:
+        return torch.zeros(n_bins, dtype=torch.float64).index_add_(0, index, values)
+
+    starts, episodes, successes = per_bin(torch.ones_like(f)), per_bin(runs), per_bin(hits)
+    low, high = binomial_interval(successes, episodes.clamp_min(1), confidence)
+    empty = episodes == 0
+    nan = torch.full_like(f[:1].expand(n_bins), math.nan)
+    return StartReliability(
+        torch.linspace(0.0, 1.0, n_bins + 1, dtype=torch.float64),
+        torch.where(empty, nan, per_bin(f) / starts.clamp_min(1)),
+        torch.where(empty, nan, successes / episodes.clamp_min(1)),
+        torch.where(empty, nan, low),
+        torch.where(empty, nan, high),
+        starts.long(),
+        episodes.long(),
+    )
+
+
+def crps_samples(samples: Tensor, observed: Tensor) -> Tensor:
+    """CRPS of the empirical distribution of ``samples`` ``[K]`` for each ``observed`` ``[M]``:
+    ``E|X - y| - ½ E|X - X'|`` (Gneiting & Raftery 2007), ``[M]``; lower is better.
+
+    Example:
+        >>> crps_samples(torch.tensor([1.0, 1.0]), torch.tensor([1.0, 3.0])).tolist()
+        [0.0, 2.0]
+    """
+    x, y = samples.reshape(-1).to(torch.float64), observed.reshape(-1).to(torch.float64)
+    if x.numel() == 0:
+        raise ValueError("samples: expected at least one sample, got none")
+    spread = (x[:, None] - x[None, :]).abs().mean()
+    return (x[:, None] - y[None, :]).abs().mean(0) - 0.5 * spread
+
+
+def validate_forecasts(
+    forecast: Tensor,
+    outcome: Tensor,
+    mask: Tensor | None = None,
+    *,
+    base_rate: float | None = None,
+    n_bins: int = 5,
+) -> dict[str, float]:
+    """The per-start and per-episode scores of forecasts ``[B]`` against outcomes ``[B, R]``.
+
+    Returns a dict: ``forecast`` (mean of ``f_b`` over episodes), ``real`` (success rate over
+    all episodes), ``gap`` (``|forecast - real|``), ``per_start_mae``, ``spearman`` (NaN when
+    either side is constant), ``real_rate_span`` (max - min of the real per-start rates),
+    ``auroc`` (over single episodes; NaN when all outcomes agree), ``brier`` (over episodes),
+    ``brier_base`` (the Brier of the constant forecast ``base_rate``, default the episodes' own
+    rate), ``brier_skill`` (against it), ``ece`` (episode-weighted over ``n_bins`` bins),
+    ``starts`` and ``episodes``.
+    """
+    f, mask = _outcomes(forecast, outcome, mask)
+    rates, runs = per_start_rates(outcome, mask)
+    labels = outcome[mask]
+    scores = f[:, None].expand_as(outcome)[mask]
+    real = float(labels.to(torch.float64).mean())
+    base = real if base_rate is None else float(base_rate)
+    brier = float(episode_brier(f, outcome, mask))
+    brier_base = float(((base - labels.to(torch.float64)) ** 2).mean())
+    reliability = start_reliability(f, outcome, mask, n_bins)
+    weights = reliability.episodes.to(torch.float64) / float(runs.sum())
+    gaps = (reliability.mean_forecast - reliability.frequency).abs().nan_to_num(0.0)
+    mean_forecast = float(scores.mean())  # episode-weighted, as the real rate is
+    return {
+        "forecast": mean_forecast,
+        "real": real,
+        "gap": abs(mean_forecast - real),
+        "per_start_mae": float((f - rates).abs().mean()),
+        "spearman": float(rank_correlation(f, rates)),
+        "real_rate_span": float(rates.max() - rates.min()),
+        "auroc": float(auroc(scores, labels)),
+        "brier": brier,
+        "brier_base": brier_base,
+        "brier_skill": float(brier_skill_score(brier, brier_base)),
+        "ece": float((weights * gaps).sum()),
+        "starts": int(f.numel()),
+        "episodes": int(runs.sum()),
+    }

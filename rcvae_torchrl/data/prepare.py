@@ -1,0 +1,203 @@
+"""Any TorchRL env as the library expects it: one float32 ``"observation"`` vector, named.
+
+The world model learns one state vector ``"observation"`` ``[S]`` of the model's dtype. Many
+envs give several observation entries (dm_control: ``"position"``, ``"velocity"``, ...) in
+float64. :func:`prepare_env` concatenates the entries you name (or all floating ones) into
+``"observation"`` with TorchRL's own transforms (``DoubleToFloat``, ``CatTensors``) and returns
+the :class:`ObservationLayout`: which dimensions came from which entry, with a name for each.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict.utils import NestedKey
+from torchrl.envs import CatTensors, Compose, DoubleToFloat, EnvBase, Transform, TransformedEnv
+
+__all__ = ["ActionNoise", "ObservationLayout", "prepare_env", "seed_env"]
+
+OBSERVATION_KEY = "observation"
+
+
+@dataclass(frozen=True)
+class ObservationLayout:
+    """The dimensions of a concatenated observation: source entries and their sizes, in order.
+
+    Example:
+        >>> layout = ObservationLayout(("position", "velocity"), (2, 2))
+        >>> layout.names
+        ('position[0]', 'position[1]', 'velocity[0]', 'velocity[1]')
+        >>> layout.indices("velocity")
+        [2, 3]
+    """
+
+    keys: tuple[str, ...]
+    sizes: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        if len(self.keys) != len(self.sizes) or not self.keys:
+            raise ValueError(
+                f"keys, sizes: expected one size per key, got {self.keys} and {self.sizes}"
+            )
+
+    @property
+    def dim(self) -> int:
+        """S, the size of the concatenated observation."""
+        return sum(self.sizes)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """A name per dimension: ``key[i]`` (``key`` alone for an entry of size 1)."""
+        return tuple(
+            key if size == 1 else f"{key}[{i}]"
+            for key, size in zip(self.keys, self.sizes)
+            for i in range(size)
+        )
+
+    def indices(self, key: str) -> list[int]:
+        """The dimensions that came from entry ``key``."""
+        if key not in self.keys:
+            raise KeyError(f"key: expected one of {list(self.keys)}, got {key!r}")
+        start = sum(self.sizes[: self.keys.index(key)])
+        return list(range(start, start + self.sizes[self.keys.index(key)]))
+
+
+def _name(key: NestedKey) -> str:
+    return key if isinstance(key, str) else ".".join(key)
+
+
+def _floating_entries(env: EnvBase) -> list[NestedKey]:
+    spec = env.observation_spec
+    return [
+        key
+        for key in spec.keys(True, True)
+        if spec[key].dtype.is_floating_point and len(spec[key].shape) - len(env.batch_size) <= 1
+    ]
+
+
+def prepare_env(
+    env: EnvBase,
+    observation_keys: Sequence[NestedKey] | None = None,
+    *,
+    keep_keys: bool = True,
+) -> tuple[TransformedEnv, ObservationLayout]:
+    """``env`` with one float32 ``"observation"`` entry the world model can learn.
+
+    Args:
+        env: any TorchRL env.
+        observation_keys: the observation entries to model, concatenated in this order; default
+            the env's ``"observation"`` if it has one, else every floating entry of at most one
+            dimension (scalars count as one dimension), in the spec's order.
+        keep_keys: keep the source entries beside ``"observation"`` (for task functions or
+            policies that read them).
+
+    Returns:
+        ``(TransformedEnv, ObservationLayout)``: float64 entries (observations, action,
+        reward) become float32 (``DoubleToFloat``), the named entries are concatenated
+        (``CatTensors``) into ``"observation"``.
+
+    Raises:
+        KeyError: a named entry the env does not have.
+        ValueError: an entry that is not floating point or has more than one dimension.
+    """
+    spec = env.observation_spec
+    keys = list(observation_keys) if observation_keys is not None else None
+    if keys is None:
+        keys = [OBSERVATION_KEY] if OBSERVATION_KEY in spec.keys() else _floating_entries(env)
+    if not keys:
+        raise ValueError(
+            f"env: {type(env).__name__} has no floating observation entry to model; name the "
+            "entries with observation_keys"
+        )
+    sizes = []
+    for key in keys:
+        if key not in spec.keys(True, True):
+            raise KeyError(
+                f"observation_keys: {type(env).__name__} has no observation {key!r} (it has "
+                f"{sorted(map(_name, spec.keys(True, True)))})"
+            )
+        shape = spec[key].shape[len(env.batch_size) :]
+        if not spec[key].dtype.is_floating_point or len(shape) > 1:
+            raise ValueError(
+                f"observation_keys: {key!r} must be a floating vector or scalar, got dtype "
+                f"{spec[key].dtype} and shape {tuple(shape)}"
+            )
+        sizes.append(int(shape.numel()))
+    transforms: list[Transform] = []
+    if _has_double(env):
+        transforms.append(DoubleToFloat())
+    if keys != [OBSERVATION_KEY]:
+        transforms.append(
+            CatTensors(
+                keys, OBSERVATION_KEY, del_keys=not keep_keys, unsqueeze_if_oor=True, sort=False
+            )
+        )
+    prepared = TransformedEnv(env, Compose(*transforms)) if transforms else TransformedEnv(env)
+    return prepared, ObservationLayout(tuple(_name(k) for k in keys), tuple(sizes))
+
+
+def _has_double(env: EnvBase) -> bool:
+    specs = (env.observation_spec, env.full_action_spec, env.full_reward_spec)
+    return any(s[key].dtype == torch.float64 for s in specs for key in s.keys(True, True))
+
+
+class ActionNoise(Transform):
+    """A stochastic variant of any env: Gaussian noise on every action before it reaches the env.
+
+    The env receives ``clip(a + std·ε, low, high)`` while the rollout records the commanded
+    action ``a`` (the inverse transform of the ``"action"`` entry), as an actuator with noise
+    would. The noise comes from the transform's own generator: seed it with :func:`seed_env`
+    (TorchRL's ``set_seed`` seeds only the base env).
+
+    Args:
+        std: the noise's standard deviation (>= 0), scalar or ``[A]``.
+        low, high: clip the noisy action to these bounds (default: the action spec's).
+        seed: the generator's initial seed.
+    """
+
+    def __init__(
+        self,
+        std: float | torch.Tensor,
+        *,
+        low: float | torch.Tensor | None = None,
+        high: float | torch.Tensor | None = None,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(in_keys_inv=["action"], out_keys_inv=["action"])
+        std = torch.as_tensor(std, dtype=torch.float32)
+        if not bool(torch.isfinite(std).all() and (std >= 0).all()):
+            raise ValueError(f"std: expected a finite standard deviation >= 0, got {std}")
+        self.register_buffer("std", std)
+        self._low, self._high = low, high
+        self.generator = torch.Generator().manual_seed(seed)
+
+    def reseed(self, seed: int) -> None:
+        """Restart the noise stream (called by :func:`seed_env`)."""
+        self.generator.manual_seed(int(seed))
+
+    def _bounds(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        low, high = self._low, self._high
+        if (low is None or high is None) and self.parent is not None:
+            space = self.parent.full_action_spec["action"].space
+            low = space.low if low is None else low
+            high = space.high if high is None else high
+        low = torch.as_tensor(-torch.inf if low is None else low).to(action)
+        high = torch.as_tensor(torch.inf if high is None else high).to(action)
+        return low, high
+
+    def _inv_apply_transform(self, action: torch.Tensor) -> torch.Tensor:
+        noise = torch.randn(action.shape, generator=self.generator).to(action)
+        return torch.clamp(action + self.std.to(action) * noise, *self._bounds(action))
+
+
+def seed_env(env: EnvBase, seed: int) -> None:
+    """``env.set_seed(seed)``, and restart every transform that has its own random stream
+    (those with a ``reseed`` method, e.g. :class:`ActionNoise`) from the same seed."""
+    env.set_seed(int(seed))
+    transform = getattr(env, "transform", None)
+    parts = list(transform) if isinstance(transform, Compose) else [transform]
+    for part in parts:
+        if callable(getattr(part, "reseed", None)):
+            part.reseed(seed)

@@ -1,0 +1,120 @@
+"""Forecasts against real episodes: scores checked against closed forms and brute force."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import scipy.stats
+import torch
+
+from rcvae_torchrl.competency import (
+    auroc,
+    brier_score,
+    brier_skill_score,
+    crps_samples,
+    episode_brier,
+    expected_calibration_error,
+    per_start_rates,
+    rank_correlation,
+    reliability_diagram,
+    start_reliability,
+    validate_forecasts,
+)
+
+
+def _toy(seed: int = 0, starts: int = 40, runs: int = 30):
+    g = torch.Generator().manual_seed(seed)
+    truth = torch.rand(starts, generator=g)
+    outcome = torch.rand(starts, runs, generator=g) < truth[:, None]
+    forecast = (truth + 0.05 * torch.randn(starts, generator=g)).clamp(0, 1)
+    return forecast, outcome, truth
+
+
+def test_rank_correlation_matches_scipy_with_ties():
+    g = torch.Generator().manual_seed(1)
+    x = torch.randint(0, 5, (50,), generator=g).double()
+    y = x + torch.randint(0, 3, (50,), generator=g).double()
+    expected = scipy.stats.spearmanr(x.numpy(), y.numpy()).statistic
+    assert float(rank_correlation(x, y)) == pytest.approx(expected, abs=1e-12)
+    assert math.isnan(float(rank_correlation(torch.ones(4), torch.arange(4.0))))
+
+
+def test_auroc_equals_the_pairwise_count():
+    g = torch.Generator().manual_seed(2)
+    score = torch.randint(0, 4, (60,), generator=g).double() / 3
+    label = torch.rand(60, generator=g) < 0.5
+    pos, neg = score[label], score[~label]
+    pairs = (pos[:, None] > neg[None, :]).double() + 0.5 * (pos[:, None] == neg[None, :]).double()
+    assert float(auroc(score, label)) == pytest.approx(float(pairs.mean()), abs=1e-12)
+    assert math.isnan(float(auroc(score, torch.ones(60, dtype=torch.bool))))
+    with pytest.raises(TypeError, match="label: expected a bool tensor"):
+        auroc(score, label.float())
+
+
+def test_episode_brier_and_brier_score_with_repeated_runs_agree():
+    forecast, outcome, _ = _toy()
+    expected = ((forecast[:, None] - outcome.double()) ** 2).mean()
+    assert float(episode_brier(forecast, outcome)) == pytest.approx(float(expected))
+    assert float(brier_score(forecast, outcome)) == pytest.approx(float(expected), rel=1e-6)
+    ece = expected_calibration_error(forecast, outcome, n_bins=5)
+    flat = expected_calibration_error(
+        forecast[:, None].expand_as(outcome).reshape(-1), outcome.reshape(-1), n_bins=5
+    )
+    assert float(ece) == pytest.approx(float(flat))
+    diagram = reliability_diagram(forecast, outcome, n_bins=5)
+    assert int(diagram.counts.sum()) == outcome.numel()
+
+
+def test_mask_drops_runs_that_do_not_exist():
+    forecast = torch.tensor([0.5, 1.0])
+    outcome = torch.tensor([[True, False, True], [True, True, False]])
+    mask = torch.tensor([[True, True, False], [True, True, False]])
+    assert float(episode_brier(forecast, outcome, mask)) == pytest.approx(0.125)
+    rates, runs = per_start_rates(outcome, mask)
+    assert rates.tolist() == [0.5, 1.0] and runs.tolist() == [2, 2]
+    with pytest.raises(ValueError, match="mask: expected at least one run per start state"):
+        episode_brier(forecast, outcome, torch.zeros_like(mask))
+
+
+def test_brier_skill_score():
+    assert float(brier_skill_score(0.05, 0.25)) == pytest.approx(0.8)
+    assert float(brier_skill_score(0.25, 0.25)) == 0.0
+    assert math.isnan(float(brier_skill_score(0.0, 0.0)))
+
+
+def test_crps_of_samples_approaches_the_gaussian_closed_form():
+    g = torch.Generator().manual_seed(3)
+    samples = torch.randn(4000, generator=g, dtype=torch.float64)
+    y = torch.tensor([0.0, 1.0, -2.0], dtype=torch.float64)
+    normal = torch.distributions.Normal(0.0, 1.0)
+    closed = y * (2 * normal.cdf(y) - 1) + 2 * normal.log_prob(y).exp() - 1 / math.sqrt(math.pi)
+    torch.testing.assert_close(crps_samples(samples, y), closed, atol=0.02, rtol=0)
+    assert crps_samples(torch.tensor([2.0]), torch.tensor([2.0])).item() == 0.0
+
+
+def test_start_reliability_bins_and_intervals():
+    forecast = torch.tensor([0.1, 0.15, 0.9, 0.95])
+    outcome = torch.tensor([[False] * 9 + [True], [False] * 10, [True] * 10, [True] * 9 + [False]])
+    r = start_reliability(forecast, outcome, n_bins=2)
+    assert r.starts.tolist() == [2, 2] and r.episodes.tolist() == [20, 20]
+    assert r.frequency.tolist() == [0.05, 0.95]
+    assert bool((r.low <= r.frequency).all() and (r.frequency <= r.high).all())
+    assert float(r.high[0] - r.low[0]) < 0.3
+
+
+def test_validate_forecasts_on_informative_and_uninformative_forecasts():
+    forecast, outcome, truth = _toy()
+    good = validate_forecasts(forecast, outcome)
+    # uniform true rates leave 1 - (1/6)/(1/4) = 1/3 of skill even to the truth itself
+    assert good["spearman"] > 0.8 and good["auroc"] > 0.75 and good["brier_skill"] > 0.25
+    assert good["per_start_mae"] < 0.15 and good["episodes"] == outcome.numel()
+    assert good["real_rate_span"] > 0.5
+    constant = torch.full_like(forecast, float(outcome.double().mean()))
+    flat = validate_forecasts(constant, outcome)
+    assert abs(flat["brier_skill"]) < 1e-9 and math.isnan(flat["spearman"])
+    assert flat["auroc"] == 0.5 and flat["gap"] < 1e-9
+    with pytest.raises(TypeError, match="outcome: expected bool outcomes"):
+        validate_forecasts(forecast, outcome.float())
+    with pytest.raises(ValueError, match=r"outcome: expected one row of runs per forecast"):
+        validate_forecasts(forecast, outcome[:3])
