@@ -113,7 +113,7 @@ def test_validate_forecasts_on_informative_and_uninformative_forecasts():
     constant = torch.full_like(forecast, float(outcome.double().mean()))
     flat = validate_forecasts(constant, outcome)
     assert abs(flat["brier_skill"]) < 1e-9 and math.isnan(flat["spearman"])
-    assert flat["auroc"] == 0.5 and flat["gap"] < 1e-9
+    assert flat["auroc"] == 0.5 and flat["gap"] < 1e-6
     with pytest.raises(TypeError, match="outcome: expected bool outcomes"):
         validate_forecasts(forecast, outcome.float())
     with pytest.raises(ValueError, match=r"outcome: expected one row of runs per forecast"):
