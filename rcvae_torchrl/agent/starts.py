@@ -14,7 +14,7 @@ for :func:`~rcvae_torchrl.agent.run_episodes`, with ``start`` a row of the Tenso
   every wrapper and transform sees a normal reset; it can start from any state, not only one a
   reset draws;
 - a function of the observation alone, where the observation holds the whole simulator state
-  (the example Pusher's ``reset_to_state``).
+  (an env-specific function, such as the example domain's ``reset_to_state``).
 """
 
 from __future__ import annotations

@@ -53,7 +53,7 @@ from rcvae_torchrl.competency.outcome_assessment import (
     ordinal_distribution,
     partial_moments,
 )
-from rcvae_torchrl.competency.report import CompetencyReport
+from rcvae_torchrl.competency.report import CompetencyReport, Reference
 from rcvae_torchrl.competency.validation import (
     StartReliability,
     auroc,
@@ -124,4 +124,5 @@ __all__ = [
     "CompetencyReport",
     "ImaginesRollouts",
     "PerSample",
+    "Reference",
 ]

@@ -81,7 +81,8 @@ class CompetencyAssessor(KeyedModule):
         bin_width: histogram bin width, scalar or ``[S]`` (the smallest difference that
             matters in each dimension, in its own units); see
             :class:`~rcvae_torchrl.competency.UncertaintyMetric`.
-        dim_names: names of the ``S`` observation dimensions (default ``obs[i]``).
+        dim_names: names of the ``S`` observation dimensions (default: the model config's
+            ``observation_names``, else ``obs[i]``).
         samples_per_member: N.
         horizon: T, steps imagined; default the boundary's time limit. Open-loop action
             sequences must have T steps (without a horizon, their length is T).
@@ -169,7 +170,7 @@ class CompetencyAssessor(KeyedModule):
         self.uncertainty_metric = UncertaintyMetric(
             bin_width, estimator, dim_names, episode_end=episode_end, **estimator_args
         )
-        self.dim_names = _dim_names(dim_names, obs_dim)
+        self.dim_names = _dim_names(dim_names, model_env.ensemble.config)
         self.horizon = _horizon(horizon, boundary)
         self.dt = _dt(dt, boundary)
         self.policy = policy
@@ -232,7 +233,17 @@ class CompetencyAssessor(KeyedModule):
             self.tensor_keys.uncertainty,
             self.tensor_keys.competency,
             self.tensor_keys.observation,
+            model_warning=self.model_warning,
         )
+
+    @property
+    def model_warning(self) -> str:
+        """Why the world model is not trustworthy: the message of its failed self-checks
+        (``ensemble.checks``, set by training), '' when it passed them or has none."""
+        checks = getattr(self.model_env.ensemble, "checks", None)
+        if checks is None or checks.passed:
+            return ""
+        return checks.message()
 
     # ----------------------------------------------------------------- one chunk
     def _assess_chunk(
@@ -387,9 +398,11 @@ def _check_model_env(model_env: object) -> int:
     return model_env.ensemble.config.obs_dim
 
 
-def _dim_names(names: Sequence[str] | None, obs_dim: int) -> tuple[str, ...]:
+def _dim_names(names: Sequence[str] | None, config: Any) -> tuple[str, ...]:
+    """The given names, else the model's (its config's ``names``, else ``obs[i]``)."""
+    obs_dim = config.obs_dim
     if names is None:
-        return tuple(f"obs[{i}]" for i in range(obs_dim))
+        return tuple(getattr(config, "names", None) or (f"obs[{i}]" for i in range(obs_dim)))
     names = tuple(names)
     if len(names) != obs_dim:
         raise ValueError(

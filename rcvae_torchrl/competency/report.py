@@ -16,13 +16,36 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-__all__ = ["CompetencyReport"]
+__all__ = ["CompetencyReport", "Reference"]
 
 _REASONS = {
     "epistemic": "the model has not seen states like this",
     "aleatoric": "the members agree that the states vary by chance, which more data would not "
     "remove",
 }
+_ROSE = {
+    "epistemic": "the model has not seen states like this: more data here would reduce it",
+    "aleatoric": "the outcome varies by chance more than in the reference, which more data "
+    "would not remove",
+}
+
+
+@dataclass(frozen=True)
+class Reference:
+    """What a report's uncertainty is compared with: mean bits of in-distribution starts."""
+
+    aleatoric: float
+    epistemic: float
+    rise: float = 1.3  #: a part counts as risen when it is at least this many times the reference
+    name: str = "in-distribution reference"
+
+    def __post_init__(self) -> None:
+        for field_name in ("aleatoric", "epistemic"):
+            value = getattr(self, field_name)
+            if not np.isfinite(value) or value < 0:
+                raise ValueError(f"reference.{field_name}: expected bits >= 0, got {value!r}")
+        if not self.rise > 1:
+            raise ValueError(f"rise: expected a factor > 1, got {self.rise!r}")
 
 
 @dataclass(frozen=True)
@@ -50,10 +73,19 @@ class CompetencyReport:
 
     1. ``P(success within L) = p (c% interval low–high).`` L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
-    2. The dominant type is the larger of the aleatoric and epistemic time-mean bits summed
-       over dimensions (``("uncertainty", "summary", ·)``; a tie counts as aleatoric), given
-       with its share of the total: ``Most of the doubt is epistemic (0.70 of 1.10 bits): the
-       model has not seen states like this.`` When all three are 0 the sentence says so.
+    0. When the world model failed its self-checks (``model_warning``), the paragraph opens
+       with a warning naming the dimensions it has not learned: such a forecast is never
+       presented as trustworthy.
+    2. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
+       what changed: each part's time-mean bits against the reference's, and which part rose
+       (at least ``rise`` times the reference; the larger rise when both did): ``Against the
+       in-distribution reference, epistemic uncertainty rose 2.1x (0.29 -> 0.61 bits) and
+       aleatoric 1.0x (10.2 -> 10.4 bits): the model has not seen states like this.``
+       Without one, the dominant type: the larger of the aleatoric and epistemic time-mean
+       bits summed over dimensions (``("uncertainty", "summary", ·)``; a tie counts as
+       aleatoric), given with its share of the total: ``Most of the doubt is epistemic (0.70
+       of 1.10 bits): the model has not seen states like this.`` When all three are 0 the
+       sentence says so.
     3. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
        each with its mean bits and the time of its peak. Left out for joint estimators.
 
@@ -70,6 +102,9 @@ class CompetencyReport:
         confidence: coverage of the P(success) interval.
         top_k: number of dimensions named in the summary.
         uncertainty_key, competency_key, observation_key: where ``data`` holds each part.
+        model_warning: why the world model is not trustworthy ('' when it passed its
+            self-checks or has none).
+        reference: the uncertainty the summary compares with (:meth:`with_reference`).
     """
 
     data: TensorDictBase
@@ -81,6 +116,34 @@ class CompetencyReport:
     uncertainty_key: NestedKey = "uncertainty"
     competency_key: NestedKey = "competency"
     observation_key: NestedKey = "observation"
+    model_warning: str = ""
+    reference: Reference | None = None
+
+    @property
+    def trustworthy(self) -> bool:
+        """False when the world model failed its self-checks."""
+        return not self.model_warning
+
+    def mean_bits(self) -> tuple[float, float]:
+        """Aleatoric and epistemic time-mean bits (summed over dimensions), averaged over the
+        report's start states."""
+        summary = self.uncertainty.get("summary")
+        return float(summary.get("aleatoric").mean()), float(summary.get("epistemic").mean())
+
+    def with_reference(
+        self, reference: CompetencyReport | Reference, *, rise: float = 1.3, name: str | None = None
+    ) -> CompetencyReport:
+        """This report, with summaries that compare against ``reference``: a report of
+        in-distribution start states (e.g. the training starts), or its :class:`Reference`."""
+        if isinstance(reference, CompetencyReport):
+            aleatoric, epistemic = reference.mean_bits()
+            reference = Reference(aleatoric, epistemic, rise, name or "in-distribution reference")
+        elif not isinstance(reference, Reference):
+            raise TypeError(
+                "reference: expected a CompetencyReport or a Reference, got "
+                f"{type(reference).__name__}"
+            )
+        return replace(self, reference=reference)
 
     @property
     def batch_size(self) -> torch.Size:
@@ -137,10 +200,7 @@ class CompetencyReport:
                 self.confidence,
                 _duration(self.time_limit, self.dt),
             ),
-            _doubt_sentence(
-                *(float(uncertainty.get(("summary", k))) for k in ("aleatoric", "epistemic")),
-                float(uncertainty.get(("summary", "total"))),
-            ),
+            self._uncertainty_sentence(uncertainty),
         ]
         if "peak_step" in uncertainty.keys():
             sentences.append(
@@ -152,7 +212,17 @@ class CompetencyReport:
                     self.top_k,
                 )
             )
+        if self.model_warning:
+            sentences.insert(0, f"Warning: {self.model_warning}.")
         return " ".join(s for s in sentences if s)
+
+    def _uncertainty_sentence(self, uncertainty: TensorDictBase) -> str:
+        aleatoric, epistemic, total = (
+            float(uncertainty.get(("summary", k))) for k in ("aleatoric", "epistemic", "total")
+        )
+        if self.reference is None:
+            return _doubt_sentence(aleatoric, epistemic, total)
+        return _change_sentence(aleatoric, epistemic, self.reference)
 
 
 def _success_sentence(p: float, low: float, high: float, confidence: float, within: str) -> str:
@@ -166,6 +236,33 @@ def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:
         return "No doubt about the imagined states (0.00 bits): all samples agree."
     kind, bits = ("epistemic", epistemic) if epistemic > aleatoric else ("aleatoric", aleatoric)
     return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {_REASONS[kind]}."
+
+
+def _ratio(value: float, reference: float) -> float:
+    if reference > 0:
+        return value / reference
+    return float("inf") if value > 0 else 1.0
+
+
+def _change_sentence(aleatoric: float, epistemic: float, reference: Reference) -> str:
+    """What changed against the reference, and which part rose (the larger rise)."""
+    ratios = {
+        "epistemic": _ratio(epistemic, reference.epistemic),
+        "aleatoric": _ratio(aleatoric, reference.aleatoric),
+    }
+    values = {"epistemic": epistemic, "aleatoric": aleatoric}
+    refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
+    parts = [
+        f"{k} {'uncertainty rose ' if i == 0 else ''}{ratios[k]:.1f}x "
+        f"({refs[k]:.2f} -> {values[k]:.2f} bits)"
+        for i, k in enumerate(("epistemic", "aleatoric"))
+    ]
+    risen = [k for k in ratios if ratios[k] >= reference.rise]
+    text = f"Against the {reference.name}, {parts[0]} and {parts[1]}"
+    if not risen:
+        return text + ": neither part rose, the doubt is as in the reference."
+    cause = max(risen, key=lambda k: ratios[k])
+    return text + f": the rise is {cause}, {_ROSE[cause]}."
 
 
 def _dims_sentence(

@@ -32,6 +32,9 @@ class RCVAEConfig:
             :class:`~rcvae_torchrl.models.ModelFunctions`.
         input_features: name of a feature function of the state whose output the recurrence
             reads besides the state and the action (passed the same way), or ``None``.
+        observation_names: a name for each state dimension (e.g. the
+            :class:`~rcvae_torchrl.data.ObservationLayout` of the observation), recorded with
+            the model and used in its self-checks and reports; default ``obs[i]``.
     """
 
     obs_dim: int
@@ -45,6 +48,7 @@ class RCVAEConfig:
     passthrough_dims: tuple[int, ...] = ()
     state_constraint: str | None = None
     input_features: str | None = None
+    observation_names: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         for name in ("obs_dim", "action_dim", "hidden_dim", "latent_dim", "mlp_dim"):
@@ -60,6 +64,14 @@ class RCVAEConfig:
             raise ValueError(f"RCVAEConfig.latent_min_std must be >= 0, got {self.latent_min_std}.")
         object.__setattr__(self, "passthrough_dims", tuple(int(d) for d in self.passthrough_dims))
         self._check_passthrough()
+        if self.observation_names is not None:
+            names = tuple(str(n) for n in self.observation_names)
+            if len(names) != self.obs_dim:
+                raise ValueError(
+                    f"RCVAEConfig.observation_names: expected {self.obs_dim} names (one per "
+                    f"state dimension), got {len(names)}"
+                )
+            object.__setattr__(self, "observation_names", names)
 
     def _check_passthrough(self) -> None:
         dims = self.passthrough_dims
@@ -72,6 +84,13 @@ class RCVAEConfig:
             )
         if len(dims) == self.obs_dim:
             raise ValueError("RCVAEConfig.passthrough_dims cannot cover every state dimension.")
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The state dimensions' names (``observation_names``, else ``obs[i]``)."""
+        if self.observation_names is not None:
+            return self.observation_names
+        return tuple(f"obs[{i}]" for i in range(self.obs_dim))
 
     @property
     def predicted_dims(self) -> tuple[int, ...]:

@@ -106,6 +106,9 @@ class RCVAEEnsemble(nn.Module):
         self._features = None if features is None else features.fn
         self.feature_dim = 0 if features is None else features.dim
         self.normalizer = StateNormalizer(config.obs_dim, config.action_dim, self.feature_dim)
+        #: the self-checks of the trained model (:func:`rcvae_torchrl.training.check_model`),
+        #: set by training and kept in checkpoints; ``None`` until checked
+        self.checks = None
         self.register_buffer("predicted_idx", torch.tensor(config.predicted_dims), persistent=False)
         # D when the predicted dims are 0..D-1 (the passthrough ones a tail): slices suffice
         dims = config.predicted_dims
@@ -293,6 +296,27 @@ class RCVAEEnsemble(nn.Module):
             )
             hidden, x, prev = (torch.cat(p, dim=-2) for p in zip((hidden, x, prev), opened))
         return self._explain(hidden, x, prev, targets, generator)
+
+    @torch.no_grad()
+    def predict_next(self, observations: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+        """Each member's point prediction of s_{t+1} from the true history (teacher forced).
+
+        The latent at its prior mean and the decoder mean: what the model expects the next
+        state to be, without sampling. A self-check of what the model has learned (one-step
+        errors against the truth, see :func:`~rcvae_torchrl.training.check_model`).
+
+        Args:
+            observations: ``[E, *B, L, S]`` windows of true states.
+            actions: ``[E, *B, L, A]``.
+
+        Returns:
+            ``[E, *B, L - 1, S]``: the prediction of ``observations[..., 1:, :]``.
+        """
+        n_steps = observations.shape[-2] - 1
+        hidden, x, prev = self._teacher_forced(observations, actions, None, n_steps)
+        latent, _ = self.prior(hidden)
+        mean, _ = self.decode(hidden, x, latent)
+        return self.apply_delta(prev, mean)
 
     def _teacher_forced(
         self,

@@ -1,6 +1,7 @@
 """Training the world model: the loop and its checkpoints."""
 
 from .checkpoint import FORMAT_VERSION, CheckpointError, load_ensemble, save_ensemble
+from .checks import ModelChecks, ModelCheckWarning, check_model
 from .trainer import TrainConfig, TrainResult, train_ensemble
 
 __all__ = [
@@ -8,6 +9,10 @@ __all__ = [
     "TrainConfig",
     "TrainResult",
     "train_ensemble",
+    # self-checks
+    "ModelCheckWarning",
+    "ModelChecks",
+    "check_model",
     # checkpoints
     "FORMAT_VERSION",
     "CheckpointError",

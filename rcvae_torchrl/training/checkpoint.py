@@ -16,6 +16,8 @@ import torch
 from rcvae_torchrl.io import StoredFileError, atomic_write, load_torch
 from rcvae_torchrl.models import ModelFunctions, RCVAEConfig, RCVAEEnsemble
 
+from .checks import ModelChecks
+
 __all__ = ["FORMAT_VERSION", "CheckpointError", "load_ensemble", "save_ensemble"]
 
 FORMAT_VERSION = 1
@@ -35,6 +37,7 @@ def ensemble_payload(ensemble: RCVAEEnsemble, extra: dict[str, Any] | None = Non
         "ensemble_size": ensemble.ensemble_size,
         "state_dict": {k: v.detach().cpu() for k, v in ensemble.state_dict().items()},
         "extra": extra or {},
+        "checks": None if getattr(ensemble, "checks", None) is None else ensemble.checks.as_dict(),
     }
 
 
@@ -121,4 +124,6 @@ def ensemble_from_payload(
         ensemble.load_state_dict(payload["state_dict"], strict=True)
     except RuntimeError as err:
         raise CheckpointError(f"checkpoint {source!r}: weights do not match: {err}") from err
+    if payload.get("checks") is not None:
+        ensemble.checks = ModelChecks.from_dict(payload["checks"])
     return ensemble

@@ -28,6 +28,7 @@ from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
+from .checks import ModelChecks, check_model
 
 __all__ = ["TrainConfig", "TrainResult", "train_ensemble"]
 
@@ -92,13 +93,15 @@ class TrainConfig:
 
 @dataclass
 class TrainResult:
-    """What :func:`train_ensemble` returns: the best weights are loaded into ``ensemble``."""
+    """What :func:`train_ensemble` returns: the best weights are loaded into ``ensemble``
+    (and its self-checks, when run, into ``ensemble.checks`` and ``checks``)."""
 
     ensemble: RCVAEEnsemble
     steps: int
     best_val: torch.Tensor  # [E] best validation loss per member
     stopped_early: bool
     history: list[dict[str, float]] = field(default_factory=list)
+    checks: ModelChecks | None = None
 
 
 @dataclass
@@ -122,6 +125,7 @@ def train_ensemble(
     resume: bool = False,
     logger: Logger | None = None,
     progress: bool = True,
+    checks: bool = True,
 ) -> TrainResult:
     """Train ``ensemble`` on episodes (flat TensorDicts ``[frames]`` from ``collect_episodes``).
 
@@ -134,6 +138,10 @@ def train_ensemble(
         resume: continue from ``checkpoint_path`` if it exists (a finished run returns at once).
         logger: a TorchRL logger (default: CSV beside the checkpoint, or none).
         progress: show a tqdm bar.
+        checks: run the model's self-checks on ``val_data`` after training
+            (:func:`~rcvae_torchrl.training.check_model`): per state dimension, held-out
+            one-step and open-loop errors against copying the previous state and against the
+            data's spread; a warning names every dimension the model has not learned.
     """
     path = Path(checkpoint_path) if checkpoint_path is not None else None
     if resume and path is None:
@@ -184,7 +192,10 @@ def train_ensemble(
                 _save(path, ensemble, optimizer, state, config)
     bar.close()
     ensemble.load_state_dict(state.best_weights)
-    return TrainResult(ensemble, state.step, state.best_val, state.stopped_early, state.history)
+    result = TrainResult(ensemble, state.step, state.best_val, state.stopped_early, state.history)
+    if checks:
+        result.checks = ensemble.checks = check_model(ensemble, val_data, seed=config.seed)
+    return result
 
 
 def _fixed_windows(val_data: TensorDictBase, config: TrainConfig) -> TensorDict:

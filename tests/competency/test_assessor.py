@@ -271,6 +271,51 @@ def test_summary_text_rules_on_known_numbers():
     assert "No doubt about the imagined states (0.00 bits)" in none
 
 
+def test_summary_against_a_reference_names_what_rose():
+    from rcvae_torchrl.competency import Reference
+
+    reference = Reference(aleatoric=0.4, epistemic=0.2)
+    epistemic = hand_report(aleatoric=0.44, epistemic=0.5, total=0.94).with_reference(reference)
+    assert (
+        "Against the in-distribution reference, epistemic uncertainty rose 2.5x (0.20 -> 0.50 "
+        "bits) and aleatoric 1.1x (0.40 -> 0.44 bits): the rise is epistemic, the model has not "
+        "seen states like this"
+    ) in epistemic.summary()
+    # aleatoric far above epistemic in absolute bits, but epistemic is what changed
+    big = hand_report(aleatoric=9.0, epistemic=0.6, total=9.6).with_reference(Reference(8.5, 0.2))
+    assert "the rise is epistemic" in big.summary() and "Most of the doubt" not in big.summary()
+    noisy = hand_report(aleatoric=1.0, epistemic=0.22, total=1.22).with_reference(reference)
+    assert "the rise is aleatoric, the outcome varies by chance more" in noisy.summary()
+    same = hand_report(aleatoric=0.41, epistemic=0.21, total=0.62).with_reference(reference)
+    assert "neither part rose" in same.summary()
+    from_report = hand_report(aleatoric=0.4, epistemic=0.8).with_reference(
+        hand_report(aleatoric=0.4, epistemic=0.2), name="training starts"
+    )
+    assert "Against the training starts, epistemic uncertainty rose 4.0x" in from_report.summary()
+    with pytest.raises(TypeError, match="reference: expected a CompetencyReport or a Reference"):
+        hand_report().with_reference(0.5)
+    with pytest.raises(ValueError, match="rise: expected a factor > 1"):
+        Reference(1.0, 1.0, rise=0.9)
+
+
+def test_a_model_that_failed_its_checks_is_flagged_in_every_summary(env, starts, plan):
+    class Failed:
+        passed = False
+
+        def message(self):
+            return "the world model has not learned obs[3] (one-step error 1 vs 1)"
+
+    env.ensemble.checks = Failed()
+    report = make_assessor(env).assess(starts, actions=plan, generator=seeded())
+    assert not report.trustworthy
+    for i in range(3):
+        assert report.summary(index=i).startswith(
+            "Warning: the world model has not learned obs[3]"
+        )
+    env.ensemble.checks = None
+    assert make_assessor(env).assess(starts, actions=plan, generator=seeded()).trustworthy
+
+
 def replace_top_k(report: CompetencyReport, top_k: int) -> CompetencyReport:
     return CompetencyReport(report.data, report.dim_names, 600, report.dt, 0.95, top_k)
 

@@ -13,6 +13,9 @@ from rcvae_torchrl.training import CheckpointError, TrainConfig, train_ensemble
 
 CONFIG = TrainConfig(max_steps=40, batch_windows=16, window=8, val_every=10, val_windows=32)
 
+# budgets this small learn too little for the self-checks to pass: their warnings are expected
+pytestmark = pytest.mark.filterwarnings("ignore::rcvae_torchrl.training.ModelCheckWarning")
+
 
 def _weights(ensemble):
     return {k: v.clone() for k, v in ensemble.state_dict().items()}

@@ -1,0 +1,89 @@
+"""The model's self-checks: an unlearnable dimension is named, learnt ones are not."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from conftest import linear_episodes
+
+from rcvae_torchrl.data import TRAJ_KEY
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.training import (
+    ModelChecks,
+    ModelCheckWarning,
+    TrainConfig,
+    check_model,
+    load_ensemble,
+    save_ensemble,
+    train_ensemble,
+)
+
+NAMES = ("x", "y", "z", "noise")
+
+
+def _with_noise_dim(data, seed):
+    """The linear system plus a fourth dimension drawn afresh at every step (unlearnable)."""
+    g = torch.Generator().manual_seed(seed)
+    frames = data.shape[0]
+    noise = torch.rand(frames + 1, 1, generator=g)
+    ids = data[TRAJ_KEY]
+    same = torch.cat([ids[1:] == ids[:-1], torch.tensor([False])])
+    nxt = torch.where(same[:, None], noise[1 : frames + 1], torch.rand(frames, 1, generator=g))
+    out = data.clone()
+    out["observation"] = torch.cat([data["observation"], noise[:frames]], -1)
+    out["next", "observation"] = torch.cat([data["next", "observation"], nxt], -1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def trained():
+    train = _with_noise_dim(linear_episodes(24, 40, seed=0), 0)
+    val = _with_noise_dim(linear_episodes(8, 40, seed=1), 1)
+    val[TRAJ_KEY] += 100
+    torch.manual_seed(0)
+    config = RCVAEConfig(4, 1, hidden_dim=16, latent_dim=2, mlp_dim=32, observation_names=NAMES)
+    budget = TrainConfig(max_steps=400, batch_windows=16, window=8, val_every=100, lr=3e-3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = train_ensemble(RCVAEEnsemble(config, 3), train, val, budget, progress=False)
+    return result, val, caught
+
+
+def test_the_unlearnable_dimension_is_flagged_by_name(trained):
+    result, _, caught = trained
+    checks = result.checks
+    assert result.ensemble.checks is checks and checks.names == NAMES
+    assert [checks.names[d] for d in checks.flagged] == ["noise"]
+    messages = [str(w.message) for w in caught if issubclass(w.category, ModelCheckWarning)]
+    assert len(messages) == 1 and "noise" in messages[0] and "x (" not in messages[0]
+    # the learnt dimensions beat both baselines (x and y change little per step next to the
+    # system's noise, so copying them is nearly as good); the noise one does not beat its spread
+    for d in range(3):
+        assert checks.one_step[d] < 0.9 * torch.minimum(checks.copy_one_step[d], checks.spread[d])
+    assert checks.one_step[3] > 0.9 * checks.spread[3]
+    assert (checks.k_step[:3] < checks.copy_k_step[:3]).all()
+
+
+def test_checks_travel_with_the_checkpoint(trained, tmp_path):
+    result, _, _ = trained
+    save_ensemble(result.ensemble, tmp_path / "m.pt")
+    loaded = load_ensemble(tmp_path / "m.pt")
+    assert isinstance(loaded.checks, ModelChecks)
+    assert loaded.checks.flagged == result.checks.flagged
+    torch.testing.assert_close(loaded.checks.one_step, result.checks.one_step)
+    assert ModelChecks.from_dict(result.checks.as_dict()).as_dict() == result.checks.as_dict()
+
+
+def test_a_constant_or_passthrough_dimension_is_not_checked(trained):
+    _, val, _ = trained
+    val = val.clone()
+    val["observation"][:, 2] = 1.0
+    val["next", "observation"][:, 2] = 1.0
+    config = RCVAEConfig(4, 1, hidden_dim=8, mlp_dim=8, passthrough_dims=(1,))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelCheckWarning)
+        checks = check_model(RCVAEEnsemble(config, 2), val)
+    assert 1 not in checks.checked and 2 not in checks.checked
+    assert checks.names == ("obs[0]", "obs[1]", "obs[2]", "obs[3]")
