@@ -104,7 +104,7 @@ def test_start_reliability_bins_and_intervals():
 
 
 def test_validate_forecasts_on_informative_and_uninformative_forecasts():
-    forecast, outcome, truth = _toy()
+    forecast, outcome, _ = _toy()
     good = validate_forecasts(forecast, outcome)
     # uniform true rates leave 1 - (1/6)/(1/4) = 1/3 of skill even to the truth itself
     assert good["spearman"] > 0.8 and good["auroc"] > 0.75 and good["brier_skill"] > 0.25
