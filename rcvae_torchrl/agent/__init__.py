@@ -14,6 +14,7 @@ from .policy import (
     save_policy,
 )
 from .starts import MODEL_FIELDS, draw_starts, physics_of, reset_by_seed, reset_to_physics
+from .validation import RealOutcomes, real_outcomes, score_forecast
 
 __all__ = [
     # amortised policy
@@ -33,6 +34,10 @@ __all__ = [
     "physics_of",
     "reset_by_seed",
     "reset_to_physics",
+    # the real agent against a forecast
+    "RealOutcomes",
+    "real_outcomes",
+    "score_forecast",
     # MPC agent
     "PlannerConfig",
     "make_mpc_policy",

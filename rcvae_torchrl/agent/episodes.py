@@ -41,7 +41,7 @@ def run_episodes(
     starts: torch.Tensor | TensorDictBase | None = None,
     reset_to_state: ResetToState | None = None,
     max_steps: int,
-    success_key: str = "success",
+    success: str | Callable[[torch.Tensor], torch.Tensor] = "success",
     first_id: int = 0,
     progress: bool = True,
     desc: str = "episodes",
@@ -53,7 +53,9 @@ def run_episodes(
 
     Calls ``policy.reset()`` before each episode when the policy's class has one (a planner's
     warm start must not leak across episodes). An episode ends at the env's ``done`` or after
-    ``max_steps``; it succeeds when ``("next", success_key)`` is raised at any step.
+    ``max_steps``; it succeeds when ``success`` holds at any step: ``success`` names a flag the
+    env writes under ``"next"`` (default ``"success"``), or is a function of the observations
+    ``[T, S] -> [T]`` bool (for envs without a success flag).
     """
     if starts is not None:
         if len(starts) != len(seeds):
@@ -62,7 +64,7 @@ def run_episodes(
             )
         if reset_to_state is None:
             raise ValueError("reset_to_state: expected a function to start from given states")
-    success, steps, parts = [], [], []
+    wins, steps, parts = [], [], []
     for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
         seed_env(env, int(seed))
         td = env.reset() if starts is None else reset_to_state(env, starts[i])
@@ -72,9 +74,12 @@ def run_episodes(
             episode = env.rollout(
                 max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
             )
-        won = episode["next", success_key].reshape(-1)
-        success.append(bool(won.any()))
+        if callable(success):
+            won = success(episode["next", "observation"]).reshape(-1).to(torch.bool)
+        else:
+            won = episode["next", success].reshape(-1)
+        wins.append(bool(won.any()))
         steps.append(int(won.float().argmax()) + 1 if won.any() else episode.shape[0])
         episode[TRAJ_KEY] = torch.full(episode.shape, first_id + i, dtype=torch.int64)
         parts.append(episode.exclude("is_init"))
-    return EpisodeStats(torch.tensor(success), torch.tensor(steps), torch.cat(parts))
+    return EpisodeStats(torch.tensor(wins), torch.tensor(steps), torch.cat(parts))

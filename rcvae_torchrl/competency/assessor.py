@@ -223,10 +223,19 @@ class CompetencyAssessor(KeyedModule):
             for i in range(0, flat.shape[0], self.start_chunk)
         ]
         steps = self.horizon if plan is None else plan.shape[-2]
+        return self.report(torch.cat(parts, dim=0).reshape(batch), steps)
+
+    def report(self, data: TensorDictBase, steps: int | None = None) -> CompetencyReport:
+        """A :class:`CompetencyReport` of ``data`` (the TensorDict :meth:`assess` returns as
+        ``report.data``, e.g. read back from a file) with this assessor's settings: names,
+        time limit (``steps`` imagined, default the horizon), dt, confidence, keys and the
+        world model's self-check warning."""
+        steps = self.horizon if steps is None else steps
+        limit = self.boundary.time_limit if steps is None else min(self.boundary.time_limit, steps)
         return CompetencyReport(
-            torch.cat(parts, dim=0).reshape(batch),
+            data,
             self.dim_names,
-            int(min(self.boundary.time_limit, steps)),
+            int(limit),
             self.dt,
             self.success_metric.confidence,
             self.top_k,

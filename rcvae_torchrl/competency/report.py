@@ -145,6 +145,28 @@ class CompetencyReport:
             )
         return replace(self, reference=reference)
 
+    def cause(self) -> str | None:
+        """Over all start states, against the reference: the part that rose (``"epistemic"``
+        or ``"aleatoric"``, the larger rise when both did), or ``None`` when neither did."""
+        if self.reference is None:
+            raise ValueError("reference: expected a report with a reference (with_reference)")
+        return _cause(*self.mean_bits(), self.reference)
+
+    def overall(self) -> str:
+        """One paragraph over all start states: the mean forecast, and what changed against the
+        reference (without one, the dominant part of the doubt)."""
+        p = float(self.competency.get("p_success").mean())
+        aleatoric, epistemic = self.mean_bits()
+        total = float(self.uncertainty.get(("summary", "total")).mean())
+        n = self.batch_size.numel()
+        text = f"Over {n} start states: mean P(success within "
+        text += f"{_duration(self.time_limit, self.dt)}) = {p:.2f}. "
+        if self.reference is None:
+            text += _doubt_sentence(aleatoric, epistemic, total)
+        else:
+            text += _change_sentence(aleatoric, epistemic, self.reference)
+        return (f"Warning: {self.model_warning}. " if self.model_warning else "") + text
+
     @property
     def batch_size(self) -> torch.Size:
         """``[*B]``, the start states' batch."""
@@ -257,12 +279,21 @@ def _change_sentence(aleatoric: float, epistemic: float, reference: Reference) -
         f"({refs[k]:.2f} -> {values[k]:.2f} bits)"
         for i, k in enumerate(("epistemic", "aleatoric"))
     ]
-    risen = [k for k in ratios if ratios[k] >= reference.rise]
     text = f"Against the {reference.name}, {parts[0]} and {parts[1]}"
-    if not risen:
+    cause = _cause(aleatoric, epistemic, reference)
+    if cause is None:
         return text + ": neither part rose, the doubt is as in the reference."
-    cause = max(risen, key=lambda k: ratios[k])
     return text + f": the rise is {cause}, {_ROSE[cause]}."
+
+
+def _cause(aleatoric: float, epistemic: float, reference: Reference) -> str | None:
+    """The part at least ``rise`` times the reference (the larger rise when both are)."""
+    ratios = {
+        "epistemic": _ratio(epistemic, reference.epistemic),
+        "aleatoric": _ratio(aleatoric, reference.aleatoric),
+    }
+    risen = [k for k in ratios if ratios[k] >= reference.rise]
+    return max(risen, key=lambda k: ratios[k]) if risen else None
 
 
 def _dims_sentence(

@@ -309,9 +309,7 @@ def test_a_model_that_failed_its_checks_is_flagged_in_every_summary(env, starts,
     report = make_assessor(env).assess(starts, actions=plan, generator=seeded())
     assert not report.trustworthy
     for i in range(3):
-        assert report.summary(index=i).startswith(
-            "Warning: the world model has not learned obs[3]"
-        )
+        assert report.summary(index=i).startswith("Warning: the world model has not learned obs[3]")
     env.ensemble.checks = None
     assert make_assessor(env).assess(starts, actions=plan, generator=seeded()).trustworthy
 

@@ -1,0 +1,193 @@
+"""Typed settings of the point-mass study (Hydra structured configs; one source of defaults).
+
+The dataclasses are the schema and the defaults (the default profile); ``conf/profile/*.yaml``
+hold the other profiles' differences. Ranges are checked in ``__post_init__`` before anything
+runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from rcvae_torchrl.training import TrainConfig
+
+__all__ = ["RecipeConfig", "StudyConfig", "register_configs", "study_config"]
+
+CONTROL_TIMESTEP = 0.02  # s: dm_control point_mass's control step
+
+
+def _check(name: str, value: Any, low: float, kind: type = float) -> None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if kind is int:
+        ok = ok and isinstance(value, int)
+    if not ok or value < low:
+        raise ValueError(f"{name}: expected a finite {kind.__name__} >= {low}, got {value!r}")
+
+
+def _whole_steps(name: str, seconds: Any) -> int:
+    steps = seconds / CONTROL_TIMESTEP if isinstance(seconds, (int, float)) else math.nan
+    if not (math.isfinite(steps) and steps >= 1 and abs(steps - round(steps)) < 1e-6):
+        raise ValueError(
+            f"{name}: expected a positive whole number of {CONTROL_TIMESTEP} s steps, got "
+            f"{seconds!r}"
+        )
+    return round(steps)
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """The task and the agent: reach the target (the arena's centre) within a deadline.
+
+    ``inner``: training starts have both coordinates within ±inner (m); ``outer``:
+    out-of-distribution starts have one beyond ±outer (dm_control draws starts in ±0.3 m).
+    ``gains``: the agent's PD controller, a = clip(-kp·position - kd·velocity, -1, 1).
+    ``noise_std``: the stochastic condition's actuator noise (an ``ActionNoise`` transform).
+    """
+
+    radius: float = 0.015
+    deadline_s: float = 3.0
+    kp: float = 20.0
+    kd: float = 2.0
+    inner: float = 0.2
+    outer: float = 0.25
+    noise_std: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("radius", "kp", "kd", "inner", "outer"):
+            _check(name, getattr(self, name), 1e-9)
+        _check("noise_std", self.noise_std, 0.0)
+        _whole_steps("deadline_s", self.deadline_s)
+        if not self.inner <= self.outer < 0.3:
+            raise ValueError(
+                f"inner, outer: expected inner <= outer < 0.3 m, got {self.inner}, {self.outer}"
+            )
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """World-model data per variant: PD episodes with exploration noise from training starts."""
+
+    episodes: int = 120
+    exploration_std: tuple[float, ...] = (0.3, 1.0)
+    time_limit_s: float = 3.0
+
+    def __post_init__(self) -> None:
+        _check("episodes", self.episodes, 2, int)
+        for std in self.exploration_std:
+            _check("exploration_std", std, 0.0)
+        _whole_steps("time_limit_s", self.time_limit_s)
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    ensemble_size: int = 5
+    hidden_dim: int = 32
+    latent_dim: int = 4
+
+    def __post_init__(self) -> None:
+        _check("ensemble_size", self.ensemble_size, 2, int)
+        _check("hidden_dim", self.hidden_dim, 1, int)
+        _check("latent_dim", self.latent_dim, 1, int)
+
+
+@dataclass(frozen=True)
+class AssessConfig:
+    start_states: int = 20
+    samples_per_member: int = 40
+    runs_per_start: int = 30
+    bins: tuple[float, float] = (0.005, 0.02)  #: histogram widths: position (m), velocity (m/s)
+
+    def __post_init__(self) -> None:
+        for name in ("start_states", "samples_per_member", "runs_per_start"):
+            _check(name, getattr(self, name), 1, int)
+        if len(self.bins) != 2:
+            raise ValueError(f"bins: expected (position, velocity) widths, got {self.bins!r}")
+        for width in self.bins:
+            _check("bins", width, 1e-9)
+
+
+def _train() -> TrainConfig:
+    return TrainConfig(
+        max_steps=1500,
+        batch_windows=32,
+        window=32,
+        lr=3e-3,
+        lr_final_fraction=0.05,
+        nll_beta=0.5,
+        val_every=250,
+        patience=4,
+    )
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    task: TaskConfig = field(default_factory=TaskConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainConfig = field(default_factory=_train)
+    assess: AssessConfig = field(default_factory=AssessConfig)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _check("seed", self.seed, 0, int)
+        if self.train.window > _whole_steps("data.time_limit_s", self.data.time_limit_s):
+            raise ValueError(
+                f"train.window: expected at most the data episodes' {self.data.time_limit_s} s, "
+                f"got {self.train.window} steps"
+            )
+
+
+@dataclass(frozen=True)
+class RecipeConfig(StudyConfig):
+    profile: str = "default"
+    run_dir: str = "outputs/point_mass_competency/${profile}"
+    threads: int | None = None
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.threads is not None:
+            _check("threads", self.threads, 1, int)
+        if not str(self.run_dir).strip() or not re.search(r"\S", str(self.run_dir)):
+            raise ValueError(f"run_dir: expected a directory path, got {self.run_dir!r}")
+
+
+def _writable(node: Any) -> None:
+    OmegaConf.set_readonly(node, None)
+    for key in node:
+        child = node._get_node(key)
+        if isinstance(child, DictConfig):
+            _writable(child)
+
+
+def register_configs() -> None:
+    """Register :class:`RecipeConfig` as the structured config ``point_mass_schema``."""
+    from hydra.core.config_store import ConfigStore
+
+    node = OmegaConf.structured(RecipeConfig)
+    _writable(node)
+    ConfigStore.instance().store(name="point_mass_schema", node=node)
+
+
+def study_config(cfg: DictConfig | dict) -> RecipeConfig:
+    """The typed, checked config of a composed Hydra config (or a mapping of overrides)."""
+    schema = OmegaConf.structured(RecipeConfig)
+    _writable(schema)
+    merged = OmegaConf.merge(schema, cfg)
+    sections = {}
+    for f in dataclasses.fields(RecipeConfig):
+        node = merged[f.name]
+        if isinstance(node, DictConfig):
+            try:
+                sections[f.name] = OmegaConf.to_object(node)
+            except (ValueError, TypeError) as err:
+                raise ValueError(f"{f.name}.{err}") from None
+        else:
+            sections[f.name] = node
+    return RecipeConfig(**sections)

@@ -1,0 +1,251 @@
+"""The point-mass study, stage by stage, on the library's public API.
+
+1. ``data``: PD episodes with exploration noise from training starts, in the deterministic and
+   the stochastic env.
+2. ``models``: an RCVAE ensemble trained on each (with the model's self-checks).
+3. ``forecast``: the agent's success and uncertainty in three conditions, imagined by the
+   :class:`~rcvae_torchrl.competency.CompetencyAssessor`.
+4. ``truth``: the same agent in the real env from the same start states, several runs each.
+5. ``report``: forecast against reality per condition, the uncertainty pattern and the
+   plain-language summaries (against the deterministic condition as the in-distribution
+   reference), ``report.md`` and ``summary.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+
+from rcvae_torchrl.agent import (
+    RealOutcomes,
+    real_outcomes,
+    reset_by_seed,
+    run_episodes,
+    score_forecast,
+)
+from rcvae_torchrl.competency import CompetencyAssessor, CompetencyReport
+from rcvae_torchrl.data import (
+    GaussianExploration,
+    load_episodes,
+    make_exploration_policy,
+    merge_episodes,
+    save_episodes,
+    split_episodes,
+)
+from rcvae_torchrl.io import load_torch, record_run_config, save_torch
+from rcvae_torchrl.model_env import make_rcvae_env
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.stages import StageRunner
+from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
+
+from .config import CONTROL_TIMESTEP, StudyConfig
+from .report import write_report
+from .task import (
+    CONDITIONS,
+    WORLD_MODELS,
+    PDController,
+    boundary,
+    distance,
+    make_env,
+    reward,
+    starts_in_region,
+    success,
+)
+
+__all__ = ["STAGES", "Study", "run_study"]
+
+STAGES = ("data", "models", "forecast", "truth", "report")
+# disjoint seed ranges per purpose: data starts, condition c's starts, and real episodes
+DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000
+
+
+class Study:
+    """The stages of one study in one run directory."""
+
+    def __init__(self, config: StudyConfig, run_dir: Path, progress: bool) -> None:
+        self.cfg, self.dir, self.progress = config, Path(run_dir), progress
+        self.agent = PDController(config.task.kp, config.task.kd)
+
+    def steps(self, seconds: float) -> int:
+        return round(seconds / CONTROL_TIMESTEP)
+
+    def success_fn(self) -> Callable[..., torch.Tensor]:
+        return functools.partial(success, radius=self.cfg.task.radius)
+
+    def load_model(self, name: str) -> RCVAEEnsemble:
+        return load_ensemble(self.dir / "models" / f"{name}.pt")
+
+    # ------------------------------------------------------------------ stages
+    def data(self) -> dict[str, Any]:
+        summary = {}
+        for variant in WORLD_MODELS:
+            path = self.dir / "data" / f"{variant}.pt"
+            if not path.is_file():
+                save_episodes(self._collect(variant), path)
+            summary[f"{variant}_frames"] = int(load_episodes(path).shape[0])
+        return summary
+
+    def _collect(self, variant: str):
+        d, seed = self.cfg.data, self.cfg.seed
+        env, _ = make_env(variant, self.cfg.task)
+        per_level = -(-d.episodes // len(d.exploration_std))
+        parts = []
+        for level, std in enumerate(d.exploration_std):
+            first = DATA_SEEDS + 10_000 * seed + 1000 * level
+            starts = starts_in_region(env, self.cfg.task, "inner", per_level, first)
+            behaviour = make_exploration_policy(GaussianExploration(self.agent, std, seed=first))
+            stats = run_episodes(
+                env,
+                behaviour,
+                seeds=[first + i for i in range(per_level)],
+                starts=starts,
+                reset_to_state=reset_by_seed,
+                max_steps=self.steps(d.time_limit_s),
+                success=self.success_fn(),
+                progress=self.progress,
+                desc=f"{variant} data (exploration {std})",
+            )
+            parts.append(stats.data.exclude("position", "velocity", "label"))
+        return merge_episodes(*parts)
+
+    def models(self) -> dict[str, Any]:
+        m, summary = self.cfg.model, {}
+        _, layout = make_env("deterministic", self.cfg.task)
+        config = RCVAEConfig(
+            layout.dim,
+            2,
+            hidden_dim=m.hidden_dim,
+            mlp_dim=m.hidden_dim,
+            latent_dim=m.latent_dim,
+            observation_names=layout.names,
+        )
+        for name in WORLD_MODELS:
+            path = self.dir / "models" / f"{name}.pt"
+            if not path.is_file():
+                torch.manual_seed(self.cfg.seed)
+                ensemble = RCVAEEnsemble(config, m.ensemble_size)
+                train, val = split_episodes(
+                    load_episodes(self.dir / "data" / f"{name}.pt"), 0.1, seed=self.cfg.seed
+                )
+                result = train_ensemble(
+                    ensemble,
+                    train,
+                    val,
+                    dataclasses.replace(self.cfg.train, seed=self.cfg.seed),
+                    checkpoint_path=self.dir / "models" / f"{name}_train.pt",
+                    resume=True,
+                    progress=self.progress,
+                )
+                save_ensemble(result.ensemble, path, extra={"steps": result.steps})
+            checks = self.load_model(name).checks
+            summary[name] = {"flagged": [] if checks is None else checks.as_dict()["flagged"]}
+        return summary
+
+    def assessor(self, model_name: str, variant: str) -> CompetencyAssessor:
+        task, a = self.cfg.task, self.cfg.assess
+        env, _ = make_env(variant, task)
+        model_env = make_rcvae_env(
+            self.load_model(model_name), env, reward, self.success_fn(), seed=self.cfg.seed
+        )
+        widths = torch.tensor([a.bins[0]] * 2 + [a.bins[1]] * 2)
+        return CompetencyAssessor(
+            model_env,
+            boundary(task),
+            bin_width=widths,
+            samples_per_member=a.samples_per_member,
+            episode_end=True,
+            bias_correction="shuffle",
+            generator=torch.Generator().manual_seed(self.cfg.seed),
+            policy=self.agent,
+        )
+
+    def starts(self, condition: str):
+        _, variant, region = CONDITIONS[condition]
+        env, _ = make_env(variant, self.cfg.task)
+        first = START_SEEDS * (1 + list(CONDITIONS).index(condition)) + 10_000 * self.cfg.seed
+        return starts_in_region(env, self.cfg.task, region, self.cfg.assess.start_states, first)
+
+    def forecast(self) -> dict[str, Any]:
+        summary = {}
+        for condition, (model_name, variant, _) in CONDITIONS.items():
+            path = self.dir / "forecast" / f"{condition}.pt"
+            if not path.is_file():
+                starts = self.starts(condition)
+                report = self.assessor(model_name, variant).assess(
+                    starts["observation"], generator=torch.Generator().manual_seed(self.cfg.seed)
+                )
+                save_torch(path, {"starts": starts.to_dict(), "report": report.data.to_dict()})
+            saved = load_torch(path, "forecast")
+            summary[condition] = float(saved["report"]["competency"]["p_success"].mean())
+        return summary
+
+    def truth(self) -> dict[str, Any]:
+        summary = {}
+        for index, (condition, (_, variant, _)) in enumerate(CONDITIONS.items()):
+            path = self.dir / "truth" / f"{condition}.pt"
+            if not path.is_file():
+                env, _ = make_env(variant, self.cfg.task)
+                starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
+                # a deterministic env and controller repeat the same episode: one run suffices
+                runs = self.cfg.assess.runs_per_start if variant == "stochastic" else 1
+                outcomes = real_outcomes(
+                    env,
+                    self.agent.module(),
+                    _tensordict(starts["starts"], "seed"),
+                    runs_per_start=runs,
+                    reset_to_state=reset_by_seed,
+                    max_steps=self.steps(self.cfg.task.deadline_s),
+                    success=self.success_fn(),
+                    trace=distance,
+                    seed=REAL_SEEDS + 100 * self.cfg.seed + index,
+                    progress=self.progress,
+                    desc=f"real: {condition}",
+                )
+                save_torch(path, outcomes.as_dict())
+            saved = load_torch(path, "real outcomes")
+            summary[condition] = float(saved["success"].float().mean())
+        return summary
+
+    def reports(self) -> dict[str, CompetencyReport]:
+        """The assessor's reports of the three conditions, read back from the run."""
+        out = {}
+        for condition, (model_name, variant, _) in CONDITIONS.items():
+            saved = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
+            assessor = self.assessor(model_name, variant)
+            out[condition] = assessor.report(_tensordict(saved["report"], "observation"))
+        return out
+
+    def report(self) -> dict[str, Any]:
+        reports = self.reports()
+        truths = {
+            c: load_torch(self.dir / "truth" / f"{c}.pt", "real outcomes") for c in CONDITIONS
+        }
+        scores = {
+            c: score_forecast(reports[c].competency["p_success"], RealOutcomes.from_dict(truths[c]))
+            for c in CONDITIONS
+        }
+        return write_report(self.dir, reports, truths, scores, self.cfg)
+
+
+def _tensordict(values: dict, first: str) -> TensorDict:
+    """A TensorDict ``[B]`` of a stored dict, ``B`` read from its ``first`` entry."""
+    return TensorDict(values, batch_size=[len(values[first])])
+
+
+def run_study(config: StudyConfig, run_dir: str | Path, *, progress: bool = True, log=print):
+    """Run (or resume) the study in ``run_dir``; returns every stage's summary."""
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    settings = {f.name: getattr(config, f.name) for f in dataclasses.fields(StudyConfig)}
+    record_run_config(run_dir / "study_config.json", dataclasses.asdict(StudyConfig(**settings)))
+    study = Study(config, run_dir, progress)
+    runner = StageRunner(run_dir, log)
+    for name in STAGES:
+        runner.run(name, getattr(study, name))
+    return runner.summaries

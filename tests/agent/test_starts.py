@@ -1,0 +1,116 @@
+"""Start states for any env, the real agent from them, and the forecast scored against it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs import DMControlEnv
+
+from rcvae_torchrl.agent import (
+    draw_starts,
+    real_outcomes,
+    reset_by_seed,
+    reset_to_physics,
+    run_episodes,
+    score_forecast,
+)
+from rcvae_torchrl.data import ActionNoise, prepare_env
+
+
+@pytest.fixture(scope="module")
+def reacher():
+    return prepare_env(DMControlEnv("reacher", "easy"))[0]
+
+
+def test_seeded_and_physics_resets_give_the_drawn_start(reacher):
+    starts = draw_starts(reacher, [5, 6, 7], physics=True)
+    assert starts.batch_size == (3,) and starts["seed"].tolist() == [5, 6, 7]
+    reacher.reset()  # somewhere else
+    for i in range(3):
+        assert torch.equal(
+            reset_by_seed(reacher, starts[i])["observation"], starts["observation"][i]
+        )
+        td = reset_to_physics(reacher, starts[i])  # the target too: a model field
+        assert torch.equal(td["observation"], starts["observation"][i])
+
+
+def test_physics_resets_reach_states_no_reset_draws(reacher):
+    start = draw_starts(reacher, [1], physics=True)[0].clone()
+    start["physics", "qvel"] = torch.tensor([3.0, -2.0], dtype=torch.float64)
+    td = reset_to_physics(reacher, start)
+    torch.testing.assert_close(td["observation"][4:], torch.tensor([3.0, -2.0]))
+
+
+def test_a_reset_that_is_not_a_function_of_the_seed_is_detected(reacher):
+    start = draw_starts(reacher, [1])[0].clone()
+    start["observation"] = start["observation"] + 1.0
+    with pytest.raises(ValueError, match="not a function of its seed"):
+        reset_by_seed(reacher, start)
+    with pytest.raises(TypeError, match="expected a TorchRL env over a dm_control environment"):
+        reset_to_physics(object(), start)
+
+
+def test_real_outcomes_repeat_runs_with_their_own_noise():
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    env.append_transform(ActionNoise(1.0))
+    starts = draw_starts(env, [0, 1])
+
+    def push(td):
+        return td.set("action", -5 * td["observation"][..., :2].clamp(-0.2, 0.2))
+
+    def near(observation):
+        return observation[..., :2].norm(dim=-1) < 0.2
+
+    out = real_outcomes(
+        env,
+        push,
+        starts,
+        runs_per_start=3,
+        reset_to_state=reset_by_seed,
+        max_steps=20,
+        success=near,
+        trace=lambda o: o[..., :2].norm(dim=-1),
+        seed=1,
+        progress=False,
+    )
+    assert out.success.shape == out.first_step.shape == (2, 3)
+    assert out.trace.shape == (2, 3, 20) and not out.trace.isnan().any()
+    hit = out.trace < 0.2
+    first = torch.where(hit.any(-1), hit.float().argmax(-1), torch.tensor(20))
+    assert torch.equal(out.first_step, first) and torch.equal(out.success, hit.any(-1))
+    assert not torch.equal(out.trace[:, 0], out.trace[:, 1])  # runs differ in their noise
+    again = real_outcomes(
+        env,
+        push,
+        starts,
+        runs_per_start=3,
+        reset_to_state=reset_by_seed,
+        max_steps=20,
+        success=near,
+        trace=lambda o: o[..., :2].norm(dim=-1),
+        seed=1,
+        progress=False,
+    )
+    assert torch.equal(again.trace, out.trace)  # the same seeds, the same episodes
+    scores = score_forecast(torch.tensor([0.5, 0.5]), out)
+    assert scores["episodes"] == 6 and 0 <= scores["brier"] <= 1
+    with pytest.raises(ValueError, match="runs_per_start: expected a positive integer"):
+        real_outcomes(
+            env, push, starts, runs_per_start=0, reset_to_state=reset_by_seed, max_steps=5
+        )
+
+
+def test_run_episodes_needs_a_reset_for_given_starts():
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    with pytest.raises(ValueError, match="reset_to_state: expected a function"):
+        run_episodes(env, lambda td: td, seeds=[0], starts=torch.zeros(1, 4), max_steps=2)
+    with pytest.raises(ValueError, match="starts: expected one start state per seed"):
+        run_episodes(
+            env,
+            lambda td: td,
+            seeds=[0, 1],
+            starts=TensorDict({}, [1]),
+            reset_to_state=reset_by_seed,
+            max_steps=2,
+        )

@@ -1,0 +1,93 @@
+"""Any TorchRL env as the library expects it: dict float64 observations, noise, seeds."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs import DMControlEnv
+from torchrl.envs.utils import check_env_specs
+
+from rcvae_torchrl.data import ActionNoise, ObservationLayout, prepare_env, seed_env
+from rcvae_torchrl.model_env import make_rcvae_env
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+
+
+def _reward(observation, action):
+    return -observation[..., :1]
+
+
+def _success(observation):
+    return observation[..., 0] > 1.0
+
+
+@pytest.fixture(scope="module")
+def reacher():
+    return DMControlEnv("reacher", "easy")
+
+
+def test_dict_float64_observations_become_one_named_float32_vector(reacher):
+    env, layout = prepare_env(reacher)
+    assert layout == ObservationLayout(("position", "to_target", "velocity"), (2, 2, 2))
+    assert layout.names[2:4] == ("to_target[0]", "to_target[1]")
+    assert layout.indices("velocity") == [4, 5]
+    td = env.reset()
+    assert td["observation"].dtype == torch.float32 and td["observation"].shape == (6,)
+    torch.testing.assert_close(td["observation"][2:4], td["to_target"])
+    assert env.action_spec.dtype == torch.float32
+    check_env_specs(env)
+
+
+def test_keys_are_concatenated_in_the_order_given(reacher):
+    env, layout = prepare_env(reacher, ["velocity", "position"], keep_keys=False)
+    assert layout.keys == ("velocity", "position")
+    td = env.reset()
+    assert "velocity" not in td.keys() and td["observation"].shape == (4,)
+
+
+def test_bad_keys_are_clear_errors(reacher):
+    with pytest.raises(KeyError, match=r"observation_keys: DMControlEnv has no observation 'pos'"):
+        prepare_env(reacher, ["pos"])
+    with pytest.raises(KeyError, match="key: expected one of"):
+        ObservationLayout(("a",), (2,)).indices("b")
+
+
+def test_the_model_env_names_the_fix_for_a_raw_dm_control_env(reacher):
+    model = RCVAEEnsemble(RCVAEConfig(6, 2, hidden_dim=8, mlp_dim=8), 2)
+    with pytest.raises(KeyError, match=r"has no 'observation'.*prepare_env"):
+        make_rcvae_env(model, reacher, _reward, _success)
+    from torchrl.envs import CatTensors, TransformedEnv
+
+    raw = TransformedEnv(reacher, CatTensors(["position", "to_target", "velocity"], "observation"))
+    with pytest.raises(TypeError, match=r"dtype torch.float64.*DoubleToFloat"):
+        make_rcvae_env(model, raw, _reward, _success)
+    prepared, _ = prepare_env(reacher)
+    check_env_specs(make_rcvae_env(model, prepared, _reward, _success, seed=0))
+
+
+def test_action_noise_is_seeded_and_records_the_commanded_action():
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    env.append_transform(ActionNoise(0.5))
+
+    def zero(td):
+        return td.set("action", torch.zeros(2))
+
+    runs = []
+    for seed in (3, 3, 4):
+        seed_env(env, seed)
+        runs.append(env.rollout(5, zero))
+    assert (runs[0]["action"] == 0).all()
+    assert runs[0]["next", "velocity"].abs().sum() > 0  # the noise moved the mass
+    assert torch.equal(runs[0]["next", "observation"], runs[1]["next", "observation"])
+    assert not torch.equal(runs[0]["next", "observation"], runs[2]["next", "observation"])
+    with pytest.raises(ValueError, match="std: expected a finite standard deviation >= 0"):
+        ActionNoise(-1.0)
+
+
+def test_action_noise_is_clipped_to_the_spec():
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    noise = ActionNoise(100.0)
+    env.append_transform(noise)
+    td = TensorDict({"action": torch.zeros(2)}, [])
+    applied = noise.inv(td)["action"]
+    assert (applied.abs() <= 1).all() and (applied.abs() == 1).any()

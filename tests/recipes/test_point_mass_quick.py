@@ -1,0 +1,81 @@
+"""The point-mass recipe (dm_control, public API only) end to end with micro budgets."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from recipes.point_mass_competency.report import COLUMNS
+from recipes.point_mass_competency.task import CONDITIONS
+
+ROOT = Path(__file__).resolve().parents[2]
+RECIPE = ROOT / "recipes" / "point_mass_competency" / "main.py"
+MICRO = (
+    "profile=quick",
+    "threads=1",
+    "progress=false",
+    "data.episodes=4",
+    "train.max_steps=20",
+    "assess.start_states=2",
+    "task.deadline_s=1.0",
+)
+
+
+def _run(*overrides: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+    return subprocess.run(
+        [sys.executable, str(RECIPE), *overrides],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("point_mass") / "run"
+    first = _run(*MICRO, f"run_dir={run_dir}")
+    assert first.returncode == 0, first.stdout[-3000:] + first.stderr[-3000:]
+    second = _run(*MICRO, f"run_dir={run_dir}")
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert "] running" not in second.stdout and "[report] done earlier" in second.stdout
+    return run_dir
+
+
+def test_every_output_and_a_row_per_condition(run_dir):
+    for name in ("table.md", "table.csv", "report.md", "summary.json", "reliability.png"):
+        assert (run_dir / name).is_file()
+    with open(run_dir / "table.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["condition"] for r in rows] == list(CONDITIONS)
+    assert all(tuple(r) == COLUMNS for r in rows)
+    assert [int(r["real_episodes"]) for r in rows] == [2, 2 * 2, 2]  # repeated runs: noise only
+
+
+def test_summary_checks_and_plain_words(run_dir):
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert len(summary["checks"]) == 3 + 2 + 2
+    for check in summary["checks"].values():
+        assert isinstance(check["met"], bool)
+    for condition in CONDITIONS:
+        text = summary["overall"][condition]
+        assert text.startswith("Warning: ") or text.startswith("Over 2 start states")
+        assert "Against the in-distribution reference" in text
+    report = (run_dir / "report.md").read_text()
+    assert "## Summaries (against the deterministic condition)" in report
+
+
+def test_the_model_config_names_the_dm_control_entries(run_dir):
+    from rcvae_torchrl.training import load_ensemble
+
+    model = load_ensemble(run_dir / "models" / "deterministic.pt")
+    assert model.config.names == ("position[0]", "position[1]", "velocity[0]", "velocity[1]")
+    assert model.checks is not None and model.checks.names == model.config.names
