@@ -127,8 +127,7 @@ def _markdown(run_dir: Path, checks: dict, overall: dict, config: StudyConfig) -
         "| check | measured | met |",
         "|:---|---:|:---:|",
         *[
-            f"| {name} | {_cell(c['value'])} | "
-            f"{'yes' if c['met'] else 'no'} |"
+            f"| {name} | {_cell(c['value'])} | {'yes' if c['met'] else 'no'} |"
             for name, c in checks.items()
         ],
         "",
