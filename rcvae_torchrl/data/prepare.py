@@ -134,7 +134,8 @@ def prepare_env(
                 keys, OBSERVATION_KEY, del_keys=not keep_keys, unsqueeze_if_oor=True, sort=False
             )
         )
-    prepared = TransformedEnv(env, Compose(*transforms)) if transforms else TransformedEnv(env)
+    # a transformed env keeps its own transforms, wrapped (not unwrapped into ours)
+    prepared = TransformedEnv(env, Compose(*transforms), auto_unwrap=False)
     return prepared, ObservationLayout(tuple(_name(k) for k in keys), tuple(sizes))
 
 

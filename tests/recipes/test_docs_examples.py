@@ -25,13 +25,15 @@ def test_world_model_in_your_recipe(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     blocks = rst_python_blocks(ROOT / "docs" / "world_model_in_your_recipe.rst")
     ns = run_blocks(blocks, "world_model_in_your_recipe")
-    assert (tmp_path / "pusher_model.pt").is_file()
-    # the pieces the page promises, with the shapes it states
-    assert ns["result"].steps == 20
-    assert ns["forecast"].batch_size == (3, 8, 3, 40)
-    assert ns["bits"]["summary", "epistemic"].shape == (3,)
-    p = ns["outcome"]["p_success"]
-    assert p.shape == (3,) and bool(((p >= 0) & (p <= 1)).all())
+    assert (tmp_path / "point_mass_model.pt").is_file()
+    # the pieces the page promises, on a dm_control env with float64 dict observations
+    assert ns["result"].steps == 20 and ns["result"].checks is not None
+    assert ns["layout"].names[0] == "position[0]"
+    assert ns["report"].batch_size == (3,)
+    p = ns["report"].competency["p_success"]
+    assert bool(((p >= 0) & (p <= 1)).all())
+    assert ns["outcomes"].success.shape == (3, 4)
+    assert ns["reacher_config"].passthrough_dims == (4, 5)
 
 
 @pytest.mark.parametrize("page", ["README.md"])
