@@ -52,7 +52,7 @@ def test_float_success_is_not_cast_silently():
         lambda observation, action: observation[..., :1], lambda observation: observation[..., 0]
     )
     with pytest.raises(
-        TypeError, match="success_fn: expected a bool tensor, got dtype torch.float32"
+        TypeError, match=r"success_fn: expected a bool tensor, got dtype torch\.float32"
     ):
         task.success(torch.ones(2, 3))
 
