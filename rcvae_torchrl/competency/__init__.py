@@ -44,6 +44,7 @@ from rcvae_torchrl.competency.outcome import (
     binary_entropy,
     first_success_step,
     outcome_uncertainty,
+    success_on_grid,
     success_probability,
     time_to_success,
 )
@@ -63,6 +64,7 @@ from rcvae_torchrl.competency.validation import (
     per_start_rates,
     rank_correlation,
     start_reliability,
+    time_to_success_scores,
     validate_forecasts,
 )
 
@@ -85,6 +87,7 @@ __all__ = [
     "binomial_interval",
     "first_success_step",
     "outcome_uncertainty",
+    "success_on_grid",
     "success_probability",
     "time_to_success",
     # outcome assessment (FaMSeC)
@@ -108,6 +111,7 @@ __all__ = [
     "per_start_rates",
     "rank_correlation",
     "start_reliability",
+    "time_to_success_scores",
     "validate_forecasts",
     # imagined trajectories against real ones
     "band_coverage",

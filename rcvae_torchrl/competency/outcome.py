@@ -22,6 +22,7 @@ __all__ = [
     "binary_entropy",
     "first_success_step",
     "outcome_uncertainty",
+    "success_on_grid",
     "success_probability",
     "time_to_success",
 ]
@@ -167,3 +168,37 @@ def time_to_success(success_over_time: Tensor) -> TimeToSuccess:
         torch.where(never, inf, mean).float(),
         torch.where(never, inf, median).float(),
     )
+
+
+def success_on_grid(distance: Tensor, radii: Tensor, deadlines: Tensor) -> Tensor:
+    """Success on a grid of boundaries, from a per-step distance to the goal.
+
+    A trajectory succeeds for radius ``r`` and deadline ``d`` (in steps) when its distance is
+    at most ``r`` at some step ``t < d``: one set of trajectories (imagined or real) answers
+    every boundary of the grid. NaN distances (steps after an episode ended without success)
+    never count.
+
+    Args:
+        distance: ``[..., T]``.
+        radii: ``[R]`` positive.
+        deadlines: ``[D]`` integers in ``[1, T]``.
+
+    Returns:
+        bool ``[..., R, D]``.
+
+    Example:
+        >>> d = torch.tensor([0.5, 0.2, 0.05])
+        >>> success_on_grid(d, torch.tensor([0.1, 0.3]), torch.tensor([2, 3])).tolist()
+        [[False, True], [True, True]]
+    """
+    _checks.check_min_rank("distance", distance, 1, "[..., T]")
+    horizon = distance.shape[-1]
+    deadlines = torch.as_tensor(deadlines, dtype=torch.int64, device=distance.device)
+    radii = torch.as_tensor(radii, dtype=distance.dtype, device=distance.device)
+    if deadlines.numel() and (int(deadlines.min()) < 1 or int(deadlines.max()) > horizon):
+        raise ValueError(f"deadlines: expected steps in [1, T={horizon}], got {deadlines.tolist()}")
+    if not bool((radii > 0).all()):
+        raise ValueError(f"radii: expected positive radii, got {radii.tolist()}")
+    inside = distance.unsqueeze(-2) <= radii.unsqueeze(-1)  # [..., R, T]; NaN compares False
+    reached = inside.cummax(dim=-1).values  # success at or before step t
+    return reached[..., deadlines - 1]

@@ -37,6 +37,7 @@ __all__ = [
     "per_start_rates",
     "rank_correlation",
     "start_reliability",
+    "time_to_success_scores",
     "validate_forecasts",
 ]
 
@@ -250,4 +251,45 @@ def validate_forecasts(
         "ece": float((weights * gaps).sum()),
         "starts": int(f.numel()),
         "episodes": int(runs.sum()),
+    }
+
+
+def time_to_success_scores(
+    forecast_steps: Tensor, real_steps: Tensor, mask: Tensor | None = None
+) -> dict[str, float]:
+    """The forecast distribution of the time to success against the real times, by CRPS.
+
+    Times are first-success steps, the horizon ``T`` standing for "not within the horizon"
+    (the time is censored there, and so are the scores). For each start state ``b`` the
+    forecast is the empirical distribution of its imagined times; the reference
+    (climatological) forecast is the distribution of all real times of all start states,
+    the same for every start. Lower is better; ``skill = 1 - crps / crps_climatology``.
+
+    Args:
+        forecast_steps: ``[B, K]`` imagined first-success steps (e.g. all ``E·N`` samples).
+        real_steps: ``[B, R]`` real first-success steps.
+        mask: bool ``[B, R]``, the real runs that exist.
+
+    Returns:
+        ``{"crps", "crps_climatology", "skill"}``, mean over real episodes (in steps).
+    """
+    _checks.check_rank("forecast_steps", forecast_steps, 2, "[B, K]")
+    _checks.check_rank("real_steps", real_steps, 2, "[B, R]")
+    if forecast_steps.shape[0] != real_steps.shape[0]:
+        raise ValueError(
+            f"real_steps: expected {forecast_steps.shape[0]} rows (one per start state), got "
+            f"{tuple(real_steps.shape)}"
+        )
+    mask = torch.ones_like(real_steps, dtype=torch.bool) if mask is None else mask
+    climatology = real_steps[mask]
+    ours, reference = [], []
+    for b in range(real_steps.shape[0]):
+        observed = real_steps[b][mask[b]]
+        ours.append(crps_samples(forecast_steps[b], observed))
+        reference.append(crps_samples(climatology, observed))
+    crps, crps_ref = float(torch.cat(ours).mean()), float(torch.cat(reference).mean())
+    return {
+        "crps": crps,
+        "crps_climatology": crps_ref,
+        "skill": float(brier_skill_score(crps, crps_ref)),
     }

@@ -118,3 +118,36 @@ def test_validate_forecasts_on_informative_and_uninformative_forecasts():
         validate_forecasts(forecast, outcome.float())
     with pytest.raises(ValueError, match=r"outcome: expected one row of runs per forecast"):
         validate_forecasts(forecast, outcome[:3])
+
+
+def test_success_on_grid_is_first_hitting_within_the_deadline():
+    from rcvae_torchrl.competency import success_on_grid
+
+    g = torch.Generator().manual_seed(4)
+    distance = torch.rand(6, 30, generator=g)
+    distance[0, 10:] = float("nan")  # an episode that ended early without success
+    radii, deadlines = torch.tensor([0.05, 0.2, 0.5]), torch.tensor([1, 7, 30])
+    grid = success_on_grid(distance, radii, deadlines)
+    assert grid.shape == (6, 3, 3)
+    for b in range(6):
+        for i, r in enumerate(radii):
+            for j, d in enumerate(deadlines):
+                expected = bool((distance[b, :d] <= r).any())
+                assert bool(grid[b, i, j]) == expected
+    assert bool((grid[:, :, 1:] >= grid[:, :, :-1]).all())  # later deadlines: never fewer
+    assert bool((grid[:, 1:] >= grid[:, :-1]).all())  # larger radii: never fewer
+    with pytest.raises(ValueError, match=r"deadlines: expected steps in \[1, T=30\]"):
+        success_on_grid(distance, radii, torch.tensor([0, 31]))
+
+
+def test_time_to_success_crps_beats_climatology_only_when_informative():
+    from rcvae_torchrl.competency import time_to_success_scores
+
+    g = torch.Generator().manual_seed(5)
+    centre = torch.arange(10.0) * 10  # starts differ in how long they take
+    real = centre[:, None] + torch.randn(10, 20, generator=g)
+    good = centre[:, None] + torch.randn(10, 200, generator=g)
+    scores = time_to_success_scores(good, real)
+    assert scores["crps"] < 0.2 * scores["crps_climatology"] and scores["skill"] > 0.8
+    blind = real.reshape(-1)[torch.randperm(200, generator=g)].reshape(10, 20)
+    assert time_to_success_scores(blind, real)["skill"] < 0.1
