@@ -43,6 +43,7 @@ docs: setup
 
 bench: setup
 	$(PY) benchmarks/env_speed.py
+	$(PY) benchmarks/batched_backends.py
 	$(PY) benchmarks/competency.py
 	$(PY) benchmarks/imagination.py
 	$(PY) benchmarks/world_model_speed.py

@@ -3,6 +3,7 @@ factory, and pure functions of its observations. It depends on the library's dep
 never on the library itself, which never imports it."""
 
 from . import _gl  # noqa: F401  (sets MUJOCO_GL before dm_control loads)
+from .batched import BatchedPusherEnv, make_batched_pusher_env
 from .constraints import pusher_state_constraint
 from .factory import DEFAULT_ACTION_NOISE_STD, VARIANTS, make_pusher_env
 from .features import PUSHER_FEATURE_NAMES, pusher_input_features
@@ -31,6 +32,9 @@ __all__ = [
     "VARIANTS",
     "make_pusher_env",
     "reset_to_state",
+    # batched env
+    "BatchedPusherEnv",
+    "make_batched_pusher_env",
     # task constants and regions
     "CONTROL_TIMESTEP",
     "DEFAULT_SUCCESS_RADIUS",

@@ -59,6 +59,13 @@ def _check_args(
     return float(action_noise_std)
 
 
+def _variant_region(variant: str, region: InitialStateRegion | None) -> InitialStateRegion:
+    """``region`` if given, else the variant's: out of distribution for ``"ood"``."""
+    if region is not None:
+        return region
+    return OUT_OF_DISTRIBUTION if variant == "ood" else IN_DISTRIBUTION
+
+
 def make_pusher_env(
     variant: str = "deterministic",
     seed: int | None = None,
@@ -102,10 +109,8 @@ def make_pusher_env(
         torch.Size([10, 14])
     """
     noise = _check_args(variant, action_noise_std, time_limit, control_timestep, success_radius)
-    if region is None:
-        region = OUT_OF_DISTRIBUTION if variant == "ood" else IN_DISTRIBUTION
     dm_env = make_environment(
-        region,
+        _variant_region(variant, region),
         success_radius=success_radius,
         action_noise_std=noise,
         terminate_on_success=terminate_on_success,

@@ -14,6 +14,7 @@ from __future__ import annotations
 import collections
 import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,8 +22,8 @@ from dm_control import mujoco
 from dm_control.rl import control
 from dm_control.suite import base, common
 
-from .functions import ACTION_COST, APPROACH_WEIGHT, CONTACT_DISTANCE, DEFAULT_SUCCESS_RADIUS
-from .layout import OBSERVATION_DIM, obs_indices
+from .functions import DEFAULT_SUCCESS_RADIUS
+from .readout import PusherState, assemble_observation, planar_distance, shaped_reward
 
 __all__ = [
     "CONTROL_TIMESTEP",
@@ -32,8 +33,12 @@ __all__ = [
     "InitialStateRegion",
     "Physics",
     "Pusher",
+    "clip_action",
+    "draw_action_noise",
     "get_model_and_assets",
     "make_environment",
+    "noisy_control",
+    "sample_start",
 ]
 
 CONTROL_TIMESTEP = 0.05  # s: 10 physics steps; 30 s episodes are 600 control steps
@@ -45,14 +50,7 @@ WRIST_RANGE = np.deg2rad(160.0)
 _START_CLEARANCE = 0.04  # m, fingertip-to-ball distance below which a start is resampled
 _MIN_START_DISTANCE = 2 * DEFAULT_SUCCESS_RADIUS  # m, ball-to-target distance at the start
 
-# Observation slots, resolved once from the named layout.
-_COS = obs_indices("shoulder_cos", "wrist_cos")
-_SIN = obs_indices("shoulder_sin", "wrist_sin")
-_JOINT_VEL = obs_indices("joint_vel")
-_FINGER = obs_indices("finger")
-_BALL = obs_indices("ball")
-_BALL_VEL = obs_indices("ball_vel")
-_TARGET = obs_indices("target")
+ARM_JOINTS = slice(0, 2)  # qpos/qvel slots of the shoulder and the wrist
 
 
 @dataclass(frozen=True)
@@ -126,7 +124,9 @@ def get_model_and_assets() -> tuple[bytes, dict]:
 class Physics(mujoco.Physics):
     """Physics with named accessors for the Pusher. Indices are resolved once per model."""
 
-    def _ids(self) -> dict[str, int]:
+    def indices(self) -> dict[str, int]:
+        """Ids of the ``"finger"`` and ``"ball"`` bodies and the ``"target"`` geom, and the
+        qpos (``"ball_x"``) and qvel (``"ball_vx"``) addresses of the ball's x slide (y next)."""
         ids = self.__dict__.get("_pusher_ids")
         if ids is None:
             m = self.model
@@ -142,38 +142,45 @@ class Physics(mujoco.Physics):
 
     def arm_angles(self) -> np.ndarray:
         """Shoulder and wrist angles (rad), ``[2]``."""
-        return self.data.qpos[:2]
+        return self.data.qpos[ARM_JOINTS]
 
     def arm_velocities(self) -> np.ndarray:
         """Shoulder and wrist angular velocities (rad/s), ``[2]``."""
-        return self.data.qvel[:2]
+        return self.data.qvel[ARM_JOINTS]
 
     def finger_xy(self) -> np.ndarray:
-        return self.data.xpos[self._ids()["finger"], :2]
+        return self.data.xpos[self.indices()["finger"], :2]
 
     def ball_xy(self) -> np.ndarray:
-        return self.data.xpos[self._ids()["ball"], :2]
+        return self.data.xpos[self.indices()["ball"], :2]
 
     def ball_velocity(self) -> np.ndarray:
-        i = self._ids()["ball_vx"]
+        i = self.indices()["ball_vx"]
         return self.data.qvel[i : i + 2]
 
     def target_xy(self) -> np.ndarray:
-        return self.model.geom_pos[self._ids()["target"], :2]
+        return self.model.geom_pos[self.indices()["target"], :2]
 
     def set_target(self, xy: np.ndarray) -> None:
-        self.model.geom_pos[self._ids()["target"], :2] = xy
+        self.model.geom_pos[self.indices()["target"], :2] = xy
 
     def set_ball(self, xy: np.ndarray, velocity: np.ndarray) -> None:
-        i, j = self._ids()["ball_x"], self._ids()["ball_vx"]
+        i, j = self.indices()["ball_x"], self.indices()["ball_vx"]
         self.data.qpos[i : i + 2] = xy
         self.data.qvel[j : j + 2] = velocity
 
+    def set_state(self, state: PusherState) -> None:
+        """Write a (single, ``[2]``-field) :class:`PusherState`; call inside ``reset_context``."""
+        self.data.qpos[ARM_JOINTS] = state.arm_angles
+        self.data.qvel[ARM_JOINTS] = state.arm_velocities
+        self.set_ball(state.ball, state.ball_velocity)
+        self.set_target(state.target)
+
     def ball_to_target(self) -> float:
-        return math.hypot(*(self.ball_xy() - self.target_xy()))
+        return float(planar_distance(self.ball_xy(), self.target_xy()))
 
     def finger_to_ball(self) -> float:
-        return math.hypot(*(self.finger_xy() - self.ball_xy()))
+        return float(planar_distance(self.finger_xy(), self.ball_xy()))
 
 
 def _polar(
@@ -182,6 +189,54 @@ def _polar(
     r = random.uniform(*radius)
     angle = random.uniform(*angles)
     return r * np.array([np.cos(angle), np.sin(angle)])
+
+
+def sample_start(
+    random: np.random.RandomState,
+    region: InitialStateRegion,
+    finger_to_ball: Callable[[PusherState], float],
+) -> PusherState:
+    """Draw an episode's start state (``[2]`` fields) from ``region`` with ``random``.
+
+    Rejection sampling: ball and target at least ``_MIN_START_DISTANCE`` apart, the fingertip
+    more than ``_START_CLEARANCE`` from the ball; ``finger_to_ball(state)`` puts a candidate in a
+    simulator and returns that distance (m). The draws and their order are the task's, so a
+    stream seeded alike gives the same start wherever this runs.
+    """
+    while True:
+        target = _polar(random, region.target_radius, region.angle)
+        ball = _polar(random, region.ball_radius, region.angle)
+        if np.linalg.norm(ball - target) < _MIN_START_DISTANCE:
+            continue
+        direction = random.uniform(-np.pi, np.pi)
+        speed = random.uniform(*region.ball_speed)
+        shoulder = random.uniform(-np.pi, np.pi)
+        wrist = random.uniform(-0.9, 0.9) * WRIST_RANGE
+        signs = random.choice([-1.0, 1.0], size=2)
+        state = PusherState(
+            arm_angles=np.array([shoulder, wrist]),
+            arm_velocities=signs * random.uniform(*region.joint_speed, size=2),
+            ball=ball,
+            ball_velocity=speed * np.array([np.cos(direction), np.sin(direction)]),
+            target=target,
+        )
+        if finger_to_ball(state) > _START_CLEARANCE:
+            return state
+
+
+def clip_action(action: np.ndarray) -> np.ndarray:
+    """The commanded action ``[..., 2]`` as float64 clipped to [-1, 1]."""
+    return np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+
+
+def draw_action_noise(random: np.random.RandomState, std: float) -> np.ndarray:
+    """One step's actuator noise ``[2]``, Gaussian with std ``std``, drawn from ``random``."""
+    return random.standard_normal(2) * std
+
+
+def noisy_control(commanded: np.ndarray, noise: np.ndarray) -> np.ndarray:
+    """What reaches the motors, ``[..., 2]``: commanded action plus noise, clipped to [-1, 1]."""
+    return np.clip(commanded + noise, -1.0, 1.0)
 
 
 class Pusher(base.Task):
@@ -213,52 +268,38 @@ class Pusher(base.Task):
         self._obs: np.ndarray | None = None
 
     def initialize_episode(self, physics: Physics) -> None:
-        rnd, region = self.random, self.region
+        def finger_to_ball(state: PusherState) -> float:
+            physics.set_state(state)
+            physics.forward()
+            return physics.finger_to_ball()
+
         with physics.reset_context():
-            while True:
-                target = _polar(rnd, region.target_radius, region.angle)
-                ball = _polar(rnd, region.ball_radius, region.angle)
-                if np.linalg.norm(ball - target) < _MIN_START_DISTANCE:
-                    continue
-                direction = rnd.uniform(-np.pi, np.pi)
-                speed = rnd.uniform(*region.ball_speed)
-                physics.set_ball(ball, speed * np.array([np.cos(direction), np.sin(direction)]))
-                physics.set_target(target)
-                physics.data.qpos[0] = rnd.uniform(-np.pi, np.pi)
-                physics.data.qpos[1] = rnd.uniform(-0.9, 0.9) * WRIST_RANGE
-                signs = rnd.choice([-1.0, 1.0], size=2)
-                physics.data.qvel[:2] = signs * rnd.uniform(*region.joint_speed, size=2)
-                physics.forward()
-                if physics.finger_to_ball() > _START_CLEARANCE:
-                    break
+            sample_start(self.random, self.region, finger_to_ball)
         self._action = np.zeros(2)
         self.after_step(physics)
         super().initialize_episode(physics)
 
     def before_step(self, action: np.ndarray, physics: Physics) -> None:
-        self._action = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        self._action = clip_action(action)
         applied = self._action
         if self.action_noise_std > 0:
-            noise = self.random.standard_normal(2) * self.action_noise_std
-            applied = np.clip(applied + noise, -1.0, 1.0)
+            applied = noisy_control(applied, draw_action_noise(self.random, self.action_noise_std))
         physics.set_control(applied)
 
     def after_step(self, physics: Physics) -> None:
         """Read the state once per step: the observation, and the distances that reward,
         success and termination share (the hot path: accessors are called once each)."""
-        obs = np.empty(OBSERVATION_DIM, dtype=np.float32)
-        angles = physics.arm_angles()
-        obs[_COS] = np.cos(angles)
-        obs[_SIN] = np.sin(angles)
-        obs[_JOINT_VEL] = physics.arm_velocities()
         finger, ball, target = physics.finger_xy(), physics.ball_xy(), physics.target_xy()
-        obs[_FINGER] = finger
-        obs[_BALL] = ball
-        obs[_BALL_VEL] = physics.ball_velocity()
-        obs[_TARGET] = target
-        self._obs = obs
-        self._ball_to_target = math.hypot(ball[0] - target[0], ball[1] - target[1])
-        self._finger_to_ball = math.hypot(finger[0] - ball[0], finger[1] - ball[1])
+        self._obs = assemble_observation(
+            physics.arm_angles(),
+            physics.arm_velocities(),
+            finger,
+            ball,
+            physics.ball_velocity(),
+            target,
+        )
+        self._ball_to_target = float(planar_distance(ball, target))
+        self._finger_to_ball = float(planar_distance(finger, ball))
 
     def get_observation(self, physics: Physics) -> collections.OrderedDict:
         if self._obs is None:  # the spec is inferred before the first episode starts
@@ -267,9 +308,7 @@ class Pusher(base.Task):
         return collections.OrderedDict(observation=self._obs, success=np.array([success]))
 
     def get_reward(self, physics: Physics) -> float:
-        approach = max(self._finger_to_ball - CONTACT_DISTANCE, 0.0)
-        cost = ACTION_COST * float(self._action @ self._action)
-        return -(self._ball_to_target + APPROACH_WEIGHT * approach) - cost
+        return float(shaped_reward(self._ball_to_target, self._finger_to_ball, self._action))
 
     def get_termination(self, physics: Physics) -> float | None:
         success = self._ball_to_target <= self.success_radius

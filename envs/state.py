@@ -6,20 +6,16 @@ episode can start from exactly the state a forecast started from (or from an ima
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
-from .layout import OBSERVATION_DIM, obs_indices
+from .batched import BatchedPusherEnv
+from .layout import OBSERVATION_DIM
+from .readout import state_from_observation
 
 __all__ = ["reset_to_state"]
-
-_ANGLES = obs_indices("shoulder_cos", "shoulder_sin", "wrist_cos", "wrist_sin")
-_QVEL = obs_indices("joint_vel")
-_BALL, _BALL_VEL, _TARGET = obs_indices("ball"), obs_indices("ball_vel"), obs_indices("target")
 
 
 def _dm_env(env: EnvBase):
@@ -33,27 +29,36 @@ def _dm_env(env: EnvBase):
 
 
 def reset_to_state(env: EnvBase, observation: torch.Tensor) -> TensorDictBase:
-    """Reset ``env`` and move it to the state described by ``observation [14]``.
+    """Reset ``env`` and move it to the state described by ``observation [*batch, 14]``.
 
     Returns the reset tensordict (observation and success of the new state), ready for
     ``env.rollout(T, policy, auto_reset=False, tensordict=td)``. The episode clock restarts;
     the task's random stream (action noise) continues from where it was, so seed first
     (``env.set_seed(s)``) for a reproducible noise sequence.
+
+    ``env`` is a :func:`make_pusher_env` env (``observation [14]``) or a
+    :class:`~rcvae_torchrl.envs.batched.BatchedPusherEnv` (``observation [N, 14]``: env ``i``
+    restarts from row ``i``, as the single env would; a subset restarts with
+    ``env.reset(TensorDict(observation=..., _reset=mask), set_state=True)``).
+
+    Example:
+        >>> env = make_pusher_env("stochastic", seed=3)
+        >>> td = reset_to_state(env, start)  # start: an observation [14]
     """
-    if observation.shape != (OBSERVATION_DIM,) or not torch.isfinite(observation).all():
+    shape = (*env.batch_size, OBSERVATION_DIM)
+    if observation.shape != shape or not torch.isfinite(observation).all():
         raise ValueError(
-            f"observation: expected a finite tensor of shape ({OBSERVATION_DIM},), "
+            f"observation: expected a finite tensor of shape {shape}, "
             f"got {tuple(observation.shape)}"
         )
+    if isinstance(env, BatchedPusherEnv):
+        td = TensorDict(observation=observation, batch_size=env.batch_size)
+        return env.reset(td, set_state=True)
     td = env.reset()
     dm = _dm_env(env)
-    physics, obs = dm.physics, observation.double().numpy()
-    c1, s1, c2, s2 = obs[_ANGLES]
+    physics = dm.physics
     with physics.reset_context():
-        physics.data.qpos[:2] = [math.atan2(s1, c1), math.atan2(s2, c2)]
-        physics.data.qvel[:2] = obs[_QVEL]
-        physics.set_ball(obs[_BALL], obs[_BALL_VEL])
-        physics.set_target(obs[_TARGET])
+        physics.set_state(state_from_observation(observation.double().numpy()))
     dm.task.after_step(physics)
     current = dm.task.get_observation(physics)
     td["observation"] = torch.as_tensor(current["observation"], dtype=torch.float32)
