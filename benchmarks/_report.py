@@ -20,6 +20,13 @@ RESULTS_DIR = Path(__file__).resolve().parent / "results"
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
+def conditions() -> dict[str, Any]:
+    """What a timing ran under: torch's intra-op threads and the machine's 1-minute load average
+    (runnable processes, all users; on a 2-core machine anything above 1 means this benchmark
+    shared its cores). Recorded next to every figure."""
+    return {"threads": torch.get_num_threads(), "load_1min": round(os.getloadavg()[0], 2)}
+
+
 def median_time(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> float:
     """Median wall-clock seconds of ``fn()`` over ``repeats`` calls, after ``warmup`` calls."""
     for _ in range(warmup):
@@ -39,23 +46,32 @@ def interleaved_median_times(
     rounds: on a shared machine the load drifts, and interleaving spreads it over all fns alike,
     so their ratios hold up better than those of back-to-back timings.
 
-    Returns ``{name: {"wall_s": ..., "cpu_s": ...}}``: wall-clock seconds, and CPU seconds of
-    this process (all its threads, not its child processes), which other jobs on the machine
-    barely change: for a single-threaded fn, what it would take on a free core.
+    Returns ``{name: {"wall_s": ..., "cpu_s": ..., "threads": ..., "load_1min": ...}}``:
+    wall-clock seconds, and CPU seconds of this process (all its threads, not its child
+    processes), which other jobs on the machine barely change: for a single-threaded fn, what it
+    would take on a free core; the thread count and the highest 1-minute load average seen
+    while timing (see :func:`conditions`).
     """
     for _ in range(warmup):
         for fn in fns.values():
             fn()
     wall: dict[str, list[float]] = {name: [] for name in fns}
     cpu: dict[str, list[float]] = {name: [] for name in fns}
+    load = [os.getloadavg()[0]]
     for _ in range(repeats):
         for name, fn in fns.items():
             start, start_cpu = time.perf_counter(), time.process_time()
             fn()
             wall[name].append(time.perf_counter() - start)
             cpu[name].append(time.process_time() - start_cpu)
+        load.append(os.getloadavg()[0])
     return {
-        name: {"wall_s": statistics.median(wall[name]), "cpu_s": statistics.median(cpu[name])}
+        name: {
+            "wall_s": statistics.median(wall[name]),
+            "cpu_s": statistics.median(cpu[name]),
+            "threads": torch.get_num_threads(),
+            "load_1min": round(max(load), 2),
+        }
         for name in fns
     }
 

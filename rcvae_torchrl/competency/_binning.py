@@ -2,12 +2,18 @@
 
 Shared by :func:`~rcvae_torchrl.competency.histogram_entropy` (one group) and the histogram
 estimator of :func:`~rcvae_torchrl.competency.decompose_uncertainty` (one group per ensemble
-member). For each column (one batch element and dimension) it needs the pooled bin counts and the
-per-group bin counts. Two exact strategies, chosen per chunk:
+member, optionally re-labelled by random permutations for the shuffle correction). For each
+column (one batch element and dimension) it needs the pooled bin counts and the per-group bin
+counts, for the groups as given and for every relabelling.
 
-- dense counting (``torch.bincount``) when the bins a column spans are few, O(samples + bins);
-- sorting otherwise: after sorting the keys ``bin·G + group`` along the sample axis, runs of equal
-  keys are the per-group counts and runs of equal ``key // G`` the pooled counts.
+Counting works on integer cell codes: each column owns a contiguous block of cells (one per bin
+it spans, plus one for ended samples), so one ``torch.bincount`` over ``cell·G + group`` counts
+every column and group at once, without sorting. The codes are computed once per chunk and reused
+by every relabelling, which only changes the ``group`` term; before they are reused they are
+renumbered over the occupied cells (one more ``bincount``), so each relabelling touches no empty
+bin. Only when the columns span far more bins than they hold samples are the codes the ranks of
+the samples' bins among the column's distinct bins (one sort per chunk), so memory stays
+proportional to the samples.
 """
 
 from __future__ import annotations
@@ -22,11 +28,21 @@ LN2 = math.log(2.0)
 
 #: Default bound on the number of sample entries processed at once by the histogram estimators.
 #: The peak working memory is a few tens of bytes per entry, so the default keeps it well under
-#: 100 MB whatever the input size; 2**19 was the fastest of 2**18..2**22 on 2 CPU cores.
-CHUNK_ELEMENTS = 1 << 19
+#: 100 MB whatever the input size; 2**18 was the fastest of 2**16..2**20 on 2 CPU cores (the
+#: cell counts of a chunk then stay in the core's cache).
+CHUNK_ELEMENTS = 1 << 18
 
-#: Dense counting is used while (columns × bins spanned × groups) <= this factor × entries.
+#: Without relabellings, the bins spanned are counted in place while (bins spanned × groups)
+#: <= this factor × entries; beyond that, or when relabellings reuse the codes, the codes are
+#: first renumbered over the occupied bins only (one ``bincount``).
 DENSE_FACTOR = 4
+
+#: When the columns span more than this factor × entries bins, the codes are the ranks among
+#: the column's distinct bins instead (one sort; memory proportional to the samples).
+SORT_FACTOR = 16
+
+#: Stand-in bin id of ended samples while the live samples' lowest bin is found.
+_ABOVE_ALL_BINS = 1 << 62
 
 
 def batch_chunks(n_batch: int, per_item: int, chunk_elements: int) -> Iterator[slice]:
@@ -50,45 +66,115 @@ def bin_ids(samples: Tensor, width: Tensor) -> Tensor:
     return torch.floor(samples / width.to(samples.dtype)).to(torch.int64)
 
 
-def grouped_entropies(ids: Tensor) -> tuple[Tensor, Tensor]:
+def shuffled_labels(perms: Tensor, n: int) -> Tensor:
+    """Group labels of the pooled samples under random permutations.
+
+    Permutation ``perm`` of the ``G·n`` pooled samples puts sample ``perm[j]`` in group ``j // n``
+    (the pooled samples reordered by ``perm`` and cut into ``G`` groups of ``n``).
+
+    Args:
+        perms: int64 ``[S, G·n]`` permutations.
+        n: samples per group.
+
+    Returns:
+        int64 ``[S, G·n]``: the group of every pooled sample under each permutation.
+    """
+    groups_of_positions = torch.arange(perms.shape[1], device=perms.device) // n
+    labels = torch.empty_like(perms)
+    return labels.scatter_(1, perms, groups_of_positions.expand_as(perms))
+
+
+def grouped_entropies(
+    ids: Tensor, ended: Tensor | None = None, relabels: Tensor | None = None
+) -> tuple[Tensor, Tensor, Tensor | None]:
     """Plug-in entropies in bits of binned samples, pooled and averaged over groups.
 
     Args:
         ids: int64 bin ids ``[G, n, m, D]`` (group, sample, batch, dimension).
+        ended: optional bool ``[G, n, m, 1]`` or ``[G, n, m, D]``: samples counted in one extra
+            bin per column, whatever their ids.
+        relabels: optional int64 ``[S, G·n]``: other group labels of the pooled samples (each
+            label used ``n`` times), see :func:`shuffled_labels`.
 
     Returns:
-        float64 ``[m·D]`` pooled entropies (all ``G·n`` samples) and ``[m·D]`` mean over groups of
-        the per-group entropies.
+        float64 ``[m·D]`` pooled entropies (all ``G·n`` samples), ``[m·D]`` mean over groups of
+        the per-group entropies, and ``[S, m·D]`` the same mean under each relabelling (None
+        without ``relabels``).
     """
     groups, n = ids.shape[0], ids.shape[1]
-    low, high = torch.aminmax(ids.flatten(0, 1), dim=0)
-    spans = (high - low + 1).view(-1)
-    if int(spans.sum()) * groups <= DENSE_FACTOR * ids.numel():
-        pooled_sum, group_sum = _dense_xlogx_sums(ids - low, spans)
-    else:
-        pooled_sum, group_sum = _sorted_xlogx_sums(ids - low)
+    flat = ids.reshape(groups * n, -1)
+    flat_ended = None if ended is None else ended.expand_as(ids).reshape(groups * n, -1)
+    codes, spans = _cell_codes(flat, flat_ended, groups, relabels is not None)
+    codes = codes.mul_(groups)
+    table = _xlog2x_table(groups * n, ids.device)
+    labels = torch.arange(groups, device=ids.device).repeat_interleave(n)
+    group_sum, counts = _group_xlogx_sums(codes, spans, labels, groups, table)
+    pooled = counts.view(-1, groups).sum(dim=1)
+    pooled_sum = _segment_sums(table.take(pooled), spans)
     total = math.log2(groups * n) - pooled_sum / (groups * n)
     mean_group = math.log2(n) - group_sum / (groups * n)
-    return total, mean_group
+    relabelled = None
+    if relabels is not None:
+        sums = [_group_xlogx_sums(codes, spans, r, groups, table)[0] for r in relabels]
+        relabelled = math.log2(n) - torch.stack(sums) / (groups * n)
+    return total, mean_group, relabelled
 
 
-def _dense_xlogx_sums(offsets: Tensor, spans: Tensor) -> tuple[Tensor, Tensor]:
-    """Σ c·log2 c over pooled and per-group counts from one ``bincount``.
+def _cell_codes(
+    flat: Tensor, ended: Tensor | None, groups: int, reused: bool
+) -> tuple[Tensor, Tensor]:
+    """Cell index of every sample ``[S, C]`` and the cells each column owns ``[C]``.
 
-    Column ``j`` owns the cells ``[start_j, start_j + span_j)`` (times ``G`` groups) of one flat
-    count array, so its size is the total number of bins the columns span.
+    Column ``j`` owns cells ``[start_j, start_j + span_j)``: first the ended samples' cell, then
+    the bins from the column's lowest live bin up (all of them, only the occupied ones, or the
+    column's distinct bins in order; see :data:`DENSE_FACTOR` and :data:`SORT_FACTOR`).
     """
-    groups = offsets.shape[0]
-    start = torch.cumsum(spans, dim=0) - spans
-    group = torch.arange(groups, device=offsets.device).view(groups, 1, 1, 1)
-    flat = (offsets + start.view(offsets.shape[2:])) * groups + group
-    bins = int(spans.sum())
-    counts = torch.bincount(flat.view(-1), minlength=bins * groups)
-    pooled = counts.view(bins, groups).sum(dim=-1)
-    max_count = offsets.shape[0] * offsets.shape[1]
-    pooled_sum = _segment_sums(_xlog2x_counts(pooled, max_count), spans)
-    group_sum = _segment_sums(_xlog2x_counts(counts, max_count), spans * groups)
-    return pooled_sum, group_sum
+    if ended is not None:
+        flat = torch.where(ended, _ABOVE_ALL_BINS, flat)
+    low = flat.amin(dim=0)
+    offsets = flat - (low - 1)
+    if ended is not None:
+        offsets = offsets.masked_fill_(ended, 0)
+    spans = offsets.amax(dim=0) + 1
+    cells = int(spans.sum())
+    if cells > SORT_FACTOR * flat.numel():
+        offsets, spans = _ranks(offsets)
+        return offsets.add_(torch.cumsum(spans, dim=0) - spans), spans
+    codes = offsets.add_(torch.cumsum(spans, dim=0) - spans)
+    if reused or cells * groups > DENSE_FACTOR * flat.numel():
+        codes, spans = _occupied_cells(codes, spans)
+    return codes, spans
+
+
+def _occupied_cells(codes: Tensor, spans: Tensor) -> tuple[Tensor, Tensor]:
+    """Codes renumbered over the occupied cells only (same order), and the columns' counts."""
+    occupied = torch.bincount(codes.view(-1), minlength=int(spans.sum())) > 0
+    renumbered = occupied.cumsum(dim=0) - 1
+    occupied_up_to_end = renumbered[torch.cumsum(spans, dim=0) - 1] + 1
+    return renumbered.take(codes), torch.diff(occupied_up_to_end, prepend=spans.new_zeros(1))
+
+
+def _ranks(offsets: Tensor) -> tuple[Tensor, Tensor]:
+    """Offsets ``[S, C]`` replaced by their rank among the column's distinct values, and the
+    number of distinct values ``[C]``."""
+    values, order = offsets.sort(dim=0)
+    new_value = torch.ones_like(values, dtype=torch.bool)
+    new_value[1:] = values[1:] != values[:-1]
+    rank = new_value.cumsum(dim=0) - 1
+    return torch.empty_like(rank).scatter_(0, order, rank), rank[-1] + 1
+
+
+def _group_xlogx_sums(
+    codes: Tensor, spans: Tensor, labels: Tensor, groups: int, table: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Σ c·log2 c over the per-group counts of every column ``[C]``, and the counts.
+
+    ``codes`` are ``cell·G``; one ``bincount`` over ``cell·G + label``: column ``j``'s counts
+    fill ``G·span_j`` consecutive entries.
+    """
+    keys = codes + labels.view(-1, 1)
+    counts = torch.bincount(keys.view(-1), minlength=int(spans.sum()) * groups)
+    return _segment_sums(table.take(counts), spans * groups), counts
 
 
 def _segment_sums(values: Tensor, lengths: Tensor) -> Tensor:
@@ -96,39 +182,7 @@ def _segment_sums(values: Tensor, lengths: Tensor) -> Tensor:
     return torch.segment_reduce(values, "sum", lengths=lengths)
 
 
-def _xlog2x_counts(counts: Tensor, max_count: int) -> Tensor:
-    """``c·log2 c`` of integer counts in ``[0, max_count]``; a table lookup when that is cheaper."""
-    if max_count + 1 > counts.numel():
-        return _xlog2x(counts.to(torch.float64))
-    table = torch.arange(max_count + 1, dtype=torch.float64, device=counts.device)
-    return _xlog2x(table)[counts]
-
-
-def _sorted_xlogx_sums(offsets: Tensor) -> tuple[Tensor, Tensor]:
-    """Σ c·log2 c over pooled and per-group counts from one sort of ``bin·G + group`` keys."""
-    groups, n = offsets.shape[0], offsets.shape[1]
-    group = torch.arange(groups, device=offsets.device).view(groups, 1, 1, 1)
-    keys = (offsets * groups + group).permute(2, 3, 0, 1).reshape(-1, groups * n)
-    keys = keys.sort(dim=1).values
-    pooled = torch.div(keys, groups, rounding_mode="floor")
-    return _run_xlog2x_sums(pooled), _run_xlog2x_sums(keys)
-
-
-def _run_xlog2x_sums(sorted_keys: Tensor) -> Tensor:
-    """Σ over runs of equal values of ``c·log2 c`` for each row of ``[C, L]`` -> ``[C]``.
-
-    Every row ends a run, so in the flattened array consecutive run ends differ by exactly the
-    run lengths, also across rows.
-    """
-    rows, length = sorted_keys.shape
-    ends = torch.ones(rows, length, dtype=torch.bool, device=sorted_keys.device)
-    ends[:, :-1] = sorted_keys[:, 1:] != sorted_keys[:, :-1]
-    end_positions = ends.view(-1).nonzero().squeeze(1)
-    counts = torch.diff(end_positions, prepend=end_positions.new_tensor([-1]))
-    out = torch.zeros(rows, dtype=torch.float64, device=sorted_keys.device)
-    return out.index_add_(0, end_positions // length, _xlog2x(counts.to(torch.float64)))
-
-
-def _xlog2x(counts: Tensor) -> Tensor:
-    """``c·log2 c`` with ``0·log 0 = 0``."""
+def _xlog2x_table(max_count: int, device: torch.device) -> Tensor:
+    """``c·log2 c`` for ``c = 0..max_count`` (float64, ``0·log 0 = 0``)."""
+    counts = torch.arange(max_count + 1, dtype=torch.float64, device=device)
     return torch.special.xlogy(counts, counts) / LN2

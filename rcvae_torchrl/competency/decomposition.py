@@ -26,6 +26,7 @@ from rcvae_torchrl.competency._binning import (
     batch_chunks,
     bin_ids,
     grouped_entropies,
+    shuffled_labels,
 )
 from rcvae_torchrl.competency.entropy import BinWidth, gaussian_entropy, knn_entropy
 from rcvae_torchrl.competency.mixture import fit_gaussian_mixture_entropy_bounds
@@ -177,20 +178,18 @@ def _histogram(
     members, n, dim = samples.shape[0], samples.shape[1], samples.shape[-1]
     flat = samples.reshape(members, n, -1, dim)
     flat_ended = None if ended is None else ended.reshape(members, n, -1, 1)
-    perms = None
+    relabels = None
     if bias_correction == "shuffle":
-        perms = [
-            torch.randperm(members * n, generator=generator).to(samples.device)
-            for _ in range(shuffles)
-        ]
+        perms = [torch.randperm(members * n, generator=generator) for _ in range(shuffles)]
+        relabels = shuffled_labels(torch.stack(perms).to(samples.device), n)
     parts = []
     for part in batch_chunks(flat.shape[2], members * n * dim, chunk_elements):
-        ids = bin_ids(flat[:, :, part], width)
-        if flat_ended is not None:
-            ids = _with_ended_bin(ids, flat_ended[:, :, part])
-        total, aleatoric = grouped_entropies(ids)
-        if perms is not None:
-            aleatoric = _shuffle_corrected(ids, total, aleatoric, perms)
+        part_ended = None if flat_ended is None else flat_ended[:, :, part]
+        total, aleatoric, shuffled = grouped_entropies(
+            bin_ids(flat[:, :, part], width), part_ended, relabels
+        )
+        if shuffled is not None:
+            aleatoric = _shuffle_corrected(total, aleatoric, shuffled, members)
         parts.append((total, aleatoric))
     total, aleatoric = (
         torch.cat(p).reshape(samples.shape[2:]).to(samples.dtype) for p in zip(*parts)
@@ -198,22 +197,14 @@ def _histogram(
     return total, aleatoric, math.log2(members)
 
 
-def _with_ended_bin(ids: Tensor, ended: Tensor) -> Tensor:
-    """Bin ids with ended samples moved to one extra bin per column, below the lowest bin."""
-    terminal = ids.amin(dim=(0, 1), keepdim=True) - 1
-    return torch.where(ended, terminal, ids)
+def _shuffle_corrected(total: Tensor, aleatoric: Tensor, shuffled: Tensor, members: int) -> Tensor:
+    """Aleatoric entropy after subtracting the shuffled-label Jensen–Shannon divergence.
 
-
-def _shuffle_corrected(
-    ids: Tensor, total: Tensor, aleatoric: Tensor, perms: list[Tensor]
-) -> Tensor:
-    """Aleatoric entropy after subtracting the shuffled-label Jensen–Shannon divergence."""
-    members, n = ids.shape[0], ids.shape[1]
-    pooled = ids.reshape(members * n, *ids.shape[2:])
+    ``shuffled`` ``[S, C]``: the mean member entropy under each of ``S`` label permutations.
+    """
     null = torch.zeros_like(total)
-    for perm in perms:
-        _, shuffled = grouped_entropies(pooled[perm].reshape(ids.shape))
-        null += (total - shuffled) / len(perms)
+    for one in shuffled:
+        null += (total - one) / len(shuffled)
     epistemic = (total - aleatoric - null).clamp(0.0, math.log2(members))
     return total - epistemic
 

@@ -51,9 +51,10 @@ def histogram_entropy(
     ``-Σ p_i log2 p_i`` of the bin frequencies is returned. For a density ``f`` and a small width
     it approaches ``h(f) - log2(w)`` (``h`` the differential entropy in bits).
 
-    Vectorised: bin counts come from one ``bincount`` per chunk when the columns span few bins,
-    else from sorting the bin ids along the sample axis and reading run lengths. The batch is
-    processed in chunks of at most ``chunk_elements`` sample entries.
+    Vectorised: bin counts come from one ``bincount`` per chunk over integer cell codes (each
+    column owning a block of cells); when the columns span far more bins than they hold samples
+    the codes are first compressed to ranks. The batch is processed in chunks of at most
+    ``chunk_elements`` sample entries.
 
     Args:
         samples: ``[N, *batch, D]`` finite floats.
