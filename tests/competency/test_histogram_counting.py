@@ -144,9 +144,7 @@ def test_histogram_entropy_equals_reference_per_column():
         [[_entropy_bits(torch.floor(samples[:, b, d] / 0.25)) for d in range(2)] for b in range(3)],
         dtype=torch.float64,
     )
-    torch.testing.assert_close(
-        histogram_entropy(samples, 0.25), want, atol=1e-12, rtol=0
-    )
+    torch.testing.assert_close(histogram_entropy(samples, 0.25), want, atol=1e-12, rtol=0)
 
 
 def test_shuffled_labels_put_each_permuted_block_in_one_group():
