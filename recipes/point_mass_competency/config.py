@@ -147,12 +147,12 @@ class StudyConfig:
 class RecipeConfig(StudyConfig):
     profile: str = "default"
     run_dir: str = "outputs/point_mass_competency/${profile}"
-    threads: int | None = None
+    threads: Any = "auto"
     progress: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.threads is not None:
+        if self.threads not in (None, "auto"):
             _check("threads", self.threads, 1, int)
         if not str(self.run_dir).strip() or not re.search(r"\S", str(self.run_dir)):
             raise ValueError(f"run_dir: expected a directory path, got {self.run_dir!r}")

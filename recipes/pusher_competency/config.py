@@ -221,7 +221,7 @@ class RecipeConfig(StudyConfig):
     profile: str = "default"
     run_dir: str = "outputs/pusher_competency/${profile}"
     device: str = "auto"
-    threads: int | None = None
+    threads: Any = "auto"
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -230,10 +230,12 @@ class RecipeConfig(StudyConfig):
             raise ValueError(
                 f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {self.device!r}"
             )
-        if self.threads is not None and (
+        if self.threads not in (None, "auto") and (
             isinstance(self.threads, bool) or not isinstance(self.threads, int) or self.threads < 1
         ):
-            raise ValueError(f"threads: expected a positive integer or null, got {self.threads!r}")
+            raise ValueError(
+                f"threads: expected a positive integer, 'auto' or null, got {self.threads!r}"
+            )
         if not str(self.run_dir).strip():
             raise ValueError(f"run_dir: expected a directory path, got {self.run_dir!r}")
 

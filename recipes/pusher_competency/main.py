@@ -21,8 +21,9 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
 import hydra
 from omegaconf import DictConfig
 
+from rcvae_torchrl.threads import set_threads
 from recipes.pusher_competency.config import register_configs, study_config
-from recipes.pusher_competency.pipeline import resolve_device, run_study, set_threads
+from recipes.pusher_competency.pipeline import resolve_device, run_study, training_op_flop
 
 register_configs()
 
@@ -31,8 +32,8 @@ register_configs()
 def main(cfg: DictConfig) -> None:
     config = study_config(cfg)
     device = resolve_device(config.device)
-    set_threads(config.threads)
-    print(f"profile={config.profile} device={device} run_dir={config.run_dir}")
+    threads = set_threads(config.threads, training_op_flop(config))
+    print(f"profile={config.profile} device={device} threads={threads} run_dir={config.run_dir}")
     summary = run_study(config, config.run_dir, device=device, progress=config.progress)
     for name, check in summary["report"]["checks"].items():
         print(f"{'ok ' if check['met'] else 'NO '} {name}: {check['value']:.3f}")

@@ -63,7 +63,7 @@ from .pusher import (
 )
 from .report import write_report
 
-__all__ = ["STAGES", "Study", "resolve_device", "run_study", "set_threads"]
+__all__ = ["STAGES", "Study", "resolve_device", "run_study", "training_op_flop"]
 
 STAGES = ("data", "models", "agent", "forecast", "truth", "report")
 
@@ -84,10 +84,10 @@ def resolve_device(name: str) -> str:
     return name
 
 
-def set_threads(threads: int | None) -> None:
-    """Set torch's intra-op threads (``None``: leave torch's default)."""
-    if threads is not None:
-        torch.set_num_threads(threads)
+def training_op_flop(config: StudyConfig) -> float:
+    """FLOP of the study's typical op: one GRU gate matmul of a training step, all members."""
+    m, t = config.model, config.train
+    return 2.0 * m.ensemble_size * t.batch_windows * m.hidden_dim * 3 * m.hidden_dim
 
 
 class Study:

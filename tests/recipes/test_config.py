@@ -92,8 +92,6 @@ def test_unknown_keys_are_rejected(override):
     [
         "train.max_steps=ten",
         "progress=maybe",
-        "threads=abc",
-        "threads=1.5",
         "seed=1.5",
         "assess.episode_end=perhaps",
     ],
@@ -120,8 +118,10 @@ def test_values_of_the_wrong_type_are_rejected(override):
         ("seed=-1", r"seed: expected an integer >= 0"),
         ("device=3", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
         ("device=tpu", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
-        ("threads=0", r"^threads: expected a positive integer or null"),
-        ("threads=-1", r"^threads: expected a positive integer or null"),
+        ("threads=0", r"^threads: expected a positive integer, 'auto' or null"),
+        ("threads=-1", r"^threads: expected a positive integer, 'auto' or null"),
+        ("threads=abc", r"^threads: expected a positive integer, 'auto' or null"),
+        ("threads=1.5", r"^threads: expected a positive integer, 'auto' or null"),
         ("run_dir=''", r"^run_dir: expected a directory path"),
         ("train.window=100000", r"train\.window: expected at most the longest data episode"),
         (

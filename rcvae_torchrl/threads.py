@@ -1,0 +1,79 @@
+"""Torch intra-op threads chosen so that they never lose to one thread.
+
+Torch's default is one thread per core. On a machine where other jobs hold the cores, every
+parallel op then waits for a thread that is not scheduled: on 2 shared cores, 2 threads ran
+3.8-17x slower than 1 (``benchmarks/threads.py`` measures it). And an op only gains from a
+second thread when it is large: the world model's ops (a few hundred rows of 64-wide layers per
+member) cost less than handing work to another thread.
+
+:func:`choose_threads` therefore returns 1 unless both hold: the machine has idle cores (the
+1-minute load average leaves at least one whole core free per extra thread) and the work per op
+is large enough (:data:`MIN_FLOP_PER_THREAD` per thread). :func:`set_threads` applies it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import torch
+
+__all__ = ["MIN_FLOP_PER_THREAD", "choose_threads", "free_cores", "set_threads"]
+
+#: Floating-point operations per op below which a further thread does not pay for itself. A
+#: float32 matmul of 2**22 FLOP (e.g. [1024, 64] x [64, 32]) took about as long with 2 threads as
+#: with 1 on an idle core pair; smaller ones were slower with 2.
+MIN_FLOP_PER_THREAD = float(1 << 22)
+
+
+def free_cores(cpus: int | None = None, load: float | None = None) -> float:
+    """Cores this process may use minus the machine's 1-minute load average (at least 0).
+
+    Args:
+        cpus: cores available (default: this process's CPU affinity).
+        load: runnable processes (default: ``os.getloadavg()[0]``; it counts this process too
+            while it runs).
+    """
+    cpus = len(os.sched_getaffinity(0)) if cpus is None else cpus
+    load = os.getloadavg()[0] if load is None else load
+    return max(0.0, cpus - load)
+
+
+def choose_threads(
+    op_flop: float | None = None, *, cpus: int | None = None, load: float | None = None
+) -> int:
+    """The intra-op thread count for work whose typical op costs ``op_flop`` FLOP.
+
+    ``1 + min(whole idle cores beyond this process's own, op_flop // MIN_FLOP_PER_THREAD - 1)``,
+    capped at the cores available; 1 when ``op_flop`` is None (unknown work is treated as small).
+
+    Example:
+        >>> choose_threads(1e9, cpus=8, load=0.0), choose_threads(1e9, cpus=8, load=7.5)
+        (8, 1)
+        >>> choose_threads(1e5, cpus=8, load=0.0)  # a small op: one thread
+        1
+    """
+    if op_flop is not None and (not math.isfinite(op_flop) or op_flop < 0):
+        raise ValueError(f"op_flop: expected a finite FLOP count >= 0 or None, got {op_flop!r}")
+    cpus = len(os.sched_getaffinity(0)) if cpus is None else cpus
+    if cpus < 1:
+        raise ValueError(f"cpus: expected at least 1 core, got {cpus}")
+    if op_flop is None:
+        return 1
+    idle = math.floor(free_cores(cpus, load))
+    by_work = int(op_flop // MIN_FLOP_PER_THREAD)
+    return max(1, min(cpus, 1 + min(idle, by_work - 1)))
+
+
+def set_threads(threads: int | str | None, op_flop: float | None = None) -> int:
+    """Set torch's intra-op threads: a count, ``"auto"`` (:func:`choose_threads` for
+    ``op_flop``) or None (leave torch's default). Returns the count in effect."""
+    if threads == "auto":
+        threads = choose_threads(op_flop)
+    elif threads is not None and (
+        isinstance(threads, bool) or not isinstance(threads, int) or threads < 1
+    ):
+        raise ValueError(f"threads: expected a positive integer, 'auto' or None, got {threads!r}")
+    if threads is not None:
+        torch.set_num_threads(threads)
+    return torch.get_num_threads()

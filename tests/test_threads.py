@@ -1,0 +1,50 @@
+"""The thread-count default: one thread unless the machine is idle and the ops are large."""
+
+import pytest
+import torch
+
+from rcvae_torchrl.threads import MIN_FLOP_PER_THREAD, choose_threads, free_cores, set_threads
+
+
+def test_busy_machine_or_small_ops_get_one_thread():
+    big = 1000 * MIN_FLOP_PER_THREAD
+    assert choose_threads(big, cpus=2, load=1.5) == 1  # less than a whole core free
+    assert choose_threads(big, cpus=2, load=6.0) == 1
+    assert choose_threads(MIN_FLOP_PER_THREAD * 1.9, cpus=16, load=0.0) == 1
+    assert choose_threads(None, cpus=16, load=0.0) == 1  # unknown work counts as small
+
+
+def test_idle_cores_and_large_ops_add_threads_up_to_both_limits():
+    assert choose_threads(1000 * MIN_FLOP_PER_THREAD, cpus=16, load=12.2) == 4  # 3 idle cores
+    assert choose_threads(3 * MIN_FLOP_PER_THREAD, cpus=16, load=0.0) == 3  # by the work
+    assert choose_threads(1e12, cpus=4, load=0.0) == 4  # never more than the cores
+
+
+def test_free_cores_is_cores_minus_load_at_least_zero():
+    assert free_cores(cpus=8, load=2.5) == 5.5
+    assert free_cores(cpus=2, load=7.0) == 0.0
+
+
+def test_set_threads_applies_counts_and_auto_and_leaves_none_alone():
+    before = torch.get_num_threads()
+    try:
+        assert set_threads(1) == 1 and torch.get_num_threads() == 1
+        assert set_threads("auto") == 1  # no work size given: one thread
+        assert set_threads(None) == 1  # left as it was
+    finally:
+        torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize(
+    ("call", "match"),
+    [
+        (lambda: set_threads(0), r"^threads: expected a positive integer, 'auto' or None, got 0"),
+        (lambda: set_threads("many"), r"^threads: expected .* got 'many'"),
+        (lambda: set_threads(True), r"^threads: expected .* got True"),
+        (lambda: choose_threads(-1.0), r"^op_flop: expected a finite FLOP count"),
+        (lambda: choose_threads(1e9, cpus=0), r"^cpus: expected at least 1 core, got 0"),
+    ],
+)
+def test_bad_arguments_name_themselves(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
