@@ -1,0 +1,167 @@
+"""Model steps per second of plan scoring against the matmul peak, and compile time per shape.
+
+At the planner's default budget (64 candidates x 5 particles x 12 steps, TS-inf: 64 trajectories
+per member) on a study-sized ensemble (E = 5, H = MLP = 64, Z = 8; untrained, normaliser fitted
+on random data, speed does not depend on the weights), with the Pusher's reward and success:
+
+- the FLOP of one model step (``FlopCounterMode`` on ``ensemble.step``) and the float32 matmul
+  peak of this core (a [1024, 1024] x [1024, 1024] product);
+- ``evaluate_action_sequences`` eager, and the model's own step alone over the same particles
+  and horizon (no task, no rollout bookkeeping): model steps per second and percent of peak,
+  interleaved rounds, one thread, with the load;
+- with ``--compile``: ``torch.compile(dynamic=True)`` of the scoring rollout, the seconds of its
+  first call and of the first call with a new number of candidates (what a run waits for when a
+  plan shape changes), then its steady speed.
+
+    python benchmarks/model_step.py [--repeats 7] [--compile]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import time
+
+import torch
+from _report import conditions, interleaved_median_times, print_table, write_json
+from torch.utils.flop_counter import FlopCounterMode
+
+from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.rollout import Task, evaluate_action_sequences, scoring
+
+CANDIDATES, PARTICLES, HORIZON, MEMBERS = 64, 5, 12, 5
+
+
+def study_ensemble() -> RCVAEEnsemble:
+    gen = torch.Generator().manual_seed(0)
+    torch.manual_seed(0)
+    config = RCVAEConfig(14, 2, hidden_dim=64, mlp_dim=64, passthrough_dims=(12, 13))
+    model = RCVAEEnsemble(config, ensemble_size=MEMBERS).eval()
+    obs = torch.randn(2000, 14, generator=gen) * 0.1
+    actions = torch.rand(2000, 2, generator=gen) * 2 - 1
+    model.fit_normalizer(obs, actions, next_observations=obs + 0.01 * torch.randn_like(obs))
+    return model
+
+
+def matmul_peak_flops(size: int = 1024, repeats: int = 5) -> float:
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        a @ b
+        best = min(best, time.perf_counter() - start)
+    return 2.0 * size**3 / best
+
+
+def step_flop(model: RCVAEEnsemble, per_member: int) -> float:
+    """FLOP of one model step of one particle."""
+    hidden = torch.zeros(MEMBERS, per_member, model.config.hidden_dim)
+    obs, act = torch.zeros(MEMBERS, per_member, 14), torch.zeros(MEMBERS, per_member, 2)
+    with FlopCounterMode(display=False) as counter, torch.no_grad():
+        model.step(hidden, obs, act, generator=torch.Generator())
+    return counter.get_total_flops() / (MEMBERS * per_member)
+
+
+def model_steps_alone(model: RCVAEEnsemble, per_member: int, horizon: int) -> None:
+    gen = torch.Generator().manual_seed(0)
+    hidden = torch.zeros(MEMBERS, per_member, model.config.hidden_dim)
+    obs, act = torch.zeros(MEMBERS, per_member, 14), torch.zeros(MEMBERS, per_member, 2)
+    with torch.no_grad():
+        for _ in range(horizon):
+            out = model.step(hidden, obs, act, generator=gen)
+            hidden, obs = out.hidden, out.observation
+
+
+def scoring_call(model, task, candidates: int, compile_: bool = False) -> None:
+    gen = torch.Generator().manual_seed(0)
+    start = torch.randn(1, 14, generator=gen).expand(candidates, 14) * 0.1
+    actions = torch.rand(candidates, HORIZON, 2, generator=gen) * 2 - 1
+    with torch.no_grad():
+        evaluate_action_sequences(
+            model, start, actions, PARTICLES, task=task, generator=gen, compile=compile_
+        )
+
+
+def compile_times(model, task) -> dict[str, float]:
+    """First call, then a new number of candidates, with a dynamic-shape compile."""
+    scoring._COMPILED.clear()
+    scoring._COMPILED.append(torch.compile(scoring._score, dynamic=True))
+    out = {}
+    for name, candidates in (("first_call_s", CANDIDATES), ("new_shape_call_s", 200)):
+        start = time.perf_counter()
+        scoring_call(model, task, candidates, compile_=True)
+        out[name] = time.perf_counter() - start
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--compile", action="store_true")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    model = study_ensemble()
+    task = Task(pusher_reward, pusher_success, terminate_on_success=True)
+    per_member = CANDIDATES * PARTICLES // MEMBERS
+    steps = CANDIDATES * PARTICLES * HORIZON
+    flop, peak = step_flop(model, per_member), matmul_peak_flops()
+    runs = {
+        "evaluate_action_sequences, eager": functools.partial(
+            scoring_call, model, task, CANDIDATES
+        ),
+        "model step alone (ensemble.step x H), eager": functools.partial(
+            model_steps_alone, model, per_member, HORIZON
+        ),
+    }
+    compiled = {}
+    if args.compile:
+        compiled = compile_times(model, task)
+        runs["evaluate_action_sequences, torch.compile(dynamic=True)"] = functools.partial(
+            scoring_call, model, task, CANDIDATES, True
+        )
+    times = interleaved_median_times(runs, args.repeats)
+    rows = []
+    for name, t in times.items():
+        rate = steps / t["wall_s"]
+        rows.append(
+            {
+                "case": name,
+                **t,
+                "model_steps_per_s": rate,
+                "model_steps_per_cpu_s": steps / t["cpu_s"],
+                "percent_of_peak": 100.0 * rate * flop / peak,
+            }
+        )
+    base = rows[1]["wall_s"]
+    print_table(
+        f"plan scoring at {CANDIDATES} candidates x {PARTICLES} particles x {HORIZON} steps "
+        f"({per_member} trajectories per member); {flop / 1e3:.1f} kFLOP per model step; "
+        f"matmul peak {peak / 1e9:.1f} GFLOP/s",
+        ["case", "threads", "load", "s / call", "model steps/s", "% of peak", "x model alone"],
+        [
+            [
+                r["case"], r["threads"], r["load_1min"], r["wall_s"], r["model_steps_per_s"],
+                r["percent_of_peak"], r["wall_s"] / base,
+            ]
+            for r in rows
+        ],
+    )  # fmt: skip
+    if compiled:
+        print(f"\ncompile (dynamic=True): {compiled}")
+    write_json(
+        "model_step",
+        {
+            "budget": {"candidates": CANDIDATES, "particles": PARTICLES, "horizon": HORIZON},
+            "flop_per_model_step": flop,
+            "matmul_peak_flop_per_s": peak,
+            "rows": rows,
+            "compile_dynamic": compiled,
+            **conditions(),
+        },
+    )
+
+
+if __name__ == "__main__":
+    main()
