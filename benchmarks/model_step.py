@@ -9,18 +9,23 @@ on random data, speed does not depend on the weights), with the Pusher's reward 
 - ``evaluate_action_sequences`` eager, and the model's own step alone over the same particles
   and horizon (no task, no rollout bookkeeping): model steps per second and percent of peak,
   interleaved rounds, one thread, with the load;
+- with ``--stock``: time per plan of our CEM planner (eager, P = 1 and 5) against TorchRL's stock
+  ``CEMPlanner`` over the same model env at the same budget (C x I x H = 64 x 2 x 12, no policy
+  prior), interleaved on the same 5 real Pusher states;
 - with ``--compile``: ``torch.compile(dynamic=True)`` of the scoring rollout, the seconds of its
   first call and of the first call with a new number of candidates (what a run waits for when a
   plan shape changes), then its steady speed.
 
-    python benchmarks/model_step.py [--repeats 7] [--compile]
+    python benchmarks/model_step.py [--repeats 7] [--stock] [--compile]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import functools
 import time
+from typing import Any
 
 import torch
 from _report import conditions, interleaved_median_times, print_table, write_json
@@ -96,10 +101,49 @@ def compile_times(model, task) -> dict[str, float]:
     return out
 
 
+def stock_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
+    """Seconds per plan: ours (P = 1, 5) vs the stock CEMPlanner, same model env and budget."""
+    from planning import _stock
+
+    from rcvae_torchrl.agent import PlannerConfig
+    from rcvae_torchrl.envs import make_pusher_env
+    from rcvae_torchrl.model_env import make_rcvae_env
+    from recipes.pusher_competency.pusher import make_planner
+
+    env = make_pusher_env("deterministic")
+    torch.manual_seed(0)
+    states = [env.reset() for _ in range(5)]
+    config = PlannerConfig(
+        horizon=HORIZON, num_candidates=CANDIDATES, iterations=2, top_k=8, policy_prior=False
+    )
+    model_env = make_rcvae_env(
+        model, env, pusher_reward, pusher_success, terminate_on_success=True, seed=0
+    )
+    planners = {
+        "stock CEMPlanner": _stock(model_env, config),
+        "ours P=1": make_planner(model, env, dataclasses.replace(config, particles=1)),
+        "ours P=5": make_planner(model, env, config),
+    }
+
+    def plan_all(policy) -> None:
+        for td in states:
+            if hasattr(type(policy), "reset"):
+                policy.reset()
+            policy(td.clone())
+
+    with torch.no_grad():
+        times = interleaved_median_times(
+            {k: functools.partial(plan_all, p) for k, p in planners.items()}, repeats
+        )
+    stock = times["stock CEMPlanner"]["wall_s"]
+    return {k: {**v, "stock_over_this": stock / v["wall_s"]} for k, v in times.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--compile", action="store_true")
+    parser.add_argument("--stock", action="store_true")
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = study_ensemble()
@@ -150,6 +194,16 @@ def main() -> None:
     )  # fmt: skip
     if compiled:
         print(f"\ncompile (dynamic=True): {compiled}")
+    stock = stock_comparison(model, args.repeats) if args.stock else {}
+    if stock:
+        print_table(
+            f"seconds per plan of 5 states, C x I x H = {CANDIDATES} x 2 x {HORIZON}, eager",
+            ["planner", "threads", "load", "s", "stock / this"],
+            [
+                [k, v["threads"], v["load_1min"], v["wall_s"], v["stock_over_this"]]
+                for k, v in stock.items()
+            ],
+        )
     write_json(
         "model_step",
         {
@@ -158,6 +212,7 @@ def main() -> None:
             "matmul_peak_flop_per_s": peak,
             "rows": rows,
             "compile_dynamic": compiled,
+            "vs_stock_cem": stock,
             **conditions(),
         },
     )
