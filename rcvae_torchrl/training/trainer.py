@@ -24,6 +24,7 @@ from tqdm.auto import tqdm
 
 from rcvae_torchrl.data import make_window_buffer, sample_windows
 from rcvae_torchrl.io import atomic_write
+from rcvae_torchrl.loggers import log_scalars
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
 
@@ -124,6 +125,7 @@ def train_ensemble(
     checkpoint_path: str | Path | None = None,
     resume: bool = False,
     logger: Logger | None = None,
+    log_prefix: str = "",
     progress: bool = True,
     checks: bool = True,
 ) -> TrainResult:
@@ -136,7 +138,10 @@ def train_ensemble(
         checkpoint_path: where the training checkpoint goes (written at each validation);
             CSV logs go to ``<checkpoint dir>/logs`` unless ``logger`` is given.
         resume: continue from ``checkpoint_path`` if it exists (a finished run returns at once).
-        logger: a TorchRL logger (default: CSV beside the checkpoint, or none).
+        logger: a TorchRL logger (default: CSV beside the checkpoint, or none); see
+            :func:`~rcvae_torchrl.loggers.make_logger` for TensorBoard, W&B or MLflow.
+        log_prefix: put before every logged name (e.g. ``"models/stochastic/"`` when several
+            trainings share one logger).
         progress: show a tqdm bar.
         checks: run the model's self-checks on ``val_data`` after training
             (:func:`~rcvae_torchrl.training.check_model`): per state dimension, held-out
@@ -187,7 +192,8 @@ def train_ensemble(
         if state.step % config.val_every == 0 or state.step >= config.max_steps:
             record = _validate(loss_fn, val_windows, ensemble, state, config, train_loss)
             bar.set_postfix(train=f"{train_loss:.3g}", val=f"{record['val_loss']:.3g}")
-            _log(logger, record, state.step)
+            metrics = {k: v for k, v in record.items() if k != "step"}
+            log_scalars(logger, metrics, state.step, prefix=log_prefix)
             if path is not None:
                 _save(path, ensemble, optimizer, state, config)
     bar.close()
@@ -260,14 +266,6 @@ def _default_logger(path: Path | None) -> Logger | None:
     if path is None:
         return None
     return CSVLogger(exp_name=path.stem, log_dir=str(path.parent / "logs"))
-
-
-def _log(logger: Logger | None, record: dict[str, float], step: int) -> None:
-    if logger is None:
-        return
-    for name, value in record.items():
-        if name != "step":
-            logger.log_scalar(name, value, step=step)
 
 
 def _save(

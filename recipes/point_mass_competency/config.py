@@ -15,6 +15,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from rcvae_torchrl.loggers import check_logger_backend
 from rcvae_torchrl.training import TrainConfig
 
 __all__ = ["RecipeConfig", "StudyConfig", "register_configs", "study_config"]
@@ -145,10 +146,14 @@ class StudyConfig:
 
 @dataclass(frozen=True)
 class RecipeConfig(StudyConfig):
+    """The study plus how to run it; ``logger``: ``"csv"``, ``"tensorboard"``, ``"wandb"``
+    (offline), ``"mlflow"`` (a local file store) or ``"none"``, under ``<run_dir>/logs``."""
+
     profile: str = "default"
     run_dir: str = "outputs/point_mass_competency/${profile}"
     threads: int | None = None
     progress: bool = True
+    logger: str = "csv"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -156,6 +161,7 @@ class RecipeConfig(StudyConfig):
             _check("threads", self.threads, 1, int)
         if not str(self.run_dir).strip() or not re.search(r"\S", str(self.run_dir)):
             raise ValueError(f"run_dir: expected a directory path, got {self.run_dir!r}")
+        check_logger_backend(self.logger)
 
 
 def _writable(node: Any) -> None:

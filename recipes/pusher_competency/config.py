@@ -20,6 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from rcvae_torchrl.agent import DistillConfig, PlannerConfig
 from rcvae_torchrl.envs import CONTROL_TIMESTEP
+from rcvae_torchrl.loggers import check_logger_backend
 from rcvae_torchrl.training import TrainConfig
 
 __all__ = [
@@ -216,13 +217,19 @@ class StudyConfig:
 
 @dataclass(frozen=True)
 class RecipeConfig(StudyConfig):
-    """The study plus how to run it: where, on which device, with how many threads."""
+    """The study plus how to run it: where, on which device, with how many threads.
+
+    ``logger``: where training curves and stage summaries go, under ``<run_dir>/logs``:
+    ``"csv"``, ``"tensorboard"``, ``"wandb"`` (offline), ``"mlflow"`` (a local file store) or
+    ``"none"`` (see :func:`~rcvae_torchrl.loggers.make_logger`).
+    """
 
     profile: str = "default"
     run_dir: str = "outputs/pusher_competency/${profile}"
     device: str = "auto"
     threads: int | None = None
     progress: bool = True
+    logger: str = "csv"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -236,6 +243,7 @@ class RecipeConfig(StudyConfig):
             raise ValueError(f"threads: expected a positive integer or null, got {self.threads!r}")
         if not str(self.run_dir).strip():
             raise ValueError(f"run_dir: expected a directory path, got {self.run_dir!r}")
+        check_logger_backend(self.logger)
 
 
 def _writable(node: Any) -> None:
