@@ -174,7 +174,7 @@ def _figures(run_dir: Path, forecasts, truths, panels: int, radius: float) -> di
             real = [t[~t.isnan()] for t in truths[c]["ball_to_target"][b]]
             episodes.append(
                 {
-                    "title": f"{c}, start {b} (P={f['p_success'][b]:.2f})",
+                    "title": f"{c}, start {b}\nforecast P(success) = {f['p_success'][b]:.2f}",
                     "forecast": f["ball_to_target"][b],
                     "real": real,
                 }
