@@ -74,10 +74,12 @@ def run_log(
     log.addHandler(to_file)
     log.addHandler(to_console)
     recoloured = _plain_consoles(torchrl)
+    # warnings still reach the console: through the root logger's handlers if it has any
+    warned_console = None if warned.hasHandlers() else logging.StreamHandler(sys.stderr)
     torchrl.addHandler(to_file)
     warned.addHandler(to_file)
-    warned_console = logging.StreamHandler(sys.stderr)  # warnings still reach the console
-    warned.addHandler(warned_console)
+    if warned_console is not None:
+        warned.addHandler(warned_console)
     logging.captureWarnings(True)
     try:
         yield log
@@ -90,7 +92,8 @@ def run_log(
             (warned, to_file),
             (warned, warned_console),
         ):
-            logger.removeHandler(handler)
+            if handler is not None:
+                logger.removeHandler(handler)
         for handler, formatter in recoloured.items():
             handler.setFormatter(formatter)
         log.setLevel(saved_level)

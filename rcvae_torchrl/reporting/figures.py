@@ -141,6 +141,7 @@ def reliability_figure(
             facecolors="none",
             edgecolors=colour,
             linewidths=1.6,
+            clip_on=False,
             label=f"{name} ({int(d.counts.sum())} episodes)",
         )
     ax.set(

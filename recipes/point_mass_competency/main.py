@@ -38,7 +38,8 @@ def main(cfg: DictConfig) -> None:
         torch.set_num_threads(config.threads)
     run_dir = Path(config.run_dir)
     with run_log(run_dir / "run.log") as log:
-        log.info(f"profile={config.profile} run_dir={run_dir}")
+        threads = torch.get_num_threads()
+        log.info(f"profile={config.profile} threads={threads} run_dir={run_dir}")
         logger = make_logger(
             config.logger, run_dir / "logs", generate_exp_name("point_mass", config.profile)
         )

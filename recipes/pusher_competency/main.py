@@ -22,6 +22,7 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import hydra
+import torch
 from omegaconf import DictConfig
 from torchrl.record.loggers import generate_exp_name
 
@@ -40,7 +41,8 @@ def main(cfg: DictConfig) -> None:
     set_threads(config.threads)
     run_dir = Path(config.run_dir)
     with run_log(run_dir / "run.log") as log:
-        log.info(f"profile={config.profile} device={device} run_dir={run_dir}")
+        threads = torch.get_num_threads()
+        log.info(f"profile={config.profile} device={device} threads={threads} run_dir={run_dir}")
         name = generate_exp_name("pusher_competency", config.profile)
         logger = make_logger(config.logger, run_dir / "logs", name)
         try:
