@@ -29,6 +29,7 @@ from rcvae_torchrl.agent import (
     dagger,
     load_policy,
     make_policy_module,
+    real_outcomes,
     run_episodes,
     save_policy,
 )
@@ -38,6 +39,7 @@ from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     OBSERVATION_NAMES,
     ball_to_target,
+    make_batched_pusher_env,
     pusher_reward,
     reset_to_state,
     resolution_tensor,
@@ -71,6 +73,8 @@ STAGES = ("data", "models", "agent", "forecast", "truth", "report")
 DEMONSTRATION_SEEDS = 50_000
 EVALUATION_SEEDS = 70_000
 DAGGER_SEEDS = 80_000
+# Real episodes of the truth stage: seeds REAL_SEEDS + 10·seed + c, each run its own stream.
+REAL_SEEDS = 9_000
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i.
 START_SEED_STRIDE = 7919
 
@@ -106,6 +110,19 @@ class Study:
     def env(self, variant: str, **kwargs: Any) -> EnvBase:
         """The real Pusher of ``variant`` with the study's noise and success radius."""
         return make_env(variant, self.cfg.data, self.cfg.assess.success_radius, **kwargs)
+
+    def batched_env(self, variant: str, num_envs: int) -> EnvBase:
+        """``num_envs`` real Pushers of ``variant`` in one batched env, episodes of the
+        horizon's length that go on after success."""
+        d, s = self.cfg.data, self.cfg.assess
+        return make_batched_pusher_env(
+            num_envs,
+            variant,
+            action_noise_std=d.stochastic_noise_std if variant == "stochastic" else None,
+            success_radius=s.success_radius,
+            time_limit=s.horizon_s,
+            terminate_on_success=False,
+        )
 
     def load_model(self, name: str) -> RCVAEEnsemble:
         """The trained world model ``name`` (``"deterministic"`` or ``"stochastic"``)."""
@@ -159,10 +176,12 @@ class Study:
         return summary
 
     def _train_config(self, name: str) -> TrainConfig:
+        """The training settings of world model ``name``, seeded by the study's seed."""
+        train = dataclasses.replace(self.cfg.train, seed=self.cfg.train.seed + self.cfg.seed)
         steps = self.cfg.model.stochastic_open_loop_steps
         if name != "stochastic" or steps is None:
-            return self.cfg.train
-        return dataclasses.replace(self.cfg.train, open_loop_steps=steps)
+            return train
+        return dataclasses.replace(train, open_loop_steps=steps)
 
     def models(self) -> dict[str, Any]:
         m, summary = self.cfg.model, {}
@@ -306,6 +325,9 @@ class Study:
         return summary
 
     def truth(self) -> dict[str, Any]:
+        """The agent in the real env from each forecast's start states, many runs per start in
+        a batched env; episodes go on after success, so every boundary of the competency
+        surface is answered by the same episodes."""
         s, summary = self.cfg.assess, {}
         policy = make_policy_module(self.load_policy())
         for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
@@ -315,17 +337,20 @@ class Study:
                     s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
                 )
                 starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
+                env = self.batched_env(variant, min(s.real_envs, len(starts) * runs))
                 result = real_outcomes(
-                    self.env(variant, time_limit=s.horizon_s),
+                    env,
                     policy,
                     starts,
                     runs_per_start=runs,
+                    reset_to_state=reset_to_state,
                     max_steps=self.max_steps,
-                    seed=self.cfg.seed + 1 + index,
+                    trace=ball_to_target,
+                    seed=REAL_SEEDS + self.cfg.seed * 10 + index,
                     progress=self.progress,
                     desc=f"real: {condition}",
                 )
-                save_torch(path, result)
+                save_torch(path, result.as_dict())
             saved = load_torch(path, "real outcomes")
             summary[condition] = {"success_rate": saved["success"].float().mean().item()}
         return summary
@@ -359,46 +384,6 @@ def _forecast_record(data) -> dict[str, torch.Tensor]:
         "success": c["success"],
         "median_time_s": c["time_to_success", "median_s"],
         "ball_to_target": data["per_sample", "ball_to_target"].flatten(1, 2),
-    }
-
-
-def real_outcomes(
-    env: EnvBase,
-    policy: Callable,
-    starts: torch.Tensor,
-    *,
-    runs_per_start: int,
-    max_steps: int,
-    seed: int = 0,
-    progress: bool = True,
-    desc: str = "real",
-) -> dict[str, torch.Tensor]:
-    """Run ``policy`` from each start ``[B, S]`` with ``runs_per_start`` noise seeds.
-
-    Returns ``success`` ``[B, R]`` bool, ``steps`` ``[B, R]`` (to success, or the episode length)
-    and ``ball_to_target`` ``[B, R, T]`` padded with NaN after the episode ended.
-    """
-    b, r = starts.shape[0], runs_per_start
-    stats = run_episodes(
-        env,
-        policy,
-        seeds=[seed * 100_003 + i for i in range(b * r)],
-        starts=starts.repeat_interleave(r, dim=0),
-        reset_to_state=reset_to_state,
-        max_steps=max_steps,
-        progress=progress,
-        desc=desc,
-    )
-    distance = torch.full((b * r, max_steps), float("nan"))
-    ids = stats.data["collector", "traj_ids"]
-    d = ball_to_target(stats.data["next", "observation"])
-    for i in range(b * r):
-        trace = d[ids == i]
-        distance[i, : trace.numel()] = trace
-    return {
-        "success": stats.success.reshape(b, r),
-        "steps": stats.steps.reshape(b, r),
-        "ball_to_target": distance.reshape(b, r, max_steps),
     }
 
 
