@@ -37,6 +37,9 @@ COLUMNS = (
     ("validation", "auroc", "AUROC"),
     ("validation", "bss_overall", "BSS (overall rate)"),
     ("validation", "brier_skill", "BSS (own rate)"),
+    ("validation", "oracle_auroc", "oracle AUROC"),
+    ("validation", "oracle_brier_skill", "oracle BSS (own rate)"),
+    ("validation", "bss_tasks", "BSS (tasks alike)"),
     ("validation", "tts_skill", "TTS CRPS skill"),
 )
 #: Across seeds, the mean gap per condition must stay within this.

@@ -263,6 +263,8 @@ _SCORE_COLUMNS = (
     ("auroc", "AUROC"),
     ("bss_overall", "BSS (overall rate)"),
     ("brier_skill", "BSS (own rate)"),
+    ("oracle_auroc", "oracle AUROC"),
+    ("oracle_brier_skill", "oracle BSS (own rate)"),
     ("tts_crps", "TTS CRPS (steps)"),
     ("tts_crps_climatology", "climatology"),
     ("starts", "starts"),
@@ -292,7 +294,9 @@ def _validation_text(scores, assess: AssessConfig) -> str:
             f"{assess.seeds_per_start} where the env is deterministic). BSS: Brier skill against "
             "a constant forecast of the overall or the condition's own base rate. TTS: the "
             "forecast distribution of the time to success against the real times, by CRPS, "
-            "beside the condition's climatological distribution (lower is better).",
+            "beside the condition's climatological distribution (lower is better). Oracle: the "
+            "scores of a forecast equal to each start's own real success rate, the ceiling that "
+            "the outcomes' randomness leaves to any forecast.",
             "",
             head,
             rule,

@@ -43,16 +43,41 @@ def _padded(truths: Mapping[str, Mapping[str, torch.Tensor]], key: str) -> tuple
     return torch.cat(values), torch.cat(masks)
 
 
+def _oracle(outcome: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:
+    """The scores of the oracle forecast, each start's own real success rate: what no forecast
+    can beat on these episodes (the ceiling that the outcomes' randomness leaves)."""
+    m = torch.ones_like(outcome) if mask is None else mask
+    rates = (outcome & m).sum(1) / m.sum(1).clamp_min(1)
+    best = validate_forecasts(rates, outcome, mask)
+    return {"oracle_auroc": best["auroc"], "oracle_brier_skill": best["brier_skill"]}
+
+
+def _task_skill(p: torch.Tensor, outcome: torch.Tensor, mask: torch.Tensor) -> float:
+    """Brier skill with every start state (task) weighted alike, against the overall rate of
+    the tasks: each task's Brier is the mean over its episodes."""
+    y, m = outcome.double(), mask.double()
+    rate = float((y * m).sum(1).div(m.sum(1)).mean())
+
+    def per_task(f: torch.Tensor) -> torch.Tensor:
+        return (((f[:, None] - y) ** 2) * m).sum(1).div(m.sum(1)).mean()
+
+    return float(brier_skill_score(per_task(p.double()), per_task(torch.full_like(p, rate))))
+
+
 def validation(forecasts, truths, radius: float) -> dict[str, dict[str, float]]:
     """Per condition and overall: the per-start and per-episode scores of the forecast, the
     Brier skill against the overall base rate (``bss_overall``) and against the condition's
-    own (``brier_skill``), and the time-to-success CRPS against the condition's climatology."""
+    own (``brier_skill``), the scores of the oracle forecast (each start's real rate: the
+    ceiling), and the time-to-success CRPS against the condition's climatology. Overall,
+    ``bss_tasks`` weights every start state alike (in the pooled scores a start counts by its
+    number of real episodes)."""
     success, mask = _padded(truths, "success")
     overall_rate = float(success[mask].double().mean())
     out = {}
     for c in forecasts:
         f, t = forecasts[c], truths[c]
         scores = validate_forecasts(f["p_success"], t["success"])
+        scores.update(_oracle(t["success"]))
         base = ((overall_rate - t["success"].double()) ** 2).mean()
         scores["bss_overall"] = float(brier_skill_score(scores["brier"], base))
         scores.update(
@@ -66,7 +91,9 @@ def validation(forecasts, truths, radius: float) -> dict[str, dict[str, float]]:
         out[c] = scores
     p = torch.cat([forecasts[c]["p_success"] for c in forecasts])
     overall = validate_forecasts(p, success, mask)
+    overall.update(_oracle(success, mask))
     overall["bss_overall"] = overall["brier_skill"]
+    overall["bss_tasks"] = _task_skill(p, success, mask)
     out["overall"] = overall
     return out
 

@@ -45,6 +45,7 @@ def test_a_perfect_forecast_scores_perfectly():
         assert s["bss_overall"] == 1.0 and s["brier_skill"] == 1.0
         assert s["tts_crps"] == 0 and s["tts_crps_climatology"] > 0 and s["tts_skill"] == 1.0
     assert scores["overall"]["episodes"] == 8 + 8 * 30 + 8
+    assert scores["overall"]["bss_tasks"] == 1.0 and scores["overall"]["oracle_auroc"] == 1.0
     surfaces = competency_surfaces(forecasts, truths, [0.03, 0.5], [1, 5, 20])
     for c in CONDITIONS:
         assert surfaces[c]["max_gap"] == 0 and surfaces[c]["per_start_mae"] == 0
@@ -64,7 +65,8 @@ def test_a_constant_forecast_has_no_skill_and_fails_the_checks():
     scores = validation(forecasts, truths, radius=0.03)
     for c in CONDITIONS:
         assert scores[c]["brier_skill"] == pytest.approx(0.0, abs=1e-12)  # base rate is 0.5
-        assert scores[c]["auroc"] == 0.5
+        assert scores[c]["auroc"] == 0.5 and scores[c]["oracle_brier_skill"] == 1.0
+    assert scores["overall"]["bss_tasks"] == pytest.approx(0.0, abs=1e-12)
     checks = trust_checks(scores, competency_surfaces(forecasts, truths, [0.03], [20]))
     assert not checks["AUROC >= 0.75 (all episodes)"]["met"]
     assert not checks["Brier skill vs the overall base rate >= 0.3"]["met"]
