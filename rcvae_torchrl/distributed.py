@@ -26,6 +26,7 @@ import os
 from collections.abc import Iterator
 from typing import Any
 
+import numpy as np
 import torch
 import torch.distributed as dist
 
@@ -40,6 +41,7 @@ __all__ = [
     "session",
     "shard",
     "teardown",
+    "work_generator",
     "world_size",
 ]
 
@@ -122,6 +124,20 @@ def shard(n: int, rank_: int | None = None, world: int | None = None) -> range:
     size, extra = divmod(n, world)
     start = rank_ * size + min(rank_, extra)
     return range(start, start + size + (rank_ < extra))
+
+
+def work_generator(*keys: int, device: str | torch.device = "cpu") -> torch.Generator:
+    """A generator seeded by ``keys`` alone (e.g. the run's seed, a work item's index and a
+    stream number), so a piece of work draws the same numbers on whichever rank runs it.
+
+    The keys go through NumPy's ``SeedSequence``: nearby keys give unrelated streams.
+    """
+    if not keys or any(isinstance(k, bool) or not isinstance(k, int) or k < 0 for k in keys):
+        raise ValueError(f"keys: expected one or more non-negative ints, got {keys!r}")
+    words = np.random.SeedSequence(list(keys)).generate_state(2, np.uint32)
+    generator = torch.Generator(device=device)
+    generator.manual_seed(int(words[0]) << 31 | int(words[1]) >> 1)
+    return generator
 
 
 def all_gather(obj: Any) -> list[Any]:

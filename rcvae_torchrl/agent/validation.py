@@ -16,6 +16,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
 
@@ -64,43 +65,61 @@ def real_outcomes(
 
     Run ``r`` of start ``b`` is seeded with ``seed·100_003 + b·R + r`` (the env and its noise
     transforms, :func:`~rcvae_torchrl.data.seed_env`), then put in the start state with
-    ``reset_to_state``. ``success`` and ``trace`` are as in
-    :func:`~rcvae_torchrl.agent.run_episodes` (a flag the env writes, or a function of the
-    observations); ``trace`` maps observations ``[T, S] -> [T]``.
+    ``reset_to_state``. Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) the
+    ``B·R`` episodes are shared out over the ranks in blocks, each rank with its own ``env``
+    and ``policy``, and the outcomes gathered on every rank: the same as one process's.
+    ``success`` and ``trace`` are as in :func:`~rcvae_torchrl.agent.run_episodes` (a flag the
+    env writes, or a function of the observations); ``trace`` maps observations
+    ``[T, S] -> [T]``.
     """
     if isinstance(runs_per_start, bool) or not isinstance(runs_per_start, int):
         raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
     if runs_per_start < 1:
         raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
     b, r = len(starts), runs_per_start
-    index = torch.arange(b).repeat_interleave(r)
-    stats = run_episodes(
-        env,
-        policy,
-        seeds=[seed * 100_003 + i for i in range(b * r)],
-        starts=starts[index],
-        reset_to_state=reset_to_state,
-        max_steps=max_steps,
-        success=success,
-        progress=progress,
-        desc=desc,
-    )
-    first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, max_steps))
+    mine = distributed.shard(b * r) if distributed.is_active() else range(b * r)
+    index = torch.arange(b).repeat_interleave(r)[list(mine)]
+    part = None
+    if len(mine):
+        stats = run_episodes(
+            env,
+            policy,
+            seeds=[seed * 100_003 + i for i in mine],
+            starts=starts[index],
+            reset_to_state=reset_to_state,
+            max_steps=max_steps,
+            success=success,
+            progress=progress and distributed.is_main(),
+            desc=desc,
+        )
+        part = _outcomes(stats, len(mine), success, trace, max_steps)
+    flat = _gathered(part)
+    return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
+
+
+def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
+    """``(success, first_step, steps, trace or None)`` of ``episodes`` episodes ``[n, ...]``."""
+    first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, horizon))
     if callable(success):  # a function: the first success may lie before the episode's end
-        first = _first_steps(stats.data, success, b * r, max_steps)
+        first = _first_steps(stats.data, success, episodes, horizon)
     values = None
     if trace is not None:
-        values = torch.full((b * r, max_steps), float("nan"))
+        values = torch.full((episodes, horizon), float("nan"))
         ids, per_step = stats.data[TRAJ_KEY], trace(stats.data["next", "observation"])
-        for i in range(b * r):
+        for i in range(episodes):
             row = per_step[ids == i]
             values[i, : row.numel()] = row
-        values = values.reshape(b, r, max_steps)
-    return RealOutcomes(
-        stats.success.reshape(b, r),
-        first.reshape(b, r),
-        stats.steps.reshape(b, r),
-        values,
+    return stats.success, first, stats.steps, values
+
+
+def _gathered(part: tuple | None) -> tuple:
+    """This rank's episodes, or every rank's in episode order under torch.distributed."""
+    if not distributed.is_active():
+        return part
+    parts = [p for p in distributed.all_gather(part) if p is not None]
+    return tuple(
+        None if parts[0][k] is None else torch.cat([p[k] for p in parts])
+        for k in range(len(parts[0]))
     )
 
 

@@ -59,12 +59,10 @@ def standard_normal(
         return torch.randn(shape, generator=generator, dtype=like.dtype, device=like.device)
     if len(generator) != shape[0]:
         raise ValueError(
-            f"generator: expected one generator per leading row ({shape[0]}), "
-            f"got {len(generator)}"
+            f"generator: expected one generator per leading row ({shape[0]}), got {len(generator)}"
         )
     rows = [
-        torch.randn(shape[1:], generator=g, dtype=like.dtype, device=like.device)
-        for g in generator
+        torch.randn(shape[1:], generator=g, dtype=like.dtype, device=like.device) for g in generator
     ]
     return torch.stack(rows)
 

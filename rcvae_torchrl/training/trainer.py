@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.record.loggers import Logger
@@ -267,13 +266,7 @@ _WINDOWS, _NOISE, _VALIDATION = 0, 1, 2
 
 def _generators(seed: int, members: range, stream: int, device: torch.device) -> list:
     """One generator per member, seeded by (seed, member, stream) alone."""
-    out = []
-    for member in members:
-        entropy = np.random.SeedSequence([seed, member, stream]).generate_state(2, np.uint32)
-        g = torch.Generator(device=device)
-        g.manual_seed(int(entropy[0]) << 31 | int(entropy[1]) >> 1)
-        out.append(g)
-    return out
+    return [distributed.work_generator(seed, m, stream, device=device) for m in members]
 
 
 def _new_state(local: RCVAEEnsemble) -> _State:
@@ -330,8 +323,9 @@ def _validate(
     """Per-member validation loss; keep improved members' weights; stop members that have
     not improved for ``patience`` validations (each member on its own)."""
     device = next(local.parameters()).device
-    noise, loss_fn.generator = loss_fn.generator, _generators(
-        config.seed, members, _VALIDATION, device
+    noise, loss_fn.generator = (
+        loss_fn.generator,
+        _generators(config.seed, members, _VALIDATION, device),
     )
     try:
         per_member = loss_fn(windows)["loss_per_member"].cpu()

@@ -8,8 +8,13 @@ import signal
 from pathlib import Path
 
 import torch
+from torchrl.envs import DMControlEnv
 
 from rcvae_torchrl import distributed
+from rcvae_torchrl.agent import RealOutcomes, draw_starts, real_outcomes, reset_by_seed
+from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary
+from rcvae_torchrl.data import ActionNoise, prepare_env
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.training import TrainConfig, train_ensemble
 
@@ -65,3 +70,88 @@ def train(out: str, ckpt: str | None = None, kill_rank: int = -1, kill_at: int =
             },
             out,
         )
+
+
+# ---------------------------------------------------------------------- forecasts
+def make_assessor():
+    """A tiny untrained 3-member world model and its assessor (x[0] > 0.05 within 8 steps)."""
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=8, latent_dim=2, mlp_dim=8), 3)
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(100, 3, generator=g) * 0.1
+    model.fit_normalizer(obs, torch.rand(100, 1, generator=g) * 2 - 1, next_observations=obs * 1.1)
+    env = RCVAEEnsembleEnv(
+        model,
+        lambda observation, action: -observation[..., :1],
+        lambda observation: observation[..., 0] > 0.05,
+    )
+    boundary = SuccessBoundary(lambda s: s[..., 0] > 0.05, time_limit=8, dt=0.1)
+    return CompetencyAssessor(
+        env,
+        boundary,
+        bin_width=0.05,
+        samples_per_member=6,
+        start_chunk=2,
+        bias_correction="shuffle",
+        per_sample={"x": lambda o: o[..., 0]},
+    )
+
+
+def forecast_starts() -> torch.Tensor:
+    return torch.randn(7, 3, generator=torch.Generator().manual_seed(1)) * 0.2
+
+
+def policy(observation: torch.Tensor) -> torch.Tensor:
+    return (1.0 - 3.0 * observation[..., :1]).clamp(-1, 1)
+
+
+def forecast(out: str, seed: int) -> None:
+    """Every rank saves the report it gets (``out`` formatted with its rank) and the error of
+    a sharded assessment without a seed."""
+    assessor = make_assessor()
+    try:
+        assessor.assess(forecast_starts(), policy=policy)
+        error = ""
+    except ValueError as err:
+        error = str(err)
+    report = assessor.assess(forecast_starts(), policy=policy, seed=seed)
+    torch.save({"data": report.data, "error": error}, out.format(rank=distributed.rank()))
+
+
+# ---------------------------------------------------------------------- real outcomes
+def point_mass():
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    env.append_transform(ActionNoise(1.0))
+    return env
+
+
+def push(td):
+    return td.set("action", -5 * td["observation"][..., :2].clamp(-0.2, 0.2))
+
+
+def near(observation):
+    return observation[..., :2].norm(dim=-1) < 0.2
+
+
+def distance(observation):
+    return observation[..., :2].norm(dim=-1)
+
+
+def outcomes(out: str | None = None) -> RealOutcomes:
+    """3 starts x 3 runs of a noisy point mass; every rank saves what it gathered."""
+    env = point_mass()
+    result = real_outcomes(
+        env,
+        push,
+        draw_starts(env, [0, 1, 2]),
+        runs_per_start=3,
+        reset_to_state=reset_by_seed,
+        max_steps=25,
+        success=near,
+        trace=distance,
+        seed=1,
+        progress=False,
+    )
+    if out is not None:
+        torch.save(result.as_dict(), out.format(rank=distributed.rank()))
+    return result
