@@ -213,7 +213,8 @@ def _train_shard(
     if len(members) == 0:
         return None
     device = next(ensemble.parameters()).device
-    local = ensemble.select_members(list(members))
+    with torch.random.fork_rng(devices=[]):  # building the copy draws an initialisation
+        local = ensemble.select_members(list(members))
     shard_path = _shard_path(path, members, ensemble.ensemble_size)
     windows_rng = _generators(config.seed, members, _WINDOWS, torch.device("cpu"))
     noise_rng = _generators(config.seed, members, _NOISE, device)
