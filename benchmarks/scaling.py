@@ -10,12 +10,13 @@ of the gathered result. Workloads (Pusher-sized, the study's default world model
   (4 per rank), N samples per member, a horizon of T steps;
 - validation: ``real_outcomes`` of the scripted pusher in the real Pusher from 8 start states.
 
-Printed and written to ``benchmarks/results/scaling.json``: median times, speed-up
-(t1 / t2) and efficiency (speed-up / 2); the bytes each rank contributes to the gather and
-the gather's time; and a projection for 8 ranks on one machine and 4 machines x 8 GPUs from
-the measured cost (see ``project`` for the model and its assumptions). The machine's load
-average is recorded before and after: other jobs on a shared 2-core machine take cores away
-from the ranks.
+Printed and written to ``benchmarks/results/scaling.json``: median wall times, speed-up
+(t1 / t2) and efficiency (speed-up / 2), the same from CPU seconds (the slowest rank's: what
+the ranks would take on free cores, when other jobs hold the machine's cores); the bytes each
+rank contributes to the gather and the gather's time; and a projection for 8 ranks on one
+machine and 4 machines x 8 GPUs from the measured cost (see ``project`` for the model and its
+assumptions). The machine's load average is recorded before and after: other jobs on a shared
+2-core machine take cores away from the ranks.
 
     python benchmarks/scaling.py [--repeats 3] [--quick]
 """
@@ -175,18 +176,29 @@ def _rank(rank: int, world: int, port: int, name: str, args: dict, out: str) -> 
     with distributed.session("gloo"):
         run = WORKLOADS[name](args["quick"])
         run()  # warm-up
-        times = []
+        times, cpu = [], []
         for _ in range(args["repeats"]):
             gathers.clear()
             distributed.barrier()
-            start = time.perf_counter()
+            start, start_cpu = time.perf_counter(), time.process_time()
             run()
+            cpu.append(time.process_time() - start_cpu)
             distributed.barrier()
             times.append(time.perf_counter() - start)
         sent, waited = sum(b for b, _ in gathers), sum(t for _, t in gathers)
         probe = _gather_probe(sent) if world > 1 else None
+        cpu_by_rank = gather(cpu)
     if rank == 0:
-        torch.save({"times": times, "gather_bytes": sent, "gather_s": waited, "probe": probe}, out)
+        torch.save(
+            {
+                "times": times,
+                "cpu_by_rank": cpu_by_rank,
+                "gather_bytes": sent,
+                "gather_s": waited,
+                "probe": probe,
+            },
+            out,
+        )
 
 
 def _gather_probe(nbytes: int, repeats: int = 5) -> dict[str, float]:
@@ -230,6 +242,11 @@ def project(
     t1: float, t2: float, gather_s: float, bytes_per_rank: int, units: int
 ) -> tuple[dict[str, float], Callable[[int, dict], dict[str, float]]]:
     """Projected times from the measured 1- and 2-rank runs (Amdahl's law plus a gather).
+
+    ``t1``, ``t2``: the CPU seconds of one rank, and of the slowest of two (on a shared
+    machine the CPU time is what a rank costs on a free core; wall time also holds the waits
+    for cores that other jobs hold); ``gather_s``: an all-gather of the measured bytes with
+    both ranks ready.
 
     - The serial part s (not shared: building the model and data, setting up, rank 0's
       extras) follows from t2 - gather = t1 (s + (1 - s) / 2); the shared part costs
@@ -277,15 +294,28 @@ def main() -> None:
     load_after = os.getloadavg()
     rows, projections, payload = [], [], {}
     for name, by_world in results.items():
-        t1 = statistics.median(by_world[1]["times"])
-        t2 = statistics.median(by_world[2]["times"])
-        two = by_world[2]
-        speedup = t1 / t2
-        rows.append(
-            [name, UNITS[name], t1, t2, speedup, speedup / 2, two["gather_bytes"], two["gather_s"]]
-        )
-        base, at = project(t1, t2, two["gather_s"], two["gather_bytes"], UNITS[name])
+        one, two = by_world[1], by_world[2]
+        t1, t2 = statistics.median(one["times"]), statistics.median(two["times"])
+        c1 = statistics.median(one["cpu_by_rank"][0])
+        c2 = statistics.median(max(r) for r in zip(*two["cpu_by_rank"]))
         probe = two["probe"]
+        rows.append(
+            [
+                name,
+                UNITS[name],
+                t1,
+                t2,
+                t1 / t2,
+                t1 / t2 / 2,
+                c1,
+                c2,
+                c1 / c2,
+                c1 / c2 / 2,
+                two["gather_bytes"],
+                probe["payload_s"],
+            ]
+        )
+        base, at = project(c1, c2, probe["payload_s"], two["gather_bytes"], UNITS[name])
         gloo = {
             "latency_s": probe["latency_s"],
             "bandwidth_Bps": max(two["gather_bytes"], 1)
@@ -300,21 +330,37 @@ def main() -> None:
             projections.append([name, case, p["time_s"], p["speedup"], p["efficiency"]])
         payload[name] = {
             "units": UNITS[name],
-            "times_s": {str(w): by_world[w]["times"] for w in WORLDS},
-            "median_s": {"1": t1, "2": t2},
-            "speedup": speedup,
-            "efficiency": speedup / 2,
+            "wall_s": {str(w): by_world[w]["times"] for w in WORLDS},
+            "cpu_s_by_rank": {str(w): by_world[w]["cpu_by_rank"] for w in WORLDS},
+            "median_wall_s": {"1": t1, "2": t2},
+            "median_cpu_s": {"1": c1, "2 (slowest rank)": c2},
+            "speedup_wall": t1 / t2,
+            "efficiency_wall": t1 / t2 / 2,
+            "speedup_cpu": c1 / c2,
+            "efficiency_cpu": c1 / c2 / 2,
             "gather_bytes_per_rank": two["gather_bytes"],
-            "gather_s": two["gather_s"],
+            "gather_wait_s": two["gather_s"],
             "gather_probe": probe,
             "gloo_link": gloo,
             "model": base,
             "projection": cases,
         }
-    header = ["workload", "units", "1 rank s", "2 ranks s", "speed-up", "efficiency"]
     print_table(
-        "Scaling at 1 and 2 ranks (1 thread each, medians)",
-        [*header, "gathered B/rank", "gather s"],
+        "Scaling at 1 and 2 ranks (1 thread each, medians; CPU: the slowest rank's CPU seconds)",
+        [
+            "workload",
+            "units",
+            "wall 1",
+            "wall 2",
+            "speed-up",
+            "eff.",
+            "CPU 1",
+            "CPU 2",
+            "CPU speed-up",
+            "CPU eff.",
+            "gathered B/rank",
+            "gather s",
+        ],
         rows,
     )
     print_table(

@@ -1,11 +1,15 @@
 """``train_ensemble``: the world model's training loop, with validation, early stopping and resume.
 
 One Adam step trains every member (the loss sums over members); each member draws its own
-windows, so it sees its own resample of the data. Validation windows are fixed per run. Members
-stop improving at different times, so the best weights are kept per member. A checkpoint
-(weights, optimiser, best weights, RNG state, history) is written atomically at each validation,
-so ``resume=True`` continues a run killed at any point (even ``kill -9``) from its last
-validation, and a finished run is not trained again.
+windows from its own generator, so it sees its own resample of the data, and nothing of one
+member depends on the others: its noise, gradient clipping and early stopping are its own.
+Validation windows are fixed per run. Members stop improving at different times, so the best
+weights are kept per member. A checkpoint (weights, optimiser, best weights, generator states,
+history) is written atomically at each validation, so ``resume=True`` continues a run killed
+at any point (even ``kill -9``) from its last validation, and a finished run is not trained
+again. Under ``torch.distributed`` the members are shared out over the ranks
+(:mod:`rcvae_torchrl.distributed`), each rank checkpoints its own block, and the gathered
+ensemble equals a single process's.
 """
 
 from __future__ import annotations
@@ -46,15 +50,17 @@ class TrainConfig:
         lr_final_fraction: the learning rate follows a cosine from ``lr`` at step 0 to
             ``lr * lr_final_fraction`` at ``max_steps`` (1 keeps it constant). It is a function
             of the step alone, so a resumed run continues on the same schedule.
-        grad_clip: max global gradient norm.
+        grad_clip: max gradient norm of each member (over its own parameters).
         beta: KL weight.
         free_nats: per-step free nats of the KL.
         open_loop_steps: trailing transitions of each window fed with the model's own samples.
         nll_beta: β of the β-NLL weighting of the reconstruction term (see :class:`RCVAELoss`).
         val_every: steps between validations (and checkpoints).
         val_windows: fixed validation windows (shared by all members).
-        patience: validations without improvement of any member before stopping early.
-        seed: seeds sampling and the model's noise.
+        patience: validations without improvement after which a member stops (its best
+            weights are kept; the run ends when every member has stopped).
+        seed: seeds sampling and the model's noise (one generator per member and purpose,
+            seeded by the seed and the member's index).
     """
 
     max_steps: int = 3000
