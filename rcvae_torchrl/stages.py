@@ -14,6 +14,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl.io import read_json, write_json
 
 __all__ = ["StageRunner"]
@@ -42,17 +43,34 @@ class StageRunner:
         """The marker file of stage ``name``."""
         return self.run_dir / "stages" / f"{name}.json"
 
-    def run(self, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
-        """Run stage ``name`` (unless its marker exists); returns its summary."""
+    def run(
+        self, name: str, fn: Callable[[], dict[str, Any]], sharded: bool = False
+    ) -> dict[str, Any]:
+        """Run stage ``name`` (unless its marker exists); returns its summary.
+
+        Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) a ``sharded`` stage runs
+        on every rank (it shares its work out and writes its files on rank 0), any other stage
+        on rank 0 alone; rank 0 writes the marker and logs, and every rank waits for the stage
+        to end before the next one.
+        """
         path = self.marker(name)
-        if path.is_file():
-            self.log(f"[{name}] done earlier: reusing {path.parent.name}/{path.name}")
+        if distributed.broadcast(path.is_file()):  # rank 0's view: every rank takes one branch
+            self._log(f"[{name}] done earlier: reusing {path.parent.name}/{path.name}")
             summary = read_json(path, f"marker of stage {name!r}")
-        else:
-            self.log(f"[{name}] running")
+        elif distributed.is_main() or sharded:
+            self._log(f"[{name}] running")
             start = time.perf_counter()
             summary = {**fn(), "seconds": round(time.perf_counter() - start, 1)}
-            write_json(path, summary)
-            self.log(f"[{name}] finished in {summary['seconds']} s")
+            if distributed.is_main():
+                write_json(path, summary)
+            self._log(f"[{name}] finished in {summary['seconds']} s")
+            distributed.barrier()
+        else:
+            distributed.barrier()
+            summary = read_json(path, f"marker of stage {name!r}")
         self.summaries[name] = summary
         return summary
+
+    def _log(self, line: str) -> None:
+        if distributed.is_main():
+            self.log(line)

@@ -18,6 +18,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY, seed_env
 
@@ -34,16 +35,6 @@ class RealOutcomes:
     first_step: torch.Tensor  #: int64 ``[B, R]``: index of the first success, ``T`` when none
     steps: torch.Tensor  #: int64 ``[B, R]``: the episode's length
     trace: torch.Tensor | None = None  #: ``[B, R, T]`` per-step values, NaN after the episode
-
-    def reshape(self, b: int, r: int) -> RealOutcomes:
-        """Outcomes of ``b·r`` episodes (first dim) as ``[b, r]``."""
-        trace = None if self.trace is None else self.trace.reshape(b, r, -1)
-        return RealOutcomes(
-            self.success.reshape(b, r),
-            self.first_step.reshape(b, r),
-            self.steps.reshape(b, r),
-            trace,
-        )
 
     def as_dict(self) -> dict[str, torch.Tensor]:
         """Plain tensors (for ``torch.save``)."""
@@ -87,59 +78,80 @@ def real_outcomes(
     ``reset_to_state(env, starts[N])`` starts the chunk, which then runs ``max_steps`` steps
     (a sub-env that is done stays done). The last chunk is padded with repeats of its last
     episode, whose results are dropped.
+
+    Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) the ``B·R`` episodes are
+    shared out over the ranks in blocks, each rank with its own ``env`` and ``policy``, and the
+    outcomes gathered on every rank: the same as one process's.
     """
     if isinstance(runs_per_start, bool) or not isinstance(runs_per_start, int):
         raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
     if runs_per_start < 1:
         raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
     b, r = len(starts), runs_per_start
-    index = torch.arange(b).repeat_interleave(r)
-    seeds = [seed * 100_003 + i for i in range(b * r)]
-    if len(env.batch_size) == 1:
-        return _batched_outcomes(
-            env,
-            policy,
-            starts,
-            index,
-            seeds,
-            reset_to_state,
-            max_steps,
-            success,
-            trace,
-            progress,
-            desc,
-        ).reshape(b, r)
     if len(env.batch_size) > 1:
         raise ValueError(
             f"env: expected an env with batch_size [] or [N], got {list(env.batch_size)}"
         )
-    stats = run_episodes(
-        env,
-        policy,
-        seeds=seeds,
-        starts=starts[index],
-        reset_to_state=reset_to_state,
-        max_steps=max_steps,
-        success=success,
-        progress=progress,
-        desc=desc,
-    )
-    first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, max_steps))
+    mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))
+    index = torch.arange(b).repeat_interleave(r)[mine]
+    seeds = [seed * 100_003 + i for i in mine]
+    part = None
+    if mine and len(env.batch_size) == 1:
+        part = dataclasses.astuple(
+            _batched_outcomes(
+                env,
+                policy,
+                starts,
+                index,
+                seeds,
+                reset_to_state,
+                max_steps,
+                success,
+                trace,
+                progress and distributed.is_main(),
+                desc,
+            )
+        )
+    elif mine:
+        stats = run_episodes(
+            env,
+            policy,
+            seeds=seeds,
+            starts=starts[index],
+            reset_to_state=reset_to_state,
+            max_steps=max_steps,
+            success=success,
+            progress=progress and distributed.is_main(),
+            desc=desc,
+        )
+        part = _outcomes(stats, len(mine), success, trace, max_steps)
+    flat = _gathered(part)
+    return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
+
+
+def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
+    """``(success, first_step, steps, trace or None)`` of ``episodes`` episodes ``[n, ...]``."""
+    first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, horizon))
     if callable(success):  # a function: the first success may lie before the episode's end
-        first = _first_steps(stats.data, success, b * r, max_steps)
+        first = _first_steps(stats.data, success, episodes, horizon)
     values = None
     if trace is not None:
-        values = torch.full((b * r, max_steps), float("nan"))
+        values = torch.full((episodes, horizon), float("nan"))
         ids, per_step = stats.data[TRAJ_KEY], trace(stats.data["next", "observation"])
-        for i in range(b * r):
+        for i in range(episodes):
             row = per_step[ids == i]
             values[i, : row.numel()] = row
-        values = values.reshape(b, r, max_steps)
-    return RealOutcomes(
-        stats.success.reshape(b, r),
-        first.reshape(b, r),
-        stats.steps.reshape(b, r),
-        values,
+    return stats.success, first, stats.steps, values
+
+
+def _gathered(part: tuple | None) -> tuple:
+    """This rank's episodes, or every rank's in episode order under torch.distributed."""
+    if not distributed.is_active():
+        return part
+    parts = [p for p in distributed.all_gather(part) if p is not None]
+    return tuple(
+        None if parts[0][k] is None else torch.cat([p[k] for p in parts])
+        for k in range(len(parts[0]))
     )
 
 

@@ -149,10 +149,13 @@ class AssessConfig:
     episodes. ``episode_end``: measure the uncertainty of the episode, which ends at success as
     in the real env (ended samples share a terminal bin). ``bias_correction``: ``"none"`` or
     ``"shuffle"`` (the histogram's epistemic part corrected for its sampling bias, see
-    :func:`~rcvae_torchrl.competency.decompose_uncertainty`).
+    :func:`~rcvae_torchrl.competency.decompose_uncertainty`). ``start_chunk``: start states
+    imagined together, each chunk seeded by the study's seed and its index (the unit of work
+    shared over ``torchrun`` ranks).
     """
 
     start_states: int = 40
+    start_chunk: int = 4
     samples_per_member: int = 50
     horizon_s: float = 12.0
     seeds_per_start: int = 1
@@ -171,6 +174,7 @@ class AssessConfig:
             self,
             (
                 "start_states",
+                "start_chunk",
                 "samples_per_member",
                 "seeds_per_start",
                 "stochastic_seeds_per_start",

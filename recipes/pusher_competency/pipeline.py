@@ -24,6 +24,7 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl.agent import (
     PerturbedPolicy,
     dagger,
@@ -65,9 +66,11 @@ from .pusher import (
 )
 from .report import write_report
 
-__all__ = ["STAGES", "Study", "resolve_device", "run_study", "set_threads"]
+__all__ = ["SHARDED_STAGES", "STAGES", "Study", "resolve_device", "run_study", "set_threads"]
 
 STAGES = ("data", "models", "agent", "forecast", "truth", "report")
+# Stages that share their work over torch.distributed ranks (the others run on rank 0).
+SHARDED_STAGES = ("models", "forecast", "truth")
 
 # Disjoint seed ranges of the real episodes, per purpose (offset by 1000 per study seed).
 DEMONSTRATION_SEEDS = 50_000
@@ -209,7 +212,9 @@ class Study:
                 "stopped_early": result.stopped_early,
                 "best_val_loss": result.best_val.mean().item(),
             }
-            save_ensemble(result.ensemble, path, extra={"variant": name, "training": info})
+            if distributed.is_main():
+                save_ensemble(result.ensemble, path, extra={"variant": name, "training": info})
+        distributed.barrier()
         for name in WORLD_MODELS:
             saved = load_torch(self.dir / "models" / f"{name}.pt", "model checkpoint")
             summary[name] = saved["extra"].get("training", {})
@@ -295,31 +300,34 @@ class Study:
             bin_width=resolution_tensor(),
             dim_names=OBSERVATION_NAMES,
             samples_per_member=s.samples_per_member,
-            start_chunk=s.start_states,
+            start_chunk=s.start_chunk,
             episode_end=s.episode_end,
             bias_correction=s.bias_correction,
-            generator=torch.Generator().manual_seed(self.cfg.seed),
             per_sample={"ball_to_target": ball_to_target},
         )
 
     def forecast(self) -> dict[str, Any]:
+        """Sharded: chunks of start states over the ranks (each chunk seeded by the study's
+        seed and its index), one report gathered; rank 0 writes it."""
         s, summary = self.cfg.assess, {}
         policy = self.load_policy().to(self.device)
         for condition, (model_name, variant) in CONDITIONS.items():
             path = self.dir / "forecast" / f"{condition}.pt"
-            if not path.is_file():
+            if not distributed.broadcast(path.is_file()):
                 starts = self.starts(condition)
                 assessor = self.assessor(model_name, variant)
-                generator = torch.Generator(device=self.device).manual_seed(self.cfg.seed)
                 start = starts.to(self.device)
                 if s.open_loop:
+                    generator = torch.Generator(device=self.device).manual_seed(self.cfg.seed)
                     plan = assessor.model_env.plan_actions(
                         start, policy, assessor.horizon, generator=generator
                     )
-                    report = assessor.assess(start, actions=plan, generator=generator)
+                    report = assessor.assess(start, actions=plan, seed=self.cfg.seed)
                 else:
-                    report = assessor.assess(start, policy=policy, generator=generator)
-                save_torch(path, {"starts": starts, **_forecast_record(report.data.cpu())})
+                    report = assessor.assess(start, policy=policy, seed=self.cfg.seed)
+                if distributed.is_main():
+                    save_torch(path, {"starts": starts, **_forecast_record(report.data.cpu())})
+            distributed.barrier()
             saved = load_torch(path, "forecast")
             summary[condition] = {"p_success": saved["p_success"].mean().item()}
         return summary
@@ -327,12 +335,13 @@ class Study:
     def truth(self) -> dict[str, Any]:
         """The agent in the real env from each forecast's start states, many runs per start in
         a batched env; episodes go on after success, so every boundary of the competency
-        surface is answered by the same episodes."""
+        surface is answered by the same episodes. Sharded: the real episodes over the ranks;
+        rank 0 writes the outcomes."""
         s, summary = self.cfg.assess, {}
         policy = make_policy_module(self.load_policy())
         for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
             path = self.dir / "truth" / f"{condition}.pt"
-            if not path.is_file():
+            if not distributed.broadcast(path.is_file()):
                 runs = (
                     s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
                 )
@@ -350,7 +359,9 @@ class Study:
                     progress=self.progress,
                     desc=f"real: {condition}",
                 )
-                save_torch(path, result.as_dict())
+                if distributed.is_main():
+                    save_torch(path, result.as_dict())
+            distributed.barrier()
             saved = load_torch(path, "real outcomes")
             summary[condition] = {"success_rate": saved["success"].float().mean().item()}
         return summary
@@ -399,11 +410,12 @@ def run_study(
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
-    record_run_config(run_dir / "study_config.json", settings)
-    study = Study(config, run_dir, torch.device(device), progress)
+    if distributed.is_main():
+        record_run_config(run_dir / "study_config.json", settings)
+    study = Study(config, run_dir, torch.device(device), progress and distributed.is_main())
     runner = StageRunner(run_dir, log)
     for name in STAGES:
-        runner.run(name, getattr(study, name))
+        runner.run(name, getattr(study, name), sharded=name in SHARDED_STAGES)
     return runner.summaries
 
 
