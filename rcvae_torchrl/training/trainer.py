@@ -23,6 +23,7 @@ from torchrl.record.loggers.csv import CSVLogger
 from tqdm.auto import tqdm
 
 from rcvae_torchrl.data import make_window_buffer, sample_windows
+from rcvae_torchrl._checks import check_non_negative, check_positive
 from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
@@ -83,6 +84,15 @@ class TrainConfig:
             raise ValueError(
                 f"lr_final_fraction: expected a value in (0, 1], got {self.lr_final_fraction}"
             )
+        check_positive("beta", self.beta)
+        check_non_negative("free_nats", self.free_nats)
+        open_loop = self.open_loop_steps
+        if isinstance(open_loop, bool) or not isinstance(open_loop, int) or open_loop < 0:
+            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop!r}")
+        if not 0.0 <= self.nll_beta <= 1.0:
+            raise ValueError(f"nll_beta: expected a value in [0, 1], got {self.nll_beta!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
 
     def lr_at(self, step: int) -> float:
         """The learning rate of optimiser step ``step`` (0-based): cosine decay."""

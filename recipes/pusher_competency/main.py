@@ -21,8 +21,9 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
 import hydra
 from omegaconf import DictConfig
 
+from recipes._settings import resolve_device, set_threads
 from recipes.pusher_competency.config import register_configs, study_config
-from recipes.pusher_competency.pipeline import resolve_device, run_study, set_threads
+from recipes.pusher_competency.pipeline import run_study
 
 register_configs()
 

@@ -33,7 +33,7 @@ from rcvae_torchrl.agent import (
     save_policy,
 )
 from rcvae_torchrl.competency import CompetencyAssessor
-from rcvae_torchrl.data import load_episodes, save_episodes, split_episodes
+from rcvae_torchrl.data import load_episodes, save_episodes, seed_env, split_episodes
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     OBSERVATION_NAMES,
@@ -63,7 +63,7 @@ from .pusher import (
 )
 from .report import write_report
 
-__all__ = ["STAGES", "Study", "resolve_device", "run_study", "set_threads"]
+__all__ = ["STAGES", "Study", "run_study"]
 
 STAGES = ("data", "models", "agent", "forecast", "truth", "report")
 
@@ -73,21 +73,6 @@ EVALUATION_SEEDS = 70_000
 DAGGER_SEEDS = 80_000
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i.
 START_SEED_STRIDE = 7919
-
-
-def resolve_device(name: str) -> str:
-    """``"auto"`` -> ``"cuda"`` when available, else ``"cpu"``; other names are checked."""
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device: {name!r} asked for, but CUDA is not available here")
-    return name
-
-
-def set_threads(threads: int | None) -> None:
-    """Set torch's intra-op threads (``None``: leave torch's default)."""
-    if threads is not None:
-        torch.set_num_threads(threads)
 
 
 class Study:
@@ -130,7 +115,7 @@ class Study:
         index = list(CONDITIONS).index(condition)
         starts = []
         for i in range(self.cfg.assess.start_states):
-            env.set_seed(self.cfg.seed * START_SEED_STRIDE + 1000 * index + i)
+            seed_env(env, self.cfg.seed * START_SEED_STRIDE + 1000 * index + i)
             starts.append(env.reset()["observation"])
         return torch.stack(starts)
 
