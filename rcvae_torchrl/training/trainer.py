@@ -22,8 +22,8 @@ from torchrl.record.loggers import Logger
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm.auto import tqdm
 
-from rcvae_torchrl.data import make_window_buffer, sample_windows
 from rcvae_torchrl._checks import check_non_negative, check_positive
+from rcvae_torchrl.data import make_window_buffer, sample_windows
 from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss

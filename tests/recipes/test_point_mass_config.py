@@ -30,7 +30,8 @@ def test_values_of_the_wrong_type_name_their_key(override):
     key, _, value = override.partition("=")
     with pytest.raises(ConfigCompositionException) as info:
         _compose(override)
-    assert f"full_key: {key}" in str(info.value.__cause__)
+    message = str(info.value.__cause__)
+    assert f"full_key: {key}" in message and repr(value) in message
 
 
 @pytest.mark.parametrize(
