@@ -305,16 +305,19 @@ def _restore(
     payload = read_checkpoint(path)
     training = payload.get("training")
     if training is None:
-        raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume")
+        raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume", path)
     if training["config"] != dataclasses.asdict(config):
         raise CheckpointError(
             f"checkpoint {str(path)!r}: was written with another TrainConfig "
-            f"({training['config']}); resume with the same config or a new path"
+            f"({training['config']}); resume with the same config or a new path",
+            path,
         )
     try:
         ensemble.load_state_dict(payload["state_dict"])
     except RuntimeError as err:
-        raise CheckpointError(f"checkpoint {str(path)!r}: weights do not match: {err}") from err
+        raise CheckpointError(
+            f"checkpoint {str(path)!r}: weights do not match: {err}", path
+        ) from err
     optimizer.load_state_dict(training["optimizer"])
     torch.set_rng_state(training["rng"])
     return _State(**training["state"])

@@ -43,7 +43,7 @@ from rcvae_torchrl.envs import (
     resolution_tensor,
 )
 from rcvae_torchrl.envs.scripted import ScriptedPusher
-from rcvae_torchrl.io import load_torch, record_run_config, save_torch
+from rcvae_torchrl.io import load_torch, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
@@ -65,7 +65,15 @@ from .report import write_report
 
 __all__ = ["STAGES", "Study", "run_study"]
 
-STAGES = ("data", "models", "agent", "forecast", "truth", "report")
+# Each stage and the files it writes (their sizes and hashes go into its marker).
+STAGES = {
+    "data": ("data/*.pt",),
+    "models": ("models/*.pt",),
+    "agent": ("agent/*.pt",),
+    "forecast": ("forecast/*.pt",),
+    "truth": ("truth/*.pt",),
+    "report": ("*.md", "*.csv", "*.png", "*.gif", "summary.json"),
+}
 
 # Disjoint seed ranges of the real episodes, per purpose (offset by 1000 per study seed).
 DEMONSTRATION_SEEDS = 50_000
@@ -399,11 +407,10 @@ def run_study(
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
-    record_run_config(run_dir / "study_config.json", settings)
+    runner = StageRunner(run_dir, log, settings=settings)
     study = Study(config, run_dir, torch.device(device), progress)
-    runner = StageRunner(run_dir, log)
-    for name in STAGES:
-        runner.run(name, getattr(study, name))
+    for name, outputs in STAGES.items():
+        runner.run(name, getattr(study, name), outputs)
     return runner.summaries
 
 
