@@ -124,7 +124,8 @@ def test_a_ball_needs_a_finite_positive_radius(radius):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.int64, torch.uint8])
 def test_predicates_must_return_bool(dtype):
     boundary = SuccessBoundary(lambda obs: (obs[..., 0] > 0).to(dtype), time_limit=3)
-    with pytest.raises(TypeError, match=rf"success: expected the predicate to return a bool.*{dtype}"):
+    match = rf"success: expected the predicate to return a bool.*{dtype}"
+    with pytest.raises(TypeError, match=match):
         boundary.success_over_time(torch.randn(2, T, D))
     failing = SuccessBoundary(lambda obs: obs[..., 0] > 0, failure=lambda obs: obs[..., 1] * 1.0)
     with pytest.raises(TypeError, match=r"^failure: expected the predicate to return a bool"):

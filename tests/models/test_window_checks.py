@@ -22,9 +22,7 @@ def test_non_finite_windows_are_a_value_error(ensemble, bad, which):
     args = {"observations": obs, "actions": act, "next_observations": obs.clone()}
     args[which][1, 2, 3, 0] = bad
     with pytest.raises(ValueError, match=rf"^{which}: expected finite values, got"):
-        ensemble(
-            args["observations"], args["actions"], next_observations=args["next_observations"]
-        )
+        ensemble(args["observations"], args["actions"], next_observations=args["next_observations"])
     if which != "next_observations":
         with pytest.raises(ValueError, match=rf"^{which}: expected finite values"):
             ensemble.predict_next(args["observations"], args["actions"])
