@@ -38,7 +38,8 @@ _LAYOUT = "[E, N, *B, T, D]"
 
 def _observation(tensordict: TensorDictBase, key: NestedKey) -> Tensor:
     """``tensordict[key]`` ``[E, N, *B, T, D]``: present, a floating tensor, finite, with at
-    least one member, sample, time step and dimension (an empty batch ``*B`` is allowed)."""
+    least two members and one sample, time step and dimension (an empty batch ``*B`` is
+    allowed)."""
     if not isinstance(tensordict, TensorDictBase):
         raise TypeError(f"tensordict: expected a TensorDict, got {type(tensordict).__name__}")
     name = f"tensordict[{key!r}]"
@@ -51,10 +52,10 @@ def _observation(tensordict: TensorDictBase, key: NestedKey) -> Tensor:
     _checks.check_tensor(name, obs)
     _checks.check_min_rank(name, obs, 4, _LAYOUT)
     _checks.check_floating(name, obs)
-    for axis, label in ((0, "E"), (1, "N"), (-2, "T"), (-1, "D")):
-        if obs.shape[axis] < 1:
+    for axis, label, least in ((0, "E", 2), (1, "N", 1), (-2, "T", 1), (-1, "D", 1)):
+        if obs.shape[axis] < least:
             raise ValueError(
-                f"{name}: expected shape {_LAYOUT} with {label} >= 1, got {tuple(obs.shape)}"
+                f"{name}: expected shape {_LAYOUT} with {label} >= {least}, got {tuple(obs.shape)}"
             )
     _checks.check_finite(name, obs)
     return obs
