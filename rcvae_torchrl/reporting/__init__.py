@@ -10,6 +10,7 @@ from .figures import (
     uncertainty_figure,
 )
 from .tables import format_table, write_table
+from .validation_figures import plot_competency_surface, plot_start_reliability
 
 __all__ = [
     # figures
@@ -20,6 +21,9 @@ __all__ = [
     "plot_uncertainty_over_time",
     "reliability_figure",
     "uncertainty_figure",
+    # forecast against reality
+    "plot_competency_surface",
+    "plot_start_reliability",
     # tables
     "format_table",
     "write_table",

@@ -25,6 +25,7 @@ from torchrl.record.loggers import generate_exp_name
 
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
+from recipes._settings import set_threads
 from recipes.point_mass_competency.config import register_configs, study_config
 from recipes.point_mass_competency.pipeline import run_study
 
@@ -34,8 +35,7 @@ register_configs()
 @hydra.main(config_path="conf", config_name="point_mass_competency", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     config = study_config(cfg)
-    if config.threads is not None:
-        torch.set_num_threads(config.threads)
+    set_threads(config.threads)
     run_dir = Path(config.run_dir)
     with run_log(run_dir / "run.log") as log:
         threads = torch.get_num_threads()
