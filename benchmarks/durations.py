@@ -161,6 +161,7 @@ def main() -> None:
     tests.add_argument("--threads", type=int, default=1)
     run = sub.add_parser("run", help="record a finished recipe run from its run directory")
     run.add_argument("run_dir", type=Path)
+    run.add_argument("--load", type=float, default=None, help="1-minute load average then")
     record = sub.add_parser("record", help="record a duration measured elsewhere")
     record.add_argument("key", choices=list(WHAT))
     record.add_argument("seconds", type=float)
@@ -172,7 +173,8 @@ def main() -> None:
     if args.command == "tests":
         _save("test_suite", time_tests(args.threads))
     elif args.command == "run":
-        _save(*read_run(args.run_dir))
+        key, entry = read_run(args.run_dir)
+        _save(key, entry if args.load is None else {**entry, "loadavg_1min": args.load})
     elif args.command == "record":
         entry = {"seconds": args.seconds, "threads": args.threads, "source": args.source}
         _save(args.key, entry if args.load is None else {**entry, "loadavg_1min": args.load})

@@ -419,9 +419,7 @@ def run_study(
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
     runner = StageRunner(run_dir, log, settings=settings, logger=logger)
-    study = Study(
-        config, run_dir, torch.device(device), progress and distributed.is_main(), logger
-    )
+    study = Study(config, run_dir, torch.device(device), progress and distributed.is_main(), logger)
     for name, outputs in STAGES.items():
         runner.run(name, getattr(study, name), outputs, sharded=name in SHARDED_STAGES)
     return runner.summaries
