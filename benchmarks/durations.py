@@ -33,6 +33,10 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the library, when run from a checkout without installing it
+
+from rcvae_torchrl.io import atomic_write, write_json  # noqa: E402
+
 RESULTS = ROOT / "benchmarks" / "results" / "durations.json"
 README = ROOT / "README.md"
 BEGIN = (
@@ -95,7 +99,8 @@ def write_readme(record: dict[str, Any], readme: Path = README) -> None:
     start, end = text.find(BEGIN), text.find(END)
     if start < 0 or end < start:
         raise ValueError(f"{readme}: expected the markers {BEGIN!r} ... {END!r}")
-    readme.write_text(text[:start] + render_table(record) + text[end + len(END) :])
+    new = text[:start] + render_table(record) + text[end + len(END) :]
+    atomic_write(readme, lambda f: f.write(new.encode()))
 
 
 def _machine() -> dict[str, Any]:
@@ -103,9 +108,6 @@ def _machine() -> dict[str, Any]:
 
 
 def _save(key: str, entry: dict[str, Any]) -> None:
-    sys.path.insert(0, str(ROOT))
-    from rcvae_torchrl.io import write_json
-
     record = load()
     record["entries"][key] = {
         "machine": _machine(),
