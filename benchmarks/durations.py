@@ -25,6 +25,7 @@ import json
 import os
 import platform
 import re
+import resource
 import subprocess
 import sys
 import time
@@ -122,6 +123,7 @@ def _save(key: str, entry: dict[str, Any]) -> None:
 def time_tests(threads: int) -> dict[str, Any]:
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     load_before = os.getloadavg()[0]
+    cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     proc = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--deselect", OWN_TEST],
@@ -131,11 +133,14 @@ def time_tests(threads: int) -> dict[str, Any]:
         text=True,
     )
     seconds = time.perf_counter() - start
+    cpu = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu_s = cpu.ru_utime + cpu.ru_stime - cpu_before.ru_utime - cpu_before.ru_stime
     summary = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
     if proc.returncode != 0:
         raise SystemExit(f"the test suite failed ({summary}); nothing recorded")
     return {
         "seconds": round(seconds, 1),
+        "cpu_seconds": round(cpu_s, 1),  # what it would take on free cores, near enough
         "threads": threads,
         "loadavg_1min": round((load_before + os.getloadavg()[0]) / 2, 2),
         "source": f"measured: {summary}",
