@@ -120,13 +120,24 @@ def _save(key: str, entry: dict[str, Any]) -> None:
     print(f"{key}: {minutes(entry['seconds'])} ({entry['seconds']:.0f} s), wrote {RESULTS}")
 
 
-def time_tests(threads: int) -> dict[str, Any]:
+def time_tests(threads: int, paths: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Wall and CPU seconds of ``pytest -q`` (the default suite, or ``paths``)."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     load_before = os.getloadavg()[0]
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
     start = time.perf_counter()
     proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--deselect", OWN_TEST],
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-p",
+            "no:cacheprovider",
+            "--deselect",
+            OWN_TEST,
+            *paths,
+        ],
         cwd=ROOT,
         env=env,
         capture_output=True,

@@ -75,3 +75,16 @@ def test_the_table_is_rewritten_between_its_markers(tmp_path):
     assert text.startswith("intro\n") and text.endswith("after\n") and "old" not in text
     assert "| `make run-quick` (the recipe's quick profile) | 1.5 min | 1 | 2 CPU cores" in text
     assert "| `make test` (the default test suite) | not measured yet |" in text
+
+
+def test_the_suite_is_timed_with_its_thread_count_and_summary(tmp_path):
+    case = tmp_path / "test_tiny.py"
+    case.write_text(
+        "import os\n\ndef test_threads():\n    assert os.environ['OMP_NUM_THREADS'] == '1'\n"
+    )
+    entry = durations.time_tests(1, (str(case),))
+    assert entry["threads"] == 1 and entry["seconds"] >= entry["cpu_seconds"] / 2 > 0
+    assert entry["source"].startswith("measured: 1 passed")
+    case.write_text("def test_fails():\n    assert False\n")
+    with pytest.raises(SystemExit, match=r"the test suite failed \(.*1 failed):
+        durations.time_tests(1, (str(case),))
