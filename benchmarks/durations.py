@@ -83,7 +83,11 @@ def render_table(record: dict[str, Any]) -> str:
     for key, what in WHAT.items():
         entry = record["entries"].get(key)
         if entry is None:
-            lines.append(f"| {what} | not measured yet | | | | |")
+            command = {"test_suite": "tests"}.get(key, "run <run_dir>")
+            lines.append(
+                f"| {what} | not measured yet (`python benchmarks/durations.py {command}`) "
+                "| | | | |"
+            )
             continue
         load = entry.get("loadavg_1min")
         lines.append(

@@ -74,7 +74,10 @@ def test_the_table_is_rewritten_between_its_markers(tmp_path):
     text = readme.read_text()
     assert text.startswith("intro\n") and text.endswith("after\n") and "old" not in text
     assert "| `make run-quick` (the recipe's quick profile) | 1.5 min | 1 | 2 CPU cores" in text
-    assert "| `make test` (the default test suite) | not measured yet |" in text
+    assert (
+        "| `make test` (the default test suite) | not measured yet "
+        "(`python benchmarks/durations.py tests`) |" in text
+    )
 
 
 def test_the_suite_is_timed_with_its_thread_count_and_summary(tmp_path):
