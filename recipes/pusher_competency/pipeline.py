@@ -27,7 +27,6 @@ from torchrl.envs import EnvBase
 from rcvae_torchrl import distributed
 from rcvae_torchrl.agent import (
     PerturbedPolicy,
-    RealOutcomes,
     dagger,
     load_policy,
     make_policy_module,
@@ -41,6 +40,7 @@ from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     OBSERVATION_NAMES,
     ball_to_target,
+    make_batched_pusher_env,
     pusher_reward,
     reset_to_state,
     resolution_tensor,
@@ -76,6 +76,8 @@ SHARDED_STAGES = ("models", "forecast", "truth")
 DEMONSTRATION_SEEDS = 50_000
 EVALUATION_SEEDS = 70_000
 DAGGER_SEEDS = 80_000
+# Real episodes of the truth stage: seeds REAL_SEEDS + 10·seed + c, each run its own stream.
+REAL_SEEDS = 9_000
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i.
 START_SEED_STRIDE = 7919
 
@@ -111,6 +113,19 @@ class Study:
     def env(self, variant: str, **kwargs: Any) -> EnvBase:
         """The real Pusher of ``variant`` with the study's noise and success radius."""
         return make_env(variant, self.cfg.data, self.cfg.assess.success_radius, **kwargs)
+
+    def batched_env(self, variant: str, num_envs: int) -> EnvBase:
+        """``num_envs`` real Pushers of ``variant`` in one batched env, episodes of the
+        horizon's length that go on after success."""
+        d, s = self.cfg.data, self.cfg.assess
+        return make_batched_pusher_env(
+            num_envs,
+            variant,
+            action_noise_std=d.stochastic_noise_std if variant == "stochastic" else None,
+            success_radius=s.success_radius,
+            time_limit=s.horizon_s,
+            terminate_on_success=False,
+        )
 
     def load_model(self, name: str) -> RCVAEEnsemble:
         """The trained world model ``name`` (``"deterministic"`` or ``"stochastic"``)."""
@@ -164,10 +179,12 @@ class Study:
         return summary
 
     def _train_config(self, name: str) -> TrainConfig:
+        """The training settings of world model ``name``, seeded by the study's seed."""
+        train = dataclasses.replace(self.cfg.train, seed=self.cfg.train.seed + self.cfg.seed)
         steps = self.cfg.model.stochastic_open_loop_steps
         if name != "stochastic" or steps is None:
-            return self.cfg.train
-        return dataclasses.replace(self.cfg.train, open_loop_steps=steps)
+            return train
+        return dataclasses.replace(train, open_loop_steps=steps)
 
     def models(self) -> dict[str, Any]:
         m, summary = self.cfg.model, {}
@@ -316,7 +333,10 @@ class Study:
         return summary
 
     def truth(self) -> dict[str, Any]:
-        """Sharded: the real episodes over the ranks; rank 0 writes the outcomes."""
+        """The agent in the real env from each forecast's start states, many runs per start in
+        a batched env; episodes go on after success, so every boundary of the competency
+        surface is answered by the same episodes. Sharded: the episodes over the ranks, each
+        with its own batched env; rank 0 writes the outcomes."""
         s, summary = self.cfg.assess, {}
         policy = make_policy_module(self.load_policy())
         for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
@@ -326,20 +346,22 @@ class Study:
                     s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
                 )
                 starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
+                mine = len(distributed.shard(len(starts) * runs))  # this rank's episodes
+                env = self.batched_env(variant, max(1, min(s.real_envs, mine)))
                 result = real_outcomes(
-                    self.env(variant, time_limit=s.horizon_s),
+                    env,
                     policy,
                     starts,
                     runs_per_start=runs,
                     reset_to_state=reset_to_state,
                     max_steps=self.max_steps,
                     trace=ball_to_target,
-                    seed=self.cfg.seed + 1 + index,
+                    seed=REAL_SEEDS + self.cfg.seed * 10 + index,
                     progress=self.progress,
                     desc=f"real: {condition}",
                 )
                 if distributed.is_main():
-                    save_torch(path, _truth_record(result))
+                    save_torch(path, result.as_dict())
             distributed.barrier()
             saved = load_torch(path, "real outcomes")
             summary[condition] = {"success_rate": saved["success"].float().mean().item()}
@@ -374,17 +396,6 @@ def _forecast_record(data) -> dict[str, torch.Tensor]:
         "success": c["success"],
         "median_time_s": c["time_to_success", "median_s"],
         "ball_to_target": data["per_sample", "ball_to_target"].flatten(1, 2),
-    }
-
-
-def _truth_record(outcomes: RealOutcomes) -> dict[str, torch.Tensor]:
-    """The real outcomes of a condition as stored: ``success`` ``[B, R]``, ``steps`` ``[B, R]``
-    (to success, or the episode length) and ``ball_to_target`` ``[B, R, T]`` (NaN after the
-    episode ended)."""
-    return {
-        "success": outcomes.success,
-        "steps": outcomes.steps,
-        "ball_to_target": outcomes.trace,
     }
 
 
