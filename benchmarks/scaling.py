@@ -5,10 +5,12 @@ with ``torch.multiprocessing``), one intra-op thread per rank, ``--repeats`` tim
 world sizes interleaved; the time of a repeat is rank 0's wall clock from a barrier to the end
 of the gathered result. Workloads (Pusher-sized, the study's default world model):
 
-- training: ``train_ensemble`` of E = 4 members (2 per rank) on synthetic 14-D episodes;
-- forecasting: ``CompetencyAssessor.assess`` closed loop, 8 start states in chunks of one
-  (4 per rank), N samples per member, a horizon of T steps;
-- validation: ``real_outcomes`` of the scripted pusher in the real Pusher from 8 start states.
+- training: ``train_ensemble`` of E = 4 members (2 per rank), 100 steps of 32 windows x 32
+  steps, on synthetic 14-D episodes;
+- forecasting: ``CompetencyAssessor.assess`` closed loop, 16 start states in chunks of one
+  (8 per rank), 20 samples per member of 5 members, a horizon of 100 steps;
+- validation: ``real_outcomes`` of the scripted pusher in the real Pusher (one env per rank)
+  from 16 start states, 200 steps.
 
 Printed and written to ``benchmarks/results/scaling.json``: median wall times, speed-up
 (t1 / t2) and efficiency (speed-up / 2), the same from CPU seconds (the slowest rank's: what
@@ -42,7 +44,7 @@ from _report import print_table, write_json
 from rcvae_torchrl import distributed
 
 WORLDS = (1, 2)
-UNITS = {"training": 4, "forecasting": 8, "validation": 8}  # members, chunks, episodes
+UNITS = {"training": 4, "forecasting": 16, "validation": 16}  # members, chunks, episodes
 
 
 # ---------------------------------------------------------------------- workloads
@@ -72,7 +74,7 @@ def _training(quick: bool):
         return td.reshape(-1)
 
     train, val = episodes(32, 0), episodes(8, 1000)
-    steps = 10 if quick else 40
+    steps = 10 if quick else 100
     config = TrainConfig(max_steps=steps, batch_windows=32, window=32, val_every=steps // 2)
 
     def run() -> None:
@@ -96,7 +98,7 @@ def _forecasting(quick: bool):
     obs = torch.randn(500, 14) * 0.1
     model.fit_normalizer(obs, torch.rand(500, 2) * 2 - 1, next_observations=obs * 1.01)
     policy = torch.nn.Sequential(torch.nn.Linear(14, 64), torch.nn.Tanh(), torch.nn.Linear(64, 2))
-    horizon = 20 if quick else 60
+    horizon = 20 if quick else 100
     env = RCVAEEnsembleEnv(
         model,
         lambda observation, action: -observation[..., :1],
