@@ -22,7 +22,8 @@ run-quick: setup
 
 # The study for every seed of SEEDS (Hydra multirun), then one table over them.
 run-seeds: setup
-	$(PY) recipes/pusher_competency/main.py -m seed=$(SEEDS) progress=false \
+	$(PY) recipes/pusher_competency/main.py -m hydra/launcher=local seed=$(SEEDS) threads=1 \
+		progress=false \
 		'run_dir=outputs/pusher_competency/seeds/seed$${seed}'
 	$(PY) recipes/pusher_competency/aggregate.py outputs/pusher_competency/seeds
 

@@ -36,16 +36,6 @@ class RealOutcomes:
     steps: torch.Tensor  #: int64 ``[B, R]``: the episode's length
     trace: torch.Tensor | None = None  #: ``[B, R, T]`` per-step values, NaN after the episode
 
-    def reshape(self, b: int, r: int) -> RealOutcomes:
-        """Outcomes of ``b·r`` episodes (first dim) as ``[b, r]``."""
-        trace = None if self.trace is None else self.trace.reshape(b, r, -1)
-        return RealOutcomes(
-            self.success.reshape(b, r),
-            self.first_step.reshape(b, r),
-            self.steps.reshape(b, r),
-            trace,
-        )
-
     def as_dict(self) -> dict[str, torch.Tensor]:
         """Plain tensors (for ``torch.save``)."""
         out = {"success": self.success, "first_step": self.first_step, "steps": self.steps}
@@ -91,35 +81,36 @@ def real_outcomes(
 
     Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) the ``B·R`` episodes are
     shared out over the ranks in blocks, each rank with its own ``env`` and ``policy``, and the
-    outcomes gathered on every rank: the same as one process's (every episode has its seed).
+    outcomes gathered on every rank: the same as one process's.
     """
     if isinstance(runs_per_start, bool) or not isinstance(runs_per_start, int):
         raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
     if runs_per_start < 1:
         raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
+    b, r = len(starts), runs_per_start
     if len(env.batch_size) > 1:
         raise ValueError(
             f"env: expected an env with batch_size [] or [N], got {list(env.batch_size)}"
         )
-    b, r = len(starts), runs_per_start
     mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))
     index = torch.arange(b).repeat_interleave(r)[mine]
     seeds = [seed * 100_003 + i for i in mine]
-    show = progress and distributed.is_main()
     part = None
     if mine and len(env.batch_size) == 1:
-        part = _batched_outcomes(
-            env,
-            policy,
-            starts,
-            index,
-            seeds,
-            reset_to_state,
-            max_steps,
-            success,
-            trace,
-            show,
-            desc,
+        part = dataclasses.astuple(
+            _batched_outcomes(
+                env,
+                policy,
+                starts,
+                index,
+                seeds,
+                reset_to_state,
+                max_steps,
+                success,
+                trace,
+                progress and distributed.is_main(),
+                desc,
+            )
         )
     elif mine:
         stats = run_episodes(
@@ -130,15 +121,16 @@ def real_outcomes(
             reset_to_state=reset_to_state,
             max_steps=max_steps,
             success=success,
-            progress=show,
+            progress=progress and distributed.is_main(),
             desc=desc,
         )
-        part = _episode_outcomes(stats, len(mine), success, trace, max_steps)
-    return _gathered(part).reshape(b, r)
+        part = _outcomes(stats, len(mine), success, trace, max_steps)
+    flat = _gathered(part)
+    return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
 
 
-def _episode_outcomes(stats, episodes: int, success, trace, horizon: int) -> RealOutcomes:
-    """Outcomes ``[n]`` of ``episodes`` one-env episodes (:func:`run_episodes` statistics)."""
+def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
+    """``(success, first_step, steps, trace or None)`` of ``episodes`` episodes ``[n, ...]``."""
     first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, horizon))
     if callable(success):  # a function: the first success may lie before the episode's end
         first = _first_steps(stats.data, success, episodes, horizon)
@@ -149,15 +141,18 @@ def _episode_outcomes(stats, episodes: int, success, trace, horizon: int) -> Rea
         for i in range(episodes):
             row = per_step[ids == i]
             values[i, : row.numel()] = row
-    return RealOutcomes(stats.success, first, stats.steps, values)
+    return stats.success, first, stats.steps, values
 
 
-def _gathered(part: RealOutcomes | None) -> RealOutcomes:
+def _gathered(part: tuple | None) -> tuple:
     """This rank's episodes, or every rank's in episode order under torch.distributed."""
     if not distributed.is_active():
         return part
-    parts = [dataclasses.astuple(p) for p in distributed.all_gather(part) if p is not None]
-    return RealOutcomes(*(None if t[0] is None else torch.cat(t) for t in zip(*parts)))
+    parts = [p for p in distributed.all_gather(part) if p is not None]
+    return tuple(
+        None if parts[0][k] is None else torch.cat([p[k] for p in parts])
+        for k in range(len(parts[0]))
+    )
 
 
 def _batched_outcomes(

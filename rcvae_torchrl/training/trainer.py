@@ -27,6 +27,7 @@ from torchrl.record.loggers.csv import CSVLogger
 from tqdm.auto import tqdm
 
 from rcvae_torchrl import distributed
+from rcvae_torchrl._checks import check_non_negative, check_positive
 from rcvae_torchrl.data import make_window_buffer, sample_windows
 from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.models import RCVAEEnsemble
@@ -90,6 +91,15 @@ class TrainConfig:
             raise ValueError(
                 f"lr_final_fraction: expected a value in (0, 1], got {self.lr_final_fraction}"
             )
+        check_positive("beta", self.beta)
+        check_non_negative("free_nats", self.free_nats)
+        open_loop = self.open_loop_steps
+        if isinstance(open_loop, bool) or not isinstance(open_loop, int) or open_loop < 0:
+            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop!r}")
+        if not 0.0 <= self.nll_beta <= 1.0:
+            raise ValueError(f"nll_beta: expected a value in [0, 1], got {self.nll_beta!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
 
     def lr_at(self, step: int) -> float:
         """The learning rate of optimiser step ``step`` (0-based): cosine decay."""
@@ -450,11 +460,12 @@ def _save(
 def _training_payload(path: Path, config: TrainConfig | None = None) -> dict[str, Any]:
     training = read_checkpoint(path).get("training")
     if training is None:
-        raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume")
+        raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume", path)
     if config is not None and training["config"] != dataclasses.asdict(config):
         raise CheckpointError(
             f"checkpoint {str(path)!r}: was written with another TrainConfig "
-            f"({training['config']}); resume with the same config or a new path"
+            f"({training['config']}); resume with the same config or a new path",
+            path,
         )
     return training
 
@@ -480,7 +491,9 @@ def _restore(
     try:
         local.load_state_dict(payload["state_dict"])
     except RuntimeError as err:
-        raise CheckpointError(f"checkpoint {str(path)!r}: weights do not match: {err}") from err
+        raise CheckpointError(
+            f"checkpoint {str(path)!r}: weights do not match: {err}", path
+        ) from err
     optimizer.load_state_dict(training["optimizer"])
     for g, rng in zip(generators, training["rng"], strict=True):
         g.set_state(rng)

@@ -17,9 +17,9 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import hydra
-import torch
 from omegaconf import DictConfig
 
+from recipes._settings import set_threads
 from recipes.point_mass_competency.config import register_configs, study_config
 from recipes.point_mass_competency.pipeline import run_study
 
@@ -29,8 +29,7 @@ register_configs()
 @hydra.main(config_path="conf", config_name="point_mass_competency", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     config = study_config(cfg)
-    if config.threads is not None:
-        torch.set_num_threads(config.threads)
+    set_threads(config.threads)
     print(f"profile={config.profile} run_dir={config.run_dir}")
     summary = run_study(config, config.run_dir, progress=config.progress)
     for name, check in summary["report"]["checks"].items():

@@ -38,7 +38,7 @@ from rcvae_torchrl.data import (
     save_episodes,
     split_episodes,
 )
-from rcvae_torchrl.io import load_torch, record_run_config, save_torch
+from rcvae_torchrl.io import load_torch, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
@@ -60,7 +60,14 @@ from .task import (
 
 __all__ = ["STAGES", "Study", "run_study"]
 
-STAGES = ("data", "models", "forecast", "truth", "report")
+# Each stage and the files it writes (their sizes and hashes go into its marker).
+STAGES = {
+    "data": ("data/*.pt",),
+    "models": ("models/*.pt",),
+    "forecast": ("forecast/*.pt",),
+    "truth": ("truth/*.pt",),
+    "report": ("*.md", "*.csv", "*.png", "summary.json"),
+}
 # disjoint seed ranges per purpose: data starts, condition c's starts, and real episodes
 DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000
 
@@ -243,9 +250,8 @@ def run_study(config: StudyConfig, run_dir: str | Path, *, progress: bool = True
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: getattr(config, f.name) for f in dataclasses.fields(StudyConfig)}
-    record_run_config(run_dir / "study_config.json", dataclasses.asdict(StudyConfig(**settings)))
+    runner = StageRunner(run_dir, log, settings=dataclasses.asdict(StudyConfig(**settings)))
     study = Study(config, run_dir, progress)
-    runner = StageRunner(run_dir, log)
-    for name in STAGES:
-        runner.run(name, getattr(study, name))
+    for name, outputs in STAGES.items():
+        runner.run(name, getattr(study, name), outputs)
     return runner.summaries

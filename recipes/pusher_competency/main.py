@@ -29,8 +29,9 @@ import torch
 from omegaconf import DictConfig
 
 from rcvae_torchrl import distributed
+from recipes._settings import resolve_device, set_threads
 from recipes.pusher_competency.config import register_configs, study_config
-from recipes.pusher_competency.pipeline import resolve_device, run_study, set_threads
+from recipes.pusher_competency.pipeline import run_study
 
 register_configs()
 

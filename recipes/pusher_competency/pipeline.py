@@ -35,7 +35,7 @@ from rcvae_torchrl.agent import (
     save_policy,
 )
 from rcvae_torchrl.competency import CompetencyAssessor
-from rcvae_torchrl.data import load_episodes, save_episodes, split_episodes
+from rcvae_torchrl.data import load_episodes, save_episodes, seed_env, split_episodes
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     OBSERVATION_NAMES,
@@ -46,7 +46,7 @@ from rcvae_torchrl.envs import (
     resolution_tensor,
 )
 from rcvae_torchrl.envs.scripted import ScriptedPusher
-from rcvae_torchrl.io import load_torch, record_run_config, save_torch
+from rcvae_torchrl.io import load_torch, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
@@ -66,9 +66,17 @@ from .pusher import (
 )
 from .report import write_report
 
-__all__ = ["SHARDED_STAGES", "STAGES", "Study", "resolve_device", "run_study", "set_threads"]
+__all__ = ["SHARDED_STAGES", "STAGES", "Study", "run_study"]
 
-STAGES = ("data", "models", "agent", "forecast", "truth", "report")
+# Each stage and the files it writes (their sizes and hashes go into its marker).
+STAGES = {
+    "data": ("data/*.pt",),
+    "models": ("models/*.pt",),
+    "agent": ("agent/*.pt",),
+    "forecast": ("forecast/*.pt",),
+    "truth": ("truth/*.pt",),
+    "report": ("*.md", "*.csv", "*.png", "*.gif", "summary.json"),
+}
 # Stages that share their work over torch.distributed ranks (the others run on rank 0).
 SHARDED_STAGES = ("models", "forecast", "truth")
 
@@ -80,21 +88,6 @@ DAGGER_SEEDS = 80_000
 REAL_SEEDS = 9_000
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i.
 START_SEED_STRIDE = 7919
-
-
-def resolve_device(name: str) -> str:
-    """``"auto"`` -> ``"cuda"`` when available, else ``"cpu"``; other names are checked."""
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device: {name!r} asked for, but CUDA is not available here")
-    return name
-
-
-def set_threads(threads: int | None) -> None:
-    """Set torch's intra-op threads (``None``: leave torch's default)."""
-    if threads is not None:
-        torch.set_num_threads(threads)
 
 
 class Study:
@@ -150,7 +143,7 @@ class Study:
         index = list(CONDITIONS).index(condition)
         starts = []
         for i in range(self.cfg.assess.start_states):
-            env.set_seed(self.cfg.seed * START_SEED_STRIDE + 1000 * index + i)
+            seed_env(env, self.cfg.seed * START_SEED_STRIDE + 1000 * index + i)
             starts.append(env.reset()["observation"])
         return torch.stack(starts)
 
@@ -335,8 +328,8 @@ class Study:
     def truth(self) -> dict[str, Any]:
         """The agent in the real env from each forecast's start states, many runs per start in
         a batched env; episodes go on after success, so every boundary of the competency
-        surface is answered by the same episodes. Sharded: the episodes over the ranks, each
-        with its own batched env; rank 0 writes the outcomes."""
+        surface is answered by the same episodes. Sharded: the real episodes over the ranks;
+        rank 0 writes the outcomes."""
         s, summary = self.cfg.assess, {}
         policy = make_policy_module(self.load_policy())
         for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
@@ -346,8 +339,7 @@ class Study:
                     s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
                 )
                 starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
-                mine = len(distributed.shard(len(starts) * runs))  # this rank's episodes
-                env = self.batched_env(variant, max(1, min(s.real_envs, mine)))
+                env = self.batched_env(variant, min(s.real_envs, len(starts) * runs))
                 result = real_outcomes(
                     env,
                     policy,
@@ -411,12 +403,10 @@ def run_study(
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
-    if distributed.is_main():
-        record_run_config(run_dir / "study_config.json", settings)
+    runner = StageRunner(run_dir, log, settings=settings)
     study = Study(config, run_dir, torch.device(device), progress and distributed.is_main())
-    runner = StageRunner(run_dir, log)
-    for name in STAGES:
-        runner.run(name, getattr(study, name), sharded=name in SHARDED_STAGES)
+    for name, outputs in STAGES.items():
+        runner.run(name, getattr(study, name), outputs, sharded=name in SHARDED_STAGES)
     return runner.summaries
 
 

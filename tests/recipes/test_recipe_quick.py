@@ -188,8 +188,9 @@ def test_summary_json(runs):
         assert f"|forecast - empirical| <= 0.10 ({condition})" in names
         assert f"time-to-success CRPS skill > 0 ({condition})" in names
         assert f"competency surface: largest gap <= 0.1 ({condition})" in names
-        surface = summary["surfaces"][condition]  # radii x deadlines
-        assert len(surface["forecast"]) == 4 and len(surface["forecast"][0]) == 2
+        surface = summary["surfaces"][condition]
+        assert len(surface["forecast"]) == 4  # radii
+        assert len(surface["forecast"][0]) == 2  # deadlines
     assert "AUROC >= 0.75 (all episodes)" in names
     assert set(summary["validation"]) == {*CONDITIONS, "overall"}
     for check in summary["checks"].values():
