@@ -20,7 +20,8 @@ machine and 4 machines x 8 GPUs from the measured cost (see ``project`` for the 
 assumptions). The machine's load average is recorded before and after: other jobs on a shared
 2-core machine take cores away from the ranks.
 
-    python benchmarks/scaling.py [--repeats 3] [--quick]
+    python benchmarks/scaling.py [--repeats 3] [--quick] [--only training ...] [--full-model]
+                                 [--out scaling]
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ UNITS = {"training": 4, "forecasting": 16, "validation": 16}  # members, chunks,
 
 
 # ---------------------------------------------------------------------- workloads
-def _training(quick: bool):
+def _training(quick: bool, full_model: bool = False):
     from tensordict import TensorDict
 
     from rcvae_torchrl.data import TRAJ_KEY
@@ -75,11 +76,13 @@ def _training(quick: bool):
 
     train, val = episodes(32, 0), episodes(8, 1000)
     steps = 10 if quick else 100
-    config = TrainConfig(max_steps=steps, batch_windows=32, window=32, val_every=steps // 2)
+    windows = 64 if full_model else 32  # the full profile's batch and hidden size
+    config = TrainConfig(max_steps=steps, batch_windows=windows, window=32, val_every=steps // 2)
+    model_config = rcvae_config(ModelConfig(hidden_dim=128 if full_model else 64))
 
     def run() -> None:
         torch.manual_seed(0)
-        model = RCVAEEnsemble(rcvae_config(ModelConfig()), 4, functions=MODEL_FUNCTIONS)
+        model = RCVAEEnsemble(model_config, 4, functions=MODEL_FUNCTIONS)
         train_ensemble(model, train, val, config, progress=False, checks=False)
 
     return run
@@ -176,7 +179,7 @@ def _rank(rank: int, world: int, port: int, name: str, args: dict, out: str) -> 
 
     distributed.all_gather = measured_gather
     with distributed.session("gloo"):
-        run = WORKLOADS[name](args["quick"])
+        run = WORKLOADS[name](args["quick"], **args["workload"].get(name, {}))
         run()  # warm-up
         times, cpu = [], []
         for _ in range(args["repeats"]):
@@ -284,10 +287,20 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--only", choices=list(WORKLOADS), nargs="*", default=list(WORKLOADS))
+    parser.add_argument(
+        "--full-model",
+        action="store_true",
+        help="train the full profile's model (hidden 128, 64 windows per member)",
+    )
+    parser.add_argument("--out", default="scaling", help="results/<out>.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
     load_before = os.getloadavg()
-    settings = {"repeats": args.repeats, "quick": args.quick}
+    settings = {
+        "repeats": args.repeats,
+        "quick": args.quick,
+        "workload": {"training": {"full_model": args.full_model}},
+    }
     results: dict[str, dict[int, dict]] = {name: {} for name in args.only}
     for name in args.only:
         for world in WORLDS:
@@ -372,7 +385,7 @@ def main() -> None:
     )
     print(f"\nload average before {load_before}, after {load_after} on {os.cpu_count()} cores")
     write_json(
-        "scaling",
+        args.out,
         {
             "settings": settings,
             "load_average_before": load_before,
