@@ -6,7 +6,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-EXTRAS ?= recipes,test,dev,docs
+EXTRAS ?= recipes,test,dev,docs,loggers
 export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 

@@ -24,6 +24,9 @@ Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) rank 0 verifies, 
 markers and logs; a ``sharded`` stage runs on every rank (it shares its work out and writes its
 files on rank 0), any other stage on rank 0 alone, and every rank waits for a stage to end
 before the next one.
+
+With a TorchRL logger, every stage's numbers are logged too (``stages/<name>/<key>``, on rank 0),
+whether the stage ran or was reused.
 """
 
 from __future__ import annotations
@@ -35,8 +38,11 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from torchrl.record.loggers import Logger
+
 from rcvae_torchrl import distributed
 from rcvae_torchrl.io import StoredFileError, read_json, record_run_config, write_json
+from rcvae_torchrl.loggers import log_scalars
 
 __all__ = ["StageError", "StageRunner", "file_record"]
 
@@ -72,6 +78,8 @@ class StageRunner:
             read is written again from ``settings`` (the markers' input digests still tell
             which results were made with them).
         config_name: the file the settings are recorded in.
+        logger: a TorchRL logger the stage summaries' numbers go to (step: the stage's
+            position in the run).
 
     Example:
         >>> import tempfile
@@ -87,9 +95,11 @@ class StageRunner:
         *,
         settings: Mapping[str, Any] | None = None,
         config_name: str = "study_config.json",
+        logger: Logger | None = None,
     ) -> None:
         self.run_dir = Path(run_dir)
         self.log = log
+        self.logger = logger if distributed.is_main() else None
         self.summaries: dict[str, Any] = {}
         self._inputs = _digest(dict(settings) if settings is not None else None)
         if settings is not None and distributed.is_main():
@@ -131,7 +141,9 @@ class StageRunner:
             distributed.barrier()
         if not distributed.is_main():
             saved = read_json(self.marker(name), f"marker of stage {name!r}")
-        self.summaries[name] = {k: v for k, v in saved.items() if k not in ("outputs", "inputs")}
+        summary = {k: v for k, v in saved.items() if k not in ("outputs", "inputs")}
+        log_scalars(self.logger, summary, len(self.summaries), prefix=f"stages/{name}/")
+        self.summaries[name] = summary
         self._inputs = _digest([self._inputs, name, saved["outputs"]])
         return self.summaries[name]
 

@@ -15,11 +15,9 @@ from matplotlib.figure import Figure
 
 from rcvae_torchrl.competency import StartReliability
 
-from .figures import _COLOURS, _save
+from .figures import _COLOURS, _MARKERS, _save
 
 __all__ = ["plot_competency_surface", "plot_start_reliability"]
-
-_MARKERS = ("o", "s", "^", "D", "v", "P")
 
 
 def plot_start_reliability(diagrams: Mapping[str, StartReliability], path) -> object:

@@ -30,6 +30,7 @@ from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_non_negative, check_positive
 from rcvae_torchrl.data import make_window_buffer, sample_windows
 from rcvae_torchrl.io import atomic_write
+from rcvae_torchrl.loggers import log_scalars
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
 
@@ -145,6 +146,7 @@ def train_ensemble(
     checkpoint_path: str | Path | None = None,
     resume: bool = False,
     logger: Logger | None = None,
+    log_prefix: str = "",
     progress: bool = True,
     checks: bool = True,
 ) -> TrainResult:
@@ -171,7 +173,10 @@ def train_ensemble(
         resume: continue from ``checkpoint_path`` (or this rank's block checkpoint) if it
             exists (a finished run returns at once); resume with the same number of ranks.
         logger: a TorchRL logger of this rank's records (default: CSV beside the checkpoint
-            on rank 0, or none).
+            on rank 0, or none); :func:`~rcvae_torchrl.loggers.make_logger` makes a
+            TensorBoard, W&B or MLflow one. Per-member values go to ``<name>/<member>``.
+        log_prefix: put before every logged name (e.g. ``"models/stochastic/"`` when several
+            trainings share one logger).
         progress: show a tqdm bar (rank 0).
         checks: run the model's self-checks on ``val_data`` after training
             (:func:`~rcvae_torchrl.training.check_model`): per state dimension, held-out
@@ -193,7 +198,15 @@ def train_ensemble(
     if state is None:
         members = distributed.shard(ensemble.ensemble_size)
         shard = _train_shard(
-            ensemble, members, train_data, val_data, config, path, resume, logger, progress
+            ensemble,
+            members,
+            train_data,
+            val_data,
+            config,
+            path,
+            resume,
+            (logger, log_prefix),
+            progress,
         )
         state = _gather(ensemble, shard)
         if distributed.is_active() and path is not None:
@@ -221,7 +234,7 @@ def _train_shard(
     config: TrainConfig,
     path: Path | None,
     resume: bool,
-    logger: Logger | None,
+    logging: tuple[Logger | None, str],
     progress: bool,
 ) -> _State | None:
     """Train ``members`` of ``ensemble`` (a copy of them); their final state (``None`` when
@@ -250,6 +263,7 @@ def _train_shard(
         _check_no_foreign_shards(shard_path, path)
         if shard_path.is_file():
             state = _restore(shard_path, local, optimizer, config, members, windows_rng + noise_rng)
+    logger, prefix = logging
     logger = logger if logger is not None else _default_logger(path)
     bar = tqdm(
         total=config.max_steps,
@@ -270,7 +284,7 @@ def _train_shard(
         if state.step % config.val_every == 0 or state.step >= config.max_steps:
             record = _validate(loss_fn, val_windows, local, members, state, config, train_loss)
             bar.set_postfix(train=f"{record['train_loss']:.3g}", val=f"{record['val_loss']:.3g}")
-            _log(logger, record, state.step)
+            _log(logger, record, state.step, prefix)
             if shard_path is not None:
                 _save(shard_path, local, optimizer, state, config, members, windows_rng + noise_rng)
     bar.close()
@@ -406,12 +420,14 @@ def _default_logger(path: Path | None) -> Logger | None:
     return CSVLogger(exp_name=path.stem, log_dir=str(path.parent / "logs"))
 
 
-def _log(logger: Logger | None, record: dict[str, Any], step: int) -> None:
-    if logger is None:
-        return
-    for name, value in record.items():
-        if name != "step" and isinstance(value, float):
-            logger.log_scalar(name, value, step=step)
+def _log(logger: Logger | None, record: dict[str, Any], step: int, prefix: str) -> None:
+    """The record's numbers; a per-member list as ``<name>/<member>`` (finite values only)."""
+    metrics = {
+        k: dict(enumerate(v)) if isinstance(v, list) else v
+        for k, v in record.items()
+        if k != "step"
+    }
+    log_scalars(logger, metrics, step, prefix=prefix)
 
 
 # ---------------------------------------------------------------------- checkpoints

@@ -12,6 +12,7 @@ from typing import Any
 
 from omegaconf import DictConfig
 
+from rcvae_torchrl.loggers import check_logger_backend
 from rcvae_torchrl.training import TrainConfig
 
 from .._settings import (
@@ -142,15 +143,20 @@ class StudyConfig:
 
 @dataclass(frozen=True)
 class RecipeConfig(StudyConfig):
+    """The study plus how to run it; ``logger``: ``"csv"``, ``"tensorboard"``, ``"wandb"``
+    (offline), ``"mlflow"`` (a local file store) or ``"none"``, under ``<run_dir>/logs``."""
+
     profile: str = "default"
     run_dir: str = "outputs/point_mass_competency/${profile}"
     threads: int | None = None
     progress: bool = True
+    logger: str = "csv"
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_threads(self.threads)
         check_run_dir_name(self.run_dir)
+        check_logger_backend(self.logger)
 
 
 def register_configs() -> None:

@@ -16,6 +16,7 @@ from omegaconf import DictConfig
 
 from rcvae_torchrl.agent import DistillConfig, PlannerConfig
 from rcvae_torchrl.envs import CONTROL_TIMESTEP
+from rcvae_torchrl.loggers import check_logger_backend
 from rcvae_torchrl.training import TrainConfig
 
 from .._settings import (
@@ -239,19 +240,26 @@ class StudyConfig:
 
 @dataclass(frozen=True)
 class RecipeConfig(StudyConfig):
-    """The study plus how to run it: where, on which device, with how many threads."""
+    """The study plus how to run it: where, on which device, with how many threads.
+
+    ``logger``: where training curves and stage summaries go, under ``<run_dir>/logs``:
+    ``"csv"``, ``"tensorboard"``, ``"wandb"`` (offline), ``"mlflow"`` (a local file store) or
+    ``"none"`` (see :func:`~rcvae_torchrl.loggers.make_logger`).
+    """
 
     profile: str = "default"
     run_dir: str = "outputs/pusher_competency/${profile}"
     device: str = "auto"
     threads: int | None = None
     progress: bool = True
+    logger: str = "csv"
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_device_name(self.device)
         check_threads(self.threads)
         check_run_dir_name(self.run_dir)
+        check_logger_backend(self.logger)
 
 
 def register_configs() -> None:

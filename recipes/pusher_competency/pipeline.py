@@ -23,6 +23,7 @@ from typing import Any
 
 import torch
 from torchrl.envs import EnvBase
+from torchrl.record.loggers import Logger
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl.agent import (
@@ -94,9 +95,15 @@ class Study:
     """The stages of one study in one run directory (see the module docstring)."""
 
     def __init__(
-        self, config: StudyConfig, run_dir: Path, device: torch.device, progress: bool
+        self,
+        config: StudyConfig,
+        run_dir: Path,
+        device: torch.device,
+        progress: bool,
+        logger: Logger | None = None,
     ) -> None:
         self.cfg, self.dir, self.device, self.progress = config, run_dir, device, progress
+        self.logger = logger
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -198,6 +205,8 @@ class Study:
                 self._train_config(name),
                 checkpoint_path=self.dir / "models" / f"{name}_train.pt",
                 resume=True,
+                logger=self.logger,
+                log_prefix=f"models/{name}/",
                 progress=self.progress,
             )
             info = {
@@ -398,13 +407,19 @@ def run_study(
     device: str | torch.device = "cpu",
     progress: bool = True,
     log: Callable[[str], None] = print,
+    logger: Logger | None = None,
 ) -> dict[str, Any]:
-    """Run (or resume) the study in ``run_dir``; returns every stage's summary."""
+    """Run (or resume) the study in ``run_dir``; returns every stage's summary.
+
+    ``logger`` (a TorchRL logger) gets the training curves (``models/<name>/...``) and every
+    stage's numbers (``stages/<stage>/...``); without one, training writes CSV beside its
+    checkpoints.
+    """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
-    runner = StageRunner(run_dir, log, settings=settings)
-    study = Study(config, run_dir, torch.device(device), progress and distributed.is_main())
+    runner = StageRunner(run_dir, log, settings=settings, logger=logger)
+    study = Study(config, run_dir, torch.device(device), progress and distributed.is_main(), logger)
     for name, outputs in STAGES.items():
         runner.run(name, getattr(study, name), outputs, sharded=name in SHARDED_STAGES)
     return runner.summaries

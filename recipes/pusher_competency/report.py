@@ -26,7 +26,7 @@ from .config import AssessConfig
 from .pusher import FIGURE_PANELS
 from .trust import competency_surfaces, trust_checks, validation, validation_figures
 
-__all__ = ["COLUMNS", "condition_row", "pattern_checks", "write_report"]
+__all__ = ["COLUMNS", "agent_section", "condition_row", "pattern_checks", "write_report"]
 
 COLUMNS = (
     "condition",
@@ -177,7 +177,7 @@ def _figures(run_dir: Path, forecasts, truths, panels: int, radius: float) -> di
             real = [t[~t.isnan()] for t in truths[c]["trace"][b]]
             episodes.append(
                 {
-                    "title": f"{c}, start {b} (P={f['p_success'][b]:.2f})",
+                    "title": f"{c}, start {b}\nforecast P(success) = {f['p_success'][b]:.2f}",
                     "forecast": f["ball_to_target"][b],
                     "real": real,
                 }
@@ -245,9 +245,8 @@ def write_report(
     }
     write_json(run_dir / "summary.json", summary)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
-    text = _markdown(
-        rows, overall, checks, by_window, figures, gif, run_dir, residual, _bits_text(config.assess)
-    )
+    texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
+    text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)
     text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
@@ -324,6 +323,67 @@ _AGENT_TEXT = {
 }
 
 
+#: The agent stage's numbers as the report names them (``stages/agent.json`` keys).
+AGENT_LINES = {
+    "mpc_noisy_success_rate": "MPC episodes (executed actions perturbed): success rate",
+    "mpc_median_steps": "MPC episodes: median steps",
+    "policy_success_rate": "the agent in its evaluation episodes: success rate",
+    "policy_median_steps": "the agent in its evaluation episodes: median steps",
+    "pairs": "state-action pairs it was distilled from (last round)",
+}
+#: The columns of the DAgger table: round-record key -> column title.
+DAGGER_COLUMNS = {
+    "round": "round",
+    "pairs": "pairs",
+    "policy_success_before": "policy success before the round",
+    "train_mse": "train MSE",
+    "val_mse": "validation MSE",
+    "epochs": "epochs",
+}
+
+
+def _number(value: Any) -> str:
+    if isinstance(value, float) and value.is_integer() and abs(value) >= 1:
+        return str(int(value))
+    if isinstance(value, float):
+        return f"{value:.3g}" if abs(value) < 0.01 and value else f"{value:.3f}"
+    return str(value)
+
+
+def agent_section(agent: Mapping[str, Any], settings: Any) -> str:
+    """The agent stage in words and tables: settings, outcomes, one row per DAgger round."""
+    lines = [
+        f"Settings: {settings.mpc_episodes} MPC episodes with action noise of std "
+        f"{settings.action_noise}, then {settings.dagger_rounds} DAgger round(s) of "
+        f"{settings.dagger_episodes} policy episodes, the agent evaluated on "
+        f"{settings.eval_episodes} episodes.",
+        "",
+        "| measured | value |",
+        "|:---|---:|",
+        *[f"| {title} | {_number(agent[k])} |" for k, title in AGENT_LINES.items() if k in agent],
+    ]
+    rounds = agent.get("dagger", [])
+    if rounds:
+        lines += [
+            "",
+            "Distillation rounds (round 0: the MPC episodes alone; then each DAgger round adds "
+            "the agent's own states, labelled by the planner):",
+            "",
+            "| " + " | ".join(DAGGER_COLUMNS.values()) + " |",
+            "|" + "|".join([":---", *["---:"] * (len(DAGGER_COLUMNS) - 1)]) + "|",
+            *[
+                "| " + " | ".join(_number(r[k]) if k in r else "–" for k in DAGGER_COLUMNS) + " |"
+                for r in rounds
+            ],
+        ]
+    return "\n".join(lines)
+
+
+def _agent_text(run_dir: Path, settings: Any) -> str:
+    marker = run_dir / "stages" / "agent.json"
+    return agent_section(read_json(marker, "stage marker"), settings) if marker.is_file() else ""
+
+
 def _bits_text(assess: AssessConfig) -> str:
     """How the table's bits were measured, from the assessment's settings."""
     text = (
@@ -347,13 +407,12 @@ def _bits_text(assess: AssessConfig) -> str:
 
 
 def _markdown(
-    rows, overall, checks, by_window, figures, gif, run_dir: Path, residual: bool, bits_text: str
+    rows, overall, checks, by_window, figures, gif, run_dir: Path, residual: bool, texts: dict
 ) -> str:
     table = (run_dir / "table.md").read_text()
     order = ("data", "models", "agent", "forecast", "truth", "report")
     found = {p.stem: p for p in (run_dir / "stages").glob("*.json")}
     stages = {name: read_json(found[name], "stage marker") for name in order if name in found}
-    agent = stages.get("agent", {})
     lines = [
         "# Pusher competency assessment",
         "",
@@ -363,7 +422,7 @@ def _markdown(
         "",
         "## Table (the paper's Table 1, plus the check against reality)",
         "",
-        bits_text,
+        texts["bits"],
         "",
         table,
         f"Over all start states: Brier {overall['brier']:.4f} against "
@@ -410,7 +469,7 @@ def _markdown(
         "",
         f"{_AGENT_TEXT[residual]}; it is the agent that acts in the real env and the one forecast.",
         "",
-        *[f"- {k}: {v}" for k, v in agent.items()],
+        texts["agent"],
         "",
         f"One episode: {'![episode](episode.gif)' if gif == 'episode.gif' else gif}",
         "",

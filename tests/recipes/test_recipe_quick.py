@@ -61,16 +61,20 @@ def run_recipe(*overrides: str, timeout: float = 300) -> tuple[subprocess.Comple
         capture_output=True,
         text=True,
         timeout=timeout,
+        preexec_fn=lambda: os.umask(0o022),  # a shared machine's usual umask
     )
     return proc, time.perf_counter() - start
 
 
 def _snapshot(run_dir: Path) -> dict[str, tuple[int, int]]:
-    """(mtime_ns, size) of every file the stages wrote (study_config.json is rewritten)."""
+    """(mtime_ns, size) of every file the stages wrote (study_config.json is rewritten; each
+    run appends to run.log and starts its own experiment under logs/)."""
     return {
         str(p.relative_to(run_dir)): (p.stat().st_mtime_ns, p.stat().st_size)
         for p in run_dir.rglob("*")
-        if p.is_file() and p.name != "study_config.json" and ".hydra_run" not in p.parts
+        if p.is_file()
+        and p.name not in ("study_config.json", "run.log")
+        and not {".hydra_run", "logs"} & set(p.relative_to(run_dir).parts)
     }
 
 
@@ -209,6 +213,30 @@ def test_second_run_reuses_every_stage(runs):
     assert runs["second_s"] < 120  # imports and the report's printout only
 
 
+def test_run_log_is_plain_text_and_files_keep_the_umask(runs):
+    d = runs["dir"]
+    log = (d / "run.log").read_text()
+    assert "\x1b[" not in log, "no terminal colour codes in the log file"
+    assert "\x1b[" not in runs["first"], "no colour codes on a console that is not a terminal"
+    for stage in STAGES:
+        assert f"[{stage}] running" in log and f"[{stage}] done earlier" in log  # both runs
+    modes = {str(p.relative_to(d)): p.stat().st_mode & 0o777 for p in d.rglob("*") if p.is_file()}
+    assert len(modes) > 20
+    assert {name: m for name, m in modes.items() if m != 0o644} == {}  # umask 022: rw-r--r--
+
+
+def test_stage_summaries_and_training_curves_reach_the_logger(runs):
+    experiments = list((runs["dir"] / "logs" / "csv").glob("pusher_competency_quick_*"))
+    assert len(experiments) == 2  # one per run; only the first trained
+    (scalars,) = (e / "scalars" for e in experiments if (e / "scalars" / "models").is_dir())
+    for variant in ("deterministic", "stochastic"):
+        rows = (scalars / "models" / variant / "val_loss.csv").read_text().split()
+        assert [int(r.split(",")[0]) for r in rows] == [10, 20]  # train.val_every=10, 20 steps
+    marker = json.loads((runs["dir"] / "stages" / "truth.json").read_text())
+    logged = (scalars / "stages" / "truth" / "stochastic" / "success_rate.csv").read_text()
+    assert float(logged.split(",")[1]) == pytest.approx(marker["stochastic"]["success_rate"])
+
+
 def test_tutorial_python_example_reads_the_run(runs):
     """The tutorial's "closer look" block, pointed at this run directory."""
     page = ROOT / "docs" / "tutorial.rst"
@@ -227,6 +255,7 @@ def test_tutorial_python_example_reads_the_run(runs):
         ("train.max_step=3", "max_step"),  # not in TrainConfig's schema
         ("train.lr=-1", "train.lr, grad_clip: expected > 0"),  # out of range
         ("device=tpu", "device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
+        ("logger=tb", "logger: expected one of ['csv', 'mlflow', 'none', 'tensorboard', 'wandb']"),
     ],
 )
 def test_bad_settings_fail_clearly_before_anything_is_written(tmp_path, override, expected):
