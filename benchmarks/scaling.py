@@ -5,10 +5,12 @@ with ``torch.multiprocessing``), one intra-op thread per rank, ``--repeats`` tim
 world sizes interleaved; the time of a repeat is rank 0's wall clock from a barrier to the end
 of the gathered result. Workloads (Pusher-sized, the study's default world model):
 
-- training: ``train_ensemble`` of E = 4 members (2 per rank) on synthetic 14-D episodes;
-- forecasting: ``CompetencyAssessor.assess`` closed loop, 8 start states in chunks of one
-  (4 per rank), N samples per member, a horizon of T steps;
-- validation: ``real_outcomes`` of the scripted pusher in the real Pusher from 8 start states.
+- training: ``train_ensemble`` of E = 4 members (2 per rank), 100 steps of 32 windows x 32
+  steps, on synthetic 14-D episodes;
+- forecasting: ``CompetencyAssessor.assess`` closed loop, 16 start states in chunks of one
+  (8 per rank), 20 samples per member of 5 members, a horizon of 100 steps;
+- validation: ``real_outcomes`` of the scripted pusher in the real Pusher (one env per rank)
+  from 16 start states, 200 steps.
 
 Printed and written to ``benchmarks/results/scaling.json``: median wall times, speed-up
 (t1 / t2) and efficiency (speed-up / 2), the same from CPU seconds (the slowest rank's: what
@@ -18,7 +20,8 @@ machine and 4 machines x 8 GPUs from the measured cost (see ``project`` for the 
 assumptions). The machine's load average is recorded before and after: other jobs on a shared
 2-core machine take cores away from the ranks.
 
-    python benchmarks/scaling.py [--repeats 3] [--quick]
+    python benchmarks/scaling.py [--repeats 3] [--quick] [--only training ...] [--full-model]
+                                 [--out scaling]
 """
 
 from __future__ import annotations
@@ -42,11 +45,11 @@ from _report import print_table, write_json
 from rcvae_torchrl import distributed
 
 WORLDS = (1, 2)
-UNITS = {"training": 4, "forecasting": 8, "validation": 8}  # members, chunks, episodes
+UNITS = {"training": 4, "forecasting": 16, "validation": 16}  # members, chunks, episodes
 
 
 # ---------------------------------------------------------------------- workloads
-def _training(quick: bool):
+def _training(quick: bool, full_model: bool = False):
     from tensordict import TensorDict
 
     from rcvae_torchrl.data import TRAJ_KEY
@@ -72,12 +75,14 @@ def _training(quick: bool):
         return td.reshape(-1)
 
     train, val = episodes(32, 0), episodes(8, 1000)
-    steps = 10 if quick else 40
-    config = TrainConfig(max_steps=steps, batch_windows=32, window=32, val_every=steps // 2)
+    steps = 10 if quick else 100
+    windows = 64 if full_model else 32  # the full profile's batch and hidden size
+    config = TrainConfig(max_steps=steps, batch_windows=windows, window=32, val_every=steps // 2)
+    model_config = rcvae_config(ModelConfig(hidden_dim=128 if full_model else 64))
 
     def run() -> None:
         torch.manual_seed(0)
-        model = RCVAEEnsemble(rcvae_config(ModelConfig()), 4, functions=MODEL_FUNCTIONS)
+        model = RCVAEEnsemble(model_config, 4, functions=MODEL_FUNCTIONS)
         train_ensemble(model, train, val, config, progress=False, checks=False)
 
     return run
@@ -96,7 +101,7 @@ def _forecasting(quick: bool):
     obs = torch.randn(500, 14) * 0.1
     model.fit_normalizer(obs, torch.rand(500, 2) * 2 - 1, next_observations=obs * 1.01)
     policy = torch.nn.Sequential(torch.nn.Linear(14, 64), torch.nn.Tanh(), torch.nn.Linear(64, 2))
-    horizon = 20 if quick else 60
+    horizon = 20 if quick else 100
     env = RCVAEEnsembleEnv(
         model,
         lambda observation, action: -observation[..., :1],
@@ -174,7 +179,7 @@ def _rank(rank: int, world: int, port: int, name: str, args: dict, out: str) -> 
 
     distributed.all_gather = measured_gather
     with distributed.session("gloo"):
-        run = WORKLOADS[name](args["quick"])
+        run = WORKLOADS[name](args["quick"], **args["workload"].get(name, {}))
         run()  # warm-up
         times, cpu = [], []
         for _ in range(args["repeats"]):
@@ -282,10 +287,20 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--only", choices=list(WORKLOADS), nargs="*", default=list(WORKLOADS))
+    parser.add_argument(
+        "--full-model",
+        action="store_true",
+        help="train the full profile's model (hidden 128, 64 windows per member)",
+    )
+    parser.add_argument("--out", default="scaling", help="results/<out>.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
     load_before = os.getloadavg()
-    settings = {"repeats": args.repeats, "quick": args.quick}
+    settings = {
+        "repeats": args.repeats,
+        "quick": args.quick,
+        "workload": {"training": {"full_model": args.full_model}},
+    }
     results: dict[str, dict[int, dict]] = {name: {} for name in args.only}
     for name in args.only:
         for world in WORLDS:
@@ -370,7 +385,7 @@ def main() -> None:
     )
     print(f"\nload average before {load_before}, after {load_after} on {os.cpu_count()} cores")
     write_json(
-        "scaling",
+        args.out,
         {
             "settings": settings,
             "load_average_before": load_before,

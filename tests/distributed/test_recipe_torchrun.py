@@ -1,4 +1,5 @@
-"""The Pusher recipe under ``torchrun`` with 2 ranks writes what a single process writes."""
+"""The Pusher recipe under ``torchrun`` with 2 ranks writes what a single process writes: the
+same models, forecasts and real outcomes."""
 
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ MICRO = (
     "assess.start_states=3",
     "assess.start_chunk=1",
     "assess.horizon_s=2.0",
+    "assess.surface_deadlines_s=[1.0,2.0]",
 )
 
 

@@ -14,6 +14,13 @@ from rcvae_torchrl import distributed
 from rcvae_torchrl.agent import RealOutcomes, draw_starts, real_outcomes, reset_by_seed
 from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary
 from rcvae_torchrl.data import ActionNoise, prepare_env
+from rcvae_torchrl.envs import (
+    ball_to_target,
+    make_batched_pusher_env,
+    make_pusher_env,
+    reset_to_state,
+)
+from rcvae_torchrl.envs.scripted import make_scripted_policy
 from rcvae_torchrl.model_env import RCVAEEnsembleEnv
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.training import TrainConfig, train_ensemble
@@ -137,10 +144,11 @@ def distance(observation):
     return observation[..., :2].norm(dim=-1)
 
 
-def outcomes(out: str | None = None) -> RealOutcomes:
-    """3 starts x 3 runs of a noisy point mass; every rank saves what it gathered."""
+def outcomes(out: str | None = None) -> dict[str, RealOutcomes]:
+    """Outcomes of a noisy point mass (3 starts x 3 runs, one env) and of a noisy Pusher in a
+    batched env of 2 (2 starts x 3 runs); every rank saves what it gathered."""
     env = point_mass()
-    result = real_outcomes(
+    one_env = real_outcomes(
         env,
         push,
         draw_starts(env, [0, 1, 2]),
@@ -152,6 +160,28 @@ def outcomes(out: str | None = None) -> RealOutcomes:
         seed=1,
         progress=False,
     )
+    batched = real_outcomes(
+        make_batched_pusher_env(2, "stochastic", action_noise_std=1.0, time_limit=2.0),
+        make_scripted_policy(),
+        pusher_starts(2),
+        runs_per_start=3,
+        reset_to_state=reset_to_state,
+        max_steps=40,
+        trace=ball_to_target,
+        seed=2,
+        progress=False,
+    )
+    result = {"one_env": one_env, "batched": batched}
     if out is not None:
-        torch.save(result.as_dict(), out.format(rank=distributed.rank()))
+        saved = {k: v.as_dict() for k, v in result.items()}
+        torch.save(saved, out.format(rank=distributed.rank()))
     return result
+
+
+def pusher_starts(n: int) -> torch.Tensor:
+    env = make_pusher_env("deterministic")
+    rows = []
+    for i in range(n):
+        env.set_seed(40 + i)
+        rows.append(env.reset()["observation"])
+    return torch.stack(rows)
