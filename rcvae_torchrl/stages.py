@@ -19,6 +19,11 @@ output records of the stages before it). A rerun re-verifies what it reuses:
 - a file the stage function cannot read (:class:`~rcvae_torchrl.io.StoredFileError`): the file
   is removed and the stage runs once more when it is one of the stage's own outputs; otherwise a
   :class:`StageError` names the stage, the file and what to do.
+
+Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) rank 0 verifies, writes the
+markers and logs; a ``sharded`` stage runs on every rank (it shares its work out and writes its
+files on rank 0), any other stage on rank 0 alone, and every rank waits for a stage to end
+before the next one.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl.io import StoredFileError, read_json, record_run_config, write_json
 
 __all__ = ["StageError", "StageRunner", "file_record"]
@@ -86,14 +92,14 @@ class StageRunner:
         self.log = log
         self.summaries: dict[str, Any] = {}
         self._inputs = _digest(dict(settings) if settings is not None else None)
-        if settings is not None:
+        if settings is not None and distributed.is_main():
             self._record_settings(dict(settings), self.run_dir / config_name)
 
     def _record_settings(self, settings: dict[str, Any], path: Path) -> None:
         try:
             record_run_config(path, settings)
         except StoredFileError as err:
-            self.log(f"[settings] {err}: writing it again from the current settings")
+            self._log(f"[settings] {err}: writing it again from the current settings")
             path.unlink(missing_ok=True)
             record_run_config(path, settings)
 
@@ -102,16 +108,29 @@ class StageRunner:
         return self.run_dir / "stages" / f"{name}.json"
 
     def run(
-        self, name: str, fn: Callable[[], dict[str, Any]], outputs: Sequence[str] = ()
+        self,
+        name: str,
+        fn: Callable[[], dict[str, Any]],
+        outputs: Sequence[str] = (),
+        sharded: bool = False,
     ) -> dict[str, Any]:
         """Run stage ``name`` unless a verified marker says it is done; returns its summary.
 
         ``outputs``: glob patterns, relative to the run directory, of the files the stage
         writes (e.g. ``("models/*.pt",)``); their sizes and hashes go into the marker.
+        ``sharded``: under ``torch.distributed`` the stage runs on every rank (see the module
+        docstring).
         """
-        saved = self._reusable(name)
-        if saved is None:
+        saved = self._reusable(name) if distributed.is_main() else None
+        if distributed.broadcast(saved is not None):  # rank 0's view: every rank takes one branch
+            saved = saved or read_json(self.marker(name), f"marker of stage {name!r}")
+        elif distributed.is_main() or sharded:
             saved = self._compute(name, fn, outputs)
+            distributed.barrier()
+        else:
+            distributed.barrier()
+        if not distributed.is_main():
+            saved = read_json(self.marker(name), f"marker of stage {name!r}")
         self.summaries[name] = {k: v for k, v in saved.items() if k not in ("outputs", "inputs")}
         self._inputs = _digest([self._inputs, name, saved["outputs"]])
         return self.summaries[name]
@@ -168,20 +187,25 @@ class StageRunner:
             (self.run_dir / rel).unlink(missing_ok=True)
 
     # ------------------------------------------------------------------ running
+    def _log(self, line: str) -> None:
+        if distributed.is_main():
+            self.log(line)
+
     def _compute(
         self, name: str, fn: Callable[[], dict[str, Any]], outputs: Sequence[str]
     ) -> dict[str, Any]:
-        self.log(f"[{name}] running")
+        self._log(f"[{name}] running")
         start = time.perf_counter()
         summary = self._call(name, fn, outputs)
         saved = {
             **summary,
             "seconds": round(time.perf_counter() - start, 1),
             "inputs": self._inputs,
-            "outputs": self._records(outputs),
+            "outputs": self._records(outputs) if distributed.is_main() else {},
         }
-        write_json(self.marker(name), saved)
-        self.log(f"[{name}] finished in {saved['seconds']} s")
+        if distributed.is_main():
+            write_json(self.marker(name), saved)
+        self._log(f"[{name}] finished in {saved['seconds']} s")
         return saved
 
     def _call(
@@ -201,7 +225,7 @@ class StageRunner:
                         f"{str(self.run_dir / 'stages')!r}) to have it made again, or start "
                         "a new run directory"
                     ) from err
-                self.log(f"[{name}] {err}: removing it and running the stage again")
+                self._log(f"[{name}] {err}: removing it and running the stage again")
                 Path(path).unlink(missing_ok=True)
         raise AssertionError("unreachable")
 

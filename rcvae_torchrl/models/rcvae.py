@@ -33,7 +33,7 @@ from rcvae_torchrl._checks import check_finite, check_floating, check_min_rank, 
 from rcvae_torchrl.models.config import RCVAEConfig
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_step, gru_update
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP, ensemble_mlp
-from rcvae_torchrl.models.functional import gaussian_head, reparameterize
+from rcvae_torchrl.models.functional import Generators, gaussian_head, reparameterize
 from rcvae_torchrl.models.functions import ModelFunctions
 from rcvae_torchrl.models.normalizer import StateNormalizer
 
@@ -255,7 +255,7 @@ class RCVAEEnsemble(nn.Module):
         mask: torch.Tensor | None = None,
         open_loop_steps: int = 0,
         detach_open_loop: bool = False,
-        generator: torch.Generator | None = None,
+        generator: Generators = None,
     ) -> SequenceOutput:
         """The training pass: windows through the model for the ELBO (teacher forcing,
         optionally open loop).
@@ -276,7 +276,7 @@ class RCVAEEnsemble(nn.Module):
                 are otherwise computed and must be excluded from the loss by the caller.
             open_loop_steps: number K of trailing transitions fed with model samples.
             detach_open_loop: stop gradients through the fed-back samples.
-            generator: torch generator for the latent and fed-back samples.
+            generator: torch generator for the latent and fed-back samples, or one per member.
 
         Returns:
             a :class:`SequenceOutput` with tensors ``[E, *B, n, ·]``, n = number of transitions.
@@ -381,7 +381,7 @@ class RCVAEEnsemble(nn.Module):
         last: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
         actions: torch.Tensor,
         detach: bool,
-        generator: torch.Generator | None,
+        generator: Generators,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Continue from the last teacher-forced step, feeding back prior samples."""
         hidden, x, prev = last
@@ -398,7 +398,7 @@ class RCVAEEnsemble(nn.Module):
         hidden: torch.Tensor,
         x: torch.Tensor,
         prev: torch.Tensor,
-        generator: torch.Generator | None,
+        generator: Generators,
     ) -> torch.Tensor:
         """s_t ~ p(s_t | h_t, x_t, z_t), z_t ~ p(z_t | h_t): the generative half of :meth:`step`."""
         latent = reparameterize(*self.prior(hidden), generator=generator)
@@ -411,7 +411,7 @@ class RCVAEEnsemble(nn.Module):
         x: torch.Tensor,
         prev: torch.Tensor,
         obs_next: torch.Tensor,
-        generator: torch.Generator | None,
+        generator: Generators,
     ) -> SequenceOutput:
         """Prior, posterior and decoder over all steps at once (none of them is recurrent)."""
         target = self.target_delta(prev, obs_next)

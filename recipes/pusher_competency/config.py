@@ -55,8 +55,9 @@ def _whole_steps(obj: object, names: tuple[str, ...]) -> None:
 class DataConfig:
     """World-model data per variant: scripted pushing with exploration noise, and random play.
 
-    ``stochastic_noise_std``: the std of the stochastic variant's action noise (with 2.5 the
-    agent reaches the target in about 3 of 4 episodes).
+    ``stochastic_noise_std``: the std of the stochastic variant's action noise (with 1.5 a
+    scripted pusher reaches the target within 12 s in about half of the episodes, and the
+    chance varies from task to task).
     """
 
     scripted_episodes: int = 300
@@ -64,7 +65,7 @@ class DataConfig:
     exploration_std: float = 0.3
     time_limit: float = 15.0
     random_time_limit: float = 10.0
-    stochastic_noise_std: float = 2.5
+    stochastic_noise_std: float = 1.5
 
     def __post_init__(self) -> None:
         _at_least(self, ("scripted_episodes", "random_episodes"), 0, int)
@@ -132,18 +133,31 @@ class AgentStudyConfig:
 class AssessConfig:
     """The competency assessment and its ground truth.
 
-    ``episode_end``: measure the uncertainty of the episode, which ends at success as in the
-    real env (ended samples share a terminal bin). ``bias_correction``: ``"none"`` or
+    ``horizon_s``: the task's deadline and the forecast's horizon; 12 s binds (a training task
+    takes a scripted pusher about 4.5 s, an out-of-distribution one about 9 s).
+    ``seeds_per_start`` / ``stochastic_seeds_per_start``: real episodes per start state in the
+    deterministic envs (whose outcome per start is fixed) and in the stochastic env (30 give a
+    per-start success rate a standard error of at most 0.09); ``real_envs`` of them run at a
+    time in one batched env. ``surface_radii`` (m) x ``surface_deadlines_s``: the grid of
+    success boundaries of the competency surface, answered by the same imagined and real
+    episodes. ``episode_end``: measure the uncertainty of the episode, which ends at success as
+    in the real env (ended samples share a terminal bin). ``bias_correction``: ``"none"`` or
     ``"shuffle"`` (the histogram's epistemic part corrected for its sampling bias, see
-    :func:`~rcvae_torchrl.competency.decompose_uncertainty`).
+    :func:`~rcvae_torchrl.competency.decompose_uncertainty`). ``start_chunk``: start states
+    imagined together, each chunk seeded by the study's seed and its index (the unit of work
+    shared over ``torchrun`` ranks).
     """
 
-    start_states: int = 20
+    start_states: int = 40
+    start_chunk: int = 4
     samples_per_member: int = 50
-    horizon_s: float = 30.0
+    horizon_s: float = 12.0
     seeds_per_start: int = 1
-    stochastic_seeds_per_start: int = 5
+    stochastic_seeds_per_start: int = 30
+    real_envs: int = 400
     success_radius: float = 0.03
+    surface_radii: list[float] = field(default_factory=lambda: [0.02, 0.03, 0.05, 0.08])
+    surface_deadlines_s: list[float] = field(default_factory=lambda: [4.0, 6.0, 8.0, 10.0, 12.0])
     open_loop: bool = False
     episode_end: bool = True
     bias_correction: str = "shuffle"
@@ -154,9 +168,11 @@ class AssessConfig:
             self,
             (
                 "start_states",
+                "start_chunk",
                 "samples_per_member",
                 "seeds_per_start",
                 "stochastic_seeds_per_start",
+                "real_envs",
                 "forecast_panels",
             ),
             1,
@@ -166,6 +182,19 @@ class AssessConfig:
         _at_least(self, ("success_radius",), 0.0)
         if not self.success_radius > 0:
             raise ValueError(f"success_radius: expected > 0 m, got {self.success_radius!r}")
+        if not self.surface_radii:
+            raise ValueError("surface_radii: expected at least one radius (m), got none")
+        for i, radius in enumerate(self.surface_radii):
+            at_least(f"surface_radii[{i}]", radius, 1e-9)
+        if not self.surface_deadlines_s:
+            raise ValueError("surface_deadlines_s: expected at least one deadline (s), got none")
+        for i, deadline in enumerate(self.surface_deadlines_s):
+            whole_steps(f"surface_deadlines_s[{i}]", deadline, CONTROL_TIMESTEP)
+            if deadline > self.horizon_s + 1e-9:
+                raise ValueError(
+                    f"surface_deadlines_s[{i}]: expected at most horizon_s={self.horizon_s} s, "
+                    f"got {deadline!r}"
+                )
         if self.bias_correction not in ("none", "shuffle"):
             raise ValueError(
                 f"bias_correction: expected 'none' or 'shuffle', got {self.bias_correction!r}"

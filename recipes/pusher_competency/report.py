@@ -14,14 +14,17 @@ from rcvae_torchrl.envs import CONTROL_TIMESTEP
 from rcvae_torchrl.envs.render import gl_unavailable_reason, record_episode
 from rcvae_torchrl.io import atomic_write, read_json, write_json
 from rcvae_torchrl.reporting import (
+    plot_competency_surface,
     plot_forecast_vs_reality,
     plot_reliability,
+    plot_start_reliability,
     plot_uncertainty_over_time,
     write_table,
 )
 
 from .config import AssessConfig
 from .pusher import FIGURE_PANELS
+from .trust import competency_surfaces, trust_checks, validation, validation_figures
 
 __all__ = ["COLUMNS", "condition_row", "pattern_checks", "write_report"]
 
@@ -171,7 +174,7 @@ def _figures(run_dir: Path, forecasts, truths, panels: int, radius: float) -> di
     episodes = []
     for c, f in forecasts.items():
         for b in range(min(panels, f["p_success"].numel()) if c == "stochastic" else 1):
-            real = [t[~t.isnan()] for t in truths[c]["ball_to_target"][b]]
+            real = [t[~t.isnan()] for t in truths[c]["trace"][b]]
             episodes.append(
                 {
                     "title": f"{c}, start {b} (P={f['p_success'][b]:.2f})",
@@ -214,15 +217,29 @@ def write_report(
         "success_rate": y.mean().item(),
     }
     checks = pattern_checks(rows, overall)
+    a = config.assess
+    scores = validation(forecasts, truths, a.success_radius)
+    deadlines = [round(d / CONTROL_TIMESTEP) for d in a.surface_deadlines_s]
+    surfaces = competency_surfaces(forecasts, truths, list(a.surface_radii), deadlines)
+    checks.update(trust_checks(scores, surfaces))
     by_window = pattern_by_window(forecasts, CONTROL_TIMESTEP)
-    figures = _figures(
-        run_dir, forecasts, truths, config.assess.forecast_panels, config.assess.success_radius
+    figures = _figures(run_dir, forecasts, truths, a.forecast_panels, a.success_radius)
+    figures["start_reliability"] = plot_start_reliability(
+        validation_figures(forecasts, truths), run_dir / "start_reliability.png"
+    )
+    figures["surface"] = plot_competency_surface(
+        surfaces, list(a.surface_radii), list(a.surface_deadlines_s), run_dir / "surface.png"
     )
     gif = _episode_gif(run_dir, policy, episode_env, config.seed)
     summary = {
         "rows": rows,
         "overall": overall,
         "checks": checks,
+        "validation": scores,
+        "surfaces": {
+            c: {k: v.tolist() if torch.is_tensor(v) else v for k, v in x.items()}
+            for c, x in surfaces.items()
+        },
         "pattern_by_window": by_window,
         "gif": gif,
     }
@@ -231,8 +248,72 @@ def write_report(
     text = _markdown(
         rows, overall, checks, by_window, figures, gif, run_dir, residual, _bits_text(config.assess)
     )
+    text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
+
+
+_SCORE_COLUMNS = (
+    ("forecast", "forecast"),
+    ("real", "real"),
+    ("gap", "gap"),
+    ("per_start_mae", "per-start MAE"),
+    ("spearman", "Spearman"),
+    ("real_rate_span", "real rate span"),
+    ("auroc", "AUROC"),
+    ("bss_overall", "BSS (overall rate)"),
+    ("brier_skill", "BSS (own rate)"),
+    ("oracle_auroc", "oracle AUROC"),
+    ("oracle_brier_skill", "oracle BSS (own rate)"),
+    ("tts_crps", "TTS CRPS (steps)"),
+    ("tts_crps_climatology", "climatology"),
+    ("starts", "starts"),
+    ("episodes", "episodes"),
+)
+
+
+def _validation_text(scores, assess: AssessConfig) -> str:
+    """The per-task validation section of report.md."""
+    head = "| condition | " + " | ".join(label for _, label in _SCORE_COLUMNS) + " |"
+    rule = "|:---|" + "---:|" * len(_SCORE_COLUMNS)
+    body = [
+        f"| {c} | "
+        + " | ".join(
+            f"{s[k]:.3f}" if isinstance(s.get(k), float) else str(s.get(k, ""))
+            for k, _ in _SCORE_COLUMNS
+        )
+        + " |"
+        for c, s in scores.items()
+    ]
+    return "\n".join(
+        [
+            "## Per task: the forecast start by start",
+            "",
+            f"Each start state's forecast against the success rate of its real episodes "
+            f"({assess.stochastic_seeds_per_start} per start in the stochastic env, "
+            f"{assess.seeds_per_start} where the env is deterministic). BSS: Brier skill against "
+            "a constant forecast of the overall or the condition's own base rate. TTS: the "
+            "forecast distribution of the time to success against the real times, by CRPS, "
+            "beside the condition's climatological distribution (lower is better). Oracle: the "
+            "scores of a forecast equal to each start's own real success rate, the ceiling that "
+            "the outcomes' randomness leaves to any forecast.",
+            "",
+            head,
+            rule,
+            *body,
+            "",
+            "![reliability over start states](start_reliability.png)",
+            "",
+            "## Competency surface",
+            "",
+            "P(success) for other boundaries (success radius x deadline), answered by the same "
+            "imagined and real episodes (the real ones go on after success).",
+            "",
+            "![competency surface](surface.png)",
+            "",
+            "",
+        ]
+    )
 
 
 _AGENT_TEXT = {

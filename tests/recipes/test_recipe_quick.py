@@ -25,7 +25,13 @@ from recipes.pusher_competency.report import COLUMNS
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "pusher_competency" / "main.py"
 STAGES = ("data", "models", "agent", "forecast", "truth", "report")
-FIGURES = ("uncertainty_over_time.png", "reliability.png", "forecast_vs_reality.png")
+FIGURES = (
+    "uncertainty_over_time.png",
+    "reliability.png",
+    "forecast_vs_reality.png",
+    "start_reliability.png",
+    "surface.png",
+)
 START_STATES = 2
 STOCHASTIC_SEEDS = 2  # the quick profile's assess.stochastic_seeds_per_start
 MICRO = (
@@ -41,6 +47,7 @@ MICRO = (
     "agent.distill.epochs=5",
     f"assess.start_states={START_STATES}",
     "assess.horizon_s=2.0",
+    "assess.surface_deadlines_s=[1.0,2.0]",
 )
 
 
@@ -167,14 +174,25 @@ def test_report_references_the_outputs(runs):
 
 def test_summary_json(runs):
     summary = json.loads((runs["dir"] / "summary.json").read_text())
-    assert {"rows", "overall", "checks", "pattern_by_window"} <= set(summary)
+    assert {"rows", "overall", "checks", "validation", "surfaces", "pattern_by_window"} <= set(
+        summary
+    )
     windows = summary["pattern_by_window"]
     assert list(windows) == ["1s", "2s"]  # windows up to the horizon (2 s here), which closes them
     assert all(len(r) == 3 and all(v > 0 for v in r.values()) for r in windows.values())
     assert list(summary["rows"]) == list(CONDITIONS)
     assert all(set(COLUMNS) <= set(row) for row in summary["rows"].values())
     assert set(summary["overall"]) == {"brier", "constant_brier", "success_rate"}
-    assert len(summary["checks"]) == 3 + len(CONDITIONS) + 1
+    names = set(summary["checks"])
+    for condition in CONDITIONS:
+        assert f"|forecast - empirical| <= 0.10 ({condition})" in names
+        assert f"time-to-success CRPS skill > 0 ({condition})" in names
+        assert f"competency surface: largest gap <= 0.1 ({condition})" in names
+        surface = summary["surfaces"][condition]
+        assert len(surface["forecast"]) == 4  # radii
+        assert len(surface["forecast"][0]) == 2  # deadlines
+    assert "AUROC >= 0.75 (all episodes)" in names
+    assert set(summary["validation"]) == {*CONDITIONS, "overall"}
     for check in summary["checks"].values():
         assert isinstance(check["met"], bool) and isinstance(check["value"], float)
     rows = {r["condition"]: r for r in _rows(runs["dir"])}
