@@ -16,35 +16,37 @@ import shutil
 from pathlib import Path
 
 import pytest
+from hydra import compose, initialize_config_dir
 
 from rcvae_torchrl.io import StoredFileError
 from rcvae_torchrl.stages import StageError, file_record
-from recipes.pusher_competency.config import study_config
+from recipes.pusher_competency.config import register_configs, study_config
 from recipes.pusher_competency.pipeline import STAGES, run_study
 
-MICRO = {
-    "profile": "quick",
-    "progress": False,
-    "data": {"scripted_episodes": 3, "random_episodes": 2, "time_limit": 8.0},
-    "model": {"ensemble_size": 3, "hidden_dim": 32, "latent_dim": 4},
-    "train": {"max_steps": 20, "val_every": 10, "batch_windows": 16, "window": 16},
-    "planner": {"horizon": 8, "num_candidates": 32, "top_k": 4, "particles": 3},
-    "agent": {"mpc_episodes": 1, "eval_episodes": 1, "dagger_episodes": 1},
-    "assess": {
-        "start_states": 2,
-        "horizon_s": 2.0,
-        "samples_per_member": 4,
-        "stochastic_seeds_per_start": 2,
-        "forecast_panels": 2,
-    },
-}
-MICRO["agent"]["distill"] = {"epochs": 5, "patience": 5}
+CONF = Path(__file__).resolve().parents[2] / "recipes" / "pusher_competency" / "conf"
+MICRO = (  # the quick profile, smaller still (as the end-to-end recipe test)
+    "profile=quick",
+    "progress=false",
+    "data.scripted_episodes=3",
+    "data.random_episodes=2",
+    "train.max_steps=20",
+    "train.val_every=10",
+    "agent.mpc_episodes=1",
+    "agent.eval_episodes=1",
+    "agent.distill.epochs=5",
+    "assess.start_states=2",
+    "assess.horizon_s=2.0",
+    "assess.surface_deadlines_s=[1.0,2.0]",
+)
+register_configs()
 DAMAGES = ("garbage", "truncate", "delete")
 
 
 def _run(run_dir: Path) -> tuple[dict, list[str]]:
     lines: list[str] = []
-    config = study_config({**MICRO, "run_dir": str(run_dir)})
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name="pusher_competency", overrides=[*MICRO, f"run_dir={run_dir}"])
+    config = study_config(cfg)
     return run_study(config, run_dir, progress=False, log=lines.append), lines
 
 
