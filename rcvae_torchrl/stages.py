@@ -159,7 +159,8 @@ class StageRunner:
             if not isinstance(saved, dict) or not isinstance(saved.get("outputs"), dict):
                 raise StoredFileError(f"marker of stage {name!r} {str(path)!r}: no file records")
         except StoredFileError as err:
-            self.log(f"[{name}] {err}: running the stage again")
+            self.log(f"[{name}] {err}: removing it and running the stage again")
+            path.unlink()
             return None
         if saved.get("inputs") != self._inputs:
             self.log(

@@ -112,6 +112,17 @@ def test_a_damaged_marker_reruns_its_stage(tmp_path, damage):
         assert any("[make] marker of stage 'make'" in line for line in lines)
 
 
+def test_a_stage_that_reads_markers_is_not_stopped_by_its_own_damaged_one(tmp_path):
+    """An unreadable marker is removed before its stage runs again (a report stage may read
+    every marker present)."""
+    runner = StageRunner(tmp_path, lambda line: None)
+    runner.run("report", lambda: {"n": len(list((tmp_path / "stages").glob("*.json")))})
+    runner.marker("report").write_text("{trunc")
+    again = StageRunner(tmp_path, lambda line: None)
+    reads = lambda: {"n": len([read_json(p) for p in (tmp_path / "stages").glob("*.json")])}  # noqa: E731
+    assert again.run("report", reads)["n"] == 0
+
+
 @pytest.mark.parametrize("damage", ["truncate", "delete"])
 def test_a_damaged_run_config_is_written_again(tmp_path, damage):
     Pipeline(tmp_path).run()
