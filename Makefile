@@ -6,17 +6,26 @@ PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
-EXTRAS ?= recipes,test,dev,docs
+EXTRAS ?= recipes,test,dev,docs,loggers
 export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 
-.PHONY: run run-quick demo test test-slow test-all lint format docs bench system-deps setup clean
+SEEDS  ?= 0,1,2,3,4
+
+.PHONY: run run-quick run-seeds demo test test-slow test-all lint format docs bench system-deps setup clean
 
 run: setup
 	$(PY) recipes/pusher_competency/main.py
 
 run-quick: setup
 	$(PY) recipes/pusher_competency/main.py profile=quick
+
+# The study for every seed of SEEDS (Hydra multirun), then one table over them.
+run-seeds: setup
+	$(PY) recipes/pusher_competency/main.py -m hydra/launcher=local seed=$(SEEDS) threads=1 \
+		progress=false \
+		'run_dir=outputs/pusher_competency/seeds/seed$${seed}'
+	$(PY) recipes/pusher_competency/aggregate.py outputs/pusher_competency/seeds
 
 demo: setup
 	$(PY) recipes/pusher_demo.py

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import statistics
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -18,6 +16,8 @@ import torch
 RESULTS_DIR = Path(__file__).resolve().parent / "results"
 # the benchmarks of a study import its recipe (not installed): the repository root
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from rcvae_torchrl.io import write_json as atomic_json  # noqa: E402  (after the path is set)
 
 
 def conditions() -> dict[str, Any]:
@@ -102,9 +102,6 @@ def write_json(name: str, payload: dict[str, Any]) -> Path:
     RESULTS_DIR.mkdir(parents=True, exist_ok=True)
     path = RESULTS_DIR / f"{name}.json"
     payload = {"benchmark": name, "machine": machine_info(), **payload}
-    fd, tmp = tempfile.mkstemp(dir=RESULTS_DIR, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(payload, f, indent=2)
-    os.replace(tmp, path)
+    atomic_json(path, payload)  # the user's umask, like every file of the project
     print(f"\nwrote {path}")
     return path

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-import imageio.v2 as imageio
+import imageio.v3 as iio
 import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
+
+from rcvae_torchrl.io import atomic_write
 
 __all__ = ["gl_unavailable_reason", "record_episode", "render_frame", "save_video"]
 
@@ -53,19 +54,9 @@ def save_video(frames: list[np.ndarray], path: str | Path, fps: float) -> Path:
         raise ValueError(f"path: expected a .gif or .mp4 file name, got {str(path)!r}")
     if not frames:
         raise ValueError("frames: expected at least one frame, got none")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        if path.suffix == ".gif":
-            imageio.mimsave(tmp, frames, duration=1000.0 / fps, loop=0)
-        else:
-            imageio.mimsave(tmp, frames, fps=fps)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    return path
+    options = {"duration": 1000.0 / fps, "loop": 0} if path.suffix == ".gif" else {"fps": fps}
+    data = iio.imwrite("<bytes>", np.stack(frames), extension=path.suffix, **options)
+    return atomic_write(path, lambda f: f.write(data))
 
 
 def record_episode(

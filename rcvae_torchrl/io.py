@@ -33,7 +33,14 @@ __all__ = [
 
 
 class StoredFileError(ValueError):
-    """A stored file cannot be used: missing, truncated, corrupt or of another kind."""
+    """A stored file cannot be used: missing, truncated, corrupt or of another kind.
+
+    ``path``: the file (None when not known), so that a caller can remove or remake it.
+    """
+
+    def __init__(self, message: str, path: str | Path | None = None) -> None:
+        super().__init__(message)
+        self.path = None if path is None else Path(path)
 
 
 def _umask() -> int:
@@ -76,12 +83,12 @@ def read_json(path: str | Path, what: str = "a JSON file") -> Any:
     missing or not valid JSON (e.g. truncated)."""
     path = Path(path)
     if not path.is_file():
-        raise StoredFileError(f"{what} {str(path)!r}: the file is missing")
+        raise StoredFileError(f"{what} {str(path)!r}: the file is missing", path)
     try:
         return json.loads(path.read_bytes())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise StoredFileError(
-            f"{what} {str(path)!r} is truncated or corrupt (not valid JSON: {err})"
+            f"{what} {str(path)!r} is truncated or corrupt (not valid JSON: {err})", path
         ) from err
 
 
@@ -95,13 +102,13 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
     is missing, truncated or corrupt."""
     path = Path(path)
     if not path.is_file():
-        raise StoredFileError(f"{what} {str(path)!r}: the file is missing")
+        raise StoredFileError(f"{what} {str(path)!r}: the file is missing", path)
     data = path.read_bytes()
     try:
         return torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
     except Exception as err:  # torch raises several types for damaged archives
         raise StoredFileError(
-            f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): {err}"
+            f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): {err}", path
         ) from err
 
 

@@ -124,17 +124,18 @@ def load_policy(path: str | Path, *, base: nn.Module | None = None) -> MLPPolicy
     payload = load_torch(path, "policy file")
     where = f"policy file {str(path)!r}"
     if not isinstance(payload, dict) or payload.get("kind") != _KIND:
-        raise StoredFileError(f"{where}: expected a policy saved by save_policy")
+        raise StoredFileError(f"{where}: expected a policy saved by save_policy", path)
     if payload.get("format_version") != POLICY_FORMAT_VERSION:
         raise StoredFileError(
             f"{where}: expected format version {POLICY_FORMAT_VERSION}, "
-            f"got {payload.get('format_version')!r}"
+            f"got {payload.get('format_version')!r}",
+            path,
         )
     mlp = MLPPolicy(payload["obs_dim"], payload["action_dim"], payload["hidden"])
     try:
         mlp.load_state_dict(payload["state_dict"])
     except RuntimeError as err:
-        raise StoredFileError(f"{where}: weights do not match: {err}") from err
+        raise StoredFileError(f"{where}: weights do not match: {err}", path) from err
     if not payload["residual"]:
         return mlp.eval()
     if base is None:

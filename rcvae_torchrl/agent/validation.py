@@ -9,15 +9,18 @@ start by start (:func:`~rcvae_torchrl.competency.validate_forecasts`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import dataclasses
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
+from tqdm.auto import tqdm
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl.competency import validate_forecasts
-from rcvae_torchrl.data import TRAJ_KEY
+from rcvae_torchrl.data import TRAJ_KEY, seed_env
 
 from .episodes import ResetToState, run_episodes
 
@@ -66,42 +69,150 @@ def real_outcomes(
     transforms, :func:`~rcvae_torchrl.data.seed_env`), then put in the start state with
     ``reset_to_state``. ``success`` and ``trace`` are as in
     :func:`~rcvae_torchrl.agent.run_episodes` (a flag the env writes, or a function of the
-    observations); ``trace`` maps observations ``[T, S] -> [T]``.
+    observations); ``trace`` maps observations ``[..., T, S] -> [..., T]``.
+
+    A batched env (``env.batch_size == [N]``, e.g. a TorchRL ``ParallelEnv`` or a vectorised
+    simulator) runs the episodes ``N`` at a time with one policy call per step: each chunk is
+    seeded with ``env.set_seeds(seeds)`` when the env has it (one seed per sub-env, the seeds
+    above, so the outcomes equal the one-env run's), else with ``set_seed`` of its first seed;
+    ``reset_to_state(env, starts[N])`` starts the chunk, which then runs ``max_steps`` steps
+    (a sub-env that is done stays done). The last chunk is padded with repeats of its last
+    episode, whose results are dropped.
+
+    Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) the ``B·R`` episodes are
+    shared out over the ranks in blocks, each rank with its own ``env`` and ``policy``, and the
+    outcomes gathered on every rank: the same as one process's.
     """
     if isinstance(runs_per_start, bool) or not isinstance(runs_per_start, int):
         raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
     if runs_per_start < 1:
         raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
     b, r = len(starts), runs_per_start
-    index = torch.arange(b).repeat_interleave(r)
-    stats = run_episodes(
-        env,
-        policy,
-        seeds=[seed * 100_003 + i for i in range(b * r)],
-        starts=starts[index],
-        reset_to_state=reset_to_state,
-        max_steps=max_steps,
-        success=success,
-        progress=progress,
-        desc=desc,
-    )
-    first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, max_steps))
+    if len(env.batch_size) > 1:
+        raise ValueError(
+            f"env: expected an env with batch_size [] or [N], got {list(env.batch_size)}"
+        )
+    mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))
+    index = torch.arange(b).repeat_interleave(r)[mine]
+    seeds = [seed * 100_003 + i for i in mine]
+    part = None
+    if mine and len(env.batch_size) == 1:
+        part = dataclasses.astuple(
+            _batched_outcomes(
+                env,
+                policy,
+                starts,
+                index,
+                seeds,
+                reset_to_state,
+                max_steps,
+                success,
+                trace,
+                progress and distributed.is_main(),
+                desc,
+            )
+        )
+    elif mine:
+        stats = run_episodes(
+            env,
+            policy,
+            seeds=seeds,
+            starts=starts[index],
+            reset_to_state=reset_to_state,
+            max_steps=max_steps,
+            success=success,
+            progress=progress and distributed.is_main(),
+            desc=desc,
+        )
+        part = _outcomes(stats, len(mine), success, trace, max_steps)
+    flat = _gathered(part)
+    return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
+
+
+def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
+    """``(success, first_step, steps, trace or None)`` of ``episodes`` episodes ``[n, ...]``."""
+    first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, horizon))
     if callable(success):  # a function: the first success may lie before the episode's end
-        first = _first_steps(stats.data, success, b * r, max_steps)
+        first = _first_steps(stats.data, success, episodes, horizon)
     values = None
     if trace is not None:
-        values = torch.full((b * r, max_steps), float("nan"))
+        values = torch.full((episodes, horizon), float("nan"))
         ids, per_step = stats.data[TRAJ_KEY], trace(stats.data["next", "observation"])
-        for i in range(b * r):
+        for i in range(episodes):
             row = per_step[ids == i]
             values[i, : row.numel()] = row
-        values = values.reshape(b, r, max_steps)
-    return RealOutcomes(
-        stats.success.reshape(b, r),
-        first.reshape(b, r),
-        stats.steps.reshape(b, r),
-        values,
+    return stats.success, first, stats.steps, values
+
+
+def _gathered(part: tuple | None) -> tuple:
+    """This rank's episodes, or every rank's in episode order under torch.distributed."""
+    if not distributed.is_active():
+        return part
+    parts = [p for p in distributed.all_gather(part) if p is not None]
+    return tuple(
+        None if parts[0][k] is None else torch.cat([p[k] for p in parts])
+        for k in range(len(parts[0]))
     )
+
+
+def _batched_outcomes(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    starts: torch.Tensor | TensorDictBase,
+    index: torch.Tensor,
+    seeds: Sequence[int],
+    reset_to_state: ResetToState,
+    max_steps: int,
+    success: str | Callable[[torch.Tensor], torch.Tensor],
+    trace: Callable[[torch.Tensor], torch.Tensor] | None,
+    progress: bool,
+    desc: str,
+) -> RealOutcomes:
+    """Episodes ``index`` (start rows) with ``seeds``, ``N`` at a time: outcomes ``[len]``."""
+    n, total = env.batch_size[0], len(seeds)
+    parts = []
+    for lo in tqdm(range(0, total, n), desc=desc, disable=not progress, leave=False):
+        rows = torch.arange(lo, lo + n).clamp_max(total - 1)  # pad with the last episode
+        chunk = [int(seeds[i]) for i in rows]
+        if hasattr(env, "set_seeds"):
+            env.set_seeds(chunk)
+        else:
+            seed_env(env, chunk[0])
+        td = reset_to_state(env, starts[index[rows]])
+        if hasattr(type(policy), "reset"):
+            policy.reset()
+        with torch.no_grad():
+            episode = env.rollout(
+                max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=False
+            )
+        keep = min(n, total - lo)
+        out = _chunk_outcomes(episode, success, trace, max_steps)
+        parts.append([None if t is None else t[:keep] for t in dataclasses.astuple(out)])
+    return RealOutcomes(*(None if t[0] is None else torch.cat(t) for t in zip(*parts)))
+
+
+def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
+    """Outcomes of a batched rollout ``[N, T]``: a sub-env's episode ends at its first done."""
+    done = episode["next", "done"].reshape(episode.shape)
+    ended = done.cumsum(1) - done.long() > 0  # steps after the episode's last one
+    if callable(success):
+        won = success(episode["next", "observation"]).reshape(episode.shape).to(torch.bool)
+    else:
+        won = episode["next", success].reshape(episode.shape)
+    won = won & ~ended
+    steps_run = episode.shape[1]
+    length = torch.where(
+        done.any(1), done.float().argmax(1) + 1, torch.full_like(done[:, 0], steps_run).long()
+    )
+    hit = won.any(1)
+    first = torch.where(hit, won.float().argmax(1), torch.full_like(length, max_steps))
+    steps = torch.where(hit, first + 1, length)
+    values = None
+    if trace is not None:
+        per_step = trace(episode["next", "observation"]).reshape(episode.shape).float()
+        values = torch.full((episode.shape[0], max_steps), float("nan"))
+        values[:, :steps_run] = per_step.masked_fill(ended, float("nan"))
+    return RealOutcomes(hit, first, steps, values)
 
 
 def _first_steps(data, success, episodes: int, horizon: int) -> torch.Tensor:

@@ -22,6 +22,7 @@ from rcvae_torchrl._checks import (  # noqa: F401  (re-exported for the competen
     check_positive_int,
     check_rank,
     check_same_shape,
+    check_tensor,
 )
 
 

@@ -13,8 +13,9 @@ state, Figure 1 per dimension and time).
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -23,6 +24,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl.competency import _checks
 from rcvae_torchrl.competency._keys import KeyedModule
 from rcvae_torchrl.competency.boundary import SuccessBoundary
@@ -194,6 +196,7 @@ class CompetencyAssessor(KeyedModule):
         policy: Policy | None = None,
         actions: Tensor | None = None,
         generator: torch.Generator | None = None,
+        seed: int | None = None,
         return_rollouts: bool = False,
     ) -> CompetencyReport:
         """Imagine, measure and report; see :class:`CompetencyReport` for what it holds.
@@ -204,26 +207,59 @@ class CompetencyAssessor(KeyedModule):
             policy: closed loop (default: the assessor's ``policy``), ``horizon`` steps.
             actions: open loop instead: ``[T, A]`` (the same for every start state) or
                 ``[*B, T, A]``.
-            generator: source of all sampling noise (default: the model env's).
+            generator: source of all sampling noise (default: the model env's), drawn chunk
+                after chunk.
+            seed: instead of ``generator``: chunk ``k`` of ``start_chunk`` start states draws
+                its noise (imagination, and the estimator's shuffles) from generators seeded by
+                ``(seed, k)`` alone. Under ``torch.distributed``
+                (:mod:`rcvae_torchrl.distributed`) the chunks are shared out over the ranks
+                and the report gathered on every rank; it equals the single-process report
+                under the same seed. A sharded assessment needs a seed.
             return_rollouts: also keep the rollouts, ``data["rollout"]`` ``[*B, E, N, T]``
                 (``E·N·T`` states per start state: memory).
         """
         observation = self._start_states(start)
         batch = observation.shape[:-1]
         policy, plan = self._controls(policy, actions, batch)
+        _check_seed(seed, generator)
         flat = observation.reshape(-1, observation.shape[-1])
-        parts = [
-            self._assess_chunk(
-                flat[i : i + self.start_chunk],
-                None if plan is None else plan[i : i + self.start_chunk],
-                policy,
-                generator,
-                return_rollouts,
-            )
-            for i in range(0, flat.shape[0], self.start_chunk)
-        ]
+        chunks = range(0, flat.shape[0], self.start_chunk)
+        mine = distributed.shard(len(chunks)) if distributed.is_active() else range(len(chunks))
+        parts = []
+        for k in mine:
+            i = chunks[k]
+            with self._chunk_noise(seed, k, generator) as noise:
+                parts.append(
+                    self._assess_chunk(
+                        flat[i : i + self.start_chunk],
+                        None if plan is None else plan[i : i + self.start_chunk],
+                        policy,
+                        noise,
+                        return_rollouts,
+                    )
+                )
         steps = self.horizon if plan is None else plan.shape[-2]
-        return self.report(torch.cat(parts, dim=0).reshape(batch), steps)
+        return self.report(_gathered(parts, flat.device).reshape(batch), steps)
+
+    @contextlib.contextmanager
+    def _chunk_noise(
+        self, seed: int | None, chunk: int, generator: torch.Generator | None
+    ) -> Iterator[torch.Generator | None]:
+        """The imagination generator of chunk ``chunk``; with a seed, the estimator's
+        shuffles also draw from a generator of the chunk while it is assessed."""
+        if seed is None:
+            yield generator
+            return
+        device = next(self.model_env.ensemble.parameters()).device
+        args = self.uncertainty_metric.estimator_args
+        saved = dict(args)
+        if args.get("bias_correction") == "shuffle":
+            args["generator"] = distributed.work_generator(seed, chunk, 1)
+        try:
+            yield distributed.work_generator(seed, chunk, 0, device=device)
+        finally:
+            args.clear()
+            args.update(saved)
 
     def report(self, data: TensorDictBase, steps: int | None = None) -> CompetencyReport:
         """A :class:`CompetencyReport` of ``data`` (the TensorDict :meth:`assess` returns as
@@ -390,6 +426,27 @@ class CompetencyAssessor(KeyedModule):
             )
         _checks.check_finite("actions", actions)
         return actions.reshape(-1, *actions.shape[-2:])
+
+
+def _check_seed(seed: int | None, generator: torch.Generator | None) -> None:
+    if seed is not None and generator is not None:
+        raise ValueError("seed, generator: expected at most one of them, got both")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
+        raise ValueError(f"seed: expected a non-negative int, got {seed!r}")
+    if seed is None and distributed.is_active():
+        raise ValueError(
+            "seed: an assessment sharded over torch.distributed ranks needs a seed (each chunk "
+            "of start states is seeded by it), got None"
+        )
+
+
+def _gathered(parts: list[TensorDictBase], device: torch.device) -> TensorDictBase:
+    """This rank's chunks joined, or every rank's, in chunk order, under torch.distributed."""
+    if not distributed.is_active():
+        return torch.cat(parts, dim=0)
+    local = torch.cat(parts, dim=0).cpu() if parts else None
+    gathered = [p for p in distributed.all_gather(local) if p is not None]
+    return torch.cat(gathered, dim=0).to(device)
 
 
 def _check_model_env(model_env: object) -> int:

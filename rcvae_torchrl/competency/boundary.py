@@ -72,22 +72,28 @@ class SuccessBoundary:
         radius: float,
         *,
         target: Sequence[int] | Tensor,
+        obs_dim: int | None = None,
         **kwargs: object,
     ) -> SuccessBoundary:
         """Success when ``‖obs[..., position] - target‖ <= radius`` (Euclidean).
 
         Args:
             position: observation indices of the controlled position (e.g. ball x, y).
-            radius: positive radius, in the observation's units.
+            radius: positive, finite radius, in the observation's units.
             target: observation indices holding the target (a sequence of ints), or a fixed
                 target position (a float tensor of ``len(position)`` entries).
+            obs_dim: the observation size D, when known: indices are then checked against it
+                here (else at the first evaluation, against the observations' D).
             **kwargs: ``time_limit``, ``time_limit_s``, ``dt``, ``failure`` as in the constructor.
         """
         _checks.check_positive("radius", radius)
-        position = list(position)
-        target_fn = _target_getter(target, len(position))
+        if obs_dim is not None:
+            _checks.check_positive_int("obs_dim", obs_dim)
+        position = _indices("position", position, obs_dim)
+        target_fn = _target_getter(target, len(position), obs_dim)
 
         def distance(obs: Tensor) -> Tensor:
+            _check_indices("position", position, obs.shape[-1])
             return torch.linalg.vector_norm(obs[..., position] - target_fn(obs), dim=-1)
 
         return cls.within_distance(distance, radius, **kwargs)
@@ -145,7 +151,13 @@ class SuccessBoundary:
 
     @staticmethod
     def _evaluate(predicate: Predicate | None, name: str, observation: Tensor) -> Tensor:
+        """The predicate's bool ``[..., T]`` on finite observations ``[..., T, D]`` (a NaN
+        observation is a ``ValueError``, as in the uncertainty metric: it is neither in nor
+        out of a region)."""
+        _checks.check_tensor("observation", observation)
         _checks.check_min_rank("observation", observation, 2, "[..., T, D]")
+        _checks.check_floating("observation", observation)
+        _checks.check_finite("observation", observation)
         result = predicate(observation)  # type: ignore[misc]
         if not isinstance(result, Tensor) or result.shape != observation.shape[:-1]:
             got = tuple(result.shape) if isinstance(result, Tensor) else type(result).__name__
@@ -153,7 +165,12 @@ class SuccessBoundary:
                 f"{name}: expected the predicate to map observations {tuple(observation.shape)} "
                 f"to a bool tensor of shape {tuple(observation.shape[:-1])}, got {got}"
             )
-        return result.to(torch.bool)
+        if result.dtype != torch.bool:
+            raise TypeError(
+                f"{name}: expected the predicate to return a bool tensor (e.g. distance <= r), "
+                f"got dtype {result.dtype}"
+            )
+        return result
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(time_limit={self.time_limit}, dt={self.dt})"
@@ -176,15 +193,48 @@ def _time_limit_steps(steps: int | None, seconds: float | None, dt: float | None
     return max(1, math.floor(seconds / dt + 1e-9))
 
 
-def _target_getter(target: Sequence[int] | Tensor, size: int) -> Callable[[Tensor], Tensor]:
+def _indices(name: str, indices: object, obs_dim: int | None) -> list[int]:
+    """Observation indices: a non-empty sequence of distinct ints >= 0 (and < ``obs_dim``)."""
+    if isinstance(indices, Tensor):
+        if indices.is_floating_point() or indices.dtype == torch.bool or indices.ndim != 1:
+            raise TypeError(f"{name}: expected a sequence of int indices, got {indices!r}")
+        indices = indices.tolist()
+    if isinstance(indices, (str, bytes)) or not isinstance(indices, Sequence):
+        raise TypeError(f"{name}: expected a sequence of int indices, got {indices!r}")
+    values = list(indices)
+    if not values or not all(isinstance(i, int) and not isinstance(i, bool) for i in values):
+        raise TypeError(f"{name}: expected a non-empty sequence of int indices, got {values!r}")
+    if min(values) < 0 or len(set(values)) != len(values):
+        raise ValueError(f"{name}: expected distinct indices >= 0, got {values}")
+    if obs_dim is not None:
+        _check_indices(name, values, obs_dim)
+    return values
+
+
+def _check_indices(name: str, indices: list[int], obs_dim: int) -> None:
+    if max(indices) >= obs_dim:
+        raise ValueError(
+            f"{name}: expected observation indices in [0, {obs_dim}) (D = {obs_dim}), got {indices}"
+        )
+
+
+def _target_getter(
+    target: Sequence[int] | Tensor, size: int, obs_dim: int | None
+) -> Callable[[Tensor], Tensor]:
     """Target position from observation indices or a fixed tensor."""
     if isinstance(target, Tensor) and target.is_floating_point():
         if target.shape != (size,):
             raise ValueError(
                 f"target: expected a fixed position of shape ({size},), got {tuple(target.shape)}"
             )
+        _checks.check_finite("target", target)
         return lambda obs: target.to(obs)
-    indices = [int(i) for i in target]
+    indices = _indices("target", target, obs_dim)
     if len(indices) != size:
         raise ValueError(f"target: expected {size} observation indices, got {indices}")
-    return lambda obs: obs[..., indices]
+
+    def get(obs: Tensor) -> Tensor:
+        _check_indices("target", indices, obs.shape[-1])
+        return obs[..., indices]
+
+    return get

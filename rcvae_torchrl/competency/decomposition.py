@@ -127,6 +127,7 @@ def decompose_uncertainty(
     _checks.check_choice("estimator", estimator, tuple(ESTIMATORS))
     _checks.check_samples("samples", samples, 3, _LAYOUT)
     _checks.check_members("samples", samples, _LAYOUT)
+    _check_sample_count(estimator, samples, estimator_args)
     if ended is not None:
         if estimator != "histogram":
             raise ValueError(
@@ -135,11 +136,41 @@ def decompose_uncertainty(
             )
         _check_ended(ended, samples)
         estimator_args["ended"] = ended
+    batch = samples.shape[2:-1]
+    if 0 in batch:  # an empty batch: empty results of the estimator's shapes
+        shape = (*batch, samples.shape[-1]) if _per_dimension(estimator, estimator_args) else batch
+        empty = samples.new_zeros(shape)
+        return UncertaintyDecomposition(empty, empty.clone(), empty.clone())
     total, aleatoric, upper = ESTIMATORS[estimator](samples, **estimator_args)
     epistemic = total - aleatoric
     if upper is not None:
         epistemic = epistemic.clamp(0.0, upper)
     return UncertaintyDecomposition(total, aleatoric, epistemic)
+
+
+def _per_dimension(estimator: str, args: dict[str, Any]) -> bool:
+    """Whether the estimator gives one value per dimension (else one per batch element)."""
+    return estimator == "histogram" or (estimator == "gaussian" and not args.get("joint", False))
+
+
+def _check_sample_count(estimator: str, samples: Tensor, args: dict[str, Any]) -> None:
+    """N (axis 1) large enough for the estimator: 1 for a histogram, 2 for a variance
+    (gaussian, mixture), more than k for the k-th nearest neighbour."""
+    n = samples.shape[1]
+    least = {"histogram": 1, "gaussian": 2, "mixture": 2}.get(estimator)
+    reason = "samples per member"
+    if estimator == "knn":
+        least, reason = (
+            int(args.get("k", 3)) + 1,
+            f"samples per member (more than k = {args.get('k', 3)})",
+        )
+    elif least == 2:
+        reason = "samples per member to estimate a variance"
+    if n < least:
+        raise ValueError(
+            f"samples: the {estimator!r} estimator needs at least {least} {reason} on axis 1 "
+            f"of {_LAYOUT}, got N = {n} (shape {tuple(samples.shape)})"
+        )
 
 
 def _check_ended(ended: Tensor, samples: Tensor) -> None:

@@ -103,7 +103,7 @@ def gaussian_entropy(
     wider than a few bins.
 
     Args:
-        samples: ``[N, *batch, D]`` finite floats.
+        samples: ``[N, *batch, D]`` finite floats, ``N >= 2``.
         joint: entropy of the joint distribution over ``D`` instead of one per dimension.
         bin_width: optional positive width, scalar or ``[D]``.
         min_variance: floor for variances / covariance eigenvalues.
@@ -119,6 +119,11 @@ def gaussian_entropy(
     """
     _checks.check_samples("samples", samples, 2, _LAYOUT)
     _checks.check_positive("min_variance", min_variance)
+    if samples.shape[0] < 2:
+        raise ValueError(
+            f"samples: expected at least 2 samples on axis 0 to estimate a variance, got "
+            f"N = {samples.shape[0]} (shape {tuple(samples.shape)})"
+        )
     x = samples.to(torch.float64)
     centred = x - x.mean(dim=0)
     if joint:

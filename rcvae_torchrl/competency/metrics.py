@@ -37,8 +37,27 @@ _LAYOUT = "[E, N, *B, T, D]"
 
 
 def _observation(tensordict: TensorDictBase, key: NestedKey) -> Tensor:
-    obs = tensordict.get(key)
-    _checks.check_min_rank(f"tensordict[{key!r}]", obs, 4, _LAYOUT)
+    """``tensordict[key]`` ``[E, N, *B, T, D]``: present, a floating tensor, finite, with at
+    least two members and one sample, time step and dimension (an empty batch ``*B`` is
+    allowed)."""
+    if not isinstance(tensordict, TensorDictBase):
+        raise TypeError(f"tensordict: expected a TensorDict, got {type(tensordict).__name__}")
+    name = f"tensordict[{key!r}]"
+    obs = tensordict.get(key, None)
+    if obs is None:
+        raise KeyError(
+            f"tensordict: expected an {key!r} entry {_LAYOUT}, got keys "
+            f"{sorted(map(str, tensordict.keys(include_nested=True, leaves_only=True)))}"
+        )
+    _checks.check_tensor(name, obs)
+    _checks.check_min_rank(name, obs, 4, _LAYOUT)
+    _checks.check_floating(name, obs)
+    for axis, label, least in ((0, "E", 2), (1, "N", 1), (-2, "T", 1), (-1, "D", 1)):
+        if obs.shape[axis] < least:
+            raise ValueError(
+                f"{name}: expected shape {_LAYOUT} with {label} >= {least}, got {tuple(obs.shape)}"
+            )
+    _checks.check_finite(name, obs)
     return obs
 
 

@@ -71,12 +71,12 @@ class CompetencyReport:
 
     **Summary rules** (:meth:`summary`), one paragraph per start state:
 
-    1. ``P(success within L) = p (c% interval low–high).`` L = min(time limit, T) steps, in
-       seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
-    0. When the world model failed its self-checks (``model_warning``), the paragraph opens
+    1. When the world model failed its self-checks (``model_warning``), the paragraph opens
        with a warning naming the dimensions it has not learned: such a forecast is never
        presented as trustworthy.
-    2. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
+    2. ``P(success within L) = p (c% interval low–high).`` L = min(time limit, T) steps, in
+       seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
+    3. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
        what changed: each part's time-mean bits against the reference's, and which part rose
        (at least ``rise`` times the reference; the larger rise when both did): ``Against the
        in-distribution reference, epistemic uncertainty rose 2.1x (0.29 -> 0.61 bits) and
@@ -86,7 +86,7 @@ class CompetencyReport:
        aleatoric), given with its share of the total: ``Most of the doubt is epistemic (0.70
        of 1.10 bits): the model has not seen states like this.`` When all three are 0 the
        sentence says so.
-    3. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
+    4. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
        each with its mean bits and the time of its peak. Left out for joint estimators.
 
     The words are only as good as the estimate: with the histogram estimator, a member's

@@ -55,7 +55,7 @@ def collect_episodes(
         raise ValueError(f"first_id: expected an integer >= 0, got {first_id!r}")
     max_frames = max_frames or 1000 * num_episodes
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
-    env.set_seed(seed)
+    env.set_seed(seed % 2**32)  # numpy-based envs take seeds below 2**32
     collector = Collector(
         env,
         policy,

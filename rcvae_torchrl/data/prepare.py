@@ -195,8 +195,14 @@ class ActionNoise(Transform):
 
 def seed_env(env: EnvBase, seed: int) -> None:
     """``env.set_seed(seed)``, and restart every transform that has its own random stream
-    (those with a ``reseed`` method, e.g. :class:`ActionNoise`) from the same seed."""
-    env.set_seed(int(seed))
+    (those with a ``reseed`` method, e.g. :class:`ActionNoise`) from the same seed.
+
+    The env gets ``seed mod 2**32`` (numpy-based envs such as dm_control's take no more), so
+    seeds derived from any study seed are valid.
+    """
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    env.set_seed(seed % 2**32)
     transform = getattr(env, "transform", None)
     parts = list(transform) if isinstance(transform, Compose) else [transform]
     for part in parts:

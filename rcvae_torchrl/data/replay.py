@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
@@ -44,13 +46,31 @@ def make_window_buffer(
 
 
 def sample_windows(
-    buffer: TensorDictReplayBuffer, num_windows: int, window: int, members: int | None = None
+    buffer: TensorDictReplayBuffer,
+    num_windows: int,
+    window: int,
+    members: int | None = None,
+    generators: Sequence[torch.Generator] | None = None,
 ) -> TensorDict:
     """Windows ``[W, L]``, or ``[E, W, L]`` with independent draws for each of ``members``.
 
     Independent draws give each ensemble member its own resample of the data (sampling with
-    replacement, as a bootstrap does), so members disagree where data is thin.
+    replacement, as a bootstrap does), so members disagree where data is thin. With
+    ``generators`` (one per member), member ``m``'s windows come from the ``m``-th alone, so a
+    member's data does not depend on which other members are drawn with it; otherwise all
+    draws come from torch's global generator.
     """
+    if generators is not None:
+        if members is None or len(generators) != members:
+            raise ValueError(
+                f"generators: expected one per member ({members}), got {len(generators)}"
+            )
+        parts = []
+        for generator in generators:
+            buffer.set_rng(generator)
+            parts.append(buffer.sample(num_windows * window).reshape(num_windows, window))
+        buffer.set_rng(None)
+        return torch.stack(parts)
     draws = num_windows * (members or 1)
     flat = buffer.sample(draws * window)
     shape = (draws, window) if members is None else (members, num_windows, window)

@@ -27,5 +27,5 @@ def load_episodes(path: str | Path) -> TensorDict:
         return TensorDict(payload["data"], batch_size=payload["batch_size"])
     except Exception as err:
         raise StoredFileError(
-            f"episodes file {str(path)!r}: expected what save_episodes writes: {err}"
+            f"episodes file {str(path)!r}: expected what save_episodes writes: {err}", path
         ) from err

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 
-__all__ = ["gaussian_head", "reparameterize", "soft_clamp", "standard_normal"]
+__all__ = ["Generators", "gaussian_head", "reparameterize", "soft_clamp", "standard_normal"]
 
 
 def soft_clamp(x: torch.Tensor, low: float, high: float) -> torch.Tensor:
@@ -39,20 +41,37 @@ def gaussian_head(
     return mean, soft_clamp(raw_std, *log_std_bounds).exp()
 
 
+#: A generator, or one per ensemble member: row ``m`` of member-major noise ``[E, ...]`` comes
+#: from the ``m``-th (so a member's noise does not depend on the other members it runs with).
+Generators = torch.Generator | Sequence[torch.Generator] | None
+
+
 def standard_normal(
     shape: torch.Size | tuple[int, ...],
     like: torch.Tensor,
-    generator: torch.Generator | None = None,
+    generator: Generators = None,
 ) -> torch.Tensor:
-    """Draw N(0, I) noise of ``shape`` with the dtype and device of ``like``."""
-    return torch.randn(shape, generator=generator, dtype=like.dtype, device=like.device)
+    """Draw N(0, I) noise of ``shape`` with the dtype and device of ``like``.
+
+    ``generator`` may be a sequence of ``shape[0]`` generators, one per leading row.
+    """
+    if generator is None or isinstance(generator, torch.Generator):
+        return torch.randn(shape, generator=generator, dtype=like.dtype, device=like.device)
+    if len(generator) != shape[0]:
+        raise ValueError(
+            f"generator: expected one generator per leading row ({shape[0]}), got {len(generator)}"
+        )
+    rows = [
+        torch.randn(shape[1:], generator=g, dtype=like.dtype, device=like.device) for g in generator
+    ]
+    return torch.stack(rows)
 
 
 def reparameterize(
     mean: torch.Tensor,
     std: torch.Tensor,
     noise: torch.Tensor | None = None,
-    generator: torch.Generator | None = None,
+    generator: Generators = None,
 ) -> torch.Tensor:
     """A reparameterised Gaussian sample ``mean + std ⊙ ε`` (Kingma & Welling 2014).
 

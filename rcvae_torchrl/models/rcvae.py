@@ -29,10 +29,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from rcvae_torchrl._checks import check_finite, check_floating, check_min_rank, check_tensor
 from rcvae_torchrl.models.config import RCVAEConfig
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_step, gru_update
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP, ensemble_mlp
-from rcvae_torchrl.models.functional import gaussian_head, reparameterize
+from rcvae_torchrl.models.functional import Generators, gaussian_head, reparameterize
 from rcvae_torchrl.models.functions import ModelFunctions
 from rcvae_torchrl.models.normalizer import StateNormalizer
 
@@ -254,7 +255,7 @@ class RCVAEEnsemble(nn.Module):
         mask: torch.Tensor | None = None,
         open_loop_steps: int = 0,
         detach_open_loop: bool = False,
-        generator: torch.Generator | None = None,
+        generator: Generators = None,
     ) -> SequenceOutput:
         """The training pass: windows through the model for the ELBO (teacher forcing,
         optionally open loop).
@@ -275,11 +276,12 @@ class RCVAEEnsemble(nn.Module):
                 are otherwise computed and must be excluded from the loss by the caller.
             open_loop_steps: number K of trailing transitions fed with model samples.
             detach_open_loop: stop gradients through the fed-back samples.
-            generator: torch generator for the latent and fed-back samples.
+            generator: torch generator for the latent and fed-back samples, or one per member.
 
         Returns:
             a :class:`SequenceOutput` with tensors ``[E, *B, n, ·]``, n = number of transitions.
         """
+        self._check_windows(observations, actions, next_observations)
         if next_observations is None:
             targets = observations[..., 1:, :]
         else:
@@ -312,11 +314,46 @@ class RCVAEEnsemble(nn.Module):
         Returns:
             ``[E, *B, L - 1, S]``: the prediction of ``observations[..., 1:, :]``.
         """
+        self._check_windows(observations, actions, None)
         n_steps = observations.shape[-2] - 1
         hidden, x, prev = self._teacher_forced(observations, actions, None, n_steps)
         latent, _ = self.prior(hidden)
         mean, _ = self.decode(hidden, x, latent)
         return self.apply_delta(prev, mean)
+
+    def _check_windows(
+        self,
+        observations: torch.Tensor,
+        actions: torch.Tensor,
+        next_observations: torch.Tensor | None,
+    ) -> None:
+        """Windows ``[E, *B, L, S]`` / ``[E, *B, L, A]``: shapes, dtype and finite values (a
+        NaN would otherwise come out as a NaN loss or prediction)."""
+        s, a, e = self.config.obs_dim, self.config.action_dim, self.ensemble_size
+        named = [("observations", observations, s), ("actions", actions, a)]
+        if next_observations is not None:
+            named.append(("next_observations", next_observations, s))
+        for name, x, last in named:
+            check_tensor(name, x)
+            check_floating(name, x)
+            check_min_rank(name, x, 3, f"[E={e}, *B, L, {last}]")
+            if x.shape[0] != e or x.shape[-1] != last:
+                raise ValueError(
+                    f"{name}: expected shape [E={e}, *B, L, {last}], got {tuple(x.shape)}"
+                )
+            check_finite(name, x)
+        for name, x, _ in named[1:]:
+            if x.shape[:-1] != observations.shape[:-1]:
+                raise ValueError(
+                    f"{name}: expected the leading shape [E, *B, L] = "
+                    f"{tuple(observations.shape[:-1])} of observations, got {tuple(x.shape)}"
+                )
+        least = 1 if next_observations is not None else 2
+        if observations.shape[-2] < least:
+            raise ValueError(
+                f"observations: expected windows of L >= {least} steps, got L = "
+                f"{observations.shape[-2]} (shape {tuple(observations.shape)})"
+            )
 
     def _teacher_forced(
         self,
@@ -344,7 +381,7 @@ class RCVAEEnsemble(nn.Module):
         last: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
         actions: torch.Tensor,
         detach: bool,
-        generator: torch.Generator | None,
+        generator: Generators,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Continue from the last teacher-forced step, feeding back prior samples."""
         hidden, x, prev = last
@@ -361,7 +398,7 @@ class RCVAEEnsemble(nn.Module):
         hidden: torch.Tensor,
         x: torch.Tensor,
         prev: torch.Tensor,
-        generator: torch.Generator | None,
+        generator: Generators,
     ) -> torch.Tensor:
         """s_t ~ p(s_t | h_t, x_t, z_t), z_t ~ p(z_t | h_t): the generative half of :meth:`step`."""
         latent = reparameterize(*self.prior(hidden), generator=generator)
@@ -374,7 +411,7 @@ class RCVAEEnsemble(nn.Module):
         x: torch.Tensor,
         prev: torch.Tensor,
         obs_next: torch.Tensor,
-        generator: torch.Generator | None,
+        generator: Generators,
     ) -> SequenceOutput:
         """Prior, posterior and decoder over all steps at once (none of them is recurrent)."""
         target = self.target_delta(prev, obs_next)

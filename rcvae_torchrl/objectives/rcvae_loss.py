@@ -10,6 +10,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
 from rcvae_torchrl._checks import check_batch_shapes, check_dtype, check_finite, check_trailing
+from rcvae_torchrl.models.functional import Generators
 from rcvae_torchrl.models.rcvae import RCVAEEnsemble, SequenceOutput
 from rcvae_torchrl.objectives.functional import free_bits, gaussian_kl, gaussian_nll, masked_mean
 
@@ -102,7 +103,7 @@ class RCVAELoss(LossModule):
         open_loop_steps: int = 0,
         detach_open_loop: bool = False,
         nll_beta: float = 0.0,
-        generator: torch.Generator | None = None,
+        generator: Generators = None,
     ) -> None:
         super().__init__()
         if beta < 0 or free_nats < 0 or open_loop_steps < 0:

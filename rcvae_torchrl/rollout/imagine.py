@@ -209,6 +209,7 @@ def imagine(
     out.set("member", member.view(-1, *([1] * (out.batch_dims - 1))).expand(out.batch_size).clone())
     if task is not None:
         entries = task.transitions(out.get("observation"), out.get("action"), horizon_ends=True)
+        _check_rewards(entries["reward"])
         out.update(entries)
         out.set("mask", alive_mask(entries["terminated"].squeeze(-1)))
     return out
@@ -285,6 +286,18 @@ def _check_inputs(
     _checks.check_floating("actions", actions)
     _checks.check_finite("actions", actions)
     _checks.check_dtype("actions", actions, dtype)
+
+
+def _check_rewards(reward: torch.Tensor) -> None:
+    """Refuse to return non-finite rewards silently (finite states far out of range can
+    overflow a reward function)."""
+    bad = ~torch.isfinite(reward)
+    if bool(bad.any()):
+        raise ValueError(
+            f"reward_fn: returned {int(bad.sum())} non-finite rewards of {reward.numel()} on "
+            "the imagined states; the start states or the model's states are out of the range "
+            "the reward function handles"
+        )
 
 
 def _check_output(states: torch.Tensor) -> None:

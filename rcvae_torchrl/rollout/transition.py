@@ -121,7 +121,8 @@ class ParticleTransition(TensorDictModuleBase):
                 generator=self.generator,
             )
             new_hidden = out.hidden.transpose(0, 1).reshape(*batch, e, h)
-        values = [out.observation.reshape(*batch, -1), new_hidden, out.latent.reshape(*batch, -1)]
+        latent = out.latent.reshape(*batch, out.latent.shape[-1])  # explicit sizes: B may be 0
+        values = [out.observation.reshape(*batch, obs.shape[-1]), new_hidden, latent]
         if self.trajectory_sampling != "mean":
             values.append((member.reshape(-1) if out.member is None else out.member).reshape(batch))
         for key, value in zip(self.out_keys, values):

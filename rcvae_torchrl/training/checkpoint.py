@@ -61,9 +61,11 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     try:
         payload = load_torch(path, "checkpoint")
     except StoredFileError as err:
-        raise CheckpointError(str(err)) from err.__cause__
+        raise CheckpointError(str(err), path) from err.__cause__
     if not isinstance(payload, dict) or "kind" not in payload:
-        raise CheckpointError(f"checkpoint {str(path)!r}: expected an rcvae_torchrl checkpoint")
+        raise CheckpointError(
+            f"checkpoint {str(path)!r}: expected an rcvae_torchrl checkpoint", path
+        )
     return payload
 
 
@@ -101,29 +103,33 @@ def ensemble_from_payload(
     """Build an ensemble from a checkpoint dict, checking kind, version, config and weights."""
     if payload.get("kind") != _KIND:
         raise CheckpointError(
-            f"checkpoint {source!r}: expected kind {_KIND!r}, got {payload.get('kind')!r}"
+            f"checkpoint {source!r}: expected kind {_KIND!r}, got {payload.get('kind')!r}", source
         )
     version = payload.get("format_version")
     if version != FORMAT_VERSION:
         raise CheckpointError(
-            f"checkpoint {source!r}: expected format version {FORMAT_VERSION}, got {version!r}"
+            f"checkpoint {source!r}: expected format version {FORMAT_VERSION}, got {version!r}",
+            source,
         )
     try:
         config = RCVAEConfig(**payload["config"])
     except (TypeError, ValueError) as err:
-        raise CheckpointError(f"checkpoint {source!r}: invalid config: {err}") from err
+        raise CheckpointError(f"checkpoint {source!r}: invalid config: {err}", source) from err
     if expected_config is not None and config != expected_config:
         raise CheckpointError(
-            f"checkpoint {source!r}: config mismatch: expected {expected_config}, got {config}"
+            f"checkpoint {source!r}: config mismatch: expected {expected_config}, got {config}",
+            source,
         )
     try:
         ensemble = RCVAEEnsemble(config, int(payload["ensemble_size"]), functions=functions)
     except KeyError as err:
-        raise CheckpointError(f"checkpoint {source!r}: {err.args[0]}") from err
+        raise CheckpointError(f"checkpoint {source!r}: {err.args[0]}", source) from err
     try:
         ensemble.load_state_dict(payload["state_dict"], strict=True)
     except RuntimeError as err:
-        raise CheckpointError(f"checkpoint {source!r}: weights do not match: {err}") from err
+        raise CheckpointError(
+            f"checkpoint {source!r}: weights do not match: {err}", source
+        ) from err
     if payload.get("checks") is not None:
         ensemble.checks = ModelChecks.from_dict(payload["checks"])
     return ensemble

@@ -1,11 +1,15 @@
 """``train_ensemble``: the world model's training loop, with validation, early stopping and resume.
 
 One Adam step trains every member (the loss sums over members); each member draws its own
-windows, so it sees its own resample of the data. Validation windows are fixed per run. Members
-stop improving at different times, so the best weights are kept per member. A checkpoint
-(weights, optimiser, best weights, RNG state, history) is written atomically at each validation,
-so ``resume=True`` continues a run killed at any point (even ``kill -9``) from its last
-validation, and a finished run is not trained again.
+windows from its own generator, so it sees its own resample of the data, and nothing of one
+member depends on the others: its noise, gradient clipping and early stopping are its own.
+Validation windows are fixed per run. Members stop improving at different times, so the best
+weights are kept per member. A checkpoint (weights, optimiser, best weights, generator states,
+history) is written atomically at each validation, so ``resume=True`` continues a run killed
+at any point (even ``kill -9``) from its last validation, and a finished run is not trained
+again. Under ``torch.distributed`` the members are shared out over the ranks
+(:mod:`rcvae_torchrl.distributed`), each rank checkpoints its own block, and the gathered
+ensemble equals a single process's.
 """
 
 from __future__ import annotations
@@ -22,15 +26,18 @@ from torchrl.record.loggers import Logger
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm.auto import tqdm
 
+from rcvae_torchrl import distributed
+from rcvae_torchrl._checks import check_non_negative, check_positive
 from rcvae_torchrl.data import make_window_buffer, sample_windows
 from rcvae_torchrl.io import atomic_write
+from rcvae_torchrl.loggers import log_scalars
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 from .checks import ModelChecks, check_model
 
-__all__ = ["TrainConfig", "TrainResult", "train_ensemble"]
+__all__ = ["TrainConfig", "TrainResult", "clip_grad_norm_per_member", "train_ensemble"]
 
 
 @dataclass(frozen=True)
@@ -45,15 +52,17 @@ class TrainConfig:
         lr_final_fraction: the learning rate follows a cosine from ``lr`` at step 0 to
             ``lr * lr_final_fraction`` at ``max_steps`` (1 keeps it constant). It is a function
             of the step alone, so a resumed run continues on the same schedule.
-        grad_clip: max global gradient norm.
+        grad_clip: max gradient norm of each member (over its own parameters).
         beta: KL weight.
         free_nats: per-step free nats of the KL.
         open_loop_steps: trailing transitions of each window fed with the model's own samples.
         nll_beta: β of the β-NLL weighting of the reconstruction term (see :class:`RCVAELoss`).
         val_every: steps between validations (and checkpoints).
         val_windows: fixed validation windows (shared by all members).
-        patience: validations without improvement of any member before stopping early.
-        seed: seeds sampling and the model's noise.
+        patience: validations without improvement after which a member stops (its best
+            weights are kept; the run ends when every member has stopped).
+        seed: seeds sampling and the model's noise (one generator per member and purpose,
+            seeded by the seed and the member's index).
     """
 
     max_steps: int = 3000
@@ -83,6 +92,15 @@ class TrainConfig:
             raise ValueError(
                 f"lr_final_fraction: expected a value in (0, 1], got {self.lr_final_fraction}"
             )
+        check_positive("beta", self.beta)
+        check_non_negative("free_nats", self.free_nats)
+        open_loop = self.open_loop_steps
+        if isinstance(open_loop, bool) or not isinstance(open_loop, int) or open_loop < 0:
+            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop!r}")
+        if not 0.0 <= self.nll_beta <= 1.0:
+            raise ValueError(f"nll_beta: expected a value in [0, 1], got {self.nll_beta!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
 
     def lr_at(self, step: int) -> float:
         """The learning rate of optimiser step ``step`` (0-based): cosine decay."""
@@ -100,19 +118,23 @@ class TrainResult:
     steps: int
     best_val: torch.Tensor  # [E] best validation loss per member
     stopped_early: bool
-    history: list[dict[str, float]] = field(default_factory=list)
+    history: list[dict[str, Any]] = field(default_factory=list)
     checks: ModelChecks | None = None
+    member_steps: torch.Tensor | None = None  # [E] the step at which each member stopped
 
 
 @dataclass
 class _State:
+    """One shard's training state (a run of one process is one shard of all members)."""
+
     step: int
-    best_val: torch.Tensor
+    best_val: torch.Tensor  # [e]
     best_weights: dict[str, torch.Tensor]
-    bad_evals: int = 0
+    bad_evals: torch.Tensor  # [e] validations without improvement, per member
+    stop_step: torch.Tensor  # [e] the step at which the member stopped, 0 while it trains
     finished: bool = False
     stopped_early: bool = False
-    history: list[dict[str, float]] = field(default_factory=list)
+    history: list[dict[str, Any]] = field(default_factory=list)
 
 
 def train_ensemble(
@@ -124,20 +146,38 @@ def train_ensemble(
     checkpoint_path: str | Path | None = None,
     resume: bool = False,
     logger: Logger | None = None,
+    log_prefix: str = "",
     progress: bool = True,
     checks: bool = True,
 ) -> TrainResult:
     """Train ``ensemble`` on episodes (flat TensorDicts ``[frames]`` from ``collect_episodes``).
 
+    Members are trained independently: each has its own generators (seeded by ``config.seed``
+    and its index) for its windows (its own bootstrap of the data) and its noise, its own
+    gradient clipping and its own early stopping (a member stops after ``patience``
+    validations without improvement; the run ends when every member has stopped). So a
+    member's weights do not depend on the members it is trained with, and under
+    ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) every rank trains a contiguous
+    block of members, and the gathered ensemble equals the one a single process trains.
+
     Args:
         ensemble: the model; its normaliser is fitted on ``train_data`` if not fitted yet.
+            Under ``torch.distributed`` rank 0's initial weights are used by every rank.
         train_data, val_data: whole episodes, split by episode (``split_episodes``).
         config: budget and hyper-parameters.
         checkpoint_path: where the training checkpoint goes (written at each validation);
-            CSV logs go to ``<checkpoint dir>/logs`` unless ``logger`` is given.
-        resume: continue from ``checkpoint_path`` if it exists (a finished run returns at once).
-        logger: a TorchRL logger (default: CSV beside the checkpoint, or none).
-        progress: show a tqdm bar.
+            CSV logs go to ``<checkpoint dir>/logs`` unless ``logger`` is given. Under
+            ``torch.distributed`` each rank writes its block's checkpoint beside it
+            (``<stem>.members-<first>-<last><suffix>``) and rank 0 writes the gathered
+            ensemble to ``checkpoint_path`` at the end.
+        resume: continue from ``checkpoint_path`` (or this rank's block checkpoint) if it
+            exists (a finished run returns at once); resume with the same number of ranks.
+        logger: a TorchRL logger of this rank's records (default: CSV beside the checkpoint
+            on rank 0, or none); :func:`~rcvae_torchrl.loggers.make_logger` makes a
+            TensorBoard, W&B or MLflow one. Per-member values go to ``<name>/<member>``.
+        log_prefix: put before every logged name (e.g. ``"models/stochastic/"`` when several
+            trainings share one logger).
+        progress: show a tqdm bar (rank 0).
         checks: run the model's self-checks on ``val_data`` after training
             (:func:`~rcvae_torchrl.training.check_model`): per state dimension, held-out
             one-step and open-loop errors against copying the previous state and against the
@@ -147,37 +187,94 @@ def train_ensemble(
     if resume and path is None:
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")
     torch.manual_seed(config.seed)
-    device = next(ensemble.parameters()).device
     if not ensemble.normalizer.fitted:
         ensemble.fit_normalizer(
             train_data["observation"],
             train_data["action"],
             next_observations=train_data["next", "observation"],
         )
+    ensemble.load_state_dict(distributed.broadcast(_weights(ensemble)))
+    state = _finished_gathered_run(path) if resume else None
+    if state is None:
+        members = distributed.shard(ensemble.ensemble_size)
+        shard = _train_shard(
+            ensemble,
+            members,
+            train_data,
+            val_data,
+            config,
+            path,
+            resume,
+            (logger, log_prefix),
+            progress,
+        )
+        state = _gather(ensemble, shard)
+        if distributed.is_active() and path is not None:
+            _write_gathered(path, ensemble, state, config)
+    ensemble.load_state_dict(state.best_weights)
+    result = TrainResult(
+        ensemble,
+        state.step,
+        state.best_val,
+        state.stopped_early,
+        state.history,
+        member_steps=state.stop_step,
+    )
+    if checks:
+        found = check_model(ensemble, val_data, seed=config.seed) if distributed.is_main() else None
+        result.checks = ensemble.checks = distributed.broadcast(found)
+    return result
+
+
+def _train_shard(
+    ensemble: RCVAEEnsemble,
+    members: range,
+    train_data: TensorDictBase,
+    val_data: TensorDictBase,
+    config: TrainConfig,
+    path: Path | None,
+    resume: bool,
+    logging: tuple[Logger | None, str],
+    progress: bool,
+) -> _State | None:
+    """Train ``members`` of ``ensemble`` (a copy of them); their final state (``None`` when
+    the block is empty: more ranks than members)."""
+    if len(members) == 0:
+        return None
+    device = next(ensemble.parameters()).device
+    with torch.random.fork_rng(devices=[]):  # building the copy draws an initialisation
+        local = ensemble.select_members(list(members))
+    shard_path = _shard_path(path, members, ensemble.ensemble_size)
+    windows_rng = _generators(config.seed, members, _WINDOWS, torch.device("cpu"))
+    noise_rng = _generators(config.seed, members, _NOISE, device)
     buffer = make_window_buffer(train_data, config.window)
     val_windows = _fixed_windows(val_data, config).to(device)
     loss_fn = RCVAELoss(
-        ensemble,
+        local,
         beta=config.beta,
         free_nats=config.free_nats,
         open_loop_steps=config.open_loop_steps,
         nll_beta=config.nll_beta,
+        generator=noise_rng,
     )
-    optimizer = torch.optim.Adam(ensemble.parameters(), lr=config.lr)
-    state = _State(0, torch.full((ensemble.ensemble_size,), math.inf), _weights(ensemble))
-    if resume and path.is_file():
-        state = _restore(path, ensemble, optimizer, config)
+    optimizer = torch.optim.Adam(local.parameters(), lr=config.lr)
+    state = _new_state(local)
+    if resume and shard_path is not None:
+        _check_no_foreign_shards(shard_path, path)
+        if shard_path.is_file():
+            state = _restore(shard_path, local, optimizer, config, members, windows_rng + noise_rng)
+    logger, prefix = logging
     logger = logger if logger is not None else _default_logger(path)
     bar = tqdm(
         total=config.max_steps,
         initial=state.step,
         desc="train world model",
-        disable=not progress,
+        disable=not (progress and distributed.is_main()),
         leave=False,
     )
     while not state.finished:
         windows = sample_windows(
-            buffer, config.batch_windows, config.window, members=ensemble.ensemble_size
+            buffer, config.batch_windows, config.window, len(members), windows_rng
         ).to(device)
         for group in optimizer.param_groups:
             group["lr"] = config.lr_at(state.step)
@@ -185,17 +282,28 @@ def train_ensemble(
         state.step += 1
         bar.update(1)
         if state.step % config.val_every == 0 or state.step >= config.max_steps:
-            record = _validate(loss_fn, val_windows, ensemble, state, config, train_loss)
-            bar.set_postfix(train=f"{train_loss:.3g}", val=f"{record['val_loss']:.3g}")
-            _log(logger, record, state.step)
-            if path is not None:
-                _save(path, ensemble, optimizer, state, config)
+            record = _validate(loss_fn, val_windows, local, members, state, config, train_loss)
+            bar.set_postfix(train=f"{record['train_loss']:.3g}", val=f"{record['val_loss']:.3g}")
+            _log(logger, record, state.step, prefix)
+            if shard_path is not None:
+                _save(shard_path, local, optimizer, state, config, members, windows_rng + noise_rng)
     bar.close()
-    ensemble.load_state_dict(state.best_weights)
-    result = TrainResult(ensemble, state.step, state.best_val, state.stopped_early, state.history)
-    if checks:
-        result.checks = ensemble.checks = check_model(ensemble, val_data, seed=config.seed)
-    return result
+    return state
+
+
+# Streams of a member's generators (with the run's seed and the member's index).
+_WINDOWS, _NOISE, _VALIDATION = 0, 1, 2
+
+
+def _generators(seed: int, members: range, stream: int, device: torch.device) -> list:
+    """One generator per member, seeded by (seed, member, stream) alone."""
+    return [distributed.work_generator(seed, m, stream, device=device) for m in members]
+
+
+def _new_state(local: RCVAEEnsemble) -> _State:
+    e = local.ensemble_size
+    zeros = torch.zeros(e, dtype=torch.int64)
+    return _State(0, torch.full((e,), math.inf), _weights(local), zeros, zeros.clone())
 
 
 def _fixed_windows(val_data: TensorDictBase, config: TrainConfig) -> TensorDict:
@@ -208,48 +316,98 @@ def _fixed_windows(val_data: TensorDictBase, config: TrainConfig) -> TensorDict:
 
 def _train_step(
     loss_fn: RCVAELoss, optimizer: torch.optim.Optimizer, windows: TensorDict, grad_clip: float
-) -> float:
+) -> torch.Tensor:
+    """One Adam step of every member; the members' training losses ``[e]``."""
     out = loss_fn(windows)
     loss = out["loss_reconstruction"] + out["loss_kl"]
     if not torch.isfinite(loss):
         raise FloatingPointError(f"training loss is not finite ({loss.item()}); lower lr?")
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
-    torch.nn.utils.clip_grad_norm_(loss_fn.parameters(), grad_clip)
+    clip_grad_norm_per_member(list(loss_fn.ensemble.parameters()), grad_clip)
     optimizer.step()
-    return loss.item() / loss_fn.ensemble.ensemble_size
+    return out["loss_per_member"].cpu()
+
+
+@torch.no_grad()
+def clip_grad_norm_per_member(params: list[torch.Tensor], max_norm: float) -> torch.Tensor:
+    """Clip each member's gradient norm (parameters stacked ``[E, ...]``) to ``max_norm``, as
+    ``torch.nn.utils.clip_grad_norm_`` does for one model; returns the norms ``[E]``."""
+    grads = [p.grad for p in params if p.grad is not None]
+    norms = torch.stack([g.flatten(1).square().sum(1) for g in grads]).sum(0).sqrt()
+    scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
+    for g in grads:
+        g.mul_(scale.view(-1, *([1] * (g.ndim - 1))))
+    return norms
 
 
 @torch.no_grad()
 def _validate(
     loss_fn: RCVAELoss,
     windows: TensorDict,
-    ensemble: RCVAEEnsemble,
+    local: RCVAEEnsemble,
+    members: range,
     state: _State,
     config: TrainConfig,
-    train_loss: float,
-) -> dict[str, float]:
-    """Per-member validation loss; keep improved members' weights; decide early stopping."""
-    with torch.random.fork_rng():
-        torch.manual_seed(config.seed + 2)
+    train_loss: torch.Tensor,
+) -> dict[str, Any]:
+    """Per-member validation loss; keep improved members' weights; stop members that have
+    not improved for ``patience`` validations (each member on its own)."""
+    device = next(local.parameters()).device
+    noise, loss_fn.generator = (
+        loss_fn.generator,
+        _generators(config.seed, members, _VALIDATION, device),
+    )
+    try:
         per_member = loss_fn(windows)["loss_per_member"].cpu()
-    improved = per_member < state.best_val
+    finally:
+        loss_fn.generator = noise
+    active = state.stop_step == 0
+    improved = (per_member < state.best_val) & active
     state.best_val = torch.where(improved, per_member, state.best_val)
     if improved.any():
-        for name, param in ensemble.named_parameters():  # stacked [E, ...]: copy improved rows
+        for name, param in local.named_parameters():  # stacked [e, ...]: copy improved rows
             state.best_weights[name][improved] = param.detach().cpu()[improved]
-    state.bad_evals = 0 if improved.any() else state.bad_evals + 1
-    state.stopped_early = state.bad_evals >= config.patience
-    state.finished = state.stopped_early or state.step >= config.max_steps
-    record = {
-        "step": float(state.step),
-        "train_loss": train_loss,
-        "val_loss": float(per_member.mean()),
-        "best_val_loss": float(state.best_val.mean()),
-        "members_improved": float(improved.sum()),
-    }
+    state.bad_evals = torch.where(improved, 0, state.bad_evals + active.long())
+    stopping = active & ((state.bad_evals >= config.patience) | (state.step >= config.max_steps))
+    state.stop_step[stopping] = state.step
+    _finish(state, config)
+    nan = torch.tensor(math.nan)
+    record = _record(
+        state.step,
+        torch.where(active, train_loss, nan).tolist(),
+        torch.where(active, per_member, nan).tolist(),
+        state.best_val.tolist(),
+        int(improved.sum()),
+    )
     state.history.append(record)
     return record
+
+
+def _finish(state: _State, config: TrainConfig) -> None:
+    stopped = state.stop_step > 0
+    state.finished = bool(stopped.all())
+    state.stopped_early = state.finished and bool((state.stop_step < config.max_steps).all())
+
+
+def _record(
+    step: int, train: list[float], val: list[float], best: list[float], improved: int
+) -> dict[str, Any]:
+    """A history row: means over the members still training, and the per-member values."""
+
+    def mean(values: list[float]) -> float:
+        return float(torch.tensor(values).nanmean())
+
+    return {
+        "step": float(step),
+        "train_loss": mean(train),
+        "val_loss": mean(val),
+        "best_val_loss": mean(best),
+        "members_improved": float(improved),
+        "train_loss_member": train,
+        "val_loss_member": val,
+        "best_val_member": best,
+    }
 
 
 def _weights(ensemble: RCVAEEnsemble) -> dict[str, torch.Tensor]:
@@ -257,54 +415,178 @@ def _weights(ensemble: RCVAEEnsemble) -> dict[str, torch.Tensor]:
 
 
 def _default_logger(path: Path | None) -> Logger | None:
-    if path is None:
+    if path is None or not distributed.is_main():
         return None
     return CSVLogger(exp_name=path.stem, log_dir=str(path.parent / "logs"))
 
 
-def _log(logger: Logger | None, record: dict[str, float], step: int) -> None:
-    if logger is None:
+def _log(logger: Logger | None, record: dict[str, Any], step: int, prefix: str) -> None:
+    """The record's numbers; a per-member list as ``<name>/<member>`` (finite values only)."""
+    metrics = {
+        k: dict(enumerate(v)) if isinstance(v, list) else v
+        for k, v in record.items()
+        if k != "step"
+    }
+    log_scalars(logger, metrics, step, prefix=prefix)
+
+
+# ---------------------------------------------------------------------- checkpoints
+def _shard_path(path: Path | None, members: range, ensemble_size: int) -> Path | None:
+    """The checkpoint of a block of members: ``path`` itself when it holds them all."""
+    if path is None or len(members) == ensemble_size:
+        return path
+    return path.with_name(f"{path.stem}.members-{members[0]}-{members[-1]}{path.suffix}")
+
+
+def _check_no_foreign_shards(shard_path: Path, path: Path) -> None:
+    """Block checkpoints of another split of the members: another number of ranks."""
+    if shard_path.is_file():
         return
-    for name, value in record.items():
-        if name != "step":
-            logger.log_scalar(name, value, step=step)
+    others = sorted(path.parent.glob(f"{path.stem}.members-*{path.suffix}"))
+    if others:
+        raise CheckpointError(
+            f"checkpoint_path {str(path)!r}: expected this rank's block checkpoint "
+            f"{shard_path.name!r} to resume, found {[p.name for p in others]} (written by a run "
+            "with another number of ranks); resume with the same number of ranks"
+        )
 
 
 def _save(
     path: Path,
-    ensemble: RCVAEEnsemble,
+    local: RCVAEEnsemble,
     optimizer: torch.optim.Optimizer,
     state: _State,
     config: TrainConfig,
+    members: range,
+    generators: list[torch.Generator],
 ) -> None:
     payload: dict[str, Any] = {
-        **ensemble_payload(ensemble),
+        **ensemble_payload(local),
         "training": {
             "config": dataclasses.asdict(config),
+            "members": [members.start, members.stop],
             "optimizer": optimizer.state_dict(),
-            "rng": torch.get_rng_state(),
+            "rng": [g.get_state() for g in generators],
             "state": {**dataclasses.asdict(state)},
         },
     }
     atomic_write(path, lambda f: torch.save(payload, f))
 
 
-def _restore(
-    path: Path, ensemble: RCVAEEnsemble, optimizer: torch.optim.Optimizer, config: TrainConfig
-) -> _State:
-    payload = read_checkpoint(path)
-    training = payload.get("training")
+def _training_payload(path: Path, config: TrainConfig | None = None) -> dict[str, Any]:
+    training = read_checkpoint(path).get("training")
     if training is None:
-        raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume")
-    if training["config"] != dataclasses.asdict(config):
+        raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume", path)
+    if config is not None and training["config"] != dataclasses.asdict(config):
         raise CheckpointError(
             f"checkpoint {str(path)!r}: was written with another TrainConfig "
-            f"({training['config']}); resume with the same config or a new path"
+            f"({training['config']}); resume with the same config or a new path",
+            path,
         )
+    return training
+
+
+def _restore(
+    path: Path,
+    local: RCVAEEnsemble,
+    optimizer: torch.optim.Optimizer,
+    config: TrainConfig,
+    members: range,
+    generators: list[torch.Generator],
+) -> _State:
+    payload = read_checkpoint(path)
+    training = _training_payload(path, config)
+    saved = training.get("members", [0, local.ensemble_size])
+    if list(saved) != [members.start, members.stop]:
+        raise CheckpointError(
+            f"checkpoint {str(path)!r}: holds members {saved[0]}..{saved[1] - 1}, this rank "
+            f"trains {members.start}..{members.stop - 1}; resume with the same number of ranks"
+        )
+    if training["state"]["finished"]:
+        return _State(**training["state"])
     try:
-        ensemble.load_state_dict(payload["state_dict"])
+        local.load_state_dict(payload["state_dict"])
     except RuntimeError as err:
-        raise CheckpointError(f"checkpoint {str(path)!r}: weights do not match: {err}") from err
+        raise CheckpointError(
+            f"checkpoint {str(path)!r}: weights do not match: {err}", path
+        ) from err
     optimizer.load_state_dict(training["optimizer"])
-    torch.set_rng_state(training["rng"])
+    for g, rng in zip(generators, training["rng"], strict=True):
+        g.set_state(rng)
     return _State(**training["state"])
+
+
+def _finished_gathered_run(path: Path | None) -> _State | None:
+    """The state of a finished run gathered from ranks, if ``path`` holds one."""
+    if path is None or not distributed.is_active() or not path.is_file():
+        return None
+    training = _training_payload(path)
+    if not training["state"]["finished"]:
+        return None  # a single process's checkpoint: this rank's block check refuses it
+    return _State(**training["state"])
+
+
+# ---------------------------------------------------------------------- gathering
+def _gather(ensemble: RCVAEEnsemble, shard: _State | None) -> _State:
+    """Every rank's final state, joined in member order (a single process's as it is)."""
+    if not distributed.is_active():
+        return shard
+    shards = [s for s in distributed.all_gather(shard) if s is not None]
+    stacked = {name for name, _ in ensemble.named_parameters()}
+    weights = {
+        k: torch.cat([s.best_weights[k] for s in shards]) if k in stacked else v
+        for k, v in shards[0].best_weights.items()
+    }
+    state = _State(
+        max(s.step for s in shards),
+        torch.cat([s.best_val for s in shards]),
+        weights,
+        torch.cat([s.bad_evals for s in shards]),
+        torch.cat([s.stop_step for s in shards]),
+        history=_merge_histories([s.history for s in shards]),
+    )
+    state.finished = True
+    state.stopped_early = all(s.stopped_early for s in shards)
+    return state
+
+
+def _merge_histories(histories: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """One row per validation step over all members; a block that had finished contributes
+    NaN losses and its last best losses (as its members would in one process)."""
+    steps = sorted({row["step"] for rows in histories for row in rows})
+    merged = []
+    for step in steps:
+        train, val, best, improved = [], [], [], 0
+        for rows in histories:
+            row = next((r for r in rows if r["step"] == step), None)
+            last = row or [r for r in rows if r["step"] < step][-1]
+            n = len(last["best_val_member"])
+            train += row["train_loss_member"] if row else [math.nan] * n
+            val += row["val_loss_member"] if row else [math.nan] * n
+            best += last["best_val_member"]
+            improved += int(row["members_improved"]) if row else 0
+        merged.append(_record(int(step), train, val, best, improved))
+    return merged
+
+
+def _write_gathered(
+    path: Path, ensemble: RCVAEEnsemble, state: _State, config: TrainConfig
+) -> None:
+    """Rank 0 writes the gathered run (its best weights, no optimiser state) to ``path`` and
+    removes the block checkpoints; every rank waits for it."""
+    if distributed.is_main():
+        ensemble.load_state_dict(state.best_weights)
+        payload: dict[str, Any] = {
+            **ensemble_payload(ensemble),
+            "training": {
+                "config": dataclasses.asdict(config),
+                "members": [0, ensemble.ensemble_size],
+                "optimizer": None,
+                "rng": None,
+                "state": {**dataclasses.asdict(state)},
+            },
+        }
+        atomic_write(path, lambda f: torch.save(payload, f))
+        for block in path.parent.glob(f"{path.stem}.members-*{path.suffix}"):
+            block.unlink()
+    distributed.barrier()

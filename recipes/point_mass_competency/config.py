@@ -7,15 +7,23 @@ runs.
 
 from __future__ import annotations
 
-import dataclasses
-import math
-import re
 from dataclasses import dataclass, field
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from rcvae_torchrl.loggers import check_logger_backend
 from rcvae_torchrl.training import TrainConfig
+
+from .._settings import (
+    at_least,
+    build_config,
+    check_run_dir_name,
+    check_seed,
+    check_threads,
+    register_schema,
+    whole_steps,
+)
 
 __all__ = ["RecipeConfig", "StudyConfig", "register_configs", "study_config"]
 
@@ -23,21 +31,11 @@ CONTROL_TIMESTEP = 0.02  # s: dm_control point_mass's control step
 
 
 def _check(name: str, value: Any, low: float, kind: type = float) -> None:
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if kind is int:
-        ok = ok and isinstance(value, int)
-    if not ok or value < low:
-        raise ValueError(f"{name}: expected a finite {kind.__name__} >= {low}, got {value!r}")
+    at_least(name, value, low, kind)
 
 
 def _whole_steps(name: str, seconds: Any) -> int:
-    steps = seconds / CONTROL_TIMESTEP if isinstance(seconds, (int, float)) else math.nan
-    if not (math.isfinite(steps) and steps >= 1 and abs(steps - round(steps)) < 1e-6):
-        raise ValueError(
-            f"{name}: expected a positive whole number of {CONTROL_TIMESTEP} s steps, got "
-            f"{seconds!r}"
-        )
-    return round(steps)
+    return whole_steps(name, seconds, CONTROL_TIMESTEP)
 
 
 @dataclass(frozen=True)
@@ -135,7 +133,7 @@ class StudyConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        _check("seed", self.seed, 0, int)
+        check_seed("seed", self.seed)
         if self.train.window > _whole_steps("data.time_limit_s", self.data.time_limit_s):
             raise ValueError(
                 f"train.window: expected at most the data episodes' {self.data.time_limit_s} s, "
@@ -145,49 +143,28 @@ class StudyConfig:
 
 @dataclass(frozen=True)
 class RecipeConfig(StudyConfig):
+    """The study plus how to run it; ``logger``: ``"csv"``, ``"tensorboard"``, ``"wandb"``
+    (offline), ``"mlflow"`` (a local file store) or ``"none"``, under ``<run_dir>/logs``."""
+
     profile: str = "default"
     run_dir: str = "outputs/point_mass_competency/${profile}"
     threads: Any = "auto"
     progress: bool = True
+    logger: str = "csv"
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.threads not in (None, "auto"):
-            _check("threads", self.threads, 1, int)
-        if not str(self.run_dir).strip() or not re.search(r"\S", str(self.run_dir)):
-            raise ValueError(f"run_dir: expected a directory path, got {self.run_dir!r}")
-
-
-def _writable(node: Any) -> None:
-    OmegaConf.set_readonly(node, None)
-    for key in node:
-        child = node._get_node(key)
-        if isinstance(child, DictConfig):
-            _writable(child)
+        check_threads(self.threads)
+        check_run_dir_name(self.run_dir)
+        check_logger_backend(self.logger)
 
 
 def register_configs() -> None:
     """Register :class:`RecipeConfig` as the structured config ``point_mass_schema``."""
-    from hydra.core.config_store import ConfigStore
-
-    node = OmegaConf.structured(RecipeConfig)
-    _writable(node)
-    ConfigStore.instance().store(name="point_mass_schema", node=node)
+    register_schema("point_mass_schema", RecipeConfig)
 
 
 def study_config(cfg: DictConfig | dict) -> RecipeConfig:
-    """The typed, checked config of a composed Hydra config (or a mapping of overrides)."""
-    schema = OmegaConf.structured(RecipeConfig)
-    _writable(schema)
-    merged = OmegaConf.merge(schema, cfg)
-    sections = {}
-    for f in dataclasses.fields(RecipeConfig):
-        node = merged[f.name]
-        if isinstance(node, DictConfig):
-            try:
-                sections[f.name] = OmegaConf.to_object(node)
-            except (ValueError, TypeError) as err:
-                raise ValueError(f"{f.name}.{err}") from None
-        else:
-            sections[f.name] = node
-    return RecipeConfig(**sections)
+    """The typed, checked config of a composed Hydra config (or a mapping of overrides); the
+    run directory is checked before anything is created or written."""
+    return build_config(RecipeConfig, cfg)

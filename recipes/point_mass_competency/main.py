@@ -6,6 +6,8 @@
 The library used as a new user would, on an env this project did not write: dict float64
 observations prepared with ``prepare_env``, a stochastic variant through a TorchRL transform,
 start states replayed by seed. Re-running with the same ``run_dir`` reuses finished stages.
+The console's lines also go to ``<run_dir>/run.log``; training curves and stage summaries go to
+the logger chosen with ``logger=csv|tensorboard|wandb|mlflow|none`` under ``<run_dir>/logs``.
 """
 
 from __future__ import annotations
@@ -17,9 +19,13 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import hydra
+import torch
 from omegaconf import DictConfig
+from torchrl.record.loggers import generate_exp_name
 
-from rcvae_torchrl.threads import set_threads
+from rcvae_torchrl.loggers import make_logger
+from rcvae_torchrl.run_log import run_log
+from recipes._settings import set_threads
 from recipes.point_mass_competency.config import register_configs, study_config
 from recipes.point_mass_competency.pipeline import run_study
 
@@ -29,13 +35,24 @@ register_configs()
 @hydra.main(config_path="conf", config_name="point_mass_competency", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     config = study_config(cfg)
-    # the agent's and the model's ops are small (tens of rows): one thread unless told otherwise
-    threads = set_threads(config.threads)
-    print(f"profile={config.profile} threads={threads} run_dir={config.run_dir}")
-    summary = run_study(config, config.run_dir, progress=config.progress)
-    for name, check in summary["report"]["checks"].items():
-        print(f"{'ok ' if check['met'] else 'NO '} {name}: {check['value']}")
-    print(f"report: {config.run_dir}/report.md")
+    set_threads(config.threads)
+    run_dir = Path(config.run_dir)
+    with run_log(run_dir / "run.log") as log:
+        threads = torch.get_num_threads()
+        log.info(f"profile={config.profile} threads={threads} run_dir={run_dir}")
+        logger = make_logger(
+            config.logger, run_dir / "logs", generate_exp_name("point_mass", config.profile)
+        )
+        try:
+            summary = run_study(
+                config, run_dir, progress=config.progress, log=log.info, logger=logger
+            )
+        finally:
+            if logger is not None:
+                logger.close()
+        for name, check in summary["report"]["checks"].items():
+            log.info(f"{'ok ' if check['met'] else 'NO '} {name}: {check['value']}")
+        log.info(f"report: {run_dir}/report.md")
 
 
 if __name__ == "__main__":

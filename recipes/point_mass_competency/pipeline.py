@@ -21,6 +21,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict
+from torchrl.record.loggers import Logger
 
 from rcvae_torchrl.agent import (
     RealOutcomes,
@@ -38,7 +39,7 @@ from rcvae_torchrl.data import (
     save_episodes,
     split_episodes,
 )
-from rcvae_torchrl.io import load_torch, record_run_config, save_torch
+from rcvae_torchrl.io import load_torch, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
@@ -60,7 +61,14 @@ from .task import (
 
 __all__ = ["STAGES", "Study", "run_study"]
 
-STAGES = ("data", "models", "forecast", "truth", "report")
+# Each stage and the files it writes (their sizes and hashes go into its marker).
+STAGES = {
+    "data": ("data/*.pt",),
+    "models": ("models/*.pt",),
+    "forecast": ("forecast/*.pt",),
+    "truth": ("truth/*.pt",),
+    "report": ("*.md", "*.csv", "*.png", "summary.json"),
+}
 # disjoint seed ranges per purpose: data starts, condition c's starts, and real episodes
 DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000
 
@@ -68,8 +76,10 @@ DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000
 class Study:
     """The stages of one study in one run directory."""
 
-    def __init__(self, config: StudyConfig, run_dir: Path, progress: bool) -> None:
-        self.cfg, self.dir, self.progress = config, Path(run_dir), progress
+    def __init__(
+        self, config: StudyConfig, run_dir: Path, progress: bool, logger: Logger | None = None
+    ) -> None:
+        self.cfg, self.dir, self.progress, self.logger = config, Path(run_dir), progress, logger
         self.agent = PDController(config.task.kp, config.task.kd)
 
     def steps(self, seconds: float) -> int:
@@ -140,6 +150,8 @@ class Study:
                     dataclasses.replace(self.cfg.train, seed=self.cfg.seed),
                     checkpoint_path=self.dir / "models" / f"{name}_train.pt",
                     resume=True,
+                    logger=self.logger,
+                    log_prefix=f"models/{name}/",
                     progress=self.progress,
                 )
                 save_ensemble(result.ensemble, path, extra={"steps": result.steps})
@@ -238,14 +250,25 @@ def _tensordict(values: dict, first: str) -> TensorDict:
     return TensorDict(values, batch_size=[len(values[first])])
 
 
-def run_study(config: StudyConfig, run_dir: str | Path, *, progress: bool = True, log=print):
-    """Run (or resume) the study in ``run_dir``; returns every stage's summary."""
+def run_study(
+    config: StudyConfig,
+    run_dir: str | Path,
+    *,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+    logger: Logger | None = None,
+) -> dict[str, Any]:
+    """Run (or resume) the study in ``run_dir``; returns every stage's summary.
+
+    ``logger`` (a TorchRL logger) gets the training curves and every stage's numbers.
+    """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: getattr(config, f.name) for f in dataclasses.fields(StudyConfig)}
-    record_run_config(run_dir / "study_config.json", dataclasses.asdict(StudyConfig(**settings)))
-    study = Study(config, run_dir, progress)
-    runner = StageRunner(run_dir, log)
-    for name in STAGES:
-        runner.run(name, getattr(study, name))
+    runner = StageRunner(
+        run_dir, log, settings=dataclasses.asdict(StudyConfig(**settings)), logger=logger
+    )
+    study = Study(config, run_dir, progress, logger)
+    for name, outputs in STAGES.items():
+        runner.run(name, getattr(study, name), outputs)
     return runner.summaries

@@ -4,26 +4,41 @@
     python recipes/pusher_competency/main.py profile=quick        # every stage, tiny budgets
     python recipes/pusher_competency/main.py profile=full device=cuda
     python recipes/pusher_competency/main.py run_dir=outputs/my_run train.max_steps=3000
+    torchrun --nproc_per_node=2 recipes/pusher_competency/main.py profile=quick  # 2 ranks
+    python recipes/pusher_competency/main.py -m hydra/launcher=local seed=0,1 \
+        'run_dir=outputs/pusher_competency/${profile}/seed${seed}'          # a local sweep
 
-Re-running with the same ``run_dir`` reuses the finished stages. Every setting and its default
-is in ``config.py``; the profiles in ``conf/profile/`` hold their differences. Unknown keys
-and values of the wrong type or out of range are rejected before anything runs.
+Under ``torchrun`` the training, forecast and real-episode stages share their work over the
+ranks and give the results of one process; rank 0 alone writes files and prints (see
+docs/scale_out.rst). Re-running with the same ``run_dir`` reuses the finished stages. The
+console's lines also go to ``<run_dir>/run.log`` (plain text); training curves and stage
+summaries go to the logger chosen with ``logger=csv|tensorboard|wandb|mlflow|none`` under
+``<run_dir>/logs``. Every
+setting and its default is in ``config.py``; the profiles in ``conf/profile/`` hold their
+differences. Unknown keys and values of the wrong type or out of range are rejected before
+anything runs.
 """
 
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 if __package__ in (None, ""):  # run as a script: make the repository root importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import hydra
+import torch
 from omegaconf import DictConfig
+from torchrl.record.loggers import generate_exp_name
 
-from rcvae_torchrl.threads import set_threads
-from recipes.pusher_competency.config import register_configs, study_config
-from recipes.pusher_competency.pipeline import resolve_device, run_study, training_op_flop
+from rcvae_torchrl import distributed
+from rcvae_torchrl.loggers import make_logger
+from rcvae_torchrl.run_log import run_log
+from recipes._settings import resolve_device, set_threads
+from recipes.pusher_competency.config import RecipeConfig, register_configs, study_config
+from recipes.pusher_competency.pipeline import run_study, training_op_flop
 
 register_configs()
 
@@ -32,12 +47,38 @@ register_configs()
 def main(cfg: DictConfig) -> None:
     config = study_config(cfg)
     device = resolve_device(config.device)
-    threads = set_threads(config.threads, training_op_flop(config))
-    print(f"profile={config.profile} device={device} threads={threads} run_dir={config.run_dir}")
-    summary = run_study(config, config.run_dir, device=device, progress=config.progress)
+    set_threads(config.threads, training_op_flop(config))
+    with distributed.session():  # a process group under torchrun, nothing otherwise
+        if device == "cuda" and distributed.is_active():
+            device = f"cuda:{torch.cuda.current_device()}"
+        if distributed.is_main():  # rank 0 alone prints, logs and writes run.log
+            with run_log(Path(config.run_dir) / "run.log") as log:
+                _run(config, device, log.info)
+        else:
+            _run(config, device, None)
+
+
+def _run(config: RecipeConfig, device: str, say: Callable[[str], None] | None) -> None:
+    run_dir = Path(config.run_dir)
+    logger = None
+    if say is not None:
+        say(
+            f"profile={config.profile} device={device} threads={torch.get_num_threads()} "
+            f"ranks={distributed.world_size()} run_dir={run_dir}"
+        )
+        name = generate_exp_name("pusher_competency", config.profile)
+        logger = make_logger(config.logger, run_dir / "logs", name)
+    say = say or (lambda line: None)
+    try:
+        summary = run_study(
+            config, run_dir, device=device, progress=config.progress, log=say, logger=logger
+        )
+    finally:
+        if logger is not None:
+            logger.close()
     for name, check in summary["report"]["checks"].items():
-        print(f"{'ok ' if check['met'] else 'NO '} {name}: {check['value']:.3f}")
-    print(f"report: {config.run_dir}/report.md")
+        say(f"{'ok ' if check['met'] else 'NO '} {name}: {check['value']:.3f}")
+    say(f"report: {run_dir}/report.md")
 
 
 if __name__ == "__main__":

@@ -23,27 +23,31 @@ from typing import Any
 
 import torch
 from torchrl.envs import EnvBase
+from torchrl.record.loggers import Logger
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl.agent import (
     PerturbedPolicy,
     dagger,
     load_policy,
     make_policy_module,
+    real_outcomes,
     run_episodes,
     save_policy,
 )
 from rcvae_torchrl.competency import CompetencyAssessor
-from rcvae_torchrl.data import load_episodes, save_episodes, split_episodes
+from rcvae_torchrl.data import load_episodes, save_episodes, seed_env, split_episodes
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     OBSERVATION_NAMES,
     ball_to_target,
+    make_batched_pusher_env,
     pusher_reward,
     reset_to_state,
     resolution_tensor,
 )
 from rcvae_torchrl.envs.scripted import ScriptedPusher
-from rcvae_torchrl.io import load_torch, record_run_config, save_torch
+from rcvae_torchrl.io import load_torch, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
@@ -63,25 +67,28 @@ from .pusher import (
 )
 from .report import write_report
 
-__all__ = ["STAGES", "Study", "resolve_device", "run_study", "training_op_flop"]
+__all__ = ["SHARDED_STAGES", "STAGES", "Study", "run_study", "training_op_flop"]
 
-STAGES = ("data", "models", "agent", "forecast", "truth", "report")
+# Each stage and the files it writes (their sizes and hashes go into its marker).
+STAGES = {
+    "data": ("data/*.pt",),
+    "models": ("models/*.pt",),
+    "agent": ("agent/*.pt",),
+    "forecast": ("forecast/*.pt",),
+    "truth": ("truth/*.pt",),
+    "report": ("*.md", "*.csv", "*.png", "*.gif", "summary.json"),
+}
+# Stages that share their work over torch.distributed ranks (the others run on rank 0).
+SHARDED_STAGES = ("models", "forecast", "truth")
 
 # Disjoint seed ranges of the real episodes, per purpose (offset by 1000 per study seed).
 DEMONSTRATION_SEEDS = 50_000
 EVALUATION_SEEDS = 70_000
 DAGGER_SEEDS = 80_000
+# Real episodes of the truth stage: seeds REAL_SEEDS + 10·seed + c, each run its own stream.
+REAL_SEEDS = 9_000
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i.
 START_SEED_STRIDE = 7919
-
-
-def resolve_device(name: str) -> str:
-    """``"auto"`` -> ``"cuda"`` when available, else ``"cpu"``; other names are checked."""
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device: {name!r} asked for, but CUDA is not available here")
-    return name
 
 
 def training_op_flop(config: StudyConfig) -> float:
@@ -94,9 +101,15 @@ class Study:
     """The stages of one study in one run directory (see the module docstring)."""
 
     def __init__(
-        self, config: StudyConfig, run_dir: Path, device: torch.device, progress: bool
+        self,
+        config: StudyConfig,
+        run_dir: Path,
+        device: torch.device,
+        progress: bool,
+        logger: Logger | None = None,
     ) -> None:
         self.cfg, self.dir, self.device, self.progress = config, run_dir, device, progress
+        self.logger = logger
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -106,6 +119,19 @@ class Study:
     def env(self, variant: str, **kwargs: Any) -> EnvBase:
         """The real Pusher of ``variant`` with the study's noise and success radius."""
         return make_env(variant, self.cfg.data, self.cfg.assess.success_radius, **kwargs)
+
+    def batched_env(self, variant: str, num_envs: int) -> EnvBase:
+        """``num_envs`` real Pushers of ``variant`` in one batched env, episodes of the
+        horizon's length that go on after success."""
+        d, s = self.cfg.data, self.cfg.assess
+        return make_batched_pusher_env(
+            num_envs,
+            variant,
+            action_noise_std=d.stochastic_noise_std if variant == "stochastic" else None,
+            success_radius=s.success_radius,
+            time_limit=s.horizon_s,
+            terminate_on_success=False,
+        )
 
     def load_model(self, name: str) -> RCVAEEnsemble:
         """The trained world model ``name`` (``"deterministic"`` or ``"stochastic"``)."""
@@ -130,7 +156,7 @@ class Study:
         index = list(CONDITIONS).index(condition)
         starts = []
         for i in range(self.cfg.assess.start_states):
-            env.set_seed(self.cfg.seed * START_SEED_STRIDE + 1000 * index + i)
+            seed_env(env, self.cfg.seed * START_SEED_STRIDE + 1000 * index + i)
             starts.append(env.reset()["observation"])
         return torch.stack(starts)
 
@@ -159,10 +185,12 @@ class Study:
         return summary
 
     def _train_config(self, name: str) -> TrainConfig:
+        """The training settings of world model ``name``, seeded by the study's seed."""
+        train = dataclasses.replace(self.cfg.train, seed=self.cfg.train.seed + self.cfg.seed)
         steps = self.cfg.model.stochastic_open_loop_steps
         if name != "stochastic" or steps is None:
-            return self.cfg.train
-        return dataclasses.replace(self.cfg.train, open_loop_steps=steps)
+            return train
+        return dataclasses.replace(train, open_loop_steps=steps)
 
     def models(self) -> dict[str, Any]:
         m, summary = self.cfg.model, {}
@@ -183,6 +211,8 @@ class Study:
                 self._train_config(name),
                 checkpoint_path=self.dir / "models" / f"{name}_train.pt",
                 resume=True,
+                logger=self.logger,
+                log_prefix=f"models/{name}/",
                 progress=self.progress,
             )
             info = {
@@ -190,7 +220,9 @@ class Study:
                 "stopped_early": result.stopped_early,
                 "best_val_loss": result.best_val.mean().item(),
             }
-            save_ensemble(result.ensemble, path, extra={"variant": name, "training": info})
+            if distributed.is_main():
+                save_ensemble(result.ensemble, path, extra={"variant": name, "training": info})
+        distributed.barrier()
         for name in WORLD_MODELS:
             saved = load_torch(self.dir / "models" / f"{name}.pt", "model checkpoint")
             summary[name] = saved["extra"].get("training", {})
@@ -276,56 +308,68 @@ class Study:
             bin_width=resolution_tensor(),
             dim_names=OBSERVATION_NAMES,
             samples_per_member=s.samples_per_member,
-            start_chunk=s.start_states,
+            start_chunk=s.start_chunk,
             episode_end=s.episode_end,
             bias_correction=s.bias_correction,
-            generator=torch.Generator().manual_seed(self.cfg.seed),
             per_sample={"ball_to_target": ball_to_target},
         )
 
     def forecast(self) -> dict[str, Any]:
+        """Sharded: chunks of start states over the ranks (each chunk seeded by the study's
+        seed and its index), one report gathered; rank 0 writes it."""
         s, summary = self.cfg.assess, {}
         policy = self.load_policy().to(self.device)
         for condition, (model_name, variant) in CONDITIONS.items():
             path = self.dir / "forecast" / f"{condition}.pt"
-            if not path.is_file():
+            if not distributed.broadcast(path.is_file()):
                 starts = self.starts(condition)
                 assessor = self.assessor(model_name, variant)
-                generator = torch.Generator(device=self.device).manual_seed(self.cfg.seed)
                 start = starts.to(self.device)
                 if s.open_loop:
+                    generator = torch.Generator(device=self.device).manual_seed(self.cfg.seed)
                     plan = assessor.model_env.plan_actions(
                         start, policy, assessor.horizon, generator=generator
                     )
-                    report = assessor.assess(start, actions=plan, generator=generator)
+                    report = assessor.assess(start, actions=plan, seed=self.cfg.seed)
                 else:
-                    report = assessor.assess(start, policy=policy, generator=generator)
-                save_torch(path, {"starts": starts, **_forecast_record(report.data.cpu())})
+                    report = assessor.assess(start, policy=policy, seed=self.cfg.seed)
+                if distributed.is_main():
+                    save_torch(path, {"starts": starts, **_forecast_record(report.data.cpu())})
+            distributed.barrier()
             saved = load_torch(path, "forecast")
             summary[condition] = {"p_success": saved["p_success"].mean().item()}
         return summary
 
     def truth(self) -> dict[str, Any]:
+        """The agent in the real env from each forecast's start states, many runs per start in
+        a batched env; episodes go on after success, so every boundary of the competency
+        surface is answered by the same episodes. Sharded: the real episodes over the ranks;
+        rank 0 writes the outcomes."""
         s, summary = self.cfg.assess, {}
         policy = make_policy_module(self.load_policy())
         for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
             path = self.dir / "truth" / f"{condition}.pt"
-            if not path.is_file():
+            if not distributed.broadcast(path.is_file()):
                 runs = (
                     s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
                 )
                 starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
+                env = self.batched_env(variant, min(s.real_envs, len(starts) * runs))
                 result = real_outcomes(
-                    self.env(variant, time_limit=s.horizon_s),
+                    env,
                     policy,
                     starts,
                     runs_per_start=runs,
+                    reset_to_state=reset_to_state,
                     max_steps=self.max_steps,
-                    seed=self.cfg.seed + 1 + index,
+                    trace=ball_to_target,
+                    seed=REAL_SEEDS + self.cfg.seed * 10 + index,
                     progress=self.progress,
                     desc=f"real: {condition}",
                 )
-                save_torch(path, result)
+                if distributed.is_main():
+                    save_torch(path, result.as_dict())
+            distributed.barrier()
             saved = load_torch(path, "real outcomes")
             summary[condition] = {"success_rate": saved["success"].float().mean().item()}
         return summary
@@ -362,46 +406,6 @@ def _forecast_record(data) -> dict[str, torch.Tensor]:
     }
 
 
-def real_outcomes(
-    env: EnvBase,
-    policy: Callable,
-    starts: torch.Tensor,
-    *,
-    runs_per_start: int,
-    max_steps: int,
-    seed: int = 0,
-    progress: bool = True,
-    desc: str = "real",
-) -> dict[str, torch.Tensor]:
-    """Run ``policy`` from each start ``[B, S]`` with ``runs_per_start`` noise seeds.
-
-    Returns ``success`` ``[B, R]`` bool, ``steps`` ``[B, R]`` (to success, or the episode length)
-    and ``ball_to_target`` ``[B, R, T]`` padded with NaN after the episode ended.
-    """
-    b, r = starts.shape[0], runs_per_start
-    stats = run_episodes(
-        env,
-        policy,
-        seeds=[seed * 100_003 + i for i in range(b * r)],
-        starts=starts.repeat_interleave(r, dim=0),
-        reset_to_state=reset_to_state,
-        max_steps=max_steps,
-        progress=progress,
-        desc=desc,
-    )
-    distance = torch.full((b * r, max_steps), float("nan"))
-    ids = stats.data["collector", "traj_ids"]
-    d = ball_to_target(stats.data["next", "observation"])
-    for i in range(b * r):
-        trace = d[ids == i]
-        distance[i, : trace.numel()] = trace
-    return {
-        "success": stats.success.reshape(b, r),
-        "steps": stats.steps.reshape(b, r),
-        "ball_to_target": distance.reshape(b, r, max_steps),
-    }
-
-
 def run_study(
     config: StudyConfig,
     run_dir: str | Path,
@@ -409,16 +413,21 @@ def run_study(
     device: str | torch.device = "cpu",
     progress: bool = True,
     log: Callable[[str], None] = print,
+    logger: Logger | None = None,
 ) -> dict[str, Any]:
-    """Run (or resume) the study in ``run_dir``; returns every stage's summary."""
+    """Run (or resume) the study in ``run_dir``; returns every stage's summary.
+
+    ``logger`` (a TorchRL logger) gets the training curves (``models/<name>/...``) and every
+    stage's numbers (``stages/<stage>/...``); without one, training writes CSV beside its
+    checkpoints.
+    """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
-    record_run_config(run_dir / "study_config.json", settings)
-    study = Study(config, run_dir, torch.device(device), progress)
-    runner = StageRunner(run_dir, log)
-    for name in STAGES:
-        runner.run(name, getattr(study, name))
+    runner = StageRunner(run_dir, log, settings=settings, logger=logger)
+    study = Study(config, run_dir, torch.device(device), progress and distributed.is_main(), logger)
+    for name, outputs in STAGES.items():
+        runner.run(name, getattr(study, name), outputs, sharded=name in SHARDED_STAGES)
     return runner.summaries
 
 

@@ -99,6 +99,7 @@ def success_boundary(radius: float, horizon_s: float) -> SuccessBoundary:
         obs_indices("ball"),
         radius,
         target=obs_indices("target"),
+        obs_dim=OBSERVATION_DIM,
         time_limit_s=horizon_s,
         dt=CONTROL_TIMESTEP,
     )

@@ -14,16 +14,19 @@ from rcvae_torchrl.envs import CONTROL_TIMESTEP
 from rcvae_torchrl.envs.render import gl_unavailable_reason, record_episode
 from rcvae_torchrl.io import atomic_write, read_json, write_json
 from rcvae_torchrl.reporting import (
+    plot_competency_surface,
     plot_forecast_vs_reality,
     plot_reliability,
+    plot_start_reliability,
     plot_uncertainty_over_time,
     write_table,
 )
 
 from .config import AssessConfig
 from .pusher import FIGURE_PANELS
+from .trust import competency_surfaces, trust_checks, validation, validation_figures
 
-__all__ = ["COLUMNS", "condition_row", "pattern_checks", "write_report"]
+__all__ = ["COLUMNS", "agent_section", "condition_row", "pattern_checks", "write_report"]
 
 COLUMNS = (
     "condition",
@@ -171,10 +174,10 @@ def _figures(run_dir: Path, forecasts, truths, panels: int, radius: float) -> di
     episodes = []
     for c, f in forecasts.items():
         for b in range(min(panels, f["p_success"].numel()) if c == "stochastic" else 1):
-            real = [t[~t.isnan()] for t in truths[c]["ball_to_target"][b]]
+            real = [t[~t.isnan()] for t in truths[c]["trace"][b]]
             episodes.append(
                 {
-                    "title": f"{c}, start {b} (P={f['p_success'][b]:.2f})",
+                    "title": f"{c}, start {b}\nforecast P(success) = {f['p_success'][b]:.2f}",
                     "forecast": f["ball_to_target"][b],
                     "real": real,
                 }
@@ -214,25 +217,102 @@ def write_report(
         "success_rate": y.mean().item(),
     }
     checks = pattern_checks(rows, overall)
+    a = config.assess
+    scores = validation(forecasts, truths, a.success_radius)
+    deadlines = [round(d / CONTROL_TIMESTEP) for d in a.surface_deadlines_s]
+    surfaces = competency_surfaces(forecasts, truths, list(a.surface_radii), deadlines)
+    checks.update(trust_checks(scores, surfaces))
     by_window = pattern_by_window(forecasts, CONTROL_TIMESTEP)
-    figures = _figures(
-        run_dir, forecasts, truths, config.assess.forecast_panels, config.assess.success_radius
+    figures = _figures(run_dir, forecasts, truths, a.forecast_panels, a.success_radius)
+    figures["start_reliability"] = plot_start_reliability(
+        validation_figures(forecasts, truths), run_dir / "start_reliability.png"
+    )
+    figures["surface"] = plot_competency_surface(
+        surfaces, list(a.surface_radii), list(a.surface_deadlines_s), run_dir / "surface.png"
     )
     gif = _episode_gif(run_dir, policy, episode_env, config.seed)
     summary = {
         "rows": rows,
         "overall": overall,
         "checks": checks,
+        "validation": scores,
+        "surfaces": {
+            c: {k: v.tolist() if torch.is_tensor(v) else v for k, v in x.items()}
+            for c, x in surfaces.items()
+        },
         "pattern_by_window": by_window,
         "gif": gif,
     }
     write_json(run_dir / "summary.json", summary)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
-    text = _markdown(
-        rows, overall, checks, by_window, figures, gif, run_dir, residual, _bits_text(config.assess)
-    )
+    texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
+    text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)
+    text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
+
+
+_SCORE_COLUMNS = (
+    ("forecast", "forecast"),
+    ("real", "real"),
+    ("gap", "gap"),
+    ("per_start_mae", "per-start MAE"),
+    ("spearman", "Spearman"),
+    ("real_rate_span", "real rate span"),
+    ("auroc", "AUROC"),
+    ("bss_overall", "BSS (overall rate)"),
+    ("brier_skill", "BSS (own rate)"),
+    ("oracle_auroc", "oracle AUROC"),
+    ("oracle_brier_skill", "oracle BSS (own rate)"),
+    ("tts_crps", "TTS CRPS (steps)"),
+    ("tts_crps_climatology", "climatology"),
+    ("starts", "starts"),
+    ("episodes", "episodes"),
+)
+
+
+def _validation_text(scores, assess: AssessConfig) -> str:
+    """The per-task validation section of report.md."""
+    head = "| condition | " + " | ".join(label for _, label in _SCORE_COLUMNS) + " |"
+    rule = "|:---|" + "---:|" * len(_SCORE_COLUMNS)
+    body = [
+        f"| {c} | "
+        + " | ".join(
+            f"{s[k]:.3f}" if isinstance(s.get(k), float) else str(s.get(k, ""))
+            for k, _ in _SCORE_COLUMNS
+        )
+        + " |"
+        for c, s in scores.items()
+    ]
+    return "\n".join(
+        [
+            "## Per task: the forecast start by start",
+            "",
+            f"Each start state's forecast against the success rate of its real episodes "
+            f"({assess.stochastic_seeds_per_start} per start in the stochastic env, "
+            f"{assess.seeds_per_start} where the env is deterministic). BSS: Brier skill against "
+            "a constant forecast of the overall or the condition's own base rate. TTS: the "
+            "forecast distribution of the time to success against the real times, by CRPS, "
+            "beside the condition's climatological distribution (lower is better). Oracle: the "
+            "scores of a forecast equal to each start's own real success rate, the ceiling that "
+            "the outcomes' randomness leaves to any forecast.",
+            "",
+            head,
+            rule,
+            *body,
+            "",
+            "![reliability over start states](start_reliability.png)",
+            "",
+            "## Competency surface",
+            "",
+            "P(success) for other boundaries (success radius x deadline), answered by the same "
+            "imagined and real episodes (the real ones go on after success).",
+            "",
+            "![competency surface](surface.png)",
+            "",
+            "",
+        ]
+    )
 
 
 _AGENT_TEXT = {
@@ -241,6 +321,67 @@ _AGENT_TEXT = {
     False: "An MLP policy distilled from the CEM/MPC planner over the deterministic model (MPC "
     "episodes, then DAgger rounds)",
 }
+
+
+#: The agent stage's numbers as the report names them (``stages/agent.json`` keys).
+AGENT_LINES = {
+    "mpc_noisy_success_rate": "MPC episodes (executed actions perturbed): success rate",
+    "mpc_median_steps": "MPC episodes: median steps",
+    "policy_success_rate": "the agent in its evaluation episodes: success rate",
+    "policy_median_steps": "the agent in its evaluation episodes: median steps",
+    "pairs": "state-action pairs it was distilled from (last round)",
+}
+#: The columns of the DAgger table: round-record key -> column title.
+DAGGER_COLUMNS = {
+    "round": "round",
+    "pairs": "pairs",
+    "policy_success_before": "policy success before the round",
+    "train_mse": "train MSE",
+    "val_mse": "validation MSE",
+    "epochs": "epochs",
+}
+
+
+def _number(value: Any) -> str:
+    if isinstance(value, float) and value.is_integer() and abs(value) >= 1:
+        return str(int(value))
+    if isinstance(value, float):
+        return f"{value:.3g}" if abs(value) < 0.01 and value else f"{value:.3f}"
+    return str(value)
+
+
+def agent_section(agent: Mapping[str, Any], settings: Any) -> str:
+    """The agent stage in words and tables: settings, outcomes, one row per DAgger round."""
+    lines = [
+        f"Settings: {settings.mpc_episodes} MPC episodes with action noise of std "
+        f"{settings.action_noise}, then {settings.dagger_rounds} DAgger round(s) of "
+        f"{settings.dagger_episodes} policy episodes, the agent evaluated on "
+        f"{settings.eval_episodes} episodes.",
+        "",
+        "| measured | value |",
+        "|:---|---:|",
+        *[f"| {title} | {_number(agent[k])} |" for k, title in AGENT_LINES.items() if k in agent],
+    ]
+    rounds = agent.get("dagger", [])
+    if rounds:
+        lines += [
+            "",
+            "Distillation rounds (round 0: the MPC episodes alone; then each DAgger round adds "
+            "the agent's own states, labelled by the planner):",
+            "",
+            "| " + " | ".join(DAGGER_COLUMNS.values()) + " |",
+            "|" + "|".join([":---", *["---:"] * (len(DAGGER_COLUMNS) - 1)]) + "|",
+            *[
+                "| " + " | ".join(_number(r[k]) if k in r else "–" for k in DAGGER_COLUMNS) + " |"
+                for r in rounds
+            ],
+        ]
+    return "\n".join(lines)
+
+
+def _agent_text(run_dir: Path, settings: Any) -> str:
+    marker = run_dir / "stages" / "agent.json"
+    return agent_section(read_json(marker, "stage marker"), settings) if marker.is_file() else ""
 
 
 def _bits_text(assess: AssessConfig) -> str:
@@ -266,13 +407,12 @@ def _bits_text(assess: AssessConfig) -> str:
 
 
 def _markdown(
-    rows, overall, checks, by_window, figures, gif, run_dir: Path, residual: bool, bits_text: str
+    rows, overall, checks, by_window, figures, gif, run_dir: Path, residual: bool, texts: dict
 ) -> str:
     table = (run_dir / "table.md").read_text()
     order = ("data", "models", "agent", "forecast", "truth", "report")
     found = {p.stem: p for p in (run_dir / "stages").glob("*.json")}
     stages = {name: read_json(found[name], "stage marker") for name in order if name in found}
-    agent = stages.get("agent", {})
     lines = [
         "# Pusher competency assessment",
         "",
@@ -282,7 +422,7 @@ def _markdown(
         "",
         "## Table (the paper's Table 1, plus the check against reality)",
         "",
-        bits_text,
+        texts["bits"],
         "",
         table,
         f"Over all start states: Brier {overall['brier']:.4f} against "
@@ -329,7 +469,7 @@ def _markdown(
         "",
         f"{_AGENT_TEXT[residual]}; it is the agent that acts in the real env and the one forecast.",
         "",
-        *[f"- {k}: {v}" for k, v in agent.items()],
+        texts["agent"],
         "",
         f"One episode: {'![episode](episode.gif)' if gif == 'episode.gif' else gif}",
         "",

@@ -75,10 +75,10 @@ def test_ood_starts_lie_outside_the_training_region():
             lo, hi = IN_DISTRIBUTION.ball_radius
             assert ((r >= lo - 1e-4) & (r <= hi + 1e-4)).all()
         assert (obs[:, BALL_VEL].abs().max() == 0) and (obs[:, JOINT_VEL].abs().max() == 0)
-    for group in (BALL, TARGET):
+    for group, (lo, hi) in ((BALL, (100.0, 130.0)), (TARGET, (-80.0, -50.0))):
         a_ind, a_ood = _polar_angle_deg(ind[:, group]), _polar_angle_deg(ood[:, group])
         assert (a_ind.abs() <= 90.0 + 1e-3).all()  # the half of the arena in front of the arm
-        assert ((a_ood >= 100.0 - 1e-3) & (a_ood <= 130.0 + 1e-3)).all()  # disjoint sector
+        assert ((a_ood >= lo - 1e-3) & (a_ood <= hi + 1e-3)).all()  # the ball: a disjoint sector
         assert a_ind.max() - a_ind.min() > 120.0  # spread over the half, not a corner of it
 
 
@@ -87,6 +87,8 @@ def test_region_angle_must_be_an_interval_of_at_most_a_turn():
         dataclasses.replace(OUT_OF_DISTRIBUTION, angle=(1.0, 0.5))
     with pytest.raises(ValueError, match="angle: expected"):
         dataclasses.replace(OUT_OF_DISTRIBUTION, angle=(0.0, 7.0))
+    with pytest.raises(ValueError, match="target_angle: expected"):
+        dataclasses.replace(OUT_OF_DISTRIBUTION, target_angle=(1.0, 0.5))
 
 
 @pytest.mark.parametrize("variant", ["deterministic", "stochastic"])

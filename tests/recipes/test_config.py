@@ -12,13 +12,14 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
+from recipes._settings import SEED_MAX, resolve_device, set_threads
 from recipes.pusher_competency.config import (
     RecipeConfig,
     StudyConfig,
     register_configs,
     study_config,
 )
-from recipes.pusher_competency.pipeline import Study, resolve_device
+from recipes.pusher_competency.pipeline import Study
 
 CONF = Path(__file__).resolve().parents[2] / "recipes" / "pusher_competency" / "conf"
 register_configs()
@@ -97,8 +98,36 @@ def test_unknown_keys_are_rejected(override):
     ],
 )
 def test_values_of_the_wrong_type_are_rejected(override):
-    with pytest.raises(ConfigCompositionException):
+    """Hydra refuses them while composing; the message names the key and the value."""
+    key, _, value = override.partition("=")
+    with pytest.raises(ConfigCompositionException) as info:
         _compose(override)
+    message = str(info.value.__cause__)
+    assert f"full_key: {key}" in message and repr(value) in message
+
+
+@pytest.mark.parametrize(
+    ("overrides", "match"),
+    [
+        ({"threads": "abc"}, r"threads"),
+        ({"progress": "maybe"}, r"progress"),
+        ({"seed": 1.5}, r"seed"),
+        ({"train": {"lr": "fast"}}, r"train\.lr"),
+        ({"bogus": 1}, r"bogus"),
+    ],
+)
+def test_a_plain_mapping_is_checked_the_same_way(overrides, match):
+    """study_config on a mapping (no Hydra) names the setting of a wrong type."""
+    with pytest.raises(ValueError, match=match):
+        study_config(overrides)
+
+
+def test_the_schema_is_the_base_of_every_profile():
+    """Keys absent from a profile's YAML are overridable (the schema is the first default)."""
+    config = _config("profile=quick", "train.lr=0.01", "train.beta=0.5", "assess.open_loop=true")
+    assert (config.train.lr, config.train.beta, config.assess.open_loop) == (0.01, 0.5, True)
+    full = _config("profile=full", "model.latent_dim=6", "data.time_limit=10.0")
+    assert (full.model.latent_dim, full.data.time_limit, full.model.hidden_dim) == (6, 10.0, 128)
 
 
 @pytest.mark.parametrize(
@@ -110,23 +139,37 @@ def test_values_of_the_wrong_type_are_rejected(override):
         ("assess.bias_correction=jackknife", r"^assess\.bias_correction: expected 'none'"),
         ("assess.horizon_s=2.03", r"^assess\.horizon_s: expected a positive whole number"),
         ("assess.horizon_s=inf", r"^assess\.horizon_s: expected a positive whole number"),
-        ("data.scripted_episodes=-1", r"^data\.scripted_episodes: expected a finite number"),
-        ("model.ensemble_size=1", r"^model\.ensemble_size: expected a finite number >= 2"),
+        ("data.scripted_episodes=-1", r"^data\.scripted_episodes: expected an integer >= 0"),
+        ("data.exploration_std=-1", r"^data\.exploration_std: expected a finite number >= 0"),
+        ("model.ensemble_size=1", r"^model\.ensemble_size: expected an integer >= 2"),
         ("model.state_constraint=bogus", r"^model\.state_constraint: expected 'pusher' or None"),
         ("planner.top_k=500", r"^planner\.top_k: expected at most num_candidates"),
         ("planner.objective=best", r"^planner\.objective: expected one of"),
-        ("seed=-1", r"seed: expected an integer >= 0"),
-        ("device=3", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
-        ("device=tpu", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
-        ("threads=0", r"^threads: expected a positive integer, 'auto' or null"),
-        ("threads=-1", r"^threads: expected a positive integer, 'auto' or null"),
-        ("threads=abc", r"^threads: expected a positive integer, 'auto' or null"),
-        ("threads=1.5", r"^threads: expected a positive integer, 'auto' or null"),
+        ("seed=-1", r"^seed: expected an integer in \[0, 2\*\*32 - 1\], got -1"),
+        (f"seed={SEED_MAX + 1}", rf"^seed: expected an integer in .*, got {SEED_MAX + 1}"),
+        ("device=3", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got '3'"),
+        ("device=tpu", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
+        ("device=meta", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'meta'"),
+        ("device=cuda:99", r"^device: 'cuda:99' asked for, but"),
+        ("train.beta=-1", r"^train\.beta: expected a positive number, got -1"),
+        ("train.beta=0", r"^train\.beta: expected a positive number, got 0"),
+        ("train.free_nats=-2", r"^train\.free_nats: expected a finite number >= 0, got -2"),
+        ("train.open_loop_steps=-3", r"^train\.open_loop_steps: expected an integer >= 0"),
+        ("train.nll_beta=2", r"^train\.nll_beta: expected a value in \[0, 1\]"),
+        ("assess.horizon_s=-5", r"^assess\.horizon_s: expected a positive whole number"),
+        ("data.time_limit=inf", r"^data\.time_limit: expected a positive whole number"),
+        ("model.input_features=bogus", r"^model\.input_features: expected 'pusher' or None"),
+        ("threads=0", r"^threads: expected a positive integer, 'auto' or null, got 0"),
+        ("threads=-1", r"^threads: expected a positive integer, 'auto' or null, got -1"),
+        ("threads=abc", r"^threads: expected a positive integer, 'auto' or null, got 'abc'"),
+        ("threads=1.5", r"^threads: expected a positive integer, 'auto' or null, got 1.5"),
         ("run_dir=''", r"^run_dir: expected a directory path"),
+        ("run_dir=' '", r"^run_dir: expected a directory path"),
+        ("run_dir=/proc/x", r"^run_dir: expected a writable directory, got '/proc/x'"),
         ("train.window=100000", r"train\.window: expected at most the longest data episode"),
         (
             "model.stochastic_open_loop_steps=-1",
-            r"^model\.stochastic_open_loop_steps: expected a finite number >= 0",
+            r"^model\.stochastic_open_loop_steps: expected an integer >= 0",
         ),
     ],
 )
@@ -143,6 +186,46 @@ def test_device_option():
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="CUDA is not available"):
             resolve_device("cuda:0")
+        with pytest.raises(ValueError, match=r"^device: 'cuda' asked for"):
+            study_config(_compose("device=cuda"))
+    else:
+        count = torch.cuda.device_count()
+        assert resolve_device(f"cuda:{count - 1}") == f"cuda:{count - 1}"
+        with pytest.raises(ValueError, match=rf"has {count} CUDA device"):
+            resolve_device(f"cuda:{count}")
+    for bad in (3, None, "tpu", "meta", "cuda:x", "CPU"):
+        with pytest.raises(ValueError, match=rf"^device: expected .*got {bad!r}"):
+            resolve_device(bad)
+
+
+def test_the_largest_seed_is_accepted():
+    assert _config(f"seed={SEED_MAX}").seed == SEED_MAX
+
+
+def test_threads_are_set_and_checked():
+    before = torch.get_num_threads()
+    set_threads(None)
+    assert torch.get_num_threads() == before
+    set_threads(1)
+    assert torch.get_num_threads() == 1
+    assert set_threads("auto", op_flop=1.0) == 1  # a tiny op: one thread, whatever the machine
+    assert _config().threads == "auto"  # the default
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match=rf"^threads: expected .*got {bad!r}"):
+            set_threads(bad)
+
+
+def test_run_dir_is_checked_before_anything_is_written(tmp_path):
+    a_file = tmp_path / "file"
+    a_file.write_text("x")
+    with pytest.raises(ValueError, match=r"^run_dir: expected a writable directory.*not writable"):
+        study_config(_compose(f"run_dir={a_file}/run"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+    with pytest.raises(ValueError, match=r"^run_dir: expected a directory, got .*existing file"):
+        study_config(_compose(f"run_dir={a_file}"))
+    fresh = tmp_path / "new" / "run"
+    assert study_config(_compose(f"run_dir={fresh}")).run_dir == str(fresh)
+    assert not fresh.parent.exists()  # checking creates nothing
 
 
 def test_stochastic_open_loop_steps_apply_to_the_stochastic_ensemble_only(tmp_path):

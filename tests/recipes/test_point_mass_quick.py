@@ -79,3 +79,20 @@ def test_the_model_config_names_the_dm_control_entries(run_dir):
     model = load_ensemble(run_dir / "models" / "deterministic.pt")
     assert model.config.names == ("position[0]", "position[1]", "velocity[0]", "velocity[1]")
     assert model.checks is not None and model.checks.names == model.config.names
+
+
+def test_run_log_and_the_logger(run_dir):
+    log = (run_dir / "run.log").read_text()
+    assert "\x1b[" not in log
+    assert log.count("profile=quick threads=1") == 2  # both runs, appended
+    assert "[models] running" in log and "[models] done earlier" in log
+    experiments = sorted((run_dir / "logs" / "csv").glob("point_mass_quick_*"))
+    assert len(experiments) == 2  # one per run
+    curves = [e / "scalars" / "models" / "deterministic" / "val_loss.csv" for e in experiments]
+    assert sum(c.is_file() for c in curves) == 1  # only the first run trained
+    marker = json.loads((run_dir / "stages" / "data.json").read_text())
+    frames = [k for k, v in marker.items() if k.endswith("_frames")]
+    assert frames
+    for experiment in experiments:  # both runs log every stage's numbers
+        logged = (experiment / "scalars" / "stages" / "data" / f"{frames[0]}.csv").read_text()
+        assert float(logged.split(",")[1]) == marker[frames[0]]

@@ -25,7 +25,13 @@ from recipes.pusher_competency.report import COLUMNS
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "pusher_competency" / "main.py"
 STAGES = ("data", "models", "agent", "forecast", "truth", "report")
-FIGURES = ("uncertainty_over_time.png", "reliability.png", "forecast_vs_reality.png")
+FIGURES = (
+    "uncertainty_over_time.png",
+    "reliability.png",
+    "forecast_vs_reality.png",
+    "start_reliability.png",
+    "surface.png",
+)
 START_STATES = 2
 STOCHASTIC_SEEDS = 2  # the quick profile's assess.stochastic_seeds_per_start
 MICRO = (
@@ -41,6 +47,7 @@ MICRO = (
     "agent.distill.epochs=5",
     f"assess.start_states={START_STATES}",
     "assess.horizon_s=2.0",
+    "assess.surface_deadlines_s=[1.0,2.0]",
 )
 
 
@@ -54,16 +61,20 @@ def run_recipe(*overrides: str, timeout: float = 300) -> tuple[subprocess.Comple
         capture_output=True,
         text=True,
         timeout=timeout,
+        preexec_fn=lambda: os.umask(0o022),  # a shared machine's usual umask
     )
     return proc, time.perf_counter() - start
 
 
 def _snapshot(run_dir: Path) -> dict[str, tuple[int, int]]:
-    """(mtime_ns, size) of every file the stages wrote (study_config.json is rewritten)."""
+    """(mtime_ns, size) of every file the stages wrote (study_config.json is rewritten; each
+    run appends to run.log and starts its own experiment under logs/)."""
     return {
         str(p.relative_to(run_dir)): (p.stat().st_mtime_ns, p.stat().st_size)
         for p in run_dir.rglob("*")
-        if p.is_file() and p.name != "study_config.json" and ".hydra_run" not in p.parts
+        if p.is_file()
+        and p.name not in ("study_config.json", "run.log")
+        and not {".hydra_run", "logs"} & set(p.relative_to(run_dir).parts)
     }
 
 
@@ -167,14 +178,25 @@ def test_report_references_the_outputs(runs):
 
 def test_summary_json(runs):
     summary = json.loads((runs["dir"] / "summary.json").read_text())
-    assert {"rows", "overall", "checks", "pattern_by_window"} <= set(summary)
+    assert {"rows", "overall", "checks", "validation", "surfaces", "pattern_by_window"} <= set(
+        summary
+    )
     windows = summary["pattern_by_window"]
     assert list(windows) == ["1s", "2s"]  # windows up to the horizon (2 s here), which closes them
     assert all(len(r) == 3 and all(v > 0 for v in r.values()) for r in windows.values())
     assert list(summary["rows"]) == list(CONDITIONS)
     assert all(set(COLUMNS) <= set(row) for row in summary["rows"].values())
     assert set(summary["overall"]) == {"brier", "constant_brier", "success_rate"}
-    assert len(summary["checks"]) == 3 + len(CONDITIONS) + 1
+    names = set(summary["checks"])
+    for condition in CONDITIONS:
+        assert f"|forecast - empirical| <= 0.10 ({condition})" in names
+        assert f"time-to-success CRPS skill > 0 ({condition})" in names
+        assert f"competency surface: largest gap <= 0.1 ({condition})" in names
+        surface = summary["surfaces"][condition]
+        assert len(surface["forecast"]) == 4  # radii
+        assert len(surface["forecast"][0]) == 2  # deadlines
+    assert "AUROC >= 0.75 (all episodes)" in names
+    assert set(summary["validation"]) == {*CONDITIONS, "overall"}
     for check in summary["checks"].values():
         assert isinstance(check["met"], bool) and isinstance(check["value"], float)
     rows = {r["condition"]: r for r in _rows(runs["dir"])}
@@ -189,6 +211,30 @@ def test_second_run_reuses_every_stage(runs):
     assert "] running" not in log
     assert runs["after"] == runs["before"]  # nothing rewritten
     assert runs["second_s"] < 120  # imports and the report's printout only
+
+
+def test_run_log_is_plain_text_and_files_keep_the_umask(runs):
+    d = runs["dir"]
+    log = (d / "run.log").read_text()
+    assert "\x1b[" not in log, "no terminal colour codes in the log file"
+    assert "\x1b[" not in runs["first"], "no colour codes on a console that is not a terminal"
+    for stage in STAGES:
+        assert f"[{stage}] running" in log and f"[{stage}] done earlier" in log  # both runs
+    modes = {str(p.relative_to(d)): p.stat().st_mode & 0o777 for p in d.rglob("*") if p.is_file()}
+    assert len(modes) > 20
+    assert {name: m for name, m in modes.items() if m != 0o644} == {}  # umask 022: rw-r--r--
+
+
+def test_stage_summaries_and_training_curves_reach_the_logger(runs):
+    experiments = list((runs["dir"] / "logs" / "csv").glob("pusher_competency_quick_*"))
+    assert len(experiments) == 2  # one per run; only the first trained
+    (scalars,) = (e / "scalars" for e in experiments if (e / "scalars" / "models").is_dir())
+    for variant in ("deterministic", "stochastic"):
+        rows = (scalars / "models" / variant / "val_loss.csv").read_text().split()
+        assert [int(r.split(",")[0]) for r in rows] == [10, 20]  # train.val_every=10, 20 steps
+    marker = json.loads((runs["dir"] / "stages" / "truth.json").read_text())
+    logged = (scalars / "stages" / "truth" / "stochastic" / "success_rate.csv").read_text()
+    assert float(logged.split(",")[1]) == pytest.approx(marker["stochastic"]["success_rate"])
 
 
 def test_tutorial_python_example_reads_the_run(runs):
@@ -209,6 +255,7 @@ def test_tutorial_python_example_reads_the_run(runs):
         ("train.max_step=3", "max_step"),  # not in TrainConfig's schema
         ("train.lr=-1", "train.lr, grad_clip: expected > 0"),  # out of range
         ("device=tpu", "device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
+        ("logger=tb", "logger: expected one of ['csv', 'mlflow', 'none', 'tensorboard', 'wandb']"),
     ],
 )
 def test_bad_settings_fail_clearly_before_anything_is_written(tmp_path, override, expected):

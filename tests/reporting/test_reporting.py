@@ -1,15 +1,22 @@
 """Tables and figures of a competency assessment."""
 
+import itertools
+
 import matplotlib.image
 import pytest
 import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from rcvae_torchrl.competency import reliability_diagram
 from rcvae_torchrl.reporting import (
+    forecast_vs_reality_figure,
     format_table,
+    hold_after_success,
     plot_forecast_vs_reality,
     plot_reliability,
     plot_uncertainty_over_time,
+    reliability_figure,
+    uncertainty_figure,
     write_table,
 )
 
@@ -53,3 +60,151 @@ def test_figures(tmp_path):
     _image(plot_reliability({"all": diagram}, tmp_path / "r.png"))
     panel = {"title": "start 0", "forecast": torch.rand(40, t), "real": [torch.rand(30)]}
     _image(plot_forecast_vs_reality([panel, panel], 0.05, tmp_path / "f.png", threshold=0.03))
+
+
+# ---------------------------------------------------------------- figures that read at a glance
+CONDITIONS = ("deterministic", "stochastic", "out-of-distribution")
+
+
+def _drawn_texts(fig):
+    """The figure's texts that get drawn: tick labels of ticks inside the view only."""
+    texts = [*fig.texts, *(t for legend in fig.legends for t in legend.get_texts())]
+    for ax in fig.axes:
+        for axis in (ax.xaxis, ax.yaxis) if ax.axison else ():
+            lo, hi = sorted(axis.get_view_interval())
+            for loc, tick in zip(axis.get_majorticklocs(), axis.get_major_ticks()):
+                if lo - 1e-9 <= loc <= hi + 1e-9:
+                    texts += [tick.label1, tick.label2]
+            texts += [axis.label, axis.get_offset_text()]
+        texts += [ax.title, *ax.texts]
+        if ax.get_legend() is not None:
+            texts += ax.get_legend().get_texts()
+        texts += [cell.get_text() for table in ax.tables for cell in table.get_celld().values()]
+    return texts
+
+
+def _texts(fig):
+    """Every visible, non-empty drawn text of ``fig`` with its box on the canvas (pixels)."""
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)  # lays the figure out (constrained layout) as saving would
+    return [
+        (text.get_text(), text.get_window_extent(renderer))
+        for text in _drawn_texts(fig)
+        if text.get_visible() and text.get_text().strip()
+    ]
+
+
+def assert_no_text_overlaps(fig):
+    texts = _texts(fig)
+    assert len(texts) > 5
+    clashes = [
+        (a, b)
+        for (a, box_a), (b, box_b) in itertools.combinations(texts, 2)
+        if box_a.overlaps(box_b) and box_a.width > 0 and box_b.width > 0
+    ]
+    assert clashes == []
+    width, height = fig.canvas.get_width_height()
+    outside = [t for t, box in texts if box.x0 < -1 or box.y0 < -1 or box.x1 > width + 1]
+    assert outside == [] and all(box.y1 <= height + 1 for _, box in texts)
+
+
+def _legends(fig):
+    return fig.legends, [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+
+
+def test_uncertainty_figure_reads_at_a_glance():
+    t, d = 60, 14
+    g = torch.Generator().manual_seed(0)
+    curves = {
+        c: {
+            "aleatoric": torch.rand(t, d, generator=g) * 40,
+            "epistemic": torch.rand(t, d, generator=g),
+        }
+        for c in CONDITIONS
+    }
+    panels = {"arm position": [6, 7], "elbow angle": [2, 3], "ball velocity": [10, 11]}
+    fig = uncertainty_figure(curves, panels, 0.05)
+    assert_no_text_overlaps(fig)
+    figure_legends, panel_legends = _legends(fig)
+    assert len(figure_legends) == 1 and panel_legends == []
+    labels = [t.get_text() for t in figure_legends[0].get_texts()]
+    assert labels == [f"{c} {p}" for p in ("aleatoric", "epistemic") for c in CONDITIONS]
+    ylabels = [a.get_ylabel() for a in fig.axes]  # row by row: only the first column's
+    assert ylabels == ["aleatoric (bits)", "", "", "epistemic (bits)", "", ""]
+
+
+def test_reliability_keeps_coincident_points_visible_and_prints_counts():
+    ones = torch.ones(20)
+    diagrams = {
+        "deterministic": reliability_diagram(ones * 0.999, ones, n_bins=5),
+        "stochastic": reliability_diagram(
+            torch.linspace(0.5, 0.8, 100), (torch.arange(100) % 3 != 0).float(), n_bins=5
+        ),
+        "out-of-distribution": reliability_diagram(ones * 0.995, ones, n_bins=5),
+    }
+    fig = reliability_figure(diagrams)
+    assert_no_text_overlaps(fig)
+    ax = fig.axes[0]
+    points = {c.get_label(): c for c in ax.collections}
+    det = points["deterministic (20 episodes)"].get_offsets()
+    ood = points["out-of-distribution (20 episodes)"].get_offsets()
+    assert det.shape == ood.shape == (1, 2)
+    assert abs(det[0, 0] - ood[0, 0]) > 0.015  # dodged apart, not on top of each other
+    markers = {c.get_label(): c.get_paths()[0].vertices.shape for c in ax.collections}
+    assert len(set(markers.values())) == 3  # a distinct marker per condition
+    sizes = points["stochastic (100 episodes)"].get_sizes()
+    counts = diagrams["stochastic"].counts[diagrams["stochastic"].counts > 0]
+    largest = max(int(d.counts.max()) for d in diagrams.values())
+    assert largest == 66  # the stochastic condition's fullest bin (0.6-0.8)
+    assert sizes.tolist() == pytest.approx((20 + 280 * counts.float() / largest).tolist())
+    (table,) = fig.axes[1].tables
+    cells = {key: cell.get_text().get_text() for key, cell in table.get_celld().items()}
+    header = [cells[0, j] for j in range(5)]
+    assert header == ["0.0-0.2", "0.2-0.4", "0.4-0.6", "0.6-0.8", "0.8-1.0"]
+    for i, (name, d) in enumerate(diagrams.items(), start=1):  # every bin's count printed
+        assert cells[i, -1] == name
+        assert [cells[i, j] for j in range(5)] == [str(int(c)) for c in d.counts]
+    figure_legends, panel_legends = _legends(fig)
+    assert len(figure_legends) == 1 and panel_legends == []
+
+
+def test_imagined_episodes_end_at_success_like_the_real_ones():
+    samples = torch.tensor([[0.10, 0.05, 0.02, 0.04, 0.08], [0.10, 0.09, 0.08, 0.07, 0.06]])
+    held, ended = hold_after_success(samples, 0.03)
+    assert held[0].tolist() == pytest.approx([0.10, 0.05, 0.02, 0.02, 0.02])
+    assert torch.equal(held[1], samples[1])
+    assert ended.tolist() == [0.0, 0.0, 0.5, 0.5, 0.5]
+    with pytest.raises(ValueError, match=r"samples: expected \[M, T\]"):
+        hold_after_success(samples[0], 0.03)
+
+
+def test_forecast_median_reaches_the_boundary_when_most_episodes_succeed():
+    t, m = 100, 200
+    g = torch.Generator().manual_seed(1)
+    # every imagined episode reaches 0.01 m by step 60, then drifts away to 0.065 m
+    approach = torch.linspace(0.15, 0.01, 60).expand(m, 60)
+    drift = torch.linspace(0.01, 0.065, t - 60).expand(m, t - 60)
+    forecast = torch.cat([approach, drift], 1) + 0.002 * torch.rand(m, t, generator=g)
+    real = [torch.linspace(0.15, 0.02, 55), torch.linspace(0.15, 0.025, 62)]
+    panels = [
+        {"title": f"{c}, start 0\nforecast P(success) = 1.00", "forecast": forecast, "real": real}
+        for c in CONDITIONS
+    ]
+    fig = forecast_vs_reality_figure(panels, 0.05, threshold=0.03)
+    assert_no_text_overlaps(fig)
+    ax = fig.axes[0]
+    median = next(line for line in ax.get_lines() if line.get_label() == "forecast median")
+    assert median.get_ydata()[-1] <= 0.03  # held at success: the median ends below the line
+    notes = [t.get_text() for t in ax.texts]
+    assert notes == ["at the boundary by 5 s:\nimagined 100%, real 2 of 2"]
+    figure_legends, panel_legends = _legends(fig)
+    assert len(figure_legends) == 1 and panel_legends == []
+    labels = [t.get_text() for t in figure_legends[0].get_texts()]
+    assert labels == [
+        "forecast 5-95 %",
+        "forecast median",
+        "real",
+        "real episode ends",
+        "success boundary",
+    ]
+    assert [a.get_ylabel() for a in fig.axes] == ["ball to target (m)", "", ""]

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from rcvae_torchrl.training import CheckpointError, TrainConfig, train_ensemble
+from rcvae_torchrl.training.trainer import clip_grad_norm_per_member
 
 CONFIG = TrainConfig(max_steps=40, batch_windows=16, window=8, val_every=10, val_windows=32)
 
@@ -150,3 +151,22 @@ def test_bad_resume_arguments(linear_data, small_ensemble, tmp_path):
         train_ensemble(small_ensemble(), train, val, other, checkpoint_path=ckpt, resume=True)
     with pytest.raises(ValueError, match="window: expected >= 2"):
         TrainConfig(window=1)
+
+
+def test_gradients_are_clipped_member_by_member():
+    g = torch.Generator().manual_seed(0)
+    grads = [torch.randn(3, 4, 5, generator=g), torch.randn(3, 7, generator=g)]
+    grads[0][1] *= 100  # member 1 far above the bound, the others near it
+    params = [torch.zeros_like(x, requires_grad=True) for x in grads]
+    for p, x in zip(params, grads):
+        p.grad = x.clone()
+    norms = clip_grad_norm_per_member(params, max_norm=5.0)
+    for m in range(3):
+        alone = [torch.zeros_like(x[m], requires_grad=True) for x in grads]
+        for p, x in zip(alone, grads):
+            p.grad = x[m].clone()
+        expected = torch.nn.utils.clip_grad_norm_(alone, 5.0)
+        torch.testing.assert_close(norms[m], expected)
+        for p, q in zip(params, alone):
+            torch.testing.assert_close(p.grad[m], q.grad)
+    assert norms[1] > 100 and torch.stack([p.grad[1].norm() ** 2 for p in params]).sum() < 25.01

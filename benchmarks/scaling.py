@@ -1,0 +1,405 @@
+"""Scaling over torch.distributed ranks: training, forecasting and real-rollout validation.
+
+Each workload runs at 1 rank (one process, no process group) and at 2 gloo ranks (spawned
+with ``torch.multiprocessing``), one intra-op thread per rank, ``--repeats`` times each, the
+world sizes interleaved; the time of a repeat is rank 0's wall clock from a barrier to the end
+of the gathered result. Workloads (Pusher-sized, the study's default world model):
+
+- training: ``train_ensemble`` of E = 4 members (2 per rank), 100 steps of 32 windows x 32
+  steps, on synthetic 14-D episodes;
+- forecasting: ``CompetencyAssessor.assess`` closed loop, 16 start states in chunks of one
+  (8 per rank), 20 samples per member of 5 members, a horizon of 100 steps;
+- validation: ``real_outcomes`` of the scripted pusher in the real Pusher (one env per rank)
+  from 16 start states, 200 steps.
+
+Printed and written to ``benchmarks/results/scaling.json``: median wall times, speed-up
+(t1 / t2) and efficiency (speed-up / 2), the same from CPU seconds (the slowest rank's: what
+the ranks would take on free cores, when other jobs hold the machine's cores); the bytes each
+rank contributes to the gather and the gather's time; and a projection for 8 ranks on one
+machine and 4 machines x 8 GPUs from the measured cost (see ``project`` for the model and its
+assumptions). The machine's load average is recorded before and after: other jobs on a shared
+2-core machine take cores away from the ranks.
+
+    python benchmarks/scaling.py [--repeats 3] [--quick] [--only training ...] [--full-model]
+                                 [--out scaling]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import pickle
+import socket
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.multiprocessing as mp
+from _report import print_table, write_json
+
+from rcvae_torchrl import distributed
+
+WORLDS = (1, 2)
+UNITS = {"training": 4, "forecasting": 16, "validation": 16}  # members, chunks, episodes
+
+
+# ---------------------------------------------------------------------- workloads
+def _training(quick: bool, full_model: bool = False):
+    from tensordict import TensorDict
+
+    from rcvae_torchrl.data import TRAJ_KEY
+    from rcvae_torchrl.models import RCVAEEnsemble
+    from rcvae_torchrl.training import TrainConfig, train_ensemble
+    from recipes.pusher_competency.config import ModelConfig
+    from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, rcvae_config
+
+    g = torch.Generator().manual_seed(0)
+
+    def episodes(n: int, first: int) -> TensorDict:
+        obs = torch.randn(n, 64, 14, generator=g).cumsum(1) * 0.01
+        obs[..., :4] = obs[..., :4].clamp(-1, 1)
+        td = TensorDict(
+            {
+                "observation": obs[:, :-1],
+                "action": torch.rand(n, 63, 2, generator=g) * 2 - 1,
+                ("next", "observation"): obs[:, 1:],
+                TRAJ_KEY: (torch.arange(n) + first)[:, None].expand(n, 63),
+            },
+            batch_size=[n, 63],
+        )
+        return td.reshape(-1)
+
+    train, val = episodes(32, 0), episodes(8, 1000)
+    steps = 10 if quick else 100
+    windows = 64 if full_model else 32  # the full profile's batch and hidden size
+    config = TrainConfig(max_steps=steps, batch_windows=windows, window=32, val_every=steps // 2)
+    model_config = rcvae_config(ModelConfig(hidden_dim=128 if full_model else 64))
+
+    def run() -> None:
+        torch.manual_seed(0)
+        model = RCVAEEnsemble(model_config, 4, functions=MODEL_FUNCTIONS)
+        train_ensemble(model, train, val, config, progress=False, checks=False)
+
+    return run
+
+
+def _forecasting(quick: bool):
+    from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary
+    from rcvae_torchrl.envs import resolution_tensor
+    from rcvae_torchrl.model_env import RCVAEEnsembleEnv
+    from rcvae_torchrl.models import RCVAEEnsemble
+    from recipes.pusher_competency.config import ModelConfig
+    from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, rcvae_config
+
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(rcvae_config(ModelConfig()), 5, functions=MODEL_FUNCTIONS)
+    obs = torch.randn(500, 14) * 0.1
+    model.fit_normalizer(obs, torch.rand(500, 2) * 2 - 1, next_observations=obs * 1.01)
+    policy = torch.nn.Sequential(torch.nn.Linear(14, 64), torch.nn.Tanh(), torch.nn.Linear(64, 2))
+    horizon = 20 if quick else 100
+    env = RCVAEEnsembleEnv(
+        model,
+        lambda observation, action: -observation[..., :1],
+        lambda observation: observation[..., 8] > 0.2,
+    )
+    assessor = CompetencyAssessor(
+        env,
+        SuccessBoundary(lambda s: s[..., 8] > 0.2, time_limit=horizon, dt=0.05),
+        bin_width=resolution_tensor(),
+        samples_per_member=20,
+        start_chunk=1,
+        bias_correction="shuffle",
+    )
+    starts = torch.randn(UNITS["forecasting"], 14, generator=torch.Generator().manual_seed(1))
+
+    def run() -> None:
+        with torch.no_grad():
+            assessor.assess(starts * 0.1, policy=lambda o: policy(o).tanh(), seed=0)
+
+    return run
+
+
+def _validation(quick: bool):
+    from rcvae_torchrl.agent import make_policy_module, real_outcomes
+    from rcvae_torchrl.envs import reset_to_state
+    from rcvae_torchrl.envs.scripted import ScriptedPusher
+    from recipes.pusher_competency.config import DataConfig
+    from recipes.pusher_competency.pusher import make_env
+
+    env = make_env("deterministic", DataConfig(), 0.03, time_limit=10.0)
+    starts = []
+    for i in range(UNITS["validation"]):
+        env.set_seed(i)
+        starts.append(env.reset()["observation"])
+    starts = torch.stack(starts)
+    policy = make_policy_module(ScriptedPusher())
+    steps = 50 if quick else 200
+
+    def run() -> None:
+        real_outcomes(
+            env,
+            policy,
+            starts,
+            runs_per_start=1,
+            reset_to_state=reset_to_state,
+            max_steps=steps,
+            progress=False,
+        )
+
+    return run
+
+
+WORKLOADS = {"training": _training, "forecasting": _forecasting, "validation": _validation}
+
+
+# ---------------------------------------------------------------------- one rank
+def _rank(rank: int, world: int, port: int, name: str, args: dict, out: str) -> None:
+    os.environ.update(
+        MASTER_ADDR="127.0.0.1",
+        MASTER_PORT=str(port),
+        RANK=str(rank),
+        WORLD_SIZE=str(world),
+        OMP_NUM_THREADS="1",
+        MUJOCO_GL="egl",
+    )
+    torch.set_num_threads(1)
+    gathers: list[tuple[int, float]] = []
+    gather = distributed.all_gather
+
+    def measured_gather(obj: Any) -> list[Any]:  # bytes this rank sends, and the call's time
+        start = time.perf_counter()
+        result = gather(obj)
+        gathers.append((len(pickle.dumps(obj)), time.perf_counter() - start))
+        return result
+
+    distributed.all_gather = measured_gather
+    with distributed.session("gloo"):
+        run = WORKLOADS[name](args["quick"], **args["workload"].get(name, {}))
+        run()  # warm-up
+        times, cpu = [], []
+        for _ in range(args["repeats"]):
+            gathers.clear()
+            distributed.barrier()
+            start, start_cpu = time.perf_counter(), time.process_time()
+            run()
+            cpu.append(time.process_time() - start_cpu)
+            distributed.barrier()
+            times.append(time.perf_counter() - start)
+        sent, waited = sum(b for b, _ in gathers), sum(t for _, t in gathers)
+        probe = _gather_probe(sent) if world > 1 else None
+        cpu_by_rank = gather(cpu)
+    if rank == 0:
+        torch.save(
+            {
+                "times": times,
+                "cpu_by_rank": cpu_by_rank,
+                "gather_bytes": sent,
+                "gather_s": waited,
+                "probe": probe,
+            },
+            out,
+        )
+
+
+def _gather_probe(nbytes: int, repeats: int = 5) -> dict[str, float]:
+    """The time of an all-gather of ``nbytes`` per rank with every rank ready (no waiting for a
+    slower rank), and of an empty one (latency)."""
+    payload = bytes(max(nbytes, 1))
+
+    def timed(obj: Any) -> float:
+        out = []
+        for _ in range(repeats):
+            distributed.barrier()
+            start = time.perf_counter()
+            distributed.all_gather(obj)
+            out.append(time.perf_counter() - start)
+        return statistics.median(out)
+
+    return {"payload_s": timed(payload), "latency_s": timed(b"")}
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def measure(name: str, world: int, args: dict) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = str(Path(tmp) / "out.pt")
+        mp.spawn(_rank, args=(world, _free_port(), name, args, out), nprocs=world, join=True)
+        return torch.load(out)
+
+
+# ---------------------------------------------------------------------- projection
+# Assumed links of the projection (not measured here): 8 GPUs of one machine over NVLink /
+# PCIe with NCCL, and 4 machines over a 100 Gb/s network.
+INTRA_GPU = {"bandwidth_Bps": 50e9, "latency_s": 20e-6}
+INTER_NODE = {"bandwidth_Bps": 12.5e9, "latency_s": 50e-6}
+
+
+def project(
+    t1: float, t2: float, gather_s: float, bytes_per_rank: int, units: int
+) -> tuple[dict[str, float], Callable[[int, dict], dict[str, float]]]:
+    """Projected times from the measured 1- and 2-rank runs (Amdahl's law plus a gather).
+
+    ``t1``, ``t2``: the CPU seconds of one rank, and of the slowest of two (on a shared
+    machine the CPU time is what a rank costs on a free core; wall time also holds the waits
+    for cores that other jobs hold); ``gather_s``: an all-gather of the measured bytes with
+    both ranks ready.
+
+    - The serial part s (not shared: building the model and data, setting up, rank 0's
+      extras) follows from t2 - gather = t1 (s + (1 - s) / 2); the shared part costs
+      c = t1 (1 - s) / U per unit of work (member, chunk, episode) on one rank.
+    - A workload of 32 units (enough for every rank) then takes
+      s t1 + c ceil(32 / P) + gather(P), against s t1 + 32 c on one rank.
+    - gather(P): an all-gather of P blocks, each the measured bytes per rank scaled to
+      32 / P units: latency * ceil(log2 P) + (P - 1) / P * bytes / bandwidth, with the
+      links assumed in INTRA_GPU / INTER_NODE (and, for 8 CPU ranks of one machine, the gloo
+      bandwidth measured here). Each rank's per-unit cost is the one measured here (one CPU
+      thread): a GPU rank computes faster, which shrinks c and so the speed-up.
+    """
+    serial = min(max(2 * (t2 - gather_s) / t1 - 1, 0.0), 1.0)
+    per_unit = t1 * (1 - serial) / units
+    bytes_per_unit = bytes_per_rank / (units / 2)
+    projected_units = 32
+    single = serial * t1 + per_unit * projected_units
+
+    def at(ranks: int, link: dict) -> dict[str, float]:
+        nbytes = bytes_per_unit * projected_units
+        comm = link["latency_s"] * math.ceil(math.log2(ranks)) + (
+            (ranks - 1) / ranks * nbytes / link["bandwidth_Bps"]
+        )
+        t = serial * t1 + per_unit * math.ceil(projected_units / ranks) + comm
+        speedup = single / t
+        return {"time_s": t, "gather_s": comm, "speedup": speedup, "efficiency": speedup / ranks}
+
+    return {"serial_fraction": serial, "per_unit_s": per_unit, "single_rank_32_units_s": single}, at
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--only", choices=list(WORKLOADS), nargs="*", default=list(WORKLOADS))
+    parser.add_argument(
+        "--full-model",
+        action="store_true",
+        help="train the full profile's model (hidden 128, 64 windows per member)",
+    )
+    parser.add_argument("--out", default="scaling", help="results/<out>.json")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    load_before = os.getloadavg()
+    settings = {
+        "repeats": args.repeats,
+        "quick": args.quick,
+        "workload": {"training": {"full_model": args.full_model}},
+    }
+    results: dict[str, dict[int, dict]] = {name: {} for name in args.only}
+    for name in args.only:
+        for world in WORLDS:
+            print(f"{name}: {world} rank(s) ...", flush=True)
+            results[name][world] = measure(name, world, settings)
+    load_after = os.getloadavg()
+    rows, projections, payload = [], [], {}
+    for name, by_world in results.items():
+        one, two = by_world[1], by_world[2]
+        t1, t2 = statistics.median(one["times"]), statistics.median(two["times"])
+        c1 = statistics.median(one["cpu_by_rank"][0])
+        c2 = statistics.median(max(r) for r in zip(*two["cpu_by_rank"]))
+        probe = two["probe"]
+        rows.append(
+            [
+                name,
+                UNITS[name],
+                t1,
+                t2,
+                t1 / t2,
+                t1 / t2 / 2,
+                c1,
+                c2,
+                c1 / c2,
+                c1 / c2 / 2,
+                two["gather_bytes"],
+                probe["payload_s"],
+            ]
+        )
+        base, at = project(c1, c2, probe["payload_s"], two["gather_bytes"], UNITS[name])
+        gloo = {
+            "latency_s": probe["latency_s"],
+            "bandwidth_Bps": max(two["gather_bytes"], 1)
+            / max(probe["payload_s"] - probe["latency_s"], 1e-9),
+        }
+        cases = {
+            "8 ranks, 1 machine (gloo, as measured)": at(8, gloo),
+            "8 GPUs, 1 machine (NCCL, assumed link)": at(8, INTRA_GPU),
+            "4 machines x 8 GPUs (NCCL, assumed network)": at(32, INTER_NODE),
+        }
+        for case, p in cases.items():
+            projections.append([name, case, p["time_s"], p["speedup"], p["efficiency"]])
+        payload[name] = {
+            "units": UNITS[name],
+            "wall_s": {str(w): by_world[w]["times"] for w in WORLDS},
+            "cpu_s_by_rank": {str(w): by_world[w]["cpu_by_rank"] for w in WORLDS},
+            "median_wall_s": {"1": t1, "2": t2},
+            "median_cpu_s": {"1": c1, "2 (slowest rank)": c2},
+            "speedup_wall": t1 / t2,
+            "efficiency_wall": t1 / t2 / 2,
+            "speedup_cpu": c1 / c2,
+            "efficiency_cpu": c1 / c2 / 2,
+            "gather_bytes_per_rank": two["gather_bytes"],
+            "gather_wait_s": two["gather_s"],
+            "gather_probe": probe,
+            "gloo_link": gloo,
+            "model": base,
+            "projection": cases,
+        }
+    print_table(
+        "Scaling at 1 and 2 ranks (1 thread each, medians; CPU: the slowest rank's CPU seconds)",
+        [
+            "workload",
+            "units",
+            "wall 1",
+            "wall 2",
+            "speed-up",
+            "eff.",
+            "CPU 1",
+            "CPU 2",
+            "CPU speed-up",
+            "CPU eff.",
+            "gathered B/rank",
+            "gather s",
+        ],
+        rows,
+    )
+    print_table(
+        "Projection for 32 units of work (see project() for the model)",
+        ["workload", "case", "time s", "speed-up", "efficiency"],
+        projections,
+    )
+    print(f"\nload average before {load_before}, after {load_after} on {os.cpu_count()} cores")
+    write_json(
+        args.out,
+        {
+            "settings": settings,
+            "load_average_before": load_before,
+            "load_average_after": load_after,
+            "assumptions": {
+                "intra_gpu_link": INTRA_GPU,
+                "inter_node_link": INTER_NODE,
+                "projected_units": 32,
+                "model": project.__doc__,
+            },
+            "results": payload,
+        },
+    )
+
+
+if __name__ == "__main__":
+    main()

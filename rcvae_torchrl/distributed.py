@@ -1,0 +1,168 @@
+"""Scale out on ``torch.distributed``: ranks from the launcher, shards of work, gathers.
+
+The library's stages that have independent pieces of work (ensemble members in
+:func:`~rcvae_torchrl.training.train_ensemble`, start states in
+:class:`~rcvae_torchrl.competency.CompetencyAssessor`, real episodes in
+:func:`~rcvae_torchrl.agent.real_outcomes`) split them over the ranks of a process group and
+gather the results on every rank. Nothing changes in a single process: without a process group
+every helper here acts as the only rank of one (rank 0, world size 1), and no launcher is needed.
+
+Launch with ``torchrun`` (it sets ``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``, ``MASTER_ADDR`` and
+``MASTER_PORT``), call :func:`init` once at the start of the program (gloo on CPU, NCCL when the
+ranks use GPUs) and :func:`teardown` at the end, or use :func:`session`::
+
+    torchrun --nproc_per_node=4 my_script.py
+
+Every piece of work is seeded by its index (a member, a chunk of start states, an episode), so
+the gathered result equals the single-process one under the same seed, whatever the number of
+ranks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import os
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+__all__ = [
+    "all_gather",
+    "barrier",
+    "broadcast",
+    "init",
+    "is_active",
+    "is_main",
+    "rank",
+    "session",
+    "shard",
+    "teardown",
+    "work_generator",
+    "world_size",
+]
+
+
+def is_active() -> bool:
+    """Whether a process group of more than one rank is up."""
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+
+
+def rank() -> int:
+    """This process's rank: the process group's, else ``RANK`` from the launcher, else 0."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank()
+    return int(os.environ.get("RANK", 0))
+
+
+def world_size() -> int:
+    """The number of ranks: the process group's, else ``WORLD_SIZE``, else 1."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_world_size()
+    return int(os.environ.get("WORLD_SIZE", 1))
+
+
+def is_main() -> bool:
+    """Whether this is rank 0, the one that writes files and logs."""
+    return rank() == 0
+
+
+def init(backend: str | None = None, timeout_s: float = 6 * 3600.0) -> bool:
+    """Join the process group the launcher describes (``WORLD_SIZE > 1``); returns whether a
+    group of more than one rank is up.
+
+    Args:
+        backend: ``"gloo"`` or ``"nccl"``; default NCCL when CUDA is available, else gloo.
+            With NCCL each rank takes the GPU ``LOCAL_RANK``.
+        timeout_s: how long a rank waits for the others at a collective (long stages such as
+            data collection run on rank 0 while the others wait).
+    """
+    if world_size() <= 1 or (dist.is_available() and dist.is_initialized()):
+        return is_active()
+    if not dist.is_available():
+        raise RuntimeError("WORLD_SIZE > 1 but torch.distributed is not available in this build")
+    if backend is None:
+        backend = "nccl" if torch.cuda.is_available() else "gloo"
+    if backend not in ("gloo", "nccl"):
+        raise ValueError(f"backend: expected 'gloo' or 'nccl', got {backend!r}")
+    if backend == "nccl":
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", 0)))
+    dist.init_process_group(backend, timeout=datetime.timedelta(seconds=timeout_s))
+    return is_active()
+
+
+def teardown() -> None:
+    """Leave the process group (a no-op without one)."""
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+@contextlib.contextmanager
+def session(backend: str | None = None) -> Iterator[bool]:
+    """:func:`init` on entry, :func:`teardown` on exit; yields whether ranks are active."""
+    try:
+        yield init(backend)
+    finally:
+        teardown()
+
+
+def shard(n: int, rank_: int | None = None, world: int | None = None) -> range:
+    """The contiguous block of ``range(n)`` that rank ``rank_`` of ``world`` works on.
+
+    Blocks are in rank order and differ in size by at most one (the first ``n % world`` ranks
+    take one more); a rank beyond ``n`` gets an empty range.
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise ValueError(f"n: expected a non-negative int, got {n!r}")
+    rank_ = rank() if rank_ is None else rank_
+    world = world_size() if world is None else world
+    if world < 1 or not 0 <= rank_ < world:
+        raise ValueError(f"rank, world: expected 0 <= rank < world, got {rank_}, {world}")
+    size, extra = divmod(n, world)
+    start = rank_ * size + min(rank_, extra)
+    return range(start, start + size + (rank_ < extra))
+
+
+def work_generator(*keys: int, device: str | torch.device = "cpu") -> torch.Generator:
+    """A generator seeded by ``keys`` alone (e.g. the run's seed, a work item's index and a
+    stream number), so a piece of work draws the same numbers on whichever rank runs it.
+
+    The keys go through NumPy's ``SeedSequence``: nearby keys give unrelated streams.
+    """
+    if not keys or any(isinstance(k, bool) or not isinstance(k, int) or k < 0 for k in keys):
+        raise ValueError(f"keys: expected one or more non-negative ints, got {keys!r}")
+    words = np.random.SeedSequence(list(keys)).generate_state(2, np.uint32)
+    generator = torch.Generator(device=device)
+    generator.manual_seed(int(words[0]) << 31 | int(words[1]) >> 1)
+    return generator
+
+
+def all_gather(obj: Any) -> list[Any]:
+    """Every rank's ``obj``, in rank order, on every rank (``[obj]`` without a group).
+
+    Objects are pickled; put tensors on the CPU first (NCCL moves the pickled bytes through
+    the rank's GPU).
+    """
+    if not is_active():
+        return [obj]
+    out: list[Any] = [None] * dist.get_world_size()
+    dist.all_gather_object(out, obj)
+    return out
+
+
+def broadcast(obj: Any, src: int = 0) -> Any:
+    """Rank ``src``'s ``obj`` on every rank (``obj`` itself without a group)."""
+    if not is_active():
+        return obj
+    box = [obj]
+    dist.broadcast_object_list(box, src=src)
+    return box[0]
+
+
+def barrier() -> None:
+    """Wait for every rank (a no-op without a group)."""
+    if is_active():
+        dist.barrier()

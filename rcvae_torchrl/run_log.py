@@ -1,0 +1,113 @@
+"""A run's log: plain lines in a file, colour only on a terminal.
+
+:func:`run_log` opens ``run.log`` (appending, so a resumed run adds to it) and returns a
+:class:`logging.Logger` writing to it and to the console. TorchRL's own logger (``"torchrl"``)
+and Python warnings go to the same file. TorchRL colours its console lines with ANSI codes; in
+the file they are removed, and on a console that is not a terminal (output redirected to a
+file or a pipe) too.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO
+
+__all__ = ["ANSI_CODE", "PlainFormatter", "run_log"]
+
+#: An ANSI escape sequence (colours, cursor moves).
+ANSI_CODE = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+
+_FORMAT = "%(asctime)s [%(name)s][%(levelname)s] %(message)s"
+_DATE = "%Y-%m-%d %H:%M:%S"
+
+
+class PlainFormatter(logging.Formatter):
+    """A formatter whose lines hold no ANSI codes, whatever the message carries."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        return ANSI_CODE.sub("", super().format(record))
+
+
+def _is_terminal(stream: IO[str]) -> bool:
+    isatty = getattr(stream, "isatty", None)
+    return bool(isatty and isatty())
+
+
+@contextmanager
+def run_log(
+    path: str | Path, name: str = "rcvae_torchrl.run", stream: IO[str] | None = None
+) -> Iterator[logging.Logger]:
+    """Log to ``path`` (plain text, appended) and to ``stream`` (default: stdout) inside the block.
+
+    TorchRL's logger and Python warnings also go to ``path`` for the block's duration; when
+    ``stream`` is not a terminal, TorchRL's console lines are written without colour. Everything
+    is put back as it was on exit.
+
+    Example:
+        >>> import io, tempfile
+        >>> from pathlib import Path
+        >>> path = Path(tempfile.mkdtemp()) / "run.log"
+        >>> with run_log(path, stream=io.StringIO()) as log:
+        ...     log.info("\\033[92mstage done\\033[0m")
+        >>> path.read_text().endswith("stage done\\n")
+        True
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stream = stream if stream is not None else sys.stdout
+    to_file = logging.FileHandler(path, mode="a", encoding="utf-8")
+    to_file.setFormatter(PlainFormatter(_FORMAT, _DATE))
+    to_console = logging.StreamHandler(stream)
+    to_console.setFormatter(
+        logging.Formatter("%(message)s") if _is_terminal(stream) else PlainFormatter("%(message)s")
+    )
+    log = logging.getLogger(name)
+    torchrl, warned = logging.getLogger("torchrl"), logging.getLogger("py.warnings")
+    saved_level, saved_propagate = log.level, log.propagate
+    log.setLevel(logging.INFO)
+    log.propagate = False
+    log.addHandler(to_file)
+    log.addHandler(to_console)
+    recoloured = _plain_consoles(torchrl)
+    # warnings still reach the console: through the root logger's handlers if it has any
+    warned_console = None if warned.hasHandlers() else logging.StreamHandler(sys.stderr)
+    torchrl.addHandler(to_file)
+    warned.addHandler(to_file)
+    if warned_console is not None:
+        warned.addHandler(warned_console)
+    logging.captureWarnings(True)
+    try:
+        yield log
+    finally:
+        logging.captureWarnings(False)
+        for logger, handler in (
+            (log, to_file),
+            (log, to_console),
+            (torchrl, to_file),
+            (warned, to_file),
+            (warned, warned_console),
+        ):
+            if handler is not None:
+                logger.removeHandler(handler)
+        for handler, formatter in recoloured.items():
+            handler.setFormatter(formatter)
+        log.setLevel(saved_level)
+        log.propagate = saved_propagate
+        to_file.close()
+
+
+def _plain_consoles(logger: logging.Logger) -> dict[logging.Handler, logging.Formatter | None]:
+    """Give ``logger``'s handlers that write to no terminal a colourless formatter; returns
+    the old formatters."""
+    old = {}
+    for handler in logger.handlers:
+        stream = getattr(handler, "stream", None)
+        if stream is not None and not _is_terminal(stream):
+            old[handler] = handler.formatter
+            handler.setFormatter(PlainFormatter(_FORMAT, _DATE))
+    return old

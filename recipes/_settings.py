@@ -1,0 +1,206 @@
+"""Settings checks shared by the recipes' structured configs (one home for them).
+
+A recipe's settings are frozen dataclasses (the schema and the defaults), registered as a Hydra
+structured config so that every key can be overridden without ``+`` and OmegaConf rejects
+unknown keys and values of the wrong type. The dataclasses check ranges in ``__post_init__``
+with the helpers below; :func:`build_config` then turns a composed config into the typed one,
+and :func:`check_run_settings` checks what depends on the machine (the device, the run
+directory) before anything is created or written. Every error is a ``ValueError`` naming the
+setting, what was expected and what was given.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any, TypeVar
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from rcvae_torchrl import threads as threads_module
+
+__all__ = [
+    "SEED_MAX",
+    "at_least",
+    "build_config",
+    "check_device_name",
+    "check_run_dir",
+    "check_run_dir_name",
+    "check_run_settings",
+    "check_seed",
+    "check_threads",
+    "register_schema",
+    "resolve_device",
+    "set_threads",
+    "whole_steps",
+]
+
+SEED_MAX = 2**32 - 1  #: the largest seed every generator of a run accepts (numpy's limit)
+
+T = TypeVar("T")
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def at_least(name: str, value: Any, low: float, kind: type = float) -> None:
+    """Require a finite number (an ``int`` when ``kind`` is ``int``) >= ``low``."""
+    ok = _is_number(value) and math.isfinite(value) and value >= low
+    if kind is int:
+        ok = ok and isinstance(value, int)
+    if not ok:
+        what = "an integer" if kind is int else "a finite number"
+        raise ValueError(f"{name}: expected {what} >= {low}, got {value!r}")
+
+
+def whole_steps(name: str, seconds: Any, step: float) -> int:
+    """The number of ``step``-second control steps in ``seconds`` (a positive whole number)."""
+    steps = seconds / step if _is_number(seconds) else math.nan
+    if not (math.isfinite(steps) and steps >= 1 and abs(steps - round(steps)) < 1e-6):
+        raise ValueError(
+            f"{name}: expected a positive whole number of {step} s control steps, got {seconds!r}"
+        )
+    return round(steps)
+
+
+def check_seed(name: str, value: Any) -> None:
+    """Require an integer seed in ``[0, 2**32 - 1]``."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= SEED_MAX:
+        raise ValueError(f"{name}: expected an integer in [0, 2**32 - 1], got {value!r}")
+
+
+def check_threads(value: Any) -> None:
+    """Require ``"auto"``, ``None`` (torch's default) or an integer >= 1."""
+    if value in (None, "auto"):
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"threads: expected a positive integer, 'auto' or null, got {value!r}")
+
+
+def check_device_name(name: Any) -> None:
+    """Require ``"auto"``, ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` (whether present: see
+    :func:`resolve_device`)."""
+    if not isinstance(name, str) or not re.fullmatch(r"auto|cpu|cuda(:\d+)?", name):
+        raise ValueError(f"device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {name!r}")
+
+
+def resolve_device(name: Any) -> str:
+    """The device a run uses: ``"auto"`` -> ``"cuda"`` when present, else ``"cpu"``.
+
+    ``"cpu"``, ``"cuda"`` and ``"cuda:N"`` are accepted only when present on this machine;
+    anything else (``"tpu"``, ``"meta"``, a bare number) is a ``ValueError`` naming ``device``.
+    """
+    check_device_name(name)
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"device: {name!r} asked for, but CUDA is not available here")
+        count = torch.cuda.device_count()
+        index = int(name.partition(":")[2] or 0)
+        if index >= count:
+            raise ValueError(
+                f"device: {name!r} asked for, but this machine has {count} CUDA device(s) "
+                f"(cuda:0 to cuda:{count - 1})"
+            )
+    return name
+
+
+def check_run_dir_name(value: Any) -> None:
+    """Require a non-empty path (whether writable: see :func:`check_run_dir`)."""
+    if not isinstance(value, str) or not value.strip():
+        raise ValueError(f"run_dir: expected a directory path, got {value!r}")
+
+
+def check_run_dir(value: Any) -> Path:
+    """Require a non-empty directory path that exists and is writable or can be created.
+
+    Nothing is left behind: a directory is made and removed in the nearest existing ancestor.
+    """
+    check_run_dir_name(value)
+    path = Path(value).expanduser().absolute()
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"run_dir: expected a directory, got {value!r} (an existing file)")
+    existing = path
+    while not existing.exists():
+        existing = existing.parent
+    try:  # the one sure test (permissions, read-only mounts, /proc): make a directory there
+        os.rmdir(tempfile.mkdtemp(prefix=".run_dir_check.", dir=existing))
+    except OSError as err:
+        where = "it" if existing == path else f"its parent {str(existing)!r}"
+        raise ValueError(
+            f"run_dir: expected a writable directory, got {value!r} ({where} is not writable: "
+            f"{err.strerror})"
+        ) from None
+    return path
+
+
+def set_threads(threads: int | str | None, op_flop: float | None = None) -> int:
+    """Set torch's intra-op threads: a count, ``"auto"`` (one thread unless the machine has idle
+    cores and the recipe's typical op of ``op_flop`` FLOP is large, see
+    :func:`rcvae_torchrl.threads.choose_threads`) or ``None`` (torch's default). Returns the
+    count in effect."""
+    check_threads(threads)
+    return threads_module.set_threads(threads, op_flop)
+
+
+def check_run_settings(config: Any) -> None:
+    """The checks that depend on this machine: ``device`` (when the recipe has one) and
+    ``run_dir``; call once, before anything is created or written."""
+    if hasattr(config, "device"):
+        resolve_device(config.device)
+    check_run_dir(config.run_dir)
+
+
+def _writable(node: Any) -> None:
+    """Clear the read-only flag frozen dataclasses give their nodes, so overrides apply."""
+    OmegaConf.set_readonly(node, None)
+    for key in node:
+        child = node._get_node(key)
+        if isinstance(child, DictConfig):
+            _writable(child)
+
+
+def _schema(cls: type) -> DictConfig:
+    node = OmegaConf.structured(cls)
+    _writable(node)
+    return node
+
+
+def register_schema(name: str, cls: type) -> None:
+    """Register the dataclass ``cls`` as the Hydra structured config ``name`` (the base of the
+    recipe's defaults list, so profiles hold only differences and no key needs ``+``)."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name=name, node=_schema(cls))
+
+
+def build_config(cls: type[T], cfg: DictConfig | dict) -> T:
+    """The typed, range-checked ``cls`` of a composed config (or a mapping of overrides).
+
+    Each section is built on its own, so an error names the section and the setting
+    (``train.window: ...``); then :func:`check_run_settings`.
+    """
+    try:
+        merged = OmegaConf.merge(_schema(cls), cfg)
+    except Exception as err:  # OmegaConf's ValidationError names the key and the value
+        raise ValueError(f"{err}") from None
+    sections = {}
+    for f in dataclasses.fields(cls):
+        node = merged[f.name]
+        if isinstance(node, DictConfig):
+            try:
+                sections[f.name] = OmegaConf.to_object(node)
+            except (ValueError, TypeError) as err:
+                raise ValueError(f"{f.name}.{err}") from None
+        else:
+            sections[f.name] = node
+    config = cls(**sections)
+    check_run_settings(config)
+    return config

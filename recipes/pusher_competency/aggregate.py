@@ -1,0 +1,139 @@
+"""The multi-seed study in one table: every column and check as mean ± sd over seeds, and how
+many seeds meet each check.
+
+    python recipes/pusher_competency/main.py -m seed=0,1,2,3,4 \\
+        'run_dir=outputs/pusher_competency/seeds/seed${seed}'
+    python recipes/pusher_competency/aggregate.py outputs/pusher_competency/seeds
+
+reads ``seed*/summary.json`` under the given directory and writes ``aggregate.md`` and
+``aggregate.json`` there (``make run-seeds`` does both).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+if __package__ in (None, ""):  # run as a script: make the repository root importable
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+from rcvae_torchrl.io import atomic_write, read_json, write_json
+from recipes.pusher_competency.trust import TARGETS
+
+__all__ = ["aggregate", "main"]
+
+#: Columns of the aggregate table: (summary section, key, label).
+COLUMNS = (
+    ("rows", "aleatoric_bits", "aleatoric bits"),
+    ("rows", "epistemic_bits", "epistemic bits"),
+    ("validation", "forecast", "forecast P"),
+    ("validation", "real", "real P"),
+    ("validation", "gap", "gap"),
+    ("validation", "per_start_mae", "per-start MAE"),
+    ("validation", "spearman", "Spearman"),
+    ("validation", "auroc", "AUROC"),
+    ("validation", "bss_overall", "BSS (overall rate)"),
+    ("validation", "brier_skill", "BSS (own rate)"),
+    ("validation", "oracle_auroc", "oracle AUROC"),
+    ("validation", "oracle_brier_skill", "oracle BSS (own rate)"),
+    ("validation", "bss_tasks", "BSS (tasks alike)"),
+    ("validation", "tts_skill", "TTS CRPS skill"),
+)
+#: Across seeds, the mean gap per condition must stay within this.
+MEAN_GAP = 0.05
+
+
+def _stats(values: list[float]) -> dict[str, Any]:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    n = len(finite)
+    mean = sum(finite) / n if n else math.nan
+    sd = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1)) if n > 1 else math.nan
+    return {"mean": mean, "sd": sd, "values": values}
+
+
+def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """``summaries``: seed name -> that run's summary.json. Returns the aggregate."""
+    first = next(iter(summaries.values()))
+    conditions = list(first["validation"])
+    table = {}
+    for c in conditions:
+        table[c] = {}
+        for section, key, _ in COLUMNS:
+            values = [s[section].get(c, {}).get(key) for s in summaries.values()]
+            if any(v is not None for v in values):
+                table[c][key] = _stats(values)
+    checks = {}
+    for name in first["checks"]:
+        per_seed = [s["checks"].get(name) for s in summaries.values()]
+        checks[name] = {
+            **_stats([c["value"] if c else None for c in per_seed]),
+            "met": sum(bool(c and c["met"]) for c in per_seed),
+            "seeds": len(per_seed),
+        }
+    for c in conditions:
+        if c == "overall":
+            continue
+        gap = table[c]["forecast"]["mean"] - table[c]["real"]["mean"]
+        mean_abs = _stats([s["validation"][c]["gap"] for s in summaries.values()])["mean"]
+        checks[f"mean |forecast - real| over seeds <= {MEAN_GAP} ({c})"] = {
+            "mean": mean_abs,
+            "signed_mean": gap,
+            "met": int(mean_abs <= MEAN_GAP),
+            "seeds": 1,
+        }
+    return {"seeds": list(summaries), "table": table, "checks": checks, "targets": TARGETS}
+
+
+def _cell(stats: dict[str, Any]) -> str:
+    if not math.isfinite(stats["mean"]):
+        return "n/a"
+    if not math.isfinite(stats["sd"]):
+        return f"{stats['mean']:.3f}"
+    return f"{stats['mean']:.3f} ± {stats['sd']:.3f}"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """aggregate.md: the table and the checks."""
+    n = len(result["seeds"])
+    head = "| condition | " + " | ".join(label for *_, label in COLUMNS) + " |"
+    lines = [
+        f"# Pusher competency study over {n} seeds ({', '.join(result['seeds'])})",
+        "",
+        "Mean ± sd over seeds.",
+        "",
+        head,
+        "|:---|" + "---:|" * len(COLUMNS),
+    ]
+    for c, row in result["table"].items():
+        cells = [_cell(row[key]) if key in row else "" for _, key, _ in COLUMNS]
+        lines.append(f"| {c} | " + " | ".join(cells) + " |")
+    lines += ["", "## Checks", "", "| check | mean ± sd | seeds met |", "|:---|---:|---:|"]
+    for name, c in result["checks"].items():
+        value = _cell(c) if "sd" in c else format(c["mean"], ".3f")
+        lines.append(f"| {name} | {value} | {c['met']}/{c['seeds']} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("directory", type=Path, help="the directory holding seed*/summary.json")
+    args = parser.parse_args(argv)
+    found = sorted(args.directory.glob("seed*/summary.json"))
+    if not found:
+        raise SystemExit(
+            f"directory: expected seed*/summary.json under {args.directory}, found none"
+        )
+    summaries = {p.parent.name: read_json(p, "study summary") for p in found}
+    result = aggregate(summaries)
+    write_json(args.directory / "aggregate.json", result)
+    text = markdown(result)
+    atomic_write(args.directory / "aggregate.md", lambda f: f.write(text.encode()))
+    print(text)
+    return result
+
+
+if __name__ == "__main__":
+    main()

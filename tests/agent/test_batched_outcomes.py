@@ -1,0 +1,82 @@
+"""Real outcomes run N at a time in a batched env equal the one-env run, episode by episode."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from rcvae_torchrl.agent import real_outcomes
+from rcvae_torchrl.envs import (
+    ball_to_target,
+    make_batched_pusher_env,
+    make_pusher_env,
+    pusher_success,
+    reset_to_state,
+)
+from rcvae_torchrl.envs.scripted import make_scripted_policy
+
+
+def _starts(n: int) -> torch.Tensor:
+    env = make_pusher_env("deterministic")
+    rows = []
+    for i in range(n):
+        env.set_seed(40 + i)
+        rows.append(env.reset()["observation"])
+    return torch.stack(rows)
+
+
+@pytest.mark.parametrize("terminate", [True, False])
+def test_batched_outcomes_equal_the_one_env_run(terminate):
+    starts, kwargs = _starts(2), dict(time_limit=3.0, terminate_on_success=terminate)
+    args = dict(
+        runs_per_start=3,  # 6 episodes over 4 sub-envs: a padded second chunk
+        reset_to_state=reset_to_state,
+        max_steps=60,
+        trace=ball_to_target,
+        seed=2,
+        progress=False,
+    )
+    policy = make_scripted_policy()
+    serial = real_outcomes(
+        make_pusher_env("stochastic", action_noise_std=1.0, **kwargs), policy, starts, **args
+    )
+    batched = real_outcomes(
+        make_batched_pusher_env(4, "stochastic", action_noise_std=1.0, **kwargs),
+        policy,
+        starts,
+        **args,
+    )
+    assert batched.success.shape == (2, 3) and batched.trace.shape == (2, 3, 60)
+    for name in ("success", "first_step", "steps"):
+        assert torch.equal(getattr(batched, name), getattr(serial, name)), name
+    torch.testing.assert_close(batched.trace, serial.trace, equal_nan=True)
+    assert not torch.equal(batched.trace[:, 0], batched.trace[:, 1])  # each run its own noise
+
+
+def test_batched_outcomes_by_a_success_function():
+    starts = _starts(1)
+    out = real_outcomes(
+        make_batched_pusher_env(3, "deterministic", time_limit=3.0, terminate_on_success=False),
+        make_scripted_policy(),
+        starts,
+        runs_per_start=3,
+        reset_to_state=reset_to_state,
+        max_steps=60,
+        success=lambda o: pusher_success(o, radius=0.1),
+        trace=ball_to_target,
+        progress=False,
+    )
+    hit = out.trace <= 0.1
+    first = torch.where(hit.any(-1), hit.float().argmax(-1), torch.tensor(60))
+    assert torch.equal(out.first_step, first) and torch.equal(out.success, hit.any(-1))
+    with pytest.raises(ValueError, match="env: expected an env with batch_size"):
+        real_outcomes(
+            SimpleNamespace(batch_size=torch.Size([1, 2])),
+            make_scripted_policy(),
+            starts,
+            runs_per_start=1,
+            reset_to_state=reset_to_state,
+            max_steps=2,
+        )

@@ -1,0 +1,43 @@
+"""rcvae_torchrl.distributed without a process group, and its pure helpers."""
+
+import pytest
+import torch
+
+from rcvae_torchrl import distributed
+
+
+@pytest.mark.parametrize(("n", "world"), [(4, 2), (7, 3), (2, 5), (0, 2), (9, 1)])
+def test_shards_cover_the_range_in_rank_order(n, world):
+    blocks = [distributed.shard(n, r, world) for r in range(world)]
+    assert [i for b in blocks for i in b] == list(range(n))
+    assert max(map(len, blocks)) - min(map(len, blocks)) <= 1
+
+
+def test_shard_errors():
+    with pytest.raises(ValueError, match="n: expected a non-negative int, got -1"):
+        distributed.shard(-1, 0, 1)
+    with pytest.raises(ValueError, match="expected 0 <= rank < world, got 2, 2"):
+        distributed.shard(4, 2, 2)
+
+
+def test_without_a_group_this_is_the_only_rank(monkeypatch):
+    monkeypatch.delenv("RANK", raising=False)
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    assert (distributed.rank(), distributed.world_size(), distributed.is_main()) == (0, 1, True)
+    assert not distributed.is_active() and not distributed.init()
+    assert distributed.all_gather({"a": 1}) == [{"a": 1}] and distributed.broadcast(3) == 3
+    assert distributed.shard(5) == range(5)
+    distributed.barrier()
+    distributed.teardown()
+    monkeypatch.setenv("RANK", "3")
+    monkeypatch.setenv("WORLD_SIZE", "4")
+    assert (distributed.rank(), distributed.world_size(), distributed.is_main()) == (3, 4, False)
+
+
+def test_work_generators_depend_on_their_keys_alone():
+    draw = lambda *keys: torch.rand(4, generator=distributed.work_generator(*keys))  # noqa: E731
+    assert torch.equal(draw(0, 1, 2), draw(0, 1, 2))
+    assert not torch.equal(draw(0, 1, 2), draw(0, 2, 1))
+    assert not torch.equal(draw(0, 1), draw(1, 0))
+    with pytest.raises(ValueError, match="keys: expected one or more non-negative ints"):
+        distributed.work_generator(-1)

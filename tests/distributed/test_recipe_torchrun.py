@@ -1,0 +1,72 @@
+"""The Pusher recipe under ``torchrun`` with 2 ranks writes what a single process writes: the
+same models, forecasts and real outcomes."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[2]
+RECIPE = ROOT / "recipes" / "pusher_competency" / "main.py"
+MICRO = (
+    "profile=quick",
+    "threads=1",
+    "progress=false",
+    "data.scripted_episodes=3",
+    "data.random_episodes=2",
+    "train.max_steps=20",
+    "train.val_every=10",
+    "agent.mpc_episodes=1",
+    "agent.eval_episodes=1",
+    "agent.distill.epochs=5",
+    "assess.start_states=3",
+    "assess.start_chunk=1",
+    "assess.horizon_s=2.0",
+    "assess.surface_deadlines_s=[1.0,2.0]",
+)
+
+
+def _run(launcher: list[str], run_dir: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+    proc = subprocess.run(
+        [*launcher, str(RECIPE), *MICRO, f"run_dir={run_dir}"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc
+
+
+def _assert_same(a, b, where: str) -> None:
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for key in a:
+            _assert_same(a[key], b[key], f"{where}/{key}")
+    elif isinstance(a, torch.Tensor):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=where)
+
+
+@pytest.mark.slow
+def test_recipe_under_torchrun_equals_one_process(tmp_path):
+    one, two = tmp_path / "one", tmp_path / "two"
+    _run([sys.executable], one)
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2"]
+    out = _run([*torchrun, "--standalone"], two).stdout
+    assert out.count("ranks=2") == 1  # rank 0 alone prints
+    for name in ("models/deterministic.pt", "models/stochastic.pt"):
+        a, b = (torch.load(d / name, weights_only=False) for d in (one, two))
+        _assert_same(a["state_dict"], b["state_dict"], name)
+    for stage in ("forecast", "truth"):
+        for path in sorted((one / stage).glob("*.pt")):
+            a, b = (torch.load(d / stage / path.name) for d in (one, two))
+            _assert_same(a, b, f"{stage}/{path.name}")
+    assert (one / "table.csv").read_text() == (two / "table.csv").read_text()
+    assert not list((two / "models").glob("*.members-*.pt"))  # block checkpoints removed

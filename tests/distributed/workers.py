@@ -1,0 +1,187 @@
+"""What each spawned rank runs (importable by name in the spawned processes)."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import signal
+from pathlib import Path
+
+import torch
+from torchrl.envs import DMControlEnv
+
+from rcvae_torchrl import distributed
+from rcvae_torchrl.agent import RealOutcomes, draw_starts, real_outcomes, reset_by_seed
+from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary
+from rcvae_torchrl.data import ActionNoise, prepare_env
+from rcvae_torchrl.envs import (
+    ball_to_target,
+    make_batched_pusher_env,
+    make_pusher_env,
+    reset_to_state,
+)
+from rcvae_torchrl.envs.scripted import make_scripted_policy
+from rcvae_torchrl.model_env import RCVAEEnsembleEnv
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.training import TrainConfig, train_ensemble
+
+_spec = importlib.util.spec_from_file_location(
+    "training_fixtures", Path(__file__).resolve().parents[1] / "training" / "conftest.py"
+)
+fixtures = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(fixtures)
+
+CONFIG = TrainConfig(max_steps=40, batch_windows=16, window=8, val_every=10, val_windows=32)
+
+
+def linear_data():
+    train = fixtures.linear_episodes(12, 40, seed=0)
+    val = fixtures.linear_episodes(4, 40, seed=1)
+    val[fixtures.TRAJ_KEY] += 100
+    return train, val
+
+
+def small_ensemble(members: int = 4, seed: int = 0) -> RCVAEEnsemble:
+    torch.manual_seed(seed)
+    return RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=16, latent_dim=2, mlp_dim=16), members)
+
+
+def train(out: str, ckpt: str | None = None, kill_rank: int = -1, kill_at: int = -1) -> None:
+    """Train the 4-member ensemble; rank ``kill_rank`` kills itself (SIGKILL) at step
+    ``kill_at`` (before that validation's checkpoint); rank 0 saves the result to ``out``."""
+
+    class KillAt:
+        def log_scalar(self, name, value, step):
+            if distributed.rank() == kill_rank and step == kill_at:
+                os.kill(os.getpid(), signal.SIGKILL)
+
+    train_data, val_data = linear_data()
+    result = train_ensemble(
+        small_ensemble(),
+        train_data,
+        val_data,
+        CONFIG,
+        checkpoint_path=ckpt,
+        resume=ckpt is not None,
+        logger=KillAt(),
+        progress=False,
+        checks=False,
+    )
+    if distributed.is_main():
+        torch.save(
+            {
+                "weights": result.ensemble.state_dict(),
+                "steps": result.steps,
+                "best_val": result.best_val,
+                "history": result.history,
+            },
+            out,
+        )
+
+
+# ---------------------------------------------------------------------- forecasts
+def make_assessor():
+    """A tiny untrained 3-member world model and its assessor (x[0] > 0.05 within 8 steps)."""
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=8, latent_dim=2, mlp_dim=8), 3)
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(100, 3, generator=g) * 0.1
+    model.fit_normalizer(obs, torch.rand(100, 1, generator=g) * 2 - 1, next_observations=obs * 1.1)
+    env = RCVAEEnsembleEnv(
+        model,
+        lambda observation, action: -observation[..., :1],
+        lambda observation: observation[..., 0] > 0.05,
+    )
+    boundary = SuccessBoundary(lambda s: s[..., 0] > 0.05, time_limit=8, dt=0.1)
+    return CompetencyAssessor(
+        env,
+        boundary,
+        bin_width=0.05,
+        samples_per_member=6,
+        start_chunk=2,
+        bias_correction="shuffle",
+        per_sample={"x": lambda o: o[..., 0]},
+    )
+
+
+def forecast_starts() -> torch.Tensor:
+    return torch.randn(7, 3, generator=torch.Generator().manual_seed(1)) * 0.2
+
+
+def policy(observation: torch.Tensor) -> torch.Tensor:
+    return (1.0 - 3.0 * observation[..., :1]).clamp(-1, 1)
+
+
+def forecast(out: str, seed: int) -> None:
+    """Every rank saves the report it gets (``out`` formatted with its rank) and the error of
+    a sharded assessment without a seed."""
+    assessor = make_assessor()
+    try:
+        assessor.assess(forecast_starts(), policy=policy)
+        error = ""
+    except ValueError as err:
+        error = str(err)
+    report = assessor.assess(forecast_starts(), policy=policy, seed=seed)
+    torch.save({"data": report.data, "error": error}, out.format(rank=distributed.rank()))
+
+
+# ---------------------------------------------------------------------- real outcomes
+def point_mass():
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    env.append_transform(ActionNoise(1.0))
+    return env
+
+
+def push(td):
+    return td.set("action", -5 * td["observation"][..., :2].clamp(-0.2, 0.2))
+
+
+def near(observation):
+    return observation[..., :2].norm(dim=-1) < 0.2
+
+
+def distance(observation):
+    return observation[..., :2].norm(dim=-1)
+
+
+def outcomes(out: str | None = None) -> dict[str, RealOutcomes]:
+    """Outcomes of a noisy point mass (3 starts x 3 runs, one env) and of a noisy Pusher in a
+    batched env of 2 (2 starts x 3 runs); every rank saves what it gathered."""
+    env = point_mass()
+    one_env = real_outcomes(
+        env,
+        push,
+        draw_starts(env, [0, 1, 2]),
+        runs_per_start=3,
+        reset_to_state=reset_by_seed,
+        max_steps=25,
+        success=near,
+        trace=distance,
+        seed=1,
+        progress=False,
+    )
+    batched = real_outcomes(
+        make_batched_pusher_env(2, "stochastic", action_noise_std=1.0, time_limit=2.0),
+        make_scripted_policy(),
+        pusher_starts(2),
+        runs_per_start=3,
+        reset_to_state=reset_to_state,
+        max_steps=40,
+        trace=ball_to_target,
+        seed=2,
+        progress=False,
+    )
+    result = {"one_env": one_env, "batched": batched}
+    if out is not None:
+        saved = {k: v.as_dict() for k, v in result.items()}
+        torch.save(saved, out.format(rank=distributed.rank()))
+    return result
+
+
+def pusher_starts(n: int) -> torch.Tensor:
+    env = make_pusher_env("deterministic")
+    rows = []
+    for i in range(n):
+        env.set_seed(40 + i)
+        rows.append(env.reset()["observation"])
+    return torch.stack(rows)

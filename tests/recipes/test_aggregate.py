@@ -1,0 +1,40 @@
+"""The multi-seed aggregate: mean ± sd per column and check, and seeds counted per check."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from recipes.pusher_competency.aggregate import aggregate, main
+
+
+def _summary(gap: float, met: bool) -> dict:
+    row = {"aleatoric_bits": 1.0, "epistemic_bits": 2.0}
+    scores = {"forecast": 0.5 + gap, "real": 0.5, "gap": gap, "spearman": 0.7}
+    return {
+        "rows": {"stochastic": row},
+        "validation": {"stochastic": scores, "overall": dict(scores)},
+        "checks": {"a check": {"value": gap, "met": met}},
+    }
+
+
+def test_mean_sd_and_counts():
+    result = aggregate({"seed0": _summary(0.02, True), "seed1": _summary(0.06, False)})
+    gap = result["table"]["stochastic"]["gap"]
+    assert gap["mean"] == pytest.approx(0.04) and gap["sd"] == pytest.approx(0.02 * 2**0.5)
+    assert result["checks"]["a check"]["met"] == 1 and result["checks"]["a check"]["seeds"] == 2
+    mean_gap = result["checks"]["mean |forecast - real| over seeds <= 0.05 (stochastic)"]
+    assert mean_gap["mean"] == pytest.approx(0.04) and mean_gap["met"] == 1
+
+
+def test_the_command_writes_both_files(tmp_path):
+    for i, gap in enumerate((0.01, 0.2)):
+        (tmp_path / f"seed{i}").mkdir()
+        (tmp_path / f"seed{i}" / "summary.json").write_text(json.dumps(_summary(gap, gap < 0.1)))
+    main([str(tmp_path)])
+    text = (tmp_path / "aggregate.md").read_text()
+    assert "over 2 seeds" in text and "| a check | 0.105 ± 0.134 | 1/2 |" in text
+    assert json.loads((tmp_path / "aggregate.json").read_text())["seeds"] == ["seed0", "seed1"]
+    with pytest.raises(SystemExit, match="directory: expected seed"):
+        main([str(tmp_path / "seed0")])

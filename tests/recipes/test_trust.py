@@ -1,0 +1,73 @@
+"""The study's per-task validation on constructed forecasts and outcomes with known answers."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from recipes.pusher_competency.trust import (
+    competency_surfaces,
+    trust_checks,
+    validation,
+    validation_figures,
+)
+
+CONDITIONS = ("deterministic", "stochastic", "out-of-distribution")
+
+
+def _case(perfect: bool):
+    """Start b of a condition reaches the goal (distance 0) at step 2b in every imagined sample
+    and real run, or never (a far start); a forecast that is ``perfect`` or constant."""
+    forecasts, truths = {}, {}
+    for runs, c in zip((1, 30, 1), CONDITIONS):
+        b, t = 8, 20
+        reach = torch.arange(b) % 2 == 0  # even starts succeed
+        first = torch.where(reach, 2 * torch.arange(b), torch.full((b,), t))
+        steps = torch.arange(t)
+        d = (steps[None] < first[:, None]).float()  # 1 m until the first success, then 0
+        p = reach.float() if perfect else torch.full((b,), 0.5)
+        forecasts[c] = {"p_success": p, "ball_to_target": d[:, None].expand(b, 10, t).clone()}
+        truths[c] = {
+            "success": reach[:, None].expand(b, runs).clone(),
+            "first_step": first[:, None].expand(b, runs).clone(),
+            "trace": d[:, None].expand(b, runs, t).clone(),
+        }
+    return forecasts, truths
+
+
+def test_a_perfect_forecast_scores_perfectly():
+    forecasts, truths = _case(perfect=True)
+    scores = validation(forecasts, truths, radius=0.03)
+    for c in CONDITIONS:
+        s = scores[c]
+        assert s["gap"] == 0 and s["per_start_mae"] == 0 and s["brier"] == 0
+        assert s["spearman"] == pytest.approx(1.0) and s["auroc"] == 1.0
+        assert s["bss_overall"] == 1.0 and s["brier_skill"] == 1.0
+        assert s["tts_crps"] == 0 and s["tts_crps_climatology"] > 0 and s["tts_skill"] == 1.0
+    assert scores["overall"]["episodes"] == 8 + 8 * 30 + 8
+    assert scores["overall"]["bss_tasks"] == 1.0 and scores["overall"]["oracle_auroc"] == 1.0
+    surfaces = competency_surfaces(forecasts, truths, [0.03, 0.5], [1, 5, 20])
+    for c in CONDITIONS:
+        assert surfaces[c]["max_gap"] == 0 and surfaces[c]["per_start_mae"] == 0
+        # even starts succeed, start b at step 2b: before step 5, starts 0 and 2 (of 8)
+        torch.testing.assert_close(surfaces[c]["real"], torch.tensor([[1 / 8, 2 / 8, 4 / 8]] * 2))
+    checks = trust_checks(scores, surfaces)
+    failed = [name for name, c in checks.items() if not c["met"]]
+    # the constructed out-of-distribution condition succeeds in half its episodes: in range
+    assert failed == [], failed
+    diagrams = validation_figures(forecasts, truths)
+    assert set(diagrams) == {*CONDITIONS, "all"}
+    assert int(diagrams["all"].episodes.sum()) == 8 + 240 + 8
+
+
+def test_a_constant_forecast_has_no_skill_and_fails_the_checks():
+    forecasts, truths = _case(perfect=False)
+    scores = validation(forecasts, truths, radius=0.03)
+    for c in CONDITIONS:
+        assert scores[c]["brier_skill"] == pytest.approx(0.0, abs=1e-12)  # base rate is 0.5
+        assert scores[c]["auroc"] == 0.5 and scores[c]["oracle_brier_skill"] == 1.0
+    assert scores["overall"]["bss_tasks"] == pytest.approx(0.0, abs=1e-12)
+    checks = trust_checks(scores, competency_surfaces(forecasts, truths, [0.03], [20]))
+    assert not checks["AUROC >= 0.75 (all episodes)"]["met"]
+    assert not checks["Brier skill vs the overall base rate >= 0.3"]["met"]
+    assert not checks["Brier skill vs the condition's base rate > 0 (stochastic)"]["met"]

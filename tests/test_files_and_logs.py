@@ -1,0 +1,108 @@
+"""What a run leaves for its user: files a teammate can read, a log file without colour codes."""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+import warnings
+
+import pytest
+import torch
+
+from rcvae_torchrl.io import atomic_write, save_torch, write_json
+from rcvae_torchrl.run_log import ANSI_CODE, run_log
+
+
+@pytest.fixture
+def umask():
+    """Set the process umask for a test, then put the old one back."""
+    saved = os.umask(0o022)
+    os.umask(saved)
+
+    def set_mask(mask: int) -> None:
+        os.umask(mask)
+
+    yield set_mask
+    os.umask(saved)
+
+
+@pytest.mark.parametrize(("mask", "mode"), [(0o022, 0o644), (0o002, 0o664), (0o077, 0o600)])
+def test_atomic_writes_keep_the_umask(tmp_path, umask, mask, mode):
+    umask(mask)
+    written = [
+        atomic_write(tmp_path / "raw.bin", lambda f: f.write(b"x")),
+        write_json(tmp_path / "a.json", {"a": 1}),
+        save_torch(tmp_path / "t.pt", torch.zeros(2)),
+        atomic_write(tmp_path / "raw.bin", lambda f: f.write(b"y")),  # replacing a file too
+    ]
+    assert {p.name: p.stat().st_mode & 0o777 for p in written} == {
+        "raw.bin": mode,
+        "a.json": mode,
+        "t.pt": mode,
+    }
+
+
+def test_saved_videos_keep_the_umask(tmp_path, umask):
+    np = pytest.importorskip("numpy")
+    from rcvae_torchrl.envs.render import save_video
+
+    umask(0o022)
+    frames = [np.full((8, 8, 3), 40 * i, dtype=np.uint8) for i in range(3)]
+    path = save_video(frames, tmp_path / "e.gif", fps=10)
+    assert path.stat().st_mode & 0o777 == 0o644
+    assert path.read_bytes()[:6] == b"GIF89a"
+    assert [p.name for p in tmp_path.iterdir()] == ["e.gif"]  # no temp file left
+
+
+def test_run_log_is_plain_in_the_file_and_off_a_terminal(tmp_path):
+    console = io.StringIO()  # not a terminal
+    torchrl_logger = logging.getLogger("torchrl")
+    torchrl_console = io.StringIO()
+    extra = logging.StreamHandler(torchrl_console)
+    extra.setFormatter(logging.Formatter("\033[92m%(name)s\033[0m %(message)s"))
+    torchrl_logger.addHandler(extra)
+    try:
+        with run_log(tmp_path / "run.log", stream=console) as log:
+            log.info("\033[92m[data]\033[0m running")
+            torchrl_logger.info("a torchrl line")
+            with warnings.catch_warnings():
+                warnings.simplefilter("always")
+                warnings.warn("model check failed for ball_x", UserWarning, stacklevel=1)
+        with run_log(tmp_path / "run.log", stream=console) as log:
+            log.info("second run")
+        torchrl_logger.info("after the block")
+    finally:
+        torchrl_logger.removeHandler(extra)
+    text = (tmp_path / "run.log").read_text()
+    lines = text.splitlines()
+    assert not ANSI_CODE.search(text)
+    assert lines[0].endswith("[rcvae_torchrl.run][INFO] [data] running")
+    assert lines[1].endswith("[torchrl][INFO] a torchrl line")
+    assert "model check failed for ball_x" in lines[2]
+    assert lines[-1].endswith("second run")  # appended, not overwritten
+    assert "after the block" not in text  # the handlers are removed on exit
+    assert console.getvalue().splitlines()[:1] == ["[data] running"]
+    inside, after = torchrl_console.getvalue().splitlines()
+    assert inside.endswith("[torchrl][INFO] a torchrl line")  # colourless off a terminal
+    assert after == "\033[92mtorchrl\033[0m after the block"  # its own format restored
+    assert (tmp_path / "run.log").stat().st_mode & 0o777 == 0o666 & ~_current_umask()
+
+
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_a_terminal_keeps_its_colours(tmp_path):
+    console = _Terminal()
+    with run_log(tmp_path / "run.log", stream=console) as log:
+        log.info("\033[92mgreen\033[0m")
+    assert console.getvalue() == "\033[92mgreen\033[0m\n"
+    assert (tmp_path / "run.log").read_text().endswith(" green\n")
