@@ -1,8 +1,9 @@
 """Model steps per second of plan scoring against the matmul peak, and compile time per shape.
 
 At the planner's default budget (64 candidates x 5 particles x 12 steps, TS-inf: 64 trajectories
-per member) on a study-sized ensemble (E = 5, H = MLP = 64, Z = 8; untrained, normaliser fitted
-on random data, speed does not depend on the weights), with the Pusher's reward and success:
+per member) on the study's ensemble (E = 5, H = MLP = 64, Z = 8, the Pusher's state constraint
+and input features; untrained, normaliser fitted on random data: speed does not depend on the
+weights), with the Pusher's reward and success:
 
 - the FLOP of one model step (``FlopCounterMode`` on ``ensemble.step``) and the float32 matmul
   peak of this core (a [1024, 1024] x [1024, 1024] product);
@@ -32,17 +33,20 @@ from _report import conditions, interleaved_median_times, print_table, write_jso
 from torch.utils.flop_counter import FlopCounterMode
 
 from rcvae_torchrl.envs import pusher_reward, pusher_success
-from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import Task, evaluate_action_sequences, scoring
+from recipes.pusher_competency.config import StudyConfig
+from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, rcvae_config
 
 CANDIDATES, PARTICLES, HORIZON, MEMBERS = 64, 5, 12, 5
 
 
 def study_ensemble() -> RCVAEEnsemble:
+    """The study's model (its config and the Pusher's state constraint and input features)."""
     gen = torch.Generator().manual_seed(0)
     torch.manual_seed(0)
-    config = RCVAEConfig(14, 2, hidden_dim=64, mlp_dim=64, passthrough_dims=(12, 13))
-    model = RCVAEEnsemble(config, ensemble_size=MEMBERS).eval()
+    config = rcvae_config(StudyConfig().model)
+    model = RCVAEEnsemble(config, ensemble_size=MEMBERS, functions=MODEL_FUNCTIONS).eval()
     obs = torch.randn(2000, 14, generator=gen) * 0.1
     actions = torch.rand(2000, 2, generator=gen) * 2 - 1
     model.fit_normalizer(obs, actions, next_observations=obs + 0.01 * torch.randn_like(obs))
