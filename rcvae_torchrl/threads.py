@@ -20,9 +20,10 @@ import torch
 
 __all__ = ["MIN_FLOP_PER_THREAD", "choose_threads", "free_cores", "set_threads"]
 
-#: Floating-point operations per op below which a further thread does not pay for itself. A
-#: float32 matmul of 2**22 FLOP (e.g. [1024, 64] x [64, 32]) took about as long with 2 threads as
-#: with 1 on an idle core pair; smaller ones were slower with 2.
+#: Floating-point operations per op below which a further thread is not given. A conservative
+#: bound, not a measured break-even: on this project's shared 2-core machine (load 4-7) a second
+#: thread lost at every size measured, from 378x slower for a 3.9 MFLOP matmul to 1.16x for a
+#: 2 GFLOP one (``benchmarks/threads.py``); there the load rule alone already gives 1 thread.
 MIN_FLOP_PER_THREAD = float(1 << 22)
 
 
