@@ -150,9 +150,10 @@ def trust_checks(scores, surfaces) -> dict[str, dict[str, Any]]:
             out[f"spearman >= {TARGETS['spearman']} ({c})"] = _met(
                 s["spearman"], s["spearman"] >= TARGETS["spearman"]
             )
-        out[f"Brier skill vs the condition's base rate > 0 ({c})"] = _met(
-            s["brier_skill"], s["brier_skill"] > 0
-        )
+        if 0 < s["real"] < 1:  # else the constant own rate is perfect: no skill to show
+            out[f"Brier skill vs the condition's base rate > 0 ({c})"] = _met(
+                s["brier_skill"], s["brier_skill"] > 0
+            )
         out[f"time-to-success CRPS skill > 0 ({c})"] = _met(s["tts_skill"], s["tts_skill"] > 0)
     overall = scores["overall"]
     out[f"AUROC >= {TARGETS['auroc']} (all episodes)"] = _met(
