@@ -11,23 +11,14 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.recipes.micro import MICRO as QUICK_MICRO
+
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "pusher_competency" / "main.py"
 MICRO = (
-    "profile=quick",
-    "threads=1",
-    "progress=false",
-    "data.scripted_episodes=3",
-    "data.random_episodes=2",
-    "train.max_steps=20",
-    "train.val_every=10",
-    "agent.mpc_episodes=1",
-    "agent.eval_episodes=1",
-    "agent.distill.epochs=5",
+    *(o for o in QUICK_MICRO if not o.startswith("assess.start_states=")),
     "assess.start_states=3",
     "assess.start_chunk=1",
-    "assess.horizon_s=2.0",
-    "assess.surface_deadlines_s=[1.0,2.0]",
 )
 
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from micro import MICRO  # the quick profile, smaller still (as the end-to-end recipe test)
 
 from rcvae_torchrl.io import StoredFileError
 from rcvae_torchrl.stages import StageError, file_record
@@ -24,20 +25,6 @@ from recipes.pusher_competency.config import register_configs, study_config
 from recipes.pusher_competency.pipeline import STAGES, run_study
 
 CONF = Path(__file__).resolve().parents[2] / "recipes" / "pusher_competency" / "conf"
-MICRO = (  # the quick profile, smaller still (as the end-to-end recipe test)
-    "profile=quick",
-    "progress=false",
-    "data.scripted_episodes=3",
-    "data.random_episodes=2",
-    "train.max_steps=20",
-    "train.val_every=10",
-    "agent.mpc_episodes=1",
-    "agent.eval_episodes=1",
-    "agent.distill.epochs=5",
-    "assess.start_states=2",
-    "assess.horizon_s=2.0",
-    "assess.surface_deadlines_s=[1.0,2.0]",
-)
 register_configs()
 DAMAGES = ("garbage", "truncate", "delete")
 

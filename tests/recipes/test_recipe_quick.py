@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 from doc_blocks import rst_python_blocks, run_blocks
+from micro import MICRO, START_STATES
 from PIL import Image
 
 from recipes.pusher_competency.pusher import CONDITIONS
@@ -32,23 +33,7 @@ FIGURES = (
     "start_reliability.png",
     "surface.png",
 )
-START_STATES = 2
 STOCHASTIC_SEEDS = 2  # the quick profile's assess.stochastic_seeds_per_start
-MICRO = (
-    "profile=quick",
-    "threads=1",
-    "progress=false",
-    "data.scripted_episodes=3",
-    "data.random_episodes=2",
-    "train.max_steps=20",
-    "train.val_every=10",
-    "agent.mpc_episodes=1",
-    "agent.eval_episodes=1",
-    "agent.distill.epochs=5",
-    f"assess.start_states={START_STATES}",
-    "assess.horizon_s=2.0",
-    "assess.surface_deadlines_s=[1.0,2.0]",
-)
 
 
 def run_recipe(*overrides: str, timeout: float = 300) -> tuple[subprocess.CompletedProcess, float]:

@@ -1,0 +1,20 @@
+"""The quick profile, smaller still: the settings the end-to-end recipe tests run with."""
+
+START_STATES = 2
+
+#: Overrides of a micro run of the Pusher recipe (every stage, seconds each).
+MICRO = (
+    "profile=quick",
+    "threads=1",
+    "progress=false",
+    "data.scripted_episodes=3",
+    "data.random_episodes=2",
+    "train.max_steps=20",
+    "train.val_every=10",
+    "agent.mpc_episodes=1",
+    "agent.eval_episodes=1",
+    "agent.distill.epochs=5",
+    f"assess.start_states={START_STATES}",
+    "assess.horizon_s=2.0",
+    "assess.surface_deadlines_s=[1.0,2.0]",
+)
