@@ -66,11 +66,14 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
             if any(v is not None for v in values):
                 table[c][key] = _stats(values)
     checks = {}
-    for name in first["checks"]:
-        per_seed = [s["checks"].get(name) for s in summaries.values()]
+    # A check applies to a seed only where its run made it (e.g. no own-rate Brier skill where
+    # every real episode of a condition agreed): count the seeds it applied to, in every seed's order.
+    names = dict.fromkeys(name for s in summaries.values() for name in s["checks"])
+    for name in names:
+        per_seed = [s["checks"][name] for s in summaries.values() if name in s["checks"]]
         checks[name] = {
-            **_stats([c["value"] if c else None for c in per_seed]),
-            "met": sum(bool(c and c["met"]) for c in per_seed),
+            **_stats([c["value"] for c in per_seed]),
+            "met": sum(bool(c["met"]) for c in per_seed),
             "seeds": len(per_seed),
         }
     for c in conditions:

@@ -38,3 +38,13 @@ def test_the_command_writes_both_files(tmp_path):
     assert json.loads((tmp_path / "aggregate.json").read_text())["seeds"] == ["seed0", "seed1"]
     with pytest.raises(SystemExit, match="directory: expected seed"):
         main([str(tmp_path / "seed0")])
+
+
+def test_a_check_counts_only_the_seeds_it_applied_to():
+    # seed0 made no "own rate" check (every real episode agreed); seed1 made one and met it.
+    first, second = _summary(0.02, True), _summary(0.06, True)
+    second["checks"]["own rate"] = {"value": 0.3, "met": True}
+    result = aggregate({"seed0": first, "seed1": second})
+    own = result["checks"]["own rate"]
+    assert (own["met"], own["seeds"], own["mean"]) == (1, 1, pytest.approx(0.3))
+    assert list(result["checks"])[:2] == ["a check", "own rate"]
