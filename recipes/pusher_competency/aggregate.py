@@ -67,7 +67,7 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
                 table[c][key] = _stats(values)
     checks = {}
     # A check applies to a seed only where its run made it (e.g. no own-rate Brier skill where
-    # every real episode of a condition agreed): count the seeds it applied to, in every seed's order.
+    # every real episode of a condition agreed): count the seeds it applied to.
     names = dict.fromkeys(name for s in summaries.values() for name in s["checks"])
     for name in names:
         per_seed = [s["checks"][name] for s in summaries.values() if name in s["checks"]]
