@@ -16,20 +16,12 @@ from rcvae_torchrl.envs import (
     reset_to_state,
 )
 from rcvae_torchrl.envs.scripted import make_scripted_policy
-
-
-def _starts(n: int) -> torch.Tensor:
-    env = make_pusher_env("deterministic")
-    rows = []
-    for i in range(n):
-        env.set_seed(40 + i)
-        rows.append(env.reset()["observation"])
-    return torch.stack(rows)
+from tests.pusher_fixtures import pusher_starts
 
 
 @pytest.mark.parametrize("terminate", [True, False])
 def test_batched_outcomes_equal_the_one_env_run(terminate):
-    starts, kwargs = _starts(2), dict(time_limit=3.0, terminate_on_success=terminate)
+    starts, kwargs = pusher_starts(2), dict(time_limit=3.0, terminate_on_success=terminate)
     args = dict(
         runs_per_start=3,  # 6 episodes over 4 sub-envs: a padded second chunk
         reset_to_state=reset_to_state,
@@ -56,7 +48,7 @@ def test_batched_outcomes_equal_the_one_env_run(terminate):
 
 
 def test_batched_outcomes_by_a_success_function():
-    starts = _starts(1)
+    starts = pusher_starts(1)
     out = real_outcomes(
         make_batched_pusher_env(3, "deterministic", time_limit=3.0, terminate_on_success=False),
         make_scripted_policy(),

@@ -17,13 +17,13 @@ from rcvae_torchrl.data import ActionNoise, prepare_env
 from rcvae_torchrl.envs import (
     ball_to_target,
     make_batched_pusher_env,
-    make_pusher_env,
     reset_to_state,
 )
 from rcvae_torchrl.envs.scripted import make_scripted_policy
 from rcvae_torchrl.model_env import RCVAEEnsembleEnv
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.training import TrainConfig, train_ensemble
+from tests.pusher_fixtures import pusher_starts
 
 _spec = importlib.util.spec_from_file_location(
     "training_fixtures", Path(__file__).resolve().parents[1] / "training" / "conftest.py"
@@ -176,12 +176,3 @@ def outcomes(out: str | None = None) -> dict[str, RealOutcomes]:
         saved = {k: v.as_dict() for k, v in result.items()}
         torch.save(saved, out.format(rank=distributed.rank()))
     return result
-
-
-def pusher_starts(n: int) -> torch.Tensor:
-    env = make_pusher_env("deterministic")
-    rows = []
-    for i in range(n):
-        env.set_seed(40 + i)
-        rows.append(env.reset()["observation"])
-    return torch.stack(rows)
