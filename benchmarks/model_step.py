@@ -15,9 +15,19 @@ weights), with the Pusher's reward and success:
   prior), interleaved on the same 5 real Pusher states;
 - with ``--compile``: ``torch.compile(dynamic=True)`` of the scoring rollout, the seconds of its
   first call and of the first call with a new number of candidates (what a run waits for when a
-  plan shape changes), then its steady speed.
+  plan shape changes), then its steady speed;
+- with ``--mbrl``: a peer, mbrl-lib 0.2.0's PETS CEM planning (an ensemble of 5 Gaussian MLPs,
+  4 x 200, obs 14, act 2; population 200 x 20 particles x horizon 15 x 5 iterations), against our
+  CEM planner at the same budget on the study's model, interleaved: seconds per plan, model
+  steps/s and FLOP/s (each side's FLOP counted with ``FlopCounterMode``). mbrl-lib is not a
+  dependency (it pins old packages); install it beside the project's torch without its
+  dependencies and put it on the path::
 
-    python benchmarks/model_step.py [--repeats 7] [--stock] [--compile]
+      .venv/bin/pip install --no-deps --target /tmp/mbrl_target mbrl==0.2.0 termcolor \
+          gymnasium farama-notifications
+      PYTHONPATH=/tmp/mbrl_target .venv/bin/python benchmarks/model_step.py --mbrl
+
+    python benchmarks/model_step.py [--repeats 7] [--stock] [--compile] [--mbrl]
 """
 
 from __future__ import annotations
@@ -143,11 +153,115 @@ def stock_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
     return {k: {**v, "stock_over_this": stock / v["wall_s"]} for k, v in times.items()}
 
 
+MBRL_BUDGET = {"population": 200, "particles": 20, "horizon": 15, "iterations": 5}
+
+
+def _mbrl_plan():
+    """mbrl-lib's PETS CEM plan at ``MBRL_BUDGET``, as a no-argument call (None without mbrl)."""
+    try:
+        import mbrl.models as mm
+        import mbrl.planning as mp
+        import numpy as np
+        import omegaconf
+    except ImportError:
+        return None
+    b = MBRL_BUDGET
+    net = mm.GaussianMLP(
+        16, 14, "cpu", num_layers=4, ensemble_size=MEMBERS, hid_size=200,
+        propagation_method="fixed_model",
+    )  # fmt: skip
+    dynamics = mm.OneDTransitionRewardModel(
+        net, target_is_delta=True, normalize=False, learned_rewards=False
+    )
+
+    class _Spaces:  # ModelEnv reads only these two attributes off the real env
+        observation_space = action_space = None
+
+    def reward(act, next_obs):
+        return -next_obs[:, :2].norm(dim=-1, keepdim=True)
+
+    def never_done(act, next_obs):
+        return torch.zeros(next_obs.shape[0], 1, dtype=torch.bool)
+
+    env = mm.ModelEnv(
+        _Spaces(), dynamics, never_done, reward, generator=torch.Generator().manual_seed(0)
+    )
+    cfg = omegaconf.OmegaConf.create(
+        {
+            "_target_": "mbrl.planning.CEMOptimizer", "num_iterations": b["iterations"],
+            "elite_ratio": 0.1, "population_size": b["population"], "alpha": 0.1,
+            "device": "cpu", "lower_bound": "???", "upper_bound": "???",
+            "return_mean_elites": True, "clipped_normal": False,
+        }
+    )  # fmt: skip
+    optimizer = mp.TrajectoryOptimizer(cfg, -np.ones(2), np.ones(2), planning_horizon=b["horizon"])
+    obs0 = np.zeros(14, dtype=np.float32)
+
+    def evaluate(action_sequences):
+        return env.evaluate_action_sequences(
+            action_sequences, initial_state=obs0, num_particles=b["particles"]
+        )
+
+    return lambda: optimizer.optimize(evaluate)
+
+
+def _flop_of(call) -> float:
+    with FlopCounterMode(display=False) as counter, torch.no_grad():
+        call()
+    return float(counter.get_total_flops())
+
+
+def mbrl_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
+    """Ours against mbrl-lib's PETS CEM at its budget: s per plan, model steps/s, FLOP/s."""
+    peer = _mbrl_plan()
+    if peer is None:
+        return {}
+    from rcvae_torchrl.agent import PlannerConfig
+    from rcvae_torchrl.envs import make_pusher_env
+    from recipes.pusher_competency.pusher import make_planner
+
+    b = MBRL_BUDGET
+    env = make_pusher_env("deterministic")
+    torch.manual_seed(0)
+    state = env.reset()
+    config = PlannerConfig(
+        horizon=b["horizon"], num_candidates=b["population"], iterations=b["iterations"],
+        top_k=b["population"] // 10, particles=b["particles"], momentum=0.1,
+        policy_prior=False,
+    )  # fmt: skip
+    planner = make_planner(model, env, config)
+
+    def ours() -> None:
+        planner.reset()
+        planner(state.clone())
+
+    steps = b["population"] * b["particles"] * b["horizon"] * b["iterations"]
+    flop = {"mbrl-lib PETS CEM": _flop_of(peer), "ours (CEMPlanner)": _flop_of(ours)}
+    with torch.no_grad():
+        times = interleaved_median_times(
+            {"mbrl-lib PETS CEM": peer, "ours (CEMPlanner)": ours}, repeats
+        )
+    out = {}
+    for name, t in times.items():
+        out[name] = {
+            **t,
+            "model_steps_per_s": steps / t["wall_s"],
+            "flop_per_model_step": flop[name] / steps,
+            "flop_per_s": flop[name] / t["wall_s"],
+        }
+    peer_row = out["mbrl-lib PETS CEM"]
+    for row in out.values():
+        row["steps_per_s_over_mbrl"] = row["model_steps_per_s"] / peer_row["model_steps_per_s"]
+        row["flop_per_s_over_mbrl"] = row["flop_per_s"] / peer_row["flop_per_s"]
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--stock", action="store_true")
+    parser.add_argument("--mbrl", action="store_true", help="compare with mbrl-lib (see above)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = study_ensemble()
@@ -208,6 +322,21 @@ def main() -> None:
                 for k, v in stock.items()
             ],
         )
+    peer = mbrl_comparison(model, args.repeats) if args.mbrl else {}
+    if args.mbrl and not peer:
+        print("\nmbrl-lib is not importable: see this script's docstring to install it")
+    if peer:
+        print_table(
+            "mbrl-lib PETS CEM vs ours, population 200 x 20 particles x horizon 15 x 5 iterations",
+            ["planner", "threads", "load", "s / plan", "model steps/s", "kFLOP / step",
+             "GFLOP/s", "steps/s / mbrl", "FLOP/s / mbrl"],
+            [
+                [k, v["threads"], v["load_1min"], v["wall_s"], v["model_steps_per_s"],
+                 v["flop_per_model_step"] / 1e3, v["flop_per_s"] / 1e9,
+                 v["steps_per_s_over_mbrl"], v["flop_per_s_over_mbrl"]]
+                for k, v in peer.items()
+            ],
+        )  # fmt: skip
     write_json(
         "model_step",
         {
@@ -217,6 +346,7 @@ def main() -> None:
             "rows": rows,
             "compile_dynamic": compiled,
             "vs_stock_cem": stock,
+            "vs_mbrl_lib": peer,
             **conditions(),
         },
     )
