@@ -5,8 +5,8 @@ with ``torch.multiprocessing``), one intra-op thread per rank, ``--repeats`` tim
 world sizes interleaved; the time of a repeat is rank 0's wall clock from a barrier to the end
 of the gathered result. Workloads (Pusher-sized, the study's default world model):
 
-- training: ``train_ensemble`` of E = 4 members (2 per rank), 100 steps of 32 windows x 32
-  steps, on synthetic 14-D episodes;
+- training: ``train_ensemble`` of E = 4 members (2 per rank), 100 steps (``--training-steps``)
+  of 32 windows x 32 steps, on synthetic 14-D episodes;
 - forecasting: ``CompetencyAssessor.assess`` closed loop, 16 start states in chunks of one
   (8 per rank), 20 samples per member of 5 members, a horizon of 100 steps;
 - validation: ``real_outcomes`` of the scripted pusher in the real Pusher (one env per rank)
@@ -21,7 +21,7 @@ assumptions). The machine's load average is recorded before and after: other job
 2-core machine take cores away from the ranks.
 
     python benchmarks/scaling.py [--repeats 3] [--quick] [--only training ...] [--full-model]
-                                 [--out scaling]
+                                 [--training-steps 100] [--out scaling]
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ UNITS = {"training": 4, "forecasting": 16, "validation": 16}  # members, chunks,
 
 
 # ---------------------------------------------------------------------- workloads
-def _training(quick: bool, full_model: bool = False):
+def _training(quick: bool, full_model: bool = False, steps: int = 100):
     from tensordict import TensorDict
 
     from rcvae_torchrl.data import TRAJ_KEY
@@ -75,7 +75,7 @@ def _training(quick: bool, full_model: bool = False):
         return td.reshape(-1)
 
     train, val = episodes(32, 0), episodes(8, 1000)
-    steps = 10 if quick else 100
+    steps = 10 if quick else steps
     windows = 64 if full_model else 32  # the full profile's batch and hidden size
     config = TrainConfig(max_steps=steps, batch_windows=windows, window=32, val_every=steps // 2)
     model_config = rcvae_config(ModelConfig(hidden_dim=128 if full_model else 64))
@@ -292,6 +292,13 @@ def main() -> None:
         action="store_true",
         help="train the full profile's model (hidden 128, 64 windows per member)",
     )
+    parser.add_argument(
+        "--training-steps",
+        type=int,
+        default=100,
+        help="training steps per run (the default profile trains up to 5000: with more steps "
+        "the one-off set-up weighs less)",
+    )
     parser.add_argument("--out", default="scaling", help="results/<out>.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -299,7 +306,7 @@ def main() -> None:
     settings = {
         "repeats": args.repeats,
         "quick": args.quick,
-        "workload": {"training": {"full_model": args.full_model}},
+        "workload": {"training": {"full_model": args.full_model, "steps": args.training_steps}},
     }
     results: dict[str, dict[int, dict]] = {name: {} for name in args.only}
     for name in args.only:
