@@ -66,7 +66,11 @@ _BOUNDS: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, torch.Tensor
 
 def _joint_bounds(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Lower and upper bounds of (shoulder, wrist): ``∓[inf, WRIST_RANGE]``, with the dtype and
-    device of ``like`` (made once, then cached)."""
+    device of ``like`` (made once, then cached; under ``torch.compile`` made in the graph, so a
+    compiled function does not depend on, nor recompile for, the state of the cache)."""
+    if torch.compiler.is_compiling():
+        high = torch.tensor([torch.inf, float(WRIST_RANGE)], dtype=like.dtype, device=like.device)
+        return -high, high
     key = (like.dtype, like.device)
     if key not in _BOUNDS:
         high = torch.tensor([torch.inf, float(WRIST_RANGE)], dtype=like.dtype).to(like.device)

@@ -108,9 +108,10 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             planning and evaluation, and a graph over a whole rollout costs memory).
         compile_scoring: :meth:`evaluate_action_sequences` runs the ``"ts_inf"`` rollout (all
             H steps: model, constraint, reward, success) as one ``torch.compile``-d function
-            (:func:`~rcvae_torchrl.rollout.compiled_scoring`): faster once compiled,
-            which takes tens of seconds to minutes on a CPU per new horizon or batch size; the
-            same samples up to float rounding. Other modes and ``step`` are unaffected.
+            (:func:`~rcvae_torchrl.rollout.compiled_scoring`): faster once compiled, which
+            takes tens of seconds on a CPU per new model, task or horizon (one compile serves
+            every number of candidates and particles); the same samples up to float
+            rounding. Other modes and ``step`` are unaffected.
 
     Example:
         >>> import torch

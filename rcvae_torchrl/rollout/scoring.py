@@ -151,9 +151,9 @@ def evaluate_action_sequences(
     hidden = initial_hidden(ensemble, n, obs, ts_inf)
     args = (ensemble, trajectory_sampling, task, hidden, obs, per_step, bounds)
     if compile and ts_inf:  # the noise drawn here, as the steps would draw it
-        returns, success = compiled_scoring()(
-            *args, None, _ts_inf_noise(ensemble, hidden, horizon, generator)
-        )
+        noise = _ts_inf_noise(ensemble, hidden, horizon, generator)
+        _mark_particles_dynamic(hidden, obs, per_step, noise)
+        returns, success = compiled_scoring()(*args, None, noise)
     else:
         returns, success = _score(*args, generator, None)
     out = SequenceReturns(returns.view(groups, rows).T, success.view(groups, rows).T)
@@ -168,17 +168,28 @@ _COMPILED: list = []
 
 
 def compiled_scoring() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
-    """The scoring rollout under ``torch.compile`` (inductor, static shapes), made once.
+    """The scoring rollout under ``torch.compile`` (inductor, dynamic particle count), made once.
 
     One compiled call per scoring: the H steps unrolled into one graph (fused kernels and the
     matmuls instead of some sixty small ops per step, and one guard check instead of H). The
-    first call for a new model, task function, horizon or batch size compiles it (seconds to
-    minutes on a CPU). The numbers agree with the eager rollout up to float rounding (fused
-    kernels), not bit for bit. Dynamo recompiles for each new shape, up to its cache limit.
+    number of particles (candidates x particles per candidate) is a symbolic size
+    (:func:`evaluate_action_sequences` marks it dynamic), so one compile serves every number of
+    candidates and particles; a new model, task function, horizon or dtype compiles again
+    (tens of seconds on a CPU, a few seconds when inductor's on-disk cache, shared by later
+    processes, already holds the kernels). The numbers agree with the eager rollout up to float
+    rounding (fused kernels), not bit for bit.
     """
     if not _COMPILED:
-        _COMPILED.append(torch.compile(_score, dynamic=False))
+        _COMPILED.append(torch.compile(_score, dynamic=True))
     return _COMPILED[0]
+
+
+def _mark_particles_dynamic(hidden, obs, per_step, noise) -> None:
+    """Mark the particle dimension of the compiled rollout's inputs dynamic (sizes 0 and 1 are
+    always specialised by the compiler, so those are left static)."""
+    for tensor, dim in ((hidden, -2), (obs, 0), (per_step, 1), (noise[0], -2), (noise[1], -2)):
+        if tensor.shape[dim] > 1:
+            torch._dynamo.mark_dynamic(tensor, dim % tensor.dim())
 
 
 def _ts_inf_noise(

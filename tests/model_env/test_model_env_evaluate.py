@@ -179,3 +179,27 @@ def test_compiled_scoring_matches_eager_under_the_same_seed(ensemble, real_env, 
     assert torch.equal(got[1], want[1])
     # the generator advanced by the same draws
     assert torch.equal(eager.generator.get_state(), compiled.generator.get_state())
+
+
+@pytest.mark.slow  # compiles the model step (tens of seconds on a CPU)
+def test_compiled_scoring_compiles_once_for_every_number_of_candidates(ensemble, real_env, starts):
+    """The particle count is a dynamic size: after the first compile, new numbers of
+    candidates and particles reuse the same graph, and each still matches the eager rollout."""
+    from torch._dynamo.utils import counters
+
+    kwargs = {"trajectory_sampling": "ts_inf", "seed": 0}
+    eager = make_rcvae_env(ensemble, real_env, pusher_reward, pusher_success, **kwargs)
+    compiled = make_rcvae_env(
+        ensemble, real_env, pusher_reward, pusher_success, compile_scoring=True, **kwargs
+    )
+    graphs = []
+    for candidates, particles in ((6, 2 * E), (11, 2 * E), (17, 3 * E)):
+        actions = torch.rand(2, candidates, 6, 2, generator=torch.Generator().manual_seed(1))
+        for env in (eager, compiled):
+            env.set_seed(3)
+        args = (_start(starts, (2,)), actions * 2 - 1, particles)
+        want = eager.evaluate_action_sequences(*args)
+        got = compiled.evaluate_action_sequences(*args)
+        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
+        graphs.append(int(counters["stats"]["unique_graphs"]))
+    assert graphs[1] == graphs[2] == graphs[0], f"graphs compiled after each shape: {graphs}"
