@@ -54,6 +54,12 @@ from rcvae_torchrl.competency.outcome_assessment import (
     ordinal_distribution,
     partial_moments,
 )
+from rcvae_torchrl.competency.recalibration import (
+    PlattMap,
+    apply_platt,
+    cross_fitted_recalibration,
+    fit_platt,
+)
 from rcvae_torchrl.competency.report import CompetencyReport, Reference
 from rcvae_torchrl.competency.validation import (
     StartReliability,
@@ -102,6 +108,11 @@ __all__ = [
     "brier_score",
     "expected_calibration_error",
     "reliability_diagram",
+    # recalibration on real episodes (cross-fitted over start states)
+    "PlattMap",
+    "apply_platt",
+    "cross_fitted_recalibration",
+    "fit_platt",
     # forecasts against real episodes, start by start
     "StartReliability",
     "auroc",

@@ -41,6 +41,8 @@ COLUMNS = (
     ("validation", "oracle_brier_skill", "oracle BSS (own rate)"),
     ("validation", "bss_tasks", "BSS (tasks alike)"),
     ("validation", "tts_skill", "TTS CRPS skill"),
+    ("validation", "recalibrated.gap", "gap, recalibrated"),
+    ("validation", "recalibrated.brier_skill", "BSS (own rate), recalibrated"),
 )
 #: Across seeds, the mean gap per condition must stay within this.
 MEAN_GAP = 0.05
@@ -54,6 +56,13 @@ def _stats(values: list[float]) -> dict[str, Any]:
     return {"mean": mean, "sd": sd, "values": values}
 
 
+def _get(scores: dict[str, Any], key: str) -> Any:
+    """``scores[key]``, where ``"a.b"`` reads ``scores["a"]["b"]`` (None when absent)."""
+    for part in key.split("."):
+        scores = scores.get(part) if isinstance(scores, dict) else None
+    return scores
+
+
 def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """``summaries``: seed name -> that run's summary.json. Returns the aggregate."""
     first = next(iter(summaries.values()))
@@ -62,7 +71,7 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
     for c in conditions:
         table[c] = {}
         for section, key, _ in COLUMNS:
-            values = [s[section].get(c, {}).get(key) for s in summaries.values()]
+            values = [_get(s[section].get(c, {}), key) for s in summaries.values()]
             if any(v is not None for v in values):
                 table[c][key] = _stats(values)
     checks = {}

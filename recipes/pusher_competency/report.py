@@ -24,7 +24,14 @@ from rcvae_torchrl.reporting import (
 
 from .config import AssessConfig
 from .pusher import FIGURE_PANELS
-from .trust import competency_surfaces, trust_checks, validation, validation_figures
+from .trust import (
+    RECALIBRATED_SCORES,
+    RECALIBRATION_FOLDS,
+    competency_surfaces,
+    trust_checks,
+    validation,
+    validation_figures,
+)
 
 __all__ = ["COLUMNS", "agent_section", "condition_row", "pattern_checks", "write_report"]
 
@@ -303,6 +310,7 @@ def _validation_text(scores, assess: AssessConfig) -> str:
             "",
             "![reliability over start states](start_reliability.png)",
             "",
+            *_recalibration_text(scores),
             "## Competency surface",
             "",
             "P(success) for other boundaries (success radius x deadline), answered by the same "
@@ -313,6 +321,33 @@ def _validation_text(scores, assess: AssessConfig) -> str:
             "",
         ]
     )
+
+
+def _recalibration_text(scores) -> list[str]:
+    """Before and after a cross-fitted recalibration: the lines of report.md."""
+    rows = [(c, s) for c, s in scores.items() if s.get("recalibrated")]
+    if not rows:
+        return []
+    keys = RECALIBRATED_SCORES
+    labels = {**dict(_SCORE_COLUMNS), "ece": "ECE"}
+    head = "| condition | " + " | ".join(f"{labels[k]} before | after" for k in keys) + " |"
+    body = [
+        f"| {c} | " + " | ".join(f"{s[k]:.3f} | {s['recalibrated'][k]:.3f}" for k in keys) + " |"
+        for c, s in rows
+    ]
+    return [
+        "### Recalibrated on held-out start states",
+        "",
+        f"Not the forecast above, but what a Platt map fitted on real episodes would make of it: "
+        f"each condition's start states are split into {RECALIBRATION_FOLDS} folds and each "
+        "fold's forecasts are recalibrated with the map fitted on the other folds' episodes, so "
+        "no start is recalibrated with its own outcomes. The checks score the forecast itself.",
+        "",
+        head,
+        "|:---|" + "---:|" * (2 * len(keys)),
+        *body,
+        "",
+    ]
 
 
 _AGENT_TEXT = {

@@ -48,3 +48,12 @@ def test_a_check_counts_only_the_seeds_it_applied_to():
     own = result["checks"]["own rate"]
     assert (own["met"], own["seeds"], own["mean"]) == (1, 1, pytest.approx(0.3))
     assert list(result["checks"])[:2] == ["a check", "own rate"]
+
+
+def test_nested_scores_are_aggregated():
+    first, second = _summary(0.02, True), _summary(0.06, True)
+    for s, gap in ((first, 0.01), (second, 0.03)):
+        s["validation"]["stochastic"]["recalibrated"] = {"gap": gap}
+    result = aggregate({"seed0": first, "seed1": second})
+    assert result["table"]["stochastic"]["recalibrated.gap"]["mean"] == pytest.approx(0.02)
+    assert "recalibrated.gap" not in result["table"]["overall"]

@@ -71,3 +71,20 @@ def test_a_constant_forecast_has_no_skill_and_fails_the_checks():
     assert not checks["AUROC >= 0.75 (all episodes)"]["met"]
     assert not checks["Brier skill vs the overall base rate >= 0.3"]["met"]
     assert not checks["Brier skill vs the condition's base rate > 0 (stochastic)"]["met"]
+
+
+def test_the_recalibrated_scores_sit_beside_the_forecasts_own():
+    forecasts, truths = _case(perfect=True)
+    for c in CONDITIONS:  # ranks right, but 0.2 too optimistic on average
+        forecasts[c]["p_success"] = torch.where(forecasts[c]["p_success"] > 0, 0.8, 0.6)
+    scores = validation(forecasts, truths, radius=0.03)
+    for c in (*CONDITIONS, "overall"):
+        assert scores[c]["gap"] == pytest.approx(0.2)
+        assert set(scores[c]["recalibrated"]) == {
+            "forecast", "gap", "per_start_mae", "brier_skill", "ece", "auroc"
+        }  # fmt: skip
+    # 30 episodes per start: the held-out maps pull the forecast to the real rate
+    after = scores["stochastic"]["recalibrated"]
+    assert after["gap"] < 0.05 and after["brier_skill"] > scores["stochastic"]["brier_skill"]
+    checks = trust_checks(scores, competency_surfaces(forecasts, truths, [0.03], [20]))
+    assert not any("recalibrat" in name for name in checks)  # the checks score the forecast

@@ -1,0 +1,109 @@
+"""Recalibrating forecasts of success on real episodes, with an honest split.
+
+A forecast can rank the start states well and still be biased as a whole (e.g. too optimistic
+out of distribution). Platt scaling maps a forecast ``f`` to ``σ(a·logit(f) + b)``, with ``a``
+and ``b`` fitted by maximum likelihood on real episodes. Fitted and scored on the same start
+states it would flatter the forecast, so :func:`cross_fitted_recalibration` splits the start
+states into folds and recalibrates each fold with the map fitted on the *other* folds only:
+every start's recalibrated forecast is made without its own outcomes.
+
+The fit is penalised towards the identity map (``a = 1``, ``b = 0``) with weight ``ridge``:
+without it a condition whose real episodes all agree (every episode a success) has no finite
+maximum-likelihood map.
+
+Layouts as in :mod:`rcvae_torchrl.competency.validation`: forecasts ``[B]``, outcomes
+``[B, R]`` bool, an optional ``mask`` ``[B, R]``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from rcvae_torchrl.competency.validation import _outcomes
+
+__all__ = ["PlattMap", "apply_platt", "cross_fitted_recalibration", "fit_platt"]
+
+#: Forecasts are clamped to [EPS, 1 - EPS] before the logit.
+EPS = 1e-4
+
+
+class PlattMap(NamedTuple):
+    """``f -> σ(slope·logit(f) + intercept)``."""
+
+    slope: float
+    intercept: float
+
+
+def _logit(f: Tensor) -> Tensor:
+    f = f.to(torch.float64).clamp(EPS, 1 - EPS)
+    return torch.log(f) - torch.log1p(-f)
+
+
+def fit_platt(
+    forecast: Tensor,
+    outcome: Tensor,
+    mask: Tensor | None = None,
+    *,
+    ridge: float = 1.0,
+    iterations: int = 50,
+) -> PlattMap:
+    """The Platt map maximising the likelihood of the episodes' outcomes, every episode one
+    observation, minus ``ridge / 2 · ((a - 1)² + b²)``; Newton's method (the objective is
+    concave, so it converges from the identity)."""
+    if not ridge > 0:
+        raise ValueError(f"ridge: expected a positive penalty weight, got {ridge!r}")
+    if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
+    f, mask = _outcomes(forecast, outcome, mask)
+    x = _logit(f)[:, None].expand_as(outcome)[mask]
+    y = outcome[mask].to(torch.float64)
+    design = torch.stack([x, torch.ones_like(x)], dim=-1)  # [n, 2]
+    theta = torch.tensor([1.0, 0.0], dtype=torch.float64)
+    prior = theta.clone()
+    for _ in range(iterations):
+        p = torch.sigmoid(design @ theta)
+        grad = design.T @ (p - y) + ridge * (theta - prior)
+        hess = (design * (p * (1 - p))[:, None]).T @ design + ridge * torch.eye(2).double()
+        step = torch.linalg.solve(hess, grad)
+        theta = theta - step
+        if float(step.abs().max()) < 1e-10:
+            break
+    return PlattMap(float(theta[0]), float(theta[1]))
+
+
+def apply_platt(forecast: Tensor, platt: PlattMap) -> Tensor:
+    """``σ(slope·logit(f) + intercept)`` ``[B]``, in the forecast's dtype."""
+    z = platt.slope * _logit(forecast) + platt.intercept
+    return torch.sigmoid(z).to(forecast.dtype)
+
+
+def cross_fitted_recalibration(
+    forecast: Tensor,
+    outcome: Tensor,
+    mask: Tensor | None = None,
+    *,
+    folds: int = 5,
+    seed: int = 0,
+    ridge: float = 1.0,
+) -> Tensor:
+    """Forecasts ``[B]`` recalibrated fold by fold: the start states are split at random
+    (``seed``) into ``folds`` folds of nearly equal size, and each fold's forecasts go through
+    the Platt map fitted (:func:`fit_platt`) on the episodes of the other folds' starts."""
+    f, mask = _outcomes(forecast, outcome, mask)
+    b = f.shape[0]
+    if isinstance(folds, bool) or not isinstance(folds, int) or not 2 <= folds <= b:
+        raise ValueError(
+            f"folds: expected an integer between 2 and the number of start states ({b}), "
+            f"got {folds!r}"
+        )
+    order = torch.randperm(b, generator=torch.Generator().manual_seed(int(seed)))
+    out = torch.empty_like(forecast)
+    for held in order.tensor_split(folds):
+        train = torch.ones(b, dtype=torch.bool)
+        train[held] = False
+        platt = fit_platt(forecast[train], outcome[train], mask[train], ridge=ridge)
+        out[held] = apply_platt(forecast[held], platt)
+    return out

@@ -1,0 +1,103 @@
+"""Platt recalibration on real episodes, and its cross-fitted (honest) form."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rcvae_torchrl.competency import (
+    PlattMap,
+    apply_platt,
+    cross_fitted_recalibration,
+    episode_brier,
+    fit_platt,
+)
+
+
+def _draw(true_p: torch.Tensor, runs: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(true_p.shape[0], runs, generator=g, dtype=torch.float64) < true_p[:, None]
+
+
+def _forecasts(n: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, generator=g, dtype=torch.float64) * 0.9 + 0.05
+
+
+def test_the_fit_recovers_a_known_map():
+    f = _forecasts(4000, 0)
+    logit = torch.log(f) - torch.log1p(-f)
+    true_p = torch.sigmoid(2.0 * logit - 1.0)  # over-confident and too optimistic
+    platt = fit_platt(f, _draw(true_p, 1, 1), ridge=1e-3)
+    assert platt.slope == pytest.approx(2.0, abs=0.15)
+    assert platt.intercept == pytest.approx(-1.0, abs=0.1)
+
+
+def test_the_identity_map_changes_nothing():
+    f = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    torch.testing.assert_close(apply_platt(f, PlattMap(1.0, 0.0)), f)
+
+
+def test_a_biased_forecast_is_corrected_on_held_out_starts():
+    f = _forecasts(200, 2)
+    outcome = _draw((f - 0.2).clamp(0.01, 0.99), 10, 3)  # the forecast 0.2 too optimistic
+    real = outcome.double().mean()
+    recalibrated = cross_fitted_recalibration(f, outcome, folds=5, seed=0)
+    assert float(f.mean() - real) > 0.15
+    assert abs(float(recalibrated.mean() - real)) < 0.03
+    assert episode_brier(recalibrated, outcome) < episode_brier(f, outcome)
+
+
+def test_a_calibrated_forecast_stays_nearly_as_it_is():
+    f = _forecasts(200, 4)
+    outcome = _draw(f, 10, 5)
+    recalibrated = cross_fitted_recalibration(f, outcome, folds=5, seed=0)
+    assert float((recalibrated - f).abs().mean()) < 0.03
+
+
+def test_a_start_is_never_recalibrated_with_its_own_outcomes():
+    f = _forecasts(20, 6)
+    outcome = _draw(f, 5, 7)
+    flipped = outcome.clone()
+    flipped[0] = ~flipped[0]
+    a = cross_fitted_recalibration(f, outcome, folds=4, seed=1)
+    b = cross_fitted_recalibration(f, flipped, folds=4, seed=1)
+    assert a[0] == b[0]  # start 0's map was fitted on the other folds only
+    assert not torch.equal(a, b)  # ...and its outcomes moved the other folds' maps
+
+
+def test_episodes_that_all_agree_give_a_finite_map():
+    f = torch.tensor([0.9, 0.95, 0.99, 0.8])
+    platt = fit_platt(f, torch.ones(4, 3, dtype=torch.bool))
+    assert all(map(torch.isfinite, map(torch.tensor, platt)))
+    assert (apply_platt(f, platt) >= f).all()  # all succeeded: the map leans to success
+
+
+def test_masked_runs_are_left_out():
+    f = torch.tensor([0.3, 0.6, 0.7, 0.4], dtype=torch.float64)
+    outcome = torch.tensor([[True, False], [True, True], [False, True], [False, False]])
+    mask = torch.tensor([[True, False], [True, True], [True, True], [True, False]])
+    reference = fit_platt(f, outcome & mask, mask)
+    changed = outcome.clone()
+    changed[~mask] = ~changed[~mask]
+    assert fit_platt(f, changed, mask) == reference
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"folds": 1}, "folds: expected an integer between 2 and the number of start states"),
+        ({"folds": 9}, r"folds: .*\(8\), got 9"),
+        ({"folds": 2.5}, "folds"),
+        ({"ridge": 0.0}, "ridge: expected a positive penalty weight"),
+    ],
+)
+def test_bad_arguments_are_named(kwargs, match):
+    f = _forecasts(8, 8)
+    with pytest.raises(ValueError, match=match):
+        cross_fitted_recalibration(f, _draw(f, 2, 9), **kwargs)
+
+
+def test_outcomes_must_be_episodes():
+    with pytest.raises(TypeError, match="outcome: expected bool"):
+        fit_platt(torch.tensor([0.5, 0.5]), torch.ones(2, 3))
