@@ -79,6 +79,14 @@ system-deps:
 			echo "warning: no libEGL and no root apt-get: rendering tests will be skipped"; \
 		fi; \
 	fi
+	@if ! command -v g++ >/dev/null 2>&1; then \
+		if command -v apt-get >/dev/null 2>&1 && [ "$$(id -u)" = 0 ]; then \
+			echo "installing g++ (torch.compile's CPU kernels)"; \
+			apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq g++ >/dev/null; \
+		else \
+			echo "warning: no g++ and no root apt-get: the compiled-scoring test will fail"; \
+		fi; \
+	fi
 
 clean:
 	rm -rf $(VENV) docs/_build .pytest_cache .ruff_cache

@@ -203,3 +203,28 @@ def test_compiled_scoring_compiles_once_for_every_number_of_candidates(ensemble,
         torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
         graphs.append(int(counters["stats"]["unique_graphs"]))
     assert graphs[1] == graphs[2] == graphs[0], f"graphs compiled after each shape: {graphs}"
+
+
+def test_compiled_scoring_equals_the_eager_reference(ensemble, real_env, starts):
+    """The default suite's check of the compiled (inductor-fused) scoring against the eager
+    rollout: a 2-step horizon keeps the compile short (about 20 s on a CPU with a cold cache);
+    two numbers of candidates, one graph."""
+    from torch._dynamo.utils import counters
+
+    kwargs = {"trajectory_sampling": "ts_inf", "seed": 0}
+    eager = make_rcvae_env(ensemble, real_env, pusher_reward, pusher_success, **kwargs)
+    compiled = make_rcvae_env(
+        ensemble, real_env, pusher_reward, pusher_success, compile_scoring=True, **kwargs
+    )
+    graphs = []
+    for candidates in (4, 7):
+        actions = torch.rand(2, candidates, 2, 2, generator=torch.Generator().manual_seed(1))
+        for env in (eager, compiled):
+            env.set_seed(3)
+        args = (_start(starts, (2,)), actions * 2 - 1, 2 * E)
+        want = eager.evaluate_action_sequences(*args, return_success=True)
+        got = compiled.evaluate_action_sequences(*args, return_success=True)
+        torch.testing.assert_close(got[0], want[0], rtol=1e-4, atol=1e-5)
+        assert torch.equal(got[1], want[1])
+        graphs.append(int(counters["stats"]["unique_graphs"]))
+    assert graphs[0] == graphs[1], f"graphs compiled after each shape: {graphs}"
