@@ -10,7 +10,8 @@ weights), with the Pusher's reward and success:
 - ``evaluate_action_sequences`` eager, and the model's own step alone over the same particles
   and horizon (no task, no rollout bookkeeping): model steps per second and percent of peak,
   interleaved rounds, one thread, with the load;
-- with ``--stock``: time per plan of our CEM planner (eager, P = 1 and 5) against TorchRL's stock
+- with ``--stock``: time per plan of our CEM planner (eager and compiled, P = 1 and 5) against
+  TorchRL's stock
   ``CEMPlanner`` over the same model env at the same budget (C x I x H = 64 x 2 x 12, no policy
   prior), interleaved on the same 5 real Pusher states;
 - with ``--compile``: the library's compiled scoring rollout (``compile=True``: dynamic
@@ -148,6 +149,10 @@ def stock_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
         "stock CEMPlanner": _stock(model_env, config),
         "ours P=1": make_planner(model, env, dataclasses.replace(config, particles=1)),
         "ours P=5": make_planner(model, env, config),
+        "ours P=1, compile=True": make_planner(
+            model, env, dataclasses.replace(config, particles=1), compile=True
+        ),
+        "ours P=5, compile=True": make_planner(model, env, config, compile=True),
     }
 
     def plan_all(policy) -> None:
@@ -326,7 +331,7 @@ def main() -> None:
     stock = stock_comparison(model, args.repeats) if args.stock else {}
     if stock:
         print_table(
-            f"seconds per plan of 5 states, C x I x H = {CANDIDATES} x 2 x {HORIZON}, eager",
+            f"seconds per plan of 5 states, C x I x H = {CANDIDATES} x 2 x {HORIZON}",
             ["planner", "threads", "load", "s", "stock / this"],
             [
                 [k, v["threads"], v["load_1min"], v["wall_s"], v["stock_over_this"]]
