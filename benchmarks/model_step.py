@@ -245,18 +245,23 @@ def mbrl_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
         top_k=b["population"] // 10, particles=b["particles"], momentum=0.1,
         policy_prior=False,
     )  # fmt: skip
-    planner = make_planner(model, env, config)
+    planners = {
+        "ours (CEMPlanner)": make_planner(model, env, config),
+        "ours (CEMPlanner), compile=True": make_planner(model, env, config, compile=True),
+    }
 
-    def ours() -> None:
+    def plan(planner) -> None:
         planner.reset()
         planner(state.clone())
 
+    calls = {"mbrl-lib PETS CEM": peer}
+    calls.update({name: functools.partial(plan, p) for name, p in planners.items()})
     steps = b["population"] * b["particles"] * b["horizon"] * b["iterations"]
-    flop = {"mbrl-lib PETS CEM": _flop_of(peer), "ours (CEMPlanner)": _flop_of(ours)}
+    # FLOP counted on the eager path (the compiled one does the same arithmetic)
+    ours_flop = _flop_of(calls["ours (CEMPlanner)"])
+    flop = {name: ours_flop for name in planners} | {"mbrl-lib PETS CEM": _flop_of(peer)}
     with torch.no_grad():
-        times = interleaved_median_times(
-            {"mbrl-lib PETS CEM": peer, "ours (CEMPlanner)": ours}, repeats
-        )
+        times = interleaved_median_times(calls, repeats)
     out = {}
     for name, t in times.items():
         out[name] = {
