@@ -87,3 +87,48 @@ def test_a_constant_or_passthrough_dimension_is_not_checked(trained):
         checks = check_model(RCVAEEnsemble(config, 2), val)
     assert 1 not in checks.checked and 2 not in checks.checked
     assert checks.names == ("obs[0]", "obs[1]", "obs[2]", "obs[3]")
+
+
+@pytest.mark.slow  # collects 30 reacher episodes and trains 3 members for 1500 steps (~1 min)
+def test_reacher_goal_relative_dimensions_are_flagged():
+    """dm_control reacher as a new user models it: the goal-relative ``to_target`` vector,
+    which the ensemble does not learn from exploration data (its error equals copying the
+    previous state), is named by the check; the arm's own dimensions are not."""
+    from torch import nn
+    from torchrl.envs import DMControlEnv
+
+    from rcvae_torchrl.data import (
+        GaussianExploration,
+        action_bounds,
+        collect_episodes,
+        make_exploration_policy,
+        prepare_env,
+        split_episodes,
+    )
+
+    torch.manual_seed(0)
+    env, layout = prepare_env(DMControlEnv("reacher", "easy"))
+
+    class Still(nn.Module):
+        def forward(self, observation):
+            return torch.zeros(*observation.shape[:-1], 2)
+
+    low, high = action_bounds(env)
+    behaviour = make_exploration_policy(GaussianExploration(Still(), 0.7, low=low, high=high))
+    data = collect_episodes(
+        lambda: prepare_env(DMControlEnv("reacher", "easy"))[0],
+        behaviour,
+        num_episodes=30,
+        seed=0,
+        progress=False,
+    )
+    train, val = split_episodes(data, val_fraction=0.2, seed=0)
+    config = RCVAEConfig(
+        layout.dim, 2, hidden_dim=64, mlp_dim=64, latent_dim=8, observation_names=layout.names
+    )
+    budget = TrainConfig(max_steps=1500, batch_windows=32, window=32, val_every=250)
+    with pytest.warns(ModelCheckWarning, match="to_target"):
+        result = train_ensemble(RCVAEEnsemble(config, 3), train, val, budget, progress=False)
+    flagged = {layout.names[i] for i in result.checks.flagged}
+    assert {"to_target[0]", "to_target[1]"} <= flagged
+    assert not flagged & {"position[0]", "position[1]", "velocity[0]", "velocity[1]"}
