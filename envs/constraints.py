@@ -69,10 +69,13 @@ def _joint_bounds(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     device of ``like`` (made once, then cached; under ``torch.compile`` made in the graph, so a
     compiled function does not depend on, nor recompile for, the state of the cache)."""
     if torch.compiler.is_compiling():
-        high = torch.tensor([torch.inf, float(WRIST_RANGE)], dtype=like.dtype, device=like.device)
-        return -high, high
+        return _make_bounds(like)
     key = (like.dtype, like.device)
     if key not in _BOUNDS:
-        high = torch.tensor([torch.inf, float(WRIST_RANGE)], dtype=like.dtype).to(like.device)
-        _BOUNDS[key] = (-high, high)
+        _BOUNDS[key] = _make_bounds(like)
     return _BOUNDS[key]
+
+
+def _make_bounds(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    high = torch.tensor([torch.inf, float(WRIST_RANGE)], dtype=like.dtype, device=like.device)
+    return -high, high

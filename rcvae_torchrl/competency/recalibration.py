@@ -63,10 +63,11 @@ def fit_platt(
     design = torch.stack([x, torch.ones_like(x)], dim=-1)  # [n, 2]
     theta = torch.tensor([1.0, 0.0], dtype=torch.float64)
     prior = theta.clone()
+    penalty = ridge * torch.eye(2, dtype=torch.float64)
     for _ in range(iterations):
         p = torch.sigmoid(design @ theta)
         grad = design.T @ (p - y) + ridge * (theta - prior)
-        hess = (design * (p * (1 - p))[:, None]).T @ design + ridge * torch.eye(2).double()
+        hess = (design * (p * (1 - p))[:, None]).T @ design + penalty
         step = torch.linalg.solve(hess, grad)
         theta = theta - step
         if float(step.abs().max()) < 1e-10:
