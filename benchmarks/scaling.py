@@ -10,7 +10,9 @@ of the gathered result. Workloads (Pusher-sized, the study's default world model
 - forecasting: ``CompetencyAssessor.assess`` closed loop, 16 start states in chunks of one
   (8 per rank), 20 samples per member of 5 members, a horizon of 100 steps;
 - validation: ``real_outcomes`` of the scripted pusher in the real Pusher (one env per rank)
-  from 16 start states, 200 steps.
+  from 16 start states, 200 steps; and the same in one process over 1 and 2 worker processes
+  of a TorchRL ``ParallelEnv`` (``real_outcomes(..., workers=2)``), with the workers'
+  start-up (built at each call) timed apart.
 
 Printed and written to ``benchmarks/results/scaling.json``: median wall times, speed-up
 (t1 / t2) and efficiency (speed-up / 2), the same from CPU seconds (the slowest rank's: what
@@ -27,9 +29,11 @@ assumptions). The machine's load average is recorded before and after: other job
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import os
 import pickle
+import resource
 import socket
 import statistics
 import tempfile
@@ -124,14 +128,17 @@ def _forecasting(quick: bool):
     return run
 
 
-def _validation(quick: bool):
+def _validation(quick: bool, workers: int | None = None):
+    """The validation workload: one env in this process (``workers=None``, a rank's), or the
+    env built in each of ``workers`` TorchRL ``ParallelEnv`` worker processes."""
     from rcvae_torchrl.agent import make_policy_module, real_outcomes
     from rcvae_torchrl.envs import reset_to_state
     from rcvae_torchrl.envs.scripted import ScriptedPusher
     from recipes.pusher_competency.config import DataConfig
     from recipes.pusher_competency.pusher import make_env
 
-    env = make_env("deterministic", DataConfig(), 0.03, time_limit=10.0)
+    make = functools.partial(make_env, "deterministic", DataConfig(), 0.03, time_limit=10.0)
+    env = make()
     starts = []
     for i in range(UNITS["validation"]):
         env.set_seed(i)
@@ -142,12 +149,13 @@ def _validation(quick: bool):
 
     def run() -> None:
         real_outcomes(
-            env,
+            env if workers is None else make,
             policy,
             starts,
             runs_per_start=1,
             reset_to_state=reset_to_state,
             max_steps=steps,
+            workers=workers or 1,
             progress=False,
         )
 
@@ -236,6 +244,48 @@ def measure(name: str, world: int, args: dict) -> dict[str, Any]:
         return torch.load(out)
 
 
+# ---------------------------------------------------------------------- ParallelEnv workers
+WORKERS = (1, 2)
+
+
+def _cpu_s() -> float:
+    """CPU seconds of this process and of its finished children (the env workers)."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+def _worker_startup_s(repeats: int) -> float:
+    """Median time to start 2 Pusher workers, reset them once and close them: the fixed cost
+    of each ``real_outcomes(..., workers=2)`` call."""
+    from rcvae_torchrl.agent import episode_workers
+    from rcvae_torchrl.envs import make_pusher_env, reset_to_state
+
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        pool = episode_workers(make_pusher_env, 2, reset_to_state)
+        pool.reset()
+        pool.close()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def measure_workers(args: dict) -> dict[str, Any]:
+    """The validation workload in one process, at 1 worker (in process) and 2 ``ParallelEnv``
+    workers (each call starting its workers), interleaved: wall and CPU seconds (this process
+    and its workers) per repeat."""
+    runs = {k: _validation(args["quick"], k) for k in WORKERS}
+    times: dict[int, list[float]] = {k: [] for k in WORKERS}
+    cpu: dict[int, list[float]] = {k: [] for k in WORKERS}
+    for _ in range(args["repeats"]):
+        for k in WORKERS:
+            start, start_cpu = time.perf_counter(), _cpu_s()
+            runs[k]()
+            cpu[k].append(_cpu_s() - start_cpu)
+            times[k].append(time.perf_counter() - start)
+    return {"times": times, "cpu": cpu, "startup_s": _worker_startup_s(args["repeats"])}
+
+
 # ---------------------------------------------------------------------- projection
 # Assumed links of the projection (not measured here): 8 GPUs of one machine over NVLink /
 # PCIe with NCCL, and 4 machines over a 100 Gb/s network.
@@ -282,6 +332,24 @@ def project(
     return {"serial_fraction": serial, "per_unit_s": per_unit, "single_rank_32_units_s": single}, at
 
 
+def _workers_summary(measured: dict[str, Any]) -> tuple[list, dict[str, Any]]:
+    """The table row and the JSON entry of :func:`measure_workers`' result."""
+    wall = {k: statistics.median(v) for k, v in measured["times"].items()}
+    cpu = {k: statistics.median(v) for k, v in measured["cpu"].items()}
+    row = ["validation (workers)", UNITS["validation"], wall[1], wall[2], wall[1] / wall[2]]
+    row += [cpu[1], cpu[2], measured["startup_s"]]
+    entry = {
+        "units": UNITS["validation"],
+        "wall_s": {str(k): v for k, v in measured["times"].items()},
+        "cpu_s": {str(k): v for k, v in measured["cpu"].items()},
+        "median_wall_s": {str(k): v for k, v in wall.items()},
+        "median_cpu_s": {str(k): v for k, v in cpu.items()},
+        "speedup_wall": wall[1] / wall[2],
+        "startup_2_workers_s": measured["startup_s"],
+    }
+    return row, entry
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -313,6 +381,10 @@ def main() -> None:
         for world in WORLDS:
             print(f"{name}: {world} rank(s) ...", flush=True)
             results[name][world] = measure(name, world, settings)
+    workers = None
+    if "validation" in args.only:
+        print("validation: 1 and 2 ParallelEnv workers ...", flush=True)
+        workers = measure_workers(settings)
     load_after = os.getloadavg()
     rows, projections, payload = [], [], {}
     for name, by_world in results.items():
@@ -390,6 +462,14 @@ def main() -> None:
         ["workload", "case", "time s", "speed-up", "efficiency"],
         projections,
     )
+    if workers is not None:
+        row, payload["validation_workers"] = _workers_summary(workers)
+        print_table(
+            "Validation in ParallelEnv workers (one process, medians; each call starts its "
+            "workers; CPU: this process and its workers)",
+            ["workload", "units", "wall 1", "wall 2", "speed-up", "CPU 1", "CPU 2", "start-up 2"],
+            [row],
+        )
     print(f"\nload average before {load_before}, after {load_after} on {os.cpu_count()} cores")
     write_json(
         args.out,

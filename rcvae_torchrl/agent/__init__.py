@@ -1,4 +1,5 @@
-"""The agent: MPC over the world model, its distillation into an amortised policy, episodes."""
+"""The agent: MPC over the world model, its distillation into an amortised policy, episodes
+(in this process or in worker processes)."""
 
 from .dagger import PerturbedPolicy, dagger, label_states
 from .distill import DistillConfig, distill_policy
@@ -13,8 +14,16 @@ from .policy import (
     make_policy_module,
     save_policy,
 )
-from .starts import MODEL_FIELDS, draw_starts, physics_of, reset_by_seed, reset_to_physics
+from .starts import (
+    MODEL_FIELDS,
+    draw_starts,
+    physics_of,
+    reset_by_seed,
+    reset_to_physics,
+    start_episodes,
+)
 from .validation import RealOutcomes, real_outcomes, score_forecast
+from .workers import EpisodeStartEnv, episode_workers, start_worker_episodes
 
 __all__ = [
     # amortised policy
@@ -34,6 +43,11 @@ __all__ = [
     "physics_of",
     "reset_by_seed",
     "reset_to_physics",
+    "start_episodes",
+    # real episodes in worker processes (TorchRL ParallelEnv)
+    "EpisodeStartEnv",
+    "episode_workers",
+    "start_worker_episodes",
     # the real agent against a forecast
     "RealOutcomes",
     "real_outcomes",

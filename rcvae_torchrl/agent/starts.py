@@ -25,10 +25,20 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
+from torchrl.envs.batched_envs import BatchedEnvBase
 
 from rcvae_torchrl.data import seed_env
 
-__all__ = ["MODEL_FIELDS", "draw_starts", "physics_of", "reset_by_seed", "reset_to_physics"]
+from .episodes import ResetToState
+
+__all__ = [
+    "MODEL_FIELDS",
+    "draw_starts",
+    "physics_of",
+    "reset_by_seed",
+    "reset_to_physics",
+    "start_episodes",
+]
 
 #: Model fields a task may randomise per episode (positions, orientations, sizes, masses),
 #: captured with the simulator state.
@@ -131,3 +141,25 @@ def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     finally:
         del task.initialize_episode
     return td
+
+
+def start_episodes(
+    env: EnvBase,
+    seeds: Sequence[int],
+    starts: torch.Tensor | TensorDictBase,
+    reset_to_state: ResetToState,
+) -> TensorDictBase:
+    """Seed ``env`` for episodes ``seeds`` and put it in their start states: the reset
+    tensordict, ready for ``env.rollout(T, policy, auto_reset=False, tensordict=td)``.
+
+    An env with ``batch_size=[]`` takes one seed and one start row; a batched env ``[N]``
+    takes ``N`` of each, seeded with ``env.set_seeds(seeds)`` when it has it (one seed per
+    sub-env; a TorchRL ``ParallelEnv`` or ``SerialEnv`` would only pass the call on to its
+    sub-envs), else with :func:`~rcvae_torchrl.data.seed_env` of the first. Then
+    ``reset_to_state(env, starts)``.
+    """
+    if env.batch_size and not isinstance(env, BatchedEnvBase) and hasattr(env, "set_seeds"):
+        env.set_seeds([int(s) for s in seeds])
+    else:
+        seed_env(env, int(seeds[0]))
+    return reset_to_state(env, starts)

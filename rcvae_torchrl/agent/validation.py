@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from tensordict import TensorDictBase
@@ -20,9 +21,11 @@ from tqdm.auto import tqdm
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl.competency import validate_forecasts
-from rcvae_torchrl.data import TRAJ_KEY, seed_env
+from rcvae_torchrl.data import TRAJ_KEY
 
 from .episodes import ResetToState, run_episodes
+from .starts import start_episodes
+from .workers import episode_workers, start_worker_episodes
 
 __all__ = ["RealOutcomes", "real_outcomes", "score_forecast"]
 
@@ -50,7 +53,7 @@ class RealOutcomes:
 
 
 def real_outcomes(
-    env: EnvBase,
+    env: EnvBase | Callable[[], EnvBase],
     policy: Callable[[TensorDictBase], TensorDictBase],
     starts: torch.Tensor | TensorDictBase,
     *,
@@ -60,6 +63,7 @@ def real_outcomes(
     success: str | Callable[[torch.Tensor], torch.Tensor] = "success",
     trace: Callable[[torch.Tensor], torch.Tensor] | None = None,
     seed: int = 0,
+    workers: int = 1,
     progress: bool = True,
     desc: str = "real episodes",
 ) -> RealOutcomes:
@@ -71,62 +75,93 @@ def real_outcomes(
     :func:`~rcvae_torchrl.agent.run_episodes` (a flag the env writes, or a function of the
     observations); ``trace`` maps observations ``[..., T, S] -> [..., T]``.
 
-    A batched env (``env.batch_size == [N]``, e.g. a TorchRL ``ParallelEnv`` or a vectorised
-    simulator) runs the episodes ``N`` at a time with one policy call per step: each chunk is
-    seeded with ``env.set_seeds(seeds)`` when the env has it (one seed per sub-env, the seeds
-    above, so the outcomes equal the one-env run's), else with ``set_seed`` of its first seed;
-    ``reset_to_state(env, starts[N])`` starts the chunk, which then runs ``max_steps`` steps
-    (a sub-env that is done stays done). The last chunk is padded with repeats of its last
-    episode, whose results are dropped.
+    ``env`` is a TorchRL env, or a function that makes one (called here when ``workers=1``).
+    A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator) runs the episodes
+    ``N`` at a time with one policy call per step: each chunk is started with
+    :func:`~rcvae_torchrl.agent.start_episodes` (one seed per sub-env, the seeds above, so the
+    outcomes equal the one-env run's) and runs ``max_steps`` steps (a sub-env that is done
+    stays done). The last chunk is padded with repeats of its last episode, whose results are
+    dropped.
+
+    With ``workers=K > 1``, ``env`` must be a picklable function that makes the env: the
+    episodes run in ``K`` worker processes of a TorchRL ``ParallelEnv``
+    (:func:`~rcvae_torchrl.agent.episode_workers`), ``K·N`` at a time for envs of
+    ``batch_size`` ``[N]`` (``N = 1`` for ``[]``), each worker seeding and resetting its own
+    env to its episodes' starts; ``reset_to_state`` must then be picklable too. The outcomes
+    are the one-env run's, episode by episode.
 
     Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) the ``B·R`` episodes are
-    shared out over the ranks in blocks, each rank with its own ``env`` and ``policy``, and the
-    outcomes gathered on every rank: the same as one process's.
+    shared out over the ranks in blocks, each rank with its own ``env`` (and ``workers``
+    processes) and ``policy``, and the outcomes gathered on every rank: the same as one
+    process's.
     """
-    if isinstance(runs_per_start, bool) or not isinstance(runs_per_start, int):
-        raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
-    if runs_per_start < 1:
-        raise ValueError(f"runs_per_start: expected a positive integer, got {runs_per_start!r}")
-    b, r = len(starts), runs_per_start
-    if len(env.batch_size) > 1:
+    _check_count("runs_per_start", runs_per_start)
+    _check_count("workers", workers)
+    if workers > 1 and (isinstance(env, EnvBase) or not callable(env)):
         raise ValueError(
-            f"env: expected an env with batch_size [] or [N], got {list(env.batch_size)}"
+            f"env: with workers={workers}, expected a function that makes the env (each worker "
+            f"process builds its own), got {type(env).__name__}"
         )
+    b, r = len(starts), runs_per_start
     mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))
     index = torch.arange(b).repeat_interleave(r)[mine]
     seeds = [seed * 100_003 + i for i in mine]
-    part = None
-    if mine and len(env.batch_size) == 1:
-        part = dataclasses.astuple(
-            _batched_outcomes(
-                env,
-                policy,
-                starts,
-                index,
-                seeds,
-                reset_to_state,
-                max_steps,
-                success,
-                trace,
-                progress and distributed.is_main(),
-                desc,
-            )
-        )
-    elif mine:
-        stats = run_episodes(
-            env,
-            policy,
-            seeds=seeds,
-            starts=starts[index],
-            reset_to_state=reset_to_state,
-            max_steps=max_steps,
-            success=success,
-            progress=progress and distributed.is_main(),
-            desc=desc,
-        )
-        part = _outcomes(stats, len(mine), success, trace, max_steps)
+    episodes = (starts, index, seeds, max_steps, success, trace)
+    show = progress and distributed.is_main()
+    part = (
+        _my_outcomes(env, workers, policy, reset_to_state, episodes, show, desc) if mine else None
+    )
     flat = _gathered(part)
     return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
+
+
+def _my_outcomes(
+    env: EnvBase | Callable[[], EnvBase],
+    workers: int,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    reset_to_state: ResetToState,
+    episodes: tuple,
+    show: bool,
+    desc: str,
+) -> tuple:
+    """``(success, first_step, steps, trace or None)`` of this process's ``episodes``:
+    in ``workers`` processes, in a batched env, or one at a time."""
+    if workers > 1:
+        pool = episode_workers(env, workers, reset_to_state)
+        try:
+            _check_batch(pool.batch_size[1:])
+            return _batched_outcomes(pool, start_worker_episodes, policy, *episodes, show, desc)
+        finally:
+            pool.close()
+    env = env() if callable(env) and not isinstance(env, EnvBase) else env
+    _check_batch(env.batch_size)
+    if env.batch_size:
+        start = partial(start_episodes, reset_to_state=reset_to_state)
+        return _batched_outcomes(env, start, policy, *episodes, show, desc)
+    starts, index, seeds, max_steps, success, trace = episodes
+    stats = run_episodes(
+        env,
+        policy,
+        seeds=seeds,
+        starts=starts[index],
+        reset_to_state=reset_to_state,
+        max_steps=max_steps,
+        success=success,
+        progress=show,
+        desc=desc,
+    )
+    return _outcomes(stats, len(seeds), success, trace, max_steps)
+
+
+def _check_count(name: str, value: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
+
+
+def _check_batch(batch_size: torch.Size) -> None:
+    """An env (a worker's env) with ``batch_size`` ``[]`` or ``[N]``."""
+    if len(batch_size) > 1:
+        raise ValueError(f"env: expected an env with batch_size [] or [N], got {list(batch_size)}")
 
 
 def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
@@ -157,28 +192,24 @@ def _gathered(part: tuple | None) -> tuple:
 
 def _batched_outcomes(
     env: EnvBase,
+    start: Callable[[EnvBase, Sequence[int], torch.Tensor | TensorDictBase], TensorDictBase],
     policy: Callable[[TensorDictBase], TensorDictBase],
     starts: torch.Tensor | TensorDictBase,
     index: torch.Tensor,
     seeds: Sequence[int],
-    reset_to_state: ResetToState,
     max_steps: int,
     success: str | Callable[[torch.Tensor], torch.Tensor],
     trace: Callable[[torch.Tensor], torch.Tensor] | None,
     progress: bool,
     desc: str,
-) -> RealOutcomes:
-    """Episodes ``index`` (start rows) with ``seeds``, ``N`` at a time: outcomes ``[len]``."""
-    n, total = env.batch_size[0], len(seeds)
+) -> tuple:
+    """Episodes ``index`` (start rows) with ``seeds``, ``n = env.batch_size.numel()`` at a
+    time, each chunk begun with ``start(env, seeds[n], starts[n])``: outcomes ``[len]``."""
+    n, total = env.batch_size.numel(), len(seeds)
     parts = []
     for lo in tqdm(range(0, total, n), desc=desc, disable=not progress, leave=False):
         rows = torch.arange(lo, lo + n).clamp_max(total - 1)  # pad with the last episode
-        chunk = [int(seeds[i]) for i in rows]
-        if hasattr(env, "set_seeds"):
-            env.set_seeds(chunk)
-        else:
-            seed_env(env, chunk[0])
-        td = reset_to_state(env, starts[index[rows]])
+        td = start(env, [int(seeds[i]) for i in rows], starts[index[rows]])
         if hasattr(type(policy), "reset"):
             policy.reset()
         with torch.no_grad():
@@ -186,9 +217,9 @@ def _batched_outcomes(
                 max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=False
             )
         keep = min(n, total - lo)
-        out = _chunk_outcomes(episode, success, trace, max_steps)
+        out = _chunk_outcomes(episode.reshape(n, episode.shape[-1]), success, trace, max_steps)
         parts.append([None if t is None else t[:keep] for t in dataclasses.astuple(out)])
-    return RealOutcomes(*(None if t[0] is None else torch.cat(t) for t in zip(*parts)))
+    return tuple(None if t[0] is None else torch.cat(t) for t in zip(*parts))
 
 
 def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
@@ -202,7 +233,9 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
     won = won & ~ended
     steps_run = episode.shape[1]
     length = torch.where(
-        done.any(1), done.float().argmax(1) + 1, torch.full_like(done[:, 0], steps_run).long()
+        done.any(1),
+        done.float().argmax(1) + 1,
+        torch.full_like(done[:, 0], steps_run, dtype=torch.int64),
     )
     hit = won.any(1)
     first = torch.where(hit, won.float().argmax(1), torch.full_like(length, max_steps))

@@ -96,13 +96,23 @@ class ModelConfig:
 
 @dataclass(frozen=True)
 class AssessConfig:
+    """The forecast and its ground truth.
+
+    ``start_states`` per condition, each imagined with ``samples_per_member`` samples per
+    ensemble member; ``runs_per_start``: real episodes per start in the stochastic env (one in
+    the deterministic ones); ``real_workers``: worker processes (a TorchRL ``ParallelEnv``)
+    that run the real episodes, with the same outcomes (1: in this process); ``bins``: the
+    histogram widths of the uncertainty estimate.
+    """
+
     start_states: int = 20
     samples_per_member: int = 40
     runs_per_start: int = 30
+    real_workers: int = 1
     bins: tuple[float, float] = (0.005, 0.02)  #: histogram widths: position (m), velocity (m/s)
 
     def __post_init__(self) -> None:
-        for name in ("start_states", "samples_per_member", "runs_per_start"):
+        for name in ("start_states", "samples_per_member", "runs_per_start", "real_workers"):
             _check(name, getattr(self, name), 1, int)
         if len(self.bins) != 2:
             raise ValueError(f"bins: expected (position, velocity) widths, got {self.bins!r}")

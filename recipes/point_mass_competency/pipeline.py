@@ -54,6 +54,7 @@ from .task import (
     boundary,
     distance,
     make_env,
+    make_real_env,
     reward,
     starts_in_region,
     success,
@@ -202,15 +203,15 @@ class Study:
         for index, (condition, (_, variant, _)) in enumerate(CONDITIONS.items()):
             path = self.dir / "truth" / f"{condition}.pt"
             if not path.is_file():
-                env, _ = make_env(variant, self.cfg.task)
                 starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
                 # a deterministic env and controller repeat the same episode: one run suffices
                 runs = self.cfg.assess.runs_per_start if variant == "stochastic" else 1
                 outcomes = real_outcomes(
-                    env,
+                    functools.partial(make_real_env, variant, self.cfg.task),
                     self.agent.module(),
                     _tensordict(starts["starts"], "seed"),
                     runs_per_start=runs,
+                    workers=self.cfg.assess.real_workers,
                     reset_to_state=reset_by_seed,
                     max_steps=self.steps(self.cfg.task.deadline_s),
                     success=self.success_fn(),

@@ -27,6 +27,7 @@ __all__ = [
     "boundary",
     "distance",
     "make_env",
+    "make_real_env",
     "reward",
     "starts_in_region",
     "success",
@@ -47,6 +48,12 @@ def make_env(variant: str, task: TaskConfig) -> tuple[EnvBase, ObservationLayout
     if variant == "stochastic":
         env.append_transform(ActionNoise(task.noise_std))
     return env, layout
+
+
+def make_real_env(variant: str, task: TaskConfig) -> EnvBase:
+    """:func:`make_env`'s env alone: a picklable factory of it (``functools.partial``) can
+    build it in worker processes."""
+    return make_env(variant, task)[0]
 
 
 def distance(observation: torch.Tensor) -> torch.Tensor:

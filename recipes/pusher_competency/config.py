@@ -140,7 +140,9 @@ class AssessConfig:
     ``seeds_per_start`` / ``stochastic_seeds_per_start``: real episodes per start state in the
     deterministic envs (whose outcome per start is fixed) and in the stochastic env (30 give a
     per-start success rate a standard error of at most 0.09); ``real_envs`` of them run at a
-    time in one batched env. ``surface_radii`` (m) x ``surface_deadlines_s``: the grid of
+    time in one batched env, or spread over ``real_workers`` worker processes (a TorchRL
+    ``ParallelEnv``, ``real_envs / real_workers`` Pushers each; 1: all in this process), which
+    give the same outcomes. ``surface_radii`` (m) x ``surface_deadlines_s``: the grid of
     success boundaries of the competency surface, answered by the same imagined and real
     episodes. ``episode_end``: measure the uncertainty of the episode, which ends at success as
     in the real env (ended samples share a terminal bin). ``bias_correction``: ``"none"`` or
@@ -157,6 +159,7 @@ class AssessConfig:
     seeds_per_start: int = 1
     stochastic_seeds_per_start: int = 30
     real_envs: int = 400
+    real_workers: int = 1
     success_radius: float = 0.03
     surface_radii: list[float] = field(default_factory=lambda: [0.02, 0.03, 0.05, 0.08])
     surface_deadlines_s: list[float] = field(default_factory=lambda: [4.0, 6.0, 8.0, 10.0, 12.0])
@@ -175,6 +178,7 @@ class AssessConfig:
                 "seeds_per_start",
                 "stochastic_seeds_per_start",
                 "real_envs",
+                "real_workers",
                 "forecast_panels",
             ),
             1,

@@ -16,6 +16,7 @@ finished stages (and training resumes from its last checkpoint).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -120,11 +121,13 @@ class Study:
         """The real Pusher of ``variant`` with the study's noise and success radius."""
         return make_env(variant, self.cfg.data, self.cfg.assess.success_radius, **kwargs)
 
-    def batched_env(self, variant: str, num_envs: int) -> EnvBase:
-        """``num_envs`` real Pushers of ``variant`` in one batched env, episodes of the
-        horizon's length that go on after success."""
+    def batched_env(self, variant: str, num_envs: int) -> Callable[[], EnvBase]:
+        """A function that makes ``num_envs`` real Pushers of ``variant`` in one batched env,
+        episodes of the horizon's length that go on after success (picklable, so worker
+        processes can build it)."""
         d, s = self.cfg.data, self.cfg.assess
-        return make_batched_pusher_env(
+        return functools.partial(
+            make_batched_pusher_env,
             num_envs,
             variant,
             action_noise_std=d.stochastic_noise_std if variant == "stochastic" else None,
@@ -342,9 +345,10 @@ class Study:
 
     def truth(self) -> dict[str, Any]:
         """The agent in the real env from each forecast's start states, many runs per start in
-        a batched env; episodes go on after success, so every boundary of the competency
-        surface is answered by the same episodes. Sharded: the real episodes over the ranks;
-        rank 0 writes the outcomes."""
+        a batched env (or spread over ``assess.real_workers`` worker processes); episodes go
+        on after success, so every boundary of the competency surface is answered by the
+        same episodes. Sharded: the real episodes over the ranks; rank 0 writes the
+        outcomes."""
         s, summary = self.cfg.assess, {}
         policy = make_policy_module(self.load_policy())
         for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
@@ -354,12 +358,13 @@ class Study:
                     s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
                 )
                 starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
-                env = self.batched_env(variant, min(s.real_envs, len(starts) * runs))
+                per_worker = -(-min(s.real_envs, len(starts) * runs) // s.real_workers)
                 result = real_outcomes(
-                    env,
+                    self.batched_env(variant, per_worker),
                     policy,
                     starts,
                     runs_per_start=runs,
+                    workers=s.real_workers,
                     reset_to_state=reset_to_state,
                     max_steps=self.max_steps,
                     trace=ball_to_target,

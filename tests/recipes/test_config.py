@@ -157,6 +157,7 @@ def test_the_schema_is_the_base_of_every_profile():
         ("train.open_loop_steps=-3", r"^train\.open_loop_steps: expected an integer >= 0"),
         ("train.nll_beta=2", r"^train\.nll_beta: expected a value in \[0, 1\]"),
         ("assess.horizon_s=-5", r"^assess\.horizon_s: expected a positive whole number"),
+        ("assess.real_workers=0", r"^assess\.real_workers: expected an integer >= 1, got 0"),
         ("data.time_limit=inf", r"^data\.time_limit: expected a positive whole number"),
         ("model.input_features=bogus", r"^model\.input_features: expected 'pusher' or None"),
         ("threads=0", r"^threads: expected a positive integer, 'auto' or null, got 0"),
