@@ -162,6 +162,49 @@ def _validation(quick: bool, workers: int | None = None):
     return run
 
 
+BATCHED_EPISODES = 256  # episodes of the batched-Pusher workers row
+
+
+def _batched_validation(quick: bool, workers: int):
+    """The recipe's validation: ``BATCHED_EPISODES`` episodes of the scripted pusher in
+    batched Pushers, one of all the envs in this process (``workers=1``) or one of
+    ``1/workers`` of them in each ``ParallelEnv`` worker."""
+    from rcvae_torchrl.agent import make_policy_module, real_outcomes
+    from rcvae_torchrl.envs import make_batched_pusher_env, make_pusher_env, reset_to_state
+    from rcvae_torchrl.envs.scripted import ScriptedPusher
+
+    episodes, steps = (16, 50) if quick else (BATCHED_EPISODES, 200)
+    env = make_pusher_env("deterministic")
+    starts = []
+    for i in range(episodes):
+        env.set_seed(i)
+        starts.append(env.reset()["observation"])
+    starts = torch.stack(starts)
+    make = functools.partial(
+        make_batched_pusher_env,
+        episodes // workers,
+        "deterministic",
+        time_limit=10.0,
+        terminate_on_success=False,
+    )
+    batched = make() if workers == 1 else make
+    policy = make_policy_module(ScriptedPusher())
+
+    def run() -> None:
+        real_outcomes(
+            batched,
+            policy,
+            starts,
+            runs_per_start=1,
+            reset_to_state=reset_to_state,
+            max_steps=steps,
+            workers=workers,
+            progress=False,
+        )
+
+    return run
+
+
 WORKLOADS = {"training": _training, "forecasting": _forecasting, "validation": _validation}
 
 
@@ -270,11 +313,13 @@ def _worker_startup_s(repeats: int) -> float:
     return statistics.median(times)
 
 
-def measure_workers(args: dict) -> dict[str, Any]:
+def measure_workers(args: dict, batched: bool = False) -> dict[str, Any]:
     """The validation workload in one process, at 1 worker (in process) and 2 ``ParallelEnv``
     workers (each call starting its workers), interleaved: wall and CPU seconds (this process
-    and its workers) per repeat."""
-    runs = {k: _validation(args["quick"], k) for k in WORKERS}
+    and its workers) per repeat. ``batched``: the batched-Pusher workload
+    (:func:`_batched_validation`) instead of one dm_control Pusher per worker."""
+    workload = _batched_validation if batched else _validation
+    runs = {k: workload(args["quick"], k) for k in WORKERS}
     times: dict[int, list[float]] = {k: [] for k in WORKERS}
     cpu: dict[int, list[float]] = {k: [] for k in WORKERS}
     for _ in range(args["repeats"]):
@@ -332,19 +377,23 @@ def project(
     return {"serial_fraction": serial, "per_unit_s": per_unit, "single_rank_32_units_s": single}, at
 
 
-def _workers_summary(measured: dict[str, Any]) -> tuple[list, dict[str, Any]]:
+def _workers_summary(
+    measured: dict[str, Any], name: str, units: int
+) -> tuple[list, dict[str, Any]]:
     """The table row and the JSON entry of :func:`measure_workers`' result."""
     wall = {k: statistics.median(v) for k, v in measured["times"].items()}
     cpu = {k: statistics.median(v) for k, v in measured["cpu"].items()}
-    row = ["validation (workers)", UNITS["validation"], wall[1], wall[2], wall[1] / wall[2]]
+    after_startup = wall[1] / max(wall[2] - measured["startup_s"], 1e-9)
+    row = [name, units, wall[1], wall[2], wall[1] / wall[2], after_startup]
     row += [cpu[1], cpu[2], measured["startup_s"]]
     entry = {
-        "units": UNITS["validation"],
+        "units": units,
         "wall_s": {str(k): v for k, v in measured["times"].items()},
         "cpu_s": {str(k): v for k, v in measured["cpu"].items()},
         "median_wall_s": {str(k): v for k, v in wall.items()},
         "median_cpu_s": {str(k): v for k, v in cpu.items()},
         "speedup_wall": wall[1] / wall[2],
+        "speedup_wall_after_startup": after_startup,
         "startup_2_workers_s": measured["startup_s"],
     }
     return row, entry
@@ -381,10 +430,19 @@ def main() -> None:
         for world in WORLDS:
             print(f"{name}: {world} rank(s) ...", flush=True)
             results[name][world] = measure(name, world, settings)
-    workers = None
+    workers = {}
     if "validation" in args.only:
         print("validation: 1 and 2 ParallelEnv workers ...", flush=True)
-        workers = measure_workers(settings)
+        workers["validation (workers, one Pusher each)"] = (
+            measure_workers(settings),
+            UNITS["validation"],
+            "validation_workers",
+        )
+        workers["validation (workers, batched Pushers)"] = (
+            measure_workers(settings, batched=True),
+            16 if args.quick else BATCHED_EPISODES,
+            "validation_workers_batched",
+        )
     load_after = os.getloadavg()
     rows, projections, payload = [], [], {}
     for name, by_world in results.items():
@@ -462,13 +520,26 @@ def main() -> None:
         ["workload", "case", "time s", "speed-up", "efficiency"],
         projections,
     )
-    if workers is not None:
-        row, payload["validation_workers"] = _workers_summary(workers)
+    if workers:
+        worker_rows = []
+        for name, (measured, units, key) in workers.items():
+            row, payload[key] = _workers_summary(measured, name, units)
+            worker_rows.append(row)
         print_table(
             "Validation in ParallelEnv workers (one process, medians; each call starts its "
             "workers; CPU: this process and its workers)",
-            ["workload", "units", "wall 1", "wall 2", "speed-up", "CPU 1", "CPU 2", "start-up 2"],
-            [row],
+            [
+                "workload",
+                "episodes",
+                "wall 1",
+                "wall 2",
+                "speed-up",
+                "after start-up",
+                "CPU 1",
+                "CPU 2",
+                "start-up 2",
+            ],
+            worker_rows,
         )
     print(f"\nload average before {load_before}, after {load_after} on {os.cpu_count()} cores")
     write_json(
