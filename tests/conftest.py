@@ -12,6 +12,17 @@ import pytest
 import torch
 
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.rollout import SCORING_CACHE_ENV
+
+
+@pytest.fixture(scope="session", autouse=True)
+def aot_cache_dir(tmp_path_factory):
+    """The cache of ahead-of-time compiled scoring packages for the whole session (never the
+    user's): tests of one architecture, task and horizon share one build."""
+    path = tmp_path_factory.mktemp("aot_scoring")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(SCORING_CACHE_ENV, str(path))
+        yield path
 
 
 @pytest.fixture(autouse=True)

@@ -12,7 +12,13 @@ from torchrl.envs import EnvBase
 from rcvae_torchrl.model_env import RCVAEEnsembleEnv, make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.planners import OBJECTIVES, CEMPlanner
-from rcvae_torchrl.rollout import TRAJECTORY_SAMPLINGS, ImaginePolicy, RewardFn, SuccessFn
+from rcvae_torchrl.rollout import (
+    TRAJECTORY_SAMPLINGS,
+    Compile,
+    ImaginePolicy,
+    RewardFn,
+    SuccessFn,
+)
 
 __all__ = ["PlannerConfig", "make_mpc_policy", "policy_proposal"]
 
@@ -81,7 +87,7 @@ def make_mpc_policy(
     terminate_on_success: bool = False,
     prior: ImaginePolicy | None = None,
     seed: int = 0,
-    compile: bool = False,
+    compile: Compile = False,
 ) -> CEMPlanner:
     """A CEM planner over an :class:`~rcvae_torchrl.model_env.RCVAEEnsembleEnv` of ``ensemble``
     with the specs of ``real_env``; use it as a TorchRL policy in ``real_env``.
@@ -95,10 +101,13 @@ def make_mpc_policy(
         prior: the prior policy of ``config.policy_prior`` (a tensor callable or TensorDict
             module on observations); required then, ignored otherwise.
         seed: seeds the model env and the planner.
-        compile: score candidates with the ``torch.compile``-d rollout (``"ts_inf"`` only; the
-            env's ``compile_scoring``). The first plan compiles (tens of seconds to minutes on
-            a CPU), later ones are faster; the plans agree with the eager ones up to float
-            rounding. An execution setting, so not part of :class:`PlannerConfig`.
+        compile: score candidates with the compiled rollout (``"ts_inf"`` only; the env's
+            ``compile_scoring``): ``True`` with ``torch.compile`` (the first plan of every
+            process compiles, tens of seconds to minutes on a CPU), ``"aot"`` with a package
+            compiled ahead of time and cached across processes (built once per architecture,
+            task and horizon, then loaded in a fraction of a second). Later plans are faster
+            than eager ones and agree with them up to float rounding. An execution setting,
+            so not part of :class:`PlannerConfig`.
     """
     if config.policy_prior and prior is None:
         raise ValueError("prior: config.policy_prior is True, so a prior policy is needed")

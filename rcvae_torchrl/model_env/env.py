@@ -24,11 +24,13 @@ from rcvae_torchrl.model_env.specs import (
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import (
     ActionBounds,
+    Compile,
     ImaginePolicy,
     RewardFn,
     SuccessFn,
     Task,
     TrajectorySampling,
+    check_compile,
     evaluate_action_sequences,
     imagine,
     init_model_state,
@@ -107,11 +109,14 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         requires_grad: let ``step`` record the autograd graph (off: rollouts are for
             planning and evaluation, and a graph over a whole rollout costs memory).
         compile_scoring: :meth:`evaluate_action_sequences` runs the ``"ts_inf"`` rollout (all
-            H steps: model, constraint, reward, success) as one ``torch.compile``-d function
-            (:func:`~rcvae_torchrl.rollout.compiled_scoring`): faster once compiled, which
-            takes tens of seconds on a CPU per new model, task or horizon (one compile serves
-            every number of candidates and particles); the same samples up to float
-            rounding. Other modes and ``step`` are unaffected.
+            H steps: model, constraint, reward, success) compiled: ``True`` as one
+            ``torch.compile``-d function (:func:`~rcvae_torchrl.rollout.compiled_scoring`;
+            tens of seconds on a CPU in each process per new model, task or horizon),
+            ``"aot"`` as a package compiled ahead of time (:mod:`~rcvae_torchrl.rollout.aot`:
+            built once per architecture, task and horizon, cached across processes and
+            loaded in a fraction of a second; retrained weights reuse it). One compile serves
+            every number of candidates and particles; the same samples up to float rounding.
+            Other modes and ``step`` are unaffected.
 
     Example:
         >>> import torch
@@ -151,7 +156,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         seed: int | None = None,
         validate: bool = True,
         requires_grad: bool = False,
-        compile_scoring: bool = False,
+        compile_scoring: Compile = False,
     ) -> None:
         _checks.check_arguments(ensemble, trajectory_sampling, member_assignment)
         task = Task(reward_fn, success_fn, terminate_on_success)
@@ -170,7 +175,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         self.trajectory_sampling: TrajectorySampling = trajectory_sampling
         self.member_assignment: MemberAssignment = member_assignment
         self.requires_grad = bool(requires_grad)
-        self.compile_scoring = bool(compile_scoring)
+        check_compile("compile_scoring", compile_scoring)
+        self.compile_scoring: Compile = compile_scoring
         self.generator = generator
         self.start_states: torch.Tensor | None = None
         self.set_start_states(start_states)

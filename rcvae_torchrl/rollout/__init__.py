@@ -7,9 +7,20 @@
 - thin callers: :func:`imagine` (rollouts ``[E, N, *B, T]`` for the competency metrics),
   :func:`plan_actions` (a policy's plan along one imagined rollout),
   :func:`evaluate_action_sequences` (returns of candidate plans: the planner's fast path) and
-  :class:`ParticleTransition` (one step of a tensordict: the model env's ``step``).
+  :class:`ParticleTransition` (one step of a tensordict: the model env's ``step``);
+- compiled scoring: :func:`compiled_scoring` (``torch.compile``, per process) and
+  :mod:`~rcvae_torchrl.rollout.aot` (:func:`aot_scoring`: compiled ahead of time, cached
+  across processes).
 """
 
+from rcvae_torchrl.rollout.aot import (
+    SCORING_CACHE_ENV,
+    AOTCacheWarning,
+    AOTScoring,
+    aot_scoring,
+    default_cache_dir,
+    scoring_key,
+)
 from rcvae_torchrl.rollout.imagine import ImaginePolicy, as_tensor_policy, imagine, plan_actions
 from rcvae_torchrl.rollout.layout import MemberLayout
 from rcvae_torchrl.rollout.loop import ActionBounds, Policy, RolloutHook, StepRecord, rollout
@@ -22,7 +33,10 @@ from rcvae_torchrl.rollout.sampling import (
     propagate,
 )
 from rcvae_torchrl.rollout.scoring import (
+    COMPILE_MODES,
+    Compile,
     SequenceReturns,
+    check_compile,
     compiled_scoring,
     evaluate_action_sequences,
     particle_groups,
@@ -59,11 +73,21 @@ __all__ = [
     "ParticleTransition",
     "SequenceReturns",
     "as_tensor_policy",
-    "compiled_scoring",
     "evaluate_action_sequences",
     "imagine",
     "init_model_state",
     "make_transition_module",
     "particle_groups",
     "plan_actions",
+    # compiled scoring
+    "AOTCacheWarning",
+    "AOTScoring",
+    "COMPILE_MODES",
+    "Compile",
+    "SCORING_CACHE_ENV",
+    "aot_scoring",
+    "check_compile",
+    "compiled_scoring",
+    "default_cache_dir",
+    "scoring_key",
 ]

@@ -13,27 +13,53 @@ Particle layout (flat index i = g·R + r, so ``"ts_inf"`` is member-major withou
   blocks, one particle each, as TorchRL's stock planners get from a round-robin reset.
 - ``"ts1"``: G = P; every particle carries all members' hidden states ``[E, P·R, H]``.
 - ``"mean"``: deterministic, so G = 1 and the result is repeated P times.
+
+Three ways to run the ``"ts_inf"`` rollout (``compile``), one eager reference (``_score``):
+``False`` runs it eagerly; ``True`` under ``torch.compile`` (:func:`compiled_scoring`: compiled
+in each process, once); ``"aot"`` as a package compiled ahead of time and cached across
+processes (:mod:`~rcvae_torchrl.rollout.aot`: built once per architecture, task and horizon,
+then loaded in a fraction of a second).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import NamedTuple
+from pathlib import Path
+from typing import Literal, NamedTuple
 
 import torch
 
 from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.rollout.aot import aot_scoring
 from rcvae_torchrl.rollout.loop import ActionBounds, StepRecord, rollout
 from rcvae_torchrl.rollout.sampling import TrajectorySampling, initial_hidden
 from rcvae_torchrl.rollout.task import Task
 
 __all__ = [
+    "COMPILE_MODES",
+    "Compile",
     "SequenceReturns",
+    "check_compile",
     "compiled_scoring",
     "evaluate_action_sequences",
     "particle_groups",
 ]
+
+
+Compile = bool | Literal["aot"]
+"""How the scoring rollout runs: eager (False), ``torch.compile`` (True), ahead of time ("aot")."""
+
+COMPILE_MODES: tuple[bool | str, ...] = (False, True, "aot")
+
+
+def check_compile(name: str, value: object) -> None:
+    """Require one of :data:`COMPILE_MODES` (a bool, not a truthy number; the string "aot")."""
+    if not (isinstance(value, bool) or (isinstance(value, str) and value == "aot")):
+        raise ValueError(
+            f"{name}: expected False (eager), True (torch.compile) or 'aot' (compiled ahead "
+            f"of time, cached across processes), got {value!r}"
+        )
 
 
 class SequenceReturns(NamedTuple):
@@ -110,7 +136,8 @@ def evaluate_action_sequences(
     trajectory_sampling: TrajectorySampling = "ts_inf",
     bounds: ActionBounds | None = None,
     generator: torch.Generator | None = None,
-    compile: bool = False,
+    compile: Compile = False,
+    cache_dir: str | Path | None = None,
 ) -> SequenceReturns:
     """Roll every row's action sequence out for its particles and score it.
 
@@ -129,11 +156,17 @@ def evaluate_action_sequences(
         bounds: clip actions to these bounds.
         generator: source of all sampling noise.
         compile: run the ``"ts_inf"`` rollout as one ``torch.compile``-d function
-            (:func:`compiled_scoring`); other modes ignore it.
+            (``True``, :func:`compiled_scoring`) or as a package compiled ahead of time and
+            cached across processes (``"aot"``, :func:`~rcvae_torchrl.rollout.aot_scoring`;
+            no gradients); other modes ignore it. The same samples as the eager rollout up
+            to float rounding.
+        cache_dir: where ``"aot"`` packages are kept (default
+            :func:`~rcvae_torchrl.rollout.default_cache_dir`).
 
     Returns:
         :class:`SequenceReturns`, each ``[R, P']``.
     """
+    check_compile("compile", compile)
     rows, horizon = actions.shape[0], actions.shape[1]
     e = ensemble.ensemble_size
     groups = particle_groups(trajectory_sampling, particles, e)
@@ -152,8 +185,12 @@ def evaluate_action_sequences(
     args = (ensemble, trajectory_sampling, task, hidden, obs, per_step, bounds)
     if compile and ts_inf:  # the noise drawn here, as the steps would draw it
         noise = _ts_inf_noise(ensemble, hidden, horizon, generator)
-        _mark_particles_dynamic(hidden, obs, per_step, noise)
-        returns, success = compiled_scoring()(*args, None, noise)
+        if compile == "aot":
+            scoring = aot_scoring(_score, ensemble, task, horizon, cache_dir=cache_dir)
+            returns, success = scoring(ensemble, hidden, obs, per_step, bounds, noise)
+        else:
+            _mark_particles_dynamic(hidden, obs, per_step, noise)
+            returns, success = compiled_scoring()(*args, None, noise)
     else:
         returns, success = _score(*args, generator, None)
     out = SequenceReturns(returns.view(groups, rows).T, success.view(groups, rows).T)

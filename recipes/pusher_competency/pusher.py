@@ -29,6 +29,7 @@ from rcvae_torchrl.envs import (
 from rcvae_torchrl.envs.scripted import ScriptedPusher
 from rcvae_torchrl.models import InputFeatures, ModelFunctions, RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.planners import CEMPlanner
+from rcvae_torchrl.rollout import Compile
 
 from .config import DataConfig, ModelConfig
 
@@ -112,11 +113,11 @@ def make_planner(
     *,
     radius: float = DEFAULT_SUCCESS_RADIUS,
     seed: int = 0,
-    compile: bool = False,
+    compile: Compile = False,
 ) -> CEMPlanner:
     """The study's MPC planner over ``model`` acting in ``env``: the Pusher's reward and
     success, success ends an episode, guided by the scripted pusher when
-    ``config.policy_prior``."""
+    ``config.policy_prior``; ``compile`` as :func:`~rcvae_torchrl.agent.make_mpc_policy`'s."""
     return make_mpc_policy(
         model,
         env,

@@ -21,6 +21,8 @@ from rcvae_torchrl.model_env import RCVAEEnsembleEnv
         ({"start_states": torch.zeros(0, 14)}, ValueError, "start_states"),
         ({"start_states": torch.full((2, 14), float("nan"))}, ValueError, "start_states"),
         ({"start_states": torch.zeros(2, 14, dtype=torch.float64)}, TypeError, "start_states"),
+        ({"compile_scoring": "fast"}, ValueError, "compile_scoring: expected False .* 'aot'"),
+        ({"compile_scoring": 1}, ValueError, "compile_scoring: expected False .* 'aot'"),
     ],
 )
 def test_constructor_arguments(ensemble, kwargs, error, match):

@@ -228,3 +228,24 @@ def test_compiled_scoring_equals_the_eager_reference(ensemble, real_env, starts)
         assert torch.equal(got[1], want[1])
         graphs.append(int(counters["stats"]["unique_graphs"]))
     assert graphs[0] == graphs[1], f"graphs compiled after each shape: {graphs}"
+
+
+def test_aot_scoring_equals_the_eager_reference(ensemble, real_env, starts):
+    """``compile_scoring="aot"``: the package compiled ahead of time (built once per session's
+    cache for this architecture, task and 2-step horizon, shared with tests/rollout/test_aot.py)
+    against the eager rollout, for several numbers of candidates and particles."""
+    kwargs = {"trajectory_sampling": "ts_inf", "seed": 0}
+    eager = make_rcvae_env(ensemble, real_env, pusher_reward, pusher_success, **kwargs)
+    aot = make_rcvae_env(
+        ensemble, real_env, pusher_reward, pusher_success, compile_scoring="aot", **kwargs
+    )
+    for candidates, particles in ((4, 2 * E), (7, 2 * E), (5, 1)):
+        actions = torch.rand(2, candidates, 2, 2, generator=torch.Generator().manual_seed(1))
+        for env in (eager, aot):
+            env.set_seed(3)
+        args = (_start(starts, (2,)), actions * 2 - 1, particles)
+        want = eager.evaluate_action_sequences(*args, return_success=True)
+        got = aot.evaluate_action_sequences(*args, return_success=True)
+        torch.testing.assert_close(got[0], want[0], rtol=1e-4, atol=1e-5)
+        assert torch.equal(got[1], want[1])
+        assert torch.equal(eager.generator.get_state(), aot.generator.get_state())

@@ -1,0 +1,178 @@
+"""Fingerprints of code and values: what a cached, compiled artefact was built from.
+
+A compiled graph bakes in the code it was traced from and the values that code read (a
+threshold in a closure, a module constant). To reuse such an artefact in a later process, the
+cache key must change whenever any of them does; :func:`describe` gives a JSON description of a
+value that does, and :func:`digest` hashes one.
+
+- a function: its qualified name, its code and its module's source, the values of its closure
+  and defaults, and, recursively, the module-level names its code reads (constants, helper
+  functions and classes; modules themselves and torch's own functions are left out: the torch
+  version stands for those);
+- a class: its name and its module's source;
+- a ``functools.partial`` or a callable object: the function and its bound arguments or state;
+- a tensor: dtype, shape and a hash of its values; numbers, strings, None: themselves.
+
+What a function reads in other ways (an attribute of an imported module, a file, a global
+changed at run time without its source changing) is not seen: give it a new name or clear the
+cache when that changes.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import inspect
+import json
+import sys
+import types
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = ["describe", "digest", "source_digest"]
+
+
+def digest(value: Any) -> str:
+    """The SHA-256 hex digest of ``value``'s :func:`describe` (canonical JSON)."""
+    text = json.dumps(describe(value), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def source_digest(paths: Iterable[str | Path]) -> str:
+    """SHA-256 hex digest of the named files' contents, in the given order."""
+    h = hashlib.sha256()
+    for path in paths:
+        h.update(Path(path).read_bytes())
+    return h.hexdigest()
+
+
+_MAX_DEPTH = 8  # objects nested deeper are described by their type only
+
+
+def describe(value: Any, _seen: tuple[int, ...] = ()) -> Any:
+    """A JSON-able description of ``value`` that changes when its behaviour can (see the module
+    docstring for what is and is not covered)."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, torch.Tensor):
+        return _tensor(value)
+    if isinstance(value, (torch.dtype, torch.device, types.ModuleType)):
+        return repr(value)
+    if isinstance(value, Mapping):
+        return {str(k): describe(v, _seen) for k, v in value.items()}
+    if isinstance(value, (tuple, list)):
+        return [describe(v, _seen) for v in value]
+    if id(value) in _seen:  # recursion: a function reading itself, or helpers reading each other
+        return f"<recursion {_name(value)}>"
+    if len(_seen) >= _MAX_DEPTH:
+        return f"<{_name(type(value))}>"
+    seen = (*_seen, id(value))
+    if isinstance(value, functools.partial):
+        return {"partial": describe(value.func, seen), "args": describe(value.args, seen),
+                "keywords": describe(value.keywords, seen)}  # fmt: skip
+    if isinstance(value, types.MethodType):
+        return {"method": describe(value.__func__, seen), "self": describe(value.__self__, seen)}
+    if isinstance(value, types.FunctionType):
+        return _function(value, seen)
+    if isinstance(value, type):
+        return {"class": _name(value), "module_source": _module_source(value)}
+    if callable(value) or hasattr(value, "__dict__"):
+        state = getattr(value, "__dict__", {})
+        return {"object": describe(type(value), seen), "state": describe(state, seen)}
+    return repr(value)
+
+
+def _name(value: Any) -> str:
+    return f"{getattr(value, '__module__', '?')}.{getattr(value, '__qualname__', '?')}"
+
+
+def _tensor(x: torch.Tensor) -> dict[str, Any]:
+    data = x.detach().cpu().contiguous()
+    raw = data.view(torch.uint8) if data.dim() else data.reshape(1).view(torch.uint8)
+    return {"dtype": str(x.dtype), "shape": list(x.shape),
+            "sha256": hashlib.sha256(raw.numpy().tobytes()).hexdigest()}  # fmt: skip
+
+
+@functools.cache
+def _source_of_module(name: str) -> str | None:
+    module = sys.modules.get(name)
+    try:
+        source = inspect.getsource(module) if module is not None else None
+    except (OSError, TypeError):  # built in, or defined where no source is kept
+        return None
+    return hashlib.sha256(source.encode()).hexdigest() if source is not None else None
+
+
+def _module_source(value: Any) -> str | None:
+    """The digest of the source of the module ``value`` was defined in (None when unknown; the
+    digest of ``__main__`` is not cached: its source can be another script's)."""
+    name = getattr(value, "__module__", None)
+    if name is None:
+        return None
+    return _source_of_module.__wrapped__(name) if name == "__main__" else _source_of_module(name)
+
+
+def _function(fn: types.FunctionType, seen: tuple[int, ...]) -> dict[str, Any]:
+    code = fn.__code__
+    closure = [c.cell_contents for c in fn.__closure__ or () if _filled(c)]
+    return {
+        "function": _name(fn),
+        "code": _code(code),
+        "module_source": _module_source(fn),
+        "closure": describe(closure, seen),
+        "defaults": describe(fn.__defaults__, seen),
+        "kwdefaults": describe(fn.__kwdefaults__, seen),
+        "globals": {
+            name: describe(fn.__globals__[name], seen)
+            for name in sorted(_global_names(code))
+            if name in fn.__globals__ and _followed(fn.__globals__[name])
+        },
+    }
+
+
+def _filled(cell: types.CellType) -> bool:
+    try:
+        cell.cell_contents  # noqa: B018
+    except ValueError:  # an empty cell (a name not bound yet)
+        return False
+    return True
+
+
+def _code(code: types.CodeType) -> str:
+    """Digest of a code object's bytecode, constants and names (nested code included)."""
+    h = hashlib.sha256(code.co_code)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            h.update(_code(const).encode())
+        elif isinstance(const, frozenset):  # set literals: their order varies between runs
+            h.update(repr(sorted(map(repr, const))).encode())
+        else:
+            h.update(repr(const).encode())
+    h.update(repr((code.co_names, code.co_varnames)).encode())
+    return h.hexdigest()
+
+
+def _global_names(code: types.CodeType) -> set[str]:
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            names |= _global_names(const)
+    return names
+
+
+_CONSTANTS = (bool, int, float, complex, str, bytes, tuple, frozenset, torch.Tensor, type(None))
+
+
+def _followed(value: Any) -> bool:
+    """Module-level names a function's behaviour depends on: constants, functions and classes.
+    Not modules, mutable containers (caches, registries: state, not code) or other objects, and
+    not torch's or Python's own functions and classes (the torch version stands for those)."""
+    if isinstance(value, _CONSTANTS):
+        return True
+    if not isinstance(value, (types.FunctionType, type, functools.partial)):
+        return False
+    module = (getattr(value, "__module__", None) or "").split(".")[0]
+    return module not in ("torch", "builtins", "typing", "collections", "abc")
