@@ -18,6 +18,12 @@ weights), with the Pusher's reward and success:
   particle count), the seconds of its first call and of the first calls with new numbers of
   candidates (what a run waits for when a plan shape changes), the graphs compiled, then its
   steady speed;
+- with ``--aot``: the scoring rollout compiled ahead of time (``compile="aot"``): the seconds
+  of the first call of a fresh process with an empty package cache and an empty inductor
+  cache, with an empty package cache but inductor's kernels cached, and with the package
+  cached (what every later process pays); the same first call for ``torch.compile`` with its
+  on-disk cache empty and warm; then its steady speed beside eager and ``compile=True``. The
+  caches are temporary directories, removed afterwards;
 - with ``--mbrl``: a peer, mbrl-lib 0.2.0's PETS CEM planning (an ensemble of 5 Gaussian MLPs,
   4 x 200, obs 14, act 2; population 200 x 20 particles x horizon 15 x 5 iterations), against our
   CEM planner at the same budget on the study's model, interleaved: seconds per plan, model
@@ -29,7 +35,11 @@ weights), with the Pusher's reward and success:
           gymnasium farama-notifications
       PYTHONPATH=/tmp/mbrl_target .venv/bin/python benchmarks/model_step.py --mbrl
 
-    python benchmarks/model_step.py [--repeats 7] [--stock] [--compile] [--mbrl]
+    python benchmarks/model_step.py [--repeats 7] [--stock] [--compile] [--aot] [--mbrl]
+        [--out PATH]
+
+``--out`` writes the results there instead of ``benchmarks/results/model_step.json`` (runs on a
+busy machine).
 """
 
 from __future__ import annotations
@@ -37,14 +47,21 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 from typing import Any
 
 import torch
-from _report import conditions, interleaved_median_times, print_table, write_json
+from _report import conditions, interleaved_median_times, machine_info, print_table, write_json
 from torch.utils.flop_counter import FlopCounterMode
 
 from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.io import write_json as write_json_to
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import Task, evaluate_action_sequences, scoring
 from recipes.pusher_competency.config import StudyConfig
@@ -95,14 +112,48 @@ def model_steps_alone(model: RCVAEEnsemble, per_member: int, horizon: int) -> No
             hidden, obs = out.hidden, out.observation
 
 
-def scoring_call(model, task, candidates: int, compile_: bool = False) -> None:
+def scoring_call(model, task, candidates: int, compile_=False, cache_dir=None) -> None:
     gen = torch.Generator().manual_seed(0)
     start = torch.randn(1, 14, generator=gen).expand(candidates, 14) * 0.1
     actions = torch.rand(candidates, HORIZON, 2, generator=gen) * 2 - 1
     with torch.no_grad():
         evaluate_action_sequences(
-            model, start, actions, PARTICLES, task=task, generator=gen, compile=compile_
-        )
+            model, start, actions, PARTICLES, task=task, generator=gen, compile=compile_,
+            cache_dir=cache_dir,
+        )  # fmt: skip
+
+
+def first_call_here(mode: str, cache_dir: str) -> float:
+    """Seconds of this process's first scoring call (``--first-call``, run by
+    :func:`fresh_process_first_calls`)."""
+    torch.set_num_threads(1)
+    model = study_ensemble()
+    task = Task(pusher_reward, pusher_success, terminate_on_success=True)
+    start = time.perf_counter()
+    scoring_call(model, task, CANDIDATES, {"compile": True, "aot": "aot"}[mode], cache_dir)
+    return time.perf_counter() - start
+
+
+def fresh_process_first_calls(root: Path, compile_too: bool) -> dict[str, float]:
+    """The first scoring call of fresh processes (seconds), by the state of the caches: the
+    ahead-of-time package cache (``aot``) and inductor's kernel cache (both paths)."""
+
+    def first_call(mode: str, inductor: str, packages: str) -> float:
+        env = {**os.environ, "OMP_NUM_THREADS": "1",
+               "TORCHINDUCTOR_CACHE_DIR": str(root / inductor)}  # fmt: skip
+        command = [sys.executable, __file__, "--first-call", mode, str(root / packages)]
+        out = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+        return float(out.stdout.split()[-1])
+
+    out = {
+        "aot, empty package and inductor caches": first_call("aot", "inductor_aot", "a"),
+        "aot, empty package cache, inductor cache warm": first_call("aot", "inductor_aot", "b"),
+        "aot, package cached": first_call("aot", "inductor_aot", "b"),
+    }
+    if compile_too:
+        out["compile=True, empty inductor cache"] = first_call("compile", "inductor", "-")
+        out["compile=True, inductor cache warm"] = first_call("compile", "inductor", "-")
+    return out
 
 
 def compile_times(model, task) -> dict[str, float]:
@@ -282,8 +333,14 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--compile", action="store_true")
     parser.add_argument("--stock", action="store_true")
+    parser.add_argument("--aot", action="store_true")
     parser.add_argument("--mbrl", action="store_true", help="compare with mbrl-lib (see above)")
+    parser.add_argument("--out", type=Path, help="write the results here (default: results/)")
+    parser.add_argument("--first-call", nargs=2, metavar=("MODE", "CACHE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.first_call:
+        print(first_call_here(*args.first_call))
+        return
     torch.set_num_threads(1)
     model = study_ensemble()
     task = Task(pusher_reward, pusher_success, terminate_on_success=True)
@@ -298,13 +355,22 @@ def main() -> None:
             model_steps_alone, model, per_member, HORIZON
         ),
     }
-    compiled = {}
+    compiled, first_calls = {}, {}
+    root = Path(tempfile.mkdtemp(prefix="model_step_"))
+    if args.aot:  # first, while no compile of this process has filled a cache
+        first_calls = fresh_process_first_calls(root, compile_too=args.compile)
+        runs["evaluate_action_sequences, compile='aot'"] = functools.partial(
+            scoring_call, model, task, CANDIDATES, "aot", root / "b"
+        )
     if args.compile:
         compiled = compile_times(model, task)
         runs["evaluate_action_sequences, compile=True"] = functools.partial(
             scoring_call, model, task, CANDIDATES, True
         )
-    times = interleaved_median_times(runs, args.repeats)
+    try:
+        times = interleaved_median_times(runs, args.repeats)
+    finally:
+        shutil.rmtree(root)
     rows = []
     for name, t in times.items():
         rate = steps / t["wall_s"]
@@ -333,6 +399,12 @@ def main() -> None:
     )  # fmt: skip
     if compiled:
         print(f"\ncompile (dynamic particle count): {compiled}")
+    if first_calls:
+        print_table(
+            "first scoring call of a fresh process (s), by cache state",
+            ["path and caches", "s"],
+            [[k, v] for k, v in first_calls.items()],
+        )
     stock = stock_comparison(model, args.repeats) if args.stock else {}
     if stock:
         print_table(
@@ -358,19 +430,22 @@ def main() -> None:
                 for k, v in peer.items()
             ],
         )  # fmt: skip
-    write_json(
-        "model_step",
-        {
-            "budget": {"candidates": CANDIDATES, "particles": PARTICLES, "horizon": HORIZON},
-            "flop_per_model_step": flop,
-            "matmul_peak_flop_per_s": peak,
-            "rows": rows,
-            "compile_dynamic": compiled,
-            "vs_stock_cem": stock,
-            "vs_mbrl_lib": peer,
-            **conditions(),
-        },
-    )
+    results = {
+        "budget": {"candidates": CANDIDATES, "particles": PARTICLES, "horizon": HORIZON},
+        "flop_per_model_step": flop,
+        "matmul_peak_flop_per_s": peak,
+        "rows": rows,
+        "compile_dynamic": compiled,
+        "first_call_fresh_process_s": first_calls,
+        "vs_stock_cem": stock,
+        "vs_mbrl_lib": peer,
+        **conditions(),
+    }
+    if args.out is None:
+        write_json("model_step", results)
+    else:
+        write_json_to(args.out, {"benchmark": "model_step", "machine": machine_info(), **results})
+        print(f"\nwrote {args.out}")
 
 
 if __name__ == "__main__":
