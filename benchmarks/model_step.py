@@ -178,8 +178,10 @@ def compile_times(model, task) -> dict[str, float]:
     return out
 
 
-def stock_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
-    """Seconds per plan: ours (P = 1, 5) vs the stock CEMPlanner, same model env and budget."""
+def stock_comparison(model: RCVAEEnsemble, repeats: int, aot: bool = False) -> dict[str, Any]:
+    """Seconds per plan: ours (P = 1, 5) vs the stock CEMPlanner, same model env and budget;
+    with ``aot``, also ours with the ahead-of-time compiled scoring (its build, in the warm-up
+    round, is not timed)."""
     from planning import _stock
 
     from rcvae_torchrl.agent import PlannerConfig
@@ -205,6 +207,11 @@ def stock_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
         ),
         "ours P=5, compile=True": make_planner(model, env, config, compile=True),
     }
+    if aot:
+        planners["ours P=1, compile='aot'"] = make_planner(
+            model, env, dataclasses.replace(config, particles=1), compile="aot"
+        )
+        planners["ours P=5, compile='aot'"] = make_planner(model, env, config, compile="aot")
 
     def plan_all(policy) -> None:
         for td in states:
@@ -278,8 +285,9 @@ def _flop_of(call) -> float:
     return float(counter.get_total_flops())
 
 
-def mbrl_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
-    """Ours against mbrl-lib's PETS CEM at its budget: s per plan, model steps/s, FLOP/s."""
+def mbrl_comparison(model: RCVAEEnsemble, repeats: int, aot: bool = False) -> dict[str, Any]:
+    """Ours against mbrl-lib's PETS CEM at its budget: s per plan, model steps/s, FLOP/s (with
+    ``aot``, also ours with the ahead-of-time compiled scoring)."""
     peer = _mbrl_plan()
     if peer is None:
         return {}
@@ -300,6 +308,10 @@ def mbrl_comparison(model: RCVAEEnsemble, repeats: int) -> dict[str, Any]:
         "ours (CEMPlanner)": make_planner(model, env, config),
         "ours (CEMPlanner), compile=True": make_planner(model, env, config, compile=True),
     }
+    if aot:
+        planners["ours (CEMPlanner), compile='aot'"] = make_planner(
+            model, env, config, compile="aot"
+        )
 
     def plan(planner) -> None:
         planner.reset()
@@ -405,7 +417,7 @@ def main() -> None:
             ["path and caches", "s"],
             [[k, v] for k, v in first_calls.items()],
         )
-    stock = stock_comparison(model, args.repeats) if args.stock else {}
+    stock = stock_comparison(model, args.repeats, args.aot) if args.stock else {}
     if stock:
         print_table(
             f"seconds per plan of 5 states, C x I x H = {CANDIDATES} x 2 x {HORIZON}",
@@ -415,7 +427,7 @@ def main() -> None:
                 for k, v in stock.items()
             ],
         )
-    peer = mbrl_comparison(model, args.repeats) if args.mbrl else {}
+    peer = mbrl_comparison(model, args.repeats, args.aot) if args.mbrl else {}
     if args.mbrl and not peer:
         print("\nmbrl-lib is not importable: see this script's docstring to install it")
     if peer:
