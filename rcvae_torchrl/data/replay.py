@@ -52,7 +52,8 @@ def sample_windows(
     members: int | None = None,
     generators: Sequence[torch.Generator] | None = None,
 ) -> TensorDict:
-    """Windows ``[W, L]``, or ``[E, W, L]`` with independent draws for each of ``members``.
+    """Windows ``[W, L]``, or ``[E, W, L]`` with independent draws for each of ``members``,
+    from a buffer of :func:`make_window_buffer`.
 
     Independent draws give each ensemble member its own resample of the data (sampling with
     replacement, as a bootstrap does), so members disagree where data is thin. With
@@ -65,12 +66,15 @@ def sample_windows(
             raise ValueError(
                 f"generators: expected one per member ({members}), got {len(generators)}"
             )
-        parts = []
+        draws = []
         for generator in generators:
             buffer.set_rng(generator)
-            parts.append(buffer.sample(num_windows * window).reshape(num_windows, window))
+            draws.append(buffer.sampler.sample(buffer.storage, num_windows * window)[0])
         buffer.set_rng(None)
-        return torch.stack(parts)
+        # one read of the storage for all members: a buffer.sample per member costs almost as
+        # much again as its draw (its own read, its metadata, a stack)
+        index = tuple(torch.cat(rows) for rows in zip(*draws, strict=True))
+        return buffer.storage.get(index).reshape(members, num_windows, window)
     draws = num_windows * (members or 1)
     flat = buffer.sample(draws * window)
     shape = (draws, window) if members is None else (members, num_windows, window)

@@ -10,7 +10,7 @@ from torch import nn
 
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, ensemble_linear
 
-__all__ = ["EnsembleGRUCell", "gru_step", "gru_update"]
+__all__ = ["EnsembleGRUCell", "gru_scan", "gru_step", "gru_update"]
 
 
 def gru_update(gates_x: torch.Tensor, gates_h: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
@@ -75,3 +75,50 @@ def gru_step(cell: EnsembleGRUCell, x: torch.Tensor, h: torch.Tensor) -> torch.T
     reset_update = torch.sigmoid(gates_x[..., : 2 * size] + gates_h[..., : 2 * size])
     new = torch.tanh(gates_x[..., 2 * size :] + reset_update[..., :size] * gates_h[..., 2 * size :])
     return torch.lerp(new, h, reset_update[..., size:])
+
+
+def gru_scan(
+    cell: EnsembleGRUCell,
+    gates_x: torch.Tensor,
+    hidden: torch.Tensor,
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """``cell`` stepped over a whole sequence whose input projections are precomputed (the
+    training pass's recurrence), with :func:`gru_step`'s numbers.
+
+    Only the recurrent part runs per step: the input gates are split into their reset/update
+    and new parts once for all steps, and the reset and update gates take one add and one
+    sigmoid, so a step is 10 ops forward and 10 autograd nodes backward (12 and 12 through
+    :func:`gru_update` and a module call). What each op costs besides its arithmetic does
+    not grow with E, so it is a fixed cost of every training step, whatever the members.
+
+    Args:
+        cell: the GRU cell.
+        gates_x: ``cell.input_proj(x)`` of every step, ``[E, *B, L, 3H]``.
+        hidden: h_0 ``[E, *B, H]``.
+        mask: optional bool ``[E or 1, *B, L]`` of valid steps: the hidden state is reset to
+            zero after an invalid step (step t > 0 reads ``h_{t-1} * mask[t - 1]``).
+
+    Returns:
+        h_1..h_L, ``[E, *B, L, H]``.
+    """
+    batch, size = hidden.shape[:-1], hidden.shape[-1]
+    h = hidden.reshape(batch[0], -1, size)  # [E, N, H]: one baddbmm per step
+    gates = gates_x.reshape(*h.shape[:2], *gates_x.shape[-2:])
+    reset_update_x, new_x = (g.unbind(dim=-2) for g in gates.split([2 * size, size], dim=-1))
+    # the bias unsqueezed per step, as in a module call: its gradient then sums step by step,
+    # in the same order as when open-loop steps (module calls) follow
+    bias, weight = cell.hidden_proj.bias, cell.hidden_proj.weight
+    keep = None
+    if mask is not None:
+        keep = mask.to(h.dtype).expand(mask.shape[0], *batch[1:], mask.shape[-1])
+        keep = keep.reshape(mask.shape[0], -1, mask.shape[-1], 1).unbind(dim=-2)
+    states = []
+    for t, (ru_x, n_x) in enumerate(zip(reset_update_x, new_x, strict=True)):
+        if keep is not None and t > 0:
+            h = h * keep[t - 1]
+        ru_h, n_h = torch.baddbmm(bias.unsqueeze(1), h, weight).split([2 * size, size], dim=-1)
+        reset, update = torch.sigmoid(ru_x + ru_h).chunk(2, dim=-1)
+        h = torch.lerp(torch.tanh(n_x + reset * n_h), h, update)
+        states.append(h)
+    return torch.stack(states, dim=-2).view(*batch, len(states), size)

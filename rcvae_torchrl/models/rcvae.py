@@ -31,7 +31,7 @@ from torch import nn
 
 from rcvae_torchrl._checks import check_finite, check_floating, check_min_rank, check_tensor
 from rcvae_torchrl.models.config import RCVAEConfig
-from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_step, gru_update
+from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_scan, gru_step
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP, ensemble_mlp
 from rcvae_torchrl.models.functional import Generators, gaussian_head, reparameterize
 from rcvae_torchrl.models.functions import ModelFunctions
@@ -365,16 +365,8 @@ class RCVAEEnsemble(nn.Module):
         """h_1..h_n from true states; embeddings and input gates for all steps in one batch."""
         prev = observations[..., :n_steps, :]
         x = self.embed_inputs(prev, actions[..., :n_steps, :])
-        gates_x = self.gru.input_proj(x)
-        hidden = self.initial_hidden(observations.shape[1:-2], observations)
-        states = []
-        # unbind, not gates_x[..., t, :]: its backward is one stack, not L full-size zero fills
-        for t, gates_t in enumerate(gates_x.unbind(dim=-2)):
-            if mask is not None and t > 0:
-                hidden = hidden * mask[..., t - 1, None].to(hidden.dtype)
-            hidden = gru_update(gates_t, self.gru.hidden_proj(hidden), hidden)
-            states.append(hidden)
-        return torch.stack(states, dim=-2), x, prev
+        h0 = self.initial_hidden(observations.shape[1:-2], observations)
+        return gru_scan(self.gru, self.gru.input_proj(x), h0, mask), x, prev
 
     def _open_loop(
         self,

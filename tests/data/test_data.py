@@ -65,6 +65,19 @@ def test_windows_never_cross_episodes(episodes):
     assert not torch.equal(windows["observation"][0], windows["observation"][1])
 
 
+def test_a_members_windows_come_from_its_generator_alone(episodes):
+    buffer = make_window_buffer(episodes, window=16)
+
+    def draw(seeds):
+        generators = [torch.Generator().manual_seed(s) for s in seeds]
+        return sample_windows(buffer, 8, 16, len(seeds), generators)
+
+    three, alone = draw([5, 6, 7]), draw([6])
+    assert three.shape == (3, 8, 16) and alone.shape == (1, 8, 16)
+    for key in ("observation", "action", ("next", "observation"), TRAJ_KEY):
+        assert torch.equal(three[key][1], alone[key][0])
+
+
 def test_split_by_episode(episodes):
     train, val = split_episodes(episodes, 0.34, seed=0)
     assert train.shape[0] + val.shape[0] == episodes.shape[0]

@@ -6,7 +6,7 @@ import pytest
 import torch
 from torch import nn
 
-from rcvae_torchrl.models import EnsembleGRUCell, EnsembleLinear, EnsembleMLP
+from rcvae_torchrl.models import EnsembleGRUCell, EnsembleLinear, EnsembleMLP, gru_scan, gru_update
 from rcvae_torchrl.rollout import MemberLayout
 
 
@@ -93,3 +93,30 @@ def test_member_layout_round_robin_has_no_padding():
 def test_member_layout_rejects_non_flat_member():
     with pytest.raises(ValueError, match="member must be 1-D"):
         MemberLayout(torch.zeros(2, 2, dtype=torch.long), 3)
+
+
+def test_gru_scan_matches_stepping_the_cell_bit_for_bit():
+    # E * B * H a multiple of 32, so that no gate falls in the scalar tail of torch's vectorised
+    # loops (32 floats at a time): its scalar sigmoid differs from the vectorised one in the
+    # last bit
+    torch.manual_seed(0)
+    cell = EnsembleGRUCell(3, 4, 16)
+    x = torch.randn(3, 2, 5, 7, 4, requires_grad=True)  # [E, *B, L, I] with two batch dims
+    h0 = torch.randn(3, 2, 5, 16, requires_grad=True)
+    mask = torch.rand(1, 2, 5, 7) > 0.3
+    gates_x = cell.input_proj(x)
+    scanned = gru_scan(cell, gates_x, h0, mask)
+    h, stepped = h0, []
+    for t in range(7):
+        if t > 0:
+            h = h * mask[..., t - 1, None].to(h.dtype)
+        h = gru_update(gates_x[..., t, :], cell.hidden_proj(h), h)
+        stepped.append(h)
+    stepped = torch.stack(stepped, dim=-2)
+    assert scanned.shape == (3, 2, 5, 7, 16) and torch.equal(scanned, stepped)
+    weights = torch.randn_like(scanned)
+    inputs = [x, h0, *cell.parameters()]
+    got = torch.autograd.grad((scanned * weights).sum(), inputs, retain_graph=True)
+    want = torch.autograd.grad((stepped * weights).sum(), inputs)
+    for a, b in zip(got, want, strict=True):
+        assert torch.equal(a, b)

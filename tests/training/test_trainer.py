@@ -170,3 +170,14 @@ def test_gradients_are_clipped_member_by_member():
         for p, q in zip(params, alone):
             torch.testing.assert_close(p.grad[m], q.grad)
     assert norms[1] > 100 and torch.stack([p.grad[1].norm() ** 2 for p in params]).sum() < 25.01
+
+
+def test_gradients_under_the_bound_are_left_as_they_are():
+    g = torch.Generator().manual_seed(1)
+    params = [torch.zeros(2, 3, 4, requires_grad=True), torch.zeros(2, 5, requires_grad=True)]
+    for p in params:
+        p.grad = torch.randn(p.shape, generator=g)
+    before = [p.grad.clone() for p in params]
+    norms = clip_grad_norm_per_member(params, max_norm=100.0)
+    assert (norms < 100).all()
+    assert all(torch.equal(p.grad, b) for p, b in zip(params, before, strict=True))
