@@ -152,6 +152,7 @@ def time_tests(threads: int, paths: tuple[str, ...] = ()) -> dict[str, Any]:
     cpu_s = cpu.ru_utime + cpu.ru_stime - cpu_before.ru_utime - cpu_before.ru_stime
     summary = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
     if proc.returncode != 0:
+        print("\n".join(proc.stdout.splitlines()[-80:]), file=sys.stderr)  # what failed
         raise SystemExit(f"the test suite failed ({summary}); nothing recorded")
     return {
         "seconds": round(seconds, 1),

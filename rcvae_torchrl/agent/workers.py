@@ -67,7 +67,7 @@ def episode_workers(
     The workers exchange each step's data through pipes (``use_buffers=False``): TorchRL's
     shared-memory buffers make this process spin-wait for the workers, which holds a whole
     core; with as many workers as cores that left the workers one core between them (on 2
-    cores, 2 workers of 128 batched Pushers took 20 s where the pipes take 5.5 s, start-up
+    cores, 2 workers of 128 batched MuJoCo envs took 20 s where the pipes take 5.5 s, start-up
     included).
     """
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
