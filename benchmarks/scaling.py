@@ -128,71 +128,24 @@ def _forecasting(quick: bool):
     return run
 
 
-def _validation(quick: bool, workers: int | None = None):
-    """The validation workload: one env in this process (``workers=None``, a rank's), or the
-    env built in each of ``workers`` TorchRL ``ParallelEnv`` worker processes."""
+def _scripted_outcomes(env, episodes: int, steps: int, workers: int):
+    """A call of ``real_outcomes`` for the scripted pusher from ``episodes`` Pusher start
+    states (seeds 0, 1, ...) in ``env`` (an env, or a function that makes one)."""
     from rcvae_torchrl.agent import make_policy_module, real_outcomes
-    from rcvae_torchrl.envs import reset_to_state
-    from rcvae_torchrl.envs.scripted import ScriptedPusher
-    from recipes.pusher_competency.config import DataConfig
-    from recipes.pusher_competency.pusher import make_env
-
-    make = functools.partial(make_env, "deterministic", DataConfig(), 0.03, time_limit=10.0)
-    env = make()
-    starts = []
-    for i in range(UNITS["validation"]):
-        env.set_seed(i)
-        starts.append(env.reset()["observation"])
-    starts = torch.stack(starts)
-    policy = make_policy_module(ScriptedPusher())
-    steps = 50 if quick else 200
-
-    def run() -> None:
-        real_outcomes(
-            env if workers is None else make,
-            policy,
-            starts,
-            runs_per_start=1,
-            reset_to_state=reset_to_state,
-            max_steps=steps,
-            workers=workers or 1,
-            progress=False,
-        )
-
-    return run
-
-
-BATCHED_EPISODES = 256  # episodes of the batched-Pusher workers row
-
-
-def _batched_validation(quick: bool, workers: int):
-    """The recipe's validation: ``BATCHED_EPISODES`` episodes of the scripted pusher in
-    batched Pushers, one of all the envs in this process (``workers=1``) or one of
-    ``1/workers`` of them in each ``ParallelEnv`` worker."""
-    from rcvae_torchrl.agent import make_policy_module, real_outcomes
-    from rcvae_torchrl.envs import make_batched_pusher_env, make_pusher_env, reset_to_state
+    from rcvae_torchrl.envs import make_pusher_env, reset_to_state
     from rcvae_torchrl.envs.scripted import ScriptedPusher
 
-    episodes, steps = (16, 50) if quick else (BATCHED_EPISODES, 200)
-    env = make_pusher_env("deterministic")
+    drawn = make_pusher_env("deterministic")
     starts = []
     for i in range(episodes):
-        env.set_seed(i)
-        starts.append(env.reset()["observation"])
+        drawn.set_seed(i)
+        starts.append(drawn.reset()["observation"])
     starts = torch.stack(starts)
-    make = functools.partial(
-        make_batched_pusher_env,
-        episodes // workers,
-        "deterministic",
-        time_limit=10.0,
-        terminate_on_success=False,
-    )
-    batched = make() if workers == 1 else make
     policy = make_policy_module(ScriptedPusher())
 
     def run() -> None:
         real_outcomes(
-            batched,
+            env,
             policy,
             starts,
             runs_per_start=1,
@@ -203,6 +156,37 @@ def _batched_validation(quick: bool, workers: int):
         )
 
     return run
+
+
+def _validation(quick: bool, workers: int | None = None):
+    """The validation workload: one env in this process (``workers=None``, a rank's), or the
+    env built in each of ``workers`` TorchRL ``ParallelEnv`` worker processes."""
+    from recipes.pusher_competency.config import DataConfig
+    from recipes.pusher_competency.pusher import make_env
+
+    make = functools.partial(make_env, "deterministic", DataConfig(), 0.03, time_limit=10.0)
+    env = make() if workers is None else make
+    return _scripted_outcomes(env, UNITS["validation"], 50 if quick else 200, workers or 1)
+
+
+BATCHED_EPISODES = 256  # episodes of the batched-Pusher workers row
+
+
+def _batched_validation(quick: bool, workers: int):
+    """The recipe's validation: ``BATCHED_EPISODES`` episodes of the scripted pusher in
+    batched Pushers, one of all the envs in this process (``workers=1``) or one of
+    ``1/workers`` of them in each ``ParallelEnv`` worker."""
+    from rcvae_torchrl.envs import make_batched_pusher_env
+
+    episodes, steps = (16, 50) if quick else (BATCHED_EPISODES, 200)
+    make = functools.partial(
+        make_batched_pusher_env,
+        episodes // workers,
+        "deterministic",
+        time_limit=10.0,
+        terminate_on_success=False,
+    )
+    return _scripted_outcomes(make() if workers == 1 else make, episodes, steps, workers)
 
 
 WORKLOADS = {"training": _training, "forecasting": _forecasting, "validation": _validation}

@@ -20,6 +20,7 @@ from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 from rcvae_torchrl import distributed
+from rcvae_torchrl._checks import check_positive_int
 from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
 
@@ -95,8 +96,8 @@ def real_outcomes(
     processes) and ``policy``, and the outcomes gathered on every rank: the same as one
     process's.
     """
-    _check_count("runs_per_start", runs_per_start)
-    _check_count("workers", workers)
+    check_positive_int("runs_per_start", runs_per_start)
+    check_positive_int("workers", workers)
     if workers > 1 and (isinstance(env, EnvBase) or not callable(env)):
         raise ValueError(
             f"env: with workers={workers}, expected a function that makes the env (each worker "
@@ -151,11 +152,6 @@ def _my_outcomes(
         desc=desc,
     )
     return _outcomes(stats, len(seeds), success, trace, max_steps)
-
-
-def _check_count(name: str, value: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name}: expected a positive integer, got {value!r}")
 
 
 def _check_batch(batch_size: torch.Size) -> None:

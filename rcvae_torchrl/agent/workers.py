@@ -19,6 +19,8 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, ParallelEnv, TransformedEnv
 
+from rcvae_torchrl._checks import check_positive_int
+
 from .episodes import ResetToState
 from .starts import start_episodes
 
@@ -70,8 +72,7 @@ def episode_workers(
     cores, 2 workers of 128 batched MuJoCo envs took 20 s where the pipes take 5.5 s, start-up
     included).
     """
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers: expected a positive integer, got {workers!r}")
+    check_positive_int("workers", workers)
     return ParallelEnv(
         workers,
         partial(_worker_env, make_env, reset_to_state),
