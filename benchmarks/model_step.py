@@ -22,8 +22,9 @@ weights), with the Pusher's reward and success:
   of the first call of a fresh process with an empty package cache and an empty inductor
   cache, with an empty package cache but inductor's kernels cached, and with the package
   cached (what every later process pays); the same first call for ``torch.compile`` with its
-  on-disk cache empty and warm; then its steady speed beside eager and ``compile=True``. The
-  caches are temporary directories, removed afterwards;
+  on-disk cache empty and warm; then its steady speed beside eager and ``compile=True``, and
+  with ``--stock`` / ``--mbrl`` the AOT planners too. The package caches are temporary
+  directories, removed afterwards;
 - with ``--mbrl``: a peer, mbrl-lib 0.2.0's PETS CEM planning (an ensemble of 5 Gaussian MLPs,
   4 x 200, obs 14, act 2; population 200 x 20 particles x horizon 15 x 5 iterations), against our
   CEM planner at the same budget on the study's model, interleaved: seconds per plan, model
@@ -45,6 +46,7 @@ busy machine).
 from __future__ import annotations
 
 import argparse
+import atexit
 import dataclasses
 import functools
 import os
@@ -63,7 +65,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from rcvae_torchrl.envs import pusher_reward, pusher_success
 from rcvae_torchrl.io import write_json as write_json_to
 from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.rollout import Task, evaluate_action_sequences, scoring
+from rcvae_torchrl.rollout import SCORING_CACHE_ENV, Task, evaluate_action_sequences, scoring
 from recipes.pusher_competency.config import StudyConfig
 from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, rcvae_config
 
@@ -370,6 +372,9 @@ def main() -> None:
     compiled, first_calls = {}, {}
     root = Path(tempfile.mkdtemp(prefix="model_step_"))
     if args.aot:  # first, while no compile of this process has filled a cache
+        planners_cache = tempfile.mkdtemp(prefix="model_step_planners_")  # --stock, --mbrl
+        atexit.register(shutil.rmtree, planners_cache, True)
+        os.environ[SCORING_CACHE_ENV] = planners_cache
         first_calls = fresh_process_first_calls(root, compile_too=args.compile)
         runs["evaluate_action_sequences, compile='aot'"] = functools.partial(
             scoring_call, model, task, CANDIDATES, "aot", root / "b"
