@@ -5,7 +5,7 @@ never on the library itself, which never imports it."""
 from . import _gl  # noqa: F401  (sets MUJOCO_GL before dm_control loads)
 from .batched import BatchedPusherEnv, make_batched_pusher_env
 from .constraints import pusher_state_constraint
-from .factory import DEFAULT_ACTION_NOISE_STD, VARIANTS, make_pusher_env
+from .factory import DEFAULT_ACTION_NOISE_STD, VARIANTS, check_strength, make_pusher_env
 from .features import PUSHER_FEATURE_NAMES, pusher_input_features
 from .functions import DEFAULT_SUCCESS_RADIUS, ball_to_target, pusher_reward, pusher_success
 from .layout import (
@@ -30,6 +30,7 @@ __all__ = [
     # factory
     "DEFAULT_ACTION_NOISE_STD",
     "VARIANTS",
+    "check_strength",
     "make_pusher_env",
     "reset_to_state",
     # batched env

@@ -4,7 +4,8 @@ Env ``i`` is the dm_control Pusher of :func:`make_pusher_env` with seed ``seed +
 step: the same MuJoCo model, the same calls (dm_control's step is ``mj_step2``, ``mj_step`` for
 the other substeps, ``mj_step1``; here each control step is ``n`` ``mj_step`` substeps followed
 by the position and velocity stages, and ``mj_step2`` after ``mj_step1`` is ``mj_step``), the
-same ``numpy.random.RandomState`` draws in the same order (start states, then action noise),
+same ``numpy.random.RandomState`` draws in the same order (start states, the episode's actuator
+strength where it varies, then action noise),
 and the readout, reward and start sampling come from the functions the dm_control task calls
 (:mod:`~rcvae_torchrl.envs.readout`, :func:`~rcvae_torchrl.envs.pusher.sample_start`). The tests
 check float32-equal observations and equal rewards, success and done flags.
@@ -44,7 +45,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from .factory import _check_args, _variant_region
+from .factory import _check_args, _variant_region, check_strength
 from .functions import DEFAULT_SUCCESS_RADIUS
 from .layout import OBSERVATION_DIM
 from .pusher import (
@@ -56,6 +57,7 @@ from .pusher import (
     Physics,
     clip_action,
     draw_action_noise,
+    draw_strength,
     get_model_and_assets,
     noisy_control,
     sample_start,
@@ -162,6 +164,7 @@ class BatchedPusherEnv(EnvBase):
         control_timestep: float = CONTROL_TIMESTEP,
         num_threads: int = 1,
         device: torch.device | str | None = None,
+        actuator_strength: tuple[float, float] | None = None,
     ) -> None:
         _check_count("num_envs", num_envs)
         _check_count("num_threads", num_threads)
@@ -169,6 +172,7 @@ class BatchedPusherEnv(EnvBase):
         self.region = region
         self.success_radius = float(success_radius)
         self.action_noise_std = float(action_noise_std)
+        self.actuator_strength = actuator_strength
         self.terminate_on_success = bool(terminate_on_success)
         self._scratch = Physics.from_xml_string(*get_model_and_assets())
         self._n_sub_steps = compute_n_steps(control_timestep, self._scratch.timestep())
@@ -193,6 +197,7 @@ class BatchedPusherEnv(EnvBase):
 
     def _init_bookkeeping(self, n: int) -> None:
         self._target = np.zeros((n, 2))
+        self._strength = np.ones(n)  # each env's episode actuator strength
         self._steps = np.zeros(n, dtype=np.int64)
         self._obs = np.zeros((n, OBSERVATION_DIM), dtype=np.float32)
         self._success = np.zeros(n, dtype=bool)
@@ -308,6 +313,7 @@ class BatchedPusherEnv(EnvBase):
         qvel = np.empty((ids.size, data.qvel.size))
         for k, i in enumerate(ids):
             state = sample_start(self._randoms[i], self.region, self._finger_to_ball)
+            self._strength[i] = draw_strength(self._randoms[i], self.actuator_strength)
             if observations is not None:
                 state = state_from_observation(observations[k])
             self._scratch.set_state(state)
@@ -362,10 +368,12 @@ class BatchedPusherEnv(EnvBase):
         """One control step of the envs ``rows``; returns their rewards (float64)."""
         commanded = clip_action(action)
         applied = commanded
+        if self.actuator_strength is not None:
+            applied = self._strength[rows, None] * commanded
         if self.action_noise_std > 0:
             order = range(self.num_envs) if isinstance(rows, slice) else rows
             noise = [draw_action_noise(self._randoms[i], self.action_noise_std) for i in order]
-            applied = noisy_control(commanded, np.stack(noise))
+            applied = noisy_control(applied, np.stack(noise))
         self._ctrl[rows] = applied
         ids = None if isinstance(rows, slice) else rows.astype(np.int32)
         self._sim.step(ids, nstep=self._n_sub_steps, stage=_STAGE_VEL)
@@ -434,6 +442,7 @@ def make_batched_pusher_env(
     terminate_on_success: bool = True,
     num_threads: int = 1,
     device: torch.device | str | None = None,
+    actuator_strength: tuple[float, float] | None = None,
 ) -> BatchedPusherEnv:
     """``num_envs`` Pushers of ``variant`` as one batched TorchRL env (see
     :class:`BatchedPusherEnv`); env ``i`` equals ``make_pusher_env(variant, seed=seed + i, ...)``
@@ -456,6 +465,7 @@ def make_batched_pusher_env(
         region=_variant_region(variant, region),
         success_radius=success_radius,
         action_noise_std=noise,
+        actuator_strength=check_strength(variant, actuator_strength),
         terminate_on_success=terminate_on_success,
         time_limit=time_limit,
         control_timestep=control_timestep,

@@ -17,7 +17,7 @@ from .pusher import (
 )
 from .wrapper import PusherWrapper
 
-__all__ = ["DEFAULT_ACTION_NOISE_STD", "VARIANTS", "make_pusher_env"]
+__all__ = ["DEFAULT_ACTION_NOISE_STD", "VARIANTS", "check_strength", "make_pusher_env"]
 
 VARIANTS = ("deterministic", "stochastic", "ood")
 DEFAULT_ACTION_NOISE_STD = 0.5  # std of the Gaussian action noise of the stochastic variant
@@ -59,6 +59,33 @@ def _check_args(
     return float(action_noise_std)
 
 
+def check_strength(
+    variant: str,
+    actuator_strength: tuple[float, float] | None,
+    name: str = "actuator_strength",
+) -> tuple[float, float] | None:
+    """``actuator_strength`` checked: None, or ``(low, high)`` with ``0 < low <= high``; errors
+    name the argument ``name``."""
+    if actuator_strength is None:
+        return None
+    try:
+        low, high = (float(v) for v in actuator_strength)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"{name}: expected (low, high), two numbers, got {actuator_strength!r}"
+        ) from None
+    if not (math.isfinite(high) and 0 < low <= high):
+        raise ValueError(
+            f"{name}: expected (low, high) with 0 < low <= high, got {actuator_strength!r}"
+        )
+    if variant == "deterministic":
+        raise ValueError(
+            f"{name}: the deterministic variant's arm has a fixed strength, got "
+            f"{actuator_strength!r}; use variant='stochastic'"
+        )
+    return (low, high)
+
+
 def _variant_region(variant: str, region: InitialStateRegion | None) -> InitialStateRegion:
     """``region`` if given, else the variant's: out of distribution for ``"ood"``."""
     if region is not None:
@@ -78,6 +105,7 @@ def make_pusher_env(
     terminate_on_success: bool = True,
     from_pixels: bool = False,
     device: str | None = None,
+    actuator_strength: tuple[float, float] | None = None,
 ) -> TransformedEnv:
     """A TorchRL Pusher env: a ``DMControlWrapper`` (``PusherWrapper``) in a ``TransformedEnv``.
 
@@ -93,6 +121,11 @@ def make_pusher_env(
         seed: seeds the task's RNG (start states and action noise).
         action_noise_std: std of the action noise; default :data:`DEFAULT_ACTION_NOISE_STD` for
             ``"stochastic"``, 0 otherwise. ``"ood"`` accepts noise too.
+        actuator_strength: ``(low, high)``: every episode draws its arm's strength uniformly
+            from this range (from the task's RNG, right after the start state) and the motors
+            get that multiple of the clipped command all episode long; randomness fixed per
+            episode, unobserved. None (default): strength 1, nothing drawn. Not for
+            ``"deterministic"``.
         time_limit: episode length in seconds, a whole number of control steps.
         control_timestep: seconds per agent action (10 physics steps at the default 0.05 s).
         success_radius: ball-to-target distance that counts as success (m).
@@ -116,6 +149,7 @@ def make_pusher_env(
         terminate_on_success=terminate_on_success,
         time_limit=time_limit,
         control_timestep=control_timestep,
+        actuator_strength=check_strength(variant, actuator_strength),
     )
     base = PusherWrapper(dm_env, from_pixels=from_pixels, pixels_only=False, device=device)
     env = TransformedEnv(base)

@@ -35,6 +35,7 @@ __all__ = [
     "Pusher",
     "clip_action",
     "draw_action_noise",
+    "draw_strength",
     "get_model_and_assets",
     "make_environment",
     "noisy_control",
@@ -253,6 +254,15 @@ def noisy_control(commanded: np.ndarray, noise: np.ndarray) -> np.ndarray:
     return np.clip(commanded + noise, -1.0, 1.0)
 
 
+def draw_strength(random: np.random.RandomState, strength: tuple[float, float] | None) -> float:
+    """An episode's actuator strength, uniform in ``strength = (low, high)``, drawn from
+    ``random`` right after the start state; ``None``: 1 and nothing is drawn (the stream stays
+    as it was without it)."""
+    if strength is None:
+        return 1.0
+    return float(random.uniform(*strength))
+
+
 class Pusher(base.Task):
     """Push the ball to within ``success_radius`` of the target; success ends the episode.
 
@@ -260,8 +270,12 @@ class Pusher(base.Task):
     trajectories for world-model data and long-horizon forecast checks).
 
     The reward is the dense shaping of :func:`rcvae_torchrl.envs.pusher_reward`, computed here from
-    the physics; it is <= 0 at every step. With ``action_noise_std > 0`` the commanded action gets
-    Gaussian noise from ``self.random`` before it reaches the motors (then clipped to [-1, 1]).
+    the physics; it is <= 0 at every step. With ``actuator_strength = (low, high)`` every episode
+    draws a strength ``g`` uniform in that range from ``self.random`` (right after its start
+    state): the motors get ``g`` times the clipped command, a weaker or stronger arm for the
+    whole episode that nothing in the observation shows. With ``action_noise_std > 0`` that
+    command then gets Gaussian noise from ``self.random`` before it reaches the motors (then
+    clipped to [-1, 1]).
     """
 
     def __init__(
@@ -271,12 +285,15 @@ class Pusher(base.Task):
         action_noise_std: float = 0.0,
         terminate_on_success: bool = True,
         random: int | np.random.RandomState | None = None,
+        actuator_strength: tuple[float, float] | None = None,
     ) -> None:
         super().__init__(random=random)
         self.region = region
         self.success_radius = float(success_radius)
         self.action_noise_std = float(action_noise_std)
         self.terminate_on_success = bool(terminate_on_success)
+        self.actuator_strength = actuator_strength
+        self.strength = 1.0  # this episode's actuator strength
         self._action = np.zeros(2)
         self._ball_to_target = self._finger_to_ball = math.inf
         self._obs: np.ndarray | None = None
@@ -289,13 +306,14 @@ class Pusher(base.Task):
 
         with physics.reset_context():
             sample_start(self.random, self.region, finger_to_ball)
+        self.strength = draw_strength(self.random, self.actuator_strength)
         self._action = np.zeros(2)
         self.after_step(physics)
         super().initialize_episode(physics)
 
     def before_step(self, action: np.ndarray, physics: Physics) -> None:
         self._action = clip_action(action)
-        applied = self._action
+        applied = self._action if self.actuator_strength is None else self.strength * self._action
         if self.action_noise_std > 0:
             applied = noisy_control(applied, draw_action_noise(self.random, self.action_noise_std))
         physics.set_control(applied)
@@ -338,10 +356,18 @@ def make_environment(
     time_limit: float = DEFAULT_TIME_LIMIT,
     control_timestep: float = CONTROL_TIMESTEP,
     random: int | np.random.RandomState | None = None,
+    actuator_strength: tuple[float, float] | None = None,
 ) -> control.Environment:
     """The raw dm_control environment (no TorchRL wrapping)."""
     physics = Physics.from_xml_string(*get_model_and_assets())
-    task = Pusher(region, success_radius, action_noise_std, terminate_on_success, random=random)
+    task = Pusher(
+        region,
+        success_radius,
+        action_noise_std,
+        terminate_on_success,
+        random=random,
+        actuator_strength=actuator_strength,
+    )
     return control.Environment(
         physics, task, time_limit=time_limit, control_timestep=control_timestep
     )

@@ -65,6 +65,7 @@ from .pusher import (
     rcvae_config,
     success_boundary,
     success_fn,
+    variant_randomness,
 )
 from .report import write_report
 
@@ -130,10 +131,10 @@ class Study:
             make_batched_pusher_env,
             num_envs,
             variant,
-            action_noise_std=d.stochastic_noise_std if variant == "stochastic" else None,
             success_radius=s.success_radius,
             time_limit=s.horizon_s,
             terminate_on_success=False,
+            **variant_randomness(variant, d),
         )
 
     def load_model(self, name: str) -> RCVAEEnsemble:
@@ -169,9 +170,6 @@ class Study:
         for variant in WORLD_MODELS:
             path = self.dir / "data" / f"{variant}.pt"
             if not path.is_file():
-                noise = (
-                    {"action_noise_std": d.stochastic_noise_std} if variant == "stochastic" else {}
-                )
                 data = collect_pusher_data(
                     variant,
                     scripted_episodes=d.scripted_episodes,
@@ -181,7 +179,7 @@ class Study:
                     random_time_limit=d.random_time_limit,
                     seed=self.cfg.seed,
                     progress=self.progress,
-                    **noise,
+                    **variant_randomness(variant, d),
                 )
                 save_episodes(data, path)
             summary[f"{variant}_frames"] = int(load_episodes(path).shape[0])

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from typing import Any
 
 import torch
 from torchrl.envs import EnvBase
@@ -43,6 +44,7 @@ __all__ = [
     "rcvae_config",
     "success_boundary",
     "success_fn",
+    "variant_randomness",
 ]
 
 #: The known functions a Pusher model config may name (``"pusher"``).
@@ -83,10 +85,23 @@ def rcvae_config(model: ModelConfig) -> RCVAEConfig:
     )
 
 
+def variant_randomness(variant: str, data: DataConfig) -> dict[str, Any]:
+    """The study's randomness of a Pusher variant, as env arguments: the stochastic variant's
+    actuator strength range and action noise; nothing for the others."""
+    if variant != "stochastic":
+        return {}
+    strength = data.stochastic_strength
+    return {
+        "action_noise_std": data.stochastic_noise_std,
+        "actuator_strength": None if strength is None else tuple(strength),
+    }
+
+
 def make_env(variant: str, data: DataConfig, radius: float, **kwargs) -> EnvBase:
-    """The real Pusher of a variant with the study's action noise and success radius."""
-    noise = data.stochastic_noise_std if variant == "stochastic" else None
-    return make_pusher_env(variant, action_noise_std=noise, success_radius=radius, **kwargs)
+    """The real Pusher of a variant with the study's randomness and success radius."""
+    return make_pusher_env(
+        variant, success_radius=radius, **variant_randomness(variant, data), **kwargs
+    )
 
 
 def success_fn(radius: float) -> Callable[..., torch.Tensor]:

@@ -218,6 +218,17 @@ def test_reset_to_given_states_matches_reset_to_state():
         _assert_equal(out[i], ref)
 
 
+@pytest.mark.parametrize("noise", [0.0, 0.7])
+def test_actuator_strength_equals_the_dm_control_env(noise):
+    kwargs = {"time_limit": 5.0, "action_noise_std": noise, "actuator_strength": (0.2, 0.6)}
+    env = make_batched_pusher_env(3, "stochastic", seed=21, **kwargs)
+    td = _batched_rollout(env, 125, "scripted")
+    for i in range(3):
+        _assert_equal(td[i], _dm_replay("stochastic", 21 + i, td["action"][i], **kwargs))
+    strengths = env._strength
+    assert ((strengths >= 0.2) & (strengths <= 0.6)).all() and len(set(strengths)) == 3
+
+
 def test_partial_reset_to_given_states():
     env = make_batched_pusher_env(3, seed=2)
     before = env.reset()["observation"]

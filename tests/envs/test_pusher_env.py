@@ -148,6 +148,11 @@ def test_parallel_env():
         ({"time_limit": -5}, "time_limit: expected a positive"),
         ({"time_limit": 1.03}, "whole number of control steps"),
         ({"success_radius": 0}, "success_radius"),
+        ({"variant": "deterministic", "actuator_strength": (0.5, 1.0)}, "fixed strength"),
+        ({"variant": "stochastic", "actuator_strength": (0.0, 0.4)}, "0 < low <= high"),
+        ({"variant": "stochastic", "actuator_strength": (0.5, 0.4)}, "0 < low <= high"),
+        ({"variant": "stochastic", "actuator_strength": 0.5}, "expected \\(low, high\\)"),
+        ({"variant": "stochastic", "actuator_strength": (0.1, 0.2, 0.3)}, "two numbers"),
     ],
 )
 def test_bad_arguments_raise_clear_errors(kwargs, match):
@@ -240,3 +245,51 @@ def test_pusher_input_features_match_the_simulated_geometry():
     moved = (nxt[:, obs_indices("finger")] - obs[:, obs_indices("finger")]) / CONTROL_TIMESTEP
     for k in range(2):
         assert torch.corrcoef(torch.stack([mean_vel[:, k], moved[:, k]]))[0, 1] > 0.9
+
+
+def _scripted_motors(env, steps):
+    """The controls that reach the motors over ``steps`` scripted steps, ``[steps, 2]``, and
+    the commanded (clipped) actions."""
+    policy, physics = make_scripted_policy(), env.base_env._env.physics
+    td, applied, commanded = env.reset(), [], []
+    with torch.no_grad():
+        for _ in range(steps):
+            td = policy(td)
+            td = env.step(td)
+            applied.append(physics.data.ctrl.copy())
+            commanded.append(td["action"].clamp(-1, 1).double().numpy())
+            td = td["next"]
+    return np.stack(applied), np.stack(commanded)
+
+
+def test_actuator_strength_scales_the_command_for_a_whole_episode():
+    env = make_pusher_env("stochastic", seed=3, action_noise_std=0.0, actuator_strength=(0.2, 0.4))
+    task = env.base_env._env.task
+    applied, commanded = _scripted_motors(env, 20)
+    g = task.strength
+    assert 0.2 <= g <= 0.4
+    np.testing.assert_allclose(applied, g * commanded, rtol=0, atol=1e-7)
+    strengths = []
+    for seed in range(40):  # each episode draws its own strength from the task's stream
+        env.set_seed(seed)
+        strengths.append(task.strength)
+    strengths = np.array(strengths)
+    assert strengths.min() >= 0.2 and strengths.max() <= 0.4 and strengths.std() > 0.04
+    env.set_seed(3)
+    env.reset()  # the seed's second episode, as in _scripted_motors
+    assert task.strength == g  # reproducible under the seed
+
+
+def test_actuator_strength_comes_after_the_start_state_in_the_stream():
+    # A seeded stream's first start state is that of the env without it (the draw comes after).
+    plain = make_pusher_env("stochastic", seed=11).base_env._env.physics
+    strong = make_pusher_env("stochastic", seed=11, actuator_strength=(1.0, 1.0)).base_env._env
+    np.testing.assert_array_equal(plain.ball_xy(), strong.physics.ball_xy())
+    np.testing.assert_array_equal(plain.arm_angles(), strong.physics.arm_angles())
+    weak = make_pusher_env(
+        "stochastic", seed=4, action_noise_std=0.0, actuator_strength=(0.25, 0.25)
+    )
+    full = make_pusher_env("stochastic", seed=4, action_noise_std=0.0, actuator_strength=(1.0, 1.0))
+    a, _ = _scripted_motors(weak, 5)
+    b, _ = _scripted_motors(full, 5)
+    np.testing.assert_allclose(a[0], 0.25 * b[0], rtol=0, atol=1e-7)
