@@ -4,7 +4,8 @@ A forecast of P(success) per start state can only separate successes from failur
 the start states differ in their real chance. This script measures that ceiling for a task set
 (start states drawn by the real env's reset) under the scripted pusher (a stand-in for the
 agent: in the default study's stochastic condition it succeeds about as often as the agent),
-for each action-noise std and each deadline:
+for each setting of the stochastic env's randomness (per-step action-noise std and the range of
+the episode's actuator strength) and each deadline:
 
 - the per-start success rates over ``--runs`` real episodes per start (batched env);
 - the *oracle* scores, those of the forecast that knows each start's rate: Brier skill against
@@ -17,11 +18,12 @@ for each action-noise std and each deadline:
   envs, whose outcome per start is fixed): what "Brier skill against the overall base rate" and
   "AUROC over all episodes" can reach at best.
 
-    python benchmarks/task_variation.py [--noise 0.5 1.0 1.5] [--deadlines 4 8 12]
-                                        [--starts 40] [--runs 30] [--quick]
+    python benchmarks/task_variation.py [--noise 0.5 1.0 1.5] [--strength 0.2,0.4 ...]
+                                        [--deadlines 4 8 12] [--starts 40] [--runs 30] [--quick]
 
-Prints one table per noise level and writes ``benchmarks/results/task_variation.json``
-(``task_variation_quick.json`` with ``--quick``).
+``--strength`` adds settings with an episode-level actuator strength uniform in ``low,high``
+and no per-step noise (``low,high,std`` for both); each prints one table. Writes
+``benchmarks/results/task_variation.json`` (``task_variation_quick.json`` with ``--quick``).
 """
 
 from __future__ import annotations
@@ -59,12 +61,21 @@ def draw(variant: str, count: int, index: int) -> torch.Tensor:
     return torch.stack(rows)
 
 
-def first_steps(variant: str, starts: torch.Tensor, runs: int, noise: float, steps: int):
+def first_steps(
+    variant: str,
+    starts: torch.Tensor,
+    runs: int,
+    noise: float,
+    steps: int,
+    strength: tuple[float, float] | None = None,
+):
     """First success step ``[B, R]`` of the scripted pusher (``steps`` when none)."""
+    stochastic = variant == "stochastic"
     env = make_batched_pusher_env(
         min(MAX_ENVS, len(starts) * runs),
         variant,
-        action_noise_std=noise if variant == "stochastic" else None,
+        action_noise_std=noise if stochastic else None,
+        actuator_strength=strength if stochastic else None,
         time_limit=steps * CONTROL_TIMESTEP,
         terminate_on_success=False,
     )
@@ -123,6 +134,12 @@ def pooled(parts: list[torch.Tensor]) -> torch.Tensor:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--noise", type=float, nargs="+", default=[0.5, 1.0, 1.5])
+    parser.add_argument(
+        "--strength",
+        nargs="*",
+        default=[],
+        help="low,high[,std]: an episode-level actuator strength range (and per-step noise std)",
+    )
     parser.add_argument("--deadlines", type=float, nargs="+", default=[4.0, 8.0, 12.0])
     parser.add_argument("--starts", type=int, default=40)
     parser.add_argument("--runs", type=int, default=30)
@@ -131,6 +148,13 @@ def main() -> None:
     torch.set_num_threads(1)
     if args.quick:
         args.starts, args.runs, args.noise = 8, 5, args.noise[-1:]
+    settings = [(f"noise {n}", n, None) for n in args.noise]
+    for text in args.strength:
+        values = [float(v) for v in text.split(",")]
+        if len(values) not in (2, 3):
+            parser.error(f"--strength: expected low,high[,std], got {text!r}")
+        noise = values[2] if len(values) == 3 else 0.0
+        settings.append((f"strength {values[0]}-{values[1]} noise {noise}", noise, values[:2]))
     steps = round(max(args.deadlines) / CONTROL_TIMESTEP)
     deadlines = [round(d / CONTROL_TIMESTEP) for d in args.deadlines]
     fixed = {  # the deterministic envs: one run per start (the outcome is fixed)
@@ -139,8 +163,8 @@ def main() -> None:
     }
     stochastic = draw("stochastic", args.starts, 1)
     results, started = {}, time.perf_counter()
-    for noise in args.noise:
-        first = first_steps("stochastic", stochastic, args.runs, noise, steps)
+    for name, noise, strength in settings:
+        first = first_steps("stochastic", stochastic, args.runs, noise, steps, strength)
         rows, per_deadline = [], {}
         for seconds, k in zip(args.deadlines, deadlines):
             won = first < k
@@ -149,9 +173,10 @@ def main() -> None:
             per_deadline[str(seconds)] = {"stochastic": own, "pooled": both}
             shown = ("rate", "rate_sd", "rate_min", "rate_max", "between_share")
             rows.append([seconds, *(own[k] for k in shown), *_oracles(own), *_oracles(both)])
-        results[str(noise)] = per_deadline
+        results[name if strength else str(noise)] = per_deadline
         print_table(
-            f"action noise std {noise}: {args.starts} starts x {args.runs} runs (stochastic); "
+            f"{name if strength else f'action noise std {noise}'}: {args.starts} starts x "
+            f"{args.runs} runs (stochastic); "
             f"pooled with {args.starts} deterministic and {args.starts} out-of-distribution starts",
             [
                 "deadline s",

@@ -141,6 +141,14 @@ def test_the_schema_is_the_base_of_every_profile():
         ("assess.horizon_s=inf", r"^assess\.horizon_s: expected a positive whole number"),
         ("data.scripted_episodes=-1", r"^data\.scripted_episodes: expected an integer >= 0"),
         ("data.exploration_std=-1", r"^data\.exploration_std: expected a finite number >= 0"),
+        (
+            "data.stochastic_strength=[0.4,0.2]",
+            r"^data\.stochastic_strength: expected \(low, high\) with 0 < low <= high",
+        ),
+        (
+            "data.stochastic_strength=[0.2]",
+            r"^data\.stochastic_strength: expected \(low, high\), two numbers",
+        ),
         ("model.ensemble_size=1", r"^model\.ensemble_size: expected an integer >= 2"),
         ("model.state_constraint=bogus", r"^model\.state_constraint: expected 'pusher' or None"),
         ("planner.top_k=500", r"^planner\.top_k: expected at most num_candidates"),
@@ -238,3 +246,20 @@ def test_stochastic_open_loop_steps_apply_to_the_stochastic_ensemble_only(tmp_pa
     shared = _config("train.open_loop_steps=2")
     study = Study(shared, tmp_path, torch.device("cpu"), progress=False)
     assert study._train_config("stochastic").open_loop_steps == 2
+
+
+def test_the_stochastic_variant_takes_the_studys_randomness():
+    """The study's envs of the stochastic variant draw the configured strength range and
+    noise; ``data.stochastic_strength=null`` gives the full-strength arm."""
+    from recipes.pusher_competency.pusher import make_env
+
+    config = _config("data.stochastic_strength=[0.3,0.5]", "data.stochastic_noise_std=0.25")
+    env = make_env("stochastic", config.data, 0.03)
+    env.reset()
+    task = env.base_env._env.task
+    assert (task.actuator_strength, task.action_noise_std) == ((0.3, 0.5), 0.25)
+    assert 0.3 <= task.strength <= 0.5
+    plain = make_env("deterministic", config.data, 0.03).base_env._env.task
+    assert (plain.actuator_strength, plain.action_noise_std) == (None, 0.0)
+    config = _config("data.stochastic_strength=null")
+    assert make_env("stochastic", config.data, 0.03).base_env._env.task.actuator_strength is None
