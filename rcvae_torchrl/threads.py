@@ -8,17 +8,23 @@ member) cost less than handing work to another thread.
 
 :func:`choose_threads` therefore returns 1 unless both hold: the machine has idle cores (the
 1-minute load average leaves at least one whole core free per extra thread) and the work per op
-is large enough (:data:`MIN_FLOP_PER_THREAD` per thread). :func:`set_threads` applies it.
+is large enough (:data:`MIN_FLOP_PER_THREAD` per thread). :func:`set_threads` applies it, and
+:func:`threads_kept` keeps it across code that resets it: TorchRL's batched envs (``SerialEnv``,
+``ParallelEnv``) change torch's thread count when they start and close workers (on close they
+raise it by the number of workers, up to the count torch started with), so a process that set 1
+thread trains on 2 after collecting data with a ``SerialEnv`` of 4 envs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
+from collections.abc import Iterator
 
 import torch
 
-__all__ = ["MIN_FLOP_PER_THREAD", "choose_threads", "free_cores", "set_threads"]
+__all__ = ["MIN_FLOP_PER_THREAD", "choose_threads", "free_cores", "set_threads", "threads_kept"]
 
 #: Floating-point operations per op below which a further thread is not given. A conservative
 #: bound, not a measured break-even: on this project's shared 2-core machine (load 4-7) a second
@@ -78,3 +84,15 @@ def set_threads(threads: int | str | None, op_flop: float | None = None) -> int:
     if threads is not None:
         torch.set_num_threads(threads)
     return torch.get_num_threads()
+
+
+@contextlib.contextmanager
+def threads_kept() -> Iterator[int]:
+    """Restore torch's intra-op thread count on exit (yields it), whatever the code inside
+    set: wrap the start and the close of TorchRL batched envs, which change it."""
+    count = torch.get_num_threads()
+    try:
+        yield count
+    finally:
+        if torch.get_num_threads() != count:
+            torch.set_num_threads(count)

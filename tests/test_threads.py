@@ -1,9 +1,19 @@
 """The thread-count default: one thread unless the machine is idle and the ops are large."""
 
+import functools
+
 import pytest
 import torch
 
-from rcvae_torchrl.threads import MIN_FLOP_PER_THREAD, choose_threads, free_cores, set_threads
+from rcvae_torchrl.data import collect_episodes
+from rcvae_torchrl.envs import make_pusher_env
+from rcvae_torchrl.threads import (
+    MIN_FLOP_PER_THREAD,
+    choose_threads,
+    free_cores,
+    set_threads,
+    threads_kept,
+)
 
 
 def test_busy_machine_or_small_ops_get_one_thread():
@@ -48,3 +58,37 @@ def test_set_threads_applies_counts_and_auto_and_leaves_none_alone():
 def test_bad_arguments_name_themselves(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+def test_threads_kept_restores_the_count_whatever_happens_inside():
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        with threads_kept() as count:
+            assert count == 1
+            torch.set_num_threads(2)
+        assert torch.get_num_threads() == 1
+        with pytest.raises(KeyError), threads_kept():
+            torch.set_num_threads(2)
+            raise KeyError("inside")
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_collecting_with_a_serial_env_keeps_the_thread_count():
+    """TorchRL's SerialEnv raises torch's thread count when it closes (by its worker count, up
+    to the count torch started with); a caller's choice must survive data collection."""
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+
+        def policy(td):
+            return td.set("action", torch.zeros(*td.batch_size, 2))
+
+        make = functools.partial(make_pusher_env, time_limit=1.0)
+        data = collect_episodes(make, policy, 2, num_envs=2, progress=False)
+        assert data.numel() > 0
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)

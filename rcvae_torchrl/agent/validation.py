@@ -23,6 +23,7 @@ from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_positive_int
 from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
+from rcvae_torchrl.threads import threads_kept
 
 from .episodes import ResetToState, run_episodes
 from .starts import start_episodes
@@ -128,12 +129,13 @@ def _my_outcomes(
     """``(success, first_step, steps, trace or None)`` of this process's ``episodes``:
     in ``workers`` processes, in a batched env, or one at a time."""
     if workers > 1:
-        pool = episode_workers(env, workers, reset_to_state)
-        try:
-            _check_batch(pool.batch_size[1:])
-            return _batched_outcomes(pool, start_worker_episodes, policy, *episodes, show, desc)
-        finally:
-            pool.close()
+        with threads_kept():  # a ParallelEnv changes torch's thread count at start and close
+            pool = episode_workers(env, workers, reset_to_state)
+            try:
+                _check_batch(pool.batch_size[1:])
+                return _batched_outcomes(pool, start_worker_episodes, policy, *episodes, show, desc)
+            finally:
+                pool.close()
     env = env() if callable(env) and not isinstance(env, EnvBase) else env
     _check_batch(env.batch_size)
     if env.batch_size:

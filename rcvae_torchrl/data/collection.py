@@ -10,11 +10,14 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, SerialEnv
 from tqdm.auto import tqdm
 
+from rcvae_torchrl.threads import threads_kept
+
 __all__ = ["TRAJ_KEY", "check_episode_ids", "collect_episodes", "merge_episodes"]
 
 TRAJ_KEY = ("collector", "traj_ids")
 
 
+@threads_kept()  # a SerialEnv changes torch's thread count when it closes
 def collect_episodes(
     make_env: Callable[[], EnvBase],
     policy: Callable[[TensorDictBase], TensorDictBase],

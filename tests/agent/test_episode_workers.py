@@ -57,7 +57,9 @@ def test_worker_outcomes_equal_the_one_env_run(case):
     # 9 episodes over 2 workers (x 2 envs each when batched): the last chunk is padded
     args |= dict(runs_per_start=3, max_steps=40, seed=3, progress=False)
     serial = real_outcomes(env, policy, starts, **args)
+    threads = torch.get_num_threads()
     parallel = real_outcomes(make, policy, starts, workers=2, **args)
+    assert torch.get_num_threads() == threads  # the ParallelEnv's start and close undone
     assert parallel.success.shape == (3, 3) and parallel.trace.shape == (3, 3, 40)
     for name in ("success", "first_step", "steps"):
         assert torch.equal(getattr(parallel, name), getattr(serial, name)), name
