@@ -224,6 +224,12 @@ class BatchedPusherEnv(EnvBase):
         return self.batch_size[0]
 
     @property
+    def strengths(self) -> np.ndarray:
+        """Each env's actuator strength this episode ``[N]`` (1 where ``actuator_strength`` is
+        None), a copy."""
+        return self._strength.copy()
+
+    @property
     def step_limit(self) -> float:
         """Episode length in control steps (see :func:`episode_step_limit`)."""
         return self._step_limit

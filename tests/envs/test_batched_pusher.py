@@ -225,8 +225,9 @@ def test_actuator_strength_equals_the_dm_control_env(noise):
     td = _batched_rollout(env, 125, "scripted")
     for i in range(3):
         _assert_equal(td[i], _dm_replay("stochastic", 21 + i, td["action"][i], **kwargs))
-    strengths = env._strength
+    strengths = env.strengths
     assert ((strengths >= 0.2) & (strengths <= 0.6)).all() and len(set(strengths)) == 3
+    assert (make_batched_pusher_env(2, "stochastic", seed=0).strengths == 1.0).all()
 
 
 def test_partial_reset_to_given_states():
