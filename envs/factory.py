@@ -64,8 +64,9 @@ def check_strength(
     actuator_strength: tuple[float, float] | None,
     name: str = "actuator_strength",
 ) -> tuple[float, float] | None:
-    """``actuator_strength`` checked: None, or ``(low, high)`` with ``0 < low <= high``; errors
-    name the argument ``name``."""
+    """``actuator_strength`` checked: None, or ``(low, high)`` with ``0 < low <= high <= 1``
+    (the motors clip their controls to [-1, 1], so a strength above 1 would only saturate);
+    errors name the argument ``name``."""
     if actuator_strength is None:
         return None
     try:
@@ -74,9 +75,9 @@ def check_strength(
         raise ValueError(
             f"{name}: expected (low, high), two numbers, got {actuator_strength!r}"
         ) from None
-    if not (math.isfinite(high) and 0 < low <= high):
+    if not 0 < low <= high <= 1:
         raise ValueError(
-            f"{name}: expected (low, high) with 0 < low <= high, got {actuator_strength!r}"
+            f"{name}: expected (low, high) with 0 < low <= high <= 1, got {actuator_strength!r}"
         )
     if variant == "deterministic":
         raise ValueError(
@@ -121,11 +122,11 @@ def make_pusher_env(
         seed: seeds the task's RNG (start states and action noise).
         action_noise_std: std of the action noise; default :data:`DEFAULT_ACTION_NOISE_STD` for
             ``"stochastic"``, 0 otherwise. ``"ood"`` accepts noise too.
-        actuator_strength: ``(low, high)``: every episode draws its arm's strength uniformly
-            from this range (from the task's RNG, right after the start state) and the motors
-            get that multiple of the clipped command all episode long; randomness fixed per
-            episode, unobserved. None (default): strength 1, nothing drawn. Not for
-            ``"deterministic"``.
+        actuator_strength: ``(low, high)``, within (0, 1]: every episode draws its arm's
+            strength uniformly from this range (from the task's RNG, right after the start
+            state) and the motors get that multiple of the clipped command all episode long;
+            randomness fixed per episode, unobserved. None (default): strength 1, nothing
+            drawn. Not for ``"deterministic"``.
         time_limit: episode length in seconds, a whole number of control steps.
         control_timestep: seconds per agent action (10 physics steps at the default 0.05 s).
         success_radius: ball-to-target distance that counts as success (m).

@@ -272,8 +272,8 @@ class Pusher(base.Task):
     The reward is the dense shaping of :func:`rcvae_torchrl.envs.pusher_reward`, computed here from
     the physics; it is <= 0 at every step. With ``actuator_strength = (low, high)`` every episode
     draws a strength ``g`` uniform in that range from ``self.random`` (right after its start
-    state): the motors get ``g`` times the clipped command, a weaker or stronger arm for the
-    whole episode that nothing in the observation shows. With ``action_noise_std > 0`` that
+    state): the motors get ``g`` times the clipped command, a weaker arm for the whole
+    episode that nothing in the observation shows. With ``action_noise_std > 0`` that
     command then gets Gaussian noise from ``self.random`` before it reaches the motors (then
     clipped to [-1, 1]).
     """

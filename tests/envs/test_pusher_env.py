@@ -151,6 +151,8 @@ def test_parallel_env():
         ({"variant": "deterministic", "actuator_strength": (0.5, 1.0)}, "fixed strength"),
         ({"variant": "stochastic", "actuator_strength": (0.0, 0.4)}, "0 < low <= high"),
         ({"variant": "stochastic", "actuator_strength": (0.5, 0.4)}, "0 < low <= high"),
+        ({"variant": "stochastic", "actuator_strength": (0.5, 1.5)}, "high <= 1"),
+        ({"variant": "ood", "actuator_strength": (0.5, float("nan"))}, "high <= 1"),
         ({"variant": "stochastic", "actuator_strength": 0.5}, "expected \\(low, high\\)"),
         ({"variant": "stochastic", "actuator_strength": (0.1, 0.2, 0.3)}, "two numbers"),
     ],

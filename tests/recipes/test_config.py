@@ -143,7 +143,7 @@ def test_the_schema_is_the_base_of_every_profile():
         ("data.exploration_std=-1", r"^data\.exploration_std: expected a finite number >= 0"),
         (
             "data.stochastic_strength=[0.4,0.2]",
-            r"^data\.stochastic_strength: expected \(low, high\) with 0 < low <= high",
+            r"^data\.stochastic_strength: expected \(low, high\) with 0 < low <= high <= 1",
         ),
         (
             "data.stochastic_strength=[0.2]",
