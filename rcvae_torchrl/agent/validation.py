@@ -117,6 +117,7 @@ def real_outcomes(
     return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
 
 
+@threads_kept()  # a ParallelEnv of workers changes torch's thread count at start and close
 def _my_outcomes(
     env: EnvBase | Callable[[], EnvBase],
     workers: int,
@@ -129,13 +130,12 @@ def _my_outcomes(
     """``(success, first_step, steps, trace or None)`` of this process's ``episodes``:
     in ``workers`` processes, in a batched env, or one at a time."""
     if workers > 1:
-        with threads_kept():  # a ParallelEnv changes torch's thread count at start and close
-            pool = episode_workers(env, workers, reset_to_state)
-            try:
-                _check_batch(pool.batch_size[1:])
-                return _batched_outcomes(pool, start_worker_episodes, policy, *episodes, show, desc)
-            finally:
-                pool.close()
+        pool = episode_workers(env, workers, reset_to_state)
+        try:
+            _check_batch(pool.batch_size[1:])
+            return _batched_outcomes(pool, start_worker_episodes, policy, *episodes, show, desc)
+        finally:
+            pool.close()
     env = env() if callable(env) and not isinstance(env, EnvBase) else env
     _check_batch(env.batch_size)
     if env.batch_size:

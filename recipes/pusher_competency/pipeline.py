@@ -119,7 +119,7 @@ class Study:
         return round(self.cfg.assess.horizon_s / CONTROL_TIMESTEP)
 
     def env(self, variant: str, **kwargs: Any) -> EnvBase:
-        """The real Pusher of ``variant`` with the study's noise and success radius."""
+        """The real Pusher of ``variant`` with the study's randomness and success radius."""
         return make_env(variant, self.cfg.data, self.cfg.assess.success_radius, **kwargs)
 
     def batched_env(self, variant: str, num_envs: int) -> Callable[[], EnvBase]:
