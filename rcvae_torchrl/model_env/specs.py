@@ -77,7 +77,8 @@ def _model_state_spec(
     ensemble: RCVAEEnsemble, trajectory_sampling: TrajectorySampling, dtype: torch.dtype, device
 ) -> dict[str, TensorSpec]:
     cfg, e = ensemble.config, ensemble.ensemble_size
-    hidden = (cfg.hidden_dim,) if trajectory_sampling == "ts_inf" else (e, cfg.hidden_dim)
+    carry = ensemble.carry_dim
+    hidden = (carry,) if trajectory_sampling == "ts_inf" else (e, carry)
     out: dict[str, TensorSpec] = {
         "rcvae": Composite(
             hidden=Unbounded(hidden, dtype=dtype, device=device),

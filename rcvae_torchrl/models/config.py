@@ -35,6 +35,14 @@ class RCVAEConfig:
         observation_names: a name for each state dimension (e.g. the
             :class:`~rcvae_torchrl.data.ObservationLayout` of the observation), recorded with
             the model and used in its self-checks and reports; default ``obs[i]``.
+        episode_latent_dim: size Ze of a latent e drawn once per episode (0: none), for
+            randomness that holds for a whole episode and that the start state does not show
+            (an unknown mass, friction or actuator strength drawn per episode). Its prior is
+            N(0, I); its posterior q(e | window) reads the whole training window; the prior,
+            posterior and decoder read it beside h_t, and a rollout carries it unchanged in its
+            recurrent state (:attr:`RCVAEEnsemble.carry_dim`). The per-step latent z_t alone
+            must redraw such randomness every step, or infer it from a history the start of an
+            imagined episode does not have.
     """
 
     obs_dim: int
@@ -49,8 +57,12 @@ class RCVAEConfig:
     state_constraint: str | None = None
     input_features: str | None = None
     observation_names: tuple[str, ...] | None = None
+    episode_latent_dim: int = 0
 
     def __post_init__(self) -> None:
+        ze = self.episode_latent_dim
+        if isinstance(ze, bool) or not isinstance(ze, int) or ze < 0:
+            raise ValueError(f"RCVAEConfig.episode_latent_dim must be an int >= 0, got {ze!r}.")
         for name in ("obs_dim", "action_dim", "hidden_dim", "latent_dim", "mlp_dim"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:

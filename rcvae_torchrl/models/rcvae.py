@@ -8,6 +8,10 @@ Each member models p_θ(s_1:T | s_0, a_0:T−1) (Acharya, Russell & Ahmed 2022, 
 - a latent z_t with prior p(z_t | h_t) and posterior q(z_t | h_t, Δ̂_t) (training only), where
   Δ̂_t is the normalised state change s_t − s_{t−1} of the predicted dimensions: the posterior
   sees exactly the quantity the decoder has to explain;
+- optionally (``episode_latent_dim`` Ze > 0) a latent e drawn once per episode, with a learned
+  diagonal Gaussian prior p(e) and a posterior q(e | window) from the whole training window,
+  read by the prior, posterior and decoder beside h_t (below, h_t stands for the carried state
+  [h_t, e]);
 - a Gaussian decoder p(Δ̂_t | h_t, x_t, z_t) with a soft-clamped log-std, and
   s_t = s_{t−1} + denormalise(Δ̂_t) on predicted dimensions, s_t = s_{t−1} on
   ``passthrough_dims`` (copied exactly, excluded from the likelihood).
@@ -33,7 +37,12 @@ from rcvae_torchrl._checks import check_finite, check_floating, check_min_rank, 
 from rcvae_torchrl.models.config import RCVAEConfig
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_scan, gru_step
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP, ensemble_mlp
-from rcvae_torchrl.models.functional import Generators, gaussian_head, reparameterize
+from rcvae_torchrl.models.functional import (
+    Generators,
+    gaussian_head,
+    reparameterize,
+    standard_normal,
+)
 from rcvae_torchrl.models.functions import ModelFunctions
 from rcvae_torchrl.models.normalizer import StateNormalizer
 
@@ -43,7 +52,7 @@ __all__ = ["RCVAEEnsemble", "SequenceOutput", "StepOutput"]
 class StepOutput(NamedTuple):
     """One generative step, member-major. Deltas are normalised, of the predicted dims only."""
 
-    hidden: torch.Tensor  #: h_t ``[E, *B, H]``
+    hidden: torch.Tensor  #: the carried state [h_t, e] ``[E, *B, carry_dim]``
     latent: torch.Tensor  #: z_t ``[E, *B, Z]``
     observation: torch.Tensor  #: s_t ``[E, *B, S]``
     delta_mean: torch.Tensor  #: decoder mean ``[E, *B, D]``
@@ -60,6 +69,10 @@ class SequenceOutput(NamedTuple):
     decoder_mean: torch.Tensor  #: p(Δ̂_t | h_t, x_t, z_t) mean, z_t ~ q ``[..., D]``
     decoder_std: torch.Tensor  #: ``[..., D]``
     target: torch.Tensor  #: the normalised state change Δ̂_t to explain ``[..., D]``
+    episode_mean: torch.Tensor | None = None  #: q(e | window) mean ``[E, *B, Ze]`` (Ze > 0)
+    episode_std: torch.Tensor | None = None  #: ``[E, *B, Ze]``
+    episode_prior_mean: torch.Tensor | None = None  #: p(e) mean, ``[E, 1.., Ze]`` (Ze > 0)
+    episode_prior_std: torch.Tensor | None = None  #: ``[E, 1.., Ze]``
 
 
 class RCVAEEnsemble(nn.Module):
@@ -118,11 +131,29 @@ class RCVAEEnsemble(nn.Module):
 
     def _build_networks(self, c: RCVAEConfig, e: int) -> None:
         h, m, z, d = c.hidden_dim, c.mlp_dim, c.latent_dim, c.predicted_dim
+        carry = self.carry_dim
         self.embed = EnsembleLinear(e, c.obs_dim + c.action_dim + self.feature_dim, m)
         self.gru = EnsembleGRUCell(e, m, h)
-        self.prior_net = EnsembleMLP(e, h, m, 2 * z, depth=1)
-        self.posterior_net = EnsembleMLP(e, h + d, m, 2 * z, depth=1)
-        self.decoder = EnsembleMLP(e, h + m + z, m, 2 * d, depth=2)
+        self.prior_net = EnsembleMLP(e, carry, m, 2 * z, depth=1)
+        self.posterior_net = EnsembleMLP(e, carry + d, m, 2 * z, depth=1)
+        self.decoder = EnsembleMLP(e, carry + m + z, m, 2 * d, depth=2)
+        if c.episode_latent_dim:
+            # q(e | window): per-step features of (x_t, Δ̂_t), averaged over the window
+            self.episode_embed = EnsembleLinear(e, m + d, m)
+            self.episode_head = EnsembleLinear(e, m, 2 * c.episode_latent_dim)
+            # p(e): learned (its optimum under the KL is the spread of the posteriors, so that
+            # draws from it cover what training encoded; a fixed N(0, I) would not)
+            self.episode_prior_raw = nn.Parameter(torch.zeros(e, 2 * c.episode_latent_dim))
+
+    def episode_prior(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """p(e) of each member: ``(mean, std)`` each ``[E, Ze]`` (Ze > 0)."""
+        return gaussian_head(self.episode_prior_raw, min_std=self.config.latent_min_std)
+
+    @property
+    def carry_dim(self) -> int:
+        """Size of the recurrent state a rollout carries: h_t (H), then the episode latent e
+        (Ze, unchanged over the episode; none when ``episode_latent_dim`` is 0)."""
+        return self.config.hidden_dim + self.config.episode_latent_dim
 
     @property
     def dtype(self) -> torch.dtype:
@@ -135,10 +166,47 @@ class RCVAEEnsemble(nn.Module):
         return self.embed.weight.device
 
     # ----------------------------------------------------------------- building blocks
-    def initial_hidden(self, batch_shape: Sequence[int], like: torch.Tensor) -> torch.Tensor:
-        """h_0 = 0, ``[E, *batch_shape, H]`` with the dtype/device of ``like``."""
+    def initial_hidden(
+        self,
+        batch_shape: Sequence[int],
+        like: torch.Tensor,
+        generator: torch.Generator | None = None,
+        *,
+        mean: bool = False,
+    ) -> torch.Tensor:
+        """The carried state at t = 0, ``[E, *batch_shape, carry_dim]`` with the dtype/device of
+        ``like``: h_0 = 0, then (Ze > 0) the episode latent e ~ p(e), each member's prior
+        mean + std ⊙ ε with one noise ε ``[*batch_shape, Ze]`` drawn from ``generator`` and
+        shared by the members (the same episode seen by every member), or the prior mean when
+        ``mean``. With Ze = 0 nothing is drawn."""
         shape = (self.ensemble_size, *batch_shape, self.config.hidden_dim)
-        return like.new_zeros(shape)
+        h0 = like.new_zeros(shape)
+        ze = self.config.episode_latent_dim
+        if not ze:
+            return h0
+        view = (self.ensemble_size, *([1] * len(batch_shape)), ze)
+        prior_mean, prior_std = (p.to(like.dtype).view(view) for p in self.episode_prior())
+        if mean:
+            episode = prior_mean.expand(*shape[:-1], ze)
+        else:
+            episode = prior_mean + prior_std * standard_normal((*batch_shape, ze), like, generator)
+        return torch.cat([h0, episode], dim=-1)
+
+    def _split_carry(self, carry: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(h_t, e) from the carried state (e is ``None`` when Ze = 0)."""
+        if not self.config.episode_latent_dim:
+            return carry, None
+        h = self.config.hidden_dim
+        return carry[..., :h], carry[..., h:]
+
+    @staticmethod
+    def _join_carry(hidden: torch.Tensor, episode: torch.Tensor | None) -> torch.Tensor:
+        """[h_t, e] (``episode`` ``[E, *B, Ze]`` broadcast over any step dims of ``hidden``)."""
+        if episode is None:
+            return hidden
+        while episode.dim() < hidden.dim():
+            episode = episode.unsqueeze(-2)
+        return torch.cat([hidden, episode.expand(*hidden.shape[:-1], episode.shape[-1])], dim=-1)
 
     def embed_inputs(self, obs_prev: torch.Tensor, action_prev: torch.Tensor) -> torch.Tensor:
         """x_t = SiLU(W [ŝ_{t−1}, â_{t−1}, f̂(s_{t−1})] + b) ``[E, *B, M]`` from ``[E, *B, S]``,
@@ -159,13 +227,13 @@ class RCVAEEnsemble(nn.Module):
         return self.gru(x, hidden), x
 
     def prior(self, hidden: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """p(z_t | h_t): ``[E, *B, H]`` → ``(mean, std)`` each ``[E, *B, Z]``."""
+        """p(z_t | h_t): ``[E, *B, carry_dim]`` → ``(mean, std)`` each ``[E, *B, Z]``."""
         return gaussian_head(self.prior_net(hidden), min_std=self.config.latent_min_std)
 
     def posterior(
         self, hidden: torch.Tensor, target: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """q(z_t | h_t, Δ̂_t): ``[E, *B, H]``, ``[E, *B, D]`` → ``(mean, std)`` ``[E, *B, Z]``."""
+        """q(z_t | h_t, Δ̂_t): ``[E, *B, carry_dim]``, ``[E, *B, D]`` → ``(mean, std)`` ``[E, *B, Z]``."""
         # forward_split: the same affine map as on the concatenation, without materialising it
         raw = self.posterior_net.forward_split((hidden, target))
         return gaussian_head(raw, min_std=self.config.latent_min_std)
@@ -225,7 +293,7 @@ class RCVAEEnsemble(nn.Module):
         """Sample s_t ~ p_θ(s_t | h_{t−1}, s_{t−1}, a_{t−1}) with z_t from the prior.
 
         Args:
-            hidden: h_{t−1} ``[E, *B, H]``.
+            hidden: the carried state [h_{t−1}, e] ``[E, *B, carry_dim]``.
             obs_prev: s_{t−1} ``[E, *B, S]``.
             action_prev: a_{t−1} ``[E, *B, A]``.
             noise_latent: optional ε_z ``[E, *B, Z]`` (else drawn from ``generator``).
@@ -234,7 +302,8 @@ class RCVAEEnsemble(nn.Module):
         """
         # recur, prior and decode as one hot path (the modules' numbers, fewer ops and calls)
         x = self.embed_inputs(obs_prev, action_prev)
-        hidden = gru_step(self.gru, x, hidden)
+        hidden, episode = self._split_carry(hidden)
+        hidden = self._join_carry(gru_step(self.gru, x, hidden), episode)
         prior = ensemble_mlp(self.prior_net, hidden)
         latent = reparameterize(
             *gaussian_head(prior, min_std=self.config.latent_min_std), noise_latent, generator
@@ -289,15 +358,31 @@ class RCVAEEnsemble(nn.Module):
         n_steps = targets.shape[-2]
         n_open = min(max(int(open_loop_steps), 0), max(n_steps - 1, 0))
         hidden, x, prev = self._teacher_forced(observations, actions, mask, n_steps - n_open)
+        episode = None
+        if self.config.episode_latent_dim:
+            episode = self._episode_posterior(observations, actions, targets, x, mask, generator)
         if n_open:
             opened = self._open_loop(
                 (hidden[..., -1, :], x[..., -1, :], prev[..., -1, :]),
                 actions[..., n_steps - n_open : n_steps, :],
                 detach_open_loop,
                 generator,
+                None if episode is None else episode[2],
             )
             hidden, x, prev = (torch.cat(p, dim=-2) for p in zip((hidden, x, prev), opened))
-        return self._explain(hidden, x, prev, targets, generator)
+        out = self._explain(
+            hidden, x, prev, targets, generator, None if episode is None else episode[2]
+        )
+        if episode is None:
+            return out
+        view = (self.ensemble_size, *([1] * (episode[0].dim() - 2)), -1)
+        prior_mean, prior_std = (p.view(view) for p in self.episode_prior())
+        return out._replace(
+            episode_mean=episode[0],
+            episode_std=episode[1],
+            episode_prior_mean=prior_mean,
+            episode_prior_std=prior_std,
+        )
 
     @torch.no_grad()
     def predict_next(self, observations: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
@@ -317,6 +402,11 @@ class RCVAEEnsemble(nn.Module):
         self._check_windows(observations, actions, None)
         n_steps = observations.shape[-2] - 1
         hidden, x, prev = self._teacher_forced(observations, actions, None, n_steps)
+        if self.config.episode_latent_dim:  # e at its prior mean
+            prior_mean = self.episode_prior()[0]
+            hidden = self._join_carry(
+                hidden, prior_mean.view(-1, *([1] * (hidden.dim() - 3)), prior_mean.shape[-1])
+            )
         latent, _ = self.prior(hidden)
         mean, _ = self.decode(hidden, x, latent)
         return self.apply_delta(prev, mean)
@@ -365,8 +455,34 @@ class RCVAEEnsemble(nn.Module):
         """h_1..h_n from true states; embeddings and input gates for all steps in one batch."""
         prev = observations[..., :n_steps, :]
         x = self.embed_inputs(prev, actions[..., :n_steps, :])
-        h0 = self.initial_hidden(observations.shape[1:-2], observations)
+        h0 = self.initial_hidden(observations.shape[1:-2], observations, mean=True)
+        h0 = self._split_carry(h0)[0]  # the GRU's h_0 = 0
         return gru_scan(self.gru, self.gru.input_proj(x), h0, mask), x, prev
+
+    def _episode_posterior(
+        self,
+        observations: torch.Tensor,
+        actions: torch.Tensor,
+        targets: torch.Tensor,
+        x: torch.Tensor,
+        mask: torch.Tensor | None,
+        generator: Generators,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """q(e | window) from the true transitions of the window (masked steps left out):
+        ``(mean, std, sample)``, each ``[E, *B, Ze]``."""
+        n = targets.shape[-2]
+        prev = observations[..., :n, :]
+        if x.shape[-2] != n:  # open-loop steps: their true inputs
+            x = self.embed_inputs(prev, actions[..., :n, :])
+        feats = F.silu(self.episode_embed.forward_split((x, self.target_delta(prev, targets))))
+        if mask is None:
+            pooled = feats.mean(dim=-2)
+        else:  # transition t counts when its steps do (t, and t + 1 without next observations)
+            valid = mask if mask.shape[-1] == n else mask[..., 1:] & mask[..., :-1]
+            weight = valid.to(feats.dtype).unsqueeze(-1).expand(*feats.shape[:-1], 1)
+            pooled = (feats * weight).sum(-2) / weight.sum(-2).clamp_min(1.0)
+        mean, std = gaussian_head(self.episode_head(pooled), min_std=self.config.latent_min_std)
+        return mean, std, reparameterize(mean, std, generator=generator)
 
     def _open_loop(
         self,
@@ -374,12 +490,13 @@ class RCVAEEnsemble(nn.Module):
         actions: torch.Tensor,
         detach: bool,
         generator: Generators,
+        episode: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Continue from the last teacher-forced step, feeding back prior samples."""
         hidden, x, prev = last
         steps: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []
         for action in actions.unbind(dim=-2):
-            prev = self._sample_next(hidden, x, prev, generator)
+            prev = self._sample_next(self._join_carry(hidden, episode), x, prev, generator)
             prev = prev.detach() if detach else prev
             hidden, x = self.recur(hidden, prev, action)
             steps.append((hidden, x, prev))
@@ -404,8 +521,10 @@ class RCVAEEnsemble(nn.Module):
         prev: torch.Tensor,
         obs_next: torch.Tensor,
         generator: Generators,
+        episode: torch.Tensor | None = None,
     ) -> SequenceOutput:
         """Prior, posterior and decoder over all steps at once (none of them is recurrent)."""
+        hidden = self._join_carry(hidden, episode)
         target = self.target_delta(prev, obs_next)
         post_mean, post_std = self.posterior(hidden, target)
         latent = reparameterize(post_mean, post_std, generator=generator)

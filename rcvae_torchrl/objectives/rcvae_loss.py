@@ -168,6 +168,9 @@ class RCVAELoss(LossModule):
         dims = tuple(range(1, nll.dim()))
         nll_m = masked_mean(nll, valid, dims)
         kl_m = masked_mean(free_bits(kl, self.free_nats), valid, dims)
+        if seq.episode_mean is not None:  # KL(q(e | window) ‖ p(e)), once per window
+            episode = _episode_kl_per_step(seq, valid, kl.shape)
+            kl_m, kl = kl_m + episode.mean(dims[:-1]), kl + episode.unsqueeze(-1)
         if self.nll_beta > 0:
             weight = seq.decoder_std.detach().pow(2.0 * self.nll_beta)
             train_nll_m = masked_mean((nll_elem * weight).sum(-1), valid, dims)
@@ -239,6 +242,20 @@ class RCVAELoss(LossModule):
                 f"{tuple(td.batch_size)}, got {mask.dtype} {tuple(mask.shape)}."
             )
         return mask
+
+
+def _episode_kl_per_step(
+    seq: SequenceOutput, valid: torch.Tensor | None, shape: torch.Size
+) -> torch.Tensor:
+    """KL(q(e | window) ‖ p(e)) of the episode latent, per window ``[E, *B]``, spread over the
+    window's valid transitions (the per-step terms are averaged over them)."""
+    kl = gaussian_kl(
+        seq.episode_mean, seq.episode_std, seq.episode_prior_mean, seq.episode_prior_std
+    ).sum(-1)
+    if valid is None:
+        return kl / shape[-1]
+    steps = valid.to(kl.dtype).expand(shape).sum(-1)
+    return kl / steps.clamp_min(1.0)
 
 
 def _transition_mask(mask: torch.Tensor | None, with_next: bool) -> torch.Tensor | None:

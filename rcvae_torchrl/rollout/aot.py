@@ -186,7 +186,7 @@ def _check_inputs(ensemble: RCVAEEnsemble, horizon: int, tensors: tuple) -> None
     them: another shape or dtype would be read as garbage, not raise)."""
     cfg, e, m = ensemble.config, ensemble.ensemble_size, tensors[0].shape[-2]
     want = {
-        "h_0": (e, m, cfg.hidden_dim),
+        "h_0": (e, m, ensemble.carry_dim),
         "s_0": (e * m, cfg.obs_dim),
         "actions": (horizon, e * m, cfg.action_dim),
         "ε_z": (horizon, e, m, cfg.latent_dim),

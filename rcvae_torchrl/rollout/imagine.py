@@ -114,7 +114,7 @@ def _rollout_chunks(
             ensemble,
             "ts_inf",
             state,
-            ensemble.initial_hidden(state.shape[1:2], state),
+            ensemble.initial_hidden(state.shape[1:2], state, generator),
             horizon,
             hooks[-1],
             actions=actions,

@@ -57,13 +57,20 @@ class Propagated(NamedTuple):
 
 
 def initial_hidden(
-    ensemble: RCVAEEnsemble, particles: int, like: torch.Tensor, ts_inf: bool
+    ensemble: RCVAEEnsemble,
+    particles: int,
+    like: torch.Tensor,
+    ts_inf: bool,
+    generator: torch.Generator | None = None,
+    *,
+    mean: bool = False,
 ) -> torch.Tensor:
-    """h_0 = 0: ``[E, particles / E, H]`` member-major for TS-∞, else every member's
-    ``[E, particles, H]``."""
-    if ts_inf:
-        return ensemble.initial_hidden((particles // ensemble.ensemble_size,), like)
-    return ensemble.initial_hidden((particles,), like)
+    """The carried state at t = 0 (:meth:`RCVAEEnsemble.initial_hidden`: h_0 = 0, and an
+    episode latent drawn from ``generator``, or at its mean when ``mean``):
+    ``[E, particles / E, carry_dim]`` member-major for TS-∞, else every member's
+    ``[E, particles, carry_dim]``."""
+    batch = particles // ensemble.ensemble_size if ts_inf else particles
+    return ensemble.initial_hidden((batch,), like, generator, mean=mean)
 
 
 def draw_noise(

@@ -181,7 +181,7 @@ def evaluate_action_sequences(
     per_step = actions.transpose(0, 1).unsqueeze(1).expand(horizon, groups, rows, -1)
     per_step = per_step.reshape(horizon, n, actions.shape[-1])
     ts_inf = trajectory_sampling == "ts_inf"
-    hidden = initial_hidden(ensemble, n, obs, ts_inf)
+    hidden = initial_hidden(ensemble, n, obs, ts_inf, generator, mean=trajectory_sampling == "mean")
     args = (ensemble, trajectory_sampling, task, hidden, obs, per_step, bounds)
     if compile and ts_inf:  # the noise drawn here, as the steps would draw it
         noise = _ts_inf_noise(ensemble, hidden, horizon, generator)

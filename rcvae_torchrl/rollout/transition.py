@@ -105,7 +105,7 @@ class ParticleTransition(TensorDictModuleBase):
         hidden, member = tensordict.get(hid_k), tensordict.get(mem_k, None)
         if self.validate:
             self._check(obs, action, hidden, member)
-        batch, e, h = obs.shape[:-1], self.ensemble.ensemble_size, self.ensemble.config.hidden_dim
+        batch, e, h = obs.shape[:-1], self.ensemble.ensemble_size, self.ensemble.carry_dim
         flat_obs, flat_action = obs.reshape(-1, obs.shape[-1]), action.reshape(-1, action.shape[-1])
         if self.trajectory_sampling == "ts_inf":
             out = self._ts_inf(flat_obs, flat_action, hidden.reshape(-1, h), member.reshape(-1))
@@ -160,7 +160,7 @@ class ParticleTransition(TensorDictModuleBase):
         _checks.check_trailing(names[1], action, (cfg.action_dim,), f"[*B, A={cfg.action_dim}]")
         _checks.check_batch_shapes((names[0], names[1]), obs.shape[:-1], action.shape[:-1])
         ts_inf = self.trajectory_sampling == "ts_inf"
-        hid = (cfg.hidden_dim,) if ts_inf else (e, cfg.hidden_dim)
+        hid = (self.ensemble.carry_dim,) if ts_inf else (e, self.ensemble.carry_dim)
         _checks.check_trailing(names[2], hidden, hid, f"[*B, {', '.join(map(str, hid))}]")
         _checks.check_batch_shapes((names[0], names[2]), obs.shape[:-1], hidden.shape[: -len(hid)])
         _checks.check_finite(names[0], obs)
@@ -208,8 +208,10 @@ def init_model_state(
 ) -> TensorDictBase:
     """The model state at t = 0 for start states ``observation [*B, S]``.
 
-    Returns a TensorDict ``[*B]`` with ``"observation"``, ``("rcvae", "hidden")`` = h_0 = 0
-    (``[*B, H]`` for ``"ts_inf"``, every member's ``[*B, E, H]`` otherwise),
+    Returns a TensorDict ``[*B]`` with ``"observation"``, ``("rcvae", "hidden")`` = the carried
+    state at t = 0: h_0 = 0 and, with an episode latent, its draw from ``generator`` (its mean
+    for ``"mean"``) (``[*B, carry_dim]`` for ``"ts_inf"``, every member's ``[*B, E, carry_dim]``
+    otherwise),
     ``("rcvae", "latent")`` = 0 ``[*B, Z]`` (there is no z_0: latents belong to transitions)
     and, except for ``"mean"``, ``"member"`` int64 ``[*B]``: members assigned round-robin over
     the flattened batch (balanced, so no padding in the member-major layout), uniformly at
@@ -220,12 +222,18 @@ def init_model_state(
     _checks.check_trailing("observation", observation, (cfg.obs_dim,), f"[*B, S={cfg.obs_dim}]")
     _checks.check_finite("observation", observation)
     batch = observation.shape[:-1]
-    hid = (cfg.hidden_dim,) if trajectory_sampling == "ts_inf" else (e, cfg.hidden_dim)
+    # [E, *B, carry]: h_0 = 0 and the episode latent (drawn once, shared by the members)
+    carried = ensemble.initial_hidden(
+        batch, observation, generator, mean=trajectory_sampling == "mean"
+    )
+    hidden = carried[0] if trajectory_sampling == "ts_inf" else carried.movedim(0, -2)
     state = TensorDict(
         {
             "observation": observation,
             "rcvae": {
-                "hidden": observation.new_zeros(*batch, *hid),
+                "hidden": hidden.clone()
+                if trajectory_sampling == "ts_inf"
+                else hidden.contiguous(),
                 "latent": observation.new_zeros(*batch, cfg.latent_dim),
             },
         },

@@ -92,7 +92,9 @@ class ModelConfig:
     unit-circle angles, forward kinematics and the ball in the arena; the fingertip-ball contact
     geometry), or ``None``. ``stochastic_open_loop_steps``, when not None, replaces
     ``train.open_loop_steps`` for the stochastic variant's ensemble only (open-loop training
-    widens the deterministic ensemble's spread).
+    widens the deterministic ensemble's spread). ``episode_latent_dim``: the size of the
+    models' latent drawn once per episode (0: none), for randomness fixed per episode such as
+    ``data.stochastic_strength``.
     """
 
     ensemble_size: int = 5
@@ -101,10 +103,12 @@ class ModelConfig:
     state_constraint: str | None = "pusher"
     input_features: str | None = "pusher"
     stochastic_open_loop_steps: int | None = None
+    episode_latent_dim: int = 0
 
     def __post_init__(self) -> None:
         _at_least(self, ("ensemble_size",), 2, int)
         _at_least(self, ("hidden_dim", "latent_dim"), 1, int)
+        _at_least(self, ("episode_latent_dim",), 0, int)
         for name in ("state_constraint", "input_features"):
             if getattr(self, name) not in (None, "pusher"):
                 raise ValueError(

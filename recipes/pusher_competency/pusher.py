@@ -82,6 +82,7 @@ def rcvae_config(model: ModelConfig) -> RCVAEConfig:
         passthrough_dims=tuple(obs_indices("target")),
         state_constraint=model.state_constraint,
         input_features=model.input_features,
+        episode_latent_dim=model.episode_latent_dim,
     )
 
 

@@ -97,3 +97,37 @@ def test_real_env_with_other_dims_is_refused(pusher_data, real_env):
     with pytest.raises(ValueError, match="'observation' spec: expected shape \\(10,\\)"):
         RCVAEEnsembleEnv(small, pusher_reward, pusher_success, real_env=real_env)
     assert CONFIG.obs_dim == 14
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_episode_latent_rides_in_the_hidden_state(pusher_data, real_env, starts, mode):
+    """With an episode latent the model state carries it after h: the specs say so, a reset
+    draws one per episode (its prior mean for ``"mean"``) and steps keep it."""
+    from dataclasses import replace
+
+    from rcvae_torchrl.model_env import make_rcvae_env
+    from rcvae_torchrl.models import RCVAEEnsemble
+
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(replace(CONFIG, episode_latent_dim=2), ensemble_size=E)
+    model.fit_normalizer(pusher_data["observation"], pusher_data["action"])
+    env = make_rcvae_env(
+        model,
+        real_env,
+        pusher_reward,
+        pusher_success,
+        start_states=starts,
+        seed=0,
+        trajectory_sampling=mode,
+        terminate_on_success=False,
+    )
+    check_env_specs(env, seed=0)
+    width = CONFIG.hidden_dim + 2
+    assert env.state_spec["rcvae", "hidden"].shape[-1] == width
+    td = env.rollout(4, tensordict=env.reset(TensorDict(batch_size=[6])), auto_reset=False)
+    episode = td["rcvae", "hidden"][..., CONFIG.hidden_dim :]  # [6, T, (E,) 2]
+    assert torch.equal(episode, episode[:, :1].expand_as(episode))
+    if mode == "mean":
+        assert torch.allclose(episode[:, 0], episode[:1, 0].expand_as(episode[:, 0]))
+    else:
+        assert not torch.allclose(episode[0, 0], episode[1, 0])

@@ -274,3 +274,13 @@ def test_the_study_model_at_the_planner_budget_equals_eager(tmp_path):
         want = _scores(model, candidates, particles, False, bounds, **kwargs)
         got = _scores(model, candidates, particles, "aot", bounds, **kwargs)
         _assert_same(got, want)
+
+
+def test_aot_scoring_with_an_episode_latent_equals_the_eager_reference():
+    """The episode latent rides in the carried state, an input of the package: drawn before
+    the steps' noise, as the eager rollout draws it."""
+    model = _model(config=dataclasses.replace(CONFIG, episode_latent_dim=2))
+    with torch.no_grad():
+        model.episode_prior_raw.normal_()
+    want = _scores(model, 4, 2 * E, False)
+    _assert_same(_scores(model, 4, 2 * E, "aot"), want)
