@@ -233,7 +233,8 @@ class RCVAEEnsemble(nn.Module):
     def posterior(
         self, hidden: torch.Tensor, target: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """q(z_t | h_t, Δ̂_t): ``[E, *B, carry_dim]``, ``[E, *B, D]`` → ``(mean, std)`` ``[E, *B, Z]``."""
+        """q(z_t | h_t, Δ̂_t): ``[E, *B, carry_dim]``, ``[E, *B, D]`` → ``(mean, std)``
+        ``[E, *B, Z]``."""
         # forward_split: the same affine map as on the concatenation, without materialising it
         raw = self.posterior_net.forward_split((hidden, target))
         return gaussian_head(raw, min_std=self.config.latent_min_std)
