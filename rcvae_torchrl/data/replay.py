@@ -42,6 +42,9 @@ def make_window_buffer(
         storage=LazyTensorStorage(max_size or data.shape[0]), sampler=sampler
     )
     buffer.extend(data)
+    # the first frame of every episode long enough for a window (``sample_windows``' starts)
+    first = torch.cumsum(lengths, 0) - lengths
+    buffer.episode_starts = first[lengths >= window]
     return buffer
 
 
@@ -51,6 +54,7 @@ def sample_windows(
     window: int,
     members: int | None = None,
     generators: Sequence[torch.Generator] | None = None,
+    start_windows: int = 0,
 ) -> TensorDict:
     """Windows ``[W, L]``, or ``[E, W, L]`` with independent draws for each of ``members``,
     from a buffer of :func:`make_window_buffer`.
@@ -60,7 +64,17 @@ def sample_windows(
     ``generators`` (one per member), member ``m``'s windows come from the ``m``-th alone, so a
     member's data does not depend on which other members are drawn with it; otherwise all
     draws come from torch's global generator.
+
+    ``start_windows`` (with ``generators``): the first ``start_windows`` windows of each member
+    begin at the first step of an episode drawn uniformly, as every imagined episode begins;
+    uniform window positions put few windows there (one in about episode length − L).
     """
+    if start_windows and generators is None:
+        raise ValueError("start_windows: expected generators (one per member) with it")
+    if not 0 <= start_windows <= num_windows:
+        raise ValueError(
+            f"start_windows: expected 0..num_windows={num_windows}, got {start_windows}"
+        )
     if generators is not None:
         if members is None or len(generators) != members:
             raise ValueError(
@@ -69,7 +83,10 @@ def sample_windows(
         draws = []
         for generator in generators:
             buffer.set_rng(generator)
-            draws.append(buffer.sampler.sample(buffer.storage, num_windows * window)[0])
+            draw = buffer.sampler.sample(buffer.storage, (num_windows - start_windows) * window)[0]
+            if start_windows:
+                draw = _with_episode_starts(buffer, draw, start_windows, window, generator)
+            draws.append(draw)
         buffer.set_rng(None)
         # one read of the storage for all members: a buffer.sample per member costs almost as
         # much again as its draw (its own read, its metadata, a stack)
@@ -79,6 +96,21 @@ def sample_windows(
     flat = buffer.sample(draws * window)
     shape = (draws, window) if members is None else (members, num_windows, window)
     return flat.reshape(*shape)
+
+
+def _with_episode_starts(
+    buffer: TensorDictReplayBuffer,
+    draw: tuple[torch.Tensor, ...],
+    count: int,
+    window: int,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, ...]:
+    """``count`` windows from episode starts put before the sampler's ``draw`` (flat frame
+    indices of a 1-D storage)."""
+    starts = buffer.episode_starts
+    chosen = starts[torch.randint(len(starts), (count,), generator=generator)]
+    frames = (chosen[:, None] + torch.arange(window)).reshape(-1).to(draw[0])
+    return (torch.cat([frames, draw[0]]), *draw[1:])
 
 
 def split_episodes(

@@ -111,6 +111,7 @@ class RCVAELoss(LossModule):
                 "beta, free_nats and open_loop_steps must be >= 0, got "
                 f"{beta}, {free_nats}, {open_loop_steps}."
             )
+
         if not 0.0 <= nll_beta <= 1.0:
             raise ValueError(f"nll_beta: expected a value in [0, 1], got {nll_beta}.")
         self.nll_beta = float(nll_beta)
@@ -170,7 +171,7 @@ class RCVAELoss(LossModule):
         kl_m = masked_mean(free_bits(kl, self.free_nats), valid, dims)
         if seq.episode_mean is not None:  # KL(q(e | window) ‖ p(e)), once per window
             episode = _episode_kl_per_step(seq, valid, kl.shape)
-            kl_m, kl = kl_m + episode.mean(dims[:-1]), kl + episode.unsqueeze(-1)
+            kl_m, kl = kl_m + episode.mean(dims[:-1]), kl + episode.detach().unsqueeze(-1)
         if self.nll_beta > 0:
             weight = seq.decoder_std.detach().pow(2.0 * self.nll_beta)
             train_nll_m = masked_mean((nll_elem * weight).sum(-1), valid, dims)
@@ -249,9 +250,8 @@ def _episode_kl_per_step(
 ) -> torch.Tensor:
     """KL(q(e | window) ‖ p(e)) of the episode latent, per window ``[E, *B]``, spread over the
     window's valid transitions (the per-step terms are averaged over them)."""
-    kl = gaussian_kl(
-        seq.episode_mean, seq.episode_std, seq.episode_prior_mean, seq.episode_prior_std
-    ).sum(-1)
+    q = (seq.episode_mean, seq.episode_std)
+    kl = gaussian_kl(*q, seq.episode_prior_mean, seq.episode_prior_std).sum(-1)
     if valid is None:
         return kl / shape[-1]
     steps = valid.to(kl.dtype).expand(shape).sum(-1)

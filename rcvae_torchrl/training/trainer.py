@@ -63,6 +63,11 @@ class TrainConfig:
             weights are kept; the run ends when every member has stopped).
         seed: seeds sampling and the model's noise (one generator per member and purpose,
             seeded by the seed and the member's index).
+        episode_start_fraction: the fraction of each member's windows that begin at the first
+            step of an episode (the rest are drawn uniformly over the data). Imagination
+            starts every episode there, from h_0 = 0, with nothing seen yet: a model whose
+            randomness is fixed per episode (``RCVAEConfig.episode_latent_dim``) must learn
+            what an episode's first steps look like, which uniform windows show rarely.
     """
 
     max_steps: int = 3000
@@ -79,8 +84,14 @@ class TrainConfig:
     val_windows: int = 256
     patience: int = 5
     seed: int = 0
+    episode_start_fraction: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.episode_start_fraction <= 1.0:
+            raise ValueError(
+                "episode_start_fraction: expected a value in [0, 1], got "
+                f"{self.episode_start_fraction!r}"
+            )
         for name in ("max_steps", "batch_windows", "val_every", "val_windows", "patience"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
@@ -275,7 +286,12 @@ def _train_shard(
     )
     while not state.finished:
         windows = sample_windows(
-            buffer, config.batch_windows, config.window, len(members), windows_rng
+            buffer,
+            config.batch_windows,
+            config.window,
+            len(members),
+            windows_rng,
+            start_windows=round(config.episode_start_fraction * config.batch_windows),
         ).to(device)
         for group in optimizer.param_groups:
             group["lr"] = config.lr_at(state.step)

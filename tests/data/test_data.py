@@ -78,6 +78,34 @@ def test_a_members_windows_come_from_its_generator_alone(episodes):
         assert torch.equal(three[key][1], alone[key][0])
 
 
+def test_windows_from_episode_starts(episodes):
+    """The first ``start_windows`` windows of each member begin at an episode's first frame,
+    drawn from the member's own generator; the others are the sampler's."""
+    buffer = make_window_buffer(episodes, window=16)
+    first = torch.cat(
+        [torch.ones(1, dtype=torch.bool), episodes[TRAJ_KEY][1:] != episodes[TRAJ_KEY][:-1]]
+    )
+    firsts = episodes["observation"][first]
+
+    def draw(seeds, starts):
+        generators = [torch.Generator().manual_seed(s) for s in seeds]
+        return sample_windows(buffer, 40, 16, len(seeds), generators, start_windows=starts)
+
+    windows = draw([5, 6], 10)
+    begins = windows["observation"][..., 0, :]  # [E, W, S]
+    at_start = (begins[..., None, :] == firsts).all(-1).any(-1)
+    assert at_start[:, :10].all()
+    assert at_start[:, 10:].float().mean() < 0.3  # uniform positions: 1 in 25 here
+    assert (windows[TRAJ_KEY] == windows[TRAJ_KEY][..., :1]).all()
+    assert len(set(windows[TRAJ_KEY][:, :10, 0].flatten().tolist())) > 2
+    assert torch.equal(draw([6], 10)["observation"][0], windows["observation"][1])
+    assert torch.equal(draw([5, 6], 0)["observation"], draw([5, 6], 0)["observation"])
+    with pytest.raises(ValueError, match=r"start_windows: expected 0\.\.num_windows=40, got 41"):
+        draw([5], 41)
+    with pytest.raises(ValueError, match="start_windows: expected generators"):
+        sample_windows(buffer, 4, 16, start_windows=1)
+
+
 def test_split_by_episode(episodes):
     train, val = split_episodes(episodes, 0.34, seed=0)
     assert train.shape[0] + val.shape[0] == episodes.shape[0]

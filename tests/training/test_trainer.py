@@ -43,6 +43,22 @@ def test_same_seed_same_result(linear_data, small_ensemble):
         assert torch.equal(x, y), name
 
 
+def test_windows_from_episode_starts_change_the_training(linear_data, small_ensemble):
+    """``episode_start_fraction`` puts windows at episode starts: a reproducible run that
+    differs from the uniform one (a member's windows still come from its own generator)."""
+    import dataclasses
+
+    train, val = linear_data
+    starts = dataclasses.replace(CONFIG, episode_start_fraction=0.5)
+    a = train_ensemble(small_ensemble(seed=1), train, val, starts, progress=False).ensemble
+    b = train_ensemble(small_ensemble(seed=1), train, val, starts, progress=False).ensemble
+    c = train_ensemble(small_ensemble(seed=1), train, val, CONFIG, progress=False).ensemble
+    assert all(torch.equal(x, y) for x, y in zip(a.parameters(), b.parameters()))
+    assert not all(torch.equal(x, y) for x, y in zip(a.parameters(), c.parameters()))
+    with pytest.raises(ValueError, match=r"episode_start_fraction: expected a value in \[0, 1\]"):
+        TrainConfig(episode_start_fraction=1.5)
+
+
 def test_early_stopping(linear_data, small_ensemble):
     train, val = linear_data
     frozen = TrainConfig(
