@@ -9,13 +9,21 @@ dimension, on held-out episodes:
   next state) against two baselines: copying the previous state, and the dimension's spread in
   the data (the error of predicting its mean);
 - the open-loop error after ``k`` steps (the mean of imagined rollouts driven by the episode's
-  own actions) against the same baselines (copying the start state).
+  own actions) against the same baselines (copying the start state);
+- the coverage of its spread: from the first state of every held-out episode, imagined rollouts
+  driven by the episode's own actions for ``coverage_steps`` steps (all members' samples
+  pooled, as a forecast pools them); how often the real state then lies inside the samples'
+  central ``interval`` (a prediction interval between two order statistics of the samples,
+  whose coverage for a draw of the same distribution is known exactly).
 
 A predicted dimension whose one-step error is not at least ``min_gain`` below the better of the
-two baselines is flagged: the model has not learned it. :func:`train_ensemble
-<rcvae_torchrl.training.train_ensemble>` runs the checks after training, warns naming the
-flagged dimensions, and stores them with the model; the competency assessor flags a forecast
-made with a model that failed them.
+two baselines is flagged: the model has not learned it. A dimension whose coverage is below the
+interval's, by more than chance allows (a one-sided binomial test at level ``alpha``, Bonferroni
+over the dimensions checked), is flagged too: the model is overconfident there (its spread too
+narrow, or off centre), which a model whose randomness per episode was not learned shows.
+:func:`train_ensemble <rcvae_torchrl.training.train_ensemble>` runs the checks after training,
+warns naming the flagged dimensions, and stores them with the model; the competency assessor
+flags a forecast made with a model that failed them.
 """
 
 from __future__ import annotations
@@ -51,13 +59,43 @@ class ModelChecks:
     k: int
     checked: tuple[int, ...]  #: the dimensions checked (predicted and not constant)
     min_gain: float
+    #: per dimension, the held-out episodes whose real state after ``coverage_steps`` lay in
+    #: the imagined interval (``[S]``; ``None``: not measured, too few episodes)
+    covered: torch.Tensor | None = None
+    episodes: int = 0  #: the held-out episodes of the coverage check
+    coverage_steps: int = 0
+    interval: float = 0.0  #: the exact coverage of the interval for a draw of the samples' law
+    alpha: float = 0.01
 
     @property
-    def flagged(self) -> tuple[int, ...]:
+    def unlearned(self) -> tuple[int, ...]:
         """Checked dimensions whose one-step error is not ``min_gain`` below both baselines."""
         best = torch.minimum(self.copy_one_step, self.spread)
         bad = self.one_step >= (1.0 - self.min_gain) * best
         return tuple(d for d in self.checked if bool(bad[d]))
+
+    @property
+    def coverage(self) -> torch.Tensor | None:
+        """The fraction of held-out episodes inside the interval, per dimension ``[S]``."""
+        return None if self.covered is None else self.covered / self.episodes
+
+    @property
+    def overconfident(self) -> tuple[int, ...]:
+        """Checked dimensions covered less often than ``interval`` by more than chance allows
+        (one-sided binomial test at level ``alpha`` / the number of dimensions checked)."""
+        if self.covered is None or not self.checked:
+            return ()
+        from scipy.stats import binom
+
+        level = self.alpha / len(self.checked)
+        p = binom.cdf(self.covered.to(torch.float64).numpy(), self.episodes, self.interval)
+        return tuple(d for d in self.checked if p[d] < level)
+
+    @property
+    def flagged(self) -> tuple[int, ...]:
+        """Checked dimensions the model has not learned or is overconfident about."""
+        bad = set(self.unlearned) | set(self.overconfident)
+        return tuple(d for d in self.checked if d in bad)
 
     @property
     def passed(self) -> bool:
@@ -65,20 +103,32 @@ class ModelChecks:
 
     def message(self) -> str:
         """One sentence naming the flagged dimensions and their errors ('' when none)."""
-        if self.passed:
-            return ""
-        parts = [
-            f"{self.names[d]} (one-step error {float(self.one_step[d]):.3g} vs "
-            f"{float(torch.minimum(self.copy_one_step[d], self.spread[d])):.3g} for a trivial "
-            "baseline)"
-            for d in self.flagged
-        ]
-        return (
-            "the world model has not learned "
-            + ", ".join(parts)
-            + ": it predicts these dimensions no better than copying the previous state or "
-            "guessing their mean, so forecasts that depend on them are not trustworthy"
-        )
+        sentences = []
+        if self.unlearned:
+            parts = [
+                f"{self.names[d]} (one-step error {float(self.one_step[d]):.3g} vs "
+                f"{float(torch.minimum(self.copy_one_step[d], self.spread[d])):.3g} for a "
+                "trivial baseline)"
+                for d in self.unlearned
+            ]
+            sentences.append(
+                "the world model has not learned "
+                + ", ".join(parts)
+                + ": it predicts these dimensions no better than copying the previous state or "
+                "guessing their mean, so forecasts that depend on them are not trustworthy"
+            )
+        if self.overconfident:
+            parts = [
+                f"{self.names[d]} ({int(self.covered[d])} of {self.episodes})"
+                for d in self.overconfident
+            ]
+            sentences.append(
+                f"the world model is overconfident: {self.coverage_steps} steps into held-out "
+                f"episodes, the real state lay inside its {self.interval:.0%} interval too "
+                "rarely for " + ", ".join(parts) + ": its spread there is too narrow or off "
+                "centre, so forecasts that depend on them are not trustworthy"
+            )
+        return "; ".join(sentences)
 
     def as_dict(self) -> dict[str, Any]:
         """Plain values (for checkpoints and JSON)."""
@@ -88,6 +138,12 @@ class ModelChecks:
             "checked": list(self.checked),
             "min_gain": self.min_gain,
             "flagged": [self.names[d] for d in self.flagged],
+            "overconfident": [self.names[d] for d in self.overconfident],
+            "episodes": self.episodes,
+            "coverage_steps": self.coverage_steps,
+            "interval": self.interval,
+            "alpha": self.alpha,
+            "covered": None if self.covered is None else self.covered.tolist(),
         }
         for key in ("one_step", "copy_one_step", "spread", "k_step", "copy_k_step"):
             out[key] = getattr(self, key).tolist()
@@ -99,11 +155,17 @@ class ModelChecks:
             k: torch.tensor(values[k], dtype=torch.float64)
             for k in ("one_step", "copy_one_step", "spread", "k_step", "copy_k_step")
         }
+        covered = values.get("covered")  # absent from checks saved before coverage existed
         return cls(
             tuple(values["names"]),
             k=int(values["k"]),
             checked=tuple(values["checked"]),
             min_gain=float(values["min_gain"]),
+            covered=None if covered is None else torch.tensor(covered, dtype=torch.float64),
+            episodes=int(values.get("episodes", 0)),
+            coverage_steps=int(values.get("coverage_steps", 0)),
+            interval=float(values.get("interval", 0.0)),
+            alpha=float(values.get("alpha", 0.01)),
             **tensors,
         )
 
@@ -115,6 +177,42 @@ def _rmse(error: torch.Tensor) -> torch.Tensor:
 
 def _longest_episode(data: TensorDictBase) -> int:
     return int(torch.unique_consecutive(data.get(TRAJ_KEY), return_counts=True)[1].max())
+
+
+def _coverage(
+    ensemble: RCVAEEnsemble,
+    data: TensorDictBase,
+    steps: int,
+    samples_per_member: int,
+    interval: float,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, int, float]:
+    """From the start of every held-out episode longer than ``steps``: per dimension, how many
+    real states after ``steps`` steps lie between the order statistics i and n + 1 − i of the
+    n imagined ones (``[S]``), the episode count, and the interval's exact coverage
+    (n + 1 − 2i) / (n + 1) for a draw of the samples' own law."""
+    ids = data.get(TRAJ_KEY)
+    lengths = torch.unique_consecutive(ids, return_counts=True)[1]
+    first = torch.cumsum(lengths, 0) - lengths
+    first = first[lengths > steps]
+    if first.numel() == 0:
+        return torch.zeros(ensemble.config.obs_dim, dtype=torch.float64), 0, 0.0
+    device = ensemble.device
+    frames = first[:, None] + torch.arange(steps)
+    starts = data.get("observation")[first].to(device)
+    actions = data.get("action")[frames].to(device)
+    truth = data.get(("next", "observation"))[first + steps - 1].to(device)
+    rollouts = imagine(
+        ensemble, starts, actions, samples_per_member=samples_per_member, generator=generator
+    )
+    samples = rollouts.get("observation")[..., steps - 1, :].flatten(0, 1)  # [n, B, S]
+    n = samples.shape[0]
+    rank = max(1, int((1.0 - interval) / 2 * (n + 1)))  # 1-based order statistic
+    ordered = samples.sort(dim=0).values
+    low, high = ordered[rank - 1], ordered[n - rank]
+    inside = (truth >= low) & (truth <= high)
+    exact = (n + 1 - 2 * rank) / (n + 1)
+    return inside.sum(0).to(torch.float64).cpu(), int(first.numel()), exact
 
 
 def _windows(data: TensorDictBase, length: int, count: int, seed: int) -> TensorDictBase:
@@ -133,6 +231,10 @@ def check_model(
     windows: int = 256,
     samples_per_member: int = 8,
     min_gain: float = 0.05,
+    coverage_steps: int = 20,
+    interval: float = 0.9,
+    alpha: float = 0.01,
+    min_episodes: int = 10,
     seed: int = 0,
     warn: bool = True,
 ) -> ModelChecks:
@@ -146,6 +248,12 @@ def check_model(
         windows: windows drawn for each check.
         samples_per_member: imagined samples per member for the open-loop mean.
         min_gain: how far below the better baseline a dimension's one-step error must be.
+        coverage_steps: steps from each held-out episode's start to the coverage check (at most
+            the episode's length minus one; episodes shorter than that are left out).
+        interval: the central probability of the interval (its exact coverage, between two
+            order statistics of the E·N samples, is the nearest the sample count allows).
+        alpha: the level of the coverage test.
+        min_episodes: fewer held-out episodes than this leave coverage unmeasured.
         seed: the windows and the samples are drawn from it.
         warn: emit a :class:`ModelCheckWarning` naming the flagged dimensions.
     """
@@ -176,6 +284,9 @@ def check_model(
     k_step, copy_k_step = _rmse(forecast - truth_k), _rmse(truth_k - starts)
     changing = (copy_one_step > 0) | (spread > 0)
     checked = tuple(d for d in cfg.predicted_dims if bool(changing[d]))
+    steps = min(coverage_steps, longest - 1)
+    coverage = _coverage(ensemble, data, steps, samples_per_member, interval, generator)
+    covered, episodes, exact = coverage if coverage[1] >= min_episodes else (None, 0, 0.0)
     checks = ModelChecks(
         cfg.names,
         one_step.cpu(),
@@ -186,6 +297,11 @@ def check_model(
         k,
         checked,
         float(min_gain),
+        covered=covered,
+        episodes=episodes,
+        coverage_steps=steps,
+        interval=exact,
+        alpha=float(alpha),
     )
     if warn and not checks.passed:
         warnings.warn(checks.message(), ModelCheckWarning, stacklevel=2)

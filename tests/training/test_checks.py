@@ -66,6 +66,42 @@ def test_the_unlearnable_dimension_is_flagged_by_name(trained):
     assert (checks.k_step[:3] < checks.copy_k_step[:3]).all()
 
 
+def test_coverage_of_a_calibrated_model_and_of_a_harsher_reality(trained):
+    """20 steps into 60 held-out episodes of the system it learned, the real state lies in
+    the model's 90 % interval about as often as it should; in a system with 5 times the noise
+    it lies there far too rarely, and every dimension the noise drives is named."""
+    result, _, _ = trained
+    same = _with_noise_dim(linear_episodes(60, 40, seed=2), 2)
+    harsh = _with_noise_dim(linear_episodes(60, 40, seed=2, sigma=0.25), 2)
+    checks = check_model(result.ensemble, same, samples_per_member=20, warn=False)
+    assert checks.episodes == 60 and checks.coverage_steps == 20
+    assert checks.interval == pytest.approx(55 / 61)  # order statistics 3 and 58 of 60 samples
+    assert checks.overconfident == ()
+    assert (checks.coverage[:3] > 0.8).all(), checks.coverage
+    with pytest.warns(ModelCheckWarning, match="overconfident") as caught:
+        worse = check_model(result.ensemble, harsh, samples_per_member=20)
+    assert set(worse.overconfident) >= {0, 1, 2} and (worse.coverage[:3] < 0.6).all()
+    assert set(worse.flagged) >= set(worse.overconfident)
+    assert "x (" in str(caught[0].message) and "of 60)" in str(caught[0].message)
+    restored = ModelChecks.from_dict(worse.as_dict())
+    assert restored.overconfident == worse.overconfident
+    few = check_model(result.ensemble, same, min_episodes=61, warn=False)
+    assert few.coverage is None and few.overconfident == ()
+
+
+def test_the_coverage_test_is_a_binomial_test():
+    """32 episodes, a 0.9 interval, 4 dimensions (level 0.01 / 4): 23 covered is within
+    chance (P(X <= 23) = 0.0033 > 0.0025), 22 is not (0.0008)."""
+    zeros = torch.zeros(4, dtype=torch.float64)
+    checks = ModelChecks(
+        ("a", "b", "c", "d"), zeros, zeros + 1, zeros + 1, zeros, zeros + 1, 5, (0, 1, 2, 3),
+        0.05, covered=torch.tensor([32.0, 29.0, 23.0, 22.0]), episodes=32, coverage_steps=20,
+        interval=0.9, alpha=0.01,
+    )  # fmt: skip
+    assert checks.overconfident == (3,) and checks.unlearned == () and checks.flagged == (3,)
+    assert "d (22 of 32)" in checks.message() and "not learned" not in checks.message()
+
+
 def test_checks_travel_with_the_checkpoint(trained, tmp_path):
     result, _, _ = trained
     save_ensemble(result.ensemble, tmp_path / "m.pt")
