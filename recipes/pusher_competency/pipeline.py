@@ -386,7 +386,10 @@ class Study:
         }
         episode_env = self.env("deterministic", time_limit=self.cfg.assess.horizon_s)
         policy = make_policy_module(self.load_policy())
-        return write_report(self.dir, forecasts, truths, self.cfg, policy, episode_env)
+        checks = {name: self.load_model(name).checks for name in WORLD_MODELS}
+        return write_report(
+            self.dir, forecasts, truths, self.cfg, policy, episode_env, model_checks=checks
+        )
 
 
 def _forecast_record(data) -> dict[str, torch.Tensor]:

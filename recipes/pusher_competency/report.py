@@ -21,6 +21,7 @@ from rcvae_torchrl.reporting import (
     plot_uncertainty_over_time,
     write_table,
 )
+from rcvae_torchrl.training import ModelChecks
 
 from .config import AssessConfig
 from .pusher import FIGURE_PANELS
@@ -213,8 +214,12 @@ def write_report(
     config: Any,
     policy: Callable,
     episode_env: EnvBase,
+    model_checks: Mapping[str, ModelChecks | None] | None = None,
 ) -> dict[str, Any]:
-    """Write table.md/.csv, the figures, episode.gif and report.md; return the summary."""
+    """Write table.md/.csv, the figures, episode.gif and report.md; return the summary.
+
+    ``model_checks``: each world model's self-checks (``ensemble.checks``), reported in their
+    own section (a model that failed them is named with its reasons) and in the summary."""
     rows = {c: condition_row(c, forecasts[c], truths[c]) for c in forecasts}
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     p, y = (torch.cat(t) for t in zip(*(_pairs(forecasts[c], truths[c]) for c in forecasts)))
@@ -229,6 +234,7 @@ def write_report(
     deadlines = [round(d / CONTROL_TIMESTEP) for d in a.surface_deadlines_s]
     surfaces = competency_surfaces(forecasts, truths, list(a.surface_radii), deadlines)
     checks.update(trust_checks(scores, surfaces))
+    model_checks = {k: v for k, v in (model_checks or {}).items() if v is not None}
     by_window = pattern_by_window(forecasts, CONTROL_TIMESTEP)
     figures = _figures(run_dir, forecasts, truths, a.forecast_panels, a.success_radius)
     figures["start_reliability"] = plot_start_reliability(
@@ -249,14 +255,50 @@ def write_report(
         },
         "pattern_by_window": by_window,
         "gif": gif,
+        "model_checks": {name: found.as_dict() for name, found in model_checks.items()},
     }
     write_json(run_dir / "summary.json", summary)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
     texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
     text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)
     text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
+    if model_checks:
+        text = text.replace("## The agent", _model_checks_text(model_checks) + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
+
+
+def _model_checks_text(model_checks: Mapping[str, ModelChecks]) -> str:
+    """The world models' self-checks on held-out episodes: verdicts and coverage."""
+    lines = [
+        "## The world models' self-checks",
+        "",
+        "On held-out episodes, after training: is every state dimension predicted better than "
+        "copying the previous state or guessing its mean, and does the real state lie inside "
+        "the model's interval as often as it should (open loop from each episode's start, the "
+        "episode's own actions)?",
+        "",
+    ]
+    for name, found in model_checks.items():
+        verdict = "passed" if found.passed else found.message()
+        lines.append(f"- **{name}**: {verdict}.")
+    coverage = {k: v for k, v in model_checks.items() if v.coverage is not None}
+    if coverage:
+        first = next(iter(coverage.values()))
+        dims = first.checked
+        lines += [
+            "",
+            f"Coverage of the {first.interval:.0%} interval after {first.coverage_steps} steps "
+            f"({first.episodes} held-out episodes):",
+            "",
+            "| model | " + " | ".join(first.names[d] for d in dims) + " |",
+            "|:---|" + "---:|" * len(dims),
+            *[
+                f"| {name} | " + " | ".join(f"{float(c.coverage[d]):.2f}" for d in dims) + " |"
+                for name, c in coverage.items()
+            ],
+        ]
+    return "\n".join(lines) + "\n\n"
 
 
 _SCORE_COLUMNS = (
