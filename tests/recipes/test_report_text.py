@@ -52,3 +52,26 @@ def test_agent_section_without_dagger_rounds():
     text = agent_section({"policy_success_rate": 1.0}, AgentStudyConfig(dagger_rounds=0))
     assert "| the agent in its evaluation episodes: success rate | 1 |" in text
     assert "Distillation rounds" not in text and "| round |" not in text
+
+
+def test_model_checks_section_names_each_verdict_and_the_coverage():
+    import torch
+
+    from rcvae_torchrl.training import ModelChecks
+    from recipes.pusher_competency.report import _model_checks_text
+
+    zeros = torch.zeros(3, dtype=torch.float64)
+
+    def checks(covered):
+        return ModelChecks(
+            ("x", "y", "z"), zeros, zeros + 1, zeros + 1, zeros, zeros + 1, 5, (0, 1), 0.05,
+            covered=torch.tensor(covered, dtype=torch.float64), episodes=32,
+            coverage_steps=20, interval=0.9,
+        )  # fmt: skip
+
+    text = _model_checks_text({"good": checks([30, 29, 0]), "bad": checks([30, 12, 0])})
+    assert "- **good**: passed." in text
+    assert "- **bad**: the world model is overconfident" in text and "y (12 of 32)" in text
+    assert "| model | x | y |" in text  # the checked dimensions only
+    assert "| good | 0.94 | 0.91 |" in text and "| bad | 0.94 | 0.38 |" in text
+    assert "90% interval after 20 steps (32 held-out episodes)" in text
