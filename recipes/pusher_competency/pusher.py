@@ -19,6 +19,7 @@ from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     DEFAULT_SUCCESS_RADIUS,
     OBSERVATION_DIM,
+    OBSERVATION_NAMES,
     PUSHER_FEATURE_NAMES,
     make_pusher_env,
     obs_indices,
@@ -72,7 +73,8 @@ FIGURE_PANELS = {
 
 
 def rcvae_config(model: ModelConfig) -> RCVAEConfig:
-    """One member's config: the Pusher's sizes, the target passed through."""
+    """One member's config: the Pusher's sizes and dimension names, the target passed
+    through."""
     return RCVAEConfig(
         OBSERVATION_DIM,
         2,
@@ -83,6 +85,7 @@ def rcvae_config(model: ModelConfig) -> RCVAEConfig:
         state_constraint=model.state_constraint,
         input_features=model.input_features,
         episode_latent_dim=model.episode_latent_dim,
+        observation_names=OBSERVATION_NAMES,
     )
 
 
