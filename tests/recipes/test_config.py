@@ -180,6 +180,11 @@ def test_the_schema_is_the_base_of_every_profile():
             "model.stochastic_open_loop_steps=-1",
             r"^model\.stochastic_open_loop_steps: expected an integer >= 0",
         ),
+        ("model.episode_latent_dim=-1", r"^model\.episode_latent_dim: expected an integer >= 0"),
+        (
+            "train.episode_start_fraction=1.5",
+            r"^train\.episode_start_fraction: expected a value in \[0, 1\]",
+        ),
     ],
 )
 def test_out_of_range_values_name_their_setting(override, match):
@@ -263,3 +268,15 @@ def test_the_stochastic_variant_takes_the_studys_randomness():
     assert (plain.actuator_strength, plain.action_noise_std) == (None, 0.0)
     config = _config("data.stochastic_strength=null")
     assert make_env("stochastic", config.data, 0.03).base_env._env.task.actuator_strength is None
+
+
+def test_the_episode_latent_reaches_both_models():
+    """``model.episode_latent_dim`` sizes the models' latent drawn once per episode (0, the
+    default, leaves them without one); the models carry the Pusher's dimension names."""
+    from recipes.pusher_competency.pusher import rcvae_config
+
+    assert rcvae_config(_config().model).episode_latent_dim == 0
+    config = rcvae_config(_config("model.episode_latent_dim=3").model)
+    assert config.episode_latent_dim == 3
+    assert config.observation_names[:2] == ("shoulder_cos", "shoulder_sin")
+    assert _config("train.episode_start_fraction=0.25").train.episode_start_fraction == 0.25
