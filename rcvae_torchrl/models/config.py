@@ -42,7 +42,9 @@ class RCVAEConfig:
             posterior and decoder read it beside h_t, and a rollout carries it unchanged in its
             recurrent state (:attr:`RCVAEEnsemble.carry_dim`). The per-step latent z_t alone
             must redraw such randomness every step, or infer it from a history the start of an
-            imagined episode does not have.
+            imagined episode does not have. A rollout draws e from its prior and keeps it: fed
+            a real history first (a rollout started mid-episode), only h_t reads it, e is not
+            inferred from it.
     """
 
     obs_dim: int
