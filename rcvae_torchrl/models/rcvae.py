@@ -456,8 +456,8 @@ class RCVAEEnsemble(nn.Module):
         """h_1..h_n from true states; embeddings and input gates for all steps in one batch."""
         prev = observations[..., :n_steps, :]
         x = self.embed_inputs(prev, actions[..., :n_steps, :])
-        h0 = self.initial_hidden(observations.shape[1:-2], observations, mean=True)
-        h0 = self._split_carry(h0)[0]  # the GRU's h_0 = 0
+        batch = observations.shape[1:-2]
+        h0 = observations.new_zeros((self.ensemble_size, *batch, self.config.hidden_dim))
         return gru_scan(self.gru, self.gru.input_proj(x), h0, mask), x, prev
 
     def _episode_posterior(
