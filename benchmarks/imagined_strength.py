@@ -32,7 +32,7 @@ import torch
 from _report import conditions, print_table, write_json
 from tensordict import TensorDict
 
-from rcvae_torchrl.data import seed_env
+from rcvae_torchrl.agent import draw_starts
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     make_batched_pusher_env,
@@ -47,16 +47,6 @@ from recipes.pusher_competency.pusher import MODEL_FUNCTIONS
 WINDOWS = ((0, 10), (10, 30), (30, 60), (60, 120), (120, 240))  # steps
 START_SEED = 12_345
 GRID_STEP = 0.025
-
-
-def draw_starts(count: int) -> torch.Tensor:
-    """``count`` start observations of the stochastic Pusher from its seeded reset."""
-    env = make_pusher_env("stochastic")
-    rows = []
-    for i in range(count):
-        seed_env(env, START_SEED + i)
-        rows.append(env.reset()["observation"])
-    return torch.stack(rows)
 
 
 def real_run(
@@ -121,7 +111,8 @@ def main() -> None:
     middle, steps = (low + high) / 2, WINDOWS[-1][1]
     grid = torch.arange(max(low - 0.1, GRID_STEP), high + 0.1 + 1e-9, GRID_STEP)
     model = load_ensemble(args.run_dir / "models" / "stochastic.pt", functions=MODEL_FUNCTIONS)
-    starts = draw_starts(args.starts)
+    seeds = range(START_SEED, START_SEED + args.starts)
+    starts = draw_starts(make_pusher_env("stochastic"), seeds)["observation"]
     _, commands = real_run(middle, starts, steps)
     bank = torch.stack([real_run(float(g), starts, steps, commands)[0] for g in grid])
     g = torch.Generator().manual_seed(0)

@@ -8,7 +8,7 @@ from .exploration import (
     make_exploration_policy,
 )
 from .prepare import ActionNoise, ObservationLayout, prepare_env, seed_env
-from .replay import make_window_buffer, sample_windows, split_episodes
+from .replay import episode_spans, make_window_buffer, sample_windows, split_episodes
 from .storage import load_episodes, save_episodes
 
 __all__ = [
@@ -28,6 +28,7 @@ __all__ = [
     "prepare_env",
     "seed_env",
     # replay
+    "episode_spans",
     "make_window_buffer",
     "sample_windows",
     "split_episodes",

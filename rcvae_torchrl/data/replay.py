@@ -11,7 +11,14 @@ from torchrl.data.replay_buffers.samplers import SliceSampler
 
 from .collection import TRAJ_KEY, check_episode_ids
 
-__all__ = ["make_window_buffer", "sample_windows", "split_episodes"]
+__all__ = ["episode_spans", "make_window_buffer", "sample_windows", "split_episodes"]
+
+
+def episode_spans(data: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first frame and the length of every episode of flat episodes ``data`` ``[frames]``
+    (consecutive frames of one :data:`TRAJ_KEY`)."""
+    lengths = torch.unique_consecutive(data.get(TRAJ_KEY), return_counts=True)[1]
+    return torch.cumsum(lengths, 0) - lengths, lengths
 
 
 def make_window_buffer(
@@ -25,7 +32,7 @@ def make_window_buffer(
     if window < 2:
         raise ValueError(f"window: expected >= 2 steps, got {window}")
     _check_flat(data)
-    lengths = torch.unique_consecutive(data[TRAJ_KEY], return_counts=True)[1]
+    first, lengths = episode_spans(data)
     if int(lengths.max()) < window:
         raise ValueError(
             f"window: expected at most the longest episode ({int(lengths.max())} steps), "
@@ -43,7 +50,6 @@ def make_window_buffer(
     )
     buffer.extend(data)
     # the first frame of every episode long enough for a window (``sample_windows``' starts)
-    first = torch.cumsum(lengths, 0) - lengths
     buffer.episode_starts = first[lengths >= window]
     return buffer
 

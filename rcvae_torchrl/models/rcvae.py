@@ -404,10 +404,7 @@ class RCVAEEnsemble(nn.Module):
         n_steps = observations.shape[-2] - 1
         hidden, x, prev = self._teacher_forced(observations, actions, None, n_steps)
         if self.config.episode_latent_dim:  # e at its prior mean
-            prior_mean = self.episode_prior()[0]
-            hidden = self._join_carry(
-                hidden, prior_mean.view(-1, *([1] * (hidden.dim() - 3)), prior_mean.shape[-1])
-            )
+            hidden = self._join_carry(hidden, self.episode_prior()[0])
         latent, _ = self.prior(hidden)
         mean, _ = self.decode(hidden, x, latent)
         return self.apply_delta(prev, mean)

@@ -111,7 +111,6 @@ class RCVAELoss(LossModule):
                 "beta, free_nats and open_loop_steps must be >= 0, got "
                 f"{beta}, {free_nats}, {open_loop_steps}."
             )
-
         if not 0.0 <= nll_beta <= 1.0:
             raise ValueError(f"nll_beta: expected a value in [0, 1], got {nll_beta}.")
         self.nll_beta = float(nll_beta)

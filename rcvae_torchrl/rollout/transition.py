@@ -226,14 +226,15 @@ def init_model_state(
     carried = ensemble.initial_hidden(
         batch, observation, generator, mean=trajectory_sampling == "mean"
     )
-    hidden = carried[0] if trajectory_sampling == "ts_inf" else carried.movedim(0, -2)
+    if trajectory_sampling == "ts_inf":  # every member's row is the same: keep one
+        hidden = carried[0].clone()
+    else:
+        hidden = carried.movedim(0, -2).contiguous()
     state = TensorDict(
         {
             "observation": observation,
             "rcvae": {
-                "hidden": hidden.clone()
-                if trajectory_sampling == "ts_inf"
-                else hidden.contiguous(),
+                "hidden": hidden,
                 "latent": observation.new_zeros(*batch, cfg.latent_dim),
             },
         },

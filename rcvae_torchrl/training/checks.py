@@ -35,7 +35,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from rcvae_torchrl.data import TRAJ_KEY, make_window_buffer, sample_windows
+from rcvae_torchrl.data import episode_spans, make_window_buffer, sample_windows
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import imagine
 
@@ -176,7 +176,7 @@ def _rmse(error: torch.Tensor) -> torch.Tensor:
 
 
 def _longest_episode(data: TensorDictBase) -> int:
-    return int(torch.unique_consecutive(data.get(TRAJ_KEY), return_counts=True)[1].max())
+    return int(episode_spans(data)[1].max())
 
 
 def _coverage(
@@ -191,9 +191,7 @@ def _coverage(
     real states after ``steps`` steps lie between the order statistics i and n + 1 − i of the
     n imagined ones (``[S]``), the episode count, and the interval's exact coverage
     (n + 1 − 2i) / (n + 1) for a draw of the samples' own law."""
-    ids = data.get(TRAJ_KEY)
-    lengths = torch.unique_consecutive(ids, return_counts=True)[1]
-    first = torch.cumsum(lengths, 0) - lengths
+    first, lengths = episode_spans(data)
     first = first[lengths > steps]
     if first.numel() == 0:
         return torch.zeros(ensemble.config.obs_dim, dtype=torch.float64), 0, 0.0

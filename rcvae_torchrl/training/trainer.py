@@ -284,6 +284,7 @@ def _train_shard(
         disable=not (progress and distributed.is_main()),
         leave=False,
     )
+    start_windows = round(config.episode_start_fraction * config.batch_windows)
     while not state.finished:
         windows = sample_windows(
             buffer,
@@ -291,7 +292,7 @@ def _train_shard(
             config.window,
             len(members),
             windows_rng,
-            start_windows=round(config.episode_start_fraction * config.batch_windows),
+            start_windows=start_windows,
         ).to(device)
         for group in optimizer.param_groups:
             group["lr"] = config.lr_at(state.step)
