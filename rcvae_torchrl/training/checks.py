@@ -35,6 +35,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
+from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl.data import episode_spans, make_window_buffer, sample_windows
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import imagine
@@ -255,6 +256,10 @@ def check_model(
         seed: the windows and the samples are drawn from it.
         warn: emit a :class:`ModelCheckWarning` naming the flagged dimensions.
     """
+    for name, value in (("coverage_steps", coverage_steps), ("min_episodes", min_episodes)):
+        check_positive_int(name, value)
+    check_unit_interval("interval", interval, include_zero=False)
+    check_unit_interval("alpha", alpha, include_zero=False)
     cfg, e = ensemble.config, ensemble.ensemble_size
     device = ensemble.device
     longest = _longest_episode(data)

@@ -10,6 +10,7 @@ from rcvae_torchrl.data import (
     GaussianExploration,
     UniformRandomPolicy,
     collect_episodes,
+    episode_spans,
     make_exploration_policy,
     make_window_buffer,
     sample_windows,
@@ -76,6 +77,11 @@ def test_a_members_windows_come_from_its_generator_alone(episodes):
     assert three.shape == (3, 8, 16) and alone.shape == (1, 8, 16)
     for key in ("observation", "action", ("next", "observation"), TRAJ_KEY):
         assert torch.equal(three[key][1], alone[key][0])
+
+
+def test_episode_spans(episodes):
+    first, lengths = episode_spans(episodes)
+    assert torch.equal(first, torch.arange(6) * 40) and torch.equal(lengths, torch.full((6,), 40))
 
 
 def test_windows_from_episode_starts(episodes):

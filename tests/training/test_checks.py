@@ -89,6 +89,21 @@ def test_coverage_of_a_calibrated_model_and_of_a_harsher_reality(trained):
     assert few.coverage is None and few.overconfident == ()
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"coverage_steps": 0}, r"coverage_steps: expected a positive integer, got 0"),
+        ({"min_episodes": -1}, r"min_episodes: expected a positive integer, got -1"),
+        ({"interval": 0.0}, r"interval: expected a float in \(0, 1\], got 0.0"),
+        ({"alpha": 1.5}, r"alpha: expected a float in \(0, 1\], got 1.5"),
+    ],
+)
+def test_bad_coverage_settings_are_named(trained, kwargs, match):
+    result, val, _ = trained
+    with pytest.raises(ValueError, match=match):
+        check_model(result.ensemble, val, warn=False, **kwargs)
+
+
 def test_the_coverage_test_is_a_binomial_test():
     """32 episodes, a 0.9 interval, 4 dimensions (level 0.01 / 4): 23 covered is within
     chance (P(X <= 23) = 0.0033 > 0.0025), 22 is not (0.0008)."""
