@@ -11,6 +11,8 @@ export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 
 SEEDS  ?= 0,1,2,3,4
+PROFILE ?= default
+SEEDS_DIR ?= outputs/pusher_competency/seeds$(if $(filter-out default,$(PROFILE)),_$(PROFILE))
 
 .PHONY: run run-quick run-seeds demo test test-slow test-all lint format docs bench system-deps setup clean
 
@@ -20,12 +22,13 @@ run: setup
 run-quick: setup
 	$(PY) recipes/pusher_competency/main.py profile=quick
 
-# The study for every seed of SEEDS (Hydra multirun), then one table over them.
+# The study for every seed of SEEDS (Hydra multirun) in PROFILE, then one table over them
+# (e.g. `make run-seeds PROFILE=weak_arm`: written under outputs/pusher_competency/seeds_weak_arm).
 run-seeds: setup
 	$(PY) recipes/pusher_competency/main.py -m hydra/launcher=local seed=$(SEEDS) threads=1 \
-		progress=false \
-		'run_dir=outputs/pusher_competency/seeds/seed$${seed}'
-	$(PY) recipes/pusher_competency/aggregate.py outputs/pusher_competency/seeds
+		profile=$(PROFILE) progress=false \
+		'run_dir=$(SEEDS_DIR)/seed$${seed}'
+	$(PY) recipes/pusher_competency/aggregate.py $(SEEDS_DIR)
 
 demo: setup
 	$(PY) recipes/pusher_demo.py

@@ -43,7 +43,7 @@ def test_the_default_profile_is_the_dataclass_defaults():
     assert StudyConfig(**study) == StudyConfig()
 
 
-@pytest.mark.parametrize("profile", ["quick", "full"])
+@pytest.mark.parametrize("profile", ["quick", "full", "weak_arm"])
 def test_profiles_hold_only_their_differences(profile):
     """Every value a profile file sets differs from the dataclass default (one home per number)."""
     values = yaml.safe_load((CONF / "profile" / f"{profile}.yaml").read_text())
@@ -67,6 +67,21 @@ def test_profiles_scale_up():
     assert quick.data.scripted_episodes < default.data.scripted_episodes
     assert default.data.scripted_episodes < full.data.scripted_episodes
     assert quick.run_dir == "outputs/pusher_competency/quick"
+
+
+def test_weak_arm_profile_changes_only_the_stochastic_design():
+    """The weak-arm profile: strength drawn per episode, no per-step noise, an episode latent,
+    start windows and twice the training steps; every other setting is the default profile's."""
+    default, weak = _config(), _config("profile=weak_arm")
+    assert weak.data.stochastic_strength == [0.2, 0.4] and weak.data.stochastic_noise_std == 0
+    assert weak.model.episode_latent_dim == 4 and weak.train.episode_start_fraction == 0.25
+    assert weak.train.max_steps == 2 * default.train.max_steps
+    assert weak.run_dir == "outputs/pusher_competency/weak_arm"
+    for section in ("planner", "agent", "assess"):
+        assert getattr(weak, section) == getattr(default, section), section
+    assert dataclasses.replace(weak.train, max_steps=1, episode_start_fraction=0) == (
+        dataclasses.replace(default.train, max_steps=1, episode_start_fraction=0)
+    )
 
 
 # --------------------------------------------------------------------------- overrides
