@@ -17,7 +17,7 @@ SEEDS_DIR ?= outputs/pusher_competency/seeds$(if $(filter-out default,$(PROFILE)
 .PHONY: run run-quick run-seeds demo test test-slow test-all lint format docs bench system-deps setup clean
 
 run: setup
-	$(PY) recipes/pusher_competency/main.py
+	$(PY) recipes/pusher_competency/main.py profile=$(PROFILE)
 
 run-quick: setup
 	$(PY) recipes/pusher_competency/main.py profile=quick

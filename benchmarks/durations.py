@@ -53,6 +53,7 @@ WHAT = {
     "test_suite": "`make test` (the default test suite)",
     "quick_profile": "`make run-quick` (the recipe's quick profile)",
     "default_profile": "`make run` (the recipe's default profile)",
+    "weak_arm_profile": "`make run PROFILE=weak_arm` (the weak-arm study)",
 }
 
 
