@@ -1,5 +1,5 @@
-"""The multi-seed study in one table: every column and check as mean ± sd over seeds, and how
-many seeds meet each check.
+"""The multi-seed study in one table: every column and check as mean ± sd over seeds, how many
+seeds meet each check, and every seed's value of each check.
 
     python recipes/pusher_competency/main.py -m seed=0,1,2,3,4 \\
         'run_dir=outputs/pusher_competency/seeds/seed${seed}'
@@ -79,11 +79,16 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
     # every real episode of a condition agreed): count the seeds it applied to.
     names = dict.fromkeys(name for s in summaries.values() for name in s["checks"])
     for name in names:
-        per_seed = [s["checks"][name] for s in summaries.values() if name in s["checks"]]
+        by_seed = [s["checks"].get(name) for s in summaries.values()]
+        per_seed = [c for c in by_seed if c is not None]
         checks[name] = {
             **_stats([c["value"] for c in per_seed]),
             "met": sum(bool(c["met"]) for c in per_seed),
             "seeds": len(per_seed),
+            # every seed's value and verdict, in the order of "seeds" (None: did not apply)
+            "by_seed": [
+                None if c is None else {"value": c["value"], "met": bool(c["met"])} for c in by_seed
+            ],
         }
     for c in conditions:
         if c == "overall":
@@ -125,8 +130,35 @@ def markdown(result: dict[str, Any]) -> str:
     lines += ["", "## Checks", "", "| check | mean ± sd | seeds met |", "|:---|---:|---:|"]
     for name, c in result["checks"].items():
         value = _cell(c) if "sd" in c else format(c["mean"], ".3f")
-        lines.append(f"| {name} | {value} | {c['met']}/{c['seeds']} |")
+        lines.append(f"| {_escaped(name)} | {value} | {c['met']}/{c['seeds']} |")
+    lines += [
+        "",
+        "## Every seed",
+        "",
+        "Each check's value in each seed; ✗ marks a seed that misses it, – one where it did not "
+        "apply.",
+        "",
+        "| check | " + " | ".join(result["seeds"]) + " |",
+        "|:---|" + "---:|" * n,
+    ]
+    for name, c in result["checks"].items():
+        if "by_seed" in c:
+            cells = " | ".join(map(_seed_cell, c["by_seed"]))
+            lines.append(f"| {_escaped(name)} | {cells} |")
     return "\n".join(lines) + "\n"
+
+
+def _escaped(name: str) -> str:
+    """A check's name in a markdown table cell (its ``|`` would end the cell)."""
+    return name.replace("|", "\\|")
+
+
+def _seed_cell(check: dict[str, Any] | None) -> str:
+    if check is None:
+        return "–"
+    value = check["value"]
+    text = format(value, ".3f") if isinstance(value, (int, float)) else str(value)
+    return text if check["met"] else f"{text} ✗"
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:

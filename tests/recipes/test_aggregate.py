@@ -57,3 +57,21 @@ def test_nested_scores_are_aggregated():
     result = aggregate({"seed0": first, "seed1": second})
     assert result["table"]["stochastic"]["recalibrated.gap"]["mean"] == pytest.approx(0.02)
     assert "recalibrated.gap" not in result["table"]["overall"]
+
+
+def test_every_seed_has_its_value_and_verdict(tmp_path):
+    # seed1 misses "a check"; "own rate" applied to seed1 only
+    first, second = _summary(0.02, True), _summary(0.2, False)
+    second["checks"]["own rate"] = {"value": 0.3, "met": True}
+    for name, summary in (("seed0", first), ("seed1", second)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "summary.json").write_text(json.dumps(summary))
+    result = main([str(tmp_path)])
+    assert result["checks"]["own rate"]["by_seed"] == [None, {"value": 0.3, "met": True}]
+    text = (tmp_path / "aggregate.md").read_text()
+    every = text[text.index("## Every seed") :]
+    assert "| check | seed0 | seed1 |" in every
+    assert "| a check | 0.020 | 0.200 ✗ |" in every
+    assert "| own rate | – | 0.300 |" in every
+    assert "over seeds" not in every  # the checks over all seeds have no per-seed value
+    assert r"| mean \|forecast - real\| over seeds <= 0.05 (stochastic) | 0.110 | 0/1 |" in text
