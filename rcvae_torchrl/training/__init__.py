@@ -2,12 +2,13 @@
 
 from .checkpoint import FORMAT_VERSION, CheckpointError, load_ensemble, save_ensemble
 from .checks import ModelChecks, ModelCheckWarning, check_model
-from .trainer import TrainConfig, TrainResult, train_ensemble
+from .trainer import TrainConfig, TrainResult, log_history, train_ensemble
 
 __all__ = [
     # loop
     "TrainConfig",
     "TrainResult",
+    "log_history",
     "train_ensemble",
     # self-checks
     "ModelCheckWarning",

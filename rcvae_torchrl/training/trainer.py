@@ -37,7 +37,13 @@ from rcvae_torchrl.objectives import RCVAELoss
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 from .checks import ModelChecks, check_model
 
-__all__ = ["TrainConfig", "TrainResult", "clip_grad_norm_per_member", "train_ensemble"]
+__all__ = [
+    "TrainConfig",
+    "TrainResult",
+    "clip_grad_norm_per_member",
+    "log_history",
+    "train_ensemble",
+]
 
 
 @dataclass(frozen=True)
@@ -461,6 +467,14 @@ def _log(logger: Logger | None, record: dict[str, Any], step: int, prefix: str) 
         if k != "step"
     }
     log_scalars(logger, metrics, step, prefix=prefix)
+
+
+def log_history(logger: Logger | None, history: list[dict[str, Any]], prefix: str = "") -> None:
+    """Log a finished training's history (:attr:`TrainResult.history`) to ``logger``, each row
+    at its step, as :func:`train_ensemble` logs it while it trains: for a training that ran
+    where ``logger`` could not go (another process)."""
+    for record in history:
+        _log(logger, record, int(record["step"]), prefix)
 
 
 # ---------------------------------------------------------------------- checkpoints

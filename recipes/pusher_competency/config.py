@@ -18,6 +18,7 @@ from omegaconf import DictConfig
 from rcvae_torchrl.agent import DistillConfig, PlannerConfig
 from rcvae_torchrl.envs import CONTROL_TIMESTEP, check_strength
 from rcvae_torchrl.loggers import check_logger_backend
+from rcvae_torchrl.processes import check_workers
 from rcvae_torchrl.training import TrainConfig
 
 from .._settings import (
@@ -258,6 +259,11 @@ class StudyConfig:
 class RecipeConfig(StudyConfig):
     """The study plus how to run it: where, on which device, with how many threads.
 
+    ``train_workers``: processes that train the deterministic and the stochastic world model
+    side by side, each on ``threads`` threads: ``"auto"`` (one per model, up to the cores the
+    machine's load leaves idle: 2 on an idle 2-core machine, 1 beside another run) or a count.
+    The models come out the same either way.
+
     ``logger``: where training curves and stage summaries go, under ``<run_dir>/logs``:
     ``"csv"``, ``"tensorboard"``, ``"wandb"`` (offline), ``"mlflow"`` (a local file store) or
     ``"none"`` (see :func:`~rcvae_torchrl.loggers.make_logger`).
@@ -267,6 +273,7 @@ class RecipeConfig(StudyConfig):
     run_dir: str = "outputs/pusher_competency/${profile}"
     device: str = "auto"
     threads: Any = "auto"
+    train_workers: Any = "auto"
     progress: bool = True
     logger: str = "csv"
 
@@ -274,6 +281,7 @@ class RecipeConfig(StudyConfig):
         super().__post_init__()
         check_device_name(self.device)
         check_threads(self.threads)
+        check_workers("train_workers", self.train_workers)
         check_run_dir_name(self.run_dir)
         check_logger_backend(self.logger)
 

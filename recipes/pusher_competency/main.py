@@ -71,7 +71,13 @@ def _run(config: RecipeConfig, device: str, say: Callable[[str], None] | None) -
     say = say or (lambda line: None)
     try:
         summary = run_study(
-            config, run_dir, device=device, progress=config.progress, log=say, logger=logger
+            config,
+            run_dir,
+            device=device,
+            progress=config.progress,
+            log=say,
+            logger=logger,
+            train_workers=config.train_workers,
         )
     finally:
         if logger is not None:

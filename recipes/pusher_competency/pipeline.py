@@ -51,8 +51,15 @@ from rcvae_torchrl.envs.scripted import ScriptedPusher
 from rcvae_torchrl.io import load_torch, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.processes import choose_workers, map_in_processes
 from rcvae_torchrl.stages import StageRunner
-from rcvae_torchrl.training import TrainConfig, load_ensemble, save_ensemble, train_ensemble
+from rcvae_torchrl.training import (
+    TrainConfig,
+    load_ensemble,
+    log_history,
+    save_ensemble,
+    train_ensemble,
+)
 
 from .config import StudyConfig
 from .data import collect_pusher_data
@@ -109,9 +116,13 @@ class Study:
         device: torch.device,
         progress: bool,
         logger: Logger | None = None,
+        *,
+        workers: int | str = 1,
+        log: Callable[[str], None] | None = None,
     ) -> None:
         self.cfg, self.dir, self.device, self.progress = config, run_dir, device, progress
-        self.logger = logger
+        self.logger, self.workers = logger, workers
+        self.say = log or (lambda line: None)
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -194,40 +205,62 @@ class Study:
         return dataclasses.replace(train, open_loop_steps=steps)
 
     def models(self) -> dict[str, Any]:
-        m, summary = self.cfg.model, {}
-        for name in WORLD_MODELS:
-            path = self.dir / "models" / f"{name}.pt"
-            if path.is_file():
-                continue
-            torch.manual_seed(self.cfg.seed)
-            ensemble = RCVAEEnsemble(rcvae_config(m), m.ensemble_size, functions=MODEL_FUNCTIONS)
-            ensemble = ensemble.to(self.device)
-            train, val = split_episodes(
-                load_episodes(self.dir / "data" / f"{name}.pt"), 0.1, seed=self.cfg.seed
-            )
-            result = train_ensemble(
-                ensemble,
-                train,
-                val,
-                self._train_config(name),
-                checkpoint_path=self.dir / "models" / f"{name}_train.pt",
-                resume=True,
-                logger=self.logger,
-                log_prefix=f"models/{name}/",
-                progress=self.progress,
-            )
-            info = {
-                "steps": result.steps,
-                "stopped_early": result.stopped_early,
-                "best_val_loss": result.best_val.mean().item(),
-            }
-            if distributed.is_main():
-                save_ensemble(result.ensemble, path, extra={"variant": name, "training": info})
+        pending = [n for n in WORLD_MODELS if not (self.dir / "models" / f"{n}.pt").is_file()]
+        # the world models share nothing: on idle cores they train side by side, one process
+        # each (under torchrun the ranks share each model's members instead)
+        workers = 1 if distributed.is_active() else self.train_workers(len(pending))
+        if workers > 1:
+            self.say(f"[models] training {', '.join(pending)} in {workers} worker processes")
+            jobs = [(self.cfg, str(self.dir), str(self.device), name) for name in pending]
+            for name, history in zip(pending, map_in_processes(_train_job, jobs, workers)):
+                log_history(self.logger, history, prefix=f"models/{name}/")
+        else:
+            for name in pending:
+                self.train_world_model(name, self.logger, self.progress)
         distributed.barrier()
+        summary = {}
         for name in WORLD_MODELS:
             saved = load_torch(self.dir / "models" / f"{name}.pt", "model checkpoint")
             summary[name] = saved["extra"].get("training", {})
         return summary
+
+    def train_workers(self, jobs: int) -> int:
+        """Worker processes for the ``models`` stage's ``jobs`` trainings (1 on a GPU)."""
+        if self.device.type != "cpu":
+            return 1
+        return choose_workers(jobs, self.workers)
+
+    def train_world_model(
+        self, name: str, logger: Logger | None, progress: bool
+    ) -> list[dict[str, Any]]:
+        """Train world model ``name`` (resuming its checkpoint) and save it; its history."""
+        m = self.cfg.model
+        torch.manual_seed(self.cfg.seed)
+        ensemble = RCVAEEnsemble(rcvae_config(m), m.ensemble_size, functions=MODEL_FUNCTIONS)
+        ensemble = ensemble.to(self.device)
+        train, val = split_episodes(
+            load_episodes(self.dir / "data" / f"{name}.pt"), 0.1, seed=self.cfg.seed
+        )
+        result = train_ensemble(
+            ensemble,
+            train,
+            val,
+            self._train_config(name),
+            checkpoint_path=self.dir / "models" / f"{name}_train.pt",
+            resume=True,
+            logger=logger,
+            log_prefix=f"models/{name}/",
+            progress=progress,
+        )
+        info = {
+            "steps": result.steps,
+            "stopped_early": result.stopped_early,
+            "best_val_loss": result.best_val.mean().item(),
+        }
+        if distributed.is_main():
+            path = self.dir / "models" / f"{name}.pt"
+            save_ensemble(result.ensemble, path, extra={"variant": name, "training": info})
+        return result.history
 
     def _demonstrations(self, model: RCVAEEnsemble, env: EnvBase) -> dict[str, Any]:
         """MPC episodes with the executed action perturbed: observations and planner labels."""
@@ -420,21 +453,40 @@ def run_study(
     progress: bool = True,
     log: Callable[[str], None] = print,
     logger: Logger | None = None,
+    train_workers: int | str = 1,
 ) -> dict[str, Any]:
     """Run (or resume) the study in ``run_dir``; returns every stage's summary.
 
     ``logger`` (a TorchRL logger) gets the training curves (``models/<name>/...``) and every
     stage's numbers (``stages/<stage>/...``); without one, training writes CSV beside its
-    checkpoints.
+    checkpoints. ``train_workers``: processes that train the world models side by side (an
+    int, or ``"auto"``: as many as idle cores allow, see
+    :func:`~rcvae_torchrl.processes.choose_workers`); the models are the same either way.
+    A worker's training curves reach ``logger`` when it finishes (and CSV beside its
+    checkpoint as it trains).
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
     runner = StageRunner(run_dir, log, settings=settings, logger=logger)
-    study = Study(config, run_dir, torch.device(device), progress and distributed.is_main(), logger)
+    study = Study(
+        config,
+        run_dir,
+        torch.device(device),
+        progress and distributed.is_main(),
+        logger,
+        workers=train_workers,
+        log=log,
+    )
     for name, outputs in STAGES.items():
         runner.run(name, getattr(study, name), outputs, sharded=name in SHARDED_STAGES)
     return runner.summaries
+
+
+def _train_job(config: StudyConfig, run_dir: str, device: str, name: str) -> list[dict[str, Any]]:
+    """Train world model ``name`` of the study in ``run_dir`` (in a worker process)."""
+    study = Study(config, Path(run_dir), torch.device(device), progress=False)
+    return study.train_world_model(name, None, progress=False)
 
 
 def _values(config: StudyConfig) -> list[Any]:

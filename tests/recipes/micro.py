@@ -6,6 +6,7 @@ START_STATES = 2
 MICRO = (
     "profile=quick",
     "threads=1",
+    "train_workers=1",  # the worker processes have their own test (test_train_workers.py)
     "progress=false",
     "data.scripted_episodes=3",
     "data.random_episodes=2",

@@ -1,0 +1,86 @@
+"""Independent jobs in worker processes, as many as the machine's idle cores allow.
+
+A study trains several world models that share nothing (one per env variant), each on one
+torch thread: the world model's ops are too small for a second thread to pay
+(:mod:`rcvae_torchrl.threads`), so on a machine with idle cores one process leaves them idle.
+:func:`map_in_processes` runs such jobs side by side in spawned worker processes (each with
+the caller's torch thread count), and :func:`choose_workers` picks how many: one per job, up
+to the cores the machine's load leaves idle. A job's result does not depend on where it ran:
+it is the same computation on the same thread count, in a fresh process.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import math
+import multiprocessing
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
+
+import torch
+
+from rcvae_torchrl.threads import free_cores, set_threads
+
+__all__ = ["check_workers", "choose_workers", "map_in_processes"]
+
+T = TypeVar("T")
+
+
+def check_workers(name: str, value: Any) -> None:
+    """Require ``"auto"`` or an integer >= 1 (``name`` is the setting, for the error)."""
+    if value == "auto":
+        return
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}: expected a positive integer or 'auto', got {value!r}")
+
+
+def choose_workers(
+    jobs: int, setting: int | str = "auto", *, cpus: int | None = None, load: float | None = None
+) -> int:
+    """Worker processes for ``jobs`` independent jobs: ``setting`` (an int, capped at ``jobs``)
+    or ``"auto"``: one more than the whole cores idle beside this process (the 1-minute load
+    average counts this process while it runs), capped at ``jobs``; at least 1.
+
+    Example:
+        >>> choose_workers(2, cpus=2, load=1.0), choose_workers(2, cpus=2, load=2.0)
+        (2, 1)
+        >>> choose_workers(3, 2)
+        2
+    """
+    check_workers("workers", setting)
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 0:
+        raise ValueError(f"jobs: expected a non-negative int, got {jobs!r}")
+    if setting != "auto":
+        return max(1, min(setting, jobs))
+    idle = math.floor(free_cores(cpus, load))
+    return max(1, min(jobs, 1 + idle))
+
+
+def _call(threads: int, fn: Callable[..., T], args: tuple) -> T:
+    set_threads(threads)
+    return fn(*args)
+
+
+def map_in_processes(
+    fn: Callable[..., T], jobs: Sequence[tuple], workers: int, *, threads: int | None = None
+) -> list[T]:
+    """``[fn(*args) for args in jobs]``, over ``workers`` spawned processes when > 1.
+
+    Args:
+        fn: a module-level function (it is pickled by name) whose arguments and result pickle.
+        jobs: one argument tuple per job.
+        workers: processes; 1 runs every job here, one after the other.
+        threads: torch intra-op threads in each worker (default: this process's count).
+
+    Returns:
+        the results in the order of ``jobs``; a job's exception is raised here.
+    """
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers: expected a positive int, got {workers!r}")
+    if workers == 1 or len(jobs) <= 1:
+        return [fn(*args) for args in jobs]
+    threads = torch.get_num_threads() if threads is None else threads
+    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch
+    with concurrent.futures.ProcessPoolExecutor(min(workers, len(jobs)), context) as pool:
+        futures = [pool.submit(_call, threads, fn, tuple(args)) for args in jobs]
+        return [f.result() for f in futures]

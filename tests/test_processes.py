@@ -1,0 +1,53 @@
+"""Independent jobs in worker processes: how many, in order, errors, threads."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from rcvae_torchrl.processes import check_workers, choose_workers, map_in_processes
+
+
+@pytest.mark.parametrize(
+    ("jobs", "setting", "load", "want"),
+    [
+        (2, "auto", 1.0, 2),  # 2 cores, this process busy: one idle core, one more worker
+        (2, "auto", 1.9, 1),  # less than a whole idle core: no second worker
+        (2, "auto", 0.0, 2),  # capped at the jobs
+        (5, "auto", 0.0, 3),  # 2 idle cores beyond a third process: capped at 1 + 2
+        (1, "auto", 0.0, 1),
+        (0, "auto", 0.0, 1),
+        (3, 2, 7.0, 2),  # a count is taken as it is (capped at the jobs), whatever the load
+        (1, 4, 0.0, 1),
+    ],
+)
+def test_choose_workers(jobs, setting, load, want):
+    assert choose_workers(jobs, setting, cpus=2, load=load) == want
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True, "two", None])
+def test_bad_worker_settings_name_the_setting(bad):
+    with pytest.raises(ValueError, match=r"train_workers: expected a positive integer or 'auto'"):
+        check_workers("train_workers", bad)
+    with pytest.raises(ValueError, match=r"workers: expected"):
+        choose_workers(2, bad)
+
+
+def test_jobs_run_in_workers_in_order_with_the_thread_count_given():
+    assert map_in_processes(math.pow, [(2, 3), (3, 2), (2, 0.5)], 2) == [8.0, 9.0, 2**0.5]
+    assert map_in_processes(torch.get_num_threads, [(), ()], 2, threads=1) == [1, 1]
+
+
+def test_one_worker_runs_the_jobs_here():
+    calls = []
+    assert map_in_processes(lambda x: calls.append(x) or -x, [(1,), (2,)], 1) == [-1, -2]
+    assert calls == [1, 2]  # a lambda does not pickle: it ran in this process
+
+
+def test_a_job_error_is_raised_in_the_caller():
+    with pytest.raises(ValueError, match="math domain error"):
+        map_in_processes(math.sqrt, [(4.0,), (-1.0,)], 2)
+    with pytest.raises(ValueError, match="workers: expected a positive int"):
+        map_in_processes(math.sqrt, [(4.0,)], 0)
