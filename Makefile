@@ -25,7 +25,7 @@ run-quick: setup
 # The study for every seed of SEEDS (Hydra multirun) in PROFILE, then one table over them
 # (e.g. `make run-seeds PROFILE=weak_arm`: written under outputs/pusher_competency/seeds_weak_arm).
 run-seeds: setup
-	$(PY) recipes/pusher_competency/main.py -m hydra/launcher=local seed=$(SEEDS) threads=1 \
+	$(PY) recipes/pusher_competency/main.py -m hydra/launcher=local seed=$(SEEDS) threads=1 stage_workers=1 \
 		profile=$(PROFILE) progress=false \
 		'run_dir=$(SEEDS_DIR)/seed$${seed}'
 	$(PY) recipes/pusher_competency/aggregate.py $(SEEDS_DIR)

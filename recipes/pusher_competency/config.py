@@ -259,10 +259,11 @@ class StudyConfig:
 class RecipeConfig(StudyConfig):
     """The study plus how to run it: where, on which device, with how many threads.
 
-    ``train_workers``: processes that train the deterministic and the stochastic world model
-    side by side, each on ``threads`` threads: ``"auto"`` (one per model, up to the cores the
-    machine's load leaves idle: 2 on an idle 2-core machine, 1 beside another run) or a count.
-    The models come out the same either way.
+    ``stage_workers``: processes that run a stage's independent jobs side by side, each on
+    ``threads`` threads (the two variants' data, the two world models, the three conditions'
+    forecasts): ``"auto"`` (one per job, up to the cores the machine's load leaves idle: 2 on an
+    idle 2-core machine, 1 beside another run) or a count. The results are the same either
+    way.
 
     ``logger``: where training curves and stage summaries go, under ``<run_dir>/logs``:
     ``"csv"``, ``"tensorboard"``, ``"wandb"`` (offline), ``"mlflow"`` (a local file store) or
@@ -273,7 +274,7 @@ class RecipeConfig(StudyConfig):
     run_dir: str = "outputs/pusher_competency/${profile}"
     device: str = "auto"
     threads: Any = "auto"
-    train_workers: Any = "auto"
+    stage_workers: Any = "auto"
     progress: bool = True
     logger: str = "csv"
 
@@ -281,7 +282,7 @@ class RecipeConfig(StudyConfig):
         super().__post_init__()
         check_device_name(self.device)
         check_threads(self.threads)
-        check_workers("train_workers", self.train_workers)
+        check_workers("stage_workers", self.stage_workers)
         check_run_dir_name(self.run_dir)
         check_logger_backend(self.logger)
 

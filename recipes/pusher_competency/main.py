@@ -77,7 +77,7 @@ def _run(config: RecipeConfig, device: str, say: Callable[[str], None] | None) -
             progress=config.progress,
             log=say,
             logger=logger,
-            train_workers=config.train_workers,
+            stage_workers=config.stage_workers,
         )
     finally:
         if logger is not None:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -177,24 +177,48 @@ class Study:
 
     # ------------------------------------------------------------------ stages
     def data(self) -> dict[str, Any]:
-        d, summary = self.cfg.data, {}
-        for variant in WORLD_MODELS:
-            path = self.dir / "data" / f"{variant}.pt"
-            if not path.is_file():
-                data = collect_pusher_data(
-                    variant,
-                    scripted_episodes=d.scripted_episodes,
-                    random_episodes=d.random_episodes,
-                    exploration_std=d.exploration_std,
-                    time_limit=d.time_limit,
-                    random_time_limit=d.random_time_limit,
-                    seed=self.cfg.seed,
-                    progress=self.progress,
-                    **variant_randomness(variant, d),
-                )
-                save_episodes(data, path)
-            summary[f"{variant}_frames"] = int(load_episodes(path).shape[0])
-        return summary
+        self.side_by_side("data", WORLD_MODELS, "collect")
+        return {
+            f"{variant}_frames": int(load_episodes(self.dir / "data" / f"{variant}.pt").shape[0])
+            for variant in WORLD_MODELS
+        }
+
+    def collect(self, variant: str) -> None:
+        """Collect and save the world-model data of Pusher ``variant``."""
+        d = self.cfg.data
+        data = collect_pusher_data(
+            variant,
+            scripted_episodes=d.scripted_episodes,
+            random_episodes=d.random_episodes,
+            exploration_std=d.exploration_std,
+            time_limit=d.time_limit,
+            random_time_limit=d.random_time_limit,
+            seed=self.cfg.seed,
+            progress=self.progress,
+            **variant_randomness(variant, d),
+        )
+        save_episodes(data, self.dir / "data" / f"{variant}.pt")
+
+    def side_by_side(
+        self, stage: str, names: Sequence[str], method: str
+    ) -> tuple[dict[str, Any], bool]:
+        """``self.<method>(name)`` for each of ``names`` whose ``<stage>/<name>.pt`` is missing:
+        independent jobs, run side by side in worker processes where cores are idle
+        (:meth:`stage_workers`), else here one after the other. Returns each job's result by
+        name, and whether they ran in workers (where this study's logger could not go)."""
+        pending = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
+        workers = 1 if distributed.is_active() else self.stage_workers(len(pending))
+        if workers == 1:
+            return {name: getattr(self, method)(name) for name in pending}, False
+        self.say(f"[{stage}] {', '.join(pending)} in {workers} worker processes")
+        jobs = [(self.cfg, str(self.dir), str(self.device), method, name) for name in pending]
+        return dict(zip(pending, map_in_processes(_study_job, jobs, workers))), True
+
+    def stage_workers(self, jobs: int) -> int:
+        """Worker processes for a stage's ``jobs`` independent jobs (1 on a GPU)."""
+        if self.device.type != "cpu":
+            return 1
+        return choose_workers(jobs, self.workers)
 
     def _train_config(self, name: str) -> TrainConfig:
         """The training settings of world model ``name``, seeded by the study's seed."""
@@ -205,18 +229,10 @@ class Study:
         return dataclasses.replace(train, open_loop_steps=steps)
 
     def models(self) -> dict[str, Any]:
-        pending = [n for n in WORLD_MODELS if not (self.dir / "models" / f"{n}.pt").is_file()]
-        # the world models share nothing: on idle cores they train side by side, one process
-        # each (under torchrun the ranks share each model's members instead)
-        workers = 1 if distributed.is_active() else self.train_workers(len(pending))
-        if workers > 1:
-            self.say(f"[models] training {', '.join(pending)} in {workers} worker processes")
-            jobs = [(self.cfg, str(self.dir), str(self.device), name) for name in pending]
-            for name, history in zip(pending, map_in_processes(_train_job, jobs, workers)):
+        histories, elsewhere = self.side_by_side("models", WORLD_MODELS, "train_world_model")
+        if elsewhere:  # the workers' training curves, into this run's logger
+            for name, history in histories.items():
                 log_history(self.logger, history, prefix=f"models/{name}/")
-        else:
-            for name in pending:
-                self.train_world_model(name, self.logger, self.progress)
         distributed.barrier()
         summary = {}
         for name in WORLD_MODELS:
@@ -224,15 +240,7 @@ class Study:
             summary[name] = saved["extra"].get("training", {})
         return summary
 
-    def train_workers(self, jobs: int) -> int:
-        """Worker processes for the ``models`` stage's ``jobs`` trainings (1 on a GPU)."""
-        if self.device.type != "cpu":
-            return 1
-        return choose_workers(jobs, self.workers)
-
-    def train_world_model(
-        self, name: str, logger: Logger | None, progress: bool
-    ) -> list[dict[str, Any]]:
+    def train_world_model(self, name: str) -> list[dict[str, Any]]:
         """Train world model ``name`` (resuming its checkpoint) and save it; its history."""
         m = self.cfg.model
         torch.manual_seed(self.cfg.seed)
@@ -248,9 +256,9 @@ class Study:
             self._train_config(name),
             checkpoint_path=self.dir / "models" / f"{name}_train.pt",
             resume=True,
-            logger=logger,
+            logger=self.logger,
             log_prefix=f"models/{name}/",
-            progress=progress,
+            progress=self.progress,
         )
         info = {
             "steps": result.steps,
@@ -350,29 +358,45 @@ class Study:
 
     def forecast(self) -> dict[str, Any]:
         """Sharded: chunks of start states over the ranks (each chunk seeded by the study's
-        seed and its index), one report gathered; rank 0 writes it."""
-        s, summary = self.cfg.assess, {}
+        seed and its index), one report gathered; rank 0 writes it. In one process the
+        conditions are forecast side by side where cores are idle."""
+        if distributed.is_active():
+            for condition in CONDITIONS:
+                if not distributed.broadcast((self.dir / "forecast" / f"{condition}.pt").is_file()):
+                    self.forecast_condition(condition)
+                distributed.barrier()
+        else:
+            self.side_by_side("forecast", list(CONDITIONS), "forecast_condition")
+        return {
+            condition: {
+                "p_success": load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")[
+                    "p_success"
+                ]
+                .mean()
+                .item()
+            }
+            for condition in CONDITIONS
+        }
+
+    def forecast_condition(self, condition: str) -> None:
+        """Forecast the agent from ``condition``'s start states in imagination; save it."""
+        s = self.cfg.assess
+        model_name, variant = CONDITIONS[condition]
         policy = self.load_policy().to(self.device)
-        for condition, (model_name, variant) in CONDITIONS.items():
+        starts = self.starts(condition)
+        assessor = self.assessor(model_name, variant)
+        start = starts.to(self.device)
+        if s.open_loop:
+            generator = torch.Generator(device=self.device).manual_seed(self.cfg.seed)
+            plan = assessor.model_env.plan_actions(
+                start, policy, assessor.horizon, generator=generator
+            )
+            report = assessor.assess(start, actions=plan, seed=self.cfg.seed)
+        else:
+            report = assessor.assess(start, policy=policy, seed=self.cfg.seed)
+        if distributed.is_main():
             path = self.dir / "forecast" / f"{condition}.pt"
-            if not distributed.broadcast(path.is_file()):
-                starts = self.starts(condition)
-                assessor = self.assessor(model_name, variant)
-                start = starts.to(self.device)
-                if s.open_loop:
-                    generator = torch.Generator(device=self.device).manual_seed(self.cfg.seed)
-                    plan = assessor.model_env.plan_actions(
-                        start, policy, assessor.horizon, generator=generator
-                    )
-                    report = assessor.assess(start, actions=plan, seed=self.cfg.seed)
-                else:
-                    report = assessor.assess(start, policy=policy, seed=self.cfg.seed)
-                if distributed.is_main():
-                    save_torch(path, {"starts": starts, **_forecast_record(report.data.cpu())})
-            distributed.barrier()
-            saved = load_torch(path, "forecast")
-            summary[condition] = {"p_success": saved["p_success"].mean().item()}
-        return summary
+            save_torch(path, {"starts": starts, **_forecast_record(report.data.cpu())})
 
     def truth(self) -> dict[str, Any]:
         """The agent in the real env from each forecast's start states, many runs per start in
@@ -453,17 +477,18 @@ def run_study(
     progress: bool = True,
     log: Callable[[str], None] = print,
     logger: Logger | None = None,
-    train_workers: int | str = 1,
+    stage_workers: int | str = 1,
 ) -> dict[str, Any]:
     """Run (or resume) the study in ``run_dir``; returns every stage's summary.
 
     ``logger`` (a TorchRL logger) gets the training curves (``models/<name>/...``) and every
     stage's numbers (``stages/<stage>/...``); without one, training writes CSV beside its
-    checkpoints. ``train_workers``: processes that train the world models side by side (an
-    int, or ``"auto"``: as many as idle cores allow, see
-    :func:`~rcvae_torchrl.processes.choose_workers`); the models are the same either way.
-    A worker's training curves reach ``logger`` when it finishes (and CSV beside its
-    checkpoint as it trains).
+    checkpoints. ``stage_workers``: processes that run a stage's independent jobs side by
+    side (the two variants' data, the two world models, the three conditions' forecasts): an
+    int, or ``"auto"``: as many as idle cores allow (see
+    :func:`~rcvae_torchrl.processes.choose_workers`). The results are the same either way. A
+    worker's training curves reach ``logger`` when it finishes (and CSV beside its checkpoint
+    as it trains).
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -475,7 +500,7 @@ def run_study(
         torch.device(device),
         progress and distributed.is_main(),
         logger,
-        workers=train_workers,
+        workers=stage_workers,
         log=log,
     )
     for name, outputs in STAGES.items():
@@ -483,10 +508,11 @@ def run_study(
     return runner.summaries
 
 
-def _train_job(config: StudyConfig, run_dir: str, device: str, name: str) -> list[dict[str, Any]]:
-    """Train world model ``name`` of the study in ``run_dir`` (in a worker process)."""
+def _study_job(config: StudyConfig, run_dir: str, device: str, method: str, name: str) -> Any:
+    """``Study.<method>(name)`` of the study in ``run_dir``, in a worker process (no progress
+    bars, no logger: training writes CSV beside its checkpoint)."""
     study = Study(config, Path(run_dir), torch.device(device), progress=False)
-    return study.train_world_model(name, None, progress=False)
+    return getattr(study, method)(name)
 
 
 def _values(config: StudyConfig) -> list[Any]:
