@@ -12,7 +12,6 @@ it is the same computation on the same thread count, in a fresh process.
 from __future__ import annotations
 
 import concurrent.futures
-import math
 import multiprocessing
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
@@ -38,11 +37,16 @@ def choose_workers(
     jobs: int, setting: int | str = "auto", *, cpus: int | None = None, load: float | None = None
 ) -> int:
     """Worker processes for ``jobs`` independent jobs: ``setting`` (an int, capped at ``jobs``)
-    or ``"auto"``: one more than the whole cores idle beside this process (the 1-minute load
-    average counts this process while it runs), capped at ``jobs``; at least 1.
+    or ``"auto"``: the cores the machine's 1-minute load average leaves idle, rounded (a core
+    at least half idle counts), capped at ``jobs``; at least 1.
+
+    Call it before the jobs' own work has loaded the machine (a recipe: once, when a run
+    starts), so that the load is the other jobs'. Unlike torch threads
+    (:func:`~rcvae_torchrl.threads.choose_threads`, which stall on a core they do not get), a
+    process too many only shares a core: the rule need not be as strict.
 
     Example:
-        >>> choose_workers(2, cpus=2, load=1.0), choose_workers(2, cpus=2, load=2.0)
+        >>> choose_workers(2, cpus=2, load=0.3), choose_workers(2, cpus=2, load=1.0)
         (2, 1)
         >>> choose_workers(3, 2)
         2
@@ -52,8 +56,7 @@ def choose_workers(
         raise ValueError(f"jobs: expected a non-negative int, got {jobs!r}")
     if setting != "auto":
         return max(1, min(setting, jobs))
-    idle = math.floor(free_cores(cpus, load))
-    return max(1, min(jobs, 1 + idle))
+    return max(1, min(jobs, round(free_cores(cpus, load))))
 
 
 def _call(threads: int, fn: Callable[..., T], args: tuple) -> T:

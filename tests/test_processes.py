@@ -13,11 +13,14 @@ from rcvae_torchrl.processes import check_workers, choose_workers, map_in_proces
 @pytest.mark.parametrize(
     ("jobs", "setting", "load", "want"),
     [
-        (2, "auto", 1.0, 2),  # 2 cores, this process busy: one idle core, one more worker
-        (2, "auto", 1.9, 1),  # less than a whole idle core: no second worker
-        (2, "auto", 0.0, 2),  # capped at the jobs
-        (5, "auto", 0.0, 3),  # 2 idle cores beyond a third process: capped at 1 + 2
-        (1, "auto", 0.0, 1),
+        (2, "auto", 0.2, 2),  # an idle 2-core machine
+        (2, "auto", 1.0, 1),  # another job holds a core
+        (2, "auto", 1.4, 1),  # a core more than half idle counts, less does not
+        (2, "auto", 0.6, 1),
+        (2, "auto", 0.4, 2),
+        (2, "auto", 3.0, 1),  # a loaded machine: at least one
+        (3, "auto", 0.0, 2),  # no more than the idle cores
+        (1, "auto", 0.0, 1),  # no more than the jobs
         (0, "auto", 0.0, 1),
         (3, 2, 7.0, 2),  # a count is taken as it is (capped at the jobs), whatever the load
         (1, 4, 0.0, 1),

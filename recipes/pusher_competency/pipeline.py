@@ -121,7 +121,10 @@ class Study:
         log: Callable[[str], None] | None = None,
     ) -> None:
         self.cfg, self.dir, self.device, self.progress = config, run_dir, device, progress
-        self.logger, self.workers = logger, workers
+        self.logger = logger
+        # "auto" resolved now, at the start of the run: the load is then the other jobs', not
+        # this run's own workers of a stage before (the load average lags by a minute)
+        self.workers = choose_workers(len(CONDITIONS), workers) if device.type == "cpu" else 1
         self.say = log or (lambda line: None)
 
     # ------------------------------------------------------------------ helpers
@@ -216,9 +219,7 @@ class Study:
 
     def stage_workers(self, jobs: int) -> int:
         """Worker processes for a stage's ``jobs`` independent jobs (1 on a GPU)."""
-        if self.device.type != "cpu":
-            return 1
-        return choose_workers(jobs, self.workers)
+        return max(1, min(self.workers, jobs))
 
     def _train_config(self, name: str) -> TrainConfig:
         """The training settings of world model ``name``, seeded by the study's seed."""
