@@ -8,7 +8,13 @@ from .exploration import (
     make_exploration_policy,
 )
 from .prepare import ActionNoise, ObservationLayout, prepare_env, seed_env
-from .replay import episode_spans, make_window_buffer, sample_windows, split_episodes
+from .replay import (
+    episode_spans,
+    make_window_buffer,
+    resample_episodes,
+    sample_windows,
+    split_episodes,
+)
 from .storage import load_episodes, save_episodes
 
 __all__ = [
@@ -30,6 +36,7 @@ __all__ = [
     # replay
     "episode_spans",
     "make_window_buffer",
+    "resample_episodes",
     "sample_windows",
     "split_episodes",
     # storage

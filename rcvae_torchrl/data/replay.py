@@ -11,7 +11,13 @@ from torchrl.data.replay_buffers.samplers import SliceSampler
 
 from .collection import TRAJ_KEY, check_episode_ids
 
-__all__ = ["episode_spans", "make_window_buffer", "sample_windows", "split_episodes"]
+__all__ = [
+    "episode_spans",
+    "make_window_buffer",
+    "resample_episodes",
+    "sample_windows",
+    "split_episodes",
+]
 
 
 def episode_spans(data: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -54,8 +60,25 @@ def make_window_buffer(
     return buffer
 
 
+def resample_episodes(data: TensorDictBase, generator: torch.Generator | None = None) -> TensorDict:
+    """A bootstrap resample of the episodes of ``data`` ``[frames]``: as many episodes as it
+    holds, drawn uniformly with replacement (Efron 1979), whole and in the order drawn, each
+    copy with its own episode id (0, 1, ...). About 1 - 1/e = 63 % of the episodes are in it,
+    some several times."""
+    _check_flat(data)
+    first, lengths = episode_spans(data)
+    chosen = torch.randint(len(first), (len(first),), generator=generator)
+    starts, counts = first[chosen], lengths[chosen]
+    offsets = torch.cumsum(counts, 0) - counts
+    total = int(counts.sum())
+    frames = torch.repeat_interleave(starts - offsets, counts) + torch.arange(total)
+    out = data[frames]
+    out.set(TRAJ_KEY, torch.repeat_interleave(torch.arange(len(first)), counts).to(data[TRAJ_KEY]))
+    return out
+
+
 def sample_windows(
-    buffer: TensorDictReplayBuffer,
+    buffer: TensorDictReplayBuffer | Sequence[TensorDictReplayBuffer],
     num_windows: int,
     window: int,
     members: int | None = None,
@@ -65,8 +88,9 @@ def sample_windows(
     """Windows ``[W, L]``, or ``[E, W, L]`` with independent draws for each of ``members``,
     from a buffer of :func:`make_window_buffer`.
 
-    Independent draws give each ensemble member its own resample of the data (sampling with
-    replacement, as a bootstrap does), so members disagree where data is thin. With
+    Independent draws give each ensemble member its own windows at each step (drawn with
+    replacement); over many steps every member sees all of the buffer's data. For members
+    that differ in the data they see, give each its own buffer (below). With
     ``generators`` (one per member), member ``m``'s windows come from the ``m``-th alone, so a
     member's data does not depend on which other members are drawn with it; otherwise all
     draws come from torch's global generator.
@@ -74,7 +98,20 @@ def sample_windows(
     ``start_windows`` (with ``generators``): the first ``start_windows`` windows of each member
     begin at the first step of an episode drawn uniformly, as every imagined episode begins;
     uniform window positions put few windows there (one in about episode length − L).
+
+    ``buffer`` may also be one buffer per member (with ``generators``): member ``m`` draws from
+    the ``m``-th, e.g. its own bootstrap resample of the episodes (:func:`resample_episodes`).
     """
+    buffers = None
+    if not isinstance(buffer, TensorDictReplayBuffer):
+        buffers = list(buffer)
+        if generators is None or len(buffers) != len(generators):
+            raise ValueError(
+                f"buffer: expected one buffer, or one per member with generators, got "
+                f"{len(buffers)} buffers and "
+                f"{'no' if generators is None else len(generators)} generators"
+            )
+        buffer = buffers[0]
     if start_windows and generators is None:
         raise ValueError("start_windows: expected generators (one per member) with it")
     if not 0 <= start_windows <= num_windows:
@@ -87,13 +124,17 @@ def sample_windows(
                 f"generators: expected one per member ({members}), got {len(generators)}"
             )
         draws = []
-        for generator in generators:
-            buffer.set_rng(generator)
-            draw = buffer.sampler.sample(buffer.storage, (num_windows - start_windows) * window)[0]
+        for m, generator in enumerate(generators):
+            own = buffer if buffers is None else buffers[m]
+            own.set_rng(generator)
+            draw = own.sampler.sample(own.storage, (num_windows - start_windows) * window)[0]
             if start_windows:
-                draw = _with_episode_starts(buffer, draw, start_windows, window, generator)
+                draw = _with_episode_starts(own, draw, start_windows, window, generator)
+            own.set_rng(None)
             draws.append(draw)
-        buffer.set_rng(None)
+        if buffers is not None:  # a read of each member's own storage
+            reads = [b.storage.get(d) for b, d in zip(buffers, draws, strict=True)]
+            return torch.stack(reads).reshape(members, num_windows, window)
         # one read of the storage for all members: a buffer.sample per member costs almost as
         # much again as its draw (its own read, its metadata, a stack)
         index = tuple(torch.cat(rows) for rows in zip(*draws, strict=True))

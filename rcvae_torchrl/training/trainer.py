@@ -1,8 +1,8 @@
 """``train_ensemble``: the world model's training loop, with validation, early stopping and resume.
 
 One Adam step trains every member (the loss sums over members); each member draws its own
-windows from its own generator, so it sees its own resample of the data, and nothing of one
-member depends on the others: its noise, gradient clipping and early stopping are its own.
+windows from its own generator (from all the episodes, or with ``bootstrap`` from its own
+resample of them), and nothing of one member depends on the others: its noise, gradient clipping and early stopping are its own.
 Validation windows are fixed per run. Members stop improving at different times, so the best
 weights are kept per member. A checkpoint (weights, optimiser, best weights, generator states,
 history) is written atomically at each validation, so ``resume=True`` continues a run killed
@@ -28,7 +28,7 @@ from tqdm.auto import tqdm
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_non_negative, check_positive
-from rcvae_torchrl.data import make_window_buffer, sample_windows
+from rcvae_torchrl.data import make_window_buffer, resample_episodes, sample_windows
 from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.loggers import log_scalars
 from rcvae_torchrl.models import RCVAEEnsemble
@@ -74,6 +74,12 @@ class TrainConfig:
             starts every episode there, from h_0 = 0, with nothing seen yet: a model whose
             randomness is fixed per episode (``RCVAEConfig.episode_latent_dim``) must learn
             what an episode's first steps look like, which uniform windows show rarely.
+        bootstrap: each member trains on its own bootstrap resample of the training episodes
+            (:func:`~rcvae_torchrl.data.resample_episodes`, drawn once per run from the seed
+            and the member's index: about 63 % of the episodes, some twice), as PETS trains
+            its ensemble (Chua et al. 2018), so that members differ where the data are thin.
+            Off, every member draws its windows from all episodes: over a run it sees them all,
+            and members differ by their initialisation and the order of their windows.
     """
 
     max_steps: int = 3000
@@ -91,6 +97,7 @@ class TrainConfig:
     patience: int = 5
     seed: int = 0
     episode_start_fraction: float = 0.0
+    bootstrap: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.episode_start_fraction <= 1.0:
@@ -116,6 +123,8 @@ class TrainConfig:
             raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop!r}")
         if not 0.0 <= self.nll_beta <= 1.0:
             raise ValueError(f"nll_beta: expected a value in [0, 1], got {self.nll_beta!r}")
+        if not isinstance(self.bootstrap, bool):
+            raise ValueError(f"bootstrap: expected True or False, got {self.bootstrap!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
 
@@ -264,7 +273,11 @@ def _train_shard(
     shard_path = _shard_path(path, members, ensemble.ensemble_size)
     windows_rng = _generators(config.seed, members, _WINDOWS, torch.device("cpu"))
     noise_rng = _generators(config.seed, members, _NOISE, device)
-    buffer = make_window_buffer(train_data, config.window)
+    if config.bootstrap:  # each member's own resample of the episodes, the same on every rank
+        boot = _generators(config.seed, members, _BOOTSTRAP, torch.device("cpu"))
+        buffer = [make_window_buffer(resample_episodes(train_data, g), config.window) for g in boot]
+    else:
+        buffer = make_window_buffer(train_data, config.window)
     val_windows = _fixed_windows(val_data, config).to(device)
     loss_fn = RCVAELoss(
         local,
@@ -316,7 +329,7 @@ def _train_shard(
 
 
 # Streams of a member's generators (with the run's seed and the member's index).
-_WINDOWS, _NOISE, _VALIDATION = 0, 1, 2
+_WINDOWS, _NOISE, _VALIDATION, _BOOTSTRAP = 0, 1, 2, 3
 
 
 def _generators(seed: int, members: range, stream: int, device: torch.device) -> list:
@@ -524,7 +537,9 @@ def _training_payload(path: Path, config: TrainConfig | None = None) -> dict[str
     training = read_checkpoint(path).get("training")
     if training is None:
         raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume", path)
-    if config is not None and training["config"] != dataclasses.asdict(config):
+    # a setting added since the checkpoint was written had its default value then
+    saved = {**dataclasses.asdict(TrainConfig()), **training["config"]}
+    if config is not None and saved != dataclasses.asdict(config):
         raise CheckpointError(
             f"checkpoint {str(path)!r}: was written with another TrainConfig "
             f"({training['config']}); resume with the same config or a new path",

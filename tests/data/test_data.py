@@ -4,6 +4,7 @@ import functools
 
 import pytest
 import torch
+from tensordict import TensorDict
 
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -13,6 +14,7 @@ from rcvae_torchrl.data import (
     episode_spans,
     make_exploration_policy,
     make_window_buffer,
+    resample_episodes,
     sample_windows,
     split_episodes,
 )
@@ -77,6 +79,46 @@ def test_a_members_windows_come_from_its_generator_alone(episodes):
     assert three.shape == (3, 8, 16) and alone.shape == (1, 8, 16)
     for key in ("observation", "action", ("next", "observation"), TRAJ_KEY):
         assert torch.equal(three[key][1], alone[key][0])
+
+
+def test_a_bootstrap_resample_holds_whole_episodes_drawn_with_replacement(episodes):
+    first, lengths = episode_spans(episodes)
+    boot = resample_episodes(episodes, torch.Generator().manual_seed(3))
+    b_first, b_lengths = episode_spans(boot)
+    assert len(b_first) == len(first) == 6  # as many episodes, ids 0..5 in order
+    assert torch.equal(torch.unique_consecutive(boot[TRAJ_KEY]), torch.arange(6))
+    originals = [episodes["observation"][f : f + n] for f, n in zip(first, lengths)]
+    drawn = []
+    for f, n in zip(b_first.tolist(), b_lengths.tolist()):
+        copy = boot[f : f + n]
+        match = [i for i, o in enumerate(originals) if torch.equal(o, copy["observation"])]
+        assert len(match) == 1  # a whole episode of the data, its frames in order
+        assert torch.equal(copy["action"], episodes["action"][first[match[0]] :][:n])
+        drawn.append(match[0])
+    assert len(set(drawn)) < 6  # drawn with replacement: some twice, so some not at all
+    again = resample_episodes(episodes, torch.Generator().manual_seed(3))
+    assert torch.equal(again["observation"], boot["observation"])
+    # about 1 - 1/e of the episodes are in a resample
+    ids = torch.arange(3000).repeat_interleave(2)
+    many = TensorDict({TRAJ_KEY: ids, "x": ids.float()}, batch_size=[6000])
+    kept = torch.unique(resample_episodes(many, torch.Generator().manual_seed(0))["x"]).numel()
+    assert 0.60 < kept / 3000 < 0.66
+
+
+def test_each_member_draws_from_its_own_buffer(episodes):
+    first, lengths = episode_spans(episodes)
+    own = [episodes[f : f + n] for f, n in zip(first[:2], lengths[:2])]  # one episode each
+    buffers = [make_window_buffer(e, window=16) for e in own]
+    generators = [torch.Generator().manual_seed(s) for s in (1, 2)]
+    windows = sample_windows(buffers, 8, 16, 2, generators, start_windows=2)
+    for m in range(2):
+        rows = windows["observation"][m].reshape(-1, windows["observation"].shape[-1])
+        assert (rows[:, None, :] == own[m]["observation"]).all(-1).any(-1).all()
+    generator = [torch.Generator().manual_seed(2)]
+    alone = sample_windows(buffers[1:], 8, 16, 1, generator, start_windows=2)
+    assert torch.equal(alone["observation"][0], windows["observation"][1])
+    with pytest.raises(ValueError, match="buffer: expected one buffer, or one per member"):
+        sample_windows(buffers, 8, 16, 2)
 
 
 def test_episode_spans(episodes):

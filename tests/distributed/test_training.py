@@ -1,5 +1,7 @@
 """Ensemble training over 2 gloo ranks equals the single-process run; a killed rank resumes."""
 
+import dataclasses
+
 import pytest
 import torch
 import workers
@@ -32,6 +34,17 @@ def test_sharded_training_equals_single_process(tmp_path, single_process):
     assert sharded["steps"] == single_process.steps == 40
     assert torch.equal(sharded["best_val"], single_process.best_val)
     assert sharded["history"] == single_process.history
+
+
+def test_sharded_training_on_bootstrap_resamples_equals_single_process(tmp_path):
+    """Each member's resample of the episodes comes from (seed, member): the same on any rank."""
+    config = dataclasses.replace(workers.CONFIG, bootstrap=True)
+    train, val = workers.linear_data()
+    single = train_ensemble(
+        workers.small_ensemble(), train, val, config, progress=False, checks=False
+    )
+    run_ranks(workers.train, str(tmp_path / "out.pt"), None, -1, -1, config)
+    _assert_same_weights(torch.load(tmp_path / "out.pt")["weights"], single.ensemble)
 
 
 def test_a_killed_rank_resumes(tmp_path, single_process):

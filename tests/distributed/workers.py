@@ -46,7 +46,13 @@ def small_ensemble(members: int = 4, seed: int = 0) -> RCVAEEnsemble:
     return RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=16, latent_dim=2, mlp_dim=16), members)
 
 
-def train(out: str, ckpt: str | None = None, kill_rank: int = -1, kill_at: int = -1) -> None:
+def train(
+    out: str,
+    ckpt: str | None = None,
+    kill_rank: int = -1,
+    kill_at: int = -1,
+    config: TrainConfig = CONFIG,
+) -> None:
     """Train the 4-member ensemble; rank ``kill_rank`` kills itself (SIGKILL) at step
     ``kill_at`` (before that validation's checkpoint); rank 0 saves the result to ``out``."""
 
@@ -60,7 +66,7 @@ def train(out: str, ckpt: str | None = None, kill_rank: int = -1, kill_at: int =
         small_ensemble(),
         train_data,
         val_data,
-        CONFIG,
+        config,
         checkpoint_path=ckpt,
         resume=ckpt is not None,
         logger=KillAt(),

@@ -1,5 +1,6 @@
 """train_ensemble: learning, determinism, early stopping, logging, resume after kill -9."""
 
+import dataclasses
 import itertools
 import signal
 import subprocess
@@ -57,6 +58,21 @@ def test_windows_from_episode_starts_change_the_training(linear_data, small_ense
     assert not all(torch.equal(x, y) for x, y in zip(a.parameters(), c.parameters()))
     with pytest.raises(ValueError, match=r"episode_start_fraction: expected a value in \[0, 1\]"):
         TrainConfig(episode_start_fraction=1.5)
+
+
+def test_bootstrap_resamples_change_the_training(linear_data, small_ensemble):
+    """``bootstrap``: each member on its own resample of the episodes, reproducibly."""
+    import dataclasses
+
+    train, val = linear_data
+    boot = dataclasses.replace(CONFIG, bootstrap=True)
+    a = train_ensemble(small_ensemble(seed=1), train, val, boot, progress=False).ensemble
+    b = train_ensemble(small_ensemble(seed=1), train, val, boot, progress=False).ensemble
+    c = train_ensemble(small_ensemble(seed=1), train, val, CONFIG, progress=False).ensemble
+    assert all(torch.equal(x, y) for x, y in zip(a.parameters(), b.parameters()))
+    assert not all(torch.equal(x, y) for x, y in zip(a.parameters(), c.parameters()))
+    with pytest.raises(ValueError, match="bootstrap: expected True or False, got 1"):
+        TrainConfig(bootstrap=1)
 
 
 def test_early_stopping(linear_data, small_ensemble):
@@ -154,6 +170,31 @@ def test_finished_run_is_not_trained_again(linear_data, small_ensemble, tmp_path
     assert again.steps == first.steps == 40
     for x, y in zip(first.ensemble.state_dict().values(), again.ensemble.state_dict().values()):
         assert torch.equal(x, y)
+
+
+def test_a_checkpoint_from_before_a_new_setting_resumes(linear_data, small_ensemble, tmp_path):
+    """A setting added to TrainConfig after a checkpoint was written had its default then."""
+    train, val = linear_data
+    ckpt = tmp_path / "c.pt"
+    first = train_ensemble(
+        small_ensemble(), train, val, CONFIG, checkpoint_path=ckpt, progress=False
+    )
+    payload = torch.load(ckpt, weights_only=False)
+    del payload["training"]["config"]["bootstrap"]
+    torch.save(payload, ckpt)
+    again = train_ensemble(
+        small_ensemble(seed=9), train, val, CONFIG, checkpoint_path=ckpt, resume=True
+    )
+    assert again.steps == first.steps
+    with pytest.raises(CheckpointError, match="another TrainConfig"):
+        train_ensemble(
+            small_ensemble(),
+            train,
+            val,
+            dataclasses.replace(CONFIG, bootstrap=True),
+            checkpoint_path=ckpt,
+            resume=True,
+        )
 
 
 def test_bad_resume_arguments(linear_data, small_ensemble, tmp_path):
