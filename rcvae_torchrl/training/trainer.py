@@ -179,8 +179,8 @@ def train_ensemble(
     """Train ``ensemble`` on episodes (flat TensorDicts ``[frames]`` from ``collect_episodes``).
 
     Members are trained independently: each has its own generators (seeded by ``config.seed``
-    and its index) for its windows (its own bootstrap of the data) and its noise, its own
-    gradient clipping and its own early stopping (a member stops after ``patience``
+    and its index) for its windows (from all episodes, or its own bootstrap resample of them)
+    and its noise, its own gradient clipping and its own early stopping (a member stops after ``patience``
     validations without improvement; the run ends when every member has stopped). So a
     member's weights do not depend on the members it is trained with, and under
     ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) every rank trains a contiguous
