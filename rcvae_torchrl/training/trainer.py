@@ -2,14 +2,14 @@
 
 One Adam step trains every member (the loss sums over members); each member draws its own
 windows from its own generator (from all the episodes, or with ``bootstrap`` from its own
-resample of them), and nothing of one member depends on the others: its noise, gradient clipping and early stopping are its own.
-Validation windows are fixed per run. Members stop improving at different times, so the best
-weights are kept per member. A checkpoint (weights, optimiser, best weights, generator states,
-history) is written atomically at each validation, so ``resume=True`` continues a run killed
-at any point (even ``kill -9``) from its last validation, and a finished run is not trained
-again. Under ``torch.distributed`` the members are shared out over the ranks
-(:mod:`rcvae_torchrl.distributed`), each rank checkpoints its own block, and the gathered
-ensemble equals a single process's.
+resample of them), and nothing of one member depends on the others: its noise, gradient
+clipping and early stopping are its own. Validation windows are fixed per run. Members stop
+improving at different times, so the best weights are kept per member. A checkpoint (weights,
+optimiser, best weights, generator states, history) is written atomically at each validation,
+so ``resume=True`` continues a run killed at any point (even ``kill -9``) from its last
+validation, and a finished run is not trained again. Under ``torch.distributed`` the members
+are shared out over the ranks (:mod:`rcvae_torchrl.distributed`), each rank checkpoints its own
+block, and the gathered ensemble equals a single process's.
 """
 
 from __future__ import annotations
@@ -180,9 +180,9 @@ def train_ensemble(
 
     Members are trained independently: each has its own generators (seeded by ``config.seed``
     and its index) for its windows (from all episodes, or its own bootstrap resample of them)
-    and its noise, its own gradient clipping and its own early stopping (a member stops after ``patience``
-    validations without improvement; the run ends when every member has stopped). So a
-    member's weights do not depend on the members it is trained with, and under
+    and its noise, its own gradient clipping and its own early stopping (a member stops after
+    ``patience`` validations without improvement; the run ends when every member has stopped).
+    So a member's weights do not depend on the members it is trained with, and under
     ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) every rank trains a contiguous
     block of members, and the gathered ensemble equals the one a single process trains.
 
