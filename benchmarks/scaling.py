@@ -6,7 +6,10 @@ world sizes interleaved; the time of a repeat is rank 0's wall clock from a barr
 of the gathered result. Workloads (Pusher-sized, the study's default world model):
 
 - training: ``train_ensemble`` of E = 4 members (2 per rank), 100 steps (``--training-steps``)
-  of 32 windows x 32 steps, on synthetic 14-D episodes;
+  of 32 windows x 32 steps, on synthetic 14-D episodes; and the same in one process with 1, 2
+  and 4 members, which splits its time into a fixed part (every rank pays it in full) and a
+  part per member, and gives the split's ceiling (4 members over 2, alone) and what running
+  side by side adds (the 2-rank time over 2 members alone);
 - forecasting: ``CompetencyAssessor.assess`` closed loop, 16 start states in chunks of one
   (8 per rank), 20 samples per member of 5 members, a horizon of 100 steps;
 - validation: ``real_outcomes`` of the scripted pusher in the real Pusher (one env per rank)
@@ -53,7 +56,7 @@ UNITS = {"training": 4, "forecasting": 16, "validation": 16}  # members, chunks,
 
 
 # ---------------------------------------------------------------------- workloads
-def _training(quick: bool, full_model: bool = False, steps: int = 100):
+def _training(quick: bool, full_model: bool = False, steps: int = 100, members: int = 4):
     from tensordict import TensorDict
 
     from rcvae_torchrl.data import TRAJ_KEY
@@ -86,7 +89,7 @@ def _training(quick: bool, full_model: bool = False, steps: int = 100):
 
     def run() -> None:
         torch.manual_seed(0)
-        model = RCVAEEnsemble(model_config, 4, functions=MODEL_FUNCTIONS)
+        model = RCVAEEnsemble(model_config, members, functions=MODEL_FUNCTIONS)
         train_ensemble(model, train, val, config, progress=False, checks=False)
 
     return run
@@ -271,6 +274,51 @@ def measure(name: str, world: int, args: dict) -> dict[str, Any]:
         return torch.load(out)
 
 
+# ---------------------------------------------------------------------- training by members
+MEMBERS = (1, 2, 4)
+
+
+def measure_members(args: dict) -> dict[int, list[float]]:
+    """The training workload in this process (no process group) with 1, 2 and 4 members,
+    interleaved: wall seconds per repeat. What a step costs whatever the members (the fixed
+    part, which every rank pays in full) against what each member adds."""
+    workload = args["workload"].get("training", {})
+    runs = {m: _training(args["quick"], **workload, members=m) for m in MEMBERS}
+    for run in runs.values():
+        run()  # warm-up
+    times: dict[int, list[float]] = {m: [] for m in MEMBERS}
+    for _ in range(args["repeats"]):
+        for m in MEMBERS:
+            start = time.perf_counter()
+            runs[m]()
+            times[m].append(time.perf_counter() - start)
+    return times
+
+
+def members_summary(times: dict[int, list[float]], t1: float, t2: float) -> dict[str, Any]:
+    """Fixed and per-member seconds (least squares of the medians over the members), what they
+    allow at 2 ranks, and what the 2-rank run shows: ``t1``, ``t2`` are its 1- and 2-rank
+    medians (4 members; 2 per rank)."""
+    median = {m: statistics.median(v) for m, v in times.items()}
+    xs, ys = list(median), list(median.values())
+    mx, my = statistics.fmean(xs), statistics.fmean(ys)
+    per_member = sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sum((x - mx) ** 2 for x in xs)
+    fixed = my - per_member * mx
+    target = 1.7
+    return {
+        "median_s": {str(m): v for m, v in median.items()},
+        "fixed_s": fixed,
+        "per_member_s": per_member,
+        # 4 members against 2 on one rank with the other rank idle: the split's own ceiling
+        "speedup_ceiling_alone": median[4] / median[2],
+        # the 2-rank run's rank against 2 members alone: other costs of running side by side
+        # (the memory both ranks share, the gather)
+        "side_by_side_over_alone": t2 / median[2],
+        # fixed seconds to remove from every run for t1 / t2 to reach the target
+        "fixed_to_remove_for_1.7x_s": max(0.0, (target * t2 - t1) / (target - 1)),
+    }
+
+
 # ---------------------------------------------------------------------- ParallelEnv workers
 WORKERS = (1, 2)
 
@@ -414,6 +462,10 @@ def main() -> None:
         for world in WORLDS:
             print(f"{name}: {world} rank(s) ...", flush=True)
             results[name][world] = measure(name, world, settings)
+    members = None
+    if "training" in args.only:
+        print("training: 1, 2 and 4 members in one process ...", flush=True)
+        members = measure_members(settings)
     workers = {}
     if "validation" in args.only:
         print("validation: 1 and 2 ParallelEnv workers ...", flush=True)
@@ -499,6 +551,31 @@ def main() -> None:
         ],
         rows,
     )
+    if members is not None:
+        by_world = results["training"]
+        t1, t2 = (statistics.median(by_world[w]["times"]) for w in WORLDS)
+        payload["training_members"] = summary = members_summary(members, t1, t2)
+        print_table(
+            "Training by members in one process (medians; fixed + per member, least squares)",
+            [
+                *(f"{m} member(s) s" for m in MEMBERS),
+                "fixed s",
+                "per member s",
+                "4 / 2 alone",
+                "2 ranks / 2 alone",
+                "fixed to remove for 1.7x s",
+            ],
+            [
+                [
+                    *summary["median_s"].values(),
+                    summary["fixed_s"],
+                    summary["per_member_s"],
+                    summary["speedup_ceiling_alone"],
+                    summary["side_by_side_over_alone"],
+                    summary["fixed_to_remove_for_1.7x_s"],
+                ]
+            ],
+        )
     print_table(
         "Projection for 32 units of work (see project() for the model)",
         ["workload", "case", "time s", "speed-up", "efficiency"],
