@@ -111,7 +111,6 @@ def sample_windows(
                 f"{len(buffers)} buffers and "
                 f"{'no' if generators is None else len(generators)} generators"
             )
-        buffer = buffers[0]
     if start_windows and generators is None:
         raise ValueError("start_windows: expected generators (one per member) with it")
     if not 0 <= start_windows <= num_windows:

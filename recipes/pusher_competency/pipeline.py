@@ -206,20 +206,17 @@ class Study:
         self, stage: str, names: Sequence[str], method: str
     ) -> tuple[dict[str, Any], bool]:
         """``self.<method>(name)`` for each of ``names`` whose ``<stage>/<name>.pt`` is missing:
-        independent jobs, run side by side in worker processes where cores are idle
-        (:meth:`stage_workers`), else here one after the other. Returns each job's result by
-        name, and whether they ran in workers (where this study's logger could not go)."""
+        independent jobs, run side by side in up to ``self.workers`` worker processes, else
+        here one after the other (one worker, or ranks sharing each job's work). Returns each
+        job's result by name, and whether they ran in workers (where this study's logger could
+        not go)."""
         pending = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
-        workers = 1 if distributed.is_active() else self.stage_workers(len(pending))
+        workers = 1 if distributed.is_active() else max(1, min(self.workers, len(pending)))
         if workers == 1:
             return {name: getattr(self, method)(name) for name in pending}, False
         self.say(f"[{stage}] {', '.join(pending)} in {workers} worker processes")
         jobs = [(self.cfg, str(self.dir), str(self.device), method, name) for name in pending]
         return dict(zip(pending, map_in_processes(_study_job, jobs, workers))), True
-
-    def stage_workers(self, jobs: int) -> int:
-        """Worker processes for a stage's ``jobs`` independent jobs (1 on a GPU)."""
-        return max(1, min(self.workers, jobs))
 
     def _train_config(self, name: str) -> TrainConfig:
         """The training settings of world model ``name``, seeded by the study's seed."""
@@ -368,16 +365,11 @@ class Study:
                 distributed.barrier()
         else:
             self.side_by_side("forecast", list(CONDITIONS), "forecast_condition")
-        return {
-            condition: {
-                "p_success": load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")[
-                    "p_success"
-                ]
-                .mean()
-                .item()
-            }
-            for condition in CONDITIONS
-        }
+        summary = {}
+        for condition in CONDITIONS:
+            saved = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
+            summary[condition] = {"p_success": saved["p_success"].mean().item()}
+        return summary
 
     def forecast_condition(self, condition: str) -> None:
         """Forecast the agent from ``condition``'s start states in imagination; save it."""
