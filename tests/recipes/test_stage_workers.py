@@ -90,3 +90,9 @@ def test_stage_jobs_in_two_workers_equal_one_process(tmp_path):
         f"[models] {', '.join(WORLD_MODELS)} in 2 worker processes",
         f"[forecast] {', '.join(CONDITIONS)} in 2 worker processes",
     ]
+
+
+@pytest.mark.parametrize("bad", ["0", "-1", "two", "1.5"])
+def test_a_bad_stage_workers_setting_names_it(bad):
+    with pytest.raises(ValueError, match=r"stage_workers: expected a positive integer or 'auto'"):
+        _config(f"stage_workers={bad}")
