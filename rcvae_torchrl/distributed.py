@@ -24,6 +24,7 @@ import contextlib
 import datetime
 import os
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -31,6 +32,7 @@ import torch
 import torch.distributed as dist
 
 __all__ = [
+    "Replicas",
     "all_gather",
     "barrier",
     "broadcast",
@@ -38,6 +40,7 @@ __all__ = [
     "is_active",
     "is_main",
     "rank",
+    "replicas",
     "session",
     "shard",
     "teardown",
@@ -124,6 +127,44 @@ def shard(n: int, rank_: int | None = None, world: int | None = None) -> range:
     size, extra = divmod(n, world)
     start = rank_ * size + min(rank_, extra)
     return range(start, start + size + (rank_ < extra))
+
+
+@dataclass(frozen=True)
+class Replicas:
+    """This rank's place when every block of work is shared by ``size`` ranks (data parallel).
+
+    Consecutive ranks form a block's group: ranks ``block * size`` to ``block * size + size -
+    1`` hold the same block and each computes its share of it; ``group`` is their process
+    group (``None`` when ``size`` is 1), e.g. for ``DistributedDataParallel``.
+    """
+
+    block: int
+    blocks: int
+    index: int
+    size: int
+    group: Any = None
+
+
+def replicas(size: int) -> Replicas:
+    """Split the ranks into ``world_size() / size`` groups of ``size`` consecutive ranks.
+
+    Every rank must call it, in the same order (it creates the process groups). Without a
+    process group the one process is the only replica of the only block, whatever ``size``.
+
+    Raises:
+        ValueError: ``size`` is not a positive int dividing the world size.
+    """
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"size: expected a positive int, got {size!r}")
+    if not is_active():
+        return Replicas(0, 1, 0, 1)
+    world, rank_ = world_size(), rank()
+    if world % size:
+        raise ValueError(
+            f"size: expected a divisor of the world size {world} (ranks per block), got {size}"
+        )
+    group = dist.new_subgroups(group_size=size)[0] if size > 1 else None
+    return Replicas(rank_ // size, world // size, rank_ % size, size, group)
 
 
 def work_generator(*keys: int, device: str | torch.device = "cpu") -> torch.Generator:

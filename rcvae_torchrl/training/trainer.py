@@ -9,7 +9,9 @@ optimiser, best weights, generator states, history) is written atomically at eac
 so ``resume=True`` continues a run killed at any point (even ``kill -9``) from its last
 validation, and a finished run is not trained again. Under ``torch.distributed`` the members
 are shared out over the ranks (:mod:`rcvae_torchrl.distributed`), each rank checkpoints its own
-block, and the gathered ensemble equals a single process's.
+block, and the gathered ensemble equals a single process's. With ``data_parallel`` groups of
+ranks share out the members instead, and the ranks of a group share every step's windows
+(``DistributedDataParallel``).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torch.nn.parallel import DistributedDataParallel
 from torchrl.record.loggers import Logger
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm.auto import tqdm
@@ -80,6 +83,17 @@ class TrainConfig:
             its ensemble (Chua et al. 2018), so that members differ where the data are thin.
             Off, every member draws its windows from all episodes: over a run it sees them all,
             and members differ by their initialisation and the order of their windows.
+        data_parallel: under ``torch.distributed``, the number D of ranks that train each block
+            of members together (data parallel, for a member whose data or model outgrows one
+            rank): the ranks form groups of D consecutive ranks, the groups share out the
+            members, and within a group each rank computes the loss of its
+            ``batch_windows / D`` of every step's windows (the same windows a single process
+            draws for the step) with its own noise, ``DistributedDataParallel`` averaging the
+            group's gradients before each member's clipping and Adam step. The members' weights
+            stay identical on the ranks of a group. D must divide the world size and
+            ``batch_windows``. With D > 1 the results depend on D (each rank draws its own
+            noise), not on the number of groups; 1 (the default) shards members only, and a
+            run then equals a single process's. Without a process group it has no effect.
     """
 
     max_steps: int = 3000
@@ -98,6 +112,7 @@ class TrainConfig:
     seed: int = 0
     episode_start_fraction: float = 0.0
     bootstrap: bool = False
+    data_parallel: int = 1
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.episode_start_fraction <= 1.0:
@@ -127,6 +142,14 @@ class TrainConfig:
             raise ValueError(f"bootstrap: expected True or False, got {self.bootstrap!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
+        parallel = self.data_parallel
+        if isinstance(parallel, bool) or not isinstance(parallel, int) or parallel < 1:
+            raise ValueError(f"data_parallel: expected an integer >= 1, got {parallel!r}")
+        if self.batch_windows % parallel:
+            raise ValueError(
+                f"data_parallel: expected a divisor of batch_windows={self.batch_windows} (each "
+                f"rank of a group takes an equal share of the windows), got {parallel}"
+            )
 
     def lr_at(self, step: int) -> float:
         """The learning rate of optimiser step ``step`` (0-based): cosine decay."""
@@ -222,19 +245,23 @@ def train_ensemble(
     ensemble.load_state_dict(distributed.broadcast(_weights(ensemble)))
     state = _finished_gathered_run(path) if resume else None
     if state is None:
-        members = distributed.shard(ensemble.ensemble_size)
-        shard = _train_shard(
-            ensemble,
-            members,
-            train_data,
-            val_data,
-            config,
-            path,
-            resume,
-            (logger, log_prefix),
-            progress,
-        )
-        state = _gather(ensemble, shard)
+        layout = _replicas(config)
+        try:
+            shard = _train_shard(
+                ensemble,
+                layout,
+                train_data,
+                val_data,
+                config,
+                path,
+                resume,
+                (logger, log_prefix),
+                progress,
+            )
+        finally:
+            if layout.group is not None:
+                torch.distributed.destroy_process_group(layout.group)
+        state = _gather(ensemble, shard if layout.index == 0 else None)
         if distributed.is_active() and path is not None:
             _write_gathered(path, ensemble, state, config)
     ensemble.load_state_dict(state.best_weights)
@@ -252,9 +279,20 @@ def train_ensemble(
     return result
 
 
+def _replicas(config: TrainConfig) -> distributed.Replicas:
+    """This rank's group of ``config.data_parallel`` ranks (see :class:`TrainConfig`)."""
+    world = distributed.world_size()
+    if distributed.is_active() and world % config.data_parallel:
+        raise ValueError(
+            f"data_parallel: expected a divisor of the world size {world} (ranks per group), "
+            f"got {config.data_parallel}"
+        )
+    return distributed.replicas(config.data_parallel)
+
+
 def _train_shard(
     ensemble: RCVAEEnsemble,
-    members: range,
+    layout: distributed.Replicas,
     train_data: TensorDictBase,
     val_data: TensorDictBase,
     config: TrainConfig,
@@ -263,8 +301,10 @@ def _train_shard(
     logging: tuple[Logger | None, str],
     progress: bool,
 ) -> _State | None:
-    """Train ``members`` of ``ensemble`` (a copy of them); their final state (``None`` when
-    the block is empty: more ranks than members)."""
+    """Train this rank's block of members of ``ensemble`` (a copy of them), on its share of
+    every step's windows; their final state (``None`` when the block is empty: more groups
+    than members)."""
+    members = distributed.shard(ensemble.ensemble_size, layout.block, layout.blocks)
     if len(members) == 0:
         return None
     device = next(ensemble.parameters()).device
@@ -272,7 +312,10 @@ def _train_shard(
         local = ensemble.select_members(list(members))
     shard_path = _shard_path(path, members, ensemble.ensemble_size)
     windows_rng = _generators(config.seed, members, _WINDOWS, torch.device("cpu"))
-    noise_rng = _generators(config.seed, members, _NOISE, device)
+    # replica 0 draws a single process's noise, the others their own
+    noise_keys = (_NOISE,) if layout.index == 0 else (_NOISE, layout.index)
+    noise_rng = _generators(config.seed, members, noise_keys, device)
+    share = distributed.shard(config.batch_windows, layout.index, layout.size)
     if config.bootstrap:  # each member's own resample of the episodes, the same on every rank
         boot = _generators(config.seed, members, _BOOTSTRAP, torch.device("cpu"))
         buffer = [make_window_buffer(resample_episodes(train_data, g), config.window) for g in boot]
@@ -289,11 +332,16 @@ def _train_shard(
     )
     params = list(local.parameters())
     optimizer = _adam(params, config.lr)
+    trained: torch.nn.Module = loss_fn
+    if layout.group is not None:  # the group's gradients averaged in the backward pass
+        trained = DistributedDataParallel(loss_fn, process_group=layout.group)
     state = _new_state(local)
     if resume and shard_path is not None:
         _check_no_foreign_shards(shard_path, path)
         if shard_path.is_file():
-            state = _restore(shard_path, local, optimizer, config, members, windows_rng + noise_rng)
+            state = _restore(
+                shard_path, local, optimizer, config, members, windows_rng, noise_rng, layout
+            )
     logger, prefix = logging
     logger = logger if logger is not None else _default_logger(path)
     bar = tqdm(
@@ -312,18 +360,31 @@ def _train_shard(
             len(members),
             windows_rng,
             start_windows=start_windows,
-        ).to(device)
+        )[:, share.start : share.stop].to(device)
         for group in optimizer.param_groups:
             group["lr"] = config.lr_at(state.step)
-        train_loss = _train_step(loss_fn, optimizer, params, windows, config.grad_clip)
+        train_loss = _train_step(trained, optimizer, params, windows, config.grad_clip)
         state.step += 1
         bar.update(1)
         if state.step % config.val_every == 0 or state.step >= config.max_steps:
+            if layout.group is not None:  # the group's mean: the loss of all the step's windows
+                torch.distributed.all_reduce(train_loss, group=layout.group)
+                train_loss /= layout.size
             record = _validate(loss_fn, val_windows, local, members, state, config, train_loss)
             bar.set_postfix(train=f"{record['train_loss']:.3g}", val=f"{record['val_loss']:.3g}")
             _log(logger, record, state.step, prefix)
             if shard_path is not None:
-                _save(shard_path, local, optimizer, state, config, members, windows_rng + noise_rng)
+                _save(
+                    shard_path,
+                    local,
+                    optimizer,
+                    state,
+                    config,
+                    members,
+                    windows_rng,
+                    noise_rng,
+                    layout,
+                )
     bar.close()
     return state
 
@@ -332,9 +393,12 @@ def _train_shard(
 _WINDOWS, _NOISE, _VALIDATION, _BOOTSTRAP = 0, 1, 2, 3
 
 
-def _generators(seed: int, members: range, stream: int, device: torch.device) -> list:
-    """One generator per member, seeded by (seed, member, stream) alone."""
-    return [distributed.work_generator(seed, m, stream, device=device) for m in members]
+def _generators(
+    seed: int, members: range, stream: int | tuple[int, ...], device: torch.device
+) -> list:
+    """One generator per member, seeded by (seed, member, *stream) alone."""
+    keys = stream if isinstance(stream, tuple) else (stream,)
+    return [distributed.work_generator(seed, m, *keys, device=device) for m in members]
 
 
 def _new_state(local: RCVAEEnsemble) -> _State:
@@ -361,7 +425,7 @@ def _adam(params: list[torch.Tensor], lr: float) -> torch.optim.Adam:
 
 
 def _train_step(
-    loss_fn: RCVAELoss,
+    loss_fn: RCVAELoss | DistributedDataParallel,
     optimizer: torch.optim.Optimizer,
     params: list[torch.Tensor],
     windows: TensorDict,
@@ -499,9 +563,16 @@ def _shard_path(path: Path | None, members: range, ensemble_size: int) -> Path |
 
 
 def _check_no_foreign_shards(shard_path: Path, path: Path) -> None:
-    """Block checkpoints of another split of the members: another number of ranks."""
+    """Block checkpoints of another split of the members (another number of ranks or groups),
+    or an unfinished run of all members at ``path`` where this rank trains a block."""
     if shard_path.is_file():
         return
+    if shard_path != path and path.is_file() and not _training_payload(path)["state"]["finished"]:
+        raise CheckpointError(
+            f"checkpoint_path {str(path)!r}: holds an unfinished run of all members (one "
+            f"process, or one data-parallel group), this rank trains the block of "
+            f"{shard_path.name!r}; resume with the same number of ranks and data_parallel"
+        )
     others = sorted(path.parent.glob(f"{path.stem}.members-*{path.suffix}"))
     if others:
         raise CheckpointError(
@@ -518,15 +589,28 @@ def _save(
     state: _State,
     config: TrainConfig,
     members: range,
-    generators: list[torch.Generator],
+    windows_rng: list[torch.Generator],
+    noise_rng: list[torch.Generator],
+    layout: distributed.Replicas,
 ) -> None:
+    """Write the block's checkpoint. A data-parallel group writes one, from its first rank,
+    holding every rank's noise generators (the weights and optimiser are the same on all),
+    so that a kill at any moment leaves the whole group one consistent state to resume."""
+    noise = [g.get_state() for g in noise_rng]
+    replica_rng = None
+    if layout.group is not None:
+        replica_rng = [None] * layout.size
+        torch.distributed.all_gather_object(replica_rng, noise, group=layout.group)
+    if layout.index != 0:
+        return
     payload: dict[str, Any] = {
         **ensemble_payload(local),
         "training": {
             "config": dataclasses.asdict(config),
             "members": [members.start, members.stop],
             "optimizer": optimizer.state_dict(),
-            "rng": [g.get_state() for g in generators],
+            "rng": [g.get_state() for g in windows_rng] + noise,
+            "replica_rng": replica_rng,
             "state": {**dataclasses.asdict(state)},
         },
     }
@@ -554,7 +638,9 @@ def _restore(
     optimizer: torch.optim.Optimizer,
     config: TrainConfig,
     members: range,
-    generators: list[torch.Generator],
+    windows_rng: list[torch.Generator],
+    noise_rng: list[torch.Generator],
+    layout: distributed.Replicas,
 ) -> _State:
     payload = read_checkpoint(path)
     training = _training_payload(path, config)
@@ -573,7 +659,10 @@ def _restore(
             f"checkpoint {str(path)!r}: weights do not match: {err}", path
         ) from err
     optimizer.load_state_dict(training["optimizer"])
-    for g, rng in zip(generators, training["rng"], strict=True):
+    states = training["rng"]
+    if layout.index > 0:  # this rank of a data-parallel group: its own noise
+        states = states[: len(windows_rng)] + training["replica_rng"][layout.index]
+    for g, rng in zip(windows_rng + noise_rng, states, strict=True):
         g.set_state(rng)
     return _State(**training["state"])
 

@@ -22,10 +22,10 @@ MICRO = (
 )
 
 
-def _run(launcher: list[str], run_dir: Path) -> subprocess.CompletedProcess:
+def _run(launcher: list[str], run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
     proc = subprocess.run(
-        [*launcher, str(RECIPE), *MICRO, f"run_dir={run_dir}"],
+        [*launcher, str(RECIPE), *MICRO, *overrides, f"run_dir={run_dir}"],
         cwd=ROOT,
         env=env,
         capture_output=True,
@@ -61,3 +61,16 @@ def test_recipe_under_torchrun_equals_one_process(tmp_path):
             _assert_same(a, b, f"{stage}/{path.name}")
     assert (one / "table.csv").read_text() == (two / "table.csv").read_text()
     assert not list((two / "models").glob("*.members-*.pt"))  # block checkpoints removed
+
+
+@pytest.mark.slow
+def test_recipe_under_torchrun_trains_data_parallel(tmp_path):
+    """``train.data_parallel=2``: both ranks train every member, each on half the windows."""
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2"]
+    _run([*torchrun, "--standalone"], tmp_path, "train.data_parallel=2")
+    for name in ("deterministic", "stochastic"):
+        training = torch.load(tmp_path / "models" / f"{name}_train.pt", weights_only=False)
+        assert training["training"]["config"]["data_parallel"] == 2
+        assert training["training"]["state"]["finished"]
+    assert (tmp_path / "table.csv").is_file()
+    assert not list((tmp_path / "models").glob("*.members-*.pt"))

@@ -182,3 +182,15 @@ def outcomes(out: str | None = None) -> dict[str, RealOutcomes]:
         saved = {k: v.as_dict() for k, v in result.items()}
         torch.save(saved, out.format(rank=distributed.rank()))
     return result
+
+
+def train_each_rank(out: str, config: TrainConfig, members: int = 4) -> None:
+    """Train the ensemble; every rank saves what it returns to ``<out>.rank<r>``."""
+    train_data, val_data = linear_data()
+    result = train_ensemble(
+        small_ensemble(members), train_data, val_data, config, progress=False, checks=False
+    )
+    torch.save(
+        {"weights": result.ensemble.state_dict(), "history": result.history},
+        f"{out}.rank{distributed.rank()}",
+    )
