@@ -10,6 +10,9 @@ of the gathered result. Workloads (Pusher-sized, the study's default world model
   and 4 members, which splits its time into a fixed part (every rank pays it in full) and a
   part per member, and gives the split's ceiling (4 members over 2, alone) and what running
   side by side adds (the 2-rank time over 2 members alone);
+- training_data_parallel: the same training with ``TrainConfig(data_parallel=2)``: at 2 ranks
+  both train all 4 members, each on 16 of every step's 32 windows, DDP all-reducing the
+  gradients at every step (not in the gathered bytes); at 1 rank it is the training above;
 - forecasting: ``CompetencyAssessor.assess`` closed loop, 16 start states in chunks of one
   (8 per rank), 20 samples per member of 5 members, a horizon of 100 steps;
 - validation: ``real_outcomes`` of the scripted pusher in the real Pusher (one env per rank)
@@ -52,11 +55,18 @@ from _report import print_table, write_json
 from rcvae_torchrl import distributed
 
 WORLDS = (1, 2)
-UNITS = {"training": 4, "forecasting": 16, "validation": 16}  # members, chunks, episodes
+# members, members, chunks, episodes
+UNITS = {"training": 4, "training_data_parallel": 4, "forecasting": 16, "validation": 16}
 
 
 # ---------------------------------------------------------------------- workloads
-def _training(quick: bool, full_model: bool = False, steps: int = 100, members: int = 4):
+def _training(
+    quick: bool,
+    full_model: bool = False,
+    steps: int = 100,
+    members: int = 4,
+    data_parallel: int = 1,
+):
     from tensordict import TensorDict
 
     from rcvae_torchrl.data import TRAJ_KEY
@@ -84,7 +94,13 @@ def _training(quick: bool, full_model: bool = False, steps: int = 100, members: 
     train, val = episodes(32, 0), episodes(8, 1000)
     steps = 10 if quick else steps
     windows = 64 if full_model else 32  # the full profile's batch and hidden size
-    config = TrainConfig(max_steps=steps, batch_windows=windows, window=32, val_every=steps // 2)
+    config = TrainConfig(
+        max_steps=steps,
+        batch_windows=windows,
+        window=32,
+        val_every=steps // 2,
+        data_parallel=data_parallel,
+    )
     model_config = rcvae_config(ModelConfig(hidden_dim=128 if full_model else 64))
 
     def run() -> None:
@@ -192,7 +208,16 @@ def _batched_validation(quick: bool, workers: int):
     return _scripted_outcomes(make() if workers == 1 else make, episodes, steps, workers)
 
 
-WORKLOADS = {"training": _training, "forecasting": _forecasting, "validation": _validation}
+WORKLOADS = {
+    "training": _training,
+    # all 4 members on each of the 2 ranks, each computing half of every step's windows
+    "training_data_parallel": functools.partial(_training, data_parallel=2),
+    "forecasting": _forecasting,
+    "validation": _validation,
+}
+#: Workloads whose ranks all-reduce at every step (DDP's gradients): the projection's model
+#: (work shared once, one gather at the end) does not hold for them.
+NOT_PROJECTED = ("training_data_parallel",)
 
 
 # ---------------------------------------------------------------------- one rank
@@ -455,7 +480,10 @@ def main() -> None:
     settings = {
         "repeats": args.repeats,
         "quick": args.quick,
-        "workload": {"training": {"full_model": args.full_model, "steps": args.training_steps}},
+        "workload": {
+            name: {"full_model": args.full_model, "steps": args.training_steps}
+            for name in ("training", "training_data_parallel")
+        },
     }
     results: dict[str, dict[int, dict]] = {name: {} for name in args.only}
     for name in args.only:
@@ -514,6 +542,8 @@ def main() -> None:
             "8 GPUs, 1 machine (NCCL, assumed link)": at(8, INTRA_GPU),
             "4 machines x 8 GPUs (NCCL, assumed network)": at(32, INTER_NODE),
         }
+        if name in NOT_PROJECTED:
+            base, cases = None, {}
         for case, p in cases.items():
             projections.append([name, case, p["time_s"], p["speedup"], p["efficiency"]])
         payload[name] = {
@@ -576,11 +606,12 @@ def main() -> None:
                 ]
             ],
         )
-    print_table(
-        "Projection for 32 units of work (see project() for the model)",
-        ["workload", "case", "time s", "speed-up", "efficiency"],
-        projections,
-    )
+    if projections:
+        print_table(
+            "Projection for 32 units of work (see project() for the model)",
+            ["workload", "case", "time s", "speed-up", "efficiency"],
+            projections,
+        )
     if workers:
         worker_rows = []
         for name, (measured, units, key) in workers.items():
