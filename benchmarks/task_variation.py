@@ -20,10 +20,11 @@ the episode's actuator strength) and each deadline:
 
     python benchmarks/task_variation.py [--noise 0.5 1.0 1.5] [--strength 0.2,0.4 ...]
                                         [--deadlines 4 8 12] [--starts 40] [--runs 30] [--quick]
+                                        [--out task_variation]
 
 ``--strength`` adds settings with an episode-level actuator strength uniform in ``low,high``
 and no per-step noise (``low,high,std`` for both); each prints one table. Writes
-``benchmarks/results/task_variation.json`` (``task_variation_quick.json`` with ``--quick``).
+``benchmarks/results/<out>.json`` (default ``task_variation``; ``<out>_quick`` with ``--quick``).
 """
 
 from __future__ import annotations
@@ -144,6 +145,9 @@ def main() -> None:
     parser.add_argument("--starts", type=int, default=40)
     parser.add_argument("--runs", type=int, default=30)
     parser.add_argument("--quick", action="store_true", help="8 starts, 5 runs, one noise")
+    parser.add_argument(
+        "--out", default="task_variation", help="results/<out>.json (<out>_quick with --quick)"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.quick:
@@ -193,7 +197,7 @@ def main() -> None:
             rows,
         )
     write_json(
-        "task_variation_quick" if args.quick else "task_variation",
+        f"{args.out}_quick" if args.quick else args.out,
         {
             "settings": vars(args),
             "conditions": conditions(),
