@@ -248,7 +248,12 @@ def check_model(
         samples_per_member: imagined samples per member for the open-loop mean.
         min_gain: how far below the better baseline a dimension's one-step error must be.
         coverage_steps: steps from each held-out episode's start to the coverage check (at most
-            the episode's length minus one; episodes shorter than that are left out).
+            the episode's length minus one; episodes shorter than that are left out). Far ahead,
+            episodes of a closed-loop policy in a stochastic env are not a fair truth: the
+            policy's later actions answer the noise the episode met, which a model driven by
+            the same actions cannot know, and the check then names dimensions the model has
+            right. Check far horizons on episodes of open-loop actions (e.g. the recorded
+            actions replayed in the real env) instead.
         interval: the central probability of the interval (its exact coverage, between two
             order statistics of the E·N samples, is the nearest the sample count allows).
         alpha: the level of the coverage test.
