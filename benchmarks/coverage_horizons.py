@@ -32,50 +32,16 @@ import torch
 from _report import conditions, print_table, write_json
 from tensordict import TensorDict
 
-from rcvae_torchrl.data import TRAJ_KEY, episode_spans, load_episodes, split_episodes
-from rcvae_torchrl.envs import CONTROL_TIMESTEP, make_batched_pusher_env
+from rcvae_torchrl.data import load_episodes, split_episodes
+from rcvae_torchrl.envs import CONTROL_TIMESTEP
 from rcvae_torchrl.training import check_model, load_ensemble
 from recipes.pusher_competency.config import DataConfig
+from recipes.pusher_competency.data import replay_episodes
 from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, variant_randomness
 
 VARIANTS = ("deterministic", "stochastic")
 REPLAY_SEED = 4_321
 INTERVAL = 0.9  # check_model's default
-
-
-def replay(variant: str, data: DataConfig, episodes: TensorDict, steps: int) -> TensorDict:
-    """The held-out episodes of at least ``steps`` steps, their first ``steps`` recorded
-    actions replayed open loop in the real env from their first states: flat episodes."""
-    first, lengths = episode_spans(episodes)
-    first = first[lengths >= steps]
-    n = first.numel()
-    frames = first[:, None] + torch.arange(steps)
-    actions = episodes.get("action")[frames]
-    env = make_batched_pusher_env(
-        n,
-        variant,
-        seed=REPLAY_SEED,
-        time_limit=steps * CONTROL_TIMESTEP,
-        terminate_on_success=False,
-        **variant_randomness(variant, data),
-    )
-    starts = episodes.get("observation")[first]
-    td = env.reset(TensorDict(observation=starts, batch_size=[n]), set_state=True)
-    states = [td["observation"]]
-    for t in range(steps):
-        td["action"] = actions[:, t]
-        td = env.step(td)["next"]
-        states.append(td["observation"])
-    states = torch.stack(states, 1)
-    return TensorDict(
-        {
-            "observation": states[:, :-1],
-            "action": actions,
-            ("next", "observation"): states[:, 1:],
-            TRAJ_KEY: torch.arange(n)[:, None].expand(n, steps),
-        },
-        batch_size=[n, steps],
-    ).reshape(-1)
 
 
 def main() -> None:
@@ -94,7 +60,13 @@ def main() -> None:
         episodes = load_episodes(args.run_dir / "data" / f"{variant}.pt")
         _, held_out = split_episodes(episodes, 0.1, seed=study["seed"])  # the recipe's split
         truths = {
-            "replayed": replay(variant, data, held_out, max(args.steps) + 1),
+            "replayed": replay_episodes(
+                held_out,
+                max(args.steps) + 1,
+                variant,
+                seed=REPLAY_SEED,
+                **variant_randomness(variant, data),
+            ),
             "recorded": held_out,
         }
         for truth_name, truth in truths.items():

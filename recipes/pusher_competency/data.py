@@ -12,12 +12,13 @@ from rcvae_torchrl.data import (
     GaussianExploration,
     UniformRandomPolicy,
     collect_episodes,
+    episode_spans,
     make_exploration_policy,
 )
-from rcvae_torchrl.envs import make_pusher_env
+from rcvae_torchrl.envs import CONTROL_TIMESTEP, make_batched_pusher_env, make_pusher_env
 from rcvae_torchrl.envs.scripted import ScriptedPusher
 
-__all__ = ["collect_pusher_data"]
+__all__ = ["collect_pusher_data", "replay_episodes"]
 
 
 def collect_pusher_data(
@@ -87,3 +88,49 @@ def collect_pusher_data(
         part[TRAJ_KEY] = part[TRAJ_KEY] - part[TRAJ_KEY].min() + offset
         offset = int(part[TRAJ_KEY].max()) + 1
     return torch.cat(parts)
+
+
+def replay_episodes(
+    episodes: TensorDict, steps: int, variant: str, *, seed: int = 0, **env_kwargs
+) -> TensorDict:
+    """The episodes of at least ``steps`` steps, their first ``steps`` recorded actions replayed
+    open loop in a real Pusher of ``variant`` from their first states: flat episodes ``[frames]``.
+
+    A truth for checking a world model far ahead (``check_model(..., coverage_steps=)``): the
+    recorded episodes of a closed-loop policy are not one in a stochastic env (the policy's
+    later actions answer the noise the episode met), their replays are. The stochastic
+    variant draws new noise (seeded by ``seed``: env ``i`` by ``seed + i``); a deterministic
+    episode is repeated from the float32 observation of its first state, which contacts can
+    amplify over seconds. ``env_kwargs`` go to :func:`make_batched_pusher_env` (the variant's
+    randomness).
+    """
+    first, lengths = episode_spans(episodes)
+    first = first[lengths >= steps]
+    n = first.numel()
+    frames = first[:, None] + torch.arange(steps)
+    actions = episodes.get("action")[frames]
+    env = make_batched_pusher_env(
+        n,
+        variant,
+        seed=seed,
+        time_limit=steps * CONTROL_TIMESTEP,
+        terminate_on_success=False,
+        **env_kwargs,
+    )
+    starts = episodes.get("observation")[first]
+    td = env.reset(TensorDict(observation=starts, batch_size=[n]), set_state=True)
+    states = [td["observation"]]
+    for t in range(steps):
+        td["action"] = actions[:, t]
+        td = env.step(td)["next"]
+        states.append(td["observation"])
+    states = torch.stack(states, 1)
+    return TensorDict(
+        {
+            "observation": states[:, :-1],
+            "action": actions,
+            ("next", "observation"): states[:, 1:],
+            TRAJ_KEY: torch.arange(n)[:, None].expand(n, steps),
+        },
+        batch_size=[n, steps],
+    ).reshape(-1)

@@ -37,7 +37,13 @@ from rcvae_torchrl.agent import (
     save_policy,
 )
 from rcvae_torchrl.competency import CompetencyAssessor
-from rcvae_torchrl.data import load_episodes, save_episodes, seed_env, split_episodes
+from rcvae_torchrl.data import (
+    episode_spans,
+    load_episodes,
+    save_episodes,
+    seed_env,
+    split_episodes,
+)
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     OBSERVATION_NAMES,
@@ -54,7 +60,9 @@ from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.processes import choose_workers, map_in_processes
 from rcvae_torchrl.stages import StageRunner
 from rcvae_torchrl.training import (
+    ModelChecks,
     TrainConfig,
+    check_model,
     load_ensemble,
     log_history,
     save_ensemble,
@@ -62,7 +70,7 @@ from rcvae_torchrl.training import (
 )
 
 from .config import StudyConfig
-from .data import collect_pusher_data
+from .data import collect_pusher_data, replay_episodes
 from .pusher import (
     CONDITIONS,
     MODEL_FUNCTIONS,
@@ -77,6 +85,9 @@ from .pusher import (
 from .report import write_report
 
 __all__ = ["SHARDED_STAGES", "STAGES", "Study", "run_study", "training_op_flop"]
+
+#: Seeds of the far coverage check's replays: ``_REPLAY_SEED + 1000 * seed`` (env ``i``: + i).
+_REPLAY_SEED = 90_000
 
 # Each stage and the files it writes (their sizes and hashes go into its marker).
 STAGES = {
@@ -238,15 +249,18 @@ class Study:
             summary[name] = saved["extra"].get("training", {})
         return summary
 
+    def episodes(self, name: str) -> tuple[Any, Any]:
+        """World model ``name``'s training and held-out episodes (90 % / 10 %, by episode)."""
+        data = load_episodes(self.dir / "data" / f"{name}.pt")
+        return split_episodes(data, 0.1, seed=self.cfg.seed)
+
     def train_world_model(self, name: str) -> list[dict[str, Any]]:
         """Train world model ``name`` (resuming its checkpoint) and save it; its history."""
         m = self.cfg.model
         torch.manual_seed(self.cfg.seed)
         ensemble = RCVAEEnsemble(rcvae_config(m), m.ensemble_size, functions=MODEL_FUNCTIONS)
         ensemble = ensemble.to(self.device)
-        train, val = split_episodes(
-            load_episodes(self.dir / "data" / f"{name}.pt"), 0.1, seed=self.cfg.seed
-        )
+        train, val = self.episodes(name)
         result = train_ensemble(
             ensemble,
             train,
@@ -437,9 +451,35 @@ class Study:
         episode_env = self.env("deterministic", time_limit=self.cfg.assess.horizon_s)
         policy = make_policy_module(self.load_policy())
         checks = {name: self.load_model(name).checks for name in WORLD_MODELS}
+        far = {name: self.far_checks(name) for name in WORLD_MODELS}
         return write_report(
-            self.dir, forecasts, truths, self.cfg, policy, episode_env, model_checks=checks
+            self.dir,
+            forecasts,
+            truths,
+            self.cfg,
+            policy,
+            episode_env,
+            model_checks=checks,
+            far_checks=far,
         )
+
+    def far_checks(self, name: str) -> ModelChecks | None:
+        """World model ``name``'s self-checks with their coverage ``assess.horizon_s`` ahead,
+        against replays of its held-out episodes' actions in the real env (new noise); None
+        when no held-out episode is that long."""
+        steps = self.max_steps
+        _, held_out = self.episodes(name)
+        if int(episode_spans(held_out)[1].max()) <= steps:
+            return None
+        truth = replay_episodes(
+            held_out,
+            steps + 1,
+            name,
+            seed=_REPLAY_SEED + 1000 * self.cfg.seed,
+            **variant_randomness(name, self.cfg.data),
+        )
+        model = self.load_model(name)
+        return check_model(model, truth, coverage_steps=steps, seed=self.cfg.seed, warn=False)
 
 
 def _forecast_record(data) -> dict[str, torch.Tensor]:

@@ -215,11 +215,14 @@ def write_report(
     policy: Callable,
     episode_env: EnvBase,
     model_checks: Mapping[str, ModelChecks | None] | None = None,
+    far_checks: Mapping[str, ModelChecks | None] | None = None,
 ) -> dict[str, Any]:
     """Write table.md/.csv, the figures, episode.gif and report.md; return the summary.
 
     ``model_checks``: each world model's self-checks (``ensemble.checks``), reported in their
-    own section (a model that failed them is named with its reasons) and in the summary."""
+    own section (a model that failed them is named with its reasons) and in the summary.
+    ``far_checks``: the same checks with their coverage at the forecast's horizon, against
+    replays of the held-out episodes' actions in the real env (``Study.far_checks``)."""
     rows = {c: condition_row(c, forecasts[c], truths[c]) for c in forecasts}
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     p, y = (torch.cat(t) for t in zip(*(_pairs(forecasts[c], truths[c]) for c in forecasts)))
@@ -235,6 +238,7 @@ def write_report(
     surfaces = competency_surfaces(forecasts, truths, list(a.surface_radii), deadlines)
     checks.update(trust_checks(scores, surfaces))
     model_checks = {k: v for k, v in (model_checks or {}).items() if v is not None}
+    far_checks = {k: v for k, v in (far_checks or {}).items() if v is not None}
     by_window = pattern_by_window(forecasts, CONTROL_TIMESTEP)
     figures = _figures(run_dir, forecasts, truths, a.forecast_panels, a.success_radius)
     figures["start_reliability"] = plot_start_reliability(
@@ -256,14 +260,16 @@ def write_report(
         "pattern_by_window": by_window,
         "gif": gif,
         "model_checks": {name: found.as_dict() for name, found in model_checks.items()},
+        "model_checks_far": {name: found.as_dict() for name, found in far_checks.items()},
     }
     write_json(run_dir / "summary.json", summary)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
     texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
     text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)
     text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
-    if model_checks:
-        text = text.replace("## The agent", _model_checks_text(model_checks) + "## The agent", 1)
+    if model_checks or far_checks:
+        section = _model_checks_text(model_checks) + _far_checks_text(far_checks)
+        text = text.replace("## The agent", section + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
 
@@ -282,23 +288,58 @@ def _model_checks_text(model_checks: Mapping[str, ModelChecks]) -> str:
     for name, found in model_checks.items():
         verdict = "passed" if found.passed else found.message()
         lines.append(f"- **{name}**: {verdict}.")
-    coverage = {k: v for k, v in model_checks.items() if v.coverage is not None}
-    if coverage:
-        first = next(iter(coverage.values()))
-        dims = first.checked
-        lines += [
-            "",
-            f"Coverage of the {first.interval:.0%} interval after {first.coverage_steps} steps "
-            f"({first.episodes} held-out episodes):",
-            "",
-            "| model | " + " | ".join(first.names[d] for d in dims) + " |",
-            "|:---|" + "---:|" * len(dims),
-            *[
-                f"| {name} | " + " | ".join(f"{float(c.coverage[d]):.2f}" for d in dims) + " |"
-                for name, c in coverage.items()
-            ],
-        ]
+    lines += _coverage_table(model_checks)
     return "\n".join(lines) + "\n\n"
+
+
+def _far_checks_text(far_checks: Mapping[str, ModelChecks]) -> str:
+    """The coverage at the forecast's horizon, against replayed held-out episodes."""
+    if not far_checks:
+        return ""
+    lines = [
+        "### As far ahead as the forecast",
+        "",
+        "The same coverage at the forecast's horizon. Its truth is a replay: each held-out "
+        "episode's recorded actions sent open loop to the real env from the episode's first "
+        "state, with new noise (the recorded episodes of a closed-loop controller are no fair "
+        "truth far ahead in a stochastic env: its later actions answer the noise the episode "
+        "met).",
+        "",
+    ]
+    for name, found in far_checks.items():
+        if found.coverage is None:
+            verdict = "not measured (too few held-out episodes this long)"
+        elif found.overconfident:
+            named = ", ".join(found.names[d] for d in found.overconfident)
+            verdict = (
+                f"overconfident on {named} {found.coverage_steps} steps ahead: forecasts that "
+                "hinge on these dimensions late in the horizon may be too sure"
+            )
+        else:
+            verdict = f"covered as often as it should {found.coverage_steps} steps ahead"
+        lines.append(f"- **{name}**: {verdict}.")
+    return "\n".join(lines + _coverage_table(far_checks)) + "\n\n"
+
+
+def _coverage_table(checks: Mapping[str, ModelChecks]) -> list[str]:
+    """Lines of a table of each model's coverage per checked dimension (none if unmeasured)."""
+    coverage = {k: v for k, v in checks.items() if v.coverage is not None}
+    if not coverage:
+        return []
+    first = next(iter(coverage.values()))
+    dims = first.checked
+    return [
+        "",
+        f"Coverage of the {first.interval:.0%} interval after {first.coverage_steps} steps "
+        f"({first.episodes} held-out episodes):",
+        "",
+        "| model | " + " | ".join(first.names[d] for d in dims) + " |",
+        "|:---|" + "---:|" * len(dims),
+        *[
+            f"| {name} | " + " | ".join(f"{float(c.coverage[d]):.2f}" for d in dims) + " |"
+            for name, c in coverage.items()
+        ],
+    ]
 
 
 _SCORE_COLUMNS = (

@@ -75,3 +75,29 @@ def test_model_checks_section_names_each_verdict_and_the_coverage():
     assert "| model | x | y |" in text  # the checked dimensions only
     assert "| good | 0.94 | 0.91 |" in text and "| bad | 0.94 | 0.38 |" in text
     assert "90% interval after 20 steps (32 held-out episodes)" in text
+
+
+def test_far_checks_section_names_overconfident_dimensions_and_unmeasured_models():
+    import torch
+
+    from rcvae_torchrl.training import ModelChecks
+    from recipes.pusher_competency.report import _far_checks_text
+
+    zeros = torch.zeros(3, dtype=torch.float64)
+
+    def checks(covered, episodes=32):
+        return ModelChecks(
+            ("x", "y", "z"), zeros, zeros + 1, zeros + 1, zeros, zeros + 1, 5, (0, 1), 0.05,
+            covered=None if covered is None else torch.tensor(covered, dtype=torch.float64),
+            episodes=episodes, coverage_steps=240, interval=0.9,
+        )  # fmt: skip
+
+    text = _far_checks_text(
+        {"good": checks([30, 29, 0]), "bad": checks([30, 12, 0]), "short": checks(None, 0)}
+    )
+    assert "- **good**: covered as often as it should 240 steps ahead." in text
+    assert "- **bad**: overconfident on y 240 steps ahead" in text
+    assert "- **short**: not measured" in text
+    assert "| good | 0.94 | 0.91 |" in text and "| bad | 0.94 | 0.38 |" in text
+    assert "90% interval after 240 steps (32 held-out episodes)" in text
+    assert _far_checks_text({}) == ""

@@ -1,20 +1,14 @@
-"""The truth of ``benchmarks/coverage_horizons.py``: held-out episodes replayed open loop."""
+"""``replay_episodes``: held-out episodes' actions replayed open loop in the real Pusher, the
+truth of the far coverage check."""
 
 from __future__ import annotations
-
-import sys
-from pathlib import Path
 
 import torch
 from tensordict import TensorDict
 
 from rcvae_torchrl.data import TRAJ_KEY, episode_spans
 from rcvae_torchrl.envs import make_batched_pusher_env
-from recipes.pusher_competency.config import DataConfig
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-
-from coverage_horizons import replay
+from recipes.pusher_competency.data import replay_episodes
 
 
 def _episodes(variant: str, lengths: list[int]) -> TensorDict:
@@ -47,7 +41,7 @@ def _episodes(variant: str, lengths: list[int]) -> TensorDict:
 
 def test_a_replay_repeats_a_deterministic_episode_from_its_first_state():
     episodes = _episodes("deterministic", [30, 12, 30])
-    replayed = replay("deterministic", DataConfig(), episodes, 20)
+    replayed = replay_episodes(episodes, 20, "deterministic")
     first, lengths = episode_spans(replayed)
     assert lengths.tolist() == [20, 20]  # the 12-step episode is too short
     for start, kept in zip(first.tolist(), (0, 2), strict=True):
@@ -59,9 +53,8 @@ def test_a_replay_repeats_a_deterministic_episode_from_its_first_state():
 
 
 def test_a_stochastic_replay_draws_new_noise():
-    data = DataConfig(stochastic_noise_std=1.0)
     episodes = _episodes("deterministic", [20, 20])
-    replayed = replay("stochastic", data, episodes, 20)
+    replayed = replay_episodes(episodes, 20, "stochastic", seed=5, action_noise_std=1.0)
     torch.testing.assert_close(replayed["observation"][::20], episodes["observation"][::20])
     gap = (replayed["next", "observation"] - episodes["next", "observation"]).abs().amax()
     assert gap > 1e-2
