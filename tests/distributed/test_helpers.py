@@ -41,3 +41,11 @@ def test_work_generators_depend_on_their_keys_alone():
     assert not torch.equal(draw(0, 1), draw(1, 0))
     with pytest.raises(ValueError, match="keys: expected one or more non-negative ints"):
         distributed.work_generator(-1)
+
+
+def test_without_a_group_one_process_is_the_only_replica():
+    assert distributed.replicas(1) == distributed.Replicas(0, 1, 0, 1)
+    assert distributed.replicas(4) == distributed.Replicas(0, 1, 0, 1)
+    for bad in (0, -2, 1.5, True):
+        with pytest.raises(ValueError, match="size: expected a positive int"):
+            distributed.replicas(bad)
