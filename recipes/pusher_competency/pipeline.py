@@ -84,9 +84,14 @@ from .pusher import (
 )
 from .report import write_report
 
-__all__ = ["SHARDED_STAGES", "STAGES", "Study", "run_study", "training_op_flop"]
+__all__ = ["FAR_FRACTIONS", "SHARDED_STAGES", "STAGES", "Study", "run_study", "training_op_flop"]
 
-#: Seeds of the far coverage check's replays: ``_REPLAY_SEED + 1000 * seed`` (env ``i``: + i).
+#: The far coverage check's horizons, as fractions of the forecast's: a world model that passes
+#: 1 s ahead can be overconfident while the ball is pushed, seconds later.
+FAR_FRACTIONS = (0.25, 0.5, 1.0)
+#: The far check's level over all its horizons (the self-check's own level).
+_FAR_ALPHA = 0.01
+#: Seeds of the far check's replays: ``_REPLAY_SEED + 1000 * seed`` (env ``i``: + i).
 _REPLAY_SEED = 90_000
 
 # Each stage and the files it writes (their sizes and hashes go into its marker).
@@ -463,23 +468,27 @@ class Study:
             far_checks=far,
         )
 
-    def far_checks(self, name: str) -> ModelChecks | None:
-        """World model ``name``'s self-checks with their coverage ``assess.horizon_s`` ahead,
-        against replays of its held-out episodes' actions in the real env (new noise); None
-        when no held-out episode is that long."""
-        steps = self.max_steps
+    def far_checks(self, name: str) -> list[ModelChecks]:
+        """World model ``name``'s self-checks with their coverage at :data:`FAR_FRACTIONS` of
+        the forecast's horizon, against replays of its held-out episodes' actions in the real
+        env (new noise); none when no held-out episode is that long. The coverage test's level
+        is shared out over the horizons (Bonferroni, as the check shares it over dimensions)."""
+        steps = [max(1, round(f * self.max_steps)) for f in FAR_FRACTIONS]
         _, held_out = self.episodes(name)
-        if int(episode_spans(held_out)[1].max()) <= steps:
-            return None
+        if int(episode_spans(held_out)[1].max()) <= max(steps):
+            return []
         truth = replay_episodes(
             held_out,
-            steps + 1,
+            max(steps) + 1,
             name,
             seed=_REPLAY_SEED + 1000 * self.cfg.seed,
             **variant_randomness(name, self.cfg.data),
         )
-        model = self.load_model(name)
-        return check_model(model, truth, coverage_steps=steps, seed=self.cfg.seed, warn=False)
+        model, alpha = self.load_model(name), _FAR_ALPHA / len(steps)
+        return [
+            check_model(model, truth, coverage_steps=k, alpha=alpha, seed=self.cfg.seed, warn=False)
+            for k in steps
+        ]
 
 
 def _forecast_record(data) -> dict[str, torch.Tensor]:

@@ -85,19 +85,25 @@ def test_far_checks_section_names_overconfident_dimensions_and_unmeasured_models
 
     zeros = torch.zeros(3, dtype=torch.float64)
 
-    def checks(covered, episodes=32):
+    def checks(covered, steps, episodes=32):
         return ModelChecks(
             ("x", "y", "z"), zeros, zeros + 1, zeros + 1, zeros, zeros + 1, 5, (0, 1), 0.05,
             covered=None if covered is None else torch.tensor(covered, dtype=torch.float64),
-            episodes=episodes, coverage_steps=240, interval=0.9,
+            episodes=episodes, coverage_steps=steps, interval=0.9,
         )  # fmt: skip
 
     text = _far_checks_text(
-        {"good": checks([30, 29, 0]), "bad": checks([30, 12, 0]), "short": checks(None, 0)}
+        {
+            "good": [checks([30, 29, 0], 60), checks([31, 28, 0], 240)],
+            "bad": [checks([30, 12, 0], 60), checks([30, 29, 0], 240)],
+            "short": [checks(None, 60, 0), checks(None, 240, 0)],
+        }
     )
-    assert "- **good**: covered as often as it should 240 steps ahead." in text
-    assert "- **bad**: overconfident on y 240 steps ahead" in text
+    assert "| model | 60 steps | 240 steps |" in text
+    assert "| good | 29 of 32 | 28 of 32 |" in text
+    assert "| bad | 12 of 32 ✗ y | 29 of 32 |" in text
+    assert "| short | not measured | not measured |" in text
+    assert "- **good**: covered as often as it should at every horizon." in text
+    assert "- **bad**: overconfident on y 60 steps ahead" in text
     assert "- **short**: not measured" in text
-    assert "| good | 0.94 | 0.91 |" in text and "| bad | 0.94 | 0.38 |" in text
-    assert "90% interval after 240 steps (32 held-out episodes)" in text
     assert _far_checks_text({}) == ""
