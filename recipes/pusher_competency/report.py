@@ -24,7 +24,7 @@ from rcvae_torchrl.reporting import (
 from rcvae_torchrl.training import ModelChecks
 
 from .config import AssessConfig
-from .pusher import FIGURE_PANELS
+from .pusher import CONDITIONS, FIGURE_PANELS
 from .trust import (
     RECALIBRATED_SCORES,
     RECALIBRATION_FOLDS,
@@ -331,9 +331,11 @@ def _far_checks_text(far_checks: Mapping[str, Sequence[ModelChecks]]) -> str:
         if all(found.coverage is None for found in by_horizon):
             verdict = "not measured (too few held-out episodes this long)"
         elif named:
+            used = [c for c, (model, _) in CONDITIONS.items() if model == name]
             verdict = (
-                f"overconfident on {'; '.join(named)}: forecasts that hinge on these dimensions "
-                "then may be too sure"
+                f"overconfident on {'; '.join(named)}: forecasts made with it "
+                f"({', '.join(used) or 'none here'}) that hinge on these dimensions then may be "
+                "too sure"
             )
         else:
             verdict = "covered as often as it should at every horizon"

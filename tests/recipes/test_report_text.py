@@ -104,6 +104,8 @@ def test_far_checks_section_names_overconfident_dimensions_and_unmeasured_models
     assert "| bad | 12 of 32 ✗ y | 29 of 32 |" in text
     assert "| short | not measured | not measured |" in text
     assert "- **good**: covered as often as it should at every horizon." in text
-    assert "- **bad**: overconfident on y 60 steps ahead" in text
+    assert "- **bad**: overconfident on y 60 steps ahead: forecasts made with it (none" in text
     assert "- **short**: not measured" in text
     assert _far_checks_text({}) == ""
+    text = _far_checks_text({"deterministic": [checks([30, 12, 0], 60)]})
+    assert "forecasts made with it (deterministic, out-of-distribution)" in text
