@@ -531,19 +531,19 @@ def main() -> None:
                 probe["payload_s"],
             ]
         )
-        base, at = project(c1, c2, probe["payload_s"], two["gather_bytes"], UNITS[name])
         gloo = {
             "latency_s": probe["latency_s"],
             "bandwidth_Bps": max(two["gather_bytes"], 1)
             / max(probe["payload_s"] - probe["latency_s"], 1e-9),
         }
-        cases = {
-            "8 ranks, 1 machine (gloo, as measured)": at(8, gloo),
-            "8 GPUs, 1 machine (NCCL, assumed link)": at(8, INTRA_GPU),
-            "4 machines x 8 GPUs (NCCL, assumed network)": at(32, INTER_NODE),
-        }
-        if name in NOT_PROJECTED:
-            base, cases = None, {}
+        base, cases = None, {}
+        if name not in NOT_PROJECTED:
+            base, at = project(c1, c2, probe["payload_s"], two["gather_bytes"], UNITS[name])
+            cases = {
+                "8 ranks, 1 machine (gloo, as measured)": at(8, gloo),
+                "8 GPUs, 1 machine (NCCL, assumed link)": at(8, INTRA_GPU),
+                "4 machines x 8 GPUs (NCCL, assumed network)": at(32, INTER_NODE),
+            }
         for case, p in cases.items():
             projections.append([name, case, p["time_s"], p["speedup"], p["efficiency"]])
         payload[name] = {

@@ -455,8 +455,9 @@ class Study:
         }
         episode_env = self.env("deterministic", time_limit=self.cfg.assess.horizon_s)
         policy = make_policy_module(self.load_policy())
-        checks = {name: self.load_model(name).checks for name in WORLD_MODELS}
-        far = {name: self.far_checks(name) for name in WORLD_MODELS}
+        models = {name: self.load_model(name) for name in WORLD_MODELS}
+        checks = {name: model.checks for name, model in models.items()}
+        far = {name: self.far_checks(name, model) for name, model in models.items()}
         return write_report(
             self.dir,
             forecasts,
@@ -468,11 +469,12 @@ class Study:
             far_checks=far,
         )
 
-    def far_checks(self, name: str) -> list[ModelChecks]:
-        """World model ``name``'s self-checks with their coverage at :data:`FAR_FRACTIONS` of
-        the forecast's horizon, against replays of its held-out episodes' actions in the real
-        env (new noise); none when no held-out episode is that long. The coverage test's level
-        is shared out over the horizons (Bonferroni, as the check shares it over dimensions)."""
+    def far_checks(self, name: str, model: RCVAEEnsemble) -> list[ModelChecks]:
+        """World model ``name``'s (``model``'s) self-checks with their coverage at
+        :data:`FAR_FRACTIONS` of the forecast's horizon, against replays of its held-out
+        episodes' actions in the real env (new noise); none when no held-out episode is that
+        long. The coverage test's level is shared out over the horizons (Bonferroni, as the
+        check shares it over dimensions)."""
         steps = [max(1, round(f * self.max_steps)) for f in FAR_FRACTIONS]
         _, held_out = self.episodes(name)
         if int(episode_spans(held_out)[1].max()) <= max(steps):
@@ -484,7 +486,7 @@ class Study:
             seed=_REPLAY_SEED + 1000 * self.cfg.seed,
             **variant_randomness(name, self.cfg.data),
         )
-        model, alpha = self.load_model(name), _FAR_ALPHA / len(steps)
+        alpha = _FAR_ALPHA / len(steps)
         return [
             check_model(model, truth, coverage_steps=k, alpha=alpha, seed=self.cfg.seed, warn=False)
             for k in steps

@@ -292,7 +292,22 @@ def _model_checks_text(model_checks: Mapping[str, ModelChecks]) -> str:
     for name, found in model_checks.items():
         verdict = "passed" if found.passed else found.message()
         lines.append(f"- **{name}**: {verdict}.")
-    lines += _coverage_table(model_checks)
+    coverage = {k: v for k, v in model_checks.items() if v.coverage is not None}
+    if coverage:
+        first = next(iter(coverage.values()))
+        dims = first.checked
+        lines += [
+            "",
+            f"Coverage of the {first.interval:.0%} interval after {first.coverage_steps} steps "
+            f"({first.episodes} held-out episodes):",
+            "",
+            "| model | " + " | ".join(first.names[d] for d in dims) + " |",
+            "|:---|" + "---:|" * len(dims),
+            *[
+                f"| {name} | " + " | ".join(f"{float(c.coverage[d]):.2f}" for d in dims) + " |"
+                for name, c in coverage.items()
+            ],
+        ]
     return "\n".join(lines) + "\n\n"
 
 
@@ -341,27 +356,6 @@ def _far_checks_text(far_checks: Mapping[str, Sequence[ModelChecks]]) -> str:
             verdict = "covered as often as it should at every horizon"
         verdicts.append(f"- **{name}**: {verdict}.")
     return "\n".join([*lines, "", *verdicts]) + "\n\n"
-
-
-def _coverage_table(checks: Mapping[str, ModelChecks]) -> list[str]:
-    """Lines of a table of each model's coverage per checked dimension (none if unmeasured)."""
-    coverage = {k: v for k, v in checks.items() if v.coverage is not None}
-    if not coverage:
-        return []
-    first = next(iter(coverage.values()))
-    dims = first.checked
-    return [
-        "",
-        f"Coverage of the {first.interval:.0%} interval after {first.coverage_steps} steps "
-        f"({first.episodes} held-out episodes):",
-        "",
-        "| model | " + " | ".join(first.names[d] for d in dims) + " |",
-        "|:---|" + "---:|" * len(dims),
-        *[
-            f"| {name} | " + " | ".join(f"{float(c.coverage[d]):.2f}" for d in dims) + " |"
-            for name, c in coverage.items()
-        ],
-    ]
 
 
 _SCORE_COLUMNS = (
