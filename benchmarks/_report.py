@@ -20,11 +20,49 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rcvae_torchrl.io import write_json as atomic_json  # noqa: E402  (after the path is set)
 
 
-def conditions() -> dict[str, Any]:
+def conditions(device: torch.device | str | None = None) -> dict[str, Any]:
     """What a timing ran under: torch's intra-op threads and the machine's 1-minute load average
     (runnable processes, all users; on a 2-core machine anything above 1 means this benchmark
-    shared its cores). Recorded next to every figure."""
-    return {"threads": torch.get_num_threads(), "load_1min": round(os.getloadavg()[0], 2)}
+    shared its cores), and with ``device`` the device's name (a GPU's model). Recorded next to
+    every figure."""
+    out = {"threads": torch.get_num_threads(), "load_1min": round(os.getloadavg()[0], 2)}
+    if device is not None:
+        out["device"] = device_name(device)
+    return out
+
+
+def device_name(device: torch.device | str) -> str:
+    """``"cpu"``, or a CUDA device with its model (``"cuda:0 (NVIDIA H100 80GB HBM3)"``)."""
+    device = torch.device(device)
+    if device.type != "cuda":
+        return str(device)
+    index = device.index if device.index is not None else torch.cuda.current_device()
+    return f"cuda:{index} ({torch.cuda.get_device_name(index)})"
+
+
+def benchmark_device(name: str) -> torch.device:
+    """The ``--device`` of a benchmark: ``cpu``, ``cuda`` or ``cuda:N``, refused with the reason
+    when this machine has no such device."""
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        device = None
+    if device is None or device.type not in ("cpu", "cuda"):
+        raise SystemExit(f"--device: expected cpu, cuda or cuda:N, got {name!r}")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit(f"--device: {name!r} asked for, but torch sees no CUDA device here")
+    if device.type == "cuda" and (device.index or 0) >= torch.cuda.device_count():
+        raise SystemExit(
+            f"--device: {name!r} asked for, but torch sees {torch.cuda.device_count()} GPU(s)"
+        )
+    return device
+
+
+def synchronize(device: torch.device | str | None) -> None:
+    """Wait for the work queued on ``device`` (a GPU runs kernels asynchronously: a timing
+    must end when they have run, not when they were launched); nothing on the CPU."""
+    if device is not None and torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def median_time(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> float:
@@ -40,7 +78,10 @@ def median_time(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> flo
 
 
 def interleaved_median_times(
-    fns: Mapping[str, Callable[[], Any]], repeats: int = 5, warmup: int = 1
+    fns: Mapping[str, Callable[[], Any]],
+    repeats: int = 5,
+    warmup: int = 1,
+    device: torch.device | str | None = None,
 ) -> dict[str, dict[str, float]]:
     """Median seconds of each ``fn()``, every fn timed once per round, in turn, after ``warmup``
     rounds: on a shared machine the load drifts, and interleaving spreads it over all fns alike,
@@ -50,11 +91,13 @@ def interleaved_median_times(
     wall-clock seconds, and CPU seconds of this process (all its threads, not its child
     processes), which other jobs on the machine barely change: for a single-threaded fn, what it
     would take on a free core; the thread count and the highest 1-minute load average seen
-    while timing (see :func:`conditions`).
+    while timing (see :func:`conditions`). On a CUDA ``device`` every call is timed until its
+    kernels have run (:func:`synchronize`).
     """
     for _ in range(warmup):
         for fn in fns.values():
             fn()
+            synchronize(device)
     wall: dict[str, list[float]] = {name: [] for name in fns}
     cpu: dict[str, list[float]] = {name: [] for name in fns}
     load = [os.getloadavg()[0]]
@@ -62,6 +105,7 @@ def interleaved_median_times(
         for name, fn in fns.items():
             start, start_cpu = time.perf_counter(), time.process_time()
             fn()
+            synchronize(device)
             wall[name].append(time.perf_counter() - start)
             cpu[name].append(time.process_time() - start_cpu)
         load.append(os.getloadavg()[0])

@@ -54,6 +54,7 @@ WHAT = {
     "quick_profile": "`make run-quick` (the recipe's quick profile)",
     "default_profile": "`make run` (the recipe's default profile)",
     "weak_arm_profile": "`make run PROFILE=weak_arm` (the weak-arm study)",
+    "full_profile": "`recipes/pusher_competency/main.py profile=full device=cuda` (on a GPU)",
 }
 
 
@@ -174,10 +175,11 @@ def read_run(run_dir: Path) -> tuple[str, dict[str, Any]]:
     if not any(m.stem == "report" for m in markers):
         raise ValueError(f"{run_dir}: the run has not finished (no report stage marker)")
     seconds = sum(json.loads(m.read_text())["seconds"] for m in markers)
+    where = f" on {found['device']}" if found.get("device", "cpu") != "cpu" else ""
     entry = {
         "seconds": round(seconds, 1),
         "threads": int(found["threads"]),
-        "source": f"the stage markers of a {found['profile']} run",
+        "source": f"the stage markers of a {found['profile']} run{where}",
     }
     return f"{found['profile']}_profile", entry
 

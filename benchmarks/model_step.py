@@ -37,7 +37,24 @@ weights), with the Pusher's reward and success:
       PYTHONPATH=/tmp/mbrl_target .venv/bin/python benchmarks/model_step.py --mbrl
 
     python benchmarks/model_step.py [--repeats 7] [--stock] [--compile] [--aot] [--mbrl]
-        [--out PATH]
+        [--scale N] [--device cpu|cuda|cuda:N] [--out PATH]
+
+Where the goals of plan scoring stop (rows that explain a miss, same run):
+
+- with ``--stock``: the plan's model and task calls alone (``ensemble.step``, the Pusher's
+  reward and success, at the P = 1 plan's batch, I x H times per plan): every planner over this
+  model env makes them, so stock / this is the most an eager planner can gain over the stock one
+  without a cheaper step;
+- with ``--mbrl``: each side's matrix products alone (the shapes recorded from one plan,
+  replayed on random operands of the same shapes): their GFLOP/s bound what the whole plan can
+  reach, whatever else it costs, and our bound over mbrl-lib's actual GFLOP/s is the most the
+  FLOP/s ratio can be at these layer sizes.
+
+``--scale N`` adds the same two eager rows (model step alone, ``evaluate_action_sequences``) at
+N trajectories per member (imagination at a GPU's batch size). ``--device cuda`` (or
+``cuda:N``) runs the model rows (scoring, model step alone, ``--scale``, ``--compile``) on a
+GPU, timing each call until its kernels have run; ``--stock``, ``--mbrl`` and ``--aot`` (the
+CPU package) stay CPU-only. The device's name is recorded with every figure.
 
 ``--out`` writes the results there instead of ``benchmarks/results/model_step.json`` (runs on a
 busy machine).
@@ -49,17 +66,29 @@ import argparse
 import atexit
 import dataclasses
 import functools
+import math
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
-from _report import conditions, interleaved_median_times, machine_info, print_table, write_json
+from _report import (
+    benchmark_device,
+    conditions,
+    device_name,
+    interleaved_median_times,
+    machine_info,
+    print_table,
+    synchronize,
+    write_json,
+)
+from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
 from rcvae_torchrl.envs import pusher_reward, pusher_success
@@ -72,8 +101,9 @@ from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, rcvae_config
 CANDIDATES, PARTICLES, HORIZON, MEMBERS = 64, 5, 12, 5
 
 
-def study_ensemble() -> RCVAEEnsemble:
-    """The study's model (its config and the Pusher's state constraint and input features)."""
+def study_ensemble(device: torch.device | str = "cpu") -> RCVAEEnsemble:
+    """The study's model (its config and the Pusher's state constraint and input features), on
+    ``device``."""
     gen = torch.Generator().manual_seed(0)
     torch.manual_seed(0)
     config = rcvae_config(StudyConfig().model)
@@ -81,43 +111,61 @@ def study_ensemble() -> RCVAEEnsemble:
     obs = torch.randn(2000, 14, generator=gen) * 0.1
     actions = torch.rand(2000, 2, generator=gen) * 2 - 1
     model.fit_normalizer(obs, actions, next_observations=obs + 0.01 * torch.randn_like(obs))
-    return model
+    return model.to(device)
 
 
-def matmul_peak_flops(size: int = 1024, repeats: int = 5) -> float:
-    a, b = torch.randn(size, size), torch.randn(size, size)
+def matmul_peak_flops(device: torch.device | str = "cpu", repeats: int = 5) -> float:
+    """FLOP/s of a large float32 matrix product: [1024, 1024]² on a CPU core, [8192, 8192]² on
+    a GPU (the best of ``repeats``)."""
+    size = 8192 if torch.device(device).type == "cuda" else 1024
+    a, b = torch.randn(size, size, device=device), torch.randn(size, size, device=device)
     a @ b
     best = float("inf")
     for _ in range(repeats):
+        synchronize(device)
         start = time.perf_counter()
         a @ b
+        synchronize(device)
         best = min(best, time.perf_counter() - start)
     return 2.0 * size**3 / best
 
 
+def _step_inputs(model: RCVAEEnsemble, per_member: int) -> tuple[torch.Tensor, ...]:
+    """h, s and a of ``per_member`` particles per member, zeros on the model's device."""
+    device = model.device
+    hidden = torch.zeros(MEMBERS, per_member, model.config.hidden_dim, device=device)
+    obs = torch.zeros(MEMBERS, per_member, 14, device=device)
+    return hidden, obs, torch.zeros(MEMBERS, per_member, 2, device=device)
+
+
 def step_flop(model: RCVAEEnsemble, per_member: int) -> float:
     """FLOP of one model step of one particle."""
-    hidden = torch.zeros(MEMBERS, per_member, model.config.hidden_dim)
-    obs, act = torch.zeros(MEMBERS, per_member, 14), torch.zeros(MEMBERS, per_member, 2)
+    hidden, obs, act = _step_inputs(model, per_member)
     with FlopCounterMode(display=False) as counter, torch.no_grad():
-        model.step(hidden, obs, act, generator=torch.Generator())
+        model.step(hidden, obs, act, generator=torch.Generator(model.device))
     return counter.get_total_flops() / (MEMBERS * per_member)
 
 
-def model_steps_alone(model: RCVAEEnsemble, per_member: int, horizon: int) -> None:
-    gen = torch.Generator().manual_seed(0)
-    hidden = torch.zeros(MEMBERS, per_member, model.config.hidden_dim)
-    obs, act = torch.zeros(MEMBERS, per_member, 14), torch.zeros(MEMBERS, per_member, 2)
+def model_steps_alone(
+    model: RCVAEEnsemble, per_member: int, horizon: int, task: Task | None = None
+) -> None:
+    """``horizon`` model steps of ``per_member`` particles per member, and with ``task`` its
+    reward and success of every step (what any planner over this model env computes)."""
+    gen = torch.Generator(model.device).manual_seed(0)
+    hidden, obs, act = _step_inputs(model, per_member)
     with torch.no_grad():
         for _ in range(horizon):
             out = model.step(hidden, obs, act, generator=gen)
             hidden, obs = out.hidden, out.observation
+            if task is not None:
+                task.reward_fn(observation=obs, action=act), task.success_fn(observation=obs)
 
 
 def scoring_call(model, task, candidates: int, compile_=False, cache_dir=None) -> None:
-    gen = torch.Generator().manual_seed(0)
-    start = torch.randn(1, 14, generator=gen).expand(candidates, 14) * 0.1
-    actions = torch.rand(candidates, HORIZON, 2, generator=gen) * 2 - 1
+    device = model.device
+    gen = torch.Generator(device).manual_seed(0)
+    start = torch.randn(1, 14, generator=gen, device=device).expand(candidates, 14) * 0.1
+    actions = torch.rand(candidates, HORIZON, 2, generator=gen, device=device) * 2 - 1
     with torch.no_grad():
         evaluate_action_sequences(
             model, start, actions, PARTICLES, task=task, generator=gen, compile=compile_,
@@ -158,6 +206,34 @@ def fresh_process_first_calls(root: Path, compile_too: bool) -> dict[str, float]
     return out
 
 
+MODEL_ALONE = "model step alone (ensemble.step x H), eager"
+
+
+def model_rows(
+    model: RCVAEEnsemble, task: Task, per_member: int, suffix: str = ""
+) -> dict[str, tuple[Callable[[], None], int]]:
+    """The eager rows at ``per_member`` trajectories per member (``PARTICLES`` particles of
+    ``per_member * MEMBERS / PARTICLES`` candidates): ``evaluate_action_sequences`` and the
+    model's own step alone; each with its number of candidates."""
+    candidates = math.ceil(per_member * MEMBERS / PARTICLES)
+    return {
+        f"evaluate_action_sequences, eager{suffix}": (
+            functools.partial(scoring_call, model, task, candidates),
+            candidates,
+        ),
+        f"{MODEL_ALONE}{suffix}": (
+            functools.partial(model_steps_alone, model, per_member, HORIZON),
+            candidates,
+        ),
+    }
+
+
+def _alone_of(case: str) -> str:
+    """The model-alone row a row is compared with: the one of its batch size."""
+    suffix = case.rsplit(", ", 1)[-1] if case.endswith("per member") else ""
+    return f"{MODEL_ALONE}, {suffix}" if suffix else MODEL_ALONE
+
+
 def compile_times(model, task) -> dict[str, float]:
     """The library's compiled scoring (``compile=True``): the first call, then calls with new
     numbers of candidates (what a run waits for when a plan shape changes), and the graphs
@@ -180,10 +256,17 @@ def compile_times(model, task) -> dict[str, float]:
     return out
 
 
+#: The row of :func:`stock_comparison` that bounds any eager planner over the model env.
+CALLS_ALONE = "the P=1 plan's model and task calls alone"
+
+
 def stock_comparison(model: RCVAEEnsemble, repeats: int, aot: bool = False) -> dict[str, Any]:
     """Seconds per plan: ours (P = 1, 5) vs the stock CEMPlanner, same model env and budget;
     with ``aot``, also ours with the ahead-of-time compiled scoring (its build, in the warm-up
-    round, is not timed)."""
+    round, is not timed). Also :data:`CALLS_ALONE`: the model steps with the Pusher's reward and
+    success that a P = 1 plan makes (64 candidates, padded to a multiple of the members, over
+    I x H steps), with nothing around them: stock / that is the most an eager planner can gain
+    over the stock one with this model step."""
     from planning import _stock
 
     from rcvae_torchrl.agent import PlannerConfig
@@ -221,15 +304,24 @@ def stock_comparison(model: RCVAEEnsemble, repeats: int, aot: bool = False) -> d
                 policy.reset()
             policy(td.clone())
 
+    task = Task(pusher_reward, pusher_success, terminate_on_success=True)
+    per_member = math.ceil(CANDIDATES / MEMBERS)
+
+    def calls_alone() -> None:
+        for _ in states:
+            model_steps_alone(model, per_member, config.iterations * config.horizon, task)
+
+    runs = {k: functools.partial(plan_all, p) for k, p in planners.items()}
     with torch.no_grad():
-        times = interleaved_median_times(
-            {k: functools.partial(plan_all, p) for k, p in planners.items()}, repeats
-        )
+        times = interleaved_median_times({**runs, CALLS_ALONE: calls_alone}, repeats)
     stock = times["stock CEMPlanner"]["wall_s"]
     return {k: {**v, "stock_over_this": stock / v["wall_s"]} for k, v in times.items()}
 
 
 MBRL_BUDGET = {"population": 200, "particles": 20, "horizon": 15, "iterations": 5}
+#: Rows of :func:`mbrl_comparison`: each plan's matrix products alone (:func:`matmuls_alone`).
+MBRL_MATMULS = "mbrl-lib's matrix products alone"
+OURS_MATMULS = "our matrix products alone"
 
 
 def _mbrl_plan():
@@ -281,6 +373,46 @@ def _mbrl_plan():
     return lambda: optimizer.optimize(evaluate)
 
 
+_MATMULS = (torch.ops.aten.mm, torch.ops.aten.addmm, torch.ops.aten.bmm, torch.ops.aten.baddbmm)
+
+
+class _MatmulRecorder(TorchDispatchMode):
+    """Records every matrix product a call makes: the op, its operands' shapes, its options."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls: list[tuple[Any, tuple, dict]] = []
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if func.overloadpacket in _MATMULS:
+            shapes = tuple(torch.Size(a.shape) if isinstance(a, torch.Tensor) else a for a in args)
+            self.calls.append((func, shapes, dict(kwargs or {})))
+        return func(*args, **(kwargs or {}))
+
+
+def matmuls_alone(call) -> Callable[[], None]:
+    """A call that makes the matrix products ``call()`` makes (recorded once), in order, on
+    random contiguous operands of the same shapes (one set per shape), and nothing else: the
+    time that arithmetic takes at those shapes when no other op stands between the products."""
+    recorder = _MatmulRecorder()
+    with recorder, torch.no_grad():
+        call()
+    operands: dict[torch.Size, torch.Tensor] = {}
+
+    def operand(a):
+        if not isinstance(a, torch.Size):
+            return a
+        return operands.setdefault(a, torch.randn(a))
+
+    replay = [(f, [operand(a) for a in shapes], kw) for f, shapes, kw in recorder.calls]
+
+    def run() -> None:
+        for func, args, kwargs in replay:
+            func(*args, **kwargs)
+
+    return run
+
+
 def _flop_of(call) -> float:
     with FlopCounterMode(display=False) as counter, torch.no_grad():
         call()
@@ -289,7 +421,9 @@ def _flop_of(call) -> float:
 
 def mbrl_comparison(model: RCVAEEnsemble, repeats: int, aot: bool = False) -> dict[str, Any]:
     """Ours against mbrl-lib's PETS CEM at its budget: s per plan, model steps/s, FLOP/s (with
-    ``aot``, also ours with the ahead-of-time compiled scoring)."""
+    ``aot``, also ours with the ahead-of-time compiled scoring); and each side's matrix
+    products alone (:data:`MBRL_MATMULS`, :data:`OURS_MATMULS`): our products' FLOP/s over
+    mbrl-lib's plan's is the most our plan's FLOP/s ratio can reach at these layer sizes."""
     peer = _mbrl_plan()
     if peer is None:
         return {}
@@ -321,10 +455,16 @@ def mbrl_comparison(model: RCVAEEnsemble, repeats: int, aot: bool = False) -> di
 
     calls = {"mbrl-lib PETS CEM": peer}
     calls.update({name: functools.partial(plan, p) for name, p in planners.items()})
+    alone = {
+        MBRL_MATMULS: matmuls_alone(peer),
+        OURS_MATMULS: matmuls_alone(calls["ours (CEMPlanner)"]),
+    }
     steps = b["population"] * b["particles"] * b["horizon"] * b["iterations"]
     # FLOP counted on the eager path (the compiled one does the same arithmetic)
     ours_flop = _flop_of(calls["ours (CEMPlanner)"])
     flop = {name: ours_flop for name in planners} | {"mbrl-lib PETS CEM": _flop_of(peer)}
+    flop |= {name: _flop_of(run) for name, run in alone.items()}
+    calls |= alone
     with torch.no_grad():
         times = interleaved_median_times(calls, repeats)
     out = {}
@@ -349,26 +489,32 @@ def main() -> None:
     parser.add_argument("--stock", action="store_true")
     parser.add_argument("--aot", action="store_true")
     parser.add_argument("--mbrl", action="store_true", help="compare with mbrl-lib (see above)")
+    parser.add_argument(
+        "--scale", type=int, metavar="N", help="also the eager rows at N trajectories per member"
+    )
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (model rows)")
     parser.add_argument("--out", type=Path, help="write the results here (default: results/)")
     parser.add_argument("--first-call", nargs=2, metavar=("MODE", "CACHE"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.first_call:
         print(first_call_here(*args.first_call))
         return
+    device = benchmark_device(args.device)
+    if device.type != "cpu" and (args.stock or args.mbrl or args.aot):
+        raise SystemExit(
+            f"--device {args.device}: --stock, --mbrl and --aot run on the CPU only (the real "
+            "Pusher's states, mbrl-lib's CPU planner, the CPU package); run them without --device"
+        )
+    if args.scale is not None and args.scale < 1:
+        raise SystemExit(f"--scale: expected trajectories per member >= 1, got {args.scale}")
     torch.set_num_threads(1)
-    model = study_ensemble()
+    model = study_ensemble(device)
     task = Task(pusher_reward, pusher_success, terminate_on_success=True)
     per_member = CANDIDATES * PARTICLES // MEMBERS
-    steps = CANDIDATES * PARTICLES * HORIZON
-    flop, peak = step_flop(model, per_member), matmul_peak_flops()
-    runs = {
-        "evaluate_action_sequences, eager": functools.partial(
-            scoring_call, model, task, CANDIDATES
-        ),
-        "model step alone (ensemble.step x H), eager": functools.partial(
-            model_steps_alone, model, per_member, HORIZON
-        ),
-    }
+    flop, peak = step_flop(model, per_member), matmul_peak_flops(device)
+    runs = model_rows(model, task, per_member)
+    if args.scale is not None:
+        runs |= model_rows(model, task, args.scale, f", {args.scale} per member")
     compiled, first_calls = {}, {}
     root = Path(tempfile.mkdtemp(prefix="model_step_"))
     if args.aot:  # first, while no compile of this process has filled a cache
@@ -376,40 +522,46 @@ def main() -> None:
         atexit.register(shutil.rmtree, planners_cache, True)
         os.environ[SCORING_CACHE_ENV] = planners_cache
         first_calls = fresh_process_first_calls(root, compile_too=args.compile)
-        runs["evaluate_action_sequences, compile='aot'"] = functools.partial(
-            scoring_call, model, task, CANDIDATES, "aot", root / "b"
+        runs["evaluate_action_sequences, compile='aot'"] = (
+            functools.partial(scoring_call, model, task, CANDIDATES, "aot", root / "b"),
+            CANDIDATES,
         )
     if args.compile:
         compiled = compile_times(model, task)
-        runs["evaluate_action_sequences, compile=True"] = functools.partial(
-            scoring_call, model, task, CANDIDATES, True
+        runs["evaluate_action_sequences, compile=True"] = (
+            functools.partial(scoring_call, model, task, CANDIDATES, True),
+            CANDIDATES,
         )
     try:
-        times = interleaved_median_times(runs, args.repeats)
+        calls = {name: call for name, (call, _) in runs.items()}
+        times = interleaved_median_times(calls, args.repeats, device=device)
     finally:
         shutil.rmtree(root)
     rows = []
     for name, t in times.items():
+        steps = runs[name][1] * PARTICLES * HORIZON
         rate = steps / t["wall_s"]
         rows.append(
             {
                 "case": name,
                 **t,
+                "device": device_name(device),
                 "model_steps_per_s": rate,
                 "model_steps_per_cpu_s": steps / t["cpu_s"],
                 "percent_of_peak": 100.0 * rate * flop / peak,
             }
         )
-    base = rows[1]["wall_s"]
+    base = {r["case"]: r["wall_s"] for r in rows if r["case"].startswith(MODEL_ALONE)}
     print_table(
-        f"plan scoring at {CANDIDATES} candidates x {PARTICLES} particles x {HORIZON} steps "
-        f"({per_member} trajectories per member); {flop / 1e3:.1f} kFLOP per model step; "
-        f"matmul peak {peak / 1e9:.1f} GFLOP/s",
+        f"plan scoring, {PARTICLES} particles x {HORIZON} steps from {CANDIDATES} candidates "
+        f"({per_member} trajectories per member) unless the row says; on "
+        f"{device_name(device)}; {flop / 1e3:.1f} kFLOP per model step; matmul peak "
+        f"{peak / 1e9:.1f} GFLOP/s",
         ["case", "threads", "load", "s / call", "model steps/s", "% of peak", "x model alone"],
         [
             [
                 r["case"], r["threads"], r["load_1min"], r["wall_s"], r["model_steps_per_s"],
-                r["percent_of_peak"], r["wall_s"] / base,
+                r["percent_of_peak"], r["wall_s"] / base[_alone_of(r["case"])],
             ]
             for r in rows
         ],
@@ -425,7 +577,8 @@ def main() -> None:
     stock = stock_comparison(model, args.repeats, args.aot) if args.stock else {}
     if stock:
         print_table(
-            f"seconds per plan of 5 states, C x I x H = {CANDIDATES} x 2 x {HORIZON}",
+            f"seconds per plan of 5 states, C x I x H = {CANDIDATES} x 2 x {HORIZON} (the last "
+            "row: what no eager planner over this model env can do without)",
             ["planner", "threads", "load", "s", "stock / this"],
             [
                 [k, v["threads"], v["load_1min"], v["wall_s"], v["stock_over_this"]]
@@ -437,7 +590,8 @@ def main() -> None:
         print("\nmbrl-lib is not importable: see this script's docstring to install it")
     if peer:
         print_table(
-            "mbrl-lib PETS CEM vs ours, population 200 x 20 particles x horizon 15 x 5 iterations",
+            "mbrl-lib PETS CEM vs ours, population 200 x 20 particles x horizon 15 x 5 iterations "
+            "(the last rows: each plan's matrix products alone)",
             ["planner", "threads", "load", "s / plan", "model steps/s", "kFLOP / step",
              "GFLOP/s", "steps/s / mbrl", "FLOP/s / mbrl"],
             [
@@ -449,6 +603,7 @@ def main() -> None:
         )  # fmt: skip
     results = {
         "budget": {"candidates": CANDIDATES, "particles": PARTICLES, "horizon": HORIZON},
+        "scale_per_member": args.scale,
         "flop_per_model_step": flop,
         "matmul_peak_flop_per_s": peak,
         "rows": rows,
@@ -456,7 +611,7 @@ def main() -> None:
         "first_call_fresh_process_s": first_calls,
         "vs_stock_cem": stock,
         "vs_mbrl_lib": peer,
-        **conditions(),
+        **conditions(device),
     }
     if args.out is None:
         write_json("model_step", results)

@@ -19,7 +19,11 @@ All timings are medians of repeats taken round-robin across the variants compare
 3. One transition step for E·N particles: member-major ``ensemble.step`` against the indexed
    layout (``RCVAETransition``, TS-∞ with round-robin and random members, and TS-1).
 
+``--device cuda`` (or ``cuda:N``) runs every model on a GPU, each call timed until its kernels
+have run, and records the GPU's name.
+
     python benchmarks/world_model_speed.py [--repeats 7] [--horizon 20] [--threads N] [--quick]
+                                           [--device cpu|cuda|cuda:N]
                                            [--out world_model_speed_2threads]
 """
 
@@ -33,7 +37,7 @@ from collections.abc import Callable
 from dataclasses import asdict
 
 import torch
-from _report import print_table, write_json
+from _report import benchmark_device, device_name, print_table, synchronize, write_json
 from tensordict import TensorDict
 
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
@@ -48,19 +52,25 @@ SMALL = RCVAEConfig(obs_dim=14, action_dim=2, hidden_dim=32, mlp_dim=32, passthr
 DEFAULT = rcvae_config(ModelConfig())
 
 
+#: Where the models run (``--device``).
+DEVICE = torch.device("cpu")
+
+
 def interleaved_medians(
     runs: dict[str, Callable[[], object]], repeats: int, warmup: int = 1
 ) -> dict[str, float]:
     """Median seconds of each run, timed round-robin (one call of each per round) so that
-    load drift on a shared machine hits all runs alike."""
+    load drift on a shared machine hits all runs alike; on a GPU until its kernels have run."""
     for _ in range(warmup):
         for run in runs.values():
             run()
+            synchronize(DEVICE)
     times: dict[str, list[float]] = {name: [] for name in runs}
     for _ in range(repeats):
         for name, run in runs.items():
             start = time.perf_counter()
             run()
+            synchronize(DEVICE)
             times[name].append(time.perf_counter() - start)
     return {name: statistics.median(t) for name, t in times.items()}
 
@@ -70,7 +80,7 @@ def make_model(ensemble_size: int, config: RCVAEConfig = CONFIG) -> RCVAEEnsembl
     model = RCVAEEnsemble(config, ensemble_size, functions=MODEL_FUNCTIONS)
     s, a = config.obs_dim, config.action_dim
     model.fit_normalizer(torch.randn(16, 50, s), torch.rand(16, 50, a) * 2 - 1)
-    return model
+    return model.to(DEVICE)
 
 
 def train_step(config: RCVAEConfig, ensemble_size: int, windows: int = 64, length: int = 32):
@@ -83,7 +93,7 @@ def train_step(config: RCVAEConfig, ensemble_size: int, windows: int = 64, lengt
         observation=torch.randn(*batch, config.obs_dim),
         action=torch.rand(*batch, config.action_dim),
         batch_size=batch,
-    )
+    ).to(DEVICE)
 
     def step() -> None:
         out = loss_fn(td)
@@ -104,7 +114,7 @@ def train_step_times(config: RCVAEConfig, repeats: int) -> dict[str, float]:
 
 def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int) -> dict[str, float]:
     """Model-steps/s of vectorised imagine (default chunks, one chunk) and of a member loop."""
-    obs, actions = torch.zeros(14), torch.rand(horizon, 2) * 2 - 1
+    obs, actions = torch.zeros(14, device=DEVICE), torch.rand(horizon, 2, device=DEVICE) * 2 - 1
     singles = [model.select_members([m]) for m in range(model.ensemble_size)]
     work = model.ensemble_size * n * horizon
     runs = {
@@ -120,10 +130,11 @@ def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int) -
 def transition_times(model: RCVAEEnsemble, n: int, repeats: int) -> dict[str, float]:
     """Seconds per step for E·n particles in each layout."""
     e, particles = model.ensemble_size, model.ensemble_size * n
-    obs, action = torch.randn(particles, 14), torch.rand(particles, 2)
-    hidden = torch.zeros(e, n, CONFIG.hidden_dim)
+    obs = torch.randn(particles, 14, device=DEVICE)
+    action = torch.rand(particles, 2, device=DEVICE)
+    hidden = torch.zeros(e, n, CONFIG.hidden_dim, device=DEVICE)
     runs = {"member_major": lambda: model.step(hidden, obs.view(e, n, 14), action.view(e, n, 2))}
-    g = torch.Generator().manual_seed(0)
+    g = torch.Generator(DEVICE).manual_seed(0)
     for name, ts, member in (
         ("ts_inf_round_robin", "ts_inf", "round_robin"),
         ("ts_inf_random", "ts_inf", "random"),
@@ -145,7 +156,10 @@ def main() -> None:
     parser.add_argument(
         "--out", default="world_model_speed", help="results name (benchmarks/results/<out>.json)"
     )
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = parser.parse_args()
+    global DEVICE
+    DEVICE = benchmark_device(args.device)
     torch.set_num_threads(args.threads)
     repeats = 3 if args.quick else args.repeats
     sizes = (16, 256) if args.quick else (16, 256, 4096)
@@ -198,6 +212,7 @@ def main() -> None:
             "horizon": args.horizon,
             "repeats": repeats,
             "threads": args.threads,
+            "device": device_name(DEVICE),
         },
     )
 

@@ -51,6 +51,10 @@ def test_a_run_directory_gives_its_profile_threads_and_stage_time(tmp_path):
     key, entry = durations.read_run(run)
     assert key == "quick_profile"
     assert entry["threads"] == 1 and entry["seconds"] == pytest.approx(36.9)
+    assert entry["source"] == "the stage markers of a quick run"
+    (run / "run.log").write_text("profile=full device=cuda:0 threads=1 run_dir=x\n")
+    key, entry = durations.read_run(run)
+    assert key == "full_profile" and entry["source"] == "the stage markers of a full run on cuda:0"
     (run / "stages" / "report.json").unlink()
     with pytest.raises(ValueError, match="has not finished"):
         durations.read_run(run)
