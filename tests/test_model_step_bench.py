@@ -91,7 +91,7 @@ def test_device_option_takes_the_cpu_and_refuses_a_missing_gpu():
     assert "device" not in conditions()
     with pytest.raises(SystemExit, match="--device: expected cpu, cuda or cuda:N, got 'tpu'"):
         benchmark_device("tpu")
-    with pytest.raises(SystemExit, match="got .meta."):
+    with pytest.raises(SystemExit, match=r"got .meta."):
         benchmark_device("meta")
     if not torch.cuda.is_available():
         with pytest.raises(SystemExit, match="no CUDA device"):
