@@ -1,9 +1,11 @@
 """Scaling over torch.distributed ranks: training, forecasting and real-rollout validation.
 
 Each workload runs at 1 rank (one process, no process group) and at 2 gloo ranks (spawned
-with ``torch.multiprocessing``), one intra-op thread per rank, ``--repeats`` times each, the
-world sizes interleaved; the time of a repeat is rank 0's wall clock from a barrier to the end
-of the gathered result. Workloads (Pusher-sized, the study's default world model):
+with ``torch.multiprocessing``), one intra-op thread per rank, in ``--repeats`` rounds of one
+timed run per world size (each in freshly spawned processes, after one untimed warm-up run), so
+that a drift of the machine's load hits both world sizes alike; the time of a run is rank 0's
+wall clock from a barrier to the end of the gathered result. Workloads (Pusher-sized, the
+study's default world model):
 
 - training: ``train_ensemble`` of E = 4 members (2 per rank), 100 steps (``--training-steps``)
   of 32 windows x 32 steps, on synthetic 14-D episodes; and the same in one process with 1, 2
@@ -299,6 +301,36 @@ def measure(name: str, world: int, args: dict) -> dict[str, Any]:
         return torch.load(out)
 
 
+def measure_interleaved(name: str, args: dict) -> dict[int, dict[str, Any]]:
+    """``name`` at every world size, ``args["repeats"]`` rounds of one timed run per world size
+    (each in its own processes, after their warm-up run): a drift of the machine's load hits
+    every world size alike, as it would not if each ran all its repeats in a block."""
+    rounds: dict[int, list[dict[str, Any]]] = {world: [] for world in WORLDS}
+    for _ in range(args["repeats"]):
+        for world in WORLDS:
+            rounds[world].append(measure(name, world, {**args, "repeats": 1}))
+    return {world: join_rounds(measured) for world, measured in rounds.items()}
+
+
+def join_rounds(measured: list[dict[str, Any]]) -> dict[str, Any]:
+    """One result of several :func:`measure` calls: their times and each rank's CPU seconds in
+    order, the gathered bytes (the same in every round), the median gather wait, and the
+    gather probe's medians (``None`` at one rank)."""
+    probes = [m["probe"] for m in measured if m["probe"] is not None]
+    return {
+        "times": [t for m in measured for t in m["times"]],
+        "cpu_by_rank": [
+            [t for m in measured for t in m["cpu_by_rank"][r]]
+            for r in range(len(measured[0]["cpu_by_rank"]))
+        ],
+        "gather_bytes": measured[0]["gather_bytes"],
+        "gather_s": statistics.median(m["gather_s"] for m in measured),
+        "probe": {k: statistics.median(p[k] for p in probes) for k in probes[0]}
+        if probes
+        else None,
+    }
+
+
 # ---------------------------------------------------------------------- training by members
 MEMBERS = (1, 2, 4)
 
@@ -487,9 +519,8 @@ def main() -> None:
     }
     results: dict[str, dict[int, dict]] = {name: {} for name in args.only}
     for name in args.only:
-        for world in WORLDS:
-            print(f"{name}: {world} rank(s) ...", flush=True)
-            results[name][world] = measure(name, world, settings)
+        print(f"{name}: 1 and 2 ranks, {args.repeats} interleaved rounds ...", flush=True)
+        results[name] = measure_interleaved(name, settings)
     members = None
     if "training" in args.only:
         print("training: 1, 2 and 4 members in one process ...", flush=True)

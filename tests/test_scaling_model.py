@@ -23,3 +23,31 @@ def test_fixed_and_per_member_costs_come_from_a_line_through_the_medians():
     x = summary["fixed_to_remove_for_1.7x_s"]
     assert (1.5 - x) / (1.1 - x) == pytest.approx(1.7)
     assert members_summary(times, t1=2.0, t2=1.0)["fixed_to_remove_for_1.7x_s"] == 0.0
+
+
+def test_interleaved_rounds_join_in_order():
+    from scaling import join_rounds
+
+    rounds = [
+        {
+            "times": [2.0],
+            "cpu_by_rank": [[1.9], [1.8]],
+            "gather_bytes": 10,
+            "gather_s": 0.5,
+            "probe": {"payload_s": 0.2, "latency_s": 0.1},
+        },
+        {
+            "times": [3.0],
+            "cpu_by_rank": [[2.9], [2.8]],
+            "gather_bytes": 10,
+            "gather_s": 0.1,
+            "probe": {"payload_s": 0.4, "latency_s": 0.3},
+        },
+    ]
+    joined = join_rounds(rounds)
+    assert joined["times"] == [2.0, 3.0]
+    assert joined["cpu_by_rank"] == [[1.9, 2.9], [1.8, 2.8]]
+    assert joined["gather_bytes"] == 10 and joined["gather_s"] == pytest.approx(0.3)
+    assert joined["probe"] == pytest.approx({"payload_s": 0.3, "latency_s": 0.2})
+    one_rank = [{**r, "cpu_by_rank": r["cpu_by_rank"][:1], "probe": None} for r in rounds]
+    assert join_rounds(one_rank)["probe"] is None
