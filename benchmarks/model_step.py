@@ -413,6 +413,46 @@ def matmuls_alone(call) -> Callable[[], None]:
     return run
 
 
+class _OpCounter(TorchDispatchMode):
+    """Counts the ATen calls a call dispatches (views included)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.count += 1
+        return func(*args, **(kwargs or {}))
+
+
+def ops_of(call) -> int:
+    """ATen calls dispatched by ``call()`` (no gradients), after a first call (which may fill
+    caches: a second one is what every later step costs)."""
+    with torch.no_grad():
+        call()
+        with _OpCounter() as counter:
+            call()
+    return counter.count
+
+
+def op_counts(model: RCVAEEnsemble, task: Task, per_member: int) -> dict[str, int]:
+    """ATen calls of one eager model step with the task's reward and success, at
+    ``per_member`` particles per member, and of the parts the model reads from its config (the
+    input features and the state constraint, inside the step) and from the task."""
+    hidden, obs, act = _step_inputs(model, per_member)
+    gen = torch.Generator(model.device).manual_seed(0)
+    out = {
+        "model step": ops_of(lambda: model.step(hidden, obs, act, generator=gen)),
+        "reward": ops_of(lambda: task.reward_fn(observation=obs, action=act)),
+        "success": ops_of(lambda: task.success_fn(observation=obs)),
+    }
+    if model._features is not None:
+        out["input features (in the step)"] = ops_of(lambda: model._features(obs))
+    if model.state_constraint is not None:
+        out["state constraint (in the step)"] = ops_of(lambda: model.state_constraint(obs, obs))
+    return out
+
+
 def _flop_of(call) -> float:
     with FlopCounterMode(display=False) as counter, torch.no_grad():
         call()
@@ -574,6 +614,13 @@ def main() -> None:
             ["path and caches", "s"],
             [[k, v] for k, v in first_calls.items()],
         )
+    ops = op_counts(model, task, per_member)
+    total = ops["model step"] + ops["reward"] + ops["success"]
+    print_table(
+        f"ATen calls dispatched per imagined step (views included; {total} with the task)",
+        ["part", "calls"],
+        [[k, v] for k, v in ops.items()],
+    )
     stock = stock_comparison(model, args.repeats, args.aot) if args.stock else {}
     if stock:
         print_table(
@@ -605,6 +652,7 @@ def main() -> None:
         "budget": {"candidates": CANDIDATES, "particles": PARTICLES, "horizon": HORIZON},
         "scale_per_member": args.scale,
         "flop_per_model_step": flop,
+        "aten_calls_per_step": ops,
         "matmul_peak_flop_per_s": peak,
         "rows": rows,
         "compile_dynamic": compiled,

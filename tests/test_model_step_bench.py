@@ -19,6 +19,8 @@ from model_step import (
     matmuls_alone,
     model_rows,
     model_steps_alone,
+    op_counts,
+    ops_of,
     study_ensemble,
 )
 
@@ -103,3 +105,14 @@ def test_interleaved_times_on_a_device_time_every_call():
     times = interleaved_median_times({"a": lambda: calls.append(1)}, repeats=3, device="cpu")
     assert len(calls) == 4  # one warm-up round, three timed
     assert times["a"]["wall_s"] >= 0.0
+
+
+def test_op_counts_of_a_step_hold_its_task_parts():
+    model = study_ensemble()
+    task = Task(pusher_reward, pusher_success, terminate_on_success=True)
+    counts = op_counts(model, task, 4)
+    assert counts == op_counts(model, task, 64)  # the batch does not change the calls
+    inside = counts["input features (in the step)"] + counts["state constraint (in the step)"]
+    assert 0 < inside < counts["model step"]
+    assert counts["reward"] > 0 and counts["success"] > 0
+    assert ops_of(lambda: torch.zeros(3).add_(1.0).mul(2.0)) == 3
