@@ -31,13 +31,17 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
-import time
 from collections.abc import Callable
 from dataclasses import asdict
 
 import torch
-from _report import benchmark_device, device_name, print_table, synchronize, write_json
+from _report import (
+    benchmark_device,
+    device_name,
+    interleaved_median_times,
+    print_table,
+    write_json,
+)
 from tensordict import TensorDict
 
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
@@ -52,40 +56,36 @@ SMALL = RCVAEConfig(obs_dim=14, action_dim=2, hidden_dim=32, mlp_dim=32, passthr
 DEFAULT = rcvae_config(ModelConfig())
 
 
-#: Where the models run (``--device``).
-DEVICE = torch.device("cpu")
-
-
 def interleaved_medians(
-    runs: dict[str, Callable[[], object]], repeats: int, warmup: int = 1
+    runs: dict[str, Callable[[], object]],
+    repeats: int,
+    device: torch.device,
+    warmup: int = 1,
 ) -> dict[str, float]:
-    """Median seconds of each run, timed round-robin (one call of each per round) so that
-    load drift on a shared machine hits all runs alike; on a GPU until its kernels have run."""
-    for _ in range(warmup):
-        for run in runs.values():
-            run()
-            synchronize(DEVICE)
-    times: dict[str, list[float]] = {name: [] for name in runs}
-    for _ in range(repeats):
-        for name, run in runs.items():
-            start = time.perf_counter()
-            run()
-            synchronize(DEVICE)
-            times[name].append(time.perf_counter() - start)
-    return {name: statistics.median(t) for name, t in times.items()}
+    """Median wall seconds of each run (:func:`_report.interleaved_median_times`)."""
+    times = interleaved_median_times(runs, repeats, warmup, device=device)
+    return {name: t["wall_s"] for name, t in times.items()}
 
 
-def make_model(ensemble_size: int, config: RCVAEConfig = CONFIG) -> RCVAEEnsemble:
+def make_model(
+    ensemble_size: int, config: RCVAEConfig = CONFIG, device: torch.device | str = "cpu"
+) -> RCVAEEnsemble:
     torch.manual_seed(0)
     model = RCVAEEnsemble(config, ensemble_size, functions=MODEL_FUNCTIONS)
     s, a = config.obs_dim, config.action_dim
     model.fit_normalizer(torch.randn(16, 50, s), torch.rand(16, 50, a) * 2 - 1)
-    return model.to(DEVICE)
+    return model.to(device)
 
 
-def train_step(config: RCVAEConfig, ensemble_size: int, windows: int = 64, length: int = 32):
+def train_step(
+    config: RCVAEConfig,
+    ensemble_size: int,
+    device: torch.device,
+    windows: int = 64,
+    length: int = 32,
+):
     """A closure running one loss + backward + Adam step on fixed windows ``[E, W, L]``."""
-    model = make_model(ensemble_size, config)
+    model = make_model(ensemble_size, config, device)
     loss_fn = RCVAELoss(model)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     batch = (ensemble_size, windows, length)
@@ -93,7 +93,7 @@ def train_step(config: RCVAEConfig, ensemble_size: int, windows: int = 64, lengt
         observation=torch.randn(*batch, config.obs_dim),
         action=torch.rand(*batch, config.action_dim),
         batch_size=batch,
-    ).to(DEVICE)
+    ).to(device)
 
     def step() -> None:
         out = loss_fn(td)
@@ -104,17 +104,18 @@ def train_step(config: RCVAEConfig, ensemble_size: int, windows: int = 64, lengt
     return step
 
 
-def train_step_times(config: RCVAEConfig, repeats: int) -> dict[str, float]:
+def train_step_times(config: RCVAEConfig, repeats: int, device: torch.device) -> dict[str, float]:
     """Median step seconds for E = 1 and E = 5 (64 windows per member), and for one member on
     5 × 64 windows (``"1x5w"``)."""
-    runs = {str(e): train_step(config, e) for e in (1, 5)}
-    runs["1x5w"] = train_step(config, 1, windows=5 * 64)
-    return interleaved_medians(runs, repeats, warmup=2)
+    runs = {str(e): train_step(config, e, device) for e in (1, 5)}
+    runs["1x5w"] = train_step(config, 1, device, windows=5 * 64)
+    return interleaved_medians(runs, repeats, device, warmup=2)
 
 
 def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int) -> dict[str, float]:
     """Model-steps/s of vectorised imagine (default chunks, one chunk) and of a member loop."""
-    obs, actions = torch.zeros(14, device=DEVICE), torch.rand(horizon, 2, device=DEVICE) * 2 - 1
+    device = model.device
+    obs, actions = torch.zeros(14, device=device), torch.rand(horizon, 2, device=device) * 2 - 1
     singles = [model.select_members([m]) for m in range(model.ensemble_size)]
     work = model.ensemble_size * n * horizon
     runs = {
@@ -124,17 +125,18 @@ def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int) -
         ),
         "member_loop": lambda: [imagine(s, obs, actions, samples_per_member=n) for s in singles],
     }
-    return {name: work / t for name, t in interleaved_medians(runs, repeats).items()}
+    return {name: work / t for name, t in interleaved_medians(runs, repeats, device).items()}
 
 
 def transition_times(model: RCVAEEnsemble, n: int, repeats: int) -> dict[str, float]:
     """Seconds per step for E·n particles in each layout."""
     e, particles = model.ensemble_size, model.ensemble_size * n
-    obs = torch.randn(particles, 14, device=DEVICE)
-    action = torch.rand(particles, 2, device=DEVICE)
-    hidden = torch.zeros(e, n, CONFIG.hidden_dim, device=DEVICE)
+    device = model.device
+    obs = torch.randn(particles, 14, device=device)
+    action = torch.rand(particles, 2, device=device)
+    hidden = torch.zeros(e, n, CONFIG.hidden_dim, device=device)
     runs = {"member_major": lambda: model.step(hidden, obs.view(e, n, 14), action.view(e, n, 2))}
-    g = torch.Generator(DEVICE).manual_seed(0)
+    g = torch.Generator(device).manual_seed(0)
     for name, ts, member in (
         ("ts_inf_round_robin", "ts_inf", "round_robin"),
         ("ts_inf_random", "ts_inf", "random"),
@@ -144,7 +146,7 @@ def transition_times(model: RCVAEEnsemble, n: int, repeats: int) -> dict[str, fl
         td["action"] = action
         module = make_transition_module(model, trajectory_sampling=ts)
         runs[name] = lambda td=td, module=module: module(td)
-    return interleaved_medians(runs, repeats)
+    return interleaved_medians(runs, repeats, device)
 
 
 def main() -> None:
@@ -158,14 +160,13 @@ def main() -> None:
     )
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
     args = parser.parse_args()
-    global DEVICE
-    DEVICE = benchmark_device(args.device)
+    device = benchmark_device(args.device)
     torch.set_num_threads(args.threads)
     repeats = 3 if args.quick else args.repeats
     sizes = (16, 256) if args.quick else (16, 256, 4096)
 
     configs = {"pusher_H128": CONFIG, "study_default_H64": DEFAULT, "small_H32": SMALL}
-    train = {name: train_step_times(cfg, repeats) for name, cfg in configs.items()}
+    train = {name: train_step_times(cfg, repeats, device) for name, cfg in configs.items()}
     ratio = {name: t["5"] / t["1"] for name, t in train.items()}
     batch_ratio = {name: t["1x5w"] / t["1"] for name, t in train.items()}
     print_table(
@@ -174,7 +175,7 @@ def main() -> None:
         [[n, t["1"], t["5"], ratio[n], t["1x5w"], batch_ratio[n]] for n, t in train.items()],
     )
 
-    model = make_model(5)
+    model = make_model(5, device=device)
     with torch.no_grad():
         gen = {n: generation_rates(model, n, args.horizon, repeats) for n in sizes}
         trans = {n: transition_times(model, n, repeats) for n in sizes}
@@ -212,7 +213,7 @@ def main() -> None:
             "horizon": args.horizon,
             "repeats": repeats,
             "threads": args.threads,
-            "device": device_name(DEVICE),
+            "device": device_name(device),
         },
     )
 
