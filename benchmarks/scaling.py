@@ -312,6 +312,13 @@ def measure_interleaved(name: str, args: dict) -> dict[int, dict[str, Any]]:
     return {world: join_rounds(measured) for world, measured in rounds.items()}
 
 
+def round_speedups(one: list[float], two: list[float]) -> list[float]:
+    """Each round's speed-up: its 1-rank time over its 2-rank time (the rounds in order)."""
+    if len(one) != len(two):
+        raise ValueError(f"expected one 2-rank time per round, got {len(one)} and {len(two)}")
+    return [a / b for a, b in zip(one, two)]
+
+
 def join_rounds(measured: list[dict[str, Any]]) -> dict[str, Any]:
     """One result of several :func:`measure` calls: their times and each rank's CPU seconds in
     order, the gathered bytes (the same in every round), the median gather wait, and the
@@ -546,6 +553,7 @@ def main() -> None:
         c1 = statistics.median(one["cpu_by_rank"][0])
         c2 = statistics.median(max(r) for r in zip(*two["cpu_by_rank"]))
         probe = two["probe"]
+        rounds = round_speedups(one["times"], two["times"])
         rows.append(
             [
                 name,
@@ -553,6 +561,7 @@ def main() -> None:
                 t1,
                 t2,
                 t1 / t2,
+                statistics.median(rounds),
                 t1 / t2 / 2,
                 c1,
                 c2,
@@ -584,6 +593,8 @@ def main() -> None:
             "median_wall_s": {"1": t1, "2": t2},
             "median_cpu_s": {"1": c1, "2 (slowest rank)": c2},
             "speedup_wall": t1 / t2,
+            "speedup_wall_by_round": rounds,
+            "speedup_wall_median_of_rounds": statistics.median(rounds),
             "efficiency_wall": t1 / t2 / 2,
             "speedup_cpu": c1 / c2,
             "efficiency_cpu": c1 / c2 / 2,
@@ -602,6 +613,7 @@ def main() -> None:
             "wall 1",
             "wall 2",
             "speed-up",
+            "rounds' median",
             "eff.",
             "CPU 1",
             "CPU 2",

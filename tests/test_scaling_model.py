@@ -51,3 +51,11 @@ def test_interleaved_rounds_join_in_order():
     assert joined["probe"] == pytest.approx({"payload_s": 0.3, "latency_s": 0.2})
     one_rank = [{**r, "cpu_by_rank": r["cpu_by_rank"][:1], "probe": None} for r in rounds]
     assert join_rounds(one_rank)["probe"] is None
+
+
+def test_each_round_has_its_own_speedup():
+    from scaling import round_speedups
+
+    assert round_speedups([4.0, 3.0], [2.0, 2.5]) == pytest.approx([2.0, 1.2])
+    with pytest.raises(ValueError, match="one 2-rank time per round"):
+        round_speedups([4.0], [2.0, 2.5])
