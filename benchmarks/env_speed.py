@@ -29,6 +29,7 @@ from torchrl.envs import ParallelEnv
 from rcvae_torchrl.envs import CONTROL_TIMESTEP, VARIANTS, make_batched_pusher_env, make_pusher_env
 from rcvae_torchrl.envs.pusher import make_environment
 from rcvae_torchrl.envs.scripted import make_scripted_policy
+from rcvae_torchrl.threads import threads_kept
 
 
 def raw_steps(steps: int) -> None:
@@ -142,13 +143,14 @@ def main() -> None:
     load_before = os.getloadavg()
 
     wrapped = make_pusher_env(seed=0)
-    parallel = ParallelEnv(2, functools.partial(make_pusher_env, "deterministic"))
-    parallel.set_seed(0)
-    try:
-        rows = speed_rows(args.steps, args.batched_steps, wrapped, parallel)
-        times = interleaved_median_times({k: run for k, (run, _) in rows.items()}, args.repeats)
-    finally:
-        parallel.close()
+    with threads_kept():  # closing a ParallelEnv resets torch's thread count
+        parallel = ParallelEnv(2, functools.partial(make_pusher_env, "deterministic"))
+        parallel.set_seed(0)
+        try:
+            rows = speed_rows(args.steps, args.batched_steps, wrapped, parallel)
+            times = interleaved_median_times({k: run for k, (run, _) in rows.items()}, args.repeats)
+        finally:
+            parallel.close()
     speed = {k: steps / times[k]["wall_s"] for k, (_, steps) in rows.items()}
     per_cpu = {k: steps / times[k]["cpu_s"] for k, (_, steps) in rows.items() if k in IN_PROCESS}
     load = {"before": load_before, "after": os.getloadavg()}
