@@ -11,6 +11,8 @@ over ``--episodes`` seeds.
 
     python benchmarks/env_speed.py [--steps 3000] [--batched-steps 100] [--repeats 3]
         [--episodes 100] [--quick]
+
+Writes ``benchmarks/results/env_speed.json`` (``env_speed_quick.json`` with ``--quick``).
 """
 
 from __future__ import annotations
@@ -171,7 +173,7 @@ def main() -> None:
         [[v, r["success_rate"], r["median_time_to_success_s"]] for v, r in scripted.items()],
     )
     write_json(
-        "env_speed",
+        "env_speed_quick" if args.quick else "env_speed",  # a smoke run keeps the record
         {
             "steps": args.steps,
             "batched_steps_per_env": args.batched_steps,
