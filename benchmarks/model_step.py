@@ -425,6 +425,35 @@ class _OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
+#: Elementwise functions that cost far more than a multiply-add per element (activations,
+#: transcendental functions, normal draws); ReLU, a comparison, is not among them.
+TRANSCENDENTAL = {
+    "atan2", "cos", "erfinv", "exp", "linalg_vector_norm", "log", "normal", "normal_", "pow",
+    "randn", "rsqrt", "sigmoid", "silu", "sin", "softplus", "sqrt", "tanh",
+}  # fmt: skip
+
+
+class _ElementCounter(TorchDispatchMode):
+    """Counts the elements the :data:`TRANSCENDENTAL` ops of a call produce."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        if func.overloadpacket.__name__ in TRANSCENDENTAL and isinstance(out, torch.Tensor):
+            self.count += out.numel()
+        return out
+
+
+def transcendentals_of(call) -> int:
+    """Elements produced by :data:`TRANSCENDENTAL` ops in ``call()`` (no gradients)."""
+    with _ElementCounter() as counter, torch.no_grad():
+        call()
+    return counter.count
+
+
 def ops_of(call) -> int:
     """ATen calls dispatched by ``call()`` (no gradients), after a first call (which may fill
     caches: a second one is what every later step costs)."""
@@ -504,6 +533,10 @@ def mbrl_comparison(model: RCVAEEnsemble, repeats: int, aot: bool = False) -> di
     ours_flop = _flop_of(calls["ours (CEMPlanner)"])
     flop = {name: ours_flop for name in planners} | {"mbrl-lib PETS CEM": _flop_of(peer)}
     flop |= {name: _flop_of(run) for name, run in alone.items()}
+    transcendental = {
+        "mbrl-lib PETS CEM": transcendentals_of(peer),
+        "ours (CEMPlanner)": transcendentals_of(calls["ours (CEMPlanner)"]),
+    }
     calls |= alone
     with torch.no_grad():
         times = interleaved_median_times(calls, repeats)
@@ -515,6 +548,8 @@ def mbrl_comparison(model: RCVAEEnsemble, repeats: int, aot: bool = False) -> di
             "flop_per_model_step": flop[name] / steps,
             "flop_per_s": flop[name] / t["wall_s"],
         }
+    for name, count in transcendental.items():
+        out[name]["transcendentals_per_model_step"] = count / steps
     peer_row = out["mbrl-lib PETS CEM"]
     for row in out.values():
         row["steps_per_s_over_mbrl"] = row["model_steps_per_s"] / peer_row["model_steps_per_s"]
@@ -646,6 +681,16 @@ def main() -> None:
                  v["flop_per_model_step"] / 1e3, v["flop_per_s"] / 1e9,
                  v["steps_per_s_over_mbrl"], v["flop_per_s_over_mbrl"]]
                 for k, v in peer.items()
+            ],
+        )  # fmt: skip
+        print_table(
+            "transcendental elements per model step (activations, exp/log/trigonometry, normal "
+            "draws) against the step's FLOP",
+            ["planner", "per model step", "per kFLOP"],
+            [
+                [k, v["transcendentals_per_model_step"],
+                 1e3 * v["transcendentals_per_model_step"] / v["flop_per_model_step"]]
+                for k, v in peer.items() if "transcendentals_per_model_step" in v
             ],
         )  # fmt: skip
     results = {

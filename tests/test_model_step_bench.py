@@ -22,6 +22,7 @@ from model_step import (
     op_counts,
     ops_of,
     study_ensemble,
+    transcendentals_of,
 )
 
 from rcvae_torchrl.envs import pusher_reward, pusher_success
@@ -116,3 +117,13 @@ def test_op_counts_of_a_step_hold_its_task_parts():
     assert 0 < inside < counts["model step"]
     assert counts["reward"] > 0 and counts["success"] > 0
     assert ops_of(lambda: torch.zeros(3).add_(1.0).mul(2.0)) == 3
+
+
+def test_transcendentals_count_the_elements_of_costly_functions_only():
+    x = torch.randn(4, 6)
+    w = torch.ones(6, 2)
+
+    def call() -> None:  # sigmoid (24) and exp (24) count; relu, add and matmul do not
+        (torch.sigmoid(x).exp() + torch.relu(x)) @ w
+
+    assert transcendentals_of(call) == 48
