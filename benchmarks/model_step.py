@@ -376,27 +376,33 @@ def _mbrl_plan():
 _MATMULS = (torch.ops.aten.mm, torch.ops.aten.addmm, torch.ops.aten.bmm, torch.ops.aten.baddbmm)
 
 
-class _MatmulRecorder(TorchDispatchMode):
-    """Records every matrix product a call makes: the op, its operands' shapes, its options."""
+class _Dispatched(TorchDispatchMode):
+    """Every ATen call a call dispatches (views included), in order: the op, its operands
+    (tensors by their shapes), its options, and the elements of its output."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.calls: list[tuple[Any, tuple, dict]] = []
+        self.calls: list[tuple[Any, tuple, dict, int]] = []
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        if func.overloadpacket in _MATMULS:
-            shapes = tuple(torch.Size(a.shape) if isinstance(a, torch.Tensor) else a for a in args)
-            self.calls.append((func, shapes, dict(kwargs or {})))
-        return func(*args, **(kwargs or {}))
+        out = func(*args, **(kwargs or {}))
+        shapes = tuple(torch.Size(a.shape) if isinstance(a, torch.Tensor) else a for a in args)
+        elements = out.numel() if isinstance(out, torch.Tensor) else 0
+        self.calls.append((func, shapes, dict(kwargs or {}), elements))
+        return out
+
+
+def dispatched(call) -> list[tuple[Any, tuple, dict, int]]:
+    """The ATen calls of ``call()`` (no gradients), as :class:`_Dispatched` records them."""
+    with _Dispatched() as recorder, torch.no_grad():
+        call()
+    return recorder.calls
 
 
 def matmuls_alone(call) -> Callable[[], None]:
     """A call that makes the matrix products ``call()`` makes (recorded once), in order, on
     random contiguous operands of the same shapes (one set per shape), and nothing else: the
     time that arithmetic takes at those shapes when no other op stands between the products."""
-    recorder = _MatmulRecorder()
-    with recorder, torch.no_grad():
-        call()
     operands: dict[torch.Size, torch.Tensor] = {}
 
     def operand(a):
@@ -404,25 +410,17 @@ def matmuls_alone(call) -> Callable[[], None]:
             return a
         return operands.setdefault(a, torch.randn(a))
 
-    replay = [(f, [operand(a) for a in shapes], kw) for f, shapes, kw in recorder.calls]
+    replay = [
+        (f, [operand(a) for a in shapes], kw)
+        for f, shapes, kw, _ in dispatched(call)
+        if f.overloadpacket in _MATMULS
+    ]
 
     def run() -> None:
         for func, args, kwargs in replay:
             func(*args, **kwargs)
 
     return run
-
-
-class _OpCounter(TorchDispatchMode):
-    """Counts the ATen calls a call dispatches (views included)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.count = 0
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.count += 1
-        return func(*args, **(kwargs or {}))
 
 
 #: Elementwise functions that cost far more than a multiply-add per element (activations,
@@ -433,25 +431,10 @@ TRANSCENDENTAL = {
 }  # fmt: skip
 
 
-class _ElementCounter(TorchDispatchMode):
-    """Counts the elements the :data:`TRANSCENDENTAL` ops of a call produce."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.count = 0
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        out = func(*args, **(kwargs or {}))
-        if func.overloadpacket.__name__ in TRANSCENDENTAL and isinstance(out, torch.Tensor):
-            self.count += out.numel()
-        return out
-
-
 def transcendentals_of(call) -> int:
     """Elements produced by :data:`TRANSCENDENTAL` ops in ``call()`` (no gradients)."""
-    with _ElementCounter() as counter, torch.no_grad():
-        call()
-    return counter.count
+    calls = dispatched(call)
+    return sum(n for f, _, _, n in calls if f.overloadpacket.__name__ in TRANSCENDENTAL)
 
 
 def ops_of(call) -> int:
@@ -459,9 +442,7 @@ def ops_of(call) -> int:
     caches: a second one is what every later step costs)."""
     with torch.no_grad():
         call()
-        with _OpCounter() as counter:
-            call()
-    return counter.count
+    return len(dispatched(call))
 
 
 def op_counts(model: RCVAEEnsemble, task: Task, per_member: int) -> dict[str, int]:
