@@ -41,22 +41,14 @@ from _report import (  # noqa: E402
     synchronize,
     write_json,
 )
+from model_step import MEMBERS, study_ensemble  # noqa: E402
 from tensordict import TensorDict  # noqa: E402
 
 from rcvae_torchrl.models import RCVAEEnsemble  # noqa: E402
 from rcvae_torchrl.objectives import RCVAELoss  # noqa: E402
-from recipes.pusher_competency.config import ModelConfig  # noqa: E402
-from recipes.pusher_competency.pusher import MODEL_FUNCTIONS, rcvae_config  # noqa: E402
 
-MEMBERS, WINDOWS, LENGTH, HORIZON = 5, 32, 32, 20
+WINDOWS, LENGTH, HORIZON = 32, 32, 20
 SAMPLES = (20, 256, 4096)
-
-
-def study_model(device: torch.device) -> RCVAEEnsemble:
-    torch.manual_seed(0)
-    model = RCVAEEnsemble(rcvae_config(ModelConfig()), MEMBERS, functions=MODEL_FUNCTIONS)
-    model.fit_normalizer(torch.randn(16, 50, 14) * 0.1, torch.rand(16, 50, 2) * 2 - 1)
-    return model.to(device)
 
 
 def training_step(model: RCVAEEnsemble, compiled: bool) -> Callable[[], None]:
@@ -121,7 +113,7 @@ def main() -> None:
     args = parser.parse_args()
     device = benchmark_device(args.device)
     torch.set_num_threads(1)
-    model = study_model(device)
+    model = study_ensemble(device)
     cases = {"training step (loss forward + backward)": (training_step, ())}
     for n in SAMPLES[:1] if args.quick else SAMPLES:
         cases[f"imagination, {HORIZON} steps, {n} per member"] = (imagination, (n,))
