@@ -72,10 +72,15 @@ def training_step(model: RCVAEEnsemble, compiled: bool) -> Callable[[], None]:
     return step
 
 
-def imagination(model: RCVAEEnsemble, per_member: int, compiled: bool) -> Callable[[], None]:
+def imagination(
+    model: RCVAEEnsemble, per_member: int, compiled: bool, step: Callable | None = None
+) -> Callable[[], None]:
     """``HORIZON`` model steps of ``per_member`` trajectories per member, noise drawn up front
-    (the same for both: the compiled step reads it, as the AOT scoring does)."""
-    step = torch.compile(model.step, dynamic=False) if compiled else model.step
+    (the same for both: the compiled step reads it, as the AOT scoring does). ``step`` replaces
+    the step function (``model.step``, or with ``compiled`` its ``torch.compile``), e.g. one
+    compiled function shared by several batch sizes."""
+    if step is None:
+        step = torch.compile(model.step, dynamic=False) if compiled else model.step
     device, cfg = model.device, model.config
     hidden0 = torch.zeros(MEMBERS, per_member, cfg.hidden_dim, device=device)
     obs0 = torch.zeros(MEMBERS, per_member, 14, device=device)

@@ -83,10 +83,14 @@ def train_step(
     device: torch.device,
     windows: int = 64,
     length: int = 32,
+    compiled: bool = False,
 ):
-    """A closure running one loss + backward + Adam step on fixed windows ``[E, W, L]``."""
+    """A closure running one loss + backward + Adam step on fixed windows ``[E, W, L]``; with
+    ``compiled`` the loss (forward and backward) under ``torch.compile``, static shapes (one
+    compile per window count: a second count recompiled with dynamic shapes failed on a GPU,
+    in the noise draw ``randn`` of a symbolic size)."""
     model = make_model(ensemble_size, config, device)
-    loss_fn = RCVAELoss(model)
+    loss_fn = torch.compile(RCVAELoss(model), dynamic=False) if compiled else RCVAELoss(model)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
     batch = (ensemble_size, windows, length)
     td = TensorDict(

@@ -15,6 +15,7 @@ from .layout import (
     OBSERVATION_NAMES,
     OBSERVATION_RESOLUTION,
     obs_indices,
+    obs_slice,
     resolution_tensor,
 )
 from .pusher import (
@@ -50,6 +51,7 @@ __all__ = [
     "OBSERVATION_NAMES",
     "OBSERVATION_RESOLUTION",
     "obs_indices",
+    "obs_slice",
     "resolution_tensor",
     # pure functions of observations
     "pusher_state_constraint",

@@ -77,5 +77,6 @@ def _joint_bounds(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _make_bounds(like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    high = torch.tensor([torch.inf, float(WRIST_RANGE)], dtype=like.dtype, device=like.device)
+    # filled on the device (no tensor copied from host memory: that would break CUDA graphs)
+    high = torch.cat([like.new_full((1,), torch.inf), like.new_full((1,), float(WRIST_RANGE))])
     return -high, high

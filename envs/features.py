@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .layout import obs_indices
+from .layout import obs_slice
 from .scripted import arm_jacobian
 
 __all__ = ["PUSHER_FEATURE_NAMES", "pusher_input_features"]
@@ -27,16 +27,10 @@ PUSHER_FEATURE_NAMES: tuple[str, ...] = (
 )
 
 
-def _span(name: str) -> slice:
-    """The group ``name``'s two adjacent dimensions as a slice (views, no gather per call)."""
-    first, second = obs_indices(name)
-    assert second == first + 1, name
-    return slice(first, second + 1)
-
-
-_COS, _SIN = obs_indices("shoulder_cos", "wrist_cos"), obs_indices("shoulder_sin", "wrist_sin")
-_JOINT_VEL, _FINGER = _span("joint_vel"), _span("finger")
-_BALL, _BALL_VEL = _span("ball"), _span("ball_vel")
+# slices, not index lists: views, no gather (nor host-to-GPU copy of the list) per call
+_COS, _SIN = obs_slice("shoulder_cos", "wrist_cos"), obs_slice("shoulder_sin", "wrist_sin")
+_JOINT_VEL, _FINGER = obs_slice("joint_vel"), obs_slice("finger")
+_BALL, _BALL_VEL = obs_slice("ball"), obs_slice("ball_vel")
 
 
 def pusher_input_features(observation: torch.Tensor) -> torch.Tensor:

@@ -10,6 +10,7 @@ dimension's own units (metres, m/s, rad/s, or unitless for cos/sin).
 
 from __future__ import annotations
 
+import itertools
 from types import MappingProxyType
 
 import torch
@@ -21,6 +22,7 @@ __all__ = [
     "OBSERVATION_NAMES",
     "OBSERVATION_RESOLUTION",
     "obs_indices",
+    "obs_slice",
     "resolution_tensor",
 ]
 
@@ -75,6 +77,21 @@ OBSERVATION_RESOLUTION = MappingProxyType(
         **dict.fromkeys(("ball_vx", "ball_vy"), _UNIT_RESOLUTION["velocity"]),
     }
 )
+
+
+def obs_slice(*names: str) -> slice:
+    """The named dimensions (:func:`obs_indices`) as one slice, when they are evenly spaced:
+    indexing with it gives a view, where a list of indices gathers (and on a GPU first copies
+    the list from host memory on every call).
+
+    >>> obs_slice("shoulder_cos", "wrist_cos")
+    slice(0, 3, 2)
+    """
+    idx = obs_indices(*names)
+    step = idx[1] - idx[0] if len(idx) > 1 else 1
+    if step < 1 or any(b - a != step for a, b in itertools.pairwise(idx)):
+        raise ValueError(f"names: {names} are not evenly spaced dimensions ({idx})")
+    return slice(idx[0], idx[-1] + 1, step)
 
 
 def obs_indices(*names: str) -> list[int]:

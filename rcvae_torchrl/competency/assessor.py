@@ -451,7 +451,10 @@ def _gathered(parts: list[TensorDictBase], device: torch.device) -> TensorDictBa
 
 def _check_model_env(model_env: object) -> int:
     """A world model that imagines rollouts over ``E >= 2`` members; returns its state dim."""
-    if not isinstance(model_env, ImaginesRollouts) or not hasattr(model_env.ensemble, "config"):
+    # attribute look-ups, not isinstance(·, ImaginesRollouts): from Python 3.12 a protocol's
+    # isinstance reads attributes statically and misses a module's submodules (``ensemble``)
+    ensemble = getattr(model_env, "ensemble", None)
+    if not callable(getattr(model_env, "imagine", None)) or not hasattr(ensemble, "config"):
         raise TypeError(
             "model_env: expected a world model with an ensemble and an imagine method (e.g. an "
             f"RCVAEEnsembleEnv), got {type(model_env).__name__}"

@@ -342,7 +342,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         horizon: int | None = None,
         samples_per_member: int = 1,
         generator: torch.Generator | None = None,
-        chunk_size: int | None = 1024,
+        chunk_size: int | str | None = "auto",
     ) -> TensorDictBase:
         """Imagined rollouts ``[E, N, *B, T]`` from start states, open or closed loop, scored.
 
@@ -366,8 +366,9 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             horizon: T (closed loop).
             samples_per_member: N.
             generator: default: the env's.
-            chunk_size: trajectories per member rolled out together; the noise drawn depends
-                on it.
+            chunk_size: trajectories per member rolled out together (``"auto"``: by the
+                device, see :func:`~rcvae_torchrl.rollout.chunk_size_for`); the noise drawn
+                depends on it.
         """
         observation = start.get(OBSERVATION_KEY) if isinstance(start, TensorDictBase) else start
         with torch.no_grad():

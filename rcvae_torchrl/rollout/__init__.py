@@ -21,7 +21,13 @@ from rcvae_torchrl.rollout.aot import (
     default_cache_dir,
     scoring_key,
 )
-from rcvae_torchrl.rollout.imagine import ImaginePolicy, as_tensor_policy, imagine, plan_actions
+from rcvae_torchrl.rollout.imagine import (
+    ImaginePolicy,
+    as_tensor_policy,
+    chunk_size_for,
+    imagine,
+    plan_actions,
+)
 from rcvae_torchrl.rollout.layout import MemberLayout
 from rcvae_torchrl.rollout.loop import ActionBounds, Policy, RolloutHook, StepRecord, rollout
 from rcvae_torchrl.rollout.sampling import (
@@ -74,6 +80,7 @@ __all__ = [
     "SequenceReturns",
     "as_tensor_policy",
     "evaluate_action_sequences",
+    "chunk_size_for",
     "imagine",
     "init_model_state",
     "make_transition_module",

@@ -277,7 +277,7 @@ def check_model(
     truth = obs[..., 1:, :]
     one_step = _rmse(predicted.mean(0) - truth)
     copy_one_step = _rmse(truth - obs[..., :-1, :])
-    spread = data.get("observation").to(torch.float64).std(0, correction=0)
+    spread = data.get("observation").to(device, torch.float64).std(0, correction=0)
     many = _windows(data, k + 1, windows, seed + 1).to(device)
     starts, truth_k = many.get("observation")[:, 0], many.get(("next", "observation"))[:, k - 1]
     generator = torch.Generator(device=device).manual_seed(seed)

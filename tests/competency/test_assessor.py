@@ -411,6 +411,18 @@ def test_argument_errors(env):
         CompetencyAssessor(env, lambda obs: obs, bin_width=0.1)
 
 
+def test_a_world_model_is_recognised_by_its_attributes(env):
+    """A wrapper that forwards ``ensemble`` and ``imagine`` dynamically (as ``nn.Module`` serves
+    its submodules) is accepted: protocol ``isinstance`` checks read attributes statically from
+    Python 3.12 on and would refuse it."""
+
+    class Forwarding:
+        def __getattr__(self, name):
+            return getattr(env, name)
+
+    assert CompetencyAssessor(Forwarding(), boundary(), bin_width=0.1).model_env is not None
+
+
 def test_assess_errors(env, starts, plan):
     assessor = make_assessor(env)
     with pytest.raises(ValueError, match="got both"):

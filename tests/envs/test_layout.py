@@ -8,6 +8,7 @@ from rcvae_torchrl.envs import (
     OBSERVATION_RESOLUTION,
     make_pusher_env,
     obs_indices,
+    obs_slice,
     resolution_tensor,
 )
 
@@ -44,3 +45,17 @@ def test_layout_matches_the_physics():
     fx = 0.12 * c1 + 0.12 * (c1 * c2 - s1 * s2)
     fy = 0.12 * s1 + 0.12 * (s1 * c2 + c1 * s2)
     torch.testing.assert_close(obs[obs_indices("finger")], torch.stack([fx, fy]), atol=1e-6, rtol=0)
+
+
+def test_obs_slice_views_what_obs_indices_gathers():
+    obs = torch.randn(3, 14)
+    for names in (("shoulder_cos", "wrist_cos"), ("shoulder_sin", "wrist_sin"), ("ball",)):
+        span = obs_slice(*names)
+        assert isinstance(span, slice)
+        assert torch.equal(obs[..., span], obs[..., obs_indices(*names)])
+        assert obs[..., span].data_ptr() == obs[..., span.start].data_ptr()  # a view
+
+
+def test_obs_slice_refuses_uneven_dimensions():
+    with pytest.raises(ValueError, match=r"names: \('ball_x', 'target'\) are not evenly spaced"):
+        obs_slice("ball_x", "target")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from rcvae_torchrl.rollout import imagine
+from rcvae_torchrl.rollout import chunk_size_for, imagine
 
 
 @pytest.mark.parametrize("batch", [(), (3,), (2, 3)])
@@ -160,3 +160,27 @@ def test_non_finite_model_output_is_an_error(ensemble):
         ensemble.decoder[-1].bias.fill_(float("inf"))
     with pytest.raises(ValueError, match="non-finite states from step 1"):
         imagine(ensemble, torch.zeros(5), torch.zeros(3, 2))
+
+
+def test_auto_chunk_size_by_device():
+    """``"auto"`` keeps the CPU's cache-sized chunks and widens them on an accelerator."""
+    assert chunk_size_for("auto", "cpu") == 1024
+    assert chunk_size_for("auto", torch.device("cuda", 0)) == 65536
+    assert chunk_size_for(None, "cpu") is None and chunk_size_for(7, "cuda") == 7
+    with pytest.raises(ValueError, match="chunk_size"):
+        chunk_size_for(0, "cpu")
+
+
+def test_the_default_chunks_are_the_cpus_1024(ensemble):
+    """On a CPU the default draws the same samples as ``chunk_size=1024`` (and not as one
+    chunk, once there is more than one chunk)."""
+    obs, actions = torch.randn(3, 5), torch.rand(3, 4, 2)
+
+    def draw(chunk_size):
+        gen = torch.Generator().manual_seed(0)
+        kwargs = {} if chunk_size == "default" else {"chunk_size": chunk_size}
+        return imagine(ensemble, obs, actions, samples_per_member=400, generator=gen, **kwargs)
+
+    default = draw("default")["observation"]
+    assert torch.equal(default, draw(1024)["observation"])
+    assert not torch.equal(default, draw(None)["observation"])
