@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .layout import obs_slice
+from .layout import OBSERVATION_PARTS
 from .scripted import arm_jacobian
 
 __all__ = ["PUSHER_FEATURE_NAMES", "pusher_input_features"]
@@ -28,9 +28,8 @@ PUSHER_FEATURE_NAMES: tuple[str, ...] = (
 
 
 # slices, not index lists: views, no gather (nor host-to-GPU copy of the list) per call
-_COS, _SIN = obs_slice("shoulder_cos", "wrist_cos"), obs_slice("shoulder_sin", "wrist_sin")
-_JOINT_VEL, _FINGER = obs_slice("joint_vel"), obs_slice("finger")
-_BALL, _BALL_VEL = obs_slice("ball"), obs_slice("ball_vel")
+_COS, _SIN, _JOINT_VEL = (OBSERVATION_PARTS[k] for k in ("cos", "sin", "joint_vel"))
+_FINGER, _BALL, _BALL_VEL = (OBSERVATION_PARTS[k] for k in ("finger", "ball", "ball_vel"))
 
 
 def pusher_input_features(observation: torch.Tensor) -> torch.Tensor:

@@ -20,6 +20,7 @@ __all__ = [
     "OBSERVATION_GROUPS",
     "OBSERVATION_LAYOUT",
     "OBSERVATION_NAMES",
+    "OBSERVATION_PARTS",
     "OBSERVATION_RESOLUTION",
     "obs_indices",
     "obs_slice",
@@ -115,3 +116,15 @@ def obs_indices(*names: str) -> list[int]:
 def resolution_tensor(dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """The per-dimension resolution as a ``[OBSERVATION_DIM]`` tensor (histogram bin widths)."""
     return torch.tensor([OBSERVATION_RESOLUTION[n] for n in OBSERVATION_NAMES], dtype=dtype)
+
+
+#: The state's parts as slices of the observation (indexing with one gives a view): the arm's
+#: cosines and sines (shoulder, wrist), its joint velocities, the fingertip, the ball, its
+#: velocity and the target. What the Pusher's features, scripted policy and readout index by.
+OBSERVATION_PARTS = MappingProxyType(
+    {
+        "cos": obs_slice("shoulder_cos", "wrist_cos"),
+        "sin": obs_slice("shoulder_sin", "wrist_sin"),
+        **{name: obs_slice(name) for name in ("joint_vel", "finger", "ball", "ball_vel", "target")},
+    }
+)

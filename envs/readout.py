@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .functions import ACTION_COST, APPROACH_WEIGHT, CONTACT_DISTANCE
-from .layout import OBSERVATION_DIM, obs_indices
+from .layout import OBSERVATION_DIM, OBSERVATION_PARTS
 
 __all__ = [
     "PusherState",
@@ -24,15 +24,9 @@ __all__ = [
     "state_from_observation",
 ]
 
-_COS = obs_indices("shoulder_cos", "wrist_cos")
-_SIN = obs_indices("shoulder_sin", "wrist_sin")
-_JOINT_VEL = obs_indices("joint_vel")
-_FINGER = obs_indices("finger")
-_BALL = obs_indices("ball")
-_BALL_VEL = obs_indices("ball_vel")
-_TARGET = obs_indices("target")
+_COS, _SIN, _JOINT_VEL, _FINGER, _BALL, _BALL_VEL, _TARGET = OBSERVATION_PARTS.values()
 # assemble_observation concatenates its parts in this order; _GATHER puts them in layout order.
-_PART_SLOTS = [*_COS, *_SIN, *_JOINT_VEL, *_FINGER, *_BALL, *_BALL_VEL, *_TARGET]
+_PART_SLOTS = [i for part in OBSERVATION_PARTS.values() for i in range(OBSERVATION_DIM)[part]]
 _GATHER = np.argsort(_PART_SLOTS)
 
 
@@ -60,7 +54,7 @@ def state_from_observation(observation: np.ndarray) -> PusherState:
 
     Example:
         >>> obs = np.zeros(OBSERVATION_DIM)
-        >>> obs[obs_indices("shoulder_cos", "wrist_cos")] = 1.0
+        >>> obs[OBSERVATION_PARTS["cos"]] = 1.0
         >>> state_from_observation(obs).arm_angles
         array([0., 0.])
     """

@@ -15,7 +15,7 @@ from torch import nn
 
 from .constraints import LINK_LENGTH as _LINK
 from .functions import CONTACT_DISTANCE
-from .layout import obs_slice
+from .layout import OBSERVATION_PARTS
 
 __all__ = ["ScriptedPusher", "make_scripted_policy"]
 
@@ -25,12 +25,8 @@ _NEAR_HUB = 0.095  # m: a ball closer to the base than this is pushed around, no
 _NEAR_HUB_TURN = 0.3  # rad
 _WRIST_BAND = (0.6, 2.4)  # rad: |wrist| outside this band is pulled back (near-singular arm)
 
-_COS = obs_slice("shoulder_cos", "wrist_cos")
-_SIN = obs_slice("shoulder_sin", "wrist_sin")
-_QVEL = obs_slice("joint_vel")
-_FINGER = obs_slice("finger")
-_BALL = obs_slice("ball")
-_TARGET = obs_slice("target")
+_COS, _SIN, _QVEL = (OBSERVATION_PARTS[k] for k in ("cos", "sin", "joint_vel"))
+_FINGER, _BALL, _TARGET = (OBSERVATION_PARTS[k] for k in ("finger", "ball", "target"))
 
 
 def _unit(v: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:

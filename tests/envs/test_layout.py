@@ -5,6 +5,7 @@ from rcvae_torchrl.envs import (
     OBSERVATION_DIM,
     OBSERVATION_LAYOUT,
     OBSERVATION_NAMES,
+    OBSERVATION_PARTS,
     OBSERVATION_RESOLUTION,
     make_pusher_env,
     obs_indices,
@@ -59,3 +60,10 @@ def test_obs_slice_views_what_obs_indices_gathers():
 def test_obs_slice_refuses_uneven_dimensions():
     with pytest.raises(ValueError, match=r"names: \('ball_x', 'target'\) are not evenly spaced"):
         obs_slice("ball_x", "target")
+
+
+def test_observation_parts_cover_the_layout_once():
+    covered = [i for part in OBSERVATION_PARTS.values() for i in range(OBSERVATION_DIM)[part]]
+    assert sorted(covered) == list(range(OBSERVATION_DIM))
+    assert OBSERVATION_PARTS["cos"] == obs_slice("shoulder_cos", "wrist_cos")
+    assert OBSERVATION_PARTS["target"] == obs_slice("target")
