@@ -94,6 +94,13 @@ class TrainConfig:
             ``batch_windows``. With D > 1 the results depend on D (each rank draws its own
             noise), not on the number of groups; 1 (the default) shards members only, and a
             run then equals a single process's. Without a process group it has no effect.
+        compile: run the training loss (forward and backward) under ``torch.compile`` (static
+            shapes; validation stays eager). The same computation up to float rounding, not
+            bit for bit. It pays only for long runs: measured on the study's model (5
+            members, 64 windows of 32 steps), a step took 10.2 ms compiled against 16.4 eager
+            on an H100 after a 27 s compile (paid back after about 4,400 steps), and 1.23x
+            faster on a CPU core after an 81 s compile (about 7,700 steps), so it is off by
+            default.
     """
 
     max_steps: int = 3000
@@ -113,6 +120,7 @@ class TrainConfig:
     episode_start_fraction: float = 0.0
     bootstrap: bool = False
     data_parallel: int = 1
+    compile: bool = False
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.episode_start_fraction <= 1.0:
@@ -138,8 +146,9 @@ class TrainConfig:
             raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop!r}")
         if not 0.0 <= self.nll_beta <= 1.0:
             raise ValueError(f"nll_beta: expected a value in [0, 1], got {self.nll_beta!r}")
-        if not isinstance(self.bootstrap, bool):
-            raise ValueError(f"bootstrap: expected True or False, got {self.bootstrap!r}")
+        for name in ("bootstrap", "compile"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
         parallel = self.data_parallel
@@ -335,6 +344,8 @@ def _train_shard(
     trained: torch.nn.Module = loss_fn
     if layout.group is not None:  # the group's gradients averaged in the backward pass
         trained = DistributedDataParallel(loss_fn, process_group=layout.group)
+    if config.compile:
+        trained = torch.compile(trained, dynamic=False)
     state = _new_state(local)
     if resume and shard_path is not None:
         _check_no_foreign_shards(shard_path, path)

@@ -197,6 +197,25 @@ def test_a_checkpoint_from_before_a_new_setting_resumes(linear_data, small_ensem
         )
 
 
+def test_a_compiled_loss_trains_as_the_eager_one(linear_data, small_ensemble):
+    """``compile=True``: the same run up to float rounding (fused kernels), not bit for bit."""
+    train, val = linear_data
+    config = dataclasses.replace(CONFIG, max_steps=10, val_every=5)
+    eager = train_ensemble(small_ensemble(seed=1), train, val, config, progress=False)
+    compiled = dataclasses.replace(config, compile=True)
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    fused = train_ensemble(small_ensemble(seed=1), train, val, compiled, progress=False)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] >= 1  # it did compile
+    assert fused.steps == eager.steps
+    for (name, x), y in zip(
+        eager.ensemble.state_dict().items(), fused.ensemble.state_dict().values()
+    ):
+        torch.testing.assert_close(y, x, rtol=1e-4, atol=1e-5, msg=name)
+    with pytest.raises(ValueError, match="compile: expected True or False, got 1"):
+        TrainConfig(compile=1)
+
+
 def test_bad_resume_arguments(linear_data, small_ensemble, tmp_path):
     train, val = linear_data
     with pytest.raises(ValueError, match="resume: expected a checkpoint_path"):
