@@ -12,19 +12,19 @@ from __future__ import annotations
 
 import torch
 
-from .layout import obs_indices
+from .layout import OBSERVATION_PARTS
 from .pusher import ARENA_RADIUS, BALL_RADIUS, HUB_RADIUS, WRIST_RANGE
 
 __all__ = ["pusher_state_constraint"]
 
 LINK_LENGTH = 0.12  # m, each of the two links (pusher.xml)
-_COS, _SIN = obs_indices("shoulder_cos", "wrist_cos"), obs_indices("shoulder_sin", "wrist_sin")
-_FINGER, _BALL = obs_indices("finger"), obs_indices("ball")
+_COS, _SIN, _JOINT_VEL, _FINGER, _BALL, _BALL_VEL, _ = OBSERVATION_PARTS.values()
 
 
-# the layout the slices below rely on: the joints' (cos, sin) interleaved at 0..3, then the joint
-# velocities, the fingertip, the ball, and the rest (left as it is)
-assert _COS == [0, 2] and _SIN == [1, 3] and _FINGER == [6, 7] and _BALL == [8, 9]
+# the layout the output's concatenation relies on: the joints' (cos, sin) interleaved at 0..3,
+# then the joint velocities, the fingertip, the ball, and the rest (left as it is)
+assert (_COS, _SIN) == (slice(0, 3, 2), slice(1, 4, 2))
+assert _JOINT_VEL.stop == _FINGER.start and _FINGER.stop == _BALL.start == _BALL_VEL.start - 2
 # MuJoCo's contacts are soft: pushed by the fingertip, the simulated ball presses up to about
 # 3 mm into the fence or the hub (measured over the study's data), so the bounds allow 4 mm.
 _CONTACT_SLACK = 0.004
@@ -40,22 +40,22 @@ def pusher_state_constraint(previous: torch.Tensor, state: torch.Tensor) -> torc
     """
     del previous  # the constraint holds state by state
     # contiguous operands: atan2 then takes the same (vectorised) path as on gathered columns
-    angles = torch.atan2(state[..., 1:4:2].contiguous(), state[..., 0:4:2].contiguous())
+    angles = torch.atan2(state[..., _SIN].contiguous(), state[..., _COS].contiguous())
     angles = torch.clamp(angles, *_joint_bounds(angles))  # the shoulder free, the wrist limited
     # shoulder, wrist, shoulder + wrist; then their (cos, sin) [..., 3, 2]
     angles = torch.cat([angles, angles.sum(-1, keepdim=True)], dim=-1)
     cos_sin = torch.stack([angles.cos(), angles.sin()], dim=-1)
     finger = LINK_LENGTH * (cos_sin[..., 0, :] + cos_sin[..., 2, :])
-    ball = state[..., 8:10]
+    ball = state[..., _BALL]
     radius = torch.linalg.vector_norm(ball, dim=-1, keepdim=True).clamp_min(1e-9)
     allowed = radius.clamp(_BALL_MIN, _BALL_MAX)
     return torch.cat(
         [
             cos_sin[..., :2, :].flatten(-2),
-            state[..., 4:6],
+            state[..., _JOINT_VEL],
             finger,
             ball * (allowed / radius),
-            state[..., 10:],
+            state[..., _BALL_VEL.start :],
         ],
         dim=-1,
     )

@@ -27,15 +27,15 @@ ImaginePolicy = TensorDictModuleBase | Policy
 #: a chunk's tensors stay in cache; on a GPU every op of a step is one kernel launch whatever
 #: its width, so a small chunk leaves the device idle (on an H100, at 131,072 trajectories per
 #: member, chunks of 1024 ran 24x slower than one chunk: benchmarks/gpu_throughput.py).
-AUTO_CHUNK = {"cpu": 1024}
-AUTO_CHUNK_ACCELERATOR = 65536
+AUTO_CHUNK_CPU, AUTO_CHUNK_ACCELERATOR = 1024, 65536
 
 
 def chunk_size_for(chunk_size: int | str | None, device: torch.device | str) -> int | None:
-    """The chunk size ``imagine`` uses: ``"auto"`` resolves by ``device`` (:data:`AUTO_CHUNK`,
-    else :data:`AUTO_CHUNK_ACCELERATOR`); a count or ``None`` (one chunk) is kept."""
+    """The chunk size ``imagine`` uses: ``"auto"`` resolves by ``device`` (:data:`AUTO_CHUNK_CPU`
+    on a CPU, else :data:`AUTO_CHUNK_ACCELERATOR`); a count or ``None`` (one chunk) is kept."""
     if chunk_size == "auto":
-        return AUTO_CHUNK.get(torch.device(device).type, AUTO_CHUNK_ACCELERATOR)
+        cpu = torch.device(device).type == "cpu"
+        return AUTO_CHUNK_CPU if cpu else AUTO_CHUNK_ACCELERATOR
     _checks.check_positive_int_or_none("chunk_size", chunk_size)
     return chunk_size
 
