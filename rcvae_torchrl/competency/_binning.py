@@ -44,6 +44,10 @@ SORT_FACTOR = 16
 #: Stand-in bin id of ended samples while the live samples' lowest bin is found.
 _ABOVE_ALL_BINS = 1 << 62
 
+#: Bin ids must lie within ±this, so that they, their spans and the ended samples' stand-in
+#: all fit in int64.
+MAX_BIN = 1 << 61
+
 
 def batch_chunks(n_batch: int, per_item: int, chunk_elements: int) -> Iterator[slice]:
     """Slices over ``n_batch`` items so that each slice holds at most ``chunk_elements`` entries.
@@ -61,9 +65,20 @@ def bin_ids(samples: Tensor, width: Tensor) -> Tensor:
     ``width`` is ``[]`` or ``[D]``. The division is done in the samples' dtype (float32 is several
     times faster than float64 here): a value within one rounding error of a bin edge may land in
     the neighbouring bin, but every group is binned by the same arithmetic, so bins stay shared.
-    Bin ids must fit in int64 (``|x / width| < 2**62``).
+    Bin ids must lie within ±:data:`MAX_BIN` (``|x / width| < 2**61``); farther samples are
+    refused, since int64 cannot count their bins (they would all share one).
     """
-    return torch.floor(samples / width.to(samples.dtype)).to(torch.int64)
+    scaled = samples / width.to(samples.dtype)
+    if scaled.numel() > 0:
+        largest = scaled.abs().amax()
+        if not bool(largest < MAX_BIN):
+            raise ValueError(
+                f"bin_width: expected samples within 2**61 bin widths of 0 to be binned, got "
+                f"|sample / bin_width| up to {largest.item():.3g} (samples up to "
+                f"{samples.abs().amax().item():.3g}, bin width down to "
+                f"{width.amin().item():.3g}); use a wider bin_width or check the samples"
+            )
+    return torch.floor(scaled).to(torch.int64)
 
 
 def shuffled_labels(perms: Tensor, n: int) -> Tensor:
@@ -136,7 +151,7 @@ def _cell_codes(
     if ended is not None:
         offsets = offsets.masked_fill_(ended, 0)
     spans = offsets.amax(dim=0) + 1
-    cells = int(spans.sum())
+    cells = float(spans.sum(dtype=torch.float64))  # a float: int64 spans may sum past 2**63
     if cells > SORT_FACTOR * flat.numel():
         offsets, spans = _ranks(offsets)
         return offsets.add_(torch.cumsum(spans, dim=0) - spans), spans

@@ -80,12 +80,14 @@ class CompetencyReport:
        what changed: each part's time-mean bits against the reference's, and which part rose
        (at least ``rise`` times the reference; the larger rise when both did): ``Against the
        in-distribution reference, epistemic uncertainty rose 2.1x (0.29 -> 0.61 bits) and
-       aleatoric 1.0x (10.2 -> 10.4 bits): the model has not seen states like this.``
-       Without one, the dominant type: the larger of the aleatoric and epistemic time-mean
-       bits summed over dimensions (``("uncertainty", "summary", ·)``; a tie counts as
-       aleatoric), given with its share of the total: ``Most of the doubt is epistemic (0.70
+       aleatoric 1.0x (10.2 -> 10.4 bits): the model has not seen states like this.`` (a
+       part below the reference "fell to" its ratio). Without one, the dominant type: the
+       larger of the aleatoric and epistemic time-mean bits summed over dimensions
+       (``("uncertainty", "summary", ·)``; a tie counts as aleatoric), given with its share
+       of the total: ``Most of the doubt is epistemic (0.70
        of 1.10 bits): the model has not seen states like this.`` When all three are 0 the
-       sentence says so.
+       sentence says so. With a ``model_warning`` neither: the bits are given without a cause
+       (a model that failed its checks may take missing knowledge for chance, or hide it).
     4. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
        each with its mean bits and the time of its peak. Left out for joint estimators.
 
@@ -242,6 +244,8 @@ class CompetencyReport:
         aleatoric, epistemic, total = (
             float(uncertainty.get(("summary", k))) for k in ("aleatoric", "epistemic", "total")
         )
+        if self.model_warning:  # a model that failed its checks: its split is not evidence
+            return _unreliable_split_sentence(aleatoric, epistemic, total)
         if self.reference is None:
             return _doubt_sentence(aleatoric, epistemic, total)
         return _change_sentence(aleatoric, epistemic, self.reference)
@@ -260,6 +264,16 @@ def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:
     return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {_REASONS[kind]}."
 
 
+def _unreliable_split_sentence(aleatoric: float, epistemic: float, total: float) -> str:
+    """The bits without a cause: a model that failed its self-checks may call missing knowledge
+    chance (an unlearned dimension spread by its noise) or hide it (an overconfident one)."""
+    return (
+        f"Uncertainty: {aleatoric:.2f} bits aleatoric and {epistemic:.2f} epistemic of "
+        f"{total:.2f}; with the model's failed self-checks this split does not say whether "
+        "more data would help."
+    )
+
+
 def _ratio(value: float, reference: float) -> float:
     if reference > 0:
         return value / reference
@@ -275,8 +289,9 @@ def _change_sentence(aleatoric: float, epistemic: float, reference: Reference) -
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
     parts = [
-        f"{k} {'uncertainty rose ' if i == 0 else ''}{ratios[k]:.1f}x "
-        f"({refs[k]:.2f} -> {values[k]:.2f} bits)"
+        f"{k} {'uncertainty ' if i == 0 else ''}"
+        f"{'rose ' if ratios[k] >= 1 and i == 0 else 'fell to ' if ratios[k] < 1 else ''}"
+        f"{ratios[k]:.1f}x ({refs[k]:.2f} -> {values[k]:.2f} bits)"
         for i, k in enumerate(("epistemic", "aleatoric"))
     ]
     text = f"Against the {reference.name}, {parts[0]} and {parts[1]}"

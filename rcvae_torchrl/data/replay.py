@@ -9,6 +9,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers.samplers import SliceSampler
 
+from rcvae_torchrl._checks import check_positive_int
+
 from .collection import TRAJ_KEY, check_episode_ids
 
 __all__ = [
@@ -110,6 +112,14 @@ def sample_windows(
                 f"buffer: expected one buffer, or one per member with generators, got "
                 f"{len(buffers)} buffers and "
                 f"{'no' if generators is None else len(generators)} generators"
+            )
+    check_positive_int("num_windows", num_windows)
+    for own in [buffer] if buffers is None else buffers:
+        if own.sampler.slice_len != window:
+            raise ValueError(
+                f"window: expected the buffer's window of {own.sampler.slice_len} steps (the "
+                f"window given to make_window_buffer: its sampler keeps windows inside an "
+                f"episode for that length only), got {window}"
             )
     if start_windows and generators is None:
         raise ValueError("start_windows: expected generators (one per member) with it")

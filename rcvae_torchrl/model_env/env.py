@@ -96,8 +96,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         reward_fn: ``reward_fn(observation=s_{t+1} [..., S], action=a_t [..., A]) -> [..., 1]``.
         success_fn: ``success_fn(observation=s [..., S]) -> [...]`` bool.
         real_env: copy the task specs from it (:meth:`set_specs_from_env`) and draw start
-            states from its ``reset()`` when no others are given; without it, default specs
-            (actions bounded in [-1, 1]).
+            states from its ``reset()`` when no others are given (which ends the episode it is
+            in); without it, default specs (actions bounded in [-1, 1]).
         trajectory_sampling: ``"ts_inf"``, ``"ts1"`` or ``"mean"``.
         member_assignment: ``"round_robin"`` or ``"random"`` members at reset.
         terminate_on_success: success ends an imagined episode (mirror the real env's setting;

@@ -27,8 +27,10 @@ def make_rcvae_env(
 
     Args:
         ensemble: the trained world model.
-        real_env: the env the agent acts in; its specs are copied, it is neither stepped nor
-            reset (``None``: default specs).
+        real_env: the env the agent acts in; its specs are copied, and a reset of the model
+            env that is given no start states (neither in the input nor ``start_states``) draws
+            them by resetting it, which ends the episode it is in: act in another instance, or
+            reset the model env from states (``None``: default specs). It is never stepped.
         reward_fn: ``reward_fn(observation=s_{t+1}, action=a_t) -> [..., 1]``.
         success_fn: ``success_fn(observation=s) -> [...]`` bool (e.g. a
             ``functools.partial`` of a function with a radius argument).

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 __all__ = ["RCVAEConfig"]
@@ -67,8 +69,14 @@ class RCVAEConfig:
             raise ValueError(f"RCVAEConfig.episode_latent_dim must be an int >= 0, got {ze!r}.")
         for name in ("obs_dim", "action_dim", "hidden_dim", "latent_dim", "mlp_dim"):
             value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"RCVAEConfig.{name} must be a positive int, got {value!r}.")
+        for name in ("min_log_std", "max_log_std", "latent_min_std"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise TypeError(f"RCVAEConfig.{name} must be a number, got {value!r}.")
+            if not math.isfinite(value):
+                raise ValueError(f"RCVAEConfig.{name} must be finite, got {value!r}.")
         if not self.min_log_std < self.max_log_std:
             raise ValueError(
                 "RCVAEConfig.min_log_std must be below max_log_std, got "
@@ -76,10 +84,23 @@ class RCVAEConfig:
             )
         if self.latent_min_std < 0:
             raise ValueError(f"RCVAEConfig.latent_min_std must be >= 0, got {self.latent_min_std}.")
-        object.__setattr__(self, "passthrough_dims", tuple(int(d) for d in self.passthrough_dims))
+        dims = self.passthrough_dims
+        if isinstance(dims, (str, bytes)) or not isinstance(dims, Sequence):
+            raise TypeError(
+                f"RCVAEConfig.passthrough_dims must be a sequence of ints, got {dims!r}."
+            )
+        if any(isinstance(d, bool) or not isinstance(d, int) for d in dims):
+            raise TypeError(f"RCVAEConfig.passthrough_dims must hold ints, got {dims!r}.")
+        object.__setattr__(self, "passthrough_dims", tuple(dims))
         self._check_passthrough()
         if self.observation_names is not None:
-            names = tuple(str(n) for n in self.observation_names)
+            names = self.observation_names
+            if isinstance(names, (str, bytes)) or not all(isinstance(n, str) for n in names):
+                raise TypeError(
+                    "RCVAEConfig.observation_names must be a sequence of strings (one per state "
+                    f"dimension), got {names!r}."
+                )
+            names = tuple(names)
             if len(names) != self.obs_dim:
                 raise ValueError(
                     f"RCVAEConfig.observation_names: expected {self.obs_dim} names (one per "

@@ -8,6 +8,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from rcvae_torchrl._checks import check_finite, check_floating, check_tensor, check_trailing
+
 __all__ = ["StateNormalizer", "masked_mean_std"]
 
 
@@ -119,7 +121,27 @@ class StateNormalizer(nn.Module):
                 ``("next", "observation")``); state changes are ``next − observation``.
             features: the input features of ``observations`` ``[..., F]``; required when
                 ``feature_dim > 0``.
+
+        Raises:
+            ValueError / TypeError naming the argument: a non-floating input, a last dimension
+            other than S / A / F, or a NaN or infinite entry among the steps that count (the
+            statistics would be NaN, and so would every later prediction with them).
         """
+        obs_dim, action_dim = self.state_mean.shape[0], self.action_mean.shape[0]
+        for name, x, size in (
+            ("observations", observations, obs_dim),
+            ("actions", actions, action_dim),
+            ("next_observations", next_observations, obs_dim),
+            ("features", features, self.feature_dim or None),
+        ):
+            if x is None:
+                continue
+            check_tensor(name, x)
+            check_floating(name, x)
+            if size is not None:
+                check_trailing(name, x, (size,), f"[..., {size}]")
+            counted = x[mask] if mask is not None and mask.shape == x.shape[:-1] else x
+            check_finite(name, counted)
         if self.feature_dim:
             if features is None or features.shape[-1] != self.feature_dim:
                 got = None if features is None else tuple(features.shape)

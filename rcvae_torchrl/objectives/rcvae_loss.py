@@ -9,7 +9,15 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.common import LossModule
 
-from rcvae_torchrl._checks import check_batch_shapes, check_dtype, check_finite, check_trailing
+from rcvae_torchrl._checks import (
+    check_batch_shapes,
+    check_bool,
+    check_dtype,
+    check_finite,
+    check_non_negative,
+    check_trailing,
+    check_unit_interval,
+)
 from rcvae_torchrl.models.functional import Generators
 from rcvae_torchrl.models.rcvae import RCVAEEnsemble, SequenceOutput
 from rcvae_torchrl.objectives.functional import free_bits, gaussian_kl, gaussian_nll, masked_mean
@@ -106,13 +114,13 @@ class RCVAELoss(LossModule):
         generator: Generators = None,
     ) -> None:
         super().__init__()
-        if beta < 0 or free_nats < 0 or open_loop_steps < 0:
-            raise ValueError(
-                "beta, free_nats and open_loop_steps must be >= 0, got "
-                f"{beta}, {free_nats}, {open_loop_steps}."
-            )
-        if not 0.0 <= nll_beta <= 1.0:
-            raise ValueError(f"nll_beta: expected a value in [0, 1], got {nll_beta}.")
+        check_non_negative("beta", beta)
+        check_non_negative("free_nats", free_nats)
+        steps = open_loop_steps
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {steps!r}")
+        check_bool("detach_open_loop", detach_open_loop)
+        check_unit_interval("nll_beta", nll_beta)
         self.nll_beta = float(nll_beta)
         self.ensemble = ensemble
         self.beta = float(beta)
@@ -208,7 +216,17 @@ class RCVAELoss(LossModule):
                 f"RCVAELoss: windows need at least one transition, got L={td.batch_size[-1]}"
                 f"{'' if next_obs is not None else ' without next observations'}."
             )
-        tensors = [td.get(keys.observation), td.get(keys.action), next_obs]
+        tensors = [td.get(keys.observation, None), td.get(keys.action, None), next_obs]
+        for key, x in zip((keys.observation, keys.action), tensors, strict=False):
+            if x is None:
+                raise KeyError(
+                    f"RCVAELoss: expected an entry {key!r} in the windows, got the entries "
+                    f"{sorted(map(str, td.keys(True, True)))}"
+                )
+        if td.batch_size[-2] == 0:
+            raise ValueError(
+                f"RCVAELoss: expected at least one window, got batch {tuple(td.batch_size)}"
+            )
         self._check(tensors)
         mask = self._read_mask(td)
         if td.batch_dims == 2:
@@ -240,6 +258,11 @@ class RCVAELoss(LossModule):
             raise ValueError(
                 f"{self.tensor_keys.mask}: expected a bool mask of shape "
                 f"{tuple(td.batch_size)}, got {mask.dtype} {tuple(mask.shape)}."
+            )
+        if mask is not None and not bool(mask.any()):
+            raise ValueError(
+                f"{self.tensor_keys.mask}: expected some valid steps, got a mask that is all "
+                "False (the loss would be 0 and teach nothing)"
             )
         return mask
 

@@ -123,8 +123,12 @@ class CEMPlanner(MPCPlannerBase):
         proposal: Callable[[TensorDictBase], Tensor] | None = None,
         proposal_std: float | None = None,
     ) -> None:
+        if not isinstance(env, EnvBase):
+            raise TypeError(f"env: expected a TorchRL EnvBase, got {type(env).__name__}")
         _check_arguments(horizon, num_candidates, top_k, iterations, particles, momentum)
         _check_objective(objective, risk_level)
+        _checks.check_unit_interval("discount", discount, include_zero=False)
+        _checks.check_bool("warm_start", warm_start)
         action_key = unravel_key(env.action_key if action_key is None else action_key)
         super().__init__(env=env, action_key=action_key)
         self.action_spec = _continuous_action_spec(env, action_key)
@@ -226,6 +230,7 @@ class CEMPlanner(MPCPlannerBase):
         prior = self._proposed_plan(tensordict, mean.shape)
         if prior is not None and self.proposal_std is not None:
             mean, std = prior.clone(), (self.prior_std * self.proposal_std).expand_as(std).clone()
+        scored = None  # [*B]: some candidate of the start state had a finite score
         for _ in range(self.iterations):
             candidates = sample_candidates(
                 mean, std, self.num_candidates, self.low, self.high, self.generator
@@ -233,7 +238,10 @@ class CEMPlanner(MPCPlannerBase):
             if prior is not None:
                 candidates.select(tensordict.batch_dims, -1).copy_(prior)
             scores = self.score(tensordict, candidates)
+            finite = torch.isfinite(scores).any(dim=-1)
+            scored = finite if scored is None else scored | finite
             mean, std = cem_update(mean, std, candidates, scores, self.top_k, self.momentum)
+        _check_scored(scored)
         return mean, std
 
     def _proposed_plan(self, tensordict: TensorDictBase, shape: torch.Size) -> Tensor | None:
@@ -278,6 +286,18 @@ class CEMPlanner(MPCPlannerBase):
             value = tensordict.get(key, None)
             if isinstance(value, Tensor):
                 _checks.check_finite(f"tensordict[{key!r}]", value)
+
+
+def _check_scored(scored: Tensor) -> None:
+    """Refuse a plan that no finite score chose: it would be the prior's, returned silently."""
+    if not bool(scored.all()):
+        index = (~scored).nonzero().tolist()
+        raise FloatingPointError(
+            f"CEMPlanner: every candidate plan of {len(index)} of {scored.numel()} start "
+            f"state(s) (batch indices {index[:5]}) scored NaN or ±inf in every iteration, so "
+            f"no plan was chosen; the model (its weights or normaliser), the reward or the "
+            f"discount gives non-finite returns"
+        )
 
 
 def _check_arguments(

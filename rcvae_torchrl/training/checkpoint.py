@@ -8,6 +8,8 @@ mismatched file.
 from __future__ import annotations
 
 import dataclasses
+import io
+import pickle
 from pathlib import Path
 from typing import Any
 
@@ -51,8 +53,32 @@ def save_ensemble(
         path: destination file (parent folders are created).
         extra: small picklable metadata stored beside (e.g. the data it was trained on).
     """
+    if not isinstance(ensemble, RCVAEEnsemble):
+        raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
+    _check_extra(extra)
     payload = ensemble_payload(ensemble, extra)
     return atomic_write(path, lambda f: torch.save(payload, f))
+
+
+def _check_extra(extra: object) -> None:
+    """Refuse metadata that :func:`load_ensemble` could not read back (it loads with
+    ``weights_only=True``, which takes tensors, numbers, strings and their containers only), so
+    that no checkpoint is written that then reads as corrupt."""
+    if extra is None:
+        return
+    if not isinstance(extra, dict):
+        raise TypeError(f"extra: expected a dict of metadata or None, got {type(extra).__name__}")
+    buffer = io.BytesIO()
+    try:
+        torch.save(extra, buffer)
+        buffer.seek(0)
+        torch.load(buffer, weights_only=True)
+    except (pickle.PicklingError, pickle.UnpicklingError, TypeError, AttributeError) as err:
+        raise TypeError(
+            "extra: expected tensors, numbers, strings, None and lists, tuples or dicts of "
+            "them (what a checkpoint loads back with weights_only=True; e.g. str() a Path), "
+            f"got {extra!r}: {str(err).splitlines()[0]}"
+        ) from err
 
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -111,6 +137,9 @@ def ensemble_from_payload(
             f"checkpoint {source!r}: expected format version {FORMAT_VERSION}, got {version!r}",
             source,
         )
+    for key in ("config", "ensemble_size", "state_dict"):
+        if key not in payload:
+            raise CheckpointError(f"checkpoint {source!r}: no {key!r} entry", source)
     try:
         config = RCVAEConfig(**payload["config"])
     except (TypeError, ValueError) as err:
@@ -120,16 +149,42 @@ def ensemble_from_payload(
             f"checkpoint {source!r}: config mismatch: expected {expected_config}, got {config}",
             source,
         )
+    size = payload["ensemble_size"]
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise CheckpointError(
+            f"checkpoint {source!r}: ensemble_size: expected a positive int, got {size!r}", source
+        )
     try:
-        ensemble = RCVAEEnsemble(config, int(payload["ensemble_size"]), functions=functions)
+        ensemble = RCVAEEnsemble(config, size, functions=functions)
     except KeyError as err:
         raise CheckpointError(f"checkpoint {source!r}: {err.args[0]}", source) from err
+    state = payload["state_dict"]
+    if not isinstance(state, dict):
+        raise CheckpointError(
+            f"checkpoint {source!r}: state_dict: expected a dict of tensors, got "
+            f"{type(state).__name__}",
+            source,
+        )
     try:
-        ensemble.load_state_dict(payload["state_dict"], strict=True)
+        ensemble.load_state_dict(state, strict=True)
     except RuntimeError as err:
         raise CheckpointError(
             f"checkpoint {source!r}: weights do not match: {err}", source
         ) from err
+    for name, value in ensemble.state_dict().items():
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise CheckpointError(
+                f"checkpoint {source!r}: {name!r} holds NaN or infinite values (a model "
+                "saved after its training diverged?)",
+                source,
+            )
     if payload.get("checks") is not None:
-        ensemble.checks = ModelChecks.from_dict(payload["checks"])
+        try:
+            ensemble.checks = ModelChecks.from_dict(payload["checks"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise CheckpointError(
+                f"checkpoint {source!r}: its self-check results are corrupt: "
+                f"{type(err).__name__}: {err}",
+                source,
+            ) from err
     return ensemble

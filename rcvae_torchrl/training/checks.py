@@ -63,10 +63,13 @@ class ModelChecks:
     #: per dimension, the held-out episodes whose real state after ``coverage_steps`` lay in
     #: the imagined interval (``[S]``; ``None``: not measured, too few episodes)
     covered: torch.Tensor | None = None
-    episodes: int = 0  #: the held-out episodes of the coverage check
+    #: the held-out episodes long enough for the coverage check (measured when at least
+    #: ``min_episodes``)
+    episodes: int = 0
     coverage_steps: int = 0
     interval: float = 0.0  #: the exact coverage of the interval for a draw of the samples' law
     alpha: float = 0.01
+    min_episodes: int = 10
 
     @property
     def unlearned(self) -> tuple[int, ...]:
@@ -99,8 +102,15 @@ class ModelChecks:
         return tuple(d for d in self.checked if d in bad)
 
     @property
+    def coverage_measured(self) -> bool:
+        """Whether the coverage check ran (enough held-out episodes were long enough)."""
+        return self.covered is not None
+
+    @property
     def passed(self) -> bool:
-        return not self.flagged
+        """Every check ran and none flagged a dimension. A model whose coverage could not be
+        measured has not passed: an overconfident spread would have gone unseen."""
+        return not self.flagged and self.coverage_measured
 
     def message(self) -> str:
         """One sentence naming the flagged dimensions and their errors ('' when none)."""
@@ -129,6 +139,13 @@ class ModelChecks:
                 "rarely for " + ", ".join(parts) + ": its spread there is too narrow or off "
                 "centre, so forecasts that depend on them are not trustworthy"
             )
+        if not self.coverage_measured:
+            sentences.append(
+                f"the world model's spread is unchecked: {self.episodes} held-out episodes "
+                f"last over {self.coverage_steps} steps, the coverage check needs "
+                f"{self.min_episodes}, so an overconfident model would go unseen; hold out "
+                "more (or longer) episodes"
+            )
         return "; ".join(sentences)
 
     def as_dict(self) -> dict[str, Any]:
@@ -144,6 +161,7 @@ class ModelChecks:
             "coverage_steps": self.coverage_steps,
             "interval": self.interval,
             "alpha": self.alpha,
+            "min_episodes": self.min_episodes,
             "covered": None if self.covered is None else self.covered.tolist(),
         }
         for key in ("one_step", "copy_one_step", "spread", "k_step", "copy_k_step"):
@@ -167,6 +185,7 @@ class ModelChecks:
             coverage_steps=int(values.get("coverage_steps", 0)),
             interval=float(values.get("interval", 0.0)),
             alpha=float(values.get("alpha", 0.01)),
+            min_episodes=int(values.get("min_episodes", 10)),
             **tensors,
         )
 
@@ -257,7 +276,8 @@ def check_model(
         interval: the central probability of the interval (its exact coverage, between two
             order statistics of the E·N samples, is the nearest the sample count allows).
         alpha: the level of the coverage test.
-        min_episodes: fewer held-out episodes than this leave coverage unmeasured.
+        min_episodes: fewer held-out episodes than this leave coverage unmeasured, and the
+            checks then do not pass (:attr:`ModelChecks.passed`): the message says so.
         seed: the windows and the samples are drawn from it.
         warn: emit a :class:`ModelCheckWarning` naming the flagged dimensions.
     """
@@ -294,7 +314,9 @@ def check_model(
     checked = tuple(d for d in cfg.predicted_dims if bool(changing[d]))
     steps = min(coverage_steps, longest - 1)
     coverage = _coverage(ensemble, data, steps, samples_per_member, interval, generator)
-    covered, episodes, exact = coverage if coverage[1] >= min_episodes else (None, 0, 0.0)
+    covered, episodes, exact = coverage
+    if episodes < min_episodes:
+        covered, exact = None, 0.0
     checks = ModelChecks(
         cfg.names,
         one_step.cpu(),
@@ -310,6 +332,7 @@ def check_model(
         coverage_steps=steps,
         interval=exact,
         alpha=float(alpha),
+        min_episodes=min_episodes,
     )
     if warn and not checks.passed:
         warnings.warn(checks.message(), ModelCheckWarning, stacklevel=2)

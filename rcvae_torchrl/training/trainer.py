@@ -29,8 +29,15 @@ from torchrl.record.loggers import Logger
 from torchrl.record.loggers.csv import CSVLogger
 from tqdm.auto import tqdm
 
-from rcvae_torchrl import distributed
-from rcvae_torchrl._checks import check_non_negative, check_positive
+from rcvae_torchrl import distributed, fingerprint
+from rcvae_torchrl._checks import (
+    check_dtype,
+    check_finite,
+    check_non_negative,
+    check_positive,
+    check_positive_int,
+    check_trailing,
+)
 from rcvae_torchrl.data import make_window_buffer, resample_episodes, sample_windows
 from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.loggers import log_scalars
@@ -129,12 +136,12 @@ class TrainConfig:
                 f"{self.episode_start_fraction!r}"
             )
         for name in ("max_steps", "batch_windows", "val_every", "val_windows", "patience"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+            check_positive_int(name, getattr(self, name))
+        check_positive_int("window", self.window)
         if self.window < 2:
             raise ValueError(f"window: expected >= 2 steps, got {self.window}")
-        if not (self.lr > 0 and self.grad_clip > 0):
-            raise ValueError(f"lr, grad_clip: expected > 0, got {self.lr}, {self.grad_clip}")
+        check_positive("lr", self.lr)
+        check_positive("grad_clip", self.grad_clip)
         if not 0 < self.lr_final_fraction <= 1:
             raise ValueError(
                 f"lr_final_fraction: expected a value in (0, 1], got {self.lr_final_fraction}"
@@ -244,6 +251,10 @@ def train_ensemble(
     path = Path(checkpoint_path) if checkpoint_path is not None else None
     if resume and path is None:
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")
+    if not isinstance(config, TrainConfig):
+        raise TypeError(f"config: expected a TrainConfig, got {type(config).__name__}")
+    for name, data in (("train_data", train_data), ("val_data", val_data)):
+        _check_episodes(ensemble, data, name)
     torch.manual_seed(config.seed)
     if not ensemble.normalizer.fitted:
         ensemble.fit_normalizer(
@@ -252,7 +263,8 @@ def train_ensemble(
             next_observations=train_data["next", "observation"],
         )
     ensemble.load_state_dict(distributed.broadcast(_weights(ensemble)))
-    state = _finished_gathered_run(path) if resume else None
+    data = _data_digest(train_data, val_data) if path is not None else None
+    state = _finished_gathered_run(path, data) if resume else None
     if state is None:
         layout = _replicas(config)
         try:
@@ -266,13 +278,14 @@ def train_ensemble(
                 resume,
                 (logger, log_prefix),
                 progress,
+                data,
             )
         finally:
             if layout.group is not None:
                 torch.distributed.destroy_process_group(layout.group)
         state = _gather(ensemble, shard if layout.index == 0 else None)
         if distributed.is_active() and path is not None:
-            _write_gathered(path, ensemble, state, config)
+            _write_gathered(path, ensemble, state, config, data)
     ensemble.load_state_dict(state.best_weights)
     result = TrainResult(
         ensemble,
@@ -286,6 +299,32 @@ def train_ensemble(
         found = check_model(ensemble, val_data, seed=config.seed) if distributed.is_main() else None
         result.checks = ensemble.checks = distributed.broadcast(found)
     return result
+
+
+def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str = "data") -> None:
+    """Require flat episodes ``[frames]`` that ``ensemble`` can learn from, all of them checked
+    before any is used: ``"observation"`` ``[frames, S]``, ``"action"`` ``[frames, A]`` and
+    ``("next", "observation")`` ``[frames, S]`` in the model's dtype, every entry finite (a NaN
+    that no sampled window happens to hold would otherwise pass, and a NaN in the normaliser's
+    statistics spoils every prediction). Errors name ``name`` and the entry."""
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(
+            f"{name}: expected a flat TensorDict of episodes [frames], got {type(data).__name__}"
+        )
+    cfg = ensemble.config
+    for key, size, axis in (
+        ("observation", cfg.obs_dim, "S"),
+        ("action", cfg.action_dim, "A"),
+        (("next", "observation"), cfg.obs_dim, "S"),
+    ):
+        label = f"{name}[{key!r}]"
+        x = data.get(key, None)
+        if x is None:
+            keys = sorted(map(str, data.keys(True, True)))
+            raise ValueError(f"{name}: expected an entry {key!r}, got the entries {keys}")
+        check_trailing(label, x, (size,), f"[frames, {axis}={size}]")
+        check_dtype(label, x, ensemble.dtype)
+        check_finite(label, x)
 
 
 def _replicas(config: TrainConfig) -> distributed.Replicas:
@@ -309,6 +348,7 @@ def _train_shard(
     resume: bool,
     logging: tuple[Logger | None, str],
     progress: bool,
+    data: str | None = None,
 ) -> _State | None:
     """Train this rank's block of members of ``ensemble`` (a copy of them), on its share of
     every step's windows; their final state (``None`` when the block is empty: more groups
@@ -351,7 +391,14 @@ def _train_shard(
         _check_no_foreign_shards(shard_path, path)
         if shard_path.is_file():
             state = _restore(
-                shard_path, local, optimizer, config, members, windows_rng, noise_rng, layout
+                shard_path,
+                local,
+                optimizer,
+                (config, data),
+                members,
+                windows_rng,
+                noise_rng,
+                layout,
             )
     logger, prefix = logging
     logger = logger if logger is not None else _default_logger(path)
@@ -395,6 +442,7 @@ def _train_shard(
                     windows_rng,
                     noise_rng,
                     layout,
+                    data,
                 )
     bar.close()
     return state
@@ -603,6 +651,7 @@ def _save(
     windows_rng: list[torch.Generator],
     noise_rng: list[torch.Generator],
     layout: distributed.Replicas,
+    data: str | None = None,
 ) -> None:
     """Write the block's checkpoint. A data-parallel group writes one, from its first rank,
     holding every rank's noise generators (the weights and optimiser are the same on all),
@@ -618,6 +667,7 @@ def _save(
         **ensemble_payload(local),
         "training": {
             "config": dataclasses.asdict(config),
+            "data": data,
             "members": [members.start, members.stop],
             "optimizer": optimizer.state_dict(),
             "rng": [g.get_state() for g in windows_rng] + noise,
@@ -628,7 +678,20 @@ def _save(
     atomic_write(path, lambda f: torch.save(payload, f))
 
 
-def _training_payload(path: Path, config: TrainConfig | None = None) -> dict[str, Any]:
+def _data_digest(train_data: TensorDictBase, val_data: TensorDictBase) -> str:
+    """A digest of the values of every entry of the training and validation data: a resumed
+    run must continue on the data it started with."""
+    return fingerprint.digest(
+        {
+            name: {str(k): v for k, v in d.items(include_nested=True, leaves_only=True)}
+            for name, d in (("train", train_data), ("val", val_data))
+        }
+    )
+
+
+def _training_payload(
+    path: Path, config: TrainConfig | None = None, data: str | None = None
+) -> dict[str, Any]:
     training = read_checkpoint(path).get("training")
     if training is None:
         raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume", path)
@@ -640,6 +703,14 @@ def _training_payload(path: Path, config: TrainConfig | None = None) -> dict[str
             f"({training['config']}); resume with the same config or a new path",
             path,
         )
+    saved_data = training.get("data")  # None: written before data digests, or without a path
+    if data is not None and saved_data is not None and saved_data != data:
+        raise CheckpointError(
+            f"checkpoint {str(path)!r}: was written by a training on other data (train_data or "
+            "val_data differ from the run's that wrote it); resume with the same data or a new "
+            "path",
+            path,
+        )
     return training
 
 
@@ -647,28 +718,30 @@ def _restore(
     path: Path,
     local: RCVAEEnsemble,
     optimizer: torch.optim.Optimizer,
-    config: TrainConfig,
+    run: tuple[TrainConfig, str | None],
     members: range,
     windows_rng: list[torch.Generator],
     noise_rng: list[torch.Generator],
     layout: distributed.Replicas,
 ) -> _State:
     payload = read_checkpoint(path)
-    training = _training_payload(path, config)
+    training = _training_payload(path, *run)
     saved = training.get("members", [0, local.ensemble_size])
     if list(saved) != [members.start, members.stop]:
         raise CheckpointError(
-            f"checkpoint {str(path)!r}: holds members {saved[0]}..{saved[1] - 1}, this rank "
-            f"trains {members.start}..{members.stop - 1}; resume with the same number of ranks"
+            f"checkpoint {str(path)!r}: holds members {saved[0]}..{saved[1] - 1}, this run "
+            f"trains {members.start}..{members.stop - 1} (another ensemble size, or another "
+            "number of ranks); resume with the same ensemble and the same number of ranks",
+            path,
         )
-    if training["state"]["finished"]:
-        return _State(**training["state"])
-    try:
+    try:  # a finished run's too: its best weights are loaded into the caller's model
         local.load_state_dict(payload["state_dict"])
     except RuntimeError as err:
         raise CheckpointError(
             f"checkpoint {str(path)!r}: weights do not match: {err}", path
         ) from err
+    if training["state"]["finished"]:
+        return _State(**training["state"])
     optimizer.load_state_dict(training["optimizer"])
     states = training["rng"]
     if layout.index > 0:  # this rank of a data-parallel group: its own noise
@@ -678,11 +751,11 @@ def _restore(
     return _State(**training["state"])
 
 
-def _finished_gathered_run(path: Path | None) -> _State | None:
+def _finished_gathered_run(path: Path | None, data: str | None) -> _State | None:
     """The state of a finished run gathered from ranks, if ``path`` holds one."""
     if path is None or not distributed.is_active() or not path.is_file():
         return None
-    training = _training_payload(path)
+    training = _training_payload(path, data=data)
     if not training["state"]["finished"]:
         return None  # a single process's checkpoint: this rank's block check refuses it
     return _State(**training["state"])
@@ -732,7 +805,7 @@ def _merge_histories(histories: list[list[dict[str, Any]]]) -> list[dict[str, An
 
 
 def _write_gathered(
-    path: Path, ensemble: RCVAEEnsemble, state: _State, config: TrainConfig
+    path: Path, ensemble: RCVAEEnsemble, state: _State, config: TrainConfig, data: str | None
 ) -> None:
     """Rank 0 writes the gathered run (its best weights, no optimiser state) to ``path`` and
     removes the block checkpoints; every rank waits for it."""
@@ -742,6 +815,7 @@ def _write_gathered(
             **ensemble_payload(ensemble),
             "training": {
                 "config": dataclasses.asdict(config),
+                "data": data,
                 "members": [0, ensemble.ensemble_size],
                 "optimizer": None,
                 "rng": None,

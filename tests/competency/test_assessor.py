@@ -288,6 +288,11 @@ def test_summary_against_a_reference_names_what_rose():
     assert "the rise is aleatoric, the outcome varies by chance more" in noisy.summary()
     same = hand_report(aleatoric=0.41, epistemic=0.21, total=0.62).with_reference(reference)
     assert "neither part rose" in same.summary()
+    lower = hand_report(aleatoric=0.2, epistemic=0.06, total=0.26).with_reference(reference)
+    assert (
+        "epistemic uncertainty fell to 0.3x (0.20 -> 0.06 bits) and aleatoric fell to 0.5x "
+        "(0.40 -> 0.20 bits): neither part rose"
+    ) in lower.summary()
     from_report = hand_report(aleatoric=0.4, epistemic=0.8).with_reference(
         hand_report(aleatoric=0.4, epistemic=0.2), name="training starts"
     )
@@ -309,7 +314,11 @@ def test_a_model_that_failed_its_checks_is_flagged_in_every_summary(env, starts,
     report = make_assessor(env).assess(starts, actions=plan, generator=seeded())
     assert not report.trustworthy
     for i in range(3):
-        assert report.summary(index=i).startswith("Warning: the world model has not learned obs[3]")
+        text = report.summary(index=i)
+        assert text.startswith("Warning: the world model has not learned obs[3]")
+        # its aleatoric / epistemic split is no evidence: no cause is given for the doubt
+        assert "this split does not say whether more data would help" in text
+        assert "Most of the doubt" not in text and "more data would not remove" not in text
     env.ensemble.checks = None
     assert make_assessor(env).assess(starts, actions=plan, generator=seeded()).trustworthy
 

@@ -152,3 +152,17 @@ def test_shuffled_labels_put_each_permuted_block_in_one_group():
     labels = _binning.shuffled_labels(perms, n=2)
     # perm [4, 0, 5, 1, 3, 2] cut into groups of 2: {4, 0} -> 0, {5, 1} -> 1, {3, 2} -> 2
     assert labels.tolist() == [[0, 1, 2, 2, 0, 1], [0, 0, 1, 1, 2, 2]]
+
+
+@pytest.mark.parametrize("scale", [1e19, 1e25])
+def test_samples_beyond_the_countable_bins_are_refused(scale):
+    """Bin ids beyond int64 would put every sample in one bin: members that disagree
+    completely would report 0 bits. Refused, naming bin_width."""
+    samples = torch.cat([torch.rand(1, 50, 1, 1) + 1, -torch.rand(1, 50, 1, 1) - 1]) * scale
+    with pytest.raises(ValueError, match=r"bin_width: expected samples within 2\*\*61 bin"):
+        decompose_uncertainty(samples, bin_width=0.1)
+    with pytest.raises(ValueError, match=r"bin_width: .* bin width down to 1e-30"):
+        histogram_entropy(torch.randn(50, 1, 1), bin_width=1e-30)
+    # the same layout with bins of its own scale: one bit of disagreement
+    out = decompose_uncertainty(samples, bin_width=0.1 * scale)
+    assert float(out.epistemic) == pytest.approx(1.0, abs=0.05)

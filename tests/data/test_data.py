@@ -68,6 +68,16 @@ def test_windows_never_cross_episodes(episodes):
     assert not torch.equal(windows["observation"][0], windows["observation"][1])
 
 
+def test_windows_of_another_length_than_the_buffers_are_refused(episodes):
+    """The sampler keeps windows inside an episode for its own length only: a longer window
+    would run into the next episode."""
+    buffer = make_window_buffer(episodes, window=16)
+    with pytest.raises(ValueError, match="window: expected the buffer's window of 16 steps"):
+        sample_windows(buffer, num_windows=4, window=20)
+    with pytest.raises(ValueError, match="num_windows: expected a positive integer, got 0"):
+        sample_windows(buffer, num_windows=0, window=16)
+
+
 def test_a_members_windows_come_from_its_generator_alone(episodes):
     buffer = make_window_buffer(episodes, window=16)
 

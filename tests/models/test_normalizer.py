@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -74,5 +76,36 @@ def test_fit_from_flat_transitions_ignores_episode_jumps():
 def test_fit_errors():
     with pytest.raises(ValueError, match=r"T >= 2"):
         StateNormalizer(3, 1).fit(torch.randn(4, 1, 3))
-    with pytest.raises(ValueError, match=r"next_observations: expected shape \(4, 3\)"):
+    with pytest.raises(ValueError, match=r"next_observations: expected shape \[\.\.\., 3\]"):
         StateNormalizer(3, 1).fit(torch.randn(4, 3), next_observations=torch.randn(4, 2))
+    with pytest.raises(ValueError, match=r"next_observations: expected shape \(4, 3\)"):
+        StateNormalizer(3, 1).fit(torch.randn(4, 3), next_observations=torch.randn(5, 3))
+    with pytest.raises(ValueError, match=r"actions: expected shape \[\.\.\., 1\], got \(4, 5, 2\)"):
+        StateNormalizer(3, 1).fit(torch.randn(4, 5, 3), torch.randn(4, 5, 2))
+    with pytest.raises(TypeError, match="observations: expected a floating-point tensor"):
+        StateNormalizer(3, 1).fit(torch.ones(4, 5, 3, dtype=torch.int64))
+
+
+@pytest.mark.parametrize("name", ["observations", "actions", "next_observations"])
+def test_fit_refuses_non_finite_and_keeps_the_statistics(name):
+    """A NaN would make every statistic NaN with ``fitted`` True: refused, nothing changed."""
+    norm = StateNormalizer(3, 1)
+    data = {
+        "observations": torch.randn(6, 3),
+        "actions": torch.randn(6, 1),
+        "next_observations": torch.randn(6, 3),
+    }
+    data[name][2, 0] = math.nan
+    with pytest.raises(ValueError, match=f"{name}: expected finite values, got 1 NaN"):
+        norm.fit(**data)
+    assert not norm.fitted and norm.state_mean.eq(0).all() and norm.delta_std.eq(1).all()
+
+
+def test_fit_ignores_non_finite_steps_the_mask_leaves_out():
+    obs = torch.randn(2, 5, 3)
+    obs[1, 4] = math.nan  # padding after a shorter episode
+    mask = torch.ones(2, 5, dtype=torch.bool)
+    mask[1, 4] = False
+    norm = StateNormalizer(3, 1)
+    norm.fit(obs, mask=mask)
+    assert torch.allclose(norm.state_mean, obs[mask].mean(0))

@@ -26,6 +26,25 @@ def test_config_errors(kwargs, match):
         RCVAEConfig(**kwargs)
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"hidden_dim": True}, ValueError, "hidden_dim must be a positive int, got True"),
+        ({"latent_min_std": float("nan")}, ValueError, "latent_min_std must be finite"),
+        ({"max_log_std": float("inf")}, ValueError, "max_log_std must be finite"),
+        ({"min_log_std": "a"}, TypeError, "min_log_std must be a number, got 'a'"),
+        ({"passthrough_dims": (1.7,)}, TypeError, r"passthrough_dims must hold ints, got \(1.7,\)"),
+        ({"passthrough_dims": "12"}, TypeError, "passthrough_dims must be a sequence of ints"),
+        ({"observation_names": "abc"}, TypeError, "observation_names must be a sequence of str"),
+    ],
+)
+def test_config_values_are_taken_as_given_or_refused(kwargs, error, match):
+    """Nothing is coerced: 1.7 is not dimension 1, and 'abc' is not three names."""
+    with pytest.raises(error, match=match):
+        RCVAEConfig(3, 1, **kwargs)
+    assert RCVAEConfig(3, 1, passthrough_dims=[2]).passthrough_dims == (2,)
+
+
 def test_bad_ensemble_size(config):
     with pytest.raises(ValueError, match="ensemble_size"):
         RCVAEEnsemble(config, ensemble_size=0)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -214,7 +216,15 @@ def test_input_errors(ensemble, windows, mutate, error, match):
 
 
 def test_constructor_errors(ensemble):
-    with pytest.raises(ValueError, match=r"nll_beta: expected a value in \[0, 1\], got 2"):
+    with pytest.raises(ValueError, match=r"nll_beta: expected a float in \[0, 1\], got 2"):
         RCVAELoss(ensemble, nll_beta=2.0)
-    with pytest.raises(ValueError, match="must be >= 0"):
+    with pytest.raises(ValueError, match="beta: expected a finite number >= 0, got -1"):
         RCVAELoss(ensemble, beta=-1.0)
+    for name, bad in (("beta", math.nan), ("beta", math.inf), ("free_nats", math.nan)):
+        with pytest.raises(ValueError, match=f"{name}: expected a finite number >= 0"):
+            RCVAELoss(ensemble, **{name: bad})
+    for bad in (2.7, "2", True, -1):
+        with pytest.raises(ValueError, match="open_loop_steps: expected an integer >= 0"):
+            RCVAELoss(ensemble, open_loop_steps=bad)
+    with pytest.raises(TypeError, match="detach_open_loop: expected True or False, got 'no'"):
+        RCVAELoss(ensemble, detach_open_loop="no")

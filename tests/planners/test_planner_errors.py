@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from planner_envs import AnalyticPointMassEnv, PointMassEnv, RiskyChoiceEnv
@@ -106,3 +108,40 @@ def test_wrong_returns_shape_from_the_env():
         ValueError, match=r"Wrong\.evaluate_action_sequences result: expected shape"
     ):
         planner(Wrong().reset())
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"discount": math.nan}, ValueError, r"discount: expected a float in \(0, 1\], got nan"),
+        ({"discount": -1.0}, ValueError, r"discount: expected a float in \(0, 1\], got -1.0"),
+        ({"warm_start": "no"}, TypeError, "warm_start: expected True or False, got 'no'"),
+    ],
+)
+def test_bad_discount_and_flags(kwargs, error, message):
+    with pytest.raises(error, match=message):
+        CEMPlanner(PointMassEnv(), horizon=4, evaluation="rollout", **kwargs)
+
+
+def test_env_must_be_an_env():
+    with pytest.raises(TypeError, match="env: expected a TorchRL EnvBase, got str"):
+        CEMPlanner("point_mass", horizon=4)
+
+
+class _NaNReward(PointMassEnv):
+    """A task whose reward is NaN whenever the point moves off the axis (every plan here)."""
+
+    def reward(self, position, action):
+        return super().reward(position, action) * torch.nan
+
+
+def test_a_plan_no_finite_score_chose_is_refused():
+    """Every candidate scores NaN (a broken model or reward): the prior's mean would come back
+    as if planned; the planner says so instead."""
+    env = _NaNReward()
+    planner = CEMPlanner(env, horizon=4, num_candidates=10, top_k=2, seed=0)
+    with pytest.raises(FloatingPointError, match=r"every candidate plan of 1 of 1 start state"):
+        planner(env.reset())
+    # the same planner on a sound task plans
+    sound = CEMPlanner(PointMassEnv(), horizon=4, num_candidates=10, top_k=2, seed=0)
+    assert torch.isfinite(sound(PointMassEnv().reset())["action"]).all()

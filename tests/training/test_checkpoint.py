@@ -82,3 +82,36 @@ def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
         atomic_write(target, broken)
     assert target.read_bytes() == b"old"
     assert [p.name for p in tmp_path.iterdir()] == ["f.bin"]
+
+
+def test_incomplete_and_non_finite_payloads(tmp_path, small_ensemble):
+    path = save_ensemble(small_ensemble(), tmp_path / "m.pt")
+    for key in ("config", "ensemble_size", "state_dict"):
+        cut = _edit(path, tmp_path, lambda p, key=key: p.pop(key))
+        with pytest.raises(CheckpointError, match=f"no '{key}' entry"):
+            load_ensemble(cut)
+    size = _edit(path, tmp_path, lambda p: p.update(ensemble_size="two"))
+    with pytest.raises(CheckpointError, match="ensemble_size: expected a positive int, got 'two'"):
+        load_ensemble(size)
+    nan = _edit(path, tmp_path, lambda p: p["state_dict"]["normalizer.state_mean"].fill_(torch.nan))
+    with pytest.raises(CheckpointError, match=r"'normalizer\.state_mean' holds NaN or infinite"):
+        load_ensemble(nan)
+    checks = _edit(path, tmp_path, lambda p: p.update(checks={"names": ["a"]}))
+    with pytest.raises(CheckpointError, match="its self-check results are corrupt: KeyError"):
+        load_ensemble(checks)
+
+
+def test_metadata_that_would_not_load_back_is_refused(tmp_path, small_ensemble):
+    """``load_ensemble`` reads with ``weights_only=True``: a Path in ``extra`` would make a
+    sound file read as corrupt, so it is refused before anything is written."""
+    from pathlib import Path
+
+    with pytest.raises(TypeError, match=r"extra: expected tensors, numbers, strings.*PosixPath"):
+        save_ensemble(small_ensemble(), tmp_path / "m.pt", extra={"data": Path("/data/x")})
+    assert not (tmp_path / "m.pt").exists()
+    with pytest.raises(TypeError, match="extra: expected a dict of metadata or None, got list"):
+        save_ensemble(small_ensemble(), tmp_path / "m.pt", extra=[1])
+    with pytest.raises(TypeError, match="ensemble: expected an RCVAEEnsemble, got Linear"):
+        save_ensemble(torch.nn.Linear(2, 2), tmp_path / "m.pt")
+    path = save_ensemble(small_ensemble(), tmp_path / "m.pt", extra={"data": "/data/x", "n": 3})
+    assert torch.load(path, weights_only=True)["extra"] == {"data": "/data/x", "n": 3}

@@ -87,6 +87,14 @@ def test_coverage_of_a_calibrated_model_and_of_a_harsher_reality(trained):
     assert restored.overconfident == worse.overconfident
     few = check_model(result.ensemble, same, min_episodes=61, warn=False)
     assert few.coverage is None and few.overconfident == ()
+    # an unchecked spread is not a pass: the message says why, and it travels with the model
+    assert not few.passed and few.episodes == 60
+    assert "spread is unchecked: 60 held-out episodes last over 20 steps, the coverage " in (
+        few.message()
+    )
+    assert ModelChecks.from_dict(few.as_dict()).message() == few.message()
+    with pytest.warns(ModelCheckWarning, match="spread is unchecked"):
+        check_model(result.ensemble, same, min_episodes=61)
 
 
 @pytest.mark.parametrize(

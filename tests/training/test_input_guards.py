@@ -1,0 +1,74 @@
+"""train_ensemble checks all of its data before it uses any, and a resumed run continues only
+the run it was: the same data and the same model."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from conftest import linear_episodes
+
+from rcvae_torchrl.data import TRAJ_KEY
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.training import CheckpointError, TrainConfig, train_ensemble
+
+BUDGET = TrainConfig(max_steps=4, batch_windows=4, window=8, val_every=2, val_windows=4)
+
+
+def _train(ensemble, train, val, **kwargs):
+    return train_ensemble(ensemble, train, val, BUDGET, progress=False, checks=False, **kwargs)
+
+
+def test_a_nan_no_window_would_draw_is_refused_and_the_model_left_as_it_was(
+    linear_data, small_ensemble
+):
+    """A NaN in an episode shorter than the window is never in a training window, but it is in
+    the normaliser's statistics: refused by name before anything is fitted."""
+    train, val = linear_data
+    short = linear_episodes(1, 5, seed=3)
+    short[TRAJ_KEY] = short[TRAJ_KEY] + 500
+    short["observation"][2, 1] = math.nan
+    model = small_ensemble(2)
+    with pytest.raises(ValueError, match=r"train_data\['observation'\]: expected finite values"):
+        _train(model, torch.cat([train, short]), val)
+    assert not model.normalizer.fitted
+    bad_val = val.clone()
+    bad_val["next", "observation"][0, 0] = math.inf
+    with pytest.raises(ValueError, match=r"val_data\[\('next', 'observation'\)\]: .* 1 inf"):
+        _train(model, train, bad_val)
+    result = _train(model, train, val)  # the same model then trains on clean data
+    assert torch.isfinite(result.best_val).all() and model.normalizer.fitted
+
+
+def test_data_of_another_layout_and_a_wrong_config_are_named(linear_data, small_ensemble):
+    train, val = linear_data
+    model = small_ensemble(2)
+    with pytest.raises(ValueError, match=r"train_data\['action'\]: expected shape \[frames, A=1\]"):
+        _train(model, train.clone().set("action", torch.zeros(train.shape[0], 2)), val)
+    with pytest.raises(ValueError, match=r"val_data: expected an entry 'action'"):
+        _train(model, train, val.exclude("action"))
+    with pytest.raises(TypeError, match=r"train_data: expected a flat TensorDict .*, got list"):
+        _train(model, [train], val)
+    with pytest.raises(TypeError, match="config: expected a TrainConfig, got dict"):
+        train_ensemble(model, train, val, {"max_steps": 4}, progress=False)
+    for name, bad in (("max_steps", 2.5), ("window", 3.5), ("lr", math.inf), ("patience", True)):
+        with pytest.raises(ValueError, match=f"{name}: expected a positive"):
+            TrainConfig(**{name: bad})
+
+
+def test_resume_refuses_other_data_and_another_model(tmp_path, linear_data, small_ensemble):
+    train, val = linear_data
+    path = tmp_path / "run.pt"
+    _train(small_ensemble(2), train, val, checkpoint_path=path)
+    scaled = train.clone()
+    scaled["observation"] *= 100
+    with pytest.raises(CheckpointError, match="was written by a training on other data"):
+        _train(small_ensemble(2), scaled, val, checkpoint_path=path, resume=True)
+    with pytest.raises(CheckpointError, match=r"holds members 0\.\.1, this run trains 0\.\.2"):
+        _train(small_ensemble(3), train, val, checkpoint_path=path, resume=True)
+    wide = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=32, latent_dim=2, mlp_dim=16), 2)
+    with pytest.raises(CheckpointError, match="weights do not match"):
+        _train(wide, train, val, checkpoint_path=path, resume=True)
+    again = _train(small_ensemble(2), train, val, checkpoint_path=path, resume=True)
+    assert again.steps == BUDGET.max_steps  # the finished run, returned as it was
