@@ -23,6 +23,10 @@ VARIANTS = ("deterministic", "stochastic", "ood")
 DEFAULT_ACTION_NOISE_STD = 0.5  # std of the Gaussian action noise of the stochastic variant
 
 
+def _finite_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def _check_args(
     variant: str,
     action_noise_std: float | None,
@@ -32,21 +36,22 @@ def _check_args(
 ) -> float:
     if variant not in VARIANTS:
         raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
-    if not (isinstance(time_limit, (int, float)) and time_limit > 0):
-        raise ValueError(f"time_limit: expected a positive number of seconds, got {time_limit!r}")
-    if not control_timestep > 0:
-        raise ValueError(f"control_timestep: expected > 0 s, got {control_timestep!r}")
+    for name, value, unit in (
+        ("time_limit", time_limit, "seconds"),
+        ("control_timestep", control_timestep, "seconds"),
+        ("success_radius", success_radius, "m"),
+    ):
+        if not _finite_number(value) or not value > 0:
+            raise ValueError(f"{name}: expected a positive finite number of {unit}, got {value!r}")
     steps = time_limit / control_timestep
     if not math.isclose(steps, round(steps), rel_tol=0, abs_tol=1e-6):
         raise ValueError(
             f"time_limit: expected a whole number of control steps of {control_timestep} s, "
             f"got {time_limit} s ({steps:.4f} steps)"
         )
-    if not success_radius > 0:
-        raise ValueError(f"success_radius: expected > 0 m, got {success_radius!r}")
     if action_noise_std is None:
         return DEFAULT_ACTION_NOISE_STD if variant == "stochastic" else 0.0
-    if not (isinstance(action_noise_std, (int, float)) and action_noise_std >= 0):
+    if not (_finite_number(action_noise_std) and action_noise_std >= 0):
         raise ValueError(
             "action_noise_std: expected a non-negative standard deviation, "
             f"got {action_noise_std!r}"
@@ -143,6 +148,10 @@ def make_pusher_env(
         torch.Size([10, 14])
     """
     noise = _check_args(variant, action_noise_std, time_limit, control_timestep, success_radius)
+    if not isinstance(terminate_on_success, bool):
+        raise TypeError(
+            f"terminate_on_success: expected True or False, got {terminate_on_success!r}"
+        )
     dm_env = make_environment(
         _variant_region(variant, region),
         success_radius=success_radius,

@@ -66,6 +66,11 @@ def _check_pair(forecast: Tensor, outcome: Tensor) -> tuple[Tensor, Tensor]:
         forecast = forecast.unsqueeze(-1).expand_as(outcome).movedim(-1, 1).flatten(0, 1)
         outcome = outcome.movedim(-1, 1).flatten(0, 1)
     _checks.check_same_shape("forecast", forecast, "outcome", outcome)
+    if forecast.shape[0] == 0:
+        raise ValueError(
+            f"forecast, outcome: expected at least one case (N >= 1 on dim 0), got shape "
+            f"{tuple(forecast.shape)}"
+        )
     if outcome.dtype != torch.bool and bool(((outcome != 0) & (outcome != 1)).any()):
         raise ValueError(
             f"outcome: expected binary outcomes (bool or 0/1), got values "

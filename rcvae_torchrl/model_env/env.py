@@ -9,7 +9,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
-from rcvae_torchrl._checks import make_generator
+from rcvae_torchrl._checks import check_bool, make_generator
 from rcvae_torchrl.model_env import _checks
 from rcvae_torchrl.model_env.specs import (
     ACTION_KEY,
@@ -159,6 +159,12 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         compile_scoring: Compile = False,
     ) -> None:
         _checks.check_arguments(ensemble, trajectory_sampling, member_assignment)
+        for name, flag in (
+            ("terminate_on_success", terminate_on_success),
+            ("validate", validate),
+            ("requires_grad", requires_grad),
+        ):
+            check_bool(name, flag)
         task = Task(reward_fn, success_fn, terminate_on_success)
         device = ensemble.device
         generator = make_generator(generator, seed, device)
@@ -282,6 +288,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         if self.action_bounds is not None:
             action, a = state.get(ACTION_KEY), self.ensemble.config.action_dim
             _checks.check_trailing(ACTION_KEY, action, (a,), f"[*B, A={a}]")
+            if action.dtype != self.ensemble.dtype:  # before the clamp casts an int or bool one
+                _checks.check_dtype(ACTION_KEY, action, self.ensemble.dtype)
             state.set(ACTION_KEY, torch.clamp(action, *self.action_bounds))
         if HIDDEN_KEY not in state.keys(include_nested=True):
             start = self._initial_state(state.get(OBSERVATION_KEY), state.get(MEMBER_KEY, None))

@@ -33,7 +33,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from rcvae_torchrl._checks import check_finite, check_floating, check_min_rank, check_tensor
+from rcvae_torchrl._checks import (
+    check_dtype,
+    check_finite,
+    check_floating,
+    check_min_rank,
+    check_tensor,
+)
 from rcvae_torchrl.models.config import RCVAEConfig
 from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_scan, gru_step
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, EnsembleMLP, ensemble_mlp
@@ -301,6 +307,16 @@ class RCVAEEnsemble(nn.Module):
             noise_obs: optional ε_s ``[E, *B, D]`` (else drawn from ``generator``).
             generator: torch generator for the noise not given.
         """
+        # shapes and dtypes only (no data read: this is the imagination's hot path)
+        s, a = self.config.obs_dim, self.config.action_dim
+        if obs_prev.shape[-1] != s or action_prev.shape[-1] != a:
+            raise ValueError(
+                f"obs_prev, action_prev: expected [E, *B, S={s}] and [E, *B, A={a}], got "
+                f"{tuple(obs_prev.shape)} and {tuple(action_prev.shape)}"
+            )
+        if obs_prev.dtype != self.dtype or action_prev.dtype != self.dtype:
+            check_dtype("obs_prev", obs_prev, self.dtype)
+            check_dtype("action_prev", action_prev, self.dtype)
         # recur, prior and decode as one hot path (the modules' numbers, fewer ops and calls)
         x = self.embed_inputs(obs_prev, action_prev)
         hidden, episode = self._split_carry(hidden)
@@ -352,12 +368,17 @@ class RCVAEEnsemble(nn.Module):
             a :class:`SequenceOutput` with tensors ``[E, *B, n, ·]``, n = number of transitions.
         """
         self._check_windows(observations, actions, next_observations)
+        self._check_mask(mask, observations)
+        if isinstance(open_loop_steps, bool) or not isinstance(open_loop_steps, int):
+            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop_steps!r}")
+        if open_loop_steps < 0:
+            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop_steps}")
         if next_observations is None:
             targets = observations[..., 1:, :]
         else:
             targets = next_observations
         n_steps = targets.shape[-2]
-        n_open = min(max(int(open_loop_steps), 0), max(n_steps - 1, 0))
+        n_open = min(open_loop_steps, max(n_steps - 1, 0))
         hidden, x, prev = self._teacher_forced(observations, actions, mask, n_steps - n_open)
         episode = None
         if self.config.episode_latent_dim:
@@ -430,6 +451,7 @@ class RCVAEEnsemble(nn.Module):
                     f"{name}: expected shape [E={e}, *B, L, {last}], got {tuple(x.shape)}"
                 )
             check_finite(name, x)
+            check_dtype(name, x, self.dtype)
         for name, x, _ in named[1:]:
             if x.shape[:-1] != observations.shape[:-1]:
                 raise ValueError(
@@ -441,6 +463,23 @@ class RCVAEEnsemble(nn.Module):
             raise ValueError(
                 f"observations: expected windows of L >= {least} steps, got L = "
                 f"{observations.shape[-2]} (shape {tuple(observations.shape)})"
+            )
+
+    def _check_mask(self, mask: torch.Tensor | None, observations: torch.Tensor) -> None:
+        """A bool mask ``[E or 1, *B, L]`` of the windows' steps."""
+        if mask is None:
+            return
+        check_tensor("mask", mask)
+        expected = observations.shape[1:-1]
+        if (
+            mask.dtype != torch.bool
+            or mask.shape[1:] != expected
+            or mask.shape[0] not in (1, self.ensemble_size)
+        ):
+            raise ValueError(
+                f"mask: expected a bool mask [E={self.ensemble_size} or 1, *B, L] = "
+                f"[{self.ensemble_size} or 1, {', '.join(map(str, expected))}], got "
+                f"{mask.dtype} {tuple(mask.shape)}"
             )
 
     def _teacher_forced(
@@ -551,7 +590,14 @@ class RCVAEEnsemble(nn.Module):
 
         ``select_members([i])`` is member i as a stand-alone RCVAE.
         """
-        idx = torch.as_tensor(indices, dtype=torch.long, device=self.device)
+        idx = torch.as_tensor(indices, device=self.device)
+        if idx.dtype.is_floating_point or idx.dtype == torch.bool or idx.dim() != 1:
+            raise ValueError(f"indices: expected a sequence of member indices, got {indices!r}")
+        if idx.numel() == 0 or bool(((idx < 0) | (idx >= self.ensemble_size)).any()):
+            raise ValueError(
+                f"indices: expected member indices in [0, {self.ensemble_size}), got {idx.tolist()}"
+            )
+        idx = idx.long()
         out = RCVAEEnsemble(self.config, int(idx.numel()), functions=self.functions)
         out = out.to(self.device, self.dtype)
         params = {name for name, _ in self.named_parameters()}

@@ -69,3 +69,9 @@ def test_reliability_diagram_data():
     assert r.mean_forecast[0].item() == pytest.approx(0.075)
     assert r.frequency[[0, 2, 3]].tolist() == [0.5, 1.0, 1.0]
     assert torch.isnan(r.frequency[1]) and torch.isnan(r.mean_forecast[1])
+
+
+@pytest.mark.parametrize("score", [brier_score, expected_calibration_error])
+def test_no_cases_is_an_error_not_nan(score):
+    with pytest.raises(ValueError, match=r"forecast, outcome: expected at least one case"):
+        score(torch.zeros(0), torch.zeros(0, dtype=torch.bool))

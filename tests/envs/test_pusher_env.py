@@ -2,6 +2,7 @@
 
 import dataclasses
 import functools
+import math
 
 import numpy as np
 import pytest
@@ -148,6 +149,9 @@ def test_parallel_env():
         ({"time_limit": -5}, "time_limit: expected a positive"),
         ({"time_limit": 1.03}, "whole number of control steps"),
         ({"success_radius": 0}, "success_radius"),
+        ({"success_radius": math.inf}, "success_radius: expected a positive finite number"),
+        ({"time_limit": True}, "time_limit: expected a positive finite number of seconds"),
+        ({"variant": "stochastic", "action_noise_std": math.inf}, "action_noise_std: expected"),
         ({"variant": "deterministic", "actuator_strength": (0.5, 1.0)}, "fixed strength"),
         ({"variant": "stochastic", "actuator_strength": (0.0, 0.4)}, "0 < low <= high"),
         ({"variant": "stochastic", "actuator_strength": (0.5, 0.4)}, "0 < low <= high"),

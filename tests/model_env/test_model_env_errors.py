@@ -23,6 +23,9 @@ from rcvae_torchrl.model_env import RCVAEEnsembleEnv
         ({"start_states": torch.zeros(2, 14, dtype=torch.float64)}, TypeError, "start_states"),
         ({"compile_scoring": "fast"}, ValueError, "compile_scoring: expected False .* 'aot'"),
         ({"compile_scoring": 1}, ValueError, "compile_scoring: expected False .* 'aot'"),
+        ({"validate": "no"}, TypeError, "validate: expected True or False, got 'no'"),
+        ({"terminate_on_success": 1}, TypeError, "terminate_on_success: expected True or False"),
+        ({"requires_grad": "yes"}, TypeError, "requires_grad: expected True or False"),
     ],
 )
 def test_constructor_arguments(ensemble, kwargs, error, match):
@@ -55,6 +58,13 @@ def test_step_inputs(make_env, starts, mode):
     td["action"] = torch.full((4, 2), float("nan"))
     with pytest.raises(ValueError, match="action: expected finite"):
         env.step(td)
+    for dtype in (torch.int64, torch.bool):  # refused before the clamp turns them into floats
+        td = _state(env, starts)
+        td["action"] = torch.ones(4, 2, dtype=dtype)
+        with pytest.raises(
+            TypeError, match=rf"action: expected dtype torch.float32 .*, got {dtype}"
+        ):
+            env.step(td)
     td = _state(env, starts)
     td["observation"][1, 2] = float("nan")
     with pytest.raises(ValueError, match="observation: expected finite"):

@@ -44,6 +44,44 @@ def test_window_shapes_are_checked(ensemble, obs_shape, act_shape, match):
         ensemble(torch.zeros(obs_shape), torch.zeros(act_shape))
 
 
+def test_masks_open_loop_steps_and_dtypes_are_taken_as_given_or_refused(ensemble):
+    """Nothing is coerced: a float mask, a mask of another length, 2.7 or -3 open-loop
+    steps and float64 windows are errors that name them."""
+    obs, act = _windows()
+    for mask, match in (
+        (
+            torch.ones(1, 3, L),
+            r"^mask: expected a bool mask \[E=4 or 1, \*B, L\] = \[4 or 1, 3, 6\]",
+        ),
+        (torch.ones(1, 3, L - 1, dtype=torch.bool), r"^mask: expected a bool mask"),
+        (torch.ones(2, 3, L, dtype=torch.bool), r"^mask: expected a bool mask"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            ensemble(obs, act, mask=mask)
+    for steps in (2.7, -3, "2", True):
+        with pytest.raises(ValueError, match=r"^open_loop_steps: expected an integer >= 0"):
+            ensemble(obs, act, open_loop_steps=steps)
+    with pytest.raises(TypeError, match=r"^observations: expected dtype torch.float32"):
+        ensemble(obs.double(), act)
+    ensemble(obs, act, mask=torch.ones(1, 3, L, dtype=torch.bool), open_loop_steps=2)
+
+
+def test_a_step_of_another_layout_is_refused(ensemble):
+    hidden = torch.zeros(E, 3, ensemble.carry_dim)
+    obs, act = torch.zeros(E, 3, 5), torch.zeros(E, 3, 2)
+    assert ensemble.step(hidden, obs, act).observation.shape == (E, 3, 5)
+    with pytest.raises(ValueError, match=r"expected \[E, \*B, S=5\] and \[E, \*B, A=2\]"):
+        ensemble.step(hidden, obs, act[..., :1])  # would broadcast over A = 2
+    with pytest.raises(TypeError, match=r"^action_prev: expected dtype torch.float32"):
+        ensemble.step(hidden, obs, act.double())
+
+
+@pytest.mark.parametrize("indices", [[-1], [4], [0.5], [], [[0, 1]]])
+def test_members_are_chosen_by_index(ensemble, indices):
+    with pytest.raises(ValueError, match=r"^indices: expected"):
+        ensemble.select_members(indices)
+
+
 def test_integer_windows_are_a_type_error(ensemble):
     obs, act = _windows()
     with pytest.raises(TypeError, match=r"^observations: expected a floating-point tensor"):

@@ -148,9 +148,9 @@ def test_the_schema_is_the_base_of_every_profile():
 @pytest.mark.parametrize(
     ("override", "match"),
     [
-        ("train.max_steps=0", r"^train\.max_steps: expected >= 1, got 0"),
+        ("train.max_steps=0", r"^train\.max_steps: expected a positive integer, got 0"),
         ("train.window=1", r"^train\.window: expected >= 2 steps"),
-        ("train.lr=-1", r"^train\.lr, grad_clip: expected > 0"),
+        ("train.lr=-1", r"^train\.lr: expected a positive number, got -1"),
         ("assess.bias_correction=jackknife", r"^assess\.bias_correction: expected 'none'"),
         ("assess.horizon_s=2.03", r"^assess\.horizon_s: expected a positive whole number"),
         ("assess.horizon_s=inf", r"^assess\.horizon_s: expected a positive whole number"),

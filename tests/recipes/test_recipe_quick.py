@@ -238,7 +238,7 @@ def test_tutorial_python_example_reads_the_run(runs):
     ("override", "expected"),
     [
         ("train.max_step=3", "max_step"),  # not in TrainConfig's schema
-        ("train.lr=-1", "train.lr, grad_clip: expected > 0"),  # out of range
+        ("train.lr=-1", "train.lr: expected a positive number, got -1"),  # out of range
         ("device=tpu", "device: expected 'auto', 'cpu', 'cuda' or 'cuda:N'"),
         ("logger=tb", "logger: expected one of ['csv', 'mlflow', 'none', 'tensorboard', 'wandb']"),
     ],
