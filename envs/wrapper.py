@@ -32,6 +32,16 @@ class PusherWrapper(DMControlWrapper):
         )
         self.reward_spec = Unbounded(shape=(1,), dtype=torch.float32, device=self.device)
 
+    def _set_seed(self, seed: int | None) -> None:
+        # numpy's RandomState (the task's) takes seeds in [0, 2**32): say so before it fails
+        if seed is not None and (
+            isinstance(seed, bool)
+            or not isinstance(seed, (int, np.integer))
+            or not 0 <= seed < 2**32
+        ):
+            raise ValueError(f"seed: expected an integer in [0, 2**32), got {seed!r}")
+        super()._set_seed(seed)
+
     def read_obs(self, observations: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in observations.items()}
 

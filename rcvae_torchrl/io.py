@@ -81,6 +81,8 @@ def write_json(path: str | Path, obj: Any) -> Path:
 def read_json(path: str | Path, what: str = "a JSON file") -> Any:
     """The JSON content of ``path``; :class:`StoredFileError` naming the file when it is
     missing or not valid JSON (e.g. truncated)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a str or a path of {what}, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise StoredFileError(f"{what} {str(path)!r}: the file is missing", path)
@@ -100,6 +102,8 @@ def save_torch(path: str | Path, obj: Any) -> Path:
 def load_torch(path: str | Path, what: str = "a torch file", map_location: Any = "cpu") -> Any:
     """``torch.load(path, weights_only=True)``; :class:`StoredFileError` naming the file when it
     is missing, truncated or corrupt."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a str or a path of {what}, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise StoredFileError(f"{what} {str(path)!r}: the file is missing", path)

@@ -14,6 +14,7 @@ from torch import Tensor
 
 from rcvae_torchrl._checks import (  # noqa: F401  (re-exported for the competency modules)
     as_tensor,
+    check_bool,
     check_choice,
     check_finite,
     check_floating,

@@ -12,8 +12,9 @@ Acharya, Russell & Ahmed (2022), after Depeweg et al. (2018).
 
 from __future__ import annotations
 
+import inspect
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -127,6 +128,7 @@ def decompose_uncertainty(
     _checks.check_choice("estimator", estimator, tuple(ESTIMATORS))
     _checks.check_samples("samples", samples, 3, _LAYOUT)
     _checks.check_members("samples", samples, _LAYOUT)
+    check_estimator_args(estimator, estimator_args)
     _check_sample_count(estimator, samples, estimator_args)
     if ended is not None:
         if estimator != "histogram":
@@ -276,6 +278,31 @@ ESTIMATORS: dict[str, Callable[..., tuple[Tensor, Tensor, float | None]]] = {
     "knn": _knn,
     "mixture": _mixture,
 }
+
+#: The functions whose keyword arguments each estimator passes on (beside its own).
+_FORWARDED: dict[str, tuple[Callable[..., Any], ...]] = {
+    "histogram": (),
+    "gaussian": (gaussian_entropy,),
+    "knn": (knn_entropy,),
+    "mixture": (fit_gaussian_mixture_entropy_bounds,),
+}
+
+
+def check_estimator_args(estimator: str, args: Mapping[str, Any]) -> None:
+    """Refuse keyword arguments that ``estimator`` does not take (e.g. a misspelt
+    ``bin_widht``), naming them and the ones it takes, before any sample is drawn."""
+    _checks.check_choice("estimator", estimator, tuple(ESTIMATORS))
+    names: set[str] = set()
+    for fn in (ESTIMATORS[estimator], *_FORWARDED[estimator]):
+        params = inspect.signature(fn).parameters.values()
+        names |= {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+    names -= {"samples", "x"}
+    unknown = sorted(set(args) - names - {"ended"})
+    if unknown:
+        raise TypeError(
+            f"estimator_args: the {estimator!r} estimator takes {sorted(names)}, got unknown "
+            f"{unknown}"
+        )
 
 
 def variance_decomposition(samples: Tensor) -> UncertaintyDecomposition:

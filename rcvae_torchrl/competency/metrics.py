@@ -22,7 +22,11 @@ from torch import Tensor
 from rcvae_torchrl.competency import _checks
 from rcvae_torchrl.competency._keys import KeyedModule
 from rcvae_torchrl.competency.boundary import SuccessBoundary
-from rcvae_torchrl.competency.decomposition import ESTIMATORS, decompose_uncertainty
+from rcvae_torchrl.competency.decomposition import (
+    ESTIMATORS,
+    check_estimator_args,
+    decompose_uncertainty,
+)
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.intervals import binomial_interval
 from rcvae_torchrl.competency.outcome import (
@@ -142,6 +146,10 @@ class UncertaintyMetric(KeyedModule):
                 f"bin_width: expected None for the mixture estimator (it has no bins), "
                 f"got {bin_width!r}"
             )
+        check_estimator_args(estimator, estimator_args)
+        _checks.check_bool("episode_end", episode_end)
+        if isinstance(bin_width, str):
+            raise TypeError(f"bin_width: expected a number or a tensor [D], got {bin_width!r}")
         width = None if bin_width is None else torch.as_tensor(bin_width, dtype=torch.float32)
         self.register_buffer("bin_width", width)
         self.estimator = estimator
@@ -253,6 +261,10 @@ class SuccessMetric(KeyedModule):
         if not isinstance(boundary, SuccessBoundary):
             raise TypeError(f"boundary: expected a SuccessBoundary, got {type(boundary).__name__}")
         _checks.check_choice("interval", interval, ("jeffreys", "wilson"))
+        if isinstance(confidence, bool) or not isinstance(confidence, (int, float)):
+            raise TypeError(f"confidence: expected a number in (0, 1), got {confidence!r}")
+        if not 0.0 < confidence < 1.0:
+            raise ValueError(f"confidence: expected a number in (0, 1), got {confidence!r}")
         self.boundary = boundary
         self.confidence = confidence
         self.interval = interval

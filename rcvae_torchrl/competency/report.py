@@ -197,7 +197,13 @@ class CompetencyReport:
                 each headed ``Start state i:``.
         """
         if index is not None:
-            one = self.data[index]
+            try:
+                one = self.data[index]
+            except IndexError as err:
+                raise IndexError(
+                    f"index: expected one start state of the batch {tuple(self.batch_size)}, "
+                    f"got {index!r}"
+                ) from err
             if one.batch_dims:
                 raise ValueError(
                     f"index: expected one start state of the batch {tuple(self.batch_size)}, "

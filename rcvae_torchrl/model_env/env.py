@@ -165,6 +165,10 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             ("requires_grad", requires_grad),
         ):
             check_bool(name, flag)
+        if real_env is not None and not isinstance(real_env, EnvBase):
+            raise TypeError(
+                f"real_env: expected a TorchRL EnvBase or None, got {type(real_env).__name__}"
+            )
         task = Task(reward_fn, success_fn, terminate_on_success)
         device = ensemble.device
         generator = make_generator(generator, seed, device)

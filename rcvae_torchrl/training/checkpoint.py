@@ -83,11 +83,11 @@ def _check_extra(extra: object) -> None:
 
 def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """Load a checkpoint dict from ``path`` with clear errors (no model is built)."""
-    path = Path(path)
     try:
         payload = load_torch(path, "checkpoint")
     except StoredFileError as err:
-        raise CheckpointError(str(err), path) from err.__cause__
+        raise CheckpointError(str(err), err.path) from err.__cause__
+    path = Path(path)
     if not isinstance(payload, dict) or "kind" not in payload:
         raise CheckpointError(
             f"checkpoint {str(path)!r}: expected an rcvae_torchrl checkpoint", path

@@ -143,3 +143,42 @@ def test_boundary_errors():
     bad = SuccessBoundary(lambda o: o.sum() > 0)
     with pytest.raises(ValueError, match="success: expected the predicate to map observations"):
         bad.success_over_time(torch.randn(2, 5, 3))
+
+
+def test_estimator_arguments_are_checked_when_the_metric_is_made():
+    """A misspelt keyword is named with the ones the estimator takes, before any rollout."""
+    with pytest.raises(TypeError, match=r"the 'histogram' estimator takes .*'bin_width'.*"):
+        UncertaintyMetric(bin_width=0.1, bin_widht=0.2)
+    with pytest.raises(TypeError, match=r"the 'knn' estimator takes .*'k'.*unknown \['joint'\]"):
+        UncertaintyMetric(estimator="knn", joint=True)
+    with pytest.raises(TypeError, match=r"unknown \['shufles'\]"):
+        decompose_uncertainty(torch.randn(2, 5, 3), bin_width=0.1, shufles=2)
+    UncertaintyMetric(estimator="gaussian", joint=True)  # a keyword of gaussian_entropy
+    UncertaintyMetric(bin_width=0.1, bias_correction="shuffle", shuffles=2)
+    with pytest.raises(TypeError, match="bin_width: expected a number or a tensor"):
+        UncertaintyMetric(bin_width="0.1")
+    with pytest.raises(TypeError, match="episode_end: expected True or False, got 'yes'"):
+        UncertaintyMetric(bin_width=0.1, episode_end="yes")
+
+
+@pytest.mark.parametrize(
+    ("confidence", "error"), [(2, ValueError), (0.0, ValueError), ("95%", TypeError)]
+)
+def test_a_confidence_outside_0_1_is_refused_when_the_metric_is_made(confidence, error):
+    boundary = SuccessBoundary(lambda s: s[..., 0] > 0, time_limit=5)
+    with pytest.raises(error, match="confidence: expected a number in"):
+        SuccessMetric(boundary, confidence=confidence)
+
+
+def test_summary_of_a_start_state_outside_the_batch():
+    from test_assessor import hand_report
+
+    report = hand_report()
+    batched = type(report)(
+        report.data.unsqueeze(0).expand(3).clone(), report.dim_names, 600, 0.05, 0.95
+    )
+    assert batched.summary(index=2).startswith("P(success")
+    with pytest.raises(
+        IndexError, match=r"index: expected one start state of the batch \(3,\), got 5"
+    ):
+        batched.summary(index=5)

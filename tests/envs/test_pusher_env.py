@@ -299,3 +299,9 @@ def test_actuator_strength_comes_after_the_start_state_in_the_stream():
     a, _ = _scripted_motors(weak, 5)
     b, _ = _scripted_motors(full, 5)
     np.testing.assert_allclose(a[0], 0.25 * b[0], rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, "0", 2**40, True])
+def test_seeds_numpy_cannot_take_are_named(seed):
+    with pytest.raises(ValueError, match=r"seed: expected an integer in \[0, 2\*\*32\)"):
+        make_pusher_env("deterministic", seed=seed)

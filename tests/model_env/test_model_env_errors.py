@@ -112,3 +112,8 @@ def test_task_functions_with_wrong_outputs(ensemble, starts):
     env = RCVAEEnsembleEnv(ensemble, lambda observation, action: 0.0, pusher_success)
     with pytest.raises(TypeError, match="reward_fn: expected a tensor"):
         env.step(td)
+
+
+def test_real_env_must_be_an_env(ensemble):
+    with pytest.raises(TypeError, match="real_env: expected a TorchRL EnvBase or None, got str"):
+        RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, real_env="pusher")

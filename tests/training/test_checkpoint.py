@@ -115,3 +115,9 @@ def test_metadata_that_would_not_load_back_is_refused(tmp_path, small_ensemble):
         save_ensemble(torch.nn.Linear(2, 2), tmp_path / "m.pt")
     path = save_ensemble(small_ensemble(), tmp_path / "m.pt", extra={"data": "/data/x", "n": 3})
     assert torch.load(path, weights_only=True)["extra"] == {"data": "/data/x", "n": 3}
+
+
+@pytest.mark.parametrize("path", [5, None])
+def test_a_path_that_is_not_one_is_named(path):
+    with pytest.raises(TypeError, match="path: expected a str or a path of checkpoint, got"):
+        load_ensemble(path)
