@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -34,10 +35,15 @@ class DistillConfig:
 
     def __post_init__(self) -> None:
         for name in ("epochs", "batch_size", "patience"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
-                raise ValueError(f"{name}: expected an int >= 1, got {getattr(self, name)!r}")
-        if not self.lr > 0:
-            raise ValueError(f"lr: expected > 0, got {self.lr!r}")
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected an int >= 1, got {value!r}")
+        if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)):
+            raise ValueError(f"lr: expected a positive finite number, got {self.lr!r}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ValueError(f"lr: expected a positive finite number, got {self.lr!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
         if not 0.0 < self.val_fraction < 1.0:
             raise ValueError(
                 f"val_fraction: expected a fraction in (0, 1), got {self.val_fraction!r}"
@@ -54,6 +60,12 @@ def _check_pairs(observations: torch.Tensor, actions: torch.Tensor) -> None:
         raise ValueError(f"observations: expected at least 10 pairs, got {len(observations)}")
     if not (torch.isfinite(observations).all() and torch.isfinite(actions).all()):
         raise ValueError("observations, actions: expected finite values, got NaN or inf")
+    low, high = float(actions.min()), float(actions.max())
+    if low < -1.0 or high > 1.0:
+        raise ValueError(
+            f"actions: expected labels in [-1, 1] (the policy's tanh range: scale the actions "
+            f"first), got values in [{low:.3g}, {high:.3g}]"
+        )
 
 
 def distill_policy(
@@ -69,6 +81,14 @@ def distill_policy(
     epoch. Returns the policy and ``{"train_mse", "val_mse", "epochs"}``.
     """
     _check_pairs(observations, actions)
+    if policy is not None:
+        with torch.no_grad():
+            out = policy(observations[:1])
+        if out.shape[-1] != actions.shape[-1]:
+            raise ValueError(
+                f"policy: expected actions of A={actions.shape[-1]} (those of the labels), "
+                f"got a policy of A={out.shape[-1]}"
+            )
     g = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
     if policy is None:

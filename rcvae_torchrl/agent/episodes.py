@@ -75,9 +75,18 @@ def run_episodes(
                 max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
             )
         if callable(success):
-            won = success(episode["next", "observation"]).reshape(-1).to(torch.bool)
+            won = success(episode["next", "observation"])
+            if not isinstance(won, torch.Tensor) or won.dtype != torch.bool:
+                got = won.dtype if isinstance(won, torch.Tensor) else type(won).__name__
+                raise TypeError(f"success: expected a bool tensor [T] of the episode, got {got}")
         else:
-            won = episode["next", success].reshape(-1)
+            won = episode["next", success]
+        if won.numel() != episode.shape[0]:
+            raise ValueError(
+                f"success: expected one flag per step of the episode ({episode.shape[0]}), got "
+                f"shape {tuple(won.shape)}"
+            )
+        won = won.reshape(-1)
         wins.append(bool(won.any()))
         steps.append(int(won.float().argmax()) + 1 if won.any() else episode.shape[0])
         episode[TRAJ_KEY] = torch.full(episode.shape, first_id + i, dtype=torch.int64)

@@ -53,6 +53,13 @@ class MLPPolicy(nn.Module):
 
     def fit_normalizer(self, observations: torch.Tensor) -> None:
         """Set the input statistics from observations ``[..., S]`` (std floored at 1e-3)."""
+        if observations.shape[-1] != self.obs_dim or observations.numel() < 2 * self.obs_dim:
+            raise ValueError(
+                f"observations: expected at least two rows [..., S={self.obs_dim}], got shape "
+                f"{tuple(observations.shape)}"
+            )
+        if not bool(torch.isfinite(observations).all()):
+            raise ValueError("observations: expected finite values, got NaN or inf")
         flat = observations.reshape(-1, self.obs_dim)
         self.obs_mean.copy_(flat.mean(0))
         self.obs_std.copy_(flat.std(0).clamp_min(1e-3))

@@ -83,6 +83,10 @@ def draw_starts(env: EnvBase, seeds: Sequence[int], *, physics: bool = False) ->
     """
     rows = []
     for seed in seeds:
+        if isinstance(seed, (bool, float)) or not isinstance(seed, (int, np.integer, torch.Tensor)):
+            raise ValueError(f"seeds: expected integer seeds, got {seed!r}")
+        if isinstance(seed, torch.Tensor) and (seed.is_floating_point() or seed.numel() != 1):
+            raise ValueError(f"seeds: expected integer seeds, got {seed!r}")
         seed_env(env, int(seed))
         td = env.reset()
         row = {"observation": td["observation"].clone(), "seed": torch.tensor(int(seed))}
@@ -121,9 +125,19 @@ def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     reset. The task's ``after_step`` is called once more (a no-op for most dm_control tasks),
     so tasks that cache what they observe there see the new state.
     """
-    physics_of(env)  # a clear error for an env without a dm_control physics
+    physics = physics_of(env)  # a clear error for an env without a dm_control physics
     task = getattr(env, "base_env", env)._env.task
+    if not isinstance(start, TensorDictBase) or "physics" not in start.keys():
+        got = sorted(map(str, start.keys())) if isinstance(start, TensorDictBase) else start
+        raise ValueError(f"start: expected a tensordict with a 'physics' entry, got {got!r}")
     state = start["physics"]
+    for name in ("qpos", "qvel", "act"):
+        value, size = state[name], getattr(physics.data, name).size
+        if value.numel() != size or not bool(torch.isfinite(value).all()):
+            raise ValueError(
+                f"start['physics', {name!r}]: expected {size} finite values, got shape "
+                f"{tuple(value.shape)} with {int((~torch.isfinite(value)).sum())} non-finite"
+            )
     original = task.initialize_episode
 
     def initialize(physics_) -> None:

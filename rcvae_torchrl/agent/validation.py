@@ -99,6 +99,11 @@ def real_outcomes(
     """
     check_positive_int("runs_per_start", runs_per_start)
     check_positive_int("workers", workers)
+    check_positive_int("max_steps", max_steps)
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    if len(starts) == 0:
+        raise ValueError("starts: expected at least one start state, got none")
     if workers > 1 and (isinstance(env, EnvBase) or not callable(env)):
         raise ValueError(
             f"env: with workers={workers}, expected a function that makes the env (each worker "

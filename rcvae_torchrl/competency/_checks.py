@@ -24,6 +24,7 @@ from rcvae_torchrl._checks import (  # noqa: F401  (re-exported for the competen
     check_rank,
     check_same_shape,
     check_tensor,
+    check_unit_interval,
 )
 
 

@@ -90,6 +90,12 @@ class SuccessBoundary:
         if obs_dim is not None:
             _checks.check_positive_int("obs_dim", obs_dim)
         position = _indices("position", position, obs_dim)
+        same = isinstance(target, Sequence) and not isinstance(target, (str, bytes))
+        if same and sorted(target) == sorted(position):
+            raise ValueError(
+                f"target: expected other indices than position's {list(position)} (the "
+                f"distance would always be 0, every state a success), got {list(target)}"
+            )
         target_fn = _target_getter(target, len(position), obs_dim)
 
         def distance(obs: Tensor) -> Tensor:

@@ -9,6 +9,8 @@ failing, +1 confident of succeeding.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -33,6 +35,10 @@ def partial_moments(rewards: Tensor, threshold: float = 0.0) -> tuple[Tensor, Te
         ``(upm, lpm)``, each ``[*batch]``.
     """
     _checks.check_samples("rewards", rewards, 1, "[N, *batch]")
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)):
+        raise TypeError(f"threshold: expected a finite number, got {threshold!r}")
+    if not math.isfinite(threshold):
+        raise ValueError(f"threshold: expected a finite number, got {threshold!r}")
     magnitude = rewards.abs()
     above = rewards >= threshold
     upm = torch.where(above, magnitude, 0).mean(dim=0)
@@ -64,7 +70,7 @@ def famsec_outcome_assessment(rewards: Tensor, threshold: float = 0.0, k: float 
     upper, lower = upm.pow(k), lpm.pow(k)
     ratio = (upper - lower) / (upper + lower).clamp_min(torch.finfo(torch.float64).tiny)
     xo = torch.where(lpm == 0, 1.0, ratio)
-    return xo.to(rewards.dtype)
+    return xo.to(rewards.dtype if rewards.is_floating_point() else torch.float32)
 
 
 def ordinal_distribution(outcomes: Tensor, bin_edges: Tensor) -> Tensor:
@@ -82,6 +88,7 @@ def ordinal_distribution(outcomes: Tensor, bin_edges: Tensor) -> Tensor:
     """
     _checks.check_samples("outcomes", outcomes, 1, "[N, *batch]")
     _checks.check_rank("bin_edges", bin_edges, 1, "[Z-1]")
+    _checks.check_finite("bin_edges", bin_edges.to(torch.float64))
     if bin_edges.numel() > 1 and not bool((bin_edges[1:] > bin_edges[:-1]).all()):
         raise ValueError(f"bin_edges: expected strictly increasing edges, got {bin_edges.tolist()}")
     index = torch.bucketize(outcomes, bin_edges.to(outcomes), right=True)
@@ -115,9 +122,21 @@ def generalized_outcome_assessment(
     _checks.check_min_rank("probabilities", probabilities, 1, "[*batch, Z]")
     _checks.check_probability("probabilities", probabilities)
     bins = probabilities.shape[-1]
-    if not 0 <= threshold_bin < bins:
-        raise ValueError(f"threshold_bin: expected an integer in [0, {bins}), got {threshold_bin}")
+    if (
+        isinstance(threshold_bin, bool)
+        or not isinstance(threshold_bin, int)
+        or not 0 <= threshold_bin < bins
+    ):
+        raise ValueError(
+            f"threshold_bin: expected an integer in [0, {bins}), got {threshold_bin!r}"
+        )
+    _checks.check_positive("scale", scale)
     p = probabilities.to(torch.float64)
+    if p.numel() and not bool((p.sum(dim=-1) > 0).all()):
+        raise ValueError(
+            "probabilities: expected every row to hold some probability, got a row of zeros "
+            "(no outcome to assess)"
+        )
     p = p / p.sum(dim=-1, keepdim=True).clamp_min(torch.finfo(torch.float64).tiny)
     i = torch.arange(bins, dtype=torch.float64, device=p.device)
     d_lpm = (torch.where(i < threshold_bin, threshold_bin - i, 0.0) * p).sum(dim=-1)

@@ -17,11 +17,13 @@ Layouts as in :mod:`rcvae_torchrl.competency.validation`: forecasts ``[B]``, out
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
+from rcvae_torchrl.competency import _checks
 from rcvae_torchrl.competency.validation import _outcomes
 
 __all__ = ["PlattMap", "apply_platt", "cross_fitted_recalibration", "fit_platt"]
@@ -53,8 +55,7 @@ def fit_platt(
     """The Platt map maximising the likelihood of the episodes' outcomes, every episode one
     observation, minus ``ridge / 2 · ((a - 1)² + b²)``; Newton's method (the objective is
     concave, so it converges from the identity)."""
-    if not ridge > 0:
-        raise ValueError(f"ridge: expected a positive penalty weight, got {ridge!r}")
+    _checks.check_positive("ridge", ridge)
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
     f, mask = _outcomes(forecast, outcome, mask)
@@ -77,6 +78,11 @@ def fit_platt(
 
 def apply_platt(forecast: Tensor, platt: PlattMap) -> Tensor:
     """``σ(slope·logit(f) + intercept)`` ``[B]``, in the forecast's dtype."""
+    _checks.check_tensor("forecast", forecast)
+    _checks.check_floating("forecast", forecast)
+    _checks.check_probability("forecast", forecast)
+    if not (math.isfinite(platt.slope) and math.isfinite(platt.intercept)):
+        raise ValueError(f"platt: expected a finite slope and intercept, got {platt}")
     z = platt.slope * _logit(forecast) + platt.intercept
     return torch.sigmoid(z).to(forecast.dtype)
 

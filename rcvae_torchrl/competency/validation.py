@@ -45,7 +45,10 @@ __all__ = [
 def _outcomes(forecast: Tensor, outcome: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
     """Checked forecasts ``[B]`` (float64) and outcomes ``[B, R]`` with their mask."""
     _checks.check_rank("forecast", forecast, 1, "[B]")
+    _checks.check_floating("forecast", forecast)
     _checks.check_probability("forecast", forecast)
+    if forecast.shape[0] == 0:
+        raise ValueError("forecast: expected at least one start state, got none")
     _checks.check_rank("outcome", outcome, 2, "[B, R]")
     if outcome.shape[0] != forecast.shape[0]:
         raise ValueError(
@@ -118,6 +121,8 @@ def rank_correlation(x: Tensor, y: Tensor) -> Tensor:
     """
     _checks.check_same_shape("x", x, "y", y)
     _checks.check_rank("x", x, 1, "[n]")
+    _checks.check_finite("x", x.to(torch.float64))
+    _checks.check_finite("y", y.to(torch.float64))
     rx, ry = _average_ranks(x.to(torch.float64)), _average_ranks(y.to(torch.float64))
     rx, ry = rx - rx.mean(), ry - ry.mean()
     denominator = (rx.square().sum() * ry.square().sum()).sqrt()
@@ -139,6 +144,7 @@ def auroc(score: Tensor, label: Tensor) -> Tensor:
     _checks.check_same_shape("score", score, "label", label)
     if label.dtype != torch.bool:
         raise TypeError(f"label: expected a bool tensor, got {label.dtype}")
+    _checks.check_finite("score", score.to(torch.float64))
     positives, negatives = int(label.sum()), int((~label).sum())
     if positives == 0 or negatives == 0:
         return torch.tensor(math.nan, dtype=torch.float64)
@@ -203,6 +209,8 @@ def crps_samples(samples: Tensor, observed: Tensor) -> Tensor:
     x, y = samples.reshape(-1).to(torch.float64), observed.reshape(-1).to(torch.float64)
     if x.numel() == 0:
         raise ValueError("samples: expected at least one sample, got none")
+    _checks.check_finite("samples", x)
+    _checks.check_finite("observed", y)
     spread = (x[:, None] - x[None, :]).abs().mean()
     return (x[:, None] - y[None, :]).abs().mean(0) - 0.5 * spread
 
@@ -230,6 +238,8 @@ def validate_forecasts(
     labels = outcome[mask]
     scores = f[:, None].expand_as(outcome)[mask]
     real = float(labels.to(torch.float64).mean())
+    if base_rate is not None:
+        _checks.check_unit_interval("base_rate", base_rate)
     base = real if base_rate is None else float(base_rate)
     brier = float(episode_brier(f, outcome, mask))
     brier_base = float(((base - labels.to(torch.float64)) ** 2).mean())
@@ -280,7 +290,21 @@ def time_to_success_scores(
             f"real_steps: expected {forecast_steps.shape[0]} rows (one per start state), got "
             f"{tuple(real_steps.shape)}"
         )
-    mask = torch.ones_like(real_steps, dtype=torch.bool) if mask is None else mask
+    for name, steps in (("forecast_steps", forecast_steps), ("real_steps", real_steps)):
+        _checks.check_finite(name, steps.to(torch.float64))
+        if 0 in steps.shape:
+            raise ValueError(
+                f"{name}: expected at least one time per start, got {tuple(steps.shape)}"
+            )
+    if mask is None:
+        mask = torch.ones_like(real_steps, dtype=torch.bool)
+    elif mask.dtype != torch.bool or mask.shape != real_steps.shape:
+        raise ValueError(
+            f"mask: expected a bool tensor of real_steps' shape {tuple(real_steps.shape)}, got "
+            f"{mask.dtype} {tuple(mask.shape)}"
+        )
+    if not bool(mask.any(1).all()):
+        raise ValueError("mask: expected at least one real run per start state")
     climatology = real_steps[mask]
     ours, reference = [], []
     for b in range(real_steps.shape[0]):

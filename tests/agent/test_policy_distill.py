@@ -70,3 +70,20 @@ def test_policy_files_round_trip_and_refuse_bad_files(tmp_path):
         load_policy(tmp_path / "foreign.pt")
     with pytest.raises(StoredFileError, match="the file is missing"):
         load_policy(tmp_path / "none.pt")
+
+
+def test_labels_a_tanh_policy_cannot_reach_and_mismatched_policies_are_refused():
+    obs = torch.randn(40, 3)
+    with pytest.raises(ValueError, match=r"actions: expected labels in \[-1, 1\]"):
+        distill_policy(obs, torch.full((40, 2), 3.0))
+    with pytest.raises(
+        ValueError, match=r"policy: expected actions of A=1 .*, got a policy of A=2$"
+    ):
+        distill_policy(obs, torch.zeros(40, 1), policy=MLPPolicy(3, 2))
+    for kwargs in ({"lr": float("inf")}, {"seed": -1}, {"epochs": True}):
+        with pytest.raises(ValueError, match=f"{next(iter(kwargs))}: expected"):
+            DistillConfig(**kwargs)
+    policy = MLPPolicy(3, 2)
+    for bad in (torch.zeros(1, 3), torch.zeros(4, 2), torch.full((4, 3), float("nan"))):
+        with pytest.raises(ValueError, match="observations: expected"):
+            policy.fit_normalizer(bad)

@@ -114,3 +114,30 @@ def test_run_episodes_needs_a_reset_for_given_starts():
             reset_to_state=reset_by_seed,
             max_steps=2,
         )
+
+
+def test_bad_starts_seeds_and_success_flags_are_named(reacher):
+    start = draw_starts(reacher, [1], physics=True)[0].clone()
+    start["physics", "qpos"][0] = float("nan")
+    with pytest.raises(ValueError, match=r"start\['physics', 'qpos'\]: expected 2 finite values"):
+        reset_to_physics(reacher, start)
+    with pytest.raises(ValueError, match="start: expected a tensordict with a 'physics' entry"):
+        reset_to_physics(reacher, draw_starts(reacher, [1])[0])
+    with pytest.raises(ValueError, match=r"seeds: expected integer seeds, got 1\.7"):
+        draw_starts(reacher, [1.7])
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    starts = draw_starts(env, [0])
+    args = {"reset_to_state": reset_by_seed, "max_steps": 3, "runs_per_start": 1}
+    with pytest.raises(ValueError, match=r"seed: expected an integer >= 0, got 0\.5"):
+        real_outcomes(env, lambda td: td.set("action", torch.zeros(2)), starts, seed=0.5, **args)
+    with pytest.raises(ValueError, match="starts: expected at least one start state, got none"):
+        real_outcomes(env, lambda td: td.set("action", torch.zeros(2)), starts[:0], **args)
+    with pytest.raises(ValueError, match="max_steps: expected a positive integer, got 0"):
+        real_outcomes(env, lambda td: td, starts, **{**args, "max_steps": 0})
+    act = lambda td: td.set("action", torch.zeros(2))  # noqa: E731
+    for success, error, match in (
+        (lambda obs: obs[..., :2] > 0, ValueError, r"success: expected one flag per step of the"),
+        (lambda obs: obs[..., 0].float(), TypeError, "success: expected a bool tensor"),
+    ):
+        with pytest.raises(error, match=match):
+            run_episodes(env, act, seeds=[0], max_steps=3, success=success)

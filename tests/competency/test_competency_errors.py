@@ -182,3 +182,78 @@ def test_summary_of_a_start_state_outside_the_batch():
         IndexError, match=r"index: expected one start state of the batch \(3,\), got 5"
     ):
         batched.summary(index=5)
+
+
+def test_validation_scores_refuse_what_they_would_turn_into_plausible_numbers():
+    from rcvae_torchrl.competency import (
+        auroc,
+        crps_samples,
+        rank_correlation,
+        time_to_success_scores,
+        validate_forecasts,
+    )
+
+    nan = float("nan")
+    with pytest.raises(ValueError, match="x: expected finite values"):
+        rank_correlation(torch.tensor([nan, 1.0, 2.0]), torch.tensor([0.0, 1.0, 2.0]))
+    with pytest.raises(ValueError, match="score: expected finite values"):
+        auroc(torch.tensor([nan, 0.2, 0.3]), torch.tensor([True, False, True]))
+    with pytest.raises(ValueError, match="observed: expected finite values"):
+        crps_samples(torch.tensor([1.0, 2.0]), torch.tensor([nan]))
+    forecast, outcome = torch.tensor([0.2, 0.8]), torch.tensor([[False, True], [True, True]])
+    with pytest.raises(ValueError, match=r"base_rate: expected a float in \[0, 1\], got 1.5"):
+        validate_forecasts(forecast, outcome, base_rate=1.5)
+    with pytest.raises(TypeError, match="forecast: expected a floating-point tensor"):
+        validate_forecasts(torch.tensor([0, 1]), outcome)
+    steps = torch.tensor([[3.0, 5.0], [4.0, 6.0]])
+    for mask in (torch.ones(2, 2, dtype=torch.long), torch.ones(2, 3, dtype=torch.bool)):
+        with pytest.raises(ValueError, match=r"mask: expected a bool tensor of real_steps' shape"):
+            time_to_success_scores(steps, steps, mask)
+    with pytest.raises(ValueError, match="real_steps: expected finite values"):
+        time_to_success_scores(steps, steps.clone().fill_(nan))
+
+
+def test_recalibration_and_outcome_assessments_refuse_silent_truncation():
+    from rcvae_torchrl.competency import (
+        PlattMap,
+        apply_platt,
+        cross_fitted_recalibration,
+        fit_platt,
+        ordinal_distribution,
+    )
+
+    outcome = torch.tensor([[True], [False], [True], [False]])
+    with pytest.raises(TypeError, match="forecast: expected a floating-point tensor"):
+        apply_platt(torch.tensor([0, 1]), PlattMap(0.5, 0.3))
+    with pytest.raises(TypeError, match="forecast: expected a floating-point tensor"):
+        cross_fitted_recalibration(torch.tensor([0, 1, 0, 1]), outcome, folds=2)
+    with pytest.raises(ValueError, match=r"forecast: expected probabilities in \[0, 1\]"):
+        apply_platt(torch.tensor([1.5]), PlattMap(1.0, 0.0))
+    with pytest.raises(ValueError, match="platt: expected a finite slope and intercept"):
+        apply_platt(torch.tensor([0.5]), PlattMap(float("nan"), 0.0))
+    with pytest.raises(ValueError, match="ridge: expected a positive number, got inf"):
+        fit_platt(torch.tensor([0.5, 0.5]), outcome[:2], ridge=float("inf"))
+    with pytest.raises(ValueError, match="forecast: expected at least one start state"):
+        fit_platt(torch.zeros(0), torch.zeros(0, 1, dtype=torch.bool))
+    assert float(famsec_outcome_assessment(torch.tensor([-1, 5]))) == pytest.approx(2 / 3, abs=1e-4)
+    with pytest.raises(ValueError, match="threshold: expected a finite number, got nan"):
+        famsec_outcome_assessment(torch.tensor([-1.0, 5.0]), threshold=float("nan"))
+    p = torch.tensor([0.25, 0.25, 0.5])
+    for kwargs, match in (
+        ({"threshold_bin": 1.5}, r"threshold_bin: expected an integer in \[0, 3\), got 1.5"),
+        ({"threshold_bin": True}, "threshold_bin: expected an integer"),
+        ({"threshold_bin": 1, "scale": -1.0}, "scale: expected a positive number, got -1.0"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            generalized_outcome_assessment(p, **kwargs)
+    with pytest.raises(ValueError, match="probabilities: expected every row to hold some"):
+        generalized_outcome_assessment(torch.zeros(3), 1)
+    with pytest.raises(ValueError, match="bin_edges: expected finite values"):
+        ordinal_distribution(torch.randn(5), torch.tensor([float("nan"), 0.0]))
+
+
+def test_a_ball_around_its_own_position_is_refused():
+    with pytest.raises(ValueError, match=r"target: expected other indices than position's \[0\]"):
+        SuccessBoundary.ball([0], 0.1, target=[0], time_limit=5)
+    SuccessBoundary.ball([0], 0.1, target=[1], time_limit=5)
+    SuccessBoundary.ball([0], 0.1, target=torch.tensor([0.5]), time_limit=5)

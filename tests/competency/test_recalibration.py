@@ -89,7 +89,7 @@ def test_masked_runs_are_left_out():
         ({"folds": 1}, "folds: expected an integer between 2 and the number of start states"),
         ({"folds": 9}, r"folds: .*\(8\), got 9"),
         ({"folds": 2.5}, "folds"),
-        ({"ridge": 0.0}, "ridge: expected a positive penalty weight"),
+        ({"ridge": 0.0}, "ridge: expected a positive number"),
     ],
 )
 def test_bad_arguments_are_named(kwargs, match):
