@@ -171,7 +171,13 @@ def work_generator(*keys: int, device: str | torch.device = "cpu") -> torch.Gene
     """A generator seeded by ``keys`` alone (e.g. the run's seed, a work item's index and a
     stream number), so a piece of work draws the same numbers on whichever rank runs it.
 
-    The keys go through NumPy's ``SeedSequence``: nearby keys give unrelated streams.
+    The keys go through NumPy's ``SeedSequence``: nearby keys give unrelated streams, but keys
+    that differ only by trailing zeros give the same one (``(5, 3)`` and ``(5, 3, 0)``), and
+    the keys carry no purpose: the training's window stream of member m (``(seed, m, 0)``)
+    and the forecast's noise stream of start chunk m (also ``(seed, m, 0)``) are the same
+    numbers when both use one seed. Their uses differ (window positions against imagination
+    noise), so nothing here depends on the coincidence; give a new use its own stream number
+    (not 0) or its own seed.
     """
     if not keys or any(isinstance(k, bool) or not isinstance(k, int) or k < 0 for k in keys):
         raise ValueError(f"keys: expected one or more non-negative ints, got {keys!r}")
