@@ -68,7 +68,15 @@ STAGES = {
     "models": ("models/*.pt",),
     "forecast": ("forecast/*.pt",),
     "truth": ("truth/*.pt",),
-    "report": ("*.md", "*.csv", "*.png", "summary.json"),
+    # named one by one: "*.md" would take a user's notes beside them for the stage's own
+    "report": (
+        "report.md",
+        "table.md",
+        "table.csv",
+        "summary.json",
+        "uncertainty_over_time.png",
+        "reliability.png",
+    ),
 }
 # disjoint seed ranges per purpose: data starts, condition c's starts, and real episodes
 DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000

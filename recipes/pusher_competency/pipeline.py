@@ -94,14 +94,28 @@ _FAR_ALPHA = 0.01
 #: Seeds of the far check's replays: ``_REPLAY_SEED + 1000 * seed`` (env ``i``: + i).
 _REPLAY_SEED = 90_000
 
-# Each stage and the files it writes (their sizes and hashes go into its marker).
+# Each stage and the files it writes (their sizes and hashes go into its marker). The report's
+# are named one by one: a pattern such as "*.md" would take a user's own notes beside them for
+# the stage's, and remove them when the stage runs again.
+REPORT_FILES = (
+    "report.md",
+    "table.md",
+    "table.csv",
+    "summary.json",
+    "uncertainty_over_time.png",
+    "reliability.png",
+    "start_reliability.png",
+    "surface.png",
+    "forecast_vs_reality.png",
+    "episode.gif",
+)
 STAGES = {
     "data": ("data/*.pt",),
     "models": ("models/*.pt",),
     "agent": ("agent/*.pt",),
     "forecast": ("forecast/*.pt",),
     "truth": ("truth/*.pt",),
-    "report": ("*.md", "*.csv", "*.png", "*.gif", "summary.json"),
+    "report": REPORT_FILES,
 }
 # Stages that share their work over torch.distributed ranks (the others run on rank 0).
 SHARDED_STAGES = ("models", "forecast", "truth")

@@ -20,6 +20,7 @@ from doc_blocks import rst_python_blocks, run_blocks
 from micro import MICRO, START_STATES
 from PIL import Image
 
+from recipes.pusher_competency import pipeline
 from recipes.pusher_competency.pusher import CONDITIONS
 from recipes.pusher_competency.report import COLUMNS
 
@@ -187,6 +188,20 @@ def test_summary_json(runs):
     rows = {r["condition"]: r for r in _rows(runs["dir"])}
     for condition, row in summary["rows"].items():
         assert float(rows[condition]["brier"]) == pytest.approx(row["brier"])
+
+
+def test_every_file_a_stage_wrote_is_in_its_marker_and_no_other(runs):
+    """Every output of the run is in the marker of the stage that wrote it (so a damaged one
+    is found and made again); a file of the user's beside them is in none, so no stage ever
+    removes it."""
+    d = runs["dir"]
+    recorded = set()
+    for stage in STAGES:
+        recorded |= set(json.loads((d / "stages" / f"{stage}.json").read_text())["outputs"])
+    written = {rel for rel in runs["before"] if not rel.startswith("stages/")}
+    assert recorded == written
+    # top-level files are named one by one: no pattern that would take a user's notes
+    assert not any(set("*?[") & set(pattern) for pattern in pipeline.STAGES["report"])
 
 
 def test_second_run_reuses_every_stage(runs):
