@@ -102,16 +102,21 @@ class StageRunner:
         self.logger = logger if distributed.is_main() else None
         self.summaries: dict[str, Any] = {}
         self._inputs = _digest(dict(settings) if settings is not None else None)
+        self._unverified = False  # the settings record was missing or unreadable
         if settings is not None and distributed.is_main():
             self._record_settings(dict(settings), self.run_dir / config_name)
 
     def _record_settings(self, settings: dict[str, Any], path: Path) -> None:
+        existed = path.is_file()
         try:
             record_run_config(path, settings)
         except StoredFileError as err:
             self._log(f"[settings] {err}: writing it again from the current settings")
             path.unlink(missing_ok=True)
             record_run_config(path, settings)
+            existed = False
+        # files of unfinished stages cannot be told from those of other settings any more
+        self._unverified = not existed
 
     def marker(self, name: str) -> Path:
         """The marker file of stage ``name``."""
@@ -132,6 +137,8 @@ class StageRunner:
         docstring).
         """
         saved = self._reusable(name) if distributed.is_main() else None
+        if saved is None and self._unverified and distributed.is_main():
+            self._remove_unverified(name, outputs)
         if distributed.broadcast(saved is not None):  # rank 0's view: every rank takes one branch
             saved = saved or read_json(self.marker(name), f"marker of stage {name!r}")
         elif distributed.is_main() or sharded:
@@ -193,6 +200,19 @@ class StageRunner:
             elif actual["sha256"] != record.get("sha256"):
                 bad[rel] = "its content changed since the stage wrote it (SHA-256 differs)"
         return bad
+
+    def _remove_unverified(self, name: str, outputs: Sequence[str]) -> None:
+        """Remove the files an unfinished stage left when the run's settings record was
+        missing or unreadable: nothing says they were made with these settings, and a stage
+        keeps the files it finds (it resumes where it stopped)."""
+        files = [p for pattern in outputs for p in self.run_dir.glob(pattern) if p.is_file()]
+        if files:
+            self._log(
+                f"[{name}] the run's settings record was missing or unreadable: removing the "
+                f"{len(files)} files the unfinished stage left (their settings are unknown)"
+            )
+            for path in files:
+                path.unlink(missing_ok=True)
 
     def _remove(self, rels: Iterable[str]) -> None:
         for rel in rels:

@@ -206,3 +206,23 @@ def test_missing_files_are_named(tmp_path):
         assert info.value.path == tmp_path / "nope"
     write_json(tmp_path / "ok.json", {"a": 1})
     assert read_json(tmp_path / "ok.json") == {"a": 1}
+
+
+@pytest.mark.parametrize("damage", ["truncate", "delete"])
+def test_an_unfinished_stage_of_unknown_settings_leaves_nothing_to_reuse(tmp_path, damage):
+    """A stage killed before its marker, then the settings record lost and the settings
+    changed: the stage's files may come from the old settings, so none of them is kept."""
+    Pipeline(tmp_path, value=1.0).run({"value": 1.0})
+    (tmp_path / "stages" / "make.json").unlink()  # as if killed before the marker
+    (tmp_path / "stages" / "use.json").unlink()
+    path = tmp_path / "study_config.json"
+    path.write_text("{trunc") if damage == "truncate" else path.unlink()
+    again = Pipeline(tmp_path, value=2.0)
+    runner, lines = again.run({"value": 2.0})
+    assert again.computed == ["x", "y", "z"] and runner.summaries["use"]["total"] == 12.0
+    assert any("removing the 2 files the unfinished stage left" in line for line in lines)
+    # with the record intact the unfinished stage resumes from its files, as before
+    (tmp_path / "stages" / "make.json").unlink()
+    resumed = Pipeline(tmp_path, value=2.0)
+    resumed.run({"value": 2.0})
+    assert resumed.computed == []
