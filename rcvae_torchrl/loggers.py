@@ -14,6 +14,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -76,16 +77,51 @@ def make_logger(
     if backend == "mlflow":
         # MLflow 3 refuses a file store unless asked; a local store is what this logger is for
         os.environ.setdefault("MLFLOW_ALLOW_FILE_STORE", "true")
-    return get_logger(backend, str(Path(log_dir) / backend), exp_name, **kwargs)
+    logger = get_logger(backend, str(Path(log_dir) / backend), exp_name, **kwargs)
+    if backend == "mlflow":
+        _end_run_on_close(logger.experiment)
+    return logger
+
+
+def _end_run_on_close(run: Any) -> None:
+    """TorchRL's MLflow logger starts a run that its ``close`` leaves active, so the next
+    logger of the process cannot start one ("Run ... is already active"): ``close`` ends it."""
+    import mlflow
+
+    def close() -> None:
+        active = mlflow.active_run()
+        if active is not None and active.info.run_id == run.info.run_id:
+            mlflow.end_run()
+
+    run.close = close
+
+
+_WORDS = {">=": "_ge_", "<=": "_le_", ">": "_gt_", "<": "_lt_", "/": "_over_", "±": "_pm_"}
+
+
+def scalar_name(key: object) -> str:
+    """``key`` as one segment of a scalar's name that every backend takes: letters, digits,
+    ``_``, ``-`` and ``.`` only (MLflow refuses ``|`` or ``>``, and a ``/`` would make a
+    folder of the CSV and TensorBoard loggers); comparisons become words.
+
+    Example:
+        >>> scalar_name("|forecast - real| <= 0.10 (deterministic)")
+        'forecast_-_real_le_0.10_deterministic'
+    """
+    text = str(key)
+    for symbol, word in _WORDS.items():
+        text = text.replace(symbol, word)
+    text = re.sub(r"[^A-Za-z0-9_.-]+", "_", text)
+    return re.sub(r"_+", "_", text).strip("_") or "_"
 
 
 def _numbers(values: Mapping[str, Any], prefix: str) -> dict[str, float]:
     out = {}
     for key, value in values.items():
         if isinstance(value, Mapping):
-            out.update(_numbers(value, f"{prefix}{key}/"))
+            out.update(_numbers(value, f"{prefix}{scalar_name(key)}/"))
         elif isinstance(value, (bool, int, float)) and math.isfinite(value):
-            out[f"{prefix}{key}"] = float(value)
+            out[f"{prefix}{scalar_name(key)}"] = float(value)
     return out
 
 

@@ -127,6 +127,26 @@ def test_stage_summaries_are_logged(tmp_path):
     assert _csv(tmp_path / "logs" / "csv")["stages/data/frames"] == [(0, 120.0), (0, 120.0)]
 
 
+@pytest.mark.parametrize("backend", ["csv", "mlflow"])
+def test_check_names_become_names_every_backend_takes(backend, tmp_path):
+    """A report's checks are named in words and symbols (``|``, ``<=``, ``/``): MLflow refused
+    them (every run with logger=mlflow failed) and the CSV logger made folders of the ``/``."""
+    _installed(backend)
+    logger = make_logger(backend, tmp_path / "logs", "trial")
+    checks = {
+        "aleatoric stochastic / deterministic >= 1.5": {"value": 2.1},
+        "|forecast - real| <= 0.10 (deterministic)": {"value": 0.03},
+    }
+    names = log_scalars(logger, {"checks": checks}, step=0, prefix="stages/report/")
+    logger.close()
+    assert names == [
+        "stages/report/checks/aleatoric_stochastic_over_deterministic_ge_1.5/value",
+        "stages/report/checks/forecast_-_real_le_0.10_deterministic/value",
+    ]
+    if backend == "csv":
+        assert _csv(tmp_path / "logs" / "csv")[names[1]] == [(0, 0.03)]
+
+
 def test_log_scalars_flattens_and_keeps_finite_numbers():
     logged = []
 
