@@ -167,6 +167,25 @@ def _writable(node: Any) -> None:
             _writable(child)
 
 
+def _check_known_keys(schema: DictConfig, cfg: Any, prefix: str = "") -> None:
+    """Refuse keys the schema does not have, also those added with Hydra's ``+`` (which lets
+    them past Hydra's own check: a misspelt ``+seeds=3`` was dropped silently, and
+    ``+train.max_step=3`` ended in a FrozenInstanceError)."""
+    if not isinstance(cfg, (DictConfig, dict)):
+        return
+    for key in cfg.keys():
+        if key not in schema:
+            known = ", ".join(sorted(map(str, schema.keys())))
+            raise ValueError(
+                f"{prefix}{key}: not a setting of {prefix.rstrip('.') or 'the recipe'} "
+                f"(expected one of: {known})"
+            )
+        child = schema._get_node(key)
+        if isinstance(child, DictConfig) and not child._is_missing() and not child._is_none():
+            value = cfg[key] if isinstance(cfg, dict) else cfg._get_node(key)
+            _check_known_keys(child, value, f"{prefix}{key}.")
+
+
 def _schema(cls: type) -> DictConfig:
     node = OmegaConf.structured(cls)
     _writable(node)
@@ -187,8 +206,10 @@ def build_config(cls: type[T], cfg: DictConfig | dict) -> T:
     Each section is built on its own, so an error names the section and the setting
     (``train.window: ...``); then :func:`check_run_settings`.
     """
+    schema = _schema(cls)
+    _check_known_keys(schema, cfg)
     try:
-        merged = OmegaConf.merge(_schema(cls), cfg)
+        merged = OmegaConf.merge(schema, cfg)
     except Exception as err:  # OmegaConf's ValidationError names the key and the value
         raise ValueError(f"{err}") from None
     sections = {}
@@ -201,6 +222,8 @@ def build_config(cls: type[T], cfg: DictConfig | dict) -> T:
                 raise ValueError(f"{f.name}.{err}") from None
         else:
             sections[f.name] = node
+    if isinstance(sections.get("run_dir"), str):  # checked and used as the same folder
+        sections["run_dir"] = os.path.expanduser(sections["run_dir"])
     config = cls(**sections)
     check_run_settings(config)
     return config

@@ -295,3 +295,22 @@ def test_the_episode_latent_reaches_both_models():
     assert config.episode_latent_dim == 3
     assert config.observation_names[:2] == ("shoulder_cos", "shoulder_sin")
     assert _config("train.episode_start_fraction=0.25").train.episode_start_fraction == 0.25
+
+
+@pytest.mark.parametrize(
+    ("override", "expected"),
+    [
+        ({"foo": 1}, r"^foo: not a setting of the recipe \(expected one of: agent, "),
+        ({"train": {"max_step": 3}}, r"^train\.max_step: not a setting of train \(expected "),
+        ({"agent": {"distill": {"epoch": 3}}}, r"^agent\.distill\.epoch: not a setting of"),
+    ],
+)
+def test_keys_added_with_plus_are_checked_too(override, expected):
+    """Hydra lets ``+key=value`` past its own check: the schema refuses it by name."""
+    with pytest.raises(ValueError, match=expected):
+        study_config(override)
+
+
+def test_a_run_dir_under_home_is_the_folder_that_was_checked(monkeypatch, tmp_path):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert study_config({"run_dir": "~/study"}).run_dir == str(tmp_path / "study")
