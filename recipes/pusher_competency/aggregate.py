@@ -160,16 +160,61 @@ def _seed_cell(check: dict[str, Any] | None) -> str:
     return text if check["met"] else f"{text} ✗"
 
 
+def _summary(path: Path) -> dict[str, Any]:
+    summary = read_json(path, "study summary")
+    if not isinstance(summary, dict) or not {"validation", "rows"} <= summary.keys():
+        raise SystemExit(
+            f"{path}: expected a study summary (a mapping with 'rows' and 'validation'), got "
+            f"{type(summary).__name__}"
+            + (f" with keys {sorted(summary)}" if isinstance(summary, dict) else "")
+        )
+    return summary
+
+
+def _check_same_settings(configs: dict[str, Path]) -> None:
+    """Seeds of one study: the same settings but the seed (each run records its own)."""
+    settings = {}
+    for name, path in configs.items():
+        if path.is_file():
+            recorded = read_json(path, "study settings")
+            settings[name] = {k: v for k, v in recorded.items() if k != "seed"}
+    if len(settings) < 2:
+        return
+    (first, reference), *others = settings.items()
+    for name, values in others:
+        differ = sorted(
+            k for k in reference.keys() | values.keys() if reference.get(k) != values.get(k)
+        )
+        if differ:
+            raise SystemExit(
+                f"{name}: made with other settings than {first} (sections {differ} differ): "
+                "aggregate the seeds of one study only"
+            )
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("directory", type=Path, help="the directory holding seed*/summary.json")
     args = parser.parse_args(argv)
+    for old in ("aggregate.json", "aggregate.md"):  # never left to look current after a failure
+        (args.directory / old).unlink(missing_ok=True)
     found = sorted(args.directory.glob("seed*/summary.json"))
     if not found:
         raise SystemExit(
             f"directory: expected seed*/summary.json under {args.directory}, found none"
         )
-    summaries = {p.parent.name: read_json(p, "study summary") for p in found}
+    unfinished = sorted(
+        p.name
+        for p in args.directory.glob("seed*")
+        if p.is_dir() and not (p / "summary.json").is_file()
+    )
+    if unfinished:
+        raise SystemExit(
+            f"directory: {unfinished} under {args.directory} hold no summary.json (runs that "
+            "did not finish): finish them, or move them away to aggregate the others"
+        )
+    summaries = {p.parent.name: _summary(p) for p in found}
+    _check_same_settings({p.parent.name: p.parent / "study_config.json" for p in found})
     result = aggregate(summaries)
     write_json(args.directory / "aggregate.json", result)
     text = markdown(result)

@@ -75,3 +75,27 @@ def test_every_seed_has_its_value_and_verdict(tmp_path):
     assert "| own rate | – | 0.300 |" in every
     assert "over seeds" not in every  # the checks over all seeds have no per-seed value
     assert r"| mean \|forecast - real\| over seeds <= 0.05 (stochastic) | 0.110 | 0/1 |" in text
+
+
+def _seeds(root, count, settings=lambda i: {"train": {"max_steps": 10}, "seed": i}):
+    for i in range(count):
+        (root / f"seed{i}").mkdir(parents=True)
+        (root / f"seed{i}" / "summary.json").write_text(json.dumps(_summary(0.05, True)))
+        (root / f"seed{i}" / "study_config.json").write_text(json.dumps(settings(i)))
+
+
+def test_unfinished_foreign_and_damaged_seeds_are_refused_by_name(tmp_path):
+    _seeds(tmp_path, 2)
+    main([str(tmp_path)])  # the same settings but the seed: aggregated
+    (tmp_path / "seed2").mkdir()  # a run that crashed before its summary
+    with pytest.raises(SystemExit, match=r"\['seed2'\] under .* hold no summary.json"):
+        main([str(tmp_path)])
+    assert not (tmp_path / "aggregate.md").exists()  # the old table does not look current
+    (tmp_path / "seed2").rmdir()
+    (tmp_path / "seed1" / "study_config.json").write_text(json.dumps({"train": {}, "seed": 1}))
+    with pytest.raises(SystemExit, match=r"seed1: made with other settings than seed0 .*'train'"):
+        main([str(tmp_path)])
+    (tmp_path / "seed1" / "study_config.json").write_text(json.dumps({"train": {"max_steps": 10}}))
+    (tmp_path / "seed1" / "summary.json").write_text("[]")
+    with pytest.raises(SystemExit, match=r"seed1/summary.json: expected a study summary"):
+        main([str(tmp_path)])
