@@ -116,6 +116,18 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
         ) from err
 
 
+def _differences(key: str, old: Any, new: Any) -> list[tuple[str, Any, Any]]:
+    """The leaves of two nested settings that differ, as (dotted key, old, new)."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return [
+            d
+            for k in sorted(old.keys() | new.keys())
+            if old.get(k) != new.get(k)
+            for d in _differences(f"{key}.{k}", old.get(k), new.get(k))
+        ]
+    return [(key, old, new)]
+
+
 def record_run_config(
     path: str | Path, config: Mapping[str, Any], *, may_change: Iterable[str] = ()
 ) -> None:
@@ -135,9 +147,15 @@ def record_run_config(
             k for k in set(saved) | set(current) if k not in skip and saved.get(k) != current.get(k)
         )
         if changed:
+            details = "; ".join(
+                f"{key}: {old!r} recorded, {new!r} now"
+                for k in changed
+                for key, old, new in _differences(k, saved.get(k), current.get(k))
+            )
             raise ValueError(
                 f"run directory {str(path.parent)!r} holds a run made with other settings "
-                f"({changed} differ); its results would be reused: use a new directory"
+                f"({changed} differ: {details}); its results would be reused: use a new "
+                "directory"
             )
         if saved == current:
             return

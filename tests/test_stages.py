@@ -139,8 +139,15 @@ def test_a_damaged_run_config_is_written_again(tmp_path, damage):
 
 def test_other_settings_are_refused_and_a_lost_config_reruns_everything(tmp_path):
     Pipeline(tmp_path).run()
-    with pytest.raises(ValueError, match=r"other settings \(\['seed'\] differ\)"):
+    with pytest.raises(
+        ValueError, match=r"other settings \(\['seed'\] differ: seed: 0 recorded, 1 now\)"
+    ):
         Pipeline(tmp_path).run({"seed": 1})
+    with pytest.raises(
+        ValueError,
+        match=r"differ: seed: 0 recorded, None now; train: None recorded, \{'lr': 0.1\} now\)",
+    ):
+        Pipeline(tmp_path).run({"train": {"lr": 0.1}})
     (tmp_path / "study_config.json").unlink()  # the markers still know the old settings
     again = Pipeline(tmp_path)
     _, lines = again.run({"seed": 1})
