@@ -167,6 +167,19 @@ def _writable(node: Any) -> None:
             _writable(child)
 
 
+def _to_object(node: DictConfig, prefix: str) -> Any:
+    """The dataclass of ``node``; a range error names its setting by its whole path
+    (``agent.distill.epochs``, not ``agent.epochs``): nested sections are built first."""
+    for key in node:
+        child = node._get_node(key)
+        if isinstance(child, DictConfig) and not child._is_none() and not child._is_missing():
+            _to_object(child, f"{prefix}{key}.")
+    try:
+        return OmegaConf.to_object(node)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"{prefix}{err}") from None
+
+
 def _check_known_keys(schema: DictConfig, cfg: Any, prefix: str = "") -> None:
     """Refuse keys the schema does not have, also those added with Hydra's ``+`` (which lets
     them past Hydra's own check: a misspelt ``+seeds=3`` was dropped silently, and
@@ -216,10 +229,7 @@ def build_config(cls: type[T], cfg: DictConfig | dict) -> T:
     for f in dataclasses.fields(cls):
         node = merged[f.name]
         if isinstance(node, DictConfig):
-            try:
-                sections[f.name] = OmegaConf.to_object(node)
-            except (ValueError, TypeError) as err:
-                raise ValueError(f"{f.name}.{err}") from None
+            sections[f.name] = _to_object(node, f"{f.name}.")
         else:
             sections[f.name] = node
     if isinstance(sections.get("run_dir"), str):  # checked and used as the same folder

@@ -314,3 +314,8 @@ def test_keys_added_with_plus_are_checked_too(override, expected):
 def test_a_run_dir_under_home_is_the_folder_that_was_checked(monkeypatch, tmp_path):
     monkeypatch.setenv("HOME", str(tmp_path))
     assert study_config({"run_dir": "~/study"}).run_dir == str(tmp_path / "study")
+
+
+def test_a_nested_setting_is_named_by_its_whole_path():
+    with pytest.raises(ValueError, match=r"^agent\.distill\.epochs: expected an int >= 1, got 0"):
+        study_config({"agent": {"distill": {"epochs": 0}}})
