@@ -47,9 +47,10 @@ def reset_to_state(env: EnvBase, observation: torch.Tensor) -> TensorDictBase:
     """
     shape = (*env.batch_size, OBSERVATION_DIM)
     if observation.shape != shape or not torch.isfinite(observation).all():
+        bad = int((~torch.isfinite(observation)).sum()) if observation.is_floating_point() else 0
         raise ValueError(
-            f"observation: expected a finite tensor of shape {shape}, "
-            f"got {tuple(observation.shape)}"
+            f"observation: expected a finite tensor of shape {shape}, got shape "
+            f"{tuple(observation.shape)}" + (f" with {bad} NaN or inf entries" if bad else "")
         )
     if isinstance(env, BatchedPusherEnv):
         td = TensorDict(observation=observation, batch_size=env.batch_size)

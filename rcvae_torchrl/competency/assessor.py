@@ -431,6 +431,11 @@ class CompetencyAssessor(KeyedModule):
 def _check_seed(seed: int | None, generator: torch.Generator | None) -> None:
     if seed is not None and generator is not None:
         raise ValueError("seed, generator: expected at most one of them, got both")
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(
+            f"generator: expected a torch.Generator or None (or pass seed=), got "
+            f"{type(generator).__name__}"
+        )
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
         raise ValueError(f"seed: expected a non-negative int, got {seed!r}")
     if seed is None and distributed.is_active():

@@ -30,6 +30,10 @@ _ROSE = {
 }
 
 
+#: A reference report of fewer start states is named with its count in every summary.
+_FEW_REFERENCE_STARTS = 10
+
+
 @dataclass(frozen=True)
 class Reference:
     """What a report's uncertainty is compared with: mean bits of in-distribution starts."""
@@ -139,7 +143,11 @@ class CompetencyReport:
         in-distribution start states (e.g. the training starts), or its :class:`Reference`."""
         if isinstance(reference, CompetencyReport):
             aleatoric, epistemic = reference.mean_bits()
-            reference = Reference(aleatoric, epistemic, rise, name or "in-distribution reference")
+            starts = reference.data.numel()
+            name = name or "in-distribution reference"
+            if starts < _FEW_REFERENCE_STARTS:  # its mean bits are noisy: say on how few
+                name = f"{name} (of only {starts} start state{'s' if starts > 1 else ''})"
+            reference = Reference(aleatoric, epistemic, rise, name)
         elif not isinstance(reference, Reference):
             raise TypeError(
                 "reference: expected a CompetencyReport or a Reference, got "

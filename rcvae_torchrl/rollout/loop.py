@@ -52,6 +52,11 @@ def _policy_action(policy: Policy, state: torch.Tensor, t: int, action_dim: int)
     if not isinstance(action, torch.Tensor) or tuple(action.shape) != want:
         got = tuple(action.shape) if isinstance(action, torch.Tensor) else type(action).__name__
         raise ValueError(f"policy: expected actions of shape {want}, got {got}")
+    if action.dtype != state.dtype:  # before the bounds' clamp casts an int or bool one
+        raise TypeError(
+            f"policy: expected actions of dtype {state.dtype} (the model's), got {action.dtype} "
+            f"at step {t}"
+        )
     check_finite(f"policy output at step {t}", action)
     return action
 

@@ -296,7 +296,11 @@ def test_summary_against_a_reference_names_what_rose():
     from_report = hand_report(aleatoric=0.4, epistemic=0.8).with_reference(
         hand_report(aleatoric=0.4, epistemic=0.2), name="training starts"
     )
-    assert "Against the training starts, epistemic uncertainty rose 4.0x" in from_report.summary()
+    text = from_report.summary()  # a one-start reference is named with its count
+    assert (
+        "Against the training starts (of only 1 start state), epistemic uncertainty rose 4.0x"
+        in text
+    )
     with pytest.raises(TypeError, match="reference: expected a CompetencyReport or a Reference"):
         hand_report().with_reference(0.5)
     with pytest.raises(ValueError, match="rise: expected a factor > 1"):
@@ -460,6 +464,15 @@ def test_assess_errors(env, starts, plan):
     free = no_limit.assess(starts, actions=plan[:, :4])  # open loop: T from the actions
     assert free.data["uncertainty", "total"].shape == (3, 4, S)
     assert free.summary(index=0).startswith("P(success within 4 steps)")
+    for dtype in (torch.float64, torch.int64):  # named as the policy's, before any clamp
+        with pytest.raises(
+            TypeError, match=f"policy: expected actions of dtype torch.float32 .*, got {dtype}"
+        ):
+            assessor.assess(
+                starts, policy=lambda obs, d=dtype: torch.zeros(*obs.shape[:-1], A, dtype=d)
+            )
+    with pytest.raises(TypeError, match=r"generator: expected a torch\.Generator or None"):
+        assessor.assess(starts, actions=plan, generator=3)
 
 
 def test_docstring_example():
