@@ -40,6 +40,14 @@ _COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab
 _MARKERS = ("o", "s", "^", "D", "v", "P")
 
 
+def _nonempty(name: str, value: object) -> None:
+    """A figure of nothing is refused by name (matplotlib's own error names none of ours)."""
+    if not isinstance(value, (Mapping, Sequence)) or isinstance(value, str):
+        raise TypeError(f"{name}: expected a mapping or a sequence, got {type(value).__name__}")
+    if len(value) == 0:
+        raise ValueError(f"{name}: expected at least one entry to draw, got none")
+
+
 def _save(fig: Figure, path: str | Path) -> Path:
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=120)
@@ -79,6 +87,8 @@ def uncertainty_figure(
         panels: panel title -> state-dimension indices summed in that panel.
         dt: seconds per step.
     """
+    _nonempty("curves", curves)
+    _nonempty("panels", panels)
     fig = Figure(figsize=(3.8 * len(panels), 5.4), layout="constrained")
     grid = fig.subplots(2, len(panels), squeeze=False, sharex=True)
     for column, (title, dims) in enumerate(panels.items()):
@@ -123,6 +133,7 @@ def reliability_figure(
     the same place, e.g. (1, 1), stay visible. The table beneath prints every bin's count.
     Bins with fewer than ``counts_floor`` episodes are not drawn.
     """
+    _nonempty("diagrams", diagrams)
     fig = Figure(figsize=(5.2, 5.4), layout="constrained")
     ax, table_ax = fig.subplots(2, 1, height_ratios=(5, 1.1 + 0.25 * len(diagrams)))
     ax.plot([0, 1], [0, 1], color="grey", lw=1, ls=":", label="perfect calibration")
@@ -206,7 +217,7 @@ def hold_after_success(
 def forecast_vs_reality_figure(
     panels: Sequence[Mapping[str, object]],
     dt: float,
-    ylabel: str = "ball to target (m)",
+    ylabel: str = "distance to the goal",
     threshold: float | None = None,
 ) -> Figure:
     """One panel per start state: forecast median and 5-95 % band, and the real trajectories.
@@ -218,6 +229,7 @@ def forecast_vs_reality_figure(
     panel prints the fraction of imagined and real episodes that reached it by the horizon. The
     panels share the y axis.
     """
+    _nonempty("panels", panels)
     fig = Figure(figsize=(3.3 * len(panels) + 0.6, 3.6), layout="constrained")
     axes = list(fig.subplots(1, len(panels), squeeze=False, sharey=True)[0])
     for ax, panel in zip(axes, panels):
@@ -262,7 +274,7 @@ def plot_forecast_vs_reality(
     panels: Sequence[Mapping[str, object]],
     dt: float,
     path: str | Path,
-    ylabel: str = "ball to target (m)",
+    ylabel: str = "distance to the goal",
     threshold: float | None = None,
 ) -> Path:
     """:func:`forecast_vs_reality_figure` written to the PNG file ``path``."""

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 
 from rcvae_torchrl.competency import StartReliability
 
-from .figures import _COLOURS, _MARKERS, _save
+from .figures import _COLOURS, _MARKERS, _nonempty, _save
 
 __all__ = ["plot_competency_surface", "plot_start_reliability"]
 
@@ -27,6 +27,7 @@ def plot_start_reliability(diagrams: Mapping[str, StartReliability], path) -> ob
     episodes, with the binomial interval as an error bar; markers grow with the bin's start
     states and conditions are offset sideways by a little so that coinciding bins stay visible.
     """
+    _nonempty("diagrams", diagrams)
     fig = Figure(figsize=(5.6, 5.0), layout="constrained")
     ax = fig.subplots()
     ax.plot([0, 1], [0, 1], color="grey", lw=1, ls=":", label="perfect calibration")
@@ -74,6 +75,16 @@ def plot_competency_surface(
         surfaces: condition -> ``{"forecast": [R, D], "real": [R, D]}`` probabilities (mean over
             start states) for ``radii`` (m) x ``deadlines_s`` (s).
     """
+    _nonempty("surfaces", surfaces)
+    grid = (len(radii), len(deadlines_s))
+    for name, s in surfaces.items():
+        for kind in ("forecast", "real"):
+            got = tuple(s[kind].shape) if kind in s else None
+            if got != grid:
+                raise ValueError(
+                    f"surfaces[{name!r}][{kind!r}]: expected a grid of len(radii) x "
+                    f"len(deadlines_s) = {grid}, got {got}"
+                )
     rows = len(surfaces)
     fig = Figure(figsize=(8.4, 2.6 * rows + 0.6), layout="constrained")
     axes = fig.subplots(rows, 2, squeeze=False)

@@ -191,7 +191,11 @@ def _figures(run_dir: Path, forecasts, truths, panels: int, radius: float) -> di
                 }
             )
     paths["forecast_vs_reality"] = plot_forecast_vs_reality(
-        episodes, CONTROL_TIMESTEP, run_dir / "forecast_vs_reality.png", threshold=radius
+        episodes,
+        CONTROL_TIMESTEP,
+        run_dir / "forecast_vs_reality.png",
+        ylabel="ball to target (m)",
+        threshold=radius,
     )
     return paths
 

@@ -207,4 +207,24 @@ def test_forecast_median_reaches_the_boundary_when_most_episodes_succeed():
         "real episode ends",
         "success boundary",
     ]
-    assert [a.get_ylabel() for a in fig.axes] == ["ball to target (m)", "", ""]
+    assert [a.get_ylabel() for a in fig.axes] == ["distance to the goal", "", ""]
+
+
+def test_figures_of_nothing_or_of_a_mislabelled_grid_are_refused(tmp_path):
+    """Empty inputs failed inside matplotlib, naming none of ours; a surface whose grid does
+    not match its radii and deadlines was drawn with wrong labels."""
+    from rcvae_torchrl.reporting.validation_figures import plot_competency_surface
+
+    with pytest.raises(ValueError, match="curves: expected at least one entry to draw"):
+        plot_uncertainty_over_time({}, {"x": [0]}, 0.1, tmp_path / "u.png")
+    with pytest.raises(ValueError, match="diagrams: expected at least one entry"):
+        plot_reliability({}, tmp_path / "r.png")
+    with pytest.raises(ValueError, match="panels: expected at least one entry"):
+        plot_forecast_vs_reality([], 0.1, tmp_path / "f.png")
+    with pytest.raises(ValueError, match="surfaces: expected at least one entry"):
+        plot_competency_surface({}, [0.01], [5.0], tmp_path / "s.png")
+    grid = {"c": {"forecast": torch.zeros(2, 3), "real": torch.zeros(2, 3)}}
+    with pytest.raises(ValueError, match=r"surfaces\['c'\]\['forecast'\]: expected a grid of"):
+        plot_competency_surface(grid, [0.01, 0.02, 0.03], [5.0, 10.0], tmp_path / "s.png")
+    assert not list(tmp_path.iterdir())  # nothing written
+    plot_competency_surface(grid, [0.01, 0.02], [5.0, 10.0, 15.0], tmp_path / "s.png")
