@@ -11,6 +11,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
+from rcvae_torchrl._checks import check_positive_int
 from rcvae_torchrl.data import TRAJ_KEY, seed_env
 
 __all__ = ["EpisodeStats", "ResetToState", "run_episodes"]
@@ -57,6 +58,9 @@ def run_episodes(
     env writes under ``"next"`` (default ``"success"``), or is a function of the observations
     ``[T, S] -> [T]`` bool (for envs without a success flag).
     """
+    check_positive_int("max_steps", max_steps)
+    if len(seeds) == 0:
+        raise ValueError("seeds: expected at least one seed (one episode each), got none")
     if starts is not None:
         if len(starts) != len(seeds):
             raise ValueError(

@@ -98,6 +98,19 @@ def draw_starts(env: EnvBase, seeds: Sequence[int], *, physics: bool = False) ->
     return torch.stack(rows)
 
 
+def _check_start(start: object, key: str, made_by: str) -> None:
+    """One start of :func:`draw_starts` (a tensordict ``[]`` with ``key``)."""
+    if not isinstance(start, TensorDictBase) or start.batch_dims or key not in start.keys():
+        got = type(start).__name__
+        if isinstance(start, TensorDictBase):
+            keys = sorted(map(str, start.keys()))
+            got = f"a tensordict of batch {tuple(start.batch_size)} and keys {keys}"
+        raise ValueError(
+            f"start: expected one start of {made_by} (a tensordict [] with a {key!r} entry), "
+            f"got {got}"
+        )
+
+
 def reset_by_seed(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     """Reset ``env`` to ``start`` by replaying the seeded reset that drew it.
 
@@ -106,6 +119,7 @@ def reset_by_seed(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     ``ValueError`` when the reset does not give ``start["observation"]`` (an env whose reset
     is not a function of its seed).
     """
+    _check_start(start, "seed", "draw_starts(env, seeds)")
     env.set_seed(int(start["seed"]))
     td = env.reset()
     if not torch.equal(td["observation"], start["observation"].to(td["observation"])):
@@ -127,9 +141,7 @@ def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     """
     physics = physics_of(env)  # a clear error for an env without a dm_control physics
     task = getattr(env, "base_env", env)._env.task
-    if not isinstance(start, TensorDictBase) or "physics" not in start.keys():
-        got = sorted(map(str, start.keys())) if isinstance(start, TensorDictBase) else start
-        raise ValueError(f"start: expected a tensordict with a 'physics' entry, got {got!r}")
+    _check_start(start, "physics", "draw_starts(env, seeds, physics=True)")
     state = start["physics"]
     for name in ("qpos", "qvel", "act"):
         value, size = state[name], getattr(physics.data, name).size

@@ -121,8 +121,12 @@ def test_bad_starts_seeds_and_success_flags_are_named(reacher):
     start["physics", "qpos"][0] = float("nan")
     with pytest.raises(ValueError, match=r"start\['physics', 'qpos'\]: expected 2 finite values"):
         reset_to_physics(reacher, start)
-    with pytest.raises(ValueError, match="start: expected a tensordict with a 'physics' entry"):
+    with pytest.raises(ValueError, match=r"start: expected one start of draw_starts\(env, seeds"):
         reset_to_physics(reacher, draw_starts(reacher, [1])[0])
+    with pytest.raises(ValueError, match=r"got a tensordict of batch \(2,\)"):
+        reset_by_seed(reacher, draw_starts(reacher, [1, 2]))  # all starts, not one
+    with pytest.raises(ValueError, match="with a 'seed' entry"):
+        reset_by_seed(reacher, TensorDict({"observation": torch.zeros(6)}, []))
     with pytest.raises(ValueError, match=r"seeds: expected integer seeds, got 1\.7"):
         draw_starts(reacher, [1.7])
     env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
@@ -132,6 +136,8 @@ def test_bad_starts_seeds_and_success_flags_are_named(reacher):
         real_outcomes(env, lambda td: td.set("action", torch.zeros(2)), starts, seed=0.5, **args)
     with pytest.raises(ValueError, match="starts: expected at least one start state, got none"):
         real_outcomes(env, lambda td: td.set("action", torch.zeros(2)), starts[:0], **args)
+    with pytest.raises(ValueError, match="seeds: expected at least one seed"):
+        run_episodes(env, lambda td: td, seeds=[], max_steps=3)
     with pytest.raises(ValueError, match="max_steps: expected a positive integer, got 0"):
         real_outcomes(env, lambda td: td, starts, **{**args, "max_steps": 0})
     act = lambda td: td.set("action", torch.zeros(2))  # noqa: E731
