@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
@@ -64,6 +65,10 @@ class PlannerConfig:
             raise ValueError(
                 f"top_k: expected at most num_candidates ({self.num_candidates}), got {self.top_k}"
             )
+        for name in ("momentum", "prior_std"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ValueError(f"{name}: expected a number, got {value!r}")
         if not 0.0 <= self.momentum < 1.0:
             raise ValueError(f"momentum: expected a value in [0, 1), got {self.momentum!r}")
         if self.objective not in OBJECTIVES:
@@ -73,8 +78,10 @@ class PlannerConfig:
                 f"trajectory_sampling: expected one of {list(TRAJECTORY_SAMPLINGS)}, "
                 f"got {self.trajectory_sampling!r}"
             )
-        if not self.prior_std > 0:
-            raise ValueError(f"prior_std: expected > 0, got {self.prior_std!r}")
+        if not (self.prior_std > 0 and math.isfinite(self.prior_std)):
+            raise ValueError(
+                f"prior_std: expected a positive finite number, got {self.prior_std!r}"
+            )
 
 
 def make_mpc_policy(

@@ -50,3 +50,16 @@ def test_aot_plans_equal_eager_plans(real_env):
         with torch.no_grad():
             actions[compile] = torch.stack([policy(state.clone())["action"] for _ in range(3)])
     torch.testing.assert_close(actions["aot"], actions[False], rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"momentum": "0.1"}, "momentum: expected a number, got '0.1'"),
+        ({"prior_std": True}, "prior_std: expected a number, got True"),
+        ({"prior_std": float("inf")}, "prior_std: expected a positive finite number, got inf"),
+    ],
+)
+def test_planner_settings_of_another_type_or_unbounded_are_named(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PlannerConfig(**kwargs)
