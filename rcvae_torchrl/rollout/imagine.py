@@ -297,6 +297,11 @@ def _check_inputs(
         _checks.check_positive_int("horizon", horizon)
         return
     _checks.check_tensor("actions", actions)
+    if horizon is not None and (actions.dim() < 2 or horizon != actions.shape[-2]):
+        raise ValueError(
+            f"horizon: open loop takes T from the actions, expected None or their T, got "
+            f"{horizon!r} for actions of shape {tuple(actions.shape)}"
+        )
     what = f"[*B, T, A={cfg.action_dim}] with [*B] = {list(observation.shape[:-1])}"
     if actions.dim() < 2 or actions.shape[-1] != cfg.action_dim or actions.shape[-2] < 1:
         raise ValueError(f"actions: expected shape {what} and T >= 1, got {tuple(actions.shape)}")

@@ -136,6 +136,7 @@ def _nan(shape, where=0):
         (torch.zeros(5), torch.zeros(3, 2), {"chunk_size": 0}, ValueError, "chunk_size"),
         (torch.zeros(5).double(), torch.zeros(3, 2), {}, TypeError, "observation: expected dtype"),
         (torch.zeros(5), torch.zeros(3, 2).double(), {}, TypeError, "actions: expected dtype"),
+        (torch.zeros(5), torch.zeros(3, 2), {"horizon": 7}, ValueError, "horizon: open loop"),
     ],
 )
 def test_input_errors(ensemble, obs, actions, kwargs, error, match):
