@@ -150,6 +150,19 @@ def set_threads(threads: int | str | None, op_flop: float | None = None) -> int:
     return threads_module.set_threads(threads, op_flop)
 
 
+#: The report files both recipes write, named one by one in their report stage's outputs (a
+#: pattern such as "*.md" would take a user's notes beside them for the stage's, and remove
+#: them when the stage runs again).
+REPORT_FILES = (
+    "report.md",
+    "table.md",
+    "table.csv",
+    "summary.json",
+    "uncertainty_over_time.png",
+    "reliability.png",
+)
+
+
 def check_run_settings(config: Any) -> None:
     """The checks that depend on this machine: ``device`` (when the recipe has one) and
     ``run_dir``; call once, before anything is created or written."""

@@ -57,16 +57,22 @@ def _outcomes(forecast: Tensor, outcome: Tensor, mask: Tensor | None) -> tuple[T
         )
     if outcome.dtype != torch.bool:
         raise TypeError(f"outcome: expected bool outcomes of single episodes, got {outcome.dtype}")
+    return forecast.to(torch.float64), _runs_mask(mask, outcome, "the outcomes'")
+
+
+def _runs_mask(mask: Tensor | None, runs: Tensor, whose: str) -> Tensor:
+    """The bool mask ``[B, R]`` of the runs that exist (all without one), at least one per
+    start state."""
     if mask is None:
-        mask = torch.ones_like(outcome)
-    elif mask.shape != outcome.shape or mask.dtype != torch.bool:
+        return torch.ones_like(runs, dtype=torch.bool)
+    if mask.shape != runs.shape or mask.dtype != torch.bool:
         raise ValueError(
-            f"mask: expected a bool tensor of the outcomes' shape {tuple(outcome.shape)}, got "
+            f"mask: expected a bool tensor of {whose} shape {tuple(runs.shape)}, got "
             f"{mask.dtype} {tuple(mask.shape)}"
         )
     if not bool(mask.any(1).all()):
         raise ValueError("mask: expected at least one run per start state")
-    return forecast.to(torch.float64), mask
+    return mask
 
 
 def per_start_rates(outcome: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -296,15 +302,7 @@ def time_to_success_scores(
             raise ValueError(
                 f"{name}: expected at least one time per start, got {tuple(steps.shape)}"
             )
-    if mask is None:
-        mask = torch.ones_like(real_steps, dtype=torch.bool)
-    elif mask.dtype != torch.bool or mask.shape != real_steps.shape:
-        raise ValueError(
-            f"mask: expected a bool tensor of real_steps' shape {tuple(real_steps.shape)}, got "
-            f"{mask.dtype} {tuple(mask.shape)}"
-        )
-    if not bool(mask.any(1).all()):
-        raise ValueError("mask: expected at least one real run per start state")
+    mask = _runs_mask(mask, real_steps, "real_steps'")
     climatology = real_steps[mask]
     ours, reference = [], []
     for b in range(real_steps.shape[0]):

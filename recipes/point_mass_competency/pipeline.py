@@ -45,6 +45,7 @@ from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
 from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
 
+from .._settings import REPORT_FILES
 from .config import CONTROL_TIMESTEP, StudyConfig
 from .report import write_report
 from .task import (
@@ -68,15 +69,7 @@ STAGES = {
     "models": ("models/*.pt",),
     "forecast": ("forecast/*.pt",),
     "truth": ("truth/*.pt",),
-    # named one by one: "*.md" would take a user's notes beside them for the stage's own
-    "report": (
-        "report.md",
-        "table.md",
-        "table.csv",
-        "summary.json",
-        "uncertainty_over_time.png",
-        "reliability.png",
-    ),
+    "report": REPORT_FILES,  # named one by one (see REPORT_FILES)
 }
 # disjoint seed ranges per purpose: data starts, condition c's starts, and real episodes
 DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000

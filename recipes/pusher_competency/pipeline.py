@@ -69,6 +69,7 @@ from rcvae_torchrl.training import (
     train_ensemble,
 )
 
+from .._settings import REPORT_FILES
 from .config import StudyConfig
 from .data import collect_pusher_data, replay_episodes
 from .pusher import (
@@ -94,16 +95,10 @@ _FAR_ALPHA = 0.01
 #: Seeds of the far check's replays: ``_REPLAY_SEED + 1000 * seed`` (env ``i``: + i).
 _REPLAY_SEED = 90_000
 
-# Each stage and the files it writes (their sizes and hashes go into its marker). The report's
-# are named one by one: a pattern such as "*.md" would take a user's own notes beside them for
-# the stage's, and remove them when the stage runs again.
+# Each stage and the files it writes (their sizes and hashes go into its marker); the report's
+# named one by one (see REPORT_FILES).
 REPORT_FILES = (
-    "report.md",
-    "table.md",
-    "table.csv",
-    "summary.json",
-    "uncertainty_over_time.png",
-    "reliability.png",
+    *REPORT_FILES,
     "start_reliability.png",
     "surface.png",
     "forecast_vs_reality.png",
