@@ -83,6 +83,8 @@ def init(backend: str | None = None, timeout_s: float = 6 * 3600.0) -> bool:
         timeout_s: how long a rank waits for the others at a collective (long stages such as
             data collection run on rank 0 while the others wait).
     """
+    if backend not in (None, "gloo", "nccl"):
+        raise ValueError(f"backend: expected 'gloo', 'nccl' or None, got {backend!r}")
     if world_size() <= 1 or (dist.is_available() and dist.is_initialized()):
         return is_active()
     if not dist.is_available():
@@ -122,6 +124,8 @@ def shard(n: int, rank_: int | None = None, world: int | None = None) -> range:
         raise ValueError(f"n: expected a non-negative int, got {n!r}")
     rank_ = rank() if rank_ is None else rank_
     world = world_size() if world is None else world
+    if any(isinstance(v, bool) or not isinstance(v, int) for v in (rank_, world)):
+        raise ValueError(f"rank, world: expected ints, got {rank_!r}, {world!r}")
     if world < 1 or not 0 <= rank_ < world:
         raise ValueError(f"rank, world: expected 0 <= rank < world, got {rank_}, {world}")
     size, extra = divmod(n, world)

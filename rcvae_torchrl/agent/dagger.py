@@ -13,12 +13,15 @@ everything. With a ``base`` policy (e.g. the planner's own prior) the MLP learns
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
+
+from rcvae_torchrl._checks import check_positive_int
 
 from .distill import DistillConfig, distill_policy
 from .episodes import run_episodes
@@ -41,8 +44,10 @@ class PerturbedPolicy:
         low: float = -1.0,
         high: float = 1.0,
     ) -> None:
-        if not noise_std >= 0:
-            raise ValueError(f"noise_std: expected a std >= 0, got {noise_std!r}")
+        if not (noise_std >= 0 and math.isfinite(noise_std)):
+            raise ValueError(f"noise_std: expected a finite std >= 0, got {noise_std!r}")
+        if bool((torch.as_tensor(low) > torch.as_tensor(high)).any()):
+            raise ValueError(f"low, high: expected low <= high, got {low!r} and {high!r}")
         self.policy, self.noise_std, self.low, self.high = policy, noise_std, low, high
         self.generator = torch.Generator().manual_seed(seed)
 
@@ -63,6 +68,7 @@ def label_states(planner: TensorDictPolicy, states: torch.Tensor, chunk: int = 2
     """The planner's action ``[M, A]`` for each state ``[M, S]``, planned in batches (each from
     a fresh plan: the planner's warm start is reset per batch)."""
     actions = []
+    check_positive_int("chunk", chunk)
     for part in states.split(chunk):
         if hasattr(type(planner), "reset"):
             planner.reset()

@@ -14,6 +14,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from rcvae_torchrl._checks import check_positive_int
 from rcvae_torchrl.io import StoredFileError, load_torch, save_torch
 
 __all__ = [
@@ -39,6 +40,8 @@ class MLPPolicy(nn.Module):
     """
 
     def __init__(self, obs_dim: int, action_dim: int, hidden: int = 256) -> None:
+        for name, value in (("obs_dim", obs_dim), ("action_dim", action_dim), ("hidden", hidden)):
+            check_positive_int(name, value)
         super().__init__()
         self.obs_dim, self.action_dim, self.hidden = obs_dim, action_dim, hidden
         self.net = nn.Sequential(

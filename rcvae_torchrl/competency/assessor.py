@@ -222,6 +222,7 @@ class CompetencyAssessor(KeyedModule):
         batch = observation.shape[:-1]
         policy, plan = self._controls(policy, actions, batch)
         _check_seed(seed, generator)
+        _checks.check_bool("return_rollouts", return_rollouts)
         flat = observation.reshape(-1, observation.shape[-1])
         chunks = range(0, flat.shape[0], self.start_chunk)
         mine = distributed.shard(len(chunks)) if distributed.is_active() else range(len(chunks))

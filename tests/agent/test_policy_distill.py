@@ -87,3 +87,21 @@ def test_labels_a_tanh_policy_cannot_reach_and_mismatched_policies_are_refused()
     for bad in (torch.zeros(1, 3), torch.zeros(4, 2), torch.full((4, 3), float("nan"))):
         with pytest.raises(ValueError, match="observations: expected"):
             policy.fit_normalizer(bad)
+
+
+def test_a_perturbed_policy_of_unbounded_noise_or_crossed_bounds_is_refused():
+    from rcvae_torchrl.agent.dagger import PerturbedPolicy
+
+    policy = make_policy_module(MLPPolicy(3, 2))
+    with pytest.raises(ValueError, match="noise_std: expected a finite std >= 0, got inf"):
+        PerturbedPolicy(policy, float("inf"))
+    with pytest.raises(ValueError, match=r"low, high: expected low <= high, got 1\.0 and -1\.0"):
+        PerturbedPolicy(policy, 0.1, low=1.0, high=-1.0)
+
+
+@pytest.mark.parametrize(
+    ("args", "name"), [((0, 2), "obs_dim"), ((3, 2, -1), "hidden"), ((2.5, 1), "obs_dim")]
+)
+def test_policy_sizes_are_positive_ints(args, name):
+    with pytest.raises(ValueError, match=f"{name}: expected a positive integer"):
+        MLPPolicy(*args)

@@ -473,6 +473,8 @@ def test_assess_errors(env, starts, plan):
             )
     with pytest.raises(TypeError, match=r"generator: expected a torch\.Generator or None"):
         assessor.assess(starts, actions=plan, generator=3)
+    with pytest.raises(TypeError, match="return_rollouts: expected True or False, got 'yes'"):
+        assessor.assess(starts, actions=plan, return_rollouts="yes")
 
 
 def test_docstring_example():

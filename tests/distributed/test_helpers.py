@@ -18,6 +18,11 @@ def test_shard_errors():
         distributed.shard(-1, 0, 1)
     with pytest.raises(ValueError, match="expected 0 <= rank < world, got 2, 2"):
         distributed.shard(4, 2, 2)
+    for rank, world in ((True, 2), (0.5, 2), (0, 2.0)):
+        with pytest.raises(ValueError, match="rank, world: expected ints"):
+            distributed.shard(3, rank, world)
+    with pytest.raises(ValueError, match="backend: expected 'gloo', 'nccl' or None, got 'mpi'"):
+        distributed.init("mpi")
 
 
 def test_without_a_group_this_is_the_only_rank(monkeypatch):
