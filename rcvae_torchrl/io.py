@@ -24,6 +24,7 @@ import torch
 __all__ = [
     "StoredFileError",
     "atomic_write",
+    "check_run_config",
     "load_torch",
     "read_json",
     "record_run_config",
@@ -142,6 +143,33 @@ def record_run_config(
     current = json.loads(json.dumps(dict(config), default=str))
     if path.is_file():
         saved = read_json(path, "run config")
+        _compare_run_config(path, saved, current, may_change)
+        if saved == current:
+            return
+    write_json(path, current)
+
+
+def check_run_config(
+    path: str | Path, config: Mapping[str, Any], *, may_change: Iterable[str] = ()
+) -> None:
+    """The check of :func:`record_run_config` alone, writing nothing: a ``ValueError`` when
+    ``path`` records other settings; nothing when it is missing or unreadable (the run then
+    records them). For a run to refuse other settings before it creates anything."""
+    path = Path(path)
+    if not path.is_file():
+        return
+    try:
+        saved = read_json(path, "run config")
+    except StoredFileError:
+        return
+    current = json.loads(json.dumps(dict(config), default=str))
+    _compare_run_config(path, saved, current, may_change)
+
+
+def _compare_run_config(
+    path: Path, saved: Any, current: dict[str, Any], may_change: Iterable[str]
+) -> None:
+    if isinstance(saved, dict):
         skip = set(may_change)
         changed = sorted(
             k for k in set(saved) | set(current) if k not in skip and saved.get(k) != current.get(k)
@@ -157,6 +185,3 @@ def record_run_config(
                 f"({changed} differ: {details}); its results would be reused: use a new "
                 "directory"
             )
-        if saved == current:
-            return
-    write_json(path, current)

@@ -23,11 +23,12 @@ import torch
 from omegaconf import DictConfig
 from torchrl.record.loggers import generate_exp_name
 
+from rcvae_torchrl.io import check_run_config
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
 from recipes._settings import set_threads
 from recipes.point_mass_competency.config import register_configs, study_config
-from recipes.point_mass_competency.pipeline import run_study
+from recipes.point_mass_competency.pipeline import run_study, study_settings
 
 register_configs()
 
@@ -37,6 +38,8 @@ def main(cfg: DictConfig) -> None:
     config = study_config(cfg)
     set_threads(config.threads)
     run_dir = Path(config.run_dir)
+    # a run directory of other settings is refused before anything is made in it
+    check_run_config(run_dir / "study_config.json", study_settings(config))
     with run_log(run_dir / "run.log") as log:
         threads = torch.get_num_threads()
         log.info(f"profile={config.profile} threads={threads} run_dir={run_dir}")

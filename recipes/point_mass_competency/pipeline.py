@@ -252,6 +252,12 @@ def _tensordict(values: dict, first: str) -> TensorDict:
     return TensorDict(values, batch_size=[len(values[first])])
 
 
+def study_settings(config: StudyConfig) -> dict[str, Any]:
+    """The settings a run directory records (``study_config.json``) and reuses results under."""
+    settings = {f.name: getattr(config, f.name) for f in dataclasses.fields(StudyConfig)}
+    return dataclasses.asdict(StudyConfig(**settings))
+
+
 def run_study(
     config: StudyConfig,
     run_dir: str | Path,
@@ -266,10 +272,7 @@ def run_study(
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    settings = {f.name: getattr(config, f.name) for f in dataclasses.fields(StudyConfig)}
-    runner = StageRunner(
-        run_dir, log, settings=dataclasses.asdict(StudyConfig(**settings)), logger=logger
-    )
+    runner = StageRunner(run_dir, log, settings=study_settings(config), logger=logger)
     study = Study(config, run_dir, progress, logger)
     for name, outputs in STAGES.items():
         runner.run(name, getattr(study, name), outputs)

@@ -34,11 +34,12 @@ from omegaconf import DictConfig
 from torchrl.record.loggers import generate_exp_name
 
 from rcvae_torchrl import distributed
+from rcvae_torchrl.io import check_run_config
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
 from recipes._settings import resolve_device, set_threads
 from recipes.pusher_competency.config import RecipeConfig, register_configs, study_config
-from recipes.pusher_competency.pipeline import run_study, training_op_flop
+from recipes.pusher_competency.pipeline import run_study, study_settings, training_op_flop
 
 register_configs()
 
@@ -52,6 +53,8 @@ def main(cfg: DictConfig) -> None:
         if device == "cuda" and distributed.is_active():
             device = f"cuda:{torch.cuda.current_device()}"
         if distributed.is_main():  # rank 0 alone prints, logs and writes run.log
+            # a run directory of other settings is refused before anything is made in it
+            check_run_config(Path(config.run_dir) / "study_config.json", study_settings(config))
             with run_log(Path(config.run_dir) / "run.log") as log:
                 _run(config, device, log.info)
         else:

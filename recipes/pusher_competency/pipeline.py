@@ -545,8 +545,7 @@ def run_study(
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    settings = {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
-    runner = StageRunner(run_dir, log, settings=settings, logger=logger)
+    runner = StageRunner(run_dir, log, settings=study_settings(config), logger=logger)
     study = Study(
         config,
         run_dir,
@@ -566,6 +565,11 @@ def _study_job(config: StudyConfig, run_dir: str, device: str, method: str, name
     bars, no logger: training writes CSV beside its checkpoint)."""
     study = Study(config, Path(run_dir), torch.device(device), progress=False)
     return getattr(study, method)(name)
+
+
+def study_settings(config: StudyConfig) -> dict[str, Any]:
+    """The settings a run directory records (``study_config.json``) and reuses results under."""
+    return {f.name: v for f, v in zip(dataclasses.fields(StudyConfig), _values(config))}
 
 
 def _values(config: StudyConfig) -> list[Any]:

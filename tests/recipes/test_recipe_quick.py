@@ -264,3 +264,18 @@ def test_bad_settings_fail_clearly_before_anything_is_written(tmp_path, override
     assert proc.returncode != 0
     assert expected in output
     assert not (tmp_path / "run").exists()  # failed before the run directory was made
+
+
+def test_a_run_of_other_settings_is_refused_before_it_makes_anything(runs):
+    """The refusal comes before run.log and the logger's folder: the directory is as it was."""
+    d = runs["dir"]
+    log_before = (d / "run.log").read_bytes()
+    experiments = sorted((d / "logs" / "csv").iterdir())
+    proc, _ = run_recipe(*MICRO, f"run_dir={d}", "seed=1", timeout=120)
+    assert proc.returncode != 0
+    assert "holds a run made with other settings (['seed'] differ: seed: 0 recorded, 1 now)" in (
+        proc.stderr
+    )
+    assert (d / "run.log").read_bytes() == log_before
+    assert sorted((d / "logs" / "csv").iterdir()) == experiments
+    assert _snapshot(d) == runs["after"]
