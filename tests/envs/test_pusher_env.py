@@ -305,3 +305,13 @@ def test_actuator_strength_comes_after_the_start_state_in_the_stream():
 def test_seeds_numpy_cannot_take_are_named(seed):
     with pytest.raises(ValueError, match=r"seed: expected an integer in \[0, 2\*\*32\)"):
         make_pusher_env("deterministic", seed=seed)
+
+
+def test_a_nan_start_is_said_to_be_nan():
+    from rcvae_torchrl.envs import reset_to_state
+
+    env = make_pusher_env("deterministic", seed=0)
+    start = env.reset()["observation"].clone()
+    start[3] = math.nan
+    with pytest.raises(ValueError, match=r"got shape \(14,\) with 1 NaN or inf entries"):
+        reset_to_state(env, start)

@@ -228,3 +228,17 @@ def test_constructor_errors(ensemble):
             RCVAELoss(ensemble, open_loop_steps=bad)
     with pytest.raises(TypeError, match="detach_open_loop: expected True or False, got 'no'"):
         RCVAELoss(ensemble, detach_open_loop="no")
+
+
+def test_windows_that_would_teach_nothing_are_refused(ensemble, windows, windows_of):
+    """A missing entry failed as an AttributeError; no windows gave a NaN loss and an
+    all-False mask a loss of 0."""
+    loss = RCVAELoss(ensemble)
+    with pytest.raises(KeyError, match="RCVAELoss: expected an entry 'observation'"):
+        loss(windows.exclude("observation"))
+    with pytest.raises(ValueError, match="RCVAELoss: expected at least one window"):
+        loss(windows_of((0, 8)))
+    masked = windows.clone()
+    masked["collector", "mask"] = torch.zeros(5, 8, dtype=torch.bool)
+    with pytest.raises(ValueError, match="expected some valid steps, got a mask that is all"):
+        loss(masked)
