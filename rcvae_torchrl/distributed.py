@@ -5,7 +5,10 @@ The library's stages that have independent pieces of work (ensemble members in
 :class:`~rcvae_torchrl.competency.CompetencyAssessor`, real episodes in
 :func:`~rcvae_torchrl.agent.real_outcomes`) split them over the ranks of a process group and
 gather the results on every rank. Nothing changes in a single process: without a process group
-every helper here acts as the only rank of one (rank 0, world size 1), and no launcher is needed.
+and without a launcher's ``RANK`` / ``WORLD_SIZE``, every helper here acts as the only rank of
+one (rank 0, world size 1). Before :func:`init`, :func:`rank` and :func:`world_size` read those
+variables, so a process a launcher started knows its place (and does not write as rank 0) even
+before the group is up.
 
 Launch with ``torchrun`` (it sets ``RANK``, ``WORLD_SIZE``, ``LOCAL_RANK``, ``MASTER_ADDR`` and
 ``MASTER_PORT``), call :func:`init` once at the start of the program (gloo on CPU, NCCL when the

@@ -7,12 +7,16 @@ import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import torch
+
 from rcvae_torchrl.io import atomic_write
 
 __all__ = ["format_table", "write_table"]
 
 
 def _cell(value: object, digits: int) -> str:
+    if isinstance(value, torch.Tensor) and value.numel() == 1:  # a tensor's number, not its repr
+        value = value.item()
     if isinstance(value, float):
         return f"{value:.{digits}f}"
     return str(value)
@@ -22,6 +26,8 @@ def format_table(
     rows: Sequence[Mapping[str, object]], columns: Sequence[str], digits: int = 3
 ) -> tuple[str, str]:
     """``(markdown, csv)`` renderings of ``rows`` restricted to ``columns``, in that order."""
+    if isinstance(digits, bool) or not isinstance(digits, int) or digits < 0:
+        raise ValueError(f"digits: expected an integer >= 0, got {digits!r}")
     missing = [c for c in columns if any(c not in r for r in rows)]
     if missing:
         raise KeyError(f"columns: {missing} missing from some rows")

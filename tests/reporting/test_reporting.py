@@ -228,3 +228,12 @@ def test_figures_of_nothing_or_of_a_mislabelled_grid_are_refused(tmp_path):
         plot_competency_surface(grid, [0.01, 0.02, 0.03], [5.0, 10.0], tmp_path / "s.png")
     assert not list(tmp_path.iterdir())  # nothing written
     plot_competency_surface(grid, [0.01, 0.02], [5.0, 10.0, 15.0], tmp_path / "s.png")
+
+
+def test_a_table_prints_a_tensor_as_its_number_and_refuses_negative_digits():
+    from rcvae_torchrl.reporting import format_table
+
+    markdown, csv_text = format_table([{"x": torch.tensor(0.12345), "n": 3}], ["x", "n"])
+    assert "| 0.123 | 3 |" in markdown and "0.123" in csv_text and "tensor" not in markdown
+    with pytest.raises(ValueError, match="digits: expected an integer >= 0, got -1"):
+        format_table([{"x": 1.0}], ["x"], digits=-1)
