@@ -48,6 +48,12 @@ def check_positive_int(name: str, value: object) -> None:
         raise ValueError(f"{name}: expected a positive integer, got {value!r}")
 
 
+def check_non_negative_int(name: str, value: object) -> None:
+    """Require a Python integer >= 0 (``bool`` is not an integer here)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"{name}: expected an integer >= 0, got {value!r}")
+
+
 def check_positive_int_or_none(name: str, value: object) -> None:
     """Require ``None`` or a Python integer >= 1."""
     if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):

@@ -79,14 +79,21 @@ def write_json(path: str | Path, obj: Any) -> Path:
     return atomic_write(path, lambda f: f.write(text))
 
 
-def read_json(path: str | Path, what: str = "a JSON file") -> Any:
-    """The JSON content of ``path``; :class:`StoredFileError` naming the file when it is
-    missing or not valid JSON (e.g. truncated)."""
+def _existing_file(path: object, what: str) -> Path:
+    """``path`` as a ``Path`` of a file that exists: a ``TypeError`` for what is not a path, a
+    :class:`StoredFileError` for a missing file."""
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path: expected a str or a path of {what}, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise StoredFileError(f"{what} {str(path)!r}: the file is missing", path)
+    return path
+
+
+def read_json(path: str | Path, what: str = "a JSON file") -> Any:
+    """The JSON content of ``path``; :class:`StoredFileError` naming the file when it is
+    missing or not valid JSON (e.g. truncated)."""
+    path = _existing_file(path, what)
     try:
         return json.loads(path.read_bytes())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
@@ -103,11 +110,7 @@ def save_torch(path: str | Path, obj: Any) -> Path:
 def load_torch(path: str | Path, what: str = "a torch file", map_location: Any = "cpu") -> Any:
     """``torch.load(path, weights_only=True)``; :class:`StoredFileError` naming the file when it
     is missing, truncated or corrupt."""
-    if not isinstance(path, (str, os.PathLike)):
-        raise TypeError(f"path: expected a str or a path of {what}, got {type(path).__name__}")
-    path = Path(path)
-    if not path.is_file():
-        raise StoredFileError(f"{what} {str(path)!r}: the file is missing", path)
+    path = _existing_file(path, what)
     data = path.read_bytes()
     try:
         return torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
@@ -140,7 +143,7 @@ def record_run_config(
     be extended by); the new values are recorded.
     """
     path = Path(path)
-    current = json.loads(json.dumps(dict(config), default=str))
+    current = _as_json(config)
     if path.is_file():
         saved = read_json(path, "run config")
         _compare_run_config(path, saved, current, may_change)
@@ -162,8 +165,13 @@ def check_run_config(
         saved = read_json(path, "run config")
     except StoredFileError:
         return
-    current = json.loads(json.dumps(dict(config), default=str))
+    current = _as_json(config)
     _compare_run_config(path, saved, current, may_change)
+
+
+def _as_json(config: Mapping[str, Any]) -> Any:
+    """Settings as they read back from JSON (tuples as lists, other values as strings)."""
+    return json.loads(json.dumps(dict(config), default=str))
 
 
 def _compare_run_config(

@@ -205,7 +205,7 @@ class StageRunner:
         """Remove the files an unfinished stage left when the run's settings record was
         missing or unreadable: nothing says they were made with these settings, and a stage
         keeps the files it finds (it resumes where it stopped)."""
-        files = [p for pattern in outputs for p in self.run_dir.glob(pattern) if p.is_file()]
+        files = self._matching(outputs)
         if files:
             self._log(
                 f"[{name}] the run's settings record was missing or unreadable: removing the "
@@ -268,8 +268,9 @@ class StageRunner:
             return False
         return any(rel.match(pattern) for pattern in outputs)
 
+    def _matching(self, outputs: Sequence[str]) -> list[Path]:
+        """The files under the run directory that match the glob patterns ``outputs``."""
+        return sorted({p for pattern in outputs for p in self.run_dir.glob(pattern) if p.is_file()})
+
     def _records(self, outputs: Sequence[str]) -> dict[str, dict[str, Any]]:
-        files = sorted(
-            {p for pattern in outputs for p in self.run_dir.glob(pattern) if p.is_file()}
-        )
-        return {str(p.relative_to(self.run_dir)): file_record(p) for p in files}
+        return {str(p.relative_to(self.run_dir)): file_record(p) for p in self._matching(outputs)}

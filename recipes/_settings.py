@@ -182,14 +182,15 @@ def _writable(node: Any) -> None:
 
 def _to_object(node: DictConfig, prefix: str) -> Any:
     """The dataclass of ``node``; a range error names its setting by its whole path
-    (``agent.distill.epochs``, not ``agent.epochs``): nested sections are built first."""
-    for key in node:
-        child = node._get_node(key)
-        if isinstance(child, DictConfig) and not child._is_none() and not child._is_missing():
-            _to_object(child, f"{prefix}{key}.")
+    (``agent.distill.epochs``, not ``agent.epochs``): after a failure the nested sections are
+    built on their own, to find the one that fails."""
     try:
         return OmegaConf.to_object(node)
     except (ValueError, TypeError) as err:
+        for key in node:
+            child = node._get_node(key)
+            if isinstance(child, DictConfig) and not child._is_none() and not child._is_missing():
+                _to_object(child, f"{prefix}{key}.")  # raises when the error is in there
         raise ValueError(f"{prefix}{err}") from None
 
 

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from tqdm.auto import tqdm
+
+from rcvae_torchrl._checks import check_non_negative_int, check_positive
 
 from .policy import MLPPolicy
 
@@ -38,12 +39,8 @@ class DistillConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {value!r}")
-        if isinstance(self.lr, bool) or not isinstance(self.lr, (int, float)):
-            raise ValueError(f"lr: expected a positive finite number, got {self.lr!r}")
-        if not (self.lr > 0 and math.isfinite(self.lr)):
-            raise ValueError(f"lr: expected a positive finite number, got {self.lr!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
+        check_positive("lr", self.lr)
+        check_non_negative_int("seed", self.seed)
         if not 0.0 < self.val_fraction < 1.0:
             raise ValueError(
                 f"val_fraction: expected a fraction in (0, 1), got {self.val_fraction!r}"

@@ -20,7 +20,7 @@ from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 from rcvae_torchrl import distributed
-from rcvae_torchrl._checks import check_positive_int
+from rcvae_torchrl._checks import check_non_negative_int, check_positive_int
 from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.threads import threads_kept
@@ -100,8 +100,7 @@ def real_outcomes(
     check_positive_int("runs_per_start", runs_per_start)
     check_positive_int("workers", workers)
     check_positive_int("max_steps", max_steps)
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    check_non_negative_int("seed", seed)
     if len(starts) == 0:
         raise ValueError("starts: expected at least one start state, got none")
     if workers > 1 and (isinstance(env, EnvBase) or not callable(env)):

@@ -28,6 +28,14 @@ from rcvae_torchrl._checks import (  # noqa: F401  (re-exported for the competen
 )
 
 
+def check_confidence(confidence: object) -> None:
+    """Require the coverage of an interval: a number in (0, 1)."""
+    if isinstance(confidence, bool) or not isinstance(confidence, (int, float)):
+        raise TypeError(f"confidence: expected a number in (0, 1), got {confidence!r}")
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence: expected a number in (0, 1), got {confidence!r}")
+
+
 def check_samples(name: str, x: Tensor, min_rank: int, layout: str) -> None:
     """Floating, finite, rank at least ``min_rank``, at least one sample on axis 0."""
     check_min_rank(name, x, min_rank, layout)

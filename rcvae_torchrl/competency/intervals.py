@@ -45,8 +45,7 @@ def binomial_interval(
         (0.0, 0.0247)
     """
     _checks.check_choice("method", method, ("jeffreys", "wilson"))
-    if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence: expected a number in (0, 1), got {confidence!r}")
+    _checks.check_confidence(confidence)
     k = torch.as_tensor(successes, dtype=torch.float64)
     n = torch.as_tensor(trials, dtype=torch.float64, device=k.device).expand_as(k)
     if bool((n <= 0).any()) or bool((k < 0).any()) or bool((k > n).any()):

@@ -261,10 +261,7 @@ class SuccessMetric(KeyedModule):
         if not isinstance(boundary, SuccessBoundary):
             raise TypeError(f"boundary: expected a SuccessBoundary, got {type(boundary).__name__}")
         _checks.check_choice("interval", interval, ("jeffreys", "wilson"))
-        if isinstance(confidence, bool) or not isinstance(confidence, (int, float)):
-            raise TypeError(f"confidence: expected a number in (0, 1), got {confidence!r}")
-        if not 0.0 < confidence < 1.0:
-            raise ValueError(f"confidence: expected a number in (0, 1), got {confidence!r}")
+        _checks.check_confidence(confidence)
         self.boundary = boundary
         self.confidence = confidence
         self.interval = interval

@@ -88,7 +88,7 @@ def ordinal_distribution(outcomes: Tensor, bin_edges: Tensor) -> Tensor:
     """
     _checks.check_samples("outcomes", outcomes, 1, "[N, *batch]")
     _checks.check_rank("bin_edges", bin_edges, 1, "[Z-1]")
-    _checks.check_finite("bin_edges", bin_edges.to(torch.float64))
+    _checks.check_finite("bin_edges", bin_edges)
     if bin_edges.numel() > 1 and not bool((bin_edges[1:] > bin_edges[:-1]).all()):
         raise ValueError(f"bin_edges: expected strictly increasing edges, got {bin_edges.tolist()}")
     index = torch.bucketize(outcomes, bin_edges.to(outcomes), right=True)

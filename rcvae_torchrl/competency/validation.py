@@ -127,8 +127,8 @@ def rank_correlation(x: Tensor, y: Tensor) -> Tensor:
     """
     _checks.check_same_shape("x", x, "y", y)
     _checks.check_rank("x", x, 1, "[n]")
-    _checks.check_finite("x", x.to(torch.float64))
-    _checks.check_finite("y", y.to(torch.float64))
+    _checks.check_finite("x", x)  # an integer tensor is finite: checked as it is, no copy
+    _checks.check_finite("y", y)
     rx, ry = _average_ranks(x.to(torch.float64)), _average_ranks(y.to(torch.float64))
     rx, ry = rx - rx.mean(), ry - ry.mean()
     denominator = (rx.square().sum() * ry.square().sum()).sqrt()
@@ -150,7 +150,7 @@ def auroc(score: Tensor, label: Tensor) -> Tensor:
     _checks.check_same_shape("score", score, "label", label)
     if label.dtype != torch.bool:
         raise TypeError(f"label: expected a bool tensor, got {label.dtype}")
-    _checks.check_finite("score", score.to(torch.float64))
+    _checks.check_finite("score", score)
     positives, negatives = int(label.sum()), int((~label).sum())
     if positives == 0 or negatives == 0:
         return torch.tensor(math.nan, dtype=torch.float64)
@@ -297,7 +297,7 @@ def time_to_success_scores(
             f"{tuple(real_steps.shape)}"
         )
     for name, steps in (("forecast_steps", forecast_steps), ("real_steps", real_steps)):
-        _checks.check_finite(name, steps.to(torch.float64))
+        _checks.check_finite(name, steps)
         if 0 in steps.shape:
             raise ValueError(
                 f"{name}: expected at least one time per start, got {tuple(steps.shape)}"

@@ -10,6 +10,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, SerialEnv
 from tqdm.auto import tqdm
 
+from rcvae_torchrl._checks import check_non_negative_int
 from rcvae_torchrl.threads import threads_kept
 
 __all__ = ["TRAJ_KEY", "check_episode_ids", "collect_episodes", "merge_episodes"]
@@ -54,8 +55,7 @@ def collect_episodes(
         raise ValueError(f"num_episodes: expected >= 1, got {num_episodes}")
     if num_envs < 1:
         raise ValueError(f"num_envs: expected >= 1, got {num_envs}")
-    if isinstance(first_id, bool) or not isinstance(first_id, int) or first_id < 0:
-        raise ValueError(f"first_id: expected an integer >= 0, got {first_id!r}")
+    check_non_negative_int("first_id", first_id)
     max_frames = max_frames or 1000 * num_episodes
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     env.set_seed(seed % 2**32)  # numpy-based envs take seeds below 2**32

@@ -16,6 +16,8 @@ import torch
 from tensordict.utils import NestedKey
 from torchrl.envs import CatTensors, Compose, DoubleToFloat, EnvBase, Transform, TransformedEnv
 
+from rcvae_torchrl._checks import check_non_negative_int
+
 __all__ = ["ActionNoise", "ObservationLayout", "prepare_env", "seed_env"]
 
 OBSERVATION_KEY = "observation"
@@ -200,8 +202,7 @@ def seed_env(env: EnvBase, seed: int) -> None:
     The env gets ``seed mod 2**32`` (numpy-based envs such as dm_control's take no more), so
     seeds derived from any study seed are valid.
     """
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    check_non_negative_int("seed", seed)
     env.set_seed(seed % 2**32)
     transform = getattr(env, "transform", None)
     parts = list(transform) if isinstance(transform, Compose) else [transform]

@@ -38,6 +38,7 @@ from rcvae_torchrl._checks import (
     check_finite,
     check_floating,
     check_min_rank,
+    check_non_negative_int,
     check_tensor,
 )
 from rcvae_torchrl.models.config import RCVAEConfig
@@ -369,10 +370,7 @@ class RCVAEEnsemble(nn.Module):
         """
         self._check_windows(observations, actions, next_observations)
         self._check_mask(mask, observations)
-        if isinstance(open_loop_steps, bool) or not isinstance(open_loop_steps, int):
-            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop_steps!r}")
-        if open_loop_steps < 0:
-            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop_steps}")
+        check_non_negative_int("open_loop_steps", open_loop_steps)
         if next_observations is None:
             targets = observations[..., 1:, :]
         else:

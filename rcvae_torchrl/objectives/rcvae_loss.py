@@ -15,6 +15,7 @@ from rcvae_torchrl._checks import (
     check_dtype,
     check_finite,
     check_non_negative,
+    check_non_negative_int,
     check_trailing,
     check_unit_interval,
 )
@@ -116,9 +117,7 @@ class RCVAELoss(LossModule):
         super().__init__()
         check_non_negative("beta", beta)
         check_non_negative("free_nats", free_nats)
-        steps = open_loop_steps
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
-            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {steps!r}")
+        check_non_negative_int("open_loop_steps", open_loop_steps)
         check_bool("detach_open_loop", detach_open_loop)
         check_unit_interval("nll_beta", nll_beta)
         self.nll_beta = float(nll_beta)

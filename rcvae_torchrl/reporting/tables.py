@@ -9,6 +9,7 @@ from pathlib import Path
 
 import torch
 
+from rcvae_torchrl._checks import check_non_negative_int
 from rcvae_torchrl.io import atomic_write
 
 __all__ = ["format_table", "write_table"]
@@ -26,8 +27,7 @@ def format_table(
     rows: Sequence[Mapping[str, object]], columns: Sequence[str], digits: int = 3
 ) -> tuple[str, str]:
     """``(markdown, csv)`` renderings of ``rows`` restricted to ``columns``, in that order."""
-    if isinstance(digits, bool) or not isinstance(digits, int) or digits < 0:
-        raise ValueError(f"digits: expected an integer >= 0, got {digits!r}")
+    check_non_negative_int("digits", digits)
     missing = [c for c in columns if any(c not in r for r in rows)]
     if missing:
         raise KeyError(f"columns: {missing} missing from some rows")

@@ -34,6 +34,7 @@ from rcvae_torchrl._checks import (
     check_dtype,
     check_finite,
     check_non_negative,
+    check_non_negative_int,
     check_positive,
     check_positive_int,
     check_trailing,
@@ -148,16 +149,13 @@ class TrainConfig:
             )
         check_positive("beta", self.beta)
         check_non_negative("free_nats", self.free_nats)
-        open_loop = self.open_loop_steps
-        if isinstance(open_loop, bool) or not isinstance(open_loop, int) or open_loop < 0:
-            raise ValueError(f"open_loop_steps: expected an integer >= 0, got {open_loop!r}")
+        check_non_negative_int("open_loop_steps", self.open_loop_steps)
         if not 0.0 <= self.nll_beta <= 1.0:
             raise ValueError(f"nll_beta: expected a value in [0, 1], got {self.nll_beta!r}")
         for name in ("bootstrap", "compile"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed: expected an integer >= 0, got {self.seed!r}")
+        check_non_negative_int("seed", self.seed)
         parallel = self.data_parallel
         if isinstance(parallel, bool) or not isinstance(parallel, int) or parallel < 1:
             raise ValueError(f"data_parallel: expected an integer >= 1, got {parallel!r}")
