@@ -63,7 +63,9 @@ def pusher_success(
         radius: success radius in metres (> 0).
 
     Returns:
-        ``[...]`` bool.
+        ``[...]`` bool. A NaN observation is not a success: this runs at every imagined step,
+        so it reads no data to check; the model env and
+        :class:`~rcvae_torchrl.competency.SuccessBoundary` refuse NaN states before it.
     """
     if not radius > 0:
         raise ValueError(f"radius: expected a positive distance in metres, got {radius}")

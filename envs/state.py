@@ -6,16 +6,24 @@ episode can start from exactly the state a forecast started from (or from an ima
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from .batched import BatchedPusherEnv
-from .layout import OBSERVATION_DIM
+from .layout import OBSERVATION_DIM, OBSERVATION_NAMES
 from .readout import state_from_observation
 
-__all__ = ["reset_to_state"]
+__all__ = ["PROJECTION_TOLERANCE", "reset_to_state"]
+
+#: Largest change of an observation entry that :func:`reset_to_state` makes silently. A real
+#: observation comes back to within float32 rounding (about 1e-8); a larger change means the
+#: observation was not a state the Pusher can be in (e.g. a cos/sin pair off the unit circle,
+#: a fingertip away from where the joint angles put it).
+PROJECTION_TOLERANCE = 1e-4
 
 
 def _dm_env(env: EnvBase):
@@ -41,6 +49,13 @@ def reset_to_state(env: EnvBase, observation: torch.Tensor) -> TensorDictBase:
     restarts from row ``i``, as the single env would; a subset restarts with
     ``env.reset(TensorDict(observation=..., _reset=mask), set_state=True)``).
 
+    The simulator state is read from the joint angles (their cos/sin), velocities and the ball
+    and target positions; entries that the state determines (the fingertip) are recomputed. An
+    observation that is not a state the Pusher can be in is moved to one it can, with a
+    ``UserWarning`` naming the entry that moved most and by how much when any entry moves
+    more than :data:`PROJECTION_TOLERANCE`; the returned ``td["observation"]`` is the state
+    the episode starts from.
+
     Example:
         >>> env = make_pusher_env("stochastic", seed=3)
         >>> td = reset_to_state(env, start)  # start: an observation [14]
@@ -54,7 +69,9 @@ def reset_to_state(env: EnvBase, observation: torch.Tensor) -> TensorDictBase:
         )
     if isinstance(env, BatchedPusherEnv):
         td = TensorDict(observation=observation, batch_size=env.batch_size)
-        return env.reset(td, set_state=True)
+        td = env.reset(td, set_state=True)
+        _warn_if_moved(observation, td["observation"])
+        return td
     td = env.reset()
     dm = _dm_env(env)
     physics = dm.physics
@@ -64,4 +81,20 @@ def reset_to_state(env: EnvBase, observation: torch.Tensor) -> TensorDictBase:
     current = dm.task.get_observation(physics)
     td["observation"] = torch.as_tensor(current["observation"], dtype=torch.float32)
     td["success"] = torch.as_tensor(np.asarray(current["success"]))
+    _warn_if_moved(observation, td["observation"])
     return td
+
+
+def _warn_if_moved(given: torch.Tensor, reached: torch.Tensor) -> None:
+    """Warn when the state reached differs from the observation given by more than
+    :data:`PROJECTION_TOLERANCE` in any entry."""
+    gap = (reached.to(given.dtype) - given).abs().reshape(-1, OBSERVATION_DIM).amax(dim=0)
+    worst = int(gap.argmax())
+    if float(gap[worst]) > PROJECTION_TOLERANCE:
+        warnings.warn(
+            f"observation: not a state the Pusher can be in; the env starts from the nearest "
+            f"one it can, {OBSERVATION_NAMES[worst]} (entry {worst}) moved by "
+            f"{float(gap[worst]):.3g}",
+            UserWarning,
+            stacklevel=3,
+        )

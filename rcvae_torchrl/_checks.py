@@ -148,6 +148,19 @@ def check_finite(name: str, x: Tensor) -> None:
         )
 
 
+def check_bounds(name: str, low: object, high: object, *, finite: bool = False) -> None:
+    """Require bounds with ``low <= high`` everywhere and no NaN (nor ±inf when ``finite``);
+    ``low`` and ``high`` are numbers or tensors that broadcast together."""
+    lo, hi = torch.as_tensor(low), torch.as_tensor(high)
+    bad = torch.isnan(lo).any() | torch.isnan(hi).any() | (lo > hi).any()
+    if finite:
+        bad = bad | ~torch.isfinite(lo).all() | ~torch.isfinite(hi).all()
+    if bool(bad):
+        show = [v.tolist() if isinstance(v, Tensor) else v for v in (low, high)]
+        want = "finite bounds with low <= high" if finite else "low <= high (and no NaN)"
+        raise ValueError(f"{name}: expected {want}, got {show[0]} and {show[1]}")
+
+
 def check_min_rank(name: str, x: Tensor, min_rank: int, layout: str) -> None:
     """Require ``x.ndim >= min_rank``; ``layout`` describes the expected shape."""
     if x.ndim < min_rank:

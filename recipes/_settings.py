@@ -135,8 +135,8 @@ def check_run_dir(value: Any) -> Path:
     except OSError as err:
         where = "it" if existing == path else f"its parent {str(existing)!r}"
         raise ValueError(
-            f"run_dir: expected a writable directory, got {value!r} ({where} is not writable: "
-            f"{err.strerror})"
+            f"run_dir: expected a writable directory, got {value!r} (no directory can be "
+            f"created in {where}: {err.strerror})"
         ) from None
     return path
 

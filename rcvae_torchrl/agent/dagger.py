@@ -21,7 +21,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl._checks import check_positive_int
+from rcvae_torchrl._checks import check_bounds, check_positive_int
 
 from .distill import DistillConfig, distill_policy
 from .episodes import run_episodes
@@ -46,8 +46,7 @@ class PerturbedPolicy:
     ) -> None:
         if not (noise_std >= 0 and math.isfinite(noise_std)):
             raise ValueError(f"noise_std: expected a finite std >= 0, got {noise_std!r}")
-        if bool((torch.as_tensor(low) > torch.as_tensor(high)).any()):
-            raise ValueError(f"low, high: expected low <= high, got {low!r} and {high!r}")
+        check_bounds("low, high", low, high)
         self.policy, self.noise_std, self.low, self.high = policy, noise_std, low, high
         self.generator = torch.Generator().manual_seed(seed)
 

@@ -12,7 +12,7 @@ from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 from rcvae_torchrl._checks import check_positive_int
-from rcvae_torchrl.data import TRAJ_KEY, seed_env
+from rcvae_torchrl.data import TRAJ_KEY, check_actions, seed_env
 
 __all__ = ["EpisodeStats", "ResetToState", "run_episodes"]
 
@@ -78,6 +78,7 @@ def run_episodes(
             episode = env.rollout(
                 max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
             )
+        check_actions(env, episode)
         if callable(success):
             won = success(episode["next", "observation"])
             if not isinstance(won, torch.Tensor) or won.dtype != torch.bool:

@@ -101,7 +101,7 @@ class CompetencyAssessor(KeyedModule):
         per_sample: extra outputs kept per imagined sample: name -> function of the imagined
             observations ``[E, N, b, T, S] -> [E, N, b, T, ...]`` (e.g. a distance to a goal
             for forecast bands); the report holds them under ``("per_sample", name)`` with the
-            start state first, ``[*B, E, N, T, ...]``.
+            start state first, ``[*B, E, N, T, ...]``. A NaN value is refused.
         **estimator_args: other estimator arguments (e.g. ``k``, ``joint``,
             ``bias_correction="shuffle"``).
 
@@ -525,5 +525,11 @@ def _per_sample_value(name: str, fn: PerSample, observed: TensorDictBase, b: int
         raise ValueError(
             f"per_sample[{name!r}]: expected a tensor of shape {tuple(observation.shape[:4])} + "
             f"(...) for observations {tuple(observation.shape)}, got {got}"
+        )
+    if value.is_floating_point() and bool(torch.isnan(value).any()):
+        raise ValueError(
+            f"per_sample[{name!r}]: expected no NaN (inf may stand for 'never'), got "
+            f"{int(torch.isnan(value).sum())} NaN of {value.numel()} values from finite "
+            "imagined observations"
         )
     return value.movedim(2, 0)

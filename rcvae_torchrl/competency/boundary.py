@@ -108,9 +108,25 @@ class SuccessBoundary:
     def within_distance(
         cls, distance: Callable[[Tensor], Tensor], radius: float, **kwargs: object
     ) -> SuccessBoundary:
-        """Success when ``distance(obs) <= radius``; ``distance``: ``[..., D] -> [...]``."""
+        """Success when ``distance(obs) <= radius``; ``distance``: ``[..., D] -> [...]``.
+
+        A NaN distance (of finite observations: a bug in ``distance``) is a ``ValueError``,
+        not a failure.
+        """
         _checks.check_positive("radius", radius)
-        return cls(lambda obs: distance(obs) <= radius, **kwargs)  # type: ignore[arg-type]
+        if not callable(distance):
+            raise TypeError(f"distance: expected a callable, got {type(distance).__name__}")
+
+        def inside(obs: Tensor) -> Tensor:
+            d = distance(obs)
+            if isinstance(d, Tensor) and d.is_floating_point() and bool(torch.isnan(d).any()):
+                raise ValueError(
+                    f"distance: expected no NaN for finite observations, got "
+                    f"{int(torch.isnan(d).sum())} NaN of {d.numel()}"
+                )
+            return d <= radius
+
+        return cls(inside, **kwargs)  # type: ignore[arg-type]
 
     def success_over_time(self, observation: Tensor) -> Tensor:
         """Bool ``[..., T]``: in the success region at step ``t``, within the limit, not failed."""

@@ -293,10 +293,15 @@ def check_estimator_args(estimator: str, args: Mapping[str, Any]) -> None:
     ``bin_widht``), naming them and the ones it takes, before any sample is drawn."""
     _checks.check_choice("estimator", estimator, tuple(ESTIMATORS))
     names: set[str] = set()
+    flags: set[str] = set()  # the switches (a bool default): a truthy string is not one
     for fn in (ESTIMATORS[estimator], *_FORWARDED[estimator]):
         params = inspect.signature(fn).parameters.values()
-        names |= {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+        taken = [p for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
+        names |= {p.name for p in taken}
+        flags |= {p.name for p in taken if isinstance(p.default, bool)}
     names -= {"samples", "x"}
+    for name in sorted(flags & set(args)):
+        _checks.check_bool(name, args[name])
     unknown = sorted(set(args) - names - {"ended"})
     if unknown:
         raise TypeError(

@@ -119,6 +119,7 @@ def gaussian_entropy(
     """
     _checks.check_samples("samples", samples, 2, _LAYOUT)
     _checks.check_positive("min_variance", min_variance)
+    _checks.check_bool("joint", joint)
     if samples.shape[0] < 2:
         raise ValueError(
             f"samples: expected at least 2 samples on axis 0 to estimate a variance, got "

@@ -162,6 +162,7 @@ def fit_gaussian_mixture_entropy_bounds(
         (torch.Size([7]), True)
     """
     _checks.check_samples("samples", samples, 3, "[E, N, *batch, D]")
+    _checks.check_bool("full_covariance", full_covariance)
     x = samples.to(torch.float64)
     means = x.mean(dim=1)
     centred = x - means.unsqueeze(1)

@@ -1,6 +1,6 @@
 """Data: exploration policies, episode collection, trajectory replay and windows."""
 
-from .collection import TRAJ_KEY, check_episode_ids, collect_episodes, merge_episodes
+from .collection import TRAJ_KEY, check_actions, check_episode_ids, collect_episodes, merge_episodes
 from .exploration import (
     GaussianExploration,
     UniformRandomPolicy,
@@ -20,6 +20,7 @@ from .storage import load_episodes, save_episodes
 __all__ = [
     # collection
     "TRAJ_KEY",
+    "check_actions",
     "check_episode_ids",
     "collect_episodes",
     "merge_episodes",

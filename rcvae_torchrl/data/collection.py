@@ -13,7 +13,7 @@ from tqdm.auto import tqdm
 from rcvae_torchrl._checks import check_non_negative_int
 from rcvae_torchrl.threads import threads_kept
 
-__all__ = ["TRAJ_KEY", "check_episode_ids", "collect_episodes", "merge_episodes"]
+__all__ = ["TRAJ_KEY", "check_actions", "check_episode_ids", "collect_episodes", "merge_episodes"]
 
 TRAJ_KEY = ("collector", "traj_ids")
 
@@ -48,7 +48,9 @@ def collect_episodes(
         num_envs: envs stepped together in a ``SerialEnv``: the policy runs once per step for
             all of them, which pays off when a policy call costs more than an env step.
         frames_per_batch: collector batch size (rounded up to a multiple of ``num_envs``).
-        max_frames: safety cap on frames (default: 1,000 × ``num_episodes``).
+        max_frames: safety cap on frames (default: 1,000 × (``num_episodes`` + ``num_envs``
+            − 1), room for episodes of up to 1,000 steps in every env). Reaching it before
+            ``num_episodes`` episodes have ended is a ``ValueError``.
         first_id: the id of the first episode.
     """
     if num_episodes < 1:
@@ -56,7 +58,7 @@ def collect_episodes(
     if num_envs < 1:
         raise ValueError(f"num_envs: expected >= 1, got {num_envs}")
     check_non_negative_int("first_id", first_id)
-    max_frames = max_frames or 1000 * num_episodes
+    max_frames = max_frames or 1000 * (num_episodes + num_envs - 1)
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     env.set_seed(seed % 2**32)  # numpy-based envs take seeds below 2**32
     collector = Collector(
@@ -81,7 +83,43 @@ def collect_episodes(
     finally:
         collector.shutdown()
         bar.close()
-    return _whole_episodes(torch.cat(parts), num_episodes, first_id)
+    data = _whole_episodes(torch.cat(parts), num_episodes, first_id)
+    check_actions(env, data)
+    return data
+
+
+def check_actions(env: EnvBase, data: TensorDictBase, name: str = "policy") -> None:
+    """Every action recorded in ``data`` must be one that ``env``'s action spec allows.
+
+    TorchRL records the action the policy wrote, while an env may clip or cast it before it
+    acts: a world model trained on such data would learn from actions that were never applied.
+    Raises ``TypeError`` for another dtype than the spec's and ``ValueError`` for actions out of
+    its bounds (or NaN), naming ``name`` (the policy that chose them) and how far out they are.
+    """
+    spec = env.action_spec_unbatched
+    action = data.get(env.action_key)
+    if action.dtype != spec.dtype:
+        raise TypeError(
+            f"{name}: expected actions of the env's action_spec dtype {spec.dtype}, got "
+            f"{action.dtype}; cast them in the policy"
+        )
+    if bool(spec.is_in(action)):
+        return
+    space = getattr(spec, "space", None)
+    low, high = getattr(space, "low", None), getattr(space, "high", None)
+    detail = ""
+    if low is not None and high is not None:
+        below, above = (low - action).clamp_min(0), (action - high).clamp_min(0)
+        excess = torch.maximum(below, above).nan_to_num(nan=torch.inf)
+        out = excess > 0
+        detail = (
+            f": {int(out.any(dim=-1).sum())} of {out[..., 0].numel()} actions fall outside "
+            f"[{low.tolist()}, {high.tolist()}], by up to {float(excess.max()):.4g}"
+        )
+    raise ValueError(
+        f"{name}: expected actions inside the env's action_spec{detail}; clip them in the policy "
+        "(the env would act on other actions than the ones recorded)"
+    )
 
 
 def _whole_episodes(data: TensorDict, num_episodes: int, first_id: int) -> TensorDict:
@@ -89,6 +127,12 @@ def _whole_episodes(data: TensorDict, num_episodes: int, first_id: int) -> Tenso
     renumbered ``first_id, first_id + 1, ...``."""
     ids = data[TRAJ_KEY]
     finished = torch.unique(ids[data["next", "done"].reshape(-1)])[:num_episodes]
+    if finished.numel() < num_episodes:
+        raise ValueError(
+            f"max_frames: {data.numel()} frames were collected and only {finished.numel()} of "
+            f"the {num_episodes} episodes asked for ended; raise max_frames (or check that the "
+            "env's episodes end)"
+        )
     data = data[torch.isin(ids, finished)]
     order = torch.sort(data[TRAJ_KEY], stable=True).indices
     data = data[order]

@@ -10,6 +10,8 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from rcvae_torchrl._checks import check_bounds
+
 __all__ = [
     "GaussianExploration",
     "UniformRandomPolicy",
@@ -37,8 +39,7 @@ def _bounds(low: Bound, high: Bound) -> tuple[torch.Tensor, torch.Tensor]:
         torch.as_tensor(low, dtype=torch.float32),
         torch.as_tensor(high, dtype=torch.float32),
     )
-    if not bool(torch.isfinite(low).all() and torch.isfinite(high).all() and (low < high).all()):
-        raise ValueError(f"low, high: expected finite bounds with low < high, got {low}, {high}")
+    check_bounds("low, high", low, high, finite=True)
     return low, high
 
 

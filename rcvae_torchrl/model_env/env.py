@@ -9,7 +9,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
-from rcvae_torchrl._checks import check_bool, make_generator
+from rcvae_torchrl._checks import check_bool, check_bounds, make_generator
 from rcvae_torchrl.model_env import _checks
 from rcvae_torchrl.model_env.specs import (
     ACTION_KEY,
@@ -230,6 +230,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         low, high = getattr(space, "low", None), getattr(space, "high", None)
         self.action_bounds = None
         if low is not None and high is not None:
+            check_bounds("action_spec (its low and high)", low, high)
             dtype = self.ensemble.dtype
             self.action_bounds = ActionBounds(
                 low.to(self.device, dtype), high.to(self.device, dtype)
@@ -289,11 +290,14 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
                     f"RCVAEEnsembleEnv.step: the input has no {key!r} entry (got keys "
                     f"{sorted(map(str, tensordict.keys()))})"
                 )
+        validate = self.world_model.validate
         if self.action_bounds is not None:
             action, a = state.get(ACTION_KEY), self.ensemble.config.action_dim
             _checks.check_trailing(ACTION_KEY, action, (a,), f"[*B, A={a}]")
             if action.dtype != self.ensemble.dtype:  # before the clamp casts an int or bool one
                 _checks.check_dtype(ACTION_KEY, action, self.ensemble.dtype)
+            if validate:  # before the clamp makes an infinite action finite
+                _checks.check_finite(ACTION_KEY, action)
             state.set(ACTION_KEY, torch.clamp(action, *self.action_bounds))
         if HIDDEN_KEY not in state.keys(include_nested=True):
             start = self._initial_state(state.get(OBSERVATION_KEY), state.get(MEMBER_KEY, None))
@@ -301,7 +305,10 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         with torch.set_grad_enabled(self.requires_grad and torch.is_grad_enabled()):
             out = self.world_model(state)
         result = out.select(OBSERVATION_KEY, "rcvae", MEMBER_KEY, strict=False)
-        result.update(self.task.transitions(out.get(OBSERVATION_KEY), out.get(ACTION_KEY)))
+        transitions = self.task.transitions(out.get(OBSERVATION_KEY), out.get(ACTION_KEY))
+        if validate:
+            _checks.check_finite("reward_fn's reward", transitions["reward"])
+        result.update(transitions)
         return result
 
     def _initial_state(

@@ -12,7 +12,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase
 from torchrl.modules.planners.common import MPCPlannerBase
 
-from rcvae_torchrl._checks import make_generator
+from rcvae_torchrl._checks import check_bounds, make_generator
 from rcvae_torchrl.planners import _checks
 from rcvae_torchrl.planners.evaluation import (
     ParticleReturns,
@@ -154,6 +154,7 @@ class CEMPlanner(MPCPlannerBase):
         """Buffers ``low``, ``high`` (bounds), ``prior_mean``, ``prior_std``, all ``[*A]``."""
         low = self.action_spec.space.low.to(self.action_spec.dtype).clone()
         high = self.action_spec.space.high.to(self.action_spec.dtype).clone()
+        check_bounds("action_spec (its low and high)", low, high)
         prior_mean, prior_std = action_prior(low, high, init_std)
         self.register_buffer("low", low, persistent=False)
         self.register_buffer("high", high, persistent=False)

@@ -163,8 +163,8 @@ class ParticleTransition(TensorDictModuleBase):
         hid = (self.ensemble.carry_dim,) if ts_inf else (e, self.ensemble.carry_dim)
         _checks.check_trailing(names[2], hidden, hid, f"[*B, {', '.join(map(str, hid))}]")
         _checks.check_batch_shapes((names[0], names[2]), obs.shape[:-1], hidden.shape[: -len(hid)])
-        _checks.check_finite(names[0], obs)
-        _checks.check_finite(names[1], action)
+        for name, x in zip(names[:3], (obs, action, hidden)):
+            _checks.check_finite(name, x)
         for name, x in zip(names[:3], (obs, action, hidden)):
             _checks.check_dtype(name, x, self.ensemble.dtype)
         if ts_inf:

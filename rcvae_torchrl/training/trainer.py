@@ -695,10 +695,13 @@ def _training_payload(
         raise CheckpointError(f"checkpoint {str(path)!r}: holds no training state to resume", path)
     # a setting added since the checkpoint was written had its default value then
     saved = {**dataclasses.asdict(TrainConfig()), **training["config"]}
-    if config is not None and saved != dataclasses.asdict(config):
+    given = dataclasses.asdict(config) if config is not None else saved
+    differ = sorted(k for k in saved.keys() | given.keys() if saved.get(k) != given.get(k))
+    if differ:
+        changes = ", ".join(f"{k}={saved.get(k)!r} there, {given.get(k)!r} now" for k in differ)
         raise CheckpointError(
-            f"checkpoint {str(path)!r}: was written with another TrainConfig "
-            f"({training['config']}); resume with the same config or a new path",
+            f"checkpoint {str(path)!r}: was written with another TrainConfig ({changes}); "
+            "resume with the same config or a new path",
             path,
         )
     saved_data = training.get("data")  # None: written before data digests, or without a path

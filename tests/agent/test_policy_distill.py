@@ -95,7 +95,9 @@ def test_a_perturbed_policy_of_unbounded_noise_or_crossed_bounds_is_refused():
     policy = make_policy_module(MLPPolicy(3, 2))
     with pytest.raises(ValueError, match="noise_std: expected a finite std >= 0, got inf"):
         PerturbedPolicy(policy, float("inf"))
-    with pytest.raises(ValueError, match=r"low, high: expected low <= high, got 1\.0 and -1\.0"):
+    with pytest.raises(
+        ValueError, match=r"low, high: expected low <= high \(and no NaN\), got 1\.0 and -1\.0"
+    ):
         PerturbedPolicy(policy, 0.1, low=1.0, high=-1.0)
 
 

@@ -147,3 +147,25 @@ def test_bad_starts_seeds_and_success_flags_are_named(reacher):
     ):
         with pytest.raises(error, match=match):
             run_episodes(env, act, seeds=[0], max_steps=3, success=success)
+
+
+def test_run_episodes_refuses_actions_the_env_would_not_apply_as_recorded():
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    never = lambda obs: obs[..., 0] > 100  # noqa: E731  (point_mass has no success flag)
+    args = {"seeds": [0], "max_steps": 3, "success": never}
+    run_episodes(env, lambda td: td.set("action", torch.ones(2)), **args)  # on the bound: fine
+    with pytest.raises(
+        ValueError,
+        match=r"^policy: expected actions inside the env's action_spec: 3 of 3 actions fall "
+        r"outside \[\[-1\.0, -1\.0\], \[1\.0, 1\.0\]\], by up to 0\.5; clip them",
+    ):
+        run_episodes(env, lambda td: td.set("action", torch.tensor([0.0, 1.5])), **args)
+    from rcvae_torchrl.data import check_actions
+
+    nan = TensorDict(action=torch.tensor([[0.0, float("nan")], [0.0, 0.0]]), batch_size=[2])
+    with pytest.raises(ValueError, match=r"1 of 2 actions fall outside .* by up to inf"):
+        check_actions(env, nan)  # (the env itself refuses to step with a NaN action)
+    with pytest.raises(
+        TypeError, match=r"^policy: expected actions of the env's action_spec dtype torch.float32"
+    ):
+        run_episodes(env, lambda td: td.set("action", torch.zeros(2, dtype=torch.float64)), **args)

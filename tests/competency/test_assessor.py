@@ -499,3 +499,19 @@ def test_episode_end_measures_the_uncertainty_of_the_episode(env, starts, plan):
     shuffled = make_assessor(env, episode_end=True, bias_correction="shuffle", generator=seeded())
     out = shuffled.assess(starts, actions=plan, generator=seeded()).data["uncertainty"]
     assert torch.allclose(out["aleatoric"] + out["epistemic"], out["total"], atol=1e-5)
+
+
+def test_per_sample_nan_and_a_nan_distance_are_refused_by_name(env, starts, plan):
+    """NaN from a user's function of finite imagined states is an error, not a stored value
+    (per_sample) or a failure (a boundary's distance); inf may stand for 'never'."""
+    never = {"x": lambda o: torch.where(o[..., 0] > 1e9, 0.0, torch.inf)}
+    report = make_assessor(env, per_sample=never).assess(starts, actions=plan, generator=seeded())
+    assert torch.isinf(report.data["per_sample", "x"]).all()
+    nan = {"x": lambda o: torch.where(o[..., 0] > 0, o[..., 0], torch.nan)}
+    with pytest.raises(ValueError, match=r"^per_sample\['x'\]: expected no NaN .*, got \d+ NaN"):
+        make_assessor(env, per_sample=nan).assess(starts, actions=plan, generator=seeded())
+    broken = SuccessBoundary.within_distance(lambda o: o[..., 0] * torch.nan, 0.03, time_limit=T)
+    with pytest.raises(ValueError, match=rf"^distance: expected no NaN .*, got {3 * T} NaN"):
+        broken.success_over_time(torch.zeros(3, T, S))
+    with pytest.raises(TypeError, match="distance: expected a callable, got float"):
+        SuccessBoundary.within_distance(0.5, 0.03)

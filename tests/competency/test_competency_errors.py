@@ -154,6 +154,10 @@ def test_estimator_arguments_are_checked_when_the_metric_is_made():
     with pytest.raises(TypeError, match=r"unknown \['shufles'\]"):
         decompose_uncertainty(torch.randn(2, 5, 3), bin_width=0.1, shufles=2)
     UncertaintyMetric(estimator="gaussian", joint=True)  # a keyword of gaussian_entropy
+    with pytest.raises(TypeError, match="joint: expected True or False, got 'yes'"):
+        UncertaintyMetric(estimator="gaussian", joint="yes")  # truthy, not a switch
+    with pytest.raises(TypeError, match="full_covariance: expected True or False, got 1"):
+        decompose_uncertainty(torch.randn(2, 5, 3), estimator="mixture", full_covariance=1)
     UncertaintyMetric(bin_width=0.1, bias_correction="shuffle", shuffles=2)
     with pytest.raises(TypeError, match="bin_width: expected a number or a tensor"):
         UncertaintyMetric(bin_width="0.1")

@@ -220,5 +220,39 @@ def test_exploration_respects_the_action_bounds():
     assert (noisy[:, 0] == 2.0).any() and (noisy[:, 1] == 0.0).any()  # clipped, not [-1, 1]
     bounds = action_bounds(make_pusher_env())
     assert torch.equal(bounds[0], -torch.ones(2)) and torch.equal(bounds[1], torch.ones(2))
-    with pytest.raises(ValueError, match="low, high: expected finite bounds with low < high"):
+    with pytest.raises(ValueError, match="low, high: expected finite bounds with low <= high"):
         UniformRandomPolicy(2, low=1.0, high=-1.0)
+
+
+class _Constant(torch.nn.Module):
+    def __init__(self, value: float, dtype: torch.dtype = torch.float32) -> None:
+        super().__init__()
+        self.value, self.dtype = value, dtype
+
+    def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        return torch.full((*observation.shape[:-1], 2), self.value, dtype=self.dtype)
+
+
+@pytest.mark.parametrize("num_envs", [1, 2])
+def test_collection_refuses_actions_out_of_the_spec_and_too_few_frames(num_envs):
+    make_env = functools.partial(make_pusher_env, "deterministic", time_limit=2.0)
+    args = {"num_envs": num_envs, "frames_per_batch": 20, "progress": False}
+    data = collect_episodes(make_env, make_exploration_policy(_Constant(-1.0)), 2, **args)
+    assert data["action"].eq(-1.0).all()  # on the bound: kept as the env applied it
+    with pytest.raises(
+        ValueError,
+        match=r"^policy: expected actions inside the env's action_spec: 80 of 80 actions fall "
+        r"outside \[\[-1\.0, -1\.0\], \[1\.0, 1\.0\]\], by up to 0\.25",
+    ):
+        collect_episodes(make_env, make_exploration_policy(_Constant(1.25)), 2, **args)
+    with pytest.raises(TypeError, match=r"expected actions of the env's action_spec dtype"):
+        collect_episodes(
+            make_env, make_exploration_policy(_Constant(0.0, torch.float64)), 1, **args
+        )
+    with pytest.raises(
+        ValueError,
+        match=r"^max_frames: 20 frames were collected and only 0 of the 1 episodes asked for ended",
+    ):
+        collect_episodes(
+            make_env, make_exploration_policy(_Constant(0.0)), 1, max_frames=10, **args
+        )

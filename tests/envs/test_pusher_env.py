@@ -315,3 +315,23 @@ def test_a_nan_start_is_said_to_be_nan():
     start[3] = math.nan
     with pytest.raises(ValueError, match=r"got shape \(14,\) with 1 NaN or inf entries"):
         reset_to_state(env, start)
+
+
+def test_reset_to_state_warns_when_it_moves_an_impossible_observation(recwarn):
+    from rcvae_torchrl.envs.batched import BatchedPusherEnv
+    from rcvae_torchrl.envs.state import PROJECTION_TOLERANCE, reset_to_state
+
+    env = make_pusher_env("deterministic", seed=3)
+    real = env.rollout(30, make_scripted_policy())["next", "observation"][[5, 20]]
+    for start in real:
+        reset_to_state(env, start)  # a real observation comes back within float32 rounding
+    reset_to_state(BatchedPusherEnv(2), real)
+    assert not [w for w in recwarn if issubclass(w.category, UserWarning)]
+    off = real.clone()
+    off[1, 1] += 0.05  # shoulder sin off the unit circle
+    pattern = r"not a state the Pusher can be in; .* shoulder_(cos|sin) \(entry [01]\) moved by "
+    with pytest.warns(UserWarning, match=pattern):
+        td = reset_to_state(env, off[1])
+    assert (td["observation"] - off[1]).abs().max() > PROJECTION_TOLERANCE  # where it starts
+    with pytest.warns(UserWarning, match=pattern):
+        reset_to_state(BatchedPusherEnv(2), off)

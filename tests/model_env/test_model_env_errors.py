@@ -6,7 +6,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from rcvae_torchrl.envs import pusher_reward, pusher_success
+from rcvae_torchrl.envs import make_pusher_env, pusher_reward, pusher_success
 from rcvae_torchrl.model_env import RCVAEEnsembleEnv
 
 
@@ -117,3 +117,52 @@ def test_task_functions_with_wrong_outputs(ensemble, starts):
 def test_real_env_must_be_an_env(ensemble):
     with pytest.raises(TypeError, match="real_env: expected a TorchRL EnvBase or None, got str"):
         RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, real_env="pusher")
+
+
+@pytest.mark.parametrize("mode", ["ts_inf", "ts1", "mean"])
+def test_step_refuses_infinite_actions_nan_hidden_states_and_nan_rewards(make_env, starts, mode):
+    env = make_env(trajectory_sampling=mode)
+    td = _state(env, starts)
+    td["action"][2, 1] = float("inf")  # the clamp to the bounds would make it finite
+    with pytest.raises(ValueError, match=r"action: expected finite values, got 0 NaN and 1 inf"):
+        env.step(td)
+    td = _state(env, starts)
+    td["rcvae", "hidden"][0, ..., 3] = float("nan")
+    with pytest.raises(ValueError, match=r"hidden.*: expected finite values, got \d+ NaN"):
+        env.step(td)
+    td = _state(env, starts)
+    env.step(td)  # the same inputs, finite, step
+    nan_reward = make_env(trajectory_sampling=mode)
+    nan_reward.task = type(nan_reward.task)(
+        lambda observation, action: torch.full((*observation.shape[:-1], 1), float("nan")),
+        pusher_success,
+        True,
+    )
+    with pytest.raises(ValueError, match=r"^reward_fn's reward: expected finite values, got 4 NaN"):
+        nan_reward.step(_state(nan_reward, starts))
+    unchecked = make_env(trajectory_sampling=mode, validate=False)  # the documented opt-out
+    td = _state(unchecked, starts)
+    td["action"][2, 1] = float("inf")
+    assert torch.isfinite(unchecked.step(td)["next", "observation"]).all()
+
+
+def test_action_specs_with_crossed_bounds_are_refused(ensemble, starts):
+    from torchrl.data import Bounded
+
+    from rcvae_torchrl.planners import CEMPlanner
+
+    crossed = Bounded(low=torch.tensor([-1.0, 1.0]), high=torch.tensor([1.0, -1.0]), shape=(2,))
+    planner_env = RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, start_states=starts)
+    planner_env.action_spec = crossed
+    with pytest.raises(
+        ValueError,
+        match=r"^action_spec \(its low and high\): expected low <= high \(and no NaN\), got "
+        r"\[-1\.0, 1\.0\] and \[1\.0, -1\.0\]",
+    ):
+        CEMPlanner(planner_env, 2, num_candidates=4, top_k=2, iterations=1)
+    real = make_pusher_env(seed=0)
+    real.action_spec = crossed
+    with pytest.raises(
+        ValueError, match=r"^action_spec \(its low and high\): expected low <= high"
+    ):
+        RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, real_env=real)

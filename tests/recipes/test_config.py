@@ -189,7 +189,11 @@ def test_the_schema_is_the_base_of_every_profile():
         ("threads=1.5", r"^threads: expected a positive integer, 'auto' or null, got 1.5"),
         ("run_dir=''", r"^run_dir: expected a directory path"),
         ("run_dir=' '", r"^run_dir: expected a directory path"),
-        ("run_dir=/proc/x", r"^run_dir: expected a writable directory, got '/proc/x'"),
+        (
+            "run_dir=/proc/x",
+            r"^run_dir: expected a writable directory, got '/proc/x' \(no directory can be "
+            r"created in its parent '/proc'",
+        ),
         ("train.window=100000", r"train\.window: expected at most the longest data episode"),
         (
             "model.stochastic_open_loop_steps=-1",
@@ -247,7 +251,11 @@ def test_threads_are_set_and_checked():
 def test_run_dir_is_checked_before_anything_is_written(tmp_path):
     a_file = tmp_path / "file"
     a_file.write_text("x")
-    with pytest.raises(ValueError, match=r"^run_dir: expected a writable directory.*not writable"):
+    with pytest.raises(
+        ValueError,
+        match=r"^run_dir: expected a writable directory.*no directory can be created in its "
+        r"parent '.*file': Not a directory",
+    ):
         study_config(_compose(f"run_dir={a_file}/run"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
     with pytest.raises(ValueError, match=r"^run_dir: expected a directory, got .*existing file"):

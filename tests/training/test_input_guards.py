@@ -72,3 +72,27 @@ def test_resume_refuses_other_data_and_another_model(tmp_path, linear_data, smal
         _train(wide, train, val, checkpoint_path=path, resume=True)
     again = _train(small_ensemble(2), train, val, checkpoint_path=path, resume=True)
     assert again.steps == BUDGET.max_steps  # the finished run, returned as it was
+
+
+def test_resume_with_other_settings_names_only_the_settings_that_differ(
+    tmp_path, linear_data, small_ensemble
+):
+    train, val = linear_data
+    path = tmp_path / "run.pt"
+    _train(small_ensemble(2), train, val, checkpoint_path=path)
+    other = TrainConfig(max_steps=6, batch_windows=4, window=8, val_every=2, val_windows=4, lr=3e-3)
+    with pytest.raises(
+        CheckpointError,
+        match=r"was written with another TrainConfig \(lr=0\.001 there, 0\.003 now, max_steps=4 "
+        r"there, 6 now\); resume with the same config or a new path",
+    ):
+        train_ensemble(
+            small_ensemble(2),
+            train,
+            val,
+            other,
+            progress=False,
+            checks=False,
+            checkpoint_path=path,
+            resume=True,
+        )
