@@ -1,7 +1,7 @@
 """Training the world model: the loop and its checkpoints."""
 
 from .checkpoint import FORMAT_VERSION, CheckpointError, load_ensemble, save_ensemble
-from .checks import ModelChecks, ModelCheckWarning, check_model
+from .checks import ModelChecks, ModelCheckWarning, OutcomeCheck, check_model
 from .trainer import TrainConfig, TrainResult, log_history, train_ensemble
 
 __all__ = [
@@ -13,6 +13,7 @@ __all__ = [
     # self-checks
     "ModelCheckWarning",
     "ModelChecks",
+    "OutcomeCheck",
     "check_model",
     # checkpoints
     "FORMAT_VERSION",

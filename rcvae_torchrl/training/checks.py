@@ -35,12 +35,13 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
+from rcvae_torchrl import _checks
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl.data import episode_spans, make_window_buffer, sample_windows
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import imagine
 
-__all__ = ["ModelCheckWarning", "ModelChecks", "check_model"]
+__all__ = ["ModelCheckWarning", "ModelChecks", "OutcomeCheck", "check_model"]
 
 
 class ModelCheckWarning(UserWarning):
@@ -337,3 +338,170 @@ def check_model(
     if warn and not checks.passed:
         warnings.warn(checks.message(), ModelCheckWarning, stacklevel=2)
     return checks
+
+
+#: Per-start differences closer than this are one difference (rounding, not spread).
+_NO_SPREAD = 1e-9
+
+
+@dataclass(frozen=True)
+class OutcomeCheck:
+    """Forecasts of success against the real success rates of the same start states.
+
+    A self-check of the forecast itself, on start states other than the ones it is scored on
+    (e.g. the first states of held-out episodes): the agent's forecast per start, and the rate
+    at which R real episodes of the same agent from that start succeeded. A model that has
+    learned what decides the outcome forecasts each start's real rate; a systematic difference
+    is a bias that the forecasts of other starts from the same distribution share. The test
+    is two-sided, on the per-start differences (a one-sample t-test: the R real episodes of
+    one start need not be independent, as in a deterministic env, where they agree).
+
+    Check the forecast as it is made: a closed-loop forecast against closed-loop real
+    episodes. Judged open loop instead (the recorded actions of held-out episodes, imagined
+    and replayed), a model whose closed-loop forecasts were within 0.04 of reality was 0.6 too
+    pessimistic: over seconds its open-loop errors carry the ball past a small target, errors
+    that an agent reacting to the imagined states corrects.
+
+    Build it with :meth:`from_outcomes`.
+    """
+
+    forecast: torch.Tensor  #: ``[n]`` the forecast P(success) per start
+    real: torch.Tensor  #: ``[n]`` the success rate of its real episodes
+    runs: int  #: R, real episodes per start
+    alpha: float = 0.01
+    min_starts: int = 10
+    #: what was forecast, for the message (e.g. "the agent from held-out episodes' starts")
+    what: str = "the forecasts"
+
+    @classmethod
+    def from_outcomes(
+        cls,
+        forecast: torch.Tensor,
+        real_success: torch.Tensor,
+        *,
+        alpha: float = 0.01,
+        min_starts: int = 10,
+        what: str = "the forecasts",
+    ) -> OutcomeCheck:
+        """From forecasts ``[n]`` (probabilities) and real outcomes, bool ``[n, R]``."""
+        _checks.check_tensor("forecast", forecast)
+        _checks.check_rank("forecast", forecast, 1, "[n]")
+        _checks.check_floating("forecast", forecast)
+        _checks.check_finite("forecast", forecast)
+        if bool(((forecast < 0) | (forecast > 1)).any()):
+            raise ValueError(f"forecast: expected probabilities in [0, 1], got {forecast.tolist()}")
+        _checks.check_tensor("real_success", real_success)
+        n, shape = forecast.shape[0], tuple(real_success.shape)
+        if real_success.dtype != torch.bool or len(shape) != 2 or shape[0] != n:
+            raise ValueError(
+                f"real_success: expected a bool tensor [n={n}, R >= 1], got dtype "
+                f"{real_success.dtype} and shape {shape}"
+            )
+        if shape[1] < 1:
+            raise ValueError("real_success: expected at least one real episode per start, got 0")
+        check_unit_interval("alpha", alpha, include_zero=False)
+        check_positive_int("min_starts", min_starts)
+        return cls(
+            forecast.detach().to(torch.float64).cpu(),
+            real_success.to(torch.float64).mean(1).cpu(),
+            runs=int(real_success.shape[1]),
+            alpha=float(alpha),
+            min_starts=int(min_starts),
+            what=str(what),
+        )
+
+    @property
+    def starts(self) -> int:
+        return int(self.forecast.numel())
+
+    @property
+    def measured(self) -> bool:
+        """Whether there were enough start states (``min_starts``)."""
+        return self.starts >= self.min_starts
+
+    @property
+    def gap(self) -> float:
+        """Mean forecast minus mean real rate: > 0 too optimistic, < 0 too pessimistic."""
+        if self.starts == 0:
+            return float("nan")
+        return float((self.forecast - self.real).mean())
+
+    @property
+    def p_value(self) -> float:
+        """Two-sided p-value of "no bias" (NaN with fewer than 2 starts)."""
+        diff = (self.real - self.forecast).to(torch.float64)
+        if diff.numel() < 2:
+            return float("nan")
+        if float(diff.std(correction=0)) <= _NO_SPREAD:  # the same difference everywhere
+            return 1.0 if abs(float(diff.mean())) <= _NO_SPREAD else 0.0
+        from scipy.stats import ttest_1samp
+
+        return float(ttest_1samp(diff.numpy(), 0.0).pvalue)
+
+    def interval(self, confidence: float = 0.95) -> tuple[float, float]:
+        """A ``confidence`` interval of :attr:`gap` (Student's t over the starts)."""
+        check_unit_interval("confidence", confidence, include_zero=False)
+        diff = (self.forecast - self.real).to(torch.float64)
+        if diff.numel() < 2:
+            return float("nan"), float("nan")
+        from scipy.stats import t
+
+        half = float(t.ppf(0.5 + confidence / 2, diff.numel() - 1)) * float(
+            diff.std(correction=1) / diff.numel() ** 0.5
+        )
+        return self.gap - half, self.gap + half
+
+    @property
+    def biased(self) -> bool:
+        """Measured, and the forecasts differ from the real rates by more than chance allows
+        (level ``alpha``)."""
+        return self.measured and self.p_value < self.alpha
+
+    @property
+    def passed(self) -> bool:
+        return self.measured and not self.biased
+
+    def message(self) -> str:
+        """One sentence when the check did not pass ('' when it did)."""
+        if not self.measured:
+            return (
+                f"{self.what} are unchecked: {self.starts} start states, the outcome check "
+                f"needs {self.min_starts}"
+            )
+        if not self.biased:
+            return ""
+        low, high = self.interval()
+        way = "optimistic" if self.gap > 0 else "pessimistic"
+        return (
+            f"{self.what} are too {way}: from {self.starts} start states they forecast success "
+            f"{float(self.forecast.mean()):.2f} on average where {self.runs} real "
+            f"episode{'' if self.runs == 1 else 's'} from each succeeded "
+            f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, 95 % "
+            f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g})"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain values (for JSON), with the derived figures."""
+        return {
+            "forecast": self.forecast.tolist(),
+            "real": self.real.tolist(),
+            "runs": self.runs,
+            "alpha": self.alpha,
+            "min_starts": self.min_starts,
+            "what": self.what,
+            "starts": self.starts,
+            "gap": self.gap,
+            "p_value": self.p_value,
+            "passed": self.passed,
+        }
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> OutcomeCheck:
+        return cls(
+            torch.tensor(values["forecast"], dtype=torch.float64),
+            torch.tensor(values["real"], dtype=torch.float64),
+            runs=int(values["runs"]),
+            alpha=float(values["alpha"]),
+            min_starts=int(values["min_starts"]),
+            what=str(values.get("what", "the forecasts")),
+        )

@@ -101,7 +101,38 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
             "met": int(mean_abs <= MEAN_GAP),
             "seeds": 1,
         }
-    return {"seeds": list(summaries), "table": table, "checks": checks, "targets": TARGETS}
+    return {
+        "seeds": list(summaries),
+        "table": table,
+        "checks": checks,
+        "targets": TARGETS,
+        "forecast_checks": _forecast_checks(summaries),
+    }
+
+
+def _forecast_checks(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per condition, the forecast check from held-out episodes' first states over seeds: its
+    gap, and in how many seeds it found the forecasts biased (seeds whose run made none, e.g.
+    runs from before the check, are left out)."""
+    by_condition: dict[str, list[dict[str, Any] | None]] = {}
+    for s in summaries.values():
+        for c in s.get("forecast_checks", {}):
+            by_condition.setdefault(c, [])
+    for c, by_seed in by_condition.items():
+        by_seed += [s.get("forecast_checks", {}).get(c) for s in summaries.values()]
+    out = {}
+    for c, by_seed in by_condition.items():
+        made = [found for found in by_seed if found is not None]
+        out[c] = {
+            **_stats([found["gap"] for found in made]),
+            "biased": sum(not found["passed"] for found in made),
+            "seeds": len(made),
+            "by_seed": [
+                None if found is None else {"gap": found["gap"], "passed": found["passed"]}
+                for found in by_seed
+            ],
+        }
+    return out
 
 
 def _cell(stats: dict[str, Any]) -> str:
@@ -145,6 +176,25 @@ def markdown(result: dict[str, Any]) -> str:
         if "by_seed" in c:
             cells = " | ".join(map(_seed_cell, c["by_seed"]))
             lines.append(f"| {_escaped(name)} | {cells} |")
+    held_out = result.get("forecast_checks") or {}
+    if held_out:
+        lines += [
+            "",
+            "## The forecasts from held-out episodes' first states",
+            "",
+            "Each run's self-check of its forecasts on start states it is not scored on (the "
+            "report's section of that name): the gap, forecast minus real; ✗ marks a seed "
+            "where the check found the forecasts biased, – one whose run made no such check.",
+            "",
+            "| condition | gap, mean ± sd | seeds flagged | " + " | ".join(result["seeds"]) + " |",
+            "|:---|---:|---:|" + "---:|" * n,
+        ]
+        for c, found in held_out.items():
+            cells = " | ".join(
+                "–" if x is None else f"{x['gap']:+.3f}" + ("" if x["passed"] else " ✗")
+                for x in found["by_seed"]
+            )
+            lines.append(f"| {c} | {_cell(found)} | {found['biased']}/{found['seeds']} | {cells} |")
     return "\n".join(lines) + "\n"
 
 

@@ -61,6 +61,7 @@ from rcvae_torchrl.processes import choose_workers, map_in_processes
 from rcvae_torchrl.stages import StageRunner
 from rcvae_torchrl.training import (
     ModelChecks,
+    OutcomeCheck,
     TrainConfig,
     check_model,
     load_ensemble,
@@ -94,6 +95,9 @@ FAR_FRACTIONS = (0.25, 0.5, 1.0)
 _FAR_ALPHA = 0.01
 #: Seeds of the far check's replays: ``_REPLAY_SEED + 1000 * seed`` (env ``i``: + i).
 _REPLAY_SEED = 90_000
+#: The conditions whose forecasts are also checked from the first states of held-out episodes:
+#: those whose env is the one their world model's data came from (not out-of-distribution).
+CHECKED_CONDITIONS = tuple(c for c, (model, variant) in CONDITIONS.items() if model == variant)
 
 # Each stage and the files it writes (their sizes and hashes go into its marker); the report's
 # named one by one (see REPORT_FILES).
@@ -119,8 +123,10 @@ SHARDED_STAGES = ("models", "forecast", "truth")
 DEMONSTRATION_SEEDS = 50_000
 EVALUATION_SEEDS = 70_000
 DAGGER_SEEDS = 80_000
-# Real episodes of the truth stage: seeds REAL_SEEDS + 10·seed + c, each run its own stream.
+# Real episodes of the truth stage: seeds REAL_SEEDS + 10·seed + c, each run its own stream;
+# those from held-out episodes' first states (the report's forecast check): HELD_OUT_SEEDS + ...
 REAL_SEEDS = 9_000
+HELD_OUT_SEEDS = 8_000
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i.
 START_SEED_STRIDE = 7919
 
@@ -467,6 +473,7 @@ class Study:
         models = {name: self.load_model(name) for name in WORLD_MODELS}
         checks = {name: model.checks for name, model in models.items()}
         far = {name: self.far_checks(name, model) for name, model in models.items()}
+        held_out = {c: self.forecast_check(c) for c in CHECKED_CONDITIONS}
         return write_report(
             self.dir,
             forecasts,
@@ -476,6 +483,37 @@ class Study:
             episode_env,
             model_checks=checks,
             far_checks=far,
+            forecast_checks=held_out,
+        )
+
+    def forecast_check(self, condition: str) -> OutcomeCheck:
+        """The agent's forecasts in ``condition`` from start states it is not scored on: the
+        first states of its world model's held-out episodes (of the same env), against the
+        agent's real episodes from each (as many per start as the truth stage runs)."""
+        s = self.cfg.assess
+        model_name, variant = CONDITIONS[condition]
+        _, held_out = self.episodes(model_name)
+        starts = held_out.get("observation")[episode_spans(held_out)[0]]
+        policy = self.load_policy().to(self.device)
+        report = self.assessor(model_name, variant).assess(
+            starts.to(self.device), policy=policy, seed=self.cfg.seed
+        )
+        runs = s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
+        real = real_outcomes(
+            self.batched_env(variant, min(s.real_envs, len(starts) * runs)),
+            make_policy_module(policy),
+            starts,
+            runs_per_start=runs,
+            reset_to_state=reset_to_state,
+            max_steps=self.max_steps,
+            seed=HELD_OUT_SEEDS + self.cfg.seed * 10 + list(CONDITIONS).index(condition),
+            progress=self.progress,
+            desc=f"held-out starts: {condition}",
+        )
+        return OutcomeCheck.from_outcomes(
+            report.data["competency", "p_success"].cpu(),
+            real.success,
+            what=f"the {condition} forecasts from held-out episodes' first states",
         )
 
     def far_checks(self, name: str, model: RCVAEEnsemble) -> list[ModelChecks]:

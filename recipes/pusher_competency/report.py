@@ -21,7 +21,7 @@ from rcvae_torchrl.reporting import (
     plot_uncertainty_over_time,
     write_table,
 )
-from rcvae_torchrl.training import ModelChecks
+from rcvae_torchrl.training import ModelChecks, OutcomeCheck
 
 from .config import AssessConfig
 from .pusher import CONDITIONS, FIGURE_PANELS
@@ -220,6 +220,7 @@ def write_report(
     episode_env: EnvBase,
     model_checks: Mapping[str, ModelChecks | None] | None = None,
     far_checks: Mapping[str, Sequence[ModelChecks]] | None = None,
+    forecast_checks: Mapping[str, OutcomeCheck] | None = None,
 ) -> dict[str, Any]:
     """Write table.md/.csv, the figures, episode.gif and report.md; return the summary.
 
@@ -227,7 +228,9 @@ def write_report(
     own section (a model that failed them is named with its reasons) and in the summary.
     ``far_checks``: per model, the same checks with their coverage at horizons up to the
     forecast's, against replays of the held-out episodes' actions in the real env
-    (``Study.far_checks``)."""
+    (``Study.far_checks``). ``forecast_checks``: per condition, the agent's forecasts from the
+    first states of held-out episodes against its real episodes from them
+    (``Study.forecast_check``)."""
     rows = {c: condition_row(c, forecasts[c], truths[c]) for c in forecasts}
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     p, y = (torch.cat(t) for t in zip(*(_pairs(forecasts[c], truths[c]) for c in forecasts)))
@@ -244,6 +247,7 @@ def write_report(
     checks.update(trust_checks(scores, surfaces))
     model_checks = {k: v for k, v in (model_checks or {}).items() if v is not None}
     far_checks = {k: list(v) for k, v in (far_checks or {}).items() if v}
+    forecast_checks = dict(forecast_checks or {})
     by_window = pattern_by_window(forecasts, CONTROL_TIMESTEP)
     figures = _figures(run_dir, forecasts, truths, a.forecast_panels, a.success_radius)
     figures["start_reliability"] = plot_start_reliability(
@@ -269,14 +273,19 @@ def write_report(
             name: [found.as_dict() for found in by_horizon]
             for name, by_horizon in far_checks.items()
         },
+        "forecast_checks": {c: found.as_dict() for c, found in forecast_checks.items()},
     }
     write_json(run_dir / "summary.json", summary)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
     texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
     text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)
     text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
-    if model_checks or far_checks:
-        section = _model_checks_text(model_checks) + _far_checks_text(far_checks)
+    if model_checks or far_checks or forecast_checks:
+        section = (
+            _model_checks_text(model_checks)
+            + _far_checks_text(far_checks)
+            + _forecast_checks_text(forecast_checks)
+        )
         text = text.replace("## The agent", section + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
@@ -359,6 +368,45 @@ def _far_checks_text(far_checks: Mapping[str, Sequence[ModelChecks]]) -> str:
         else:
             verdict = "covered as often as it should at every horizon"
         verdicts.append(f"- **{name}**: {verdict}.")
+    return "\n".join([*lines, "", *verdicts]) + "\n\n"
+
+
+def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
+    """The agent's forecasts from held-out episodes' first states against its real episodes
+    from them, per condition, with the verdicts."""
+    if not forecast_checks:
+        return ""
+    first = next(iter(forecast_checks.values()))
+    lines = [
+        "### The forecasts, from start states they are not scored on",
+        "",
+        "The forecast itself, checked as it is made but from other start states: the first "
+        "states of the world model's held-out episodes (the env its data came from, so not "
+        "out of distribution), against the agent's real episodes from each. A bias found here "
+        "is one the scored forecasts above can be expected to share; this check needs no "
+        "scored start. The test is two-sided, at level "
+        f"{first.alpha:g}, on the per-start differences.",
+        "",
+        "| condition | starts | real runs each | forecast | real | gap (95 % interval) | p "
+        "| verdict |",
+        "|:---|---:|---:|---:|---:|---:|---:|:---|",
+    ]
+    verdicts = []
+    for condition, found in forecast_checks.items():
+        if not found.measured:
+            lines.append(f"| {condition} | {found.starts} | {found.runs} | | | | | not measured |")
+            verdicts.append(f"- **{condition}**: {found.message()}.")
+            continue
+        low, high = found.interval()
+        verdict = "passed"
+        if found.biased:
+            verdict = "too optimistic" if found.gap > 0 else "too pessimistic"
+            verdicts.append(f"- **{condition}**: {found.message()}.")
+        lines.append(
+            f"| {condition} | {found.starts} | {found.runs} | "
+            f"{float(found.forecast.mean()):.3f} | {float(found.real.mean()):.3f} | "
+            f"{found.gap:+.3f} ({low:+.3f} to {high:+.3f}) | {found.p_value:.2g} | {verdict} |"
+        )
     return "\n".join([*lines, "", *verdicts]) + "\n\n"
 
 

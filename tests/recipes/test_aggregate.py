@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from recipes.pusher_competency.aggregate import aggregate, main
+from recipes.pusher_competency.aggregate import aggregate, main, markdown
 
 
 def _summary(gap: float, met: bool) -> dict:
@@ -99,3 +99,25 @@ def test_unfinished_foreign_and_damaged_seeds_are_refused_by_name(tmp_path):
     (tmp_path / "seed1" / "summary.json").write_text("[]")
     with pytest.raises(SystemExit, match=r"seed1/summary.json: expected a study summary"):
         main([str(tmp_path)])
+
+
+def test_the_held_out_forecast_checks_are_counted_over_the_seeds_that_made_them(tmp_path):
+    def held_out(gap: float, passed: bool) -> dict:
+        return {"stochastic": {"gap": gap, "passed": passed}}
+
+    first, second, third = _summary(0.02, True), _summary(0.04, True), _summary(0.03, True)
+    first["forecast_checks"] = held_out(-0.12, False)
+    second["forecast_checks"] = held_out(-0.02, True)  # the third run made none
+    result = aggregate({"seed0": first, "seed1": second, "seed2": third})
+    found = result["forecast_checks"]["stochastic"]
+    assert found["biased"] == 1 and found["seeds"] == 2
+    assert found["mean"] == pytest.approx(-0.07)
+    assert found["by_seed"] == [
+        {"gap": -0.12, "passed": False},
+        {"gap": -0.02, "passed": True},
+        None,
+    ]
+    text = markdown(result)
+    assert "## The forecasts from held-out episodes' first states" in text
+    assert "| stochastic | -0.070 ± 0.071 | 1/2 | -0.120 ✗ | -0.020 | – |" in text
+    assert aggregate({"seed0": third})["forecast_checks"] == {}

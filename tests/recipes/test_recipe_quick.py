@@ -185,6 +185,16 @@ def test_summary_json(runs):
     assert set(summary["validation"]) == {*CONDITIONS, "overall"}
     for check in summary["checks"].values():
         assert isinstance(check["met"], bool) and isinstance(check["value"], float)
+    # the forecasts from held-out episodes' first states: the conditions of the data's own envs
+    held_out = summary["forecast_checks"]
+    assert list(held_out) == ["deterministic", "stochastic"]
+    for found in held_out.values():
+        assert len(found["forecast"]) == len(found["real"]) == found["starts"] >= 1
+        assert found["passed"] is False or found["starts"] >= found["min_starts"]
+    assert (
+        "### The forecasts, from start states they are not scored on"
+        in (runs["dir"] / "report.md").read_text()
+    )
     rows = {r["condition"]: r for r in _rows(runs["dir"])}
     for condition, row in summary["rows"].items():
         assert float(rows[condition]["brier"]) == pytest.approx(row["brier"])

@@ -109,3 +109,30 @@ def test_far_checks_section_names_overconfident_dimensions_and_unmeasured_models
     assert _far_checks_text({}) == ""
     text = _far_checks_text({"deterministic": [checks([30, 12, 0], 60)]})
     assert "forecasts made with it (deterministic, out-of-distribution)" in text
+
+
+def test_forecast_checks_section_gives_each_verdict():
+    import torch
+
+    from rcvae_torchrl.training import OutcomeCheck
+    from recipes.pusher_competency.report import _forecast_checks_text
+
+    forecast = torch.linspace(0.2, 0.8, 12, dtype=torch.float64)
+    noise = torch.linspace(-0.05, 0.05, 12, dtype=torch.float64)
+    text = _forecast_checks_text(
+        {
+            "fair": OutcomeCheck(forecast, forecast + noise, runs=30),
+            "low": OutcomeCheck(forecast, forecast + 0.15 + noise, runs=30, what="the low ones"),
+            "few": OutcomeCheck(forecast[:3], forecast[:3], runs=1, what="the few ones"),
+        }
+    )
+    assert "| condition | starts | real runs each | forecast | real |" in text
+    assert "| fair | 12 | 30 | 0.500 | 0.500 | " in text and "| passed |" in text
+    assert "| low | 12 | 30 | 0.500 | 0.650 | -0.150 (" in text and "| too pessimistic |" in text
+    assert "| few | 3 | 1 | | | | | not measured |" in text
+    assert "- **low**: the low ones are too pessimistic: from 12 start states" in text
+    assert (
+        "- **few**: the few ones are unchecked: 3 start states, the outcome check needs 10." in text
+    )
+    assert "- **fair**" not in text  # a passed check needs no sentence
+    assert _forecast_checks_text({}) == ""

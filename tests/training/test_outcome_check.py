@@ -1,0 +1,86 @@
+"""OutcomeCheck: forecasts of success against the real success rates of the same starts; its
+statistics against closed forms, its verdicts on known truths, its refusals."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy import stats
+
+from rcvae_torchrl.training import OutcomeCheck
+
+WHAT = "the agent's forecasts from held-out starts"
+
+
+def _forecast(n: int = 40, seed: int = 0) -> torch.Tensor:
+    return torch.rand(n, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+
+
+def test_real_outcomes_drawn_from_the_forecast_pass_and_a_shifted_truth_is_named():
+    forecast = _forecast()
+    g = torch.Generator().manual_seed(5)
+    drawn = torch.rand(40, 30, generator=g, dtype=torch.float64) < forecast[:, None]
+    fair = OutcomeCheck.from_outcomes(forecast, drawn, what=WHAT)
+    assert fair.passed and not fair.biased and fair.message() == ""
+    assert fair.runs == 30 and fair.starts == 40 and abs(fair.gap) < 0.05
+    assert torch.equal(fair.real, drawn.double().mean(1))
+    low, high = fair.interval()
+    assert low < 0 < high
+    shifted = torch.rand(40, 30, generator=g, dtype=torch.float64) < forecast[:, None] + 0.15
+    biased = OutcomeCheck.from_outcomes(forecast, shifted, what=WHAT)
+    assert biased.biased and not biased.passed and -0.2 < biased.gap < -0.05
+    assert biased.message().startswith(
+        f"{WHAT} are too pessimistic: from 40 start states they forecast success "
+        f"{float(forecast.mean()):.2f} on average where 30 real episodes from each succeeded"
+    )
+    optimistic = OutcomeCheck.from_outcomes(forecast, drawn & (forecast[:, None] > 0.7))
+    assert optimistic.biased and "the forecasts are too optimistic" in optimistic.message()
+
+
+def test_statistics_against_closed_forms():
+    forecast = torch.tensor([0.2, 0.5, 0.9, 0.4], dtype=torch.float64)
+    real = torch.tensor([0.4, 0.5, 1.0, 0.8], dtype=torch.float64)
+    check = OutcomeCheck(forecast, real, runs=10, alpha=0.05, min_starts=4)
+    diff = (real - forecast).numpy()
+    assert check.gap == pytest.approx(-0.175)
+    assert check.p_value == pytest.approx(stats.ttest_1samp(diff, 0.0).pvalue)
+    low, high = check.interval(0.9)
+    half = stats.t.ppf(0.95, 3) * diff.std(ddof=1) / 2
+    assert (low, high) == pytest.approx((-0.175 - half, -0.175 + half))
+    assert check.measured and check.biased == (check.p_value < 0.05)
+    # the same difference at every start: certain, either way (rounding is not spread)
+    same = OutcomeCheck(forecast, forecast.clone(), runs=1, min_starts=4)
+    assert same.p_value == 1.0 and same.passed
+    off = OutcomeCheck(forecast, forecast + 0.1, runs=1, min_starts=4)
+    assert off.p_value == 0.0 and off.biased
+    # too few starts: unmeasured, not passed, and said so
+    few = OutcomeCheck(forecast, real, runs=10, min_starts=10, what=WHAT)
+    assert not few.measured and not few.passed and not few.biased
+    assert few.message() == f"{WHAT} are unchecked: 4 start states, the outcome check needs 10"
+    empty = OutcomeCheck(forecast[:0], real[:0], runs=3)
+    assert math.isnan(empty.gap) and math.isnan(empty.p_value) and not empty.passed
+    back = OutcomeCheck.from_dict(check.as_dict())
+    assert torch.equal(back.forecast, check.forecast) and torch.equal(back.real, check.real)
+    assert back.p_value == check.p_value and back.as_dict() == check.as_dict()
+
+
+def test_bad_inputs_are_named():
+    forecast, real = _forecast(12), torch.zeros(12, 2, dtype=torch.bool)
+    with pytest.raises(ValueError, match=r"real_success: expected a bool tensor \[n=12, R >= 1\]"):
+        OutcomeCheck.from_outcomes(forecast, real.float())
+    with pytest.raises(ValueError, match=r"real_success: expected a bool tensor .*shape \(11, 2\)"):
+        OutcomeCheck.from_outcomes(forecast, real[1:])
+    with pytest.raises(ValueError, match="real_success: expected at least one real episode"):
+        OutcomeCheck.from_outcomes(forecast, real[:, :0])
+    with pytest.raises(ValueError, match=r"forecast: expected probabilities in \[0, 1\]"):
+        OutcomeCheck.from_outcomes(forecast + 1, real)
+    with pytest.raises(ValueError, match=r"forecast: expected finite values, got \d+ NaN"):
+        OutcomeCheck.from_outcomes(torch.where(forecast > 0.9, torch.nan, forecast), real)
+    with pytest.raises(ValueError, match=r"forecast: expected shape \[n\]"):
+        OutcomeCheck.from_outcomes(forecast[:, None], real)
+    with pytest.raises(ValueError, match="alpha"):
+        OutcomeCheck.from_outcomes(forecast, real, alpha=0.0)
+    with pytest.raises(ValueError, match="min_starts: expected a positive integer"):
+        OutcomeCheck.from_outcomes(forecast, real, min_starts=0)
