@@ -289,3 +289,26 @@ def test_a_run_of_other_settings_is_refused_before_it_makes_anything(runs):
     assert (d / "run.log").read_bytes() == log_before
     assert sorted((d / "logs" / "csv").iterdir()) == experiments
     assert _snapshot(d) == runs["after"]
+
+
+def test_held_out_checks_benchmark_judges_the_run_both_ways(runs):
+    """``benchmarks/held_out_checks.py`` on a finished run: the open-loop replays of the
+    held-out episodes' actions and the report's own closed-loop check."""
+    from rcvae_torchrl.data import episode_spans
+    from rcvae_torchrl.io import read_json
+    from recipes.pusher_competency.config import study_config
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    from held_out_checks import open_loop
+
+    config = study_config({**read_json(runs["dir"] / "study_config.json"), "run_dir": runs["dir"]})
+    study = pipeline.Study(config, runs["dir"], torch.device("cpu"), progress=False)
+    _, held_out = study.episodes("stochastic")
+    long_enough = int((episode_spans(held_out)[1] >= study.max_steps).sum())
+    check = open_loop(study, "stochastic", replays=3, samples=2)
+    assert check.runs == 3 and check.starts == long_enough >= 1
+    assert bool(((check.forecast >= 0) & (check.forecast <= 1)).all())
+    assert bool(torch.isin(check.real * 3, torch.arange(4.0, dtype=torch.float64)).all())
+    closed = study.forecast_check("stochastic")
+    saved = read_json(runs["dir"] / "summary.json")["forecast_checks"]["stochastic"]
+    assert json.dumps(closed.as_dict()) == json.dumps(saved)  # the report's, made again (NaN too)
