@@ -6,7 +6,9 @@
 4. ``forecast``: the paper's three conditions, forecast in imagination with the agent's policy
    (:class:`~rcvae_torchrl.competency.CompetencyAssessor`).
 5. ``truth``: the same agent in the real env from the same start states.
-6. ``report``: the paper's table plus calibration, the figures, a GIF and ``report.md``.
+6. ``report``: the paper's table plus calibration, the figures, a GIF and ``report.md``, with
+   the world models' checks as far ahead as the forecast and the forecasts checked from the
+   first states of held-out episodes (against the agent's real episodes from them).
 
 Every stage writes its outputs atomically under the run directory and a marker when done
 (:class:`~rcvae_torchrl.stages.StageRunner`); running again with the same directory reuses
