@@ -102,7 +102,6 @@ def main() -> None:
         }
         for kind, c in checks.items():
             low, high = c.interval()
-            verdict = "passed" if c.passed else ("biased" if c.biased else "not measured")
             rows.append(
                 [
                     condition,
@@ -112,7 +111,7 @@ def main() -> None:
                     f"{float(c.real.mean()):.3f}",
                     f"{c.gap:+.3f} ({low:+.3f} to {high:+.3f})",
                     f"{c.p_value:.2g}",
-                    verdict,
+                    c.verdict,
                     f"{gap:+.3f}",
                 ]
             )

@@ -165,7 +165,6 @@ class ParticleTransition(TensorDictModuleBase):
         _checks.check_batch_shapes((names[0], names[2]), obs.shape[:-1], hidden.shape[: -len(hid)])
         for name, x in zip(names[:3], (obs, action, hidden)):
             _checks.check_finite(name, x)
-        for name, x in zip(names[:3], (obs, action, hidden)):
             _checks.check_dtype(name, x, self.ensemble.dtype)
         if ts_inf:
             if member is None:

@@ -37,6 +37,7 @@ from tensordict import TensorDictBase
 
 from rcvae_torchrl import _checks
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
+from rcvae_torchrl.competency._checks import check_probability
 from rcvae_torchrl.data import episode_spans, make_window_buffer, sample_windows
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import imagine
@@ -387,9 +388,7 @@ class OutcomeCheck:
         _checks.check_tensor("forecast", forecast)
         _checks.check_rank("forecast", forecast, 1, "[n]")
         _checks.check_floating("forecast", forecast)
-        _checks.check_finite("forecast", forecast)
-        if bool(((forecast < 0) | (forecast > 1)).any()):
-            raise ValueError(f"forecast: expected probabilities in [0, 1], got {forecast.tolist()}")
+        check_probability("forecast", forecast)
         _checks.check_tensor("real_success", real_success)
         n, shape = forecast.shape[0], tuple(real_success.shape)
         if real_success.dtype != torch.bool or len(shape) != 2 or shape[0] != n:
@@ -461,6 +460,15 @@ class OutcomeCheck:
     def passed(self) -> bool:
         return self.measured and not self.biased
 
+    @property
+    def verdict(self) -> str:
+        """``"passed"``, ``"too optimistic"``, ``"too pessimistic"`` or ``"not measured"``."""
+        if not self.measured:
+            return "not measured"
+        if not self.biased:
+            return "passed"
+        return "too optimistic" if self.gap > 0 else "too pessimistic"
+
     def message(self) -> str:
         """One sentence when the check did not pass ('' when it did)."""
         if not self.measured:
@@ -471,10 +479,9 @@ class OutcomeCheck:
         if not self.biased:
             return ""
         low, high = self.interval()
-        way = "optimistic" if self.gap > 0 else "pessimistic"
         return (
-            f"{self.what} are too {way}: from {self.starts} start states they forecast success "
-            f"{float(self.forecast.mean()):.2f} on average where {self.runs} real "
+            f"{self.what} are {self.verdict}: from {self.starts} start states they forecast "
+            f"success {float(self.forecast.mean()):.2f} on average where {self.runs} real "
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
             f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, 95 % "
             f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g})"

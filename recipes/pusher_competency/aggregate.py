@@ -114,14 +114,10 @@ def _forecast_checks(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Per condition, the forecast check from held-out episodes' first states over seeds: its
     gap, and in how many seeds it found the forecasts biased (seeds whose run made none, e.g.
     runs from before the check, are left out)."""
-    by_condition: dict[str, list[dict[str, Any] | None]] = {}
-    for s in summaries.values():
-        for c in s.get("forecast_checks", {}):
-            by_condition.setdefault(c, [])
-    for c, by_seed in by_condition.items():
-        by_seed += [s.get("forecast_checks", {}).get(c) for s in summaries.values()]
+    conditions = dict.fromkeys(c for s in summaries.values() for c in s.get("forecast_checks", {}))
     out = {}
-    for c, by_seed in by_condition.items():
+    for c in conditions:
+        by_seed = [s.get("forecast_checks", {}).get(c) for s in summaries.values()]
         made = [found for found in by_seed if found is not None]
         out[c] = {
             **_stats([found["gap"] for found in made]),

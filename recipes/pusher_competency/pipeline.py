@@ -31,6 +31,7 @@ from torchrl.record.loggers import Logger
 from rcvae_torchrl import distributed
 from rcvae_torchrl.agent import (
     PerturbedPolicy,
+    RealOutcomes,
     dagger,
     load_policy,
     make_policy_module,
@@ -433,28 +434,19 @@ class Study:
         on after success, so every boundary of the competency surface is answered by the
         same episodes. Sharded: the real episodes over the ranks; rank 0 writes the
         outcomes."""
-        s, summary = self.cfg.assess, {}
+        summary = {}
         policy = make_policy_module(self.load_policy())
         for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
             path = self.dir / "truth" / f"{condition}.pt"
             if not distributed.broadcast(path.is_file()):
-                runs = (
-                    s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
-                )
                 starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
-                per_worker = -(-min(s.real_envs, len(starts) * runs) // s.real_workers)
-                result = real_outcomes(
-                    self.batched_env(variant, per_worker),
+                result = self.real_runs(
+                    variant,
                     policy,
                     starts,
-                    runs_per_start=runs,
-                    workers=s.real_workers,
-                    reset_to_state=reset_to_state,
-                    max_steps=self.max_steps,
-                    trace=ball_to_target,
                     seed=REAL_SEEDS + self.cfg.seed * 10 + index,
-                    progress=self.progress,
                     desc=f"real: {condition}",
+                    trace=ball_to_target,
                 )
                 if distributed.is_main():
                     save_torch(path, result.as_dict())
@@ -462,6 +454,30 @@ class Study:
             saved = load_torch(path, "real outcomes")
             summary[condition] = {"success_rate": saved["success"].float().mean().item()}
         return summary
+
+    def real_runs(
+        self, variant: str, policy: Callable, starts: torch.Tensor, *, seed: int, desc: str, **kw
+    ) -> RealOutcomes:
+        """The agent (``policy``, a policy module) in the real Pusher of ``variant`` from each
+        of ``starts``: once per start in a deterministic env, ``assess.stochastic_seeds_per_start``
+        times in the stochastic one, in batched envs over ``assess.real_workers`` workers;
+        ``kw`` goes to :func:`~rcvae_torchrl.agent.real_outcomes`."""
+        s = self.cfg.assess
+        runs = s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
+        per_worker = -(-min(s.real_envs, len(starts) * runs) // s.real_workers)
+        return real_outcomes(
+            self.batched_env(variant, per_worker),
+            policy,
+            starts,
+            runs_per_start=runs,
+            workers=s.real_workers,
+            reset_to_state=reset_to_state,
+            max_steps=self.max_steps,
+            seed=seed,
+            progress=self.progress,
+            desc=desc,
+            **kw,
+        )
 
     def report(self) -> dict[str, Any]:
         forecasts = {
@@ -492,7 +508,6 @@ class Study:
         """The agent's forecasts in ``condition`` from start states it is not scored on: the
         first states of its world model's held-out episodes (of the same env), against the
         agent's real episodes from each (as many per start as the truth stage runs)."""
-        s = self.cfg.assess
         model_name, variant = CONDITIONS[condition]
         _, held_out = self.episodes(model_name)
         starts = held_out.get("observation")[episode_spans(held_out)[0]]
@@ -500,16 +515,11 @@ class Study:
         report = self.assessor(model_name, variant).assess(
             starts.to(self.device), policy=policy, seed=self.cfg.seed
         )
-        runs = s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
-        real = real_outcomes(
-            self.batched_env(variant, min(s.real_envs, len(starts) * runs)),
+        real = self.real_runs(
+            variant,
             make_policy_module(policy),
             starts,
-            runs_per_start=runs,
-            reset_to_state=reset_to_state,
-            max_steps=self.max_steps,
             seed=HELD_OUT_SEEDS + self.cfg.seed * 10 + list(CONDITIONS).index(condition),
-            progress=self.progress,
             desc=f"held-out starts: {condition}",
         )
         return OutcomeCheck.from_outcomes(

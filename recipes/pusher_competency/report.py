@@ -398,14 +398,13 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
             verdicts.append(f"- **{condition}**: {found.message()}.")
             continue
         low, high = found.interval()
-        verdict = "passed"
         if found.biased:
-            verdict = "too optimistic" if found.gap > 0 else "too pessimistic"
             verdicts.append(f"- **{condition}**: {found.message()}.")
         lines.append(
             f"| {condition} | {found.starts} | {found.runs} | "
             f"{float(found.forecast.mean()):.3f} | {float(found.real.mean()):.3f} | "
-            f"{found.gap:+.3f} ({low:+.3f} to {high:+.3f}) | {found.p_value:.2g} | {verdict} |"
+            f"{found.gap:+.3f} ({low:+.3f} to {high:+.3f}) | {found.p_value:.2g} | "
+            f"{found.verdict} |"
         )
     return "\n".join([*lines, "", *verdicts]) + "\n\n"
 
