@@ -16,12 +16,18 @@ seconds of their first call (compiling, with whatever inductor cache the machine
    default), all in one chunk, and the default ``chunk_size="auto"`` (by device).
 4. **Training** (``RCVAELoss`` forward and backward and an Adam step on ``[E, W, L = 32]``
    windows): eager and with the loss under ``torch.compile``, at W windows per member.
+5. **Training loop** (``train_ensemble``, ``LOOP_STEPS`` steps and one validation, on random
+   episodes of the Pusher's shapes): what a training run pays per step on top of section 4,
+   the windows sampled on the host and copied to the device, the per-member gradient
+   clipping, the learning-rate schedule and the validation; eager and with
+   ``TrainConfig(compile=True)``, at W windows per member.
 
 Model steps are member x trajectory x step; rows also give their share of the device's float32
 matrix-product peak (measured here: an 8192² product on a GPU, 1024² on a CPU core).
 
     python benchmarks/gpu_throughput.py --device cuda [--sizes 1024 16384 131072]
                                         [--windows 64 1024 8192] [--repeats 5] [--no-compile]
+                                        [--sections training training_loop ...]
 
 On a CPU (``--device cpu``, small ``--sizes``) the CUDA-graph rows are left out. Writes
 ``benchmarks/results/gpu_throughput.json`` (``--out`` names another file).
@@ -58,14 +64,19 @@ from model_step import (
     step_flop,
     study_ensemble,
 )
+from tensordict import TensorDict
 from world_model_speed import DEFAULT, train_step
 
+from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.envs import pusher_reward, pusher_success
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import Task, imagine
+from rcvae_torchrl.training import TrainConfig, train_ensemble
 
-SECTIONS = ("plan_scoring", "imagination_steps", "forecast_imagine", "training")
+SECTIONS = ("plan_scoring", "imagination_steps", "forecast_imagine", "training", "training_loop")
+TRAINING_SECTIONS = ("training", "training_loop")
 LENGTH = 32
+LOOP_STEPS = 100
 SIZES = (1024, 16384, 131072)
 WINDOWS = (64, 1024, 8192)
 GOAL_STEPS_PER_S = 50e6  # imagination on one H100, the study model
@@ -143,6 +154,51 @@ def training_rows(windows: int, device: torch.device, compile_: bool) -> dict:
     if compile_:
         call = train_step(DEFAULT, MEMBERS, device, windows, LENGTH, compiled=True)
         rows["loss under torch.compile"] = (call, transitions)
+    return rows
+
+
+def random_episodes(episodes: int, steps: int, seed: int) -> TensorDict:
+    """Flat episodes ``[frames]`` of the Pusher's shapes (S = 14, A = 2): random walks (speed
+    does not depend on the values)."""
+    gen = torch.Generator().manual_seed(seed)
+    states = torch.randn(episodes, steps + 1, 14, generator=gen).cumsum(1) * 0.01
+    data = TensorDict(
+        {
+            "observation": states[:, :-1],
+            "action": torch.rand(episodes, steps, 2, generator=gen) * 2 - 1,
+            ("next", "observation"): states[:, 1:],
+            TRAJ_KEY: torch.arange(episodes)[:, None].expand(episodes, steps),
+            ("next", "done"): torch.zeros(episodes, steps, 1, dtype=torch.bool),
+        },
+        batch_size=[episodes, steps],
+    )
+    data["next", "done"][:, -1] = True
+    return data.reshape(-1)
+
+
+def loop_rows(windows: int, device: torch.device, compile_: bool) -> dict:
+    """``{row: (call, transitions per call)}`` for ``LOOP_STEPS`` steps of ``train_ensemble``
+    (one validation at the end) on ``windows`` per member."""
+    train, val = random_episodes(40, 200, seed=0), random_episodes(8, 200, seed=1)
+    val[TRAJ_KEY] += 40
+    transitions = MEMBERS * windows * LENGTH * LOOP_STEPS
+    rows = {}
+    for name, compiled in (("train_ensemble", False), ("train_ensemble, compile=True", True)):
+        if compiled and not compile_:
+            continue
+        model = study_ensemble(device)
+        config = TrainConfig(
+            max_steps=LOOP_STEPS,
+            batch_windows=windows,
+            window=LENGTH,
+            val_every=LOOP_STEPS,
+            compile=compiled,
+        )
+
+        def run(model: RCVAEEnsemble = model, config: TrainConfig = config) -> None:
+            train_ensemble(model, train, val, config, progress=False, checks=False)
+
+        rows[name] = (run, transitions)
     return rows
 
 
@@ -234,13 +290,16 @@ def main() -> None:
             for name, r in result.items():
                 table.append([section, n, name, *_cells(r, scale=1e6)])
             write_json(args.out, record)  # what has run so far survives a later failure
-    for w in args.windows if "training" in args.sections else ():
-        record.setdefault("training", {})
-        result = measure(training_rows(w, device, compile_), args.repeats, device, None, peak)
-        record["training"][str(w)] = result
-        for name, r in result.items():
-            table.append(["training", w, name, *_cells(r, scale=1e6)])
-        write_json(args.out, record)
+    rows_of_training = {"training": training_rows, "training_loop": loop_rows}
+    for section in (s for s in TRAINING_SECTIONS if s in args.sections):
+        record[section] = {}
+        for w in args.windows:
+            rows = rows_of_training[section](w, device, compile_)
+            result = measure(rows, args.repeats, device, None, peak)
+            record[section][str(w)] = result
+            for name, r in result.items():
+                table.append([section, w, name, *_cells(r, scale=1e6)])
+            write_json(args.out, record)
     best = max(
         (r["per_s"] for s in sections for rows in record[s].values() for r in rows.values()
          if "per_s" in r),

@@ -64,6 +64,12 @@ def test_the_benchmark_on_a_cpu(tmp_path, monkeypatch, capsys):
     }
     train = record["training"]["3"]["eager"]
     assert train["per_s"] == pytest.approx(5 * 3 * 32 / train["median_s"])
+    loop = record["training_loop"]["3"]
+    assert set(loop) == {"train_ensemble"}  # no compiled row asked for
+    steps = gpu_throughput.LOOP_STEPS
+    assert loop["train_ensemble"]["per_s"] == pytest.approx(
+        5 * 3 * 32 * steps / loop["train_ensemble"]["median_s"]
+    )
     assert 0 < scoring["peak_share"] < 1
     best = max(
         r["per_s"]

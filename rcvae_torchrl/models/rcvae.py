@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from rcvae_torchrl._checks import (
+    check_bool,
     check_dtype,
     check_finite,
     check_floating,
@@ -343,6 +344,7 @@ class RCVAEEnsemble(nn.Module):
         open_loop_steps: int = 0,
         detach_open_loop: bool = False,
         generator: Generators = None,
+        validate: bool = True,
     ) -> SequenceOutput:
         """The training pass: windows through the model for the ELBO (teacher forcing,
         optionally open loop).
@@ -364,11 +366,16 @@ class RCVAEEnsemble(nn.Module):
             open_loop_steps: number K of trailing transitions fed with model samples.
             detach_open_loop: stop gradients through the fed-back samples.
             generator: torch generator for the latent and fed-back samples, or one per member.
+            validate: check that every input value is finite (a read back to the host: on a
+                GPU it waits for the queued kernels, under ``torch.compile`` it splits the
+                graph). Off for callers that have checked them (the loss checks its windows
+                itself, under their tensordict keys). Shapes and dtypes are checked either way.
 
         Returns:
             a :class:`SequenceOutput` with tensors ``[E, *B, n, ·]``, n = number of transitions.
         """
-        self._check_windows(observations, actions, next_observations)
+        check_bool("validate", validate)
+        self._check_windows(observations, actions, next_observations, finite=validate)
         self._check_mask(mask, observations)
         check_non_negative_int("open_loop_steps", open_loop_steps)
         if next_observations is None:
@@ -433,9 +440,10 @@ class RCVAEEnsemble(nn.Module):
         observations: torch.Tensor,
         actions: torch.Tensor,
         next_observations: torch.Tensor | None,
+        finite: bool = True,
     ) -> None:
-        """Windows ``[E, *B, L, S]`` / ``[E, *B, L, A]``: shapes, dtype and finite values (a
-        NaN would otherwise come out as a NaN loss or prediction)."""
+        """Windows ``[E, *B, L, S]`` / ``[E, *B, L, A]``: shapes, dtype and (with ``finite``)
+        finite values (a NaN would otherwise come out as a NaN loss or prediction)."""
         s, a, e = self.config.obs_dim, self.config.action_dim, self.ensemble_size
         named = [("observations", observations, s), ("actions", actions, a)]
         if next_observations is not None:
@@ -448,7 +456,8 @@ class RCVAEEnsemble(nn.Module):
                 raise ValueError(
                     f"{name}: expected shape [E={e}, *B, L, {last}], got {tuple(x.shape)}"
                 )
-            check_finite(name, x)
+            if finite:
+                check_finite(name, x)
             check_dtype(name, x, self.dtype)
         for name, x, _ in named[1:]:
             if x.shape[:-1] != observations.shape[:-1]:

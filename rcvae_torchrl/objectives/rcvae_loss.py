@@ -66,6 +66,11 @@ class RCVAELoss(LossModule):
             MSE-like one. The optimum of σ (the residual's std) is unchanged. The validation
             figures (``loss_per_member``, ``nll``) stay the plain ELBO.
         generator: torch generator for the latent and fed-back samples.
+        validate: check that every window entry is finite at every call. The check reads the
+            values back to the host, which on a GPU waits for the queued kernels and under
+            ``torch.compile`` splits the graph; a caller that has checked all of its data
+            before sampling windows from it (as :func:`~rcvae_torchrl.training.train_ensemble`
+            does) turns it off. Shapes and dtypes are checked either way.
 
     Returns (``forward``): a TensorDict with ``loss_reconstruction`` and ``loss_kl`` (scalars
     to sum for the optimiser) and detached diagnostics: ``kl_raw`` (mean unclamped KL per step),
@@ -113,8 +118,10 @@ class RCVAELoss(LossModule):
         detach_open_loop: bool = False,
         nll_beta: float = 0.0,
         generator: Generators = None,
+        validate: bool = True,
     ) -> None:
         super().__init__()
+        check_bool("validate", validate)
         check_non_negative("beta", beta)
         check_non_negative("free_nats", free_nats)
         check_non_negative_int("open_loop_steps", open_loop_steps)
@@ -127,6 +134,7 @@ class RCVAELoss(LossModule):
         self.open_loop_steps = int(open_loop_steps)
         self.detach_open_loop = detach_open_loop
         self.generator = generator
+        self.validate = validate
         self._set_in_keys()
 
     def _set_in_keys(self) -> None:
@@ -163,6 +171,7 @@ class RCVAELoss(LossModule):
             open_loop_steps=self.open_loop_steps,
             detach_open_loop=self.detach_open_loop,
             generator=self.generator,
+            validate=False,  # _read checked the windows (when self.validate), under their keys
         )
         return self._reduce(seq, _transition_mask(mask, with_next=next_obs is not None))
 
@@ -248,7 +257,8 @@ class RCVAELoss(LossModule):
                 continue
             check_trailing(key, x, (size,), what)
             check_batch_shapes((obs_key, key), tensors[0].shape[:-1], x.shape[:-1])
-            check_finite(key, x)
+            if self.validate:
+                check_finite(key, x)
             check_dtype(key, x, dtype)
 
     def _read_mask(self, td: TensorDictBase) -> torch.Tensor | None:

@@ -376,6 +376,7 @@ def _train_shard(
         open_loop_steps=config.open_loop_steps,
         nll_beta=config.nll_beta,
         generator=noise_rng,
+        validate=False,  # every frame was checked up front (_check_episodes)
     )
     params = list(local.parameters())
     optimizer = _adam(params, config.lr)
@@ -408,6 +409,7 @@ def _train_shard(
         leave=False,
     )
     start_windows = round(config.episode_start_fraction * config.batch_windows)
+    checked_step = state.step  # the last step whose training loss was seen finite
     while not state.finished:
         windows = sample_windows(
             buffer,
@@ -416,16 +418,21 @@ def _train_shard(
             len(members),
             windows_rng,
             start_windows=start_windows,
-        )[:, share.start : share.stop].to(device)
+        )[:, share.start : share.stop]
         for group in optimizer.param_groups:
             group["lr"] = config.lr_at(state.step)
-        train_loss = _train_step(trained, optimizer, params, windows, config.grad_clip)
+        train_loss = _train_step(
+            trained, optimizer, params, _to_device(windows, device), config.grad_clip
+        )
         state.step += 1
         bar.update(1)
         if state.step % config.val_every == 0 or state.step >= config.max_steps:
             if layout.group is not None:  # the group's mean: the loss of all the step's windows
                 torch.distributed.all_reduce(train_loss, group=layout.group)
                 train_loss /= layout.size
+            train_loss = train_loss.cpu()
+            _check_training_loss(train_loss, checked_step, state.step)
+            checked_step = state.step
             record = _validate(loss_fn, val_windows, local, members, state, config, train_loss)
             bar.set_postfix(train=f"{record['train_loss']:.3g}", val=f"{record['val_loss']:.3g}")
             _log(logger, record, state.step, prefix)
@@ -481,6 +488,15 @@ def _adam(params: list[torch.Tensor], lr: float) -> torch.optim.Adam:
     return torch.optim.Adam(params, lr=lr, foreach=True)
 
 
+def _to_device(windows: TensorDict, device: torch.device) -> TensorDict:
+    """The sampled windows on ``device``. To a GPU they go from page-locked memory without
+    waiting (the host memory comes from torch's caching allocator, reused once the copy is
+    done), so the host samples the next windows while the GPU still runs this step."""
+    if device.type != "cuda":
+        return windows.to(device)
+    return windows.pin_memory().to(device, non_blocking=True)
+
+
 def _train_step(
     loss_fn: RCVAELoss | DistributedDataParallel,
     optimizer: torch.optim.Optimizer,
@@ -488,16 +504,28 @@ def _train_step(
     windows: TensorDict,
     grad_clip: float,
 ) -> torch.Tensor:
-    """One Adam step of every member; the members' training losses ``[e]``."""
+    """One Adam step of every member; the members' training losses ``[e]`` (detached, on the
+    model's device: nothing in a step reads a value back to the host, so on a GPU the host
+    queues the next step while this one runs; :func:`_check_training_loss` reads them)."""
     out = loss_fn(windows)
     loss = out["loss_reconstruction"] + out["loss_kl"]
-    if not torch.isfinite(loss):
-        raise FloatingPointError(f"training loss is not finite ({loss.item()}); lower lr?")
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     clip_grad_norm_per_member(params, grad_clip)
     optimizer.step()
-    return out["loss_per_member"].cpu()
+    return out["loss_per_member"].detach()
+
+
+def _check_training_loss(train_loss: torch.Tensor, checked_step: int, step: int) -> None:
+    """Raise when a member's training loss is not finite. Read at each validation rather than
+    at every step (a read waits for the device): a step with a non-finite loss leaves
+    non-finite weights, so every later step's loss is non-finite too and the next read finds
+    it; the weights kept so far (best and checkpointed) are those validated before it."""
+    if not bool(torch.isfinite(train_loss).all()):
+        raise FloatingPointError(
+            f"training loss is not finite ({train_loss.tolist()} per member) after step "
+            f"{step}, finite at step {checked_step}; lower lr?"
+        )
 
 
 @torch.no_grad()
@@ -508,9 +536,9 @@ def clip_grad_norm_per_member(params: list[torch.Tensor], max_norm: float) -> to
     squares = torch._foreach_mul(grads, grads)  # one call for all tensors, the same numbers
     norms = torch.stack([s.flatten(1).sum(1) for s in squares]).sum(0).sqrt()
     scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
-    if bool((scale < 1.0).any()):  # else every factor is 1: nothing to scale
-        for g in grads:
-            g.mul_(scale.view(-1, *([1] * (g.ndim - 1))))
+    # Every gradient times its member's factor, unread: a test of the factors on the host
+    # would wait for the device; a factor of 1 leaves a gradient as it is.
+    torch._foreach_mul_(grads, [scale.view(-1, *([1] * (g.ndim - 1))) for g in grads])
     return norms
 
 

@@ -158,7 +158,11 @@ class Study:
         self.logger = logger
         # "auto" resolved now, at the start of the run: the load is then the other jobs', not
         # this run's own workers of a stage before (the load average lags by a minute)
-        self.workers = choose_workers(len(CONDITIONS), workers) if device.type == "cpu" else 1
+        self.workers = choose_workers(len(CONDITIONS), workers)
+        # jobs on an accelerator (models, forecasts): side by side there only when a count
+        # asks for it ("auto" cannot tell whether processes sharing one GPU pay); jobs on the
+        # host (the data) take self.workers on any device
+        self.device_workers = self.workers if device.type == "cpu" or workers != "auto" else 1
         self.say = log or (lambda line: None)
 
     # ------------------------------------------------------------------ helpers
@@ -214,7 +218,7 @@ class Study:
 
     # ------------------------------------------------------------------ stages
     def data(self) -> dict[str, Any]:
-        self.side_by_side("data", WORLD_MODELS, "collect")
+        self.side_by_side("data", WORLD_MODELS, "collect", host=True)  # the real env alone
         return {
             f"{variant}_frames": int(load_episodes(self.dir / "data" / f"{variant}.pt").shape[0])
             for variant in WORLD_MODELS
@@ -237,15 +241,17 @@ class Study:
         save_episodes(data, self.dir / "data" / f"{variant}.pt")
 
     def side_by_side(
-        self, stage: str, names: Sequence[str], method: str
+        self, stage: str, names: Sequence[str], method: str, *, host: bool = False
     ) -> tuple[dict[str, Any], bool]:
         """``self.<method>(name)`` for each of ``names`` whose ``<stage>/<name>.pt`` is missing:
-        independent jobs, run side by side in up to ``self.workers`` worker processes, else
-        here one after the other (one worker, or ranks sharing each job's work). Returns each
-        job's result by name, and whether they ran in workers (where this study's logger could
-        not go)."""
+        independent jobs, run side by side in up to ``self.workers`` worker processes (jobs
+        that run on the ``host`` alone) or ``self.device_workers`` (jobs on the study's
+        device), else here one after the other (one worker, or ranks sharing each job's work).
+        Returns each job's result by name, and whether they ran in workers (where this study's
+        logger could not go)."""
         pending = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
-        workers = 1 if distributed.is_active() else max(1, min(self.workers, len(pending)))
+        most = self.workers if host else self.device_workers
+        workers = 1 if distributed.is_active() else max(1, min(most, len(pending)))
         if workers == 1:
             return {name: getattr(self, method)(name) for name in pending}, False
         self.say(f"[{stage}] {', '.join(pending)} in {workers} worker processes")

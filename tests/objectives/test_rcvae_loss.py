@@ -228,6 +228,31 @@ def test_constructor_errors(ensemble):
             RCVAELoss(ensemble, open_loop_steps=bad)
     with pytest.raises(TypeError, match="detach_open_loop: expected True or False, got 'no'"):
         RCVAELoss(ensemble, detach_open_loop="no")
+    with pytest.raises(TypeError, match="validate: expected True or False, got 1"):
+        RCVAELoss(ensemble, validate=1)
+
+
+def test_validate_false_skips_only_the_finite_check(ensemble, windows):
+    """Off, a NaN window reaches the loss (the caller has checked its data); shapes and
+    dtypes are still refused, and on finite windows the loss is the same."""
+    nan = windows["observation"].index_fill(1, torch.tensor(2), torch.nan)
+    bad = windows.clone().set("observation", nan)
+    loss = RCVAELoss(ensemble, validate=False)
+    assert torch.isnan(loss(bad)["loss_per_member"]).all()
+    with pytest.raises(TypeError, match=r"observation: expected dtype torch\.float32"):
+        loss(windows.clone().set("observation", windows["observation"].double()))
+    torch.manual_seed(0)
+    checked = RCVAELoss(ensemble)(windows)["loss_per_member"]
+    torch.manual_seed(0)
+    assert torch.equal(loss(windows)["loss_per_member"], checked)
+
+
+def test_the_checked_loss_reads_nothing_back_under_compile(ensemble, windows):
+    """With validate=False the loss is one graph for torch.compile: no value read back to the
+    host (which on a GPU waits for the queued kernels at every training step)."""
+    explained = torch._dynamo.explain(RCVAELoss(ensemble, validate=False))(windows)
+    assert explained.graph_break_count == 0, explained.break_reasons
+    torch._dynamo.reset()
 
 
 def test_windows_that_would_teach_nothing_are_refused(ensemble, windows, windows_of):

@@ -96,3 +96,27 @@ def test_stage_jobs_in_two_workers_equal_one_process(tmp_path):
 def test_a_bad_stage_workers_setting_names_it(bad):
     with pytest.raises(ValueError, match=r"stage_workers: expected a positive integer or 'auto'"):
         _config(f"stage_workers={bad}")
+
+
+def test_on_a_gpu_auto_runs_only_the_host_jobs_side_by_side(tmp_path, monkeypatch):
+    """On a GPU, ``"auto"`` collects the data (the real env alone) in workers and runs the
+    device's jobs (models, forecasts) one after the other; a count applies to every stage."""
+    import recipes.pusher_competency.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "choose_workers", lambda jobs, setting: 2)
+    config, gpu = _config(), torch.device("cuda")
+    auto = Study(config, tmp_path, gpu, False, workers="auto")
+    assert (auto.workers, auto.device_workers) == (2, 1)
+    asked = Study(config, tmp_path, gpu, False, workers=2)
+    assert (asked.workers, asked.device_workers) == (2, 2)
+    cpu = Study(config, tmp_path, torch.device("cpu"), False, workers="auto")
+    assert (cpu.workers, cpu.device_workers) == (2, 2)
+    ran = []
+    monkeypatch.setattr(
+        pipeline, "map_in_processes", lambda fn, jobs, workers: ran.append(workers) or jobs
+    )
+    auto.side_by_side("data", WORLD_MODELS, "collect", host=True)
+    assert ran == [2]
+    monkeypatch.setattr(Study, "train_world_model", lambda self, name: ran.append(name))
+    auto.side_by_side("models", WORLD_MODELS, "train_world_model")
+    assert ran == [2, *WORLD_MODELS]  # here, one after the other

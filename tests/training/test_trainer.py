@@ -257,3 +257,17 @@ def test_gradients_under_the_bound_are_left_as_they_are():
     norms = clip_grad_norm_per_member(params, max_norm=100.0)
     assert (norms < 100).all()
     assert all(torch.equal(p.grad, b) for p, b in zip(params, before, strict=True))
+
+
+def test_a_training_loss_that_is_not_finite_stops_the_run_at_the_next_validation(
+    linear_data, small_ensemble, tmp_path
+):
+    """A step reads nothing back from the device; the training loss is read at each
+    validation, and a non-finite one ends the run there, naming the steps, before a
+    checkpoint of the spoilt weights is written."""
+    train, val = linear_data
+    config = TrainConfig(max_steps=40, batch_windows=8, window=8, val_every=10, lr=1e30)
+    ckpt = tmp_path / "c.pt"
+    with pytest.raises(FloatingPointError, match="after step 10, finite at step 0; lower lr"):
+        train_ensemble(small_ensemble(), train, val, config, checkpoint_path=ckpt, progress=False)
+    assert not ckpt.exists()
