@@ -43,6 +43,8 @@ COLUMNS = (
     ("validation", "tts_skill", "TTS CRPS skill"),
     ("validation", "recalibrated.gap", "gap, recalibrated"),
     ("validation", "recalibrated.brier_skill", "BSS (own rate), recalibrated"),
+    ("validation", "recalibrated_held_out.gap", "gap, recalibrated on held-out starts"),
+    ("validation", "recalibrated_held_out.brier_skill", "BSS (own rate), held-out map"),
 )
 #: Across seeds, the mean gap per condition must stay within this.
 MEAN_GAP = 0.05

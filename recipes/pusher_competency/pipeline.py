@@ -39,7 +39,7 @@ from rcvae_torchrl.agent import (
     run_episodes,
     save_policy,
 )
-from rcvae_torchrl.competency import CompetencyAssessor
+from rcvae_torchrl.competency import CompetencyAssessor, fit_platt
 from rcvae_torchrl.data import (
     episode_spans,
     load_episodes,
@@ -497,7 +497,7 @@ class Study:
         models = {name: self.load_model(name) for name in WORLD_MODELS}
         checks = {name: model.checks for name, model in models.items()}
         far = {name: self.far_checks(name, model) for name, model in models.items()}
-        held_out = {c: self.forecast_check(c) for c in CHECKED_CONDITIONS}
+        held_out = {c: self.held_out_outcomes(c) for c in CHECKED_CONDITIONS}
         return write_report(
             self.dir,
             forecasts,
@@ -507,13 +507,27 @@ class Study:
             episode_env,
             model_checks=checks,
             far_checks=far,
-            forecast_checks=held_out,
+            forecast_checks={c: self.forecast_check(c, held_out[c]) for c in held_out},
+            held_out_maps={c: fit_platt(*held_out[c]) for c in held_out},
         )
 
-    def forecast_check(self, condition: str) -> OutcomeCheck:
-        """The agent's forecasts in ``condition`` from start states it is not scored on: the
-        first states of its world model's held-out episodes (of the same env), against the
-        agent's real episodes from each (as many per start as the truth stage runs)."""
+    def forecast_check(
+        self, condition: str, outcomes: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> OutcomeCheck:
+        """The agent's forecasts in ``condition`` from start states it is not scored on
+        against its real episodes from them (:meth:`held_out_outcomes`, or ``outcomes``
+        made by it)."""
+        forecast, success = self.held_out_outcomes(condition) if outcomes is None else outcomes
+        return OutcomeCheck.from_outcomes(
+            forecast,
+            success,
+            what=f"the {condition} forecasts from held-out episodes' first states",
+        )
+
+    def held_out_outcomes(self, condition: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """The agent's forecasts ``[n]`` in ``condition`` from the first states of its world
+        model's held-out episodes (of the same env), and the outcomes ``[n, R]`` of its real
+        episodes from each (as many per start as the truth stage runs)."""
         model_name, variant = CONDITIONS[condition]
         _, held_out = self.episodes(model_name)
         starts = held_out.get("observation")[episode_spans(held_out)[0]]
@@ -528,11 +542,7 @@ class Study:
             seed=HELD_OUT_SEEDS + self.cfg.seed * 10 + list(CONDITIONS).index(condition),
             desc=f"held-out starts: {condition}",
         )
-        return OutcomeCheck.from_outcomes(
-            report.data["competency", "p_success"].cpu(),
-            real.success,
-            what=f"the {condition} forecasts from held-out episodes' first states",
-        )
+        return report.data["competency", "p_success"].cpu(), real.success
 
     def far_checks(self, name: str, model: RCVAEEnsemble) -> list[ModelChecks]:
         """World model ``name``'s (``model``'s) self-checks with their coverage at

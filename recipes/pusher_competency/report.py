@@ -9,7 +9,12 @@ from typing import Any
 import torch
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl.competency import brier_score, expected_calibration_error, reliability_diagram
+from rcvae_torchrl.competency import (
+    PlattMap,
+    brier_score,
+    expected_calibration_error,
+    reliability_diagram,
+)
 from rcvae_torchrl.envs import CONTROL_TIMESTEP
 from rcvae_torchrl.envs.render import gl_unavailable_reason, record_episode
 from rcvae_torchrl.io import atomic_write, read_json, write_json
@@ -221,6 +226,7 @@ def write_report(
     model_checks: Mapping[str, ModelChecks | None] | None = None,
     far_checks: Mapping[str, Sequence[ModelChecks]] | None = None,
     forecast_checks: Mapping[str, OutcomeCheck] | None = None,
+    held_out_maps: Mapping[str, PlattMap] | None = None,
 ) -> dict[str, Any]:
     """Write table.md/.csv, the figures, episode.gif and report.md; return the summary.
 
@@ -230,7 +236,8 @@ def write_report(
     forecast's, against replays of the held-out episodes' actions in the real env
     (``Study.far_checks``). ``forecast_checks``: per condition, the agent's forecasts from the
     first states of held-out episodes against its real episodes from them
-    (``Study.forecast_check``)."""
+    (``Study.forecast_check``). ``held_out_maps``: per condition, the Platt map fitted on those
+    episodes, whose recalibration of the scored forecasts is reported beside them."""
     rows = {c: condition_row(c, forecasts[c], truths[c]) for c in forecasts}
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     p, y = (torch.cat(t) for t in zip(*(_pairs(forecasts[c], truths[c]) for c in forecasts)))
@@ -241,7 +248,7 @@ def write_report(
     }
     checks = pattern_checks(rows, overall)
     a = config.assess
-    scores = validation(forecasts, truths, a.success_radius)
+    scores = validation(forecasts, truths, a.success_radius, held_out_maps)
     deadlines = [round(d / CONTROL_TIMESTEP) for d in a.surface_deadlines_s]
     surfaces = competency_surfaces(forecasts, truths, list(a.surface_radii), deadlines)
     checks.update(trust_checks(scores, surfaces))
@@ -485,7 +492,7 @@ def _recalibration_text(scores) -> list[str]:
         f"| {c} | " + " | ".join(f"{s[k]:.3f} | {s['recalibrated'][k]:.3f}" for k in keys) + " |"
         for c, s in rows
     ]
-    return [
+    lines = [
         "### Recalibrated on held-out start states",
         "",
         f"Not the forecast above, but what a Platt map fitted on real episodes would make of it: "
@@ -498,6 +505,26 @@ def _recalibration_text(scores) -> list[str]:
         *body,
         "",
     ]
+    held = [(c, s) for c, s in scores.items() if s.get("recalibrated_held_out")]
+    if held:
+        lines += [
+            "Recalibrated instead by the Platt map fitted on the episodes from the held-out "
+            "episodes' first states (the forecast check above), none of them a scored start: "
+            "what a user who ran the agent from some start states can make of its forecasts "
+            "for new ones. slope, intercept: the map, σ(slope·logit(f) + intercept).",
+            "",
+            head.replace(" |", " | slope | intercept |", 1),
+            "|:---|---:|---:|" + "---:|" * (2 * len(keys)),
+            *(
+                f"| {c} | {s['recalibrated_held_out']['slope']:.2f} | "
+                f"{s['recalibrated_held_out']['intercept']:+.2f} | "
+                + " | ".join(f"{s[k]:.3f} | {s['recalibrated_held_out'][k]:.3f}" for k in keys)
+                + " |"
+                for c, s in held
+            ),
+            "",
+        ]
+    return lines
 
 
 _AGENT_TEXT = {

@@ -9,6 +9,8 @@ from typing import Any
 import torch
 
 from rcvae_torchrl.competency import (
+    PlattMap,
+    apply_platt,
     brier_skill_score,
     cross_fitted_recalibration,
     start_reliability,
@@ -71,13 +73,22 @@ def _task_skill(p: torch.Tensor, outcome: torch.Tensor, mask: torch.Tensor) -> f
     return float(brier_skill_score(per_task(p.double()), per_task(torch.full_like(p, rate))))
 
 
-def validation(forecasts, truths, radius: float) -> dict[str, dict[str, float]]:
+def validation(
+    forecasts, truths, radius: float, held_out_maps: Mapping[str, PlattMap] | None = None
+) -> dict[str, dict[str, float]]:
     """Per condition and overall: the per-start and per-episode scores of the forecast, the
     Brier skill against the overall base rate (``bss_overall``) and against the condition's
     own (``brier_skill``), the scores of the oracle forecast (each start's real rate: the
     ceiling), and the time-to-success CRPS against the condition's climatology. Overall,
     ``bss_tasks`` weights every start state alike (in the pooled scores a start counts by its
-    number of real episodes)."""
+    number of real episodes).
+
+    Beside them, never in their place, the scores of two recalibrations
+    (:data:`RECALIBRATED_SCORES`): ``recalibrated``, cross-fitted on the scored start states'
+    own episodes (each fold by a map fitted on the other folds), and, for the conditions in
+    ``held_out_maps``, ``recalibrated_held_out``: every scored forecast through the Platt map
+    fitted on other start states (e.g. held-out episodes' first states), what a user who ran
+    the agent from some start states would make of the forecasts for new ones."""
     success, mask = _padded(truths, "success")
     overall_rate = float(success[mask].double().mean())
     out = {}
@@ -107,6 +118,14 @@ def validation(forecasts, truths, radius: float) -> dict[str, dict[str, float]]:
     }
     for c, (_, scores) in recalibrated.items():
         out[c]["recalibrated"] = scores
+    for c, platt in (held_out_maps or {}).items():
+        mapped = apply_platt(forecasts[c]["p_success"], platt)
+        after = validate_forecasts(mapped, truths[c]["success"])
+        out[c]["recalibrated_held_out"] = {
+            **{k: after[k] for k in RECALIBRATED_SCORES},
+            "slope": platt.slope,
+            "intercept": platt.intercept,
+        }
     after = validate_forecasts(torch.cat([r for r, _ in recalibrated.values()]), success, mask)
     out["overall"]["recalibrated"] = {k: after[k] for k in RECALIBRATED_SCORES}
     return out

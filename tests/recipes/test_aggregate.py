@@ -54,9 +54,13 @@ def test_nested_scores_are_aggregated():
     first, second = _summary(0.02, True), _summary(0.06, True)
     for s, gap in ((first, 0.01), (second, 0.03)):
         s["validation"]["stochastic"]["recalibrated"] = {"gap": gap}
+        s["validation"]["stochastic"]["recalibrated_held_out"] = {"gap": 2 * gap}
     result = aggregate({"seed0": first, "seed1": second})
     assert result["table"]["stochastic"]["recalibrated.gap"]["mean"] == pytest.approx(0.02)
+    held_out = result["table"]["stochastic"]["recalibrated_held_out.gap"]
+    assert held_out["mean"] == pytest.approx(0.04)
     assert "recalibrated.gap" not in result["table"]["overall"]
+    assert "recalibrated_held_out.gap" not in result["table"]["overall"]
 
 
 def test_every_seed_has_its_value_and_verdict(tmp_path):

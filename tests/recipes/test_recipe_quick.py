@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import subprocess
 import sys
@@ -191,10 +192,15 @@ def test_summary_json(runs):
     for found in held_out.values():
         assert len(found["forecast"]) == len(found["real"]) == found["starts"] >= 1
         assert found["passed"] is False or found["starts"] >= found["min_starts"]
-    assert (
-        "### The forecasts, from start states they are not scored on"
-        in (runs["dir"] / "report.md").read_text()
-    )
+    report = (runs["dir"] / "report.md").read_text()
+    assert "### The forecasts, from start states they are not scored on" in report
+    # the Platt map fitted on those episodes, applied to the scored forecasts beside them
+    for condition in CONDITIONS:
+        after = summary["validation"][condition].get("recalibrated_held_out")
+        assert (after is not None) == (condition in held_out)
+        if after is not None:
+            assert math.isfinite(after["slope"]) and 0 <= after["forecast"] <= 1
+    assert "Recalibrated instead by the Platt map fitted on the episodes" in report
     rows = {r["condition"]: r for r in _rows(runs["dir"])}
     for condition, row in summary["rows"].items():
         assert float(rows[condition]["brier"]) == pytest.approx(row["brier"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from rcvae_torchrl.competency import PlattMap
 from recipes.pusher_competency.trust import (
     competency_surfaces,
     trust_checks,
@@ -88,3 +89,30 @@ def test_the_recalibrated_scores_sit_beside_the_forecasts_own():
     assert after["gap"] < 0.05 and after["brier_skill"] > scores["stochastic"]["brier_skill"]
     checks = trust_checks(scores, competency_surfaces(forecasts, truths, [0.03], [20]))
     assert not any("recalibrat" in name for name in checks)  # the checks score the forecast
+
+
+def test_a_map_fitted_elsewhere_recalibrates_the_scored_forecasts_beside_them():
+    """``held_out_maps``: each scored forecast through a map fitted on other start states,
+    reported beside the forecast's own scores (which it leaves as they are) for the
+    conditions that have one."""
+    forecasts, truths = _case(perfect=True)
+    for c in CONDITIONS:  # ranks right, but too pessimistic: 0.6 and 0.2 for 1 and 0
+        forecasts[c]["p_success"] = torch.where(forecasts[c]["p_success"] > 0, 0.6, 0.2)
+    plain = validation(forecasts, truths, radius=0.03)
+    identity, sharper = PlattMap(1.0, 0.0), PlattMap(3.0, 1.5)
+    maps = {"deterministic": identity, "stochastic": sharper}
+    scores = validation(forecasts, truths, radius=0.03, held_out_maps=maps)
+    assert "recalibrated_held_out" not in scores["out-of-distribution"]
+    assert "recalibrated_held_out" not in scores["overall"]
+    for c in CONDITIONS:
+        own = {k: v for k, v in scores[c].items() if k != "recalibrated_held_out"}
+        assert own == plain[c]
+    same = scores["deterministic"]["recalibrated_held_out"]
+    assert same["gap"] == pytest.approx(plain["deterministic"]["gap"])
+    assert (same["slope"], same["intercept"]) == (1.0, 0.0)
+    after = scores["stochastic"]["recalibrated_held_out"]
+    # logit 0.6 = 0.405 -> 2.72 (0.938); logit 0.2 = -1.386 -> -2.66 (0.065)
+    assert after["forecast"] == pytest.approx((0.9381 + 0.0654) / 2, abs=1e-3)
+    assert after["gap"] < 0.01 < plain["stochastic"]["gap"]
+    assert after["brier_skill"] > plain["stochastic"]["brier_skill"]
+    assert after["auroc"] == plain["stochastic"]["auroc"]  # a monotone map keeps the ranks
