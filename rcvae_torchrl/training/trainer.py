@@ -523,8 +523,8 @@ def _check_training_loss(train_loss: torch.Tensor, checked_step: int, step: int)
     it; the weights kept so far (best and checkpointed) are those validated before it."""
     if not bool(torch.isfinite(train_loss).all()):
         raise FloatingPointError(
-            f"training loss is not finite ({train_loss.tolist()} per member) after step "
-            f"{step}, finite at step {checked_step}; lower lr?"
+            f"training loss is not finite at step {step} ({train_loss.tolist()} per member), "
+            f"from a step in {checked_step + 1}..{step} on; lower lr?"
         )
 
 
