@@ -113,7 +113,7 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 
 def _forecast_checks(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Per condition, the forecast check from held-out episodes' first states over seeds: its
+    """Per condition, the forecast check from start states not scored, over seeds: its
     gap, and in how many seeds it found the forecasts biased (seeds whose run made none, e.g.
     runs from before the check, are left out)."""
     conditions = dict.fromkeys(c for s in summaries.values() for c in s.get("forecast_checks", {}))
@@ -178,7 +178,7 @@ def markdown(result: dict[str, Any]) -> str:
     if held_out:
         lines += [
             "",
-            "## The forecasts from held-out episodes' first states",
+            "## The forecasts from start states they are not scored on",
             "",
             "Each run's self-check of its forecasts on start states it is not scored on (the "
             "report's section of that name): the gap, forecast minus real; ✗ marks a seed "

@@ -98,8 +98,9 @@ FAR_FRACTIONS = (0.25, 0.5, 1.0)
 _FAR_ALPHA = 0.01
 #: Seeds of the far check's replays: ``_REPLAY_SEED + 1000 * seed`` (env ``i``: + i).
 _REPLAY_SEED = 90_000
-#: The conditions whose forecasts are also checked from the first states of held-out episodes:
-#: those whose env is the one their world model's data came from (not out-of-distribution).
+#: The conditions whose env is the one their world model's data came from (not out of
+#: distribution): their forecasts are checked from the first states of held-out episodes (the
+#: others' from start states drawn by their env's reset with HELD_OUT_START_SEEDS).
 CHECKED_CONDITIONS = tuple(c for c, (model, variant) in CONDITIONS.items() if model == variant)
 
 # Each stage and the files it writes (their sizes and hashes go into its marker); the report's
@@ -130,8 +131,11 @@ DAGGER_SEEDS = 80_000
 # those from held-out episodes' first states (the report's forecast check): HELD_OUT_SEEDS + ...
 REAL_SEEDS = 9_000
 HELD_OUT_SEEDS = 8_000
-# Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i.
+# Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i; the
+# unscored ones of the forecast check of a condition out of distribution, HELD_OUT_START_SEEDS
+# higher (mod 2**32).
 START_SEED_STRIDE = 7919
+HELD_OUT_START_SEEDS = 2**31
 
 
 def training_op_flop(config: StudyConfig) -> float:
@@ -206,15 +210,29 @@ class Study:
             model, env, self.cfg.planner, radius=self.cfg.assess.success_radius, seed=self.cfg.seed
         )
 
-    def starts(self, condition: str) -> torch.Tensor:
-        """The condition's start states ``[B, 14]``, drawn by the real env's own reset."""
+    def starts(self, condition: str, count: int | None = None, offset: int = 0) -> torch.Tensor:
+        """The condition's start states ``[B, 14]``, drawn by the real env's own reset:
+        ``assess.start_states`` of them (the scored ones), or ``count`` with seeds ``offset``
+        higher."""
         env = self.env(CONDITIONS[condition][1])
         index = list(CONDITIONS).index(condition)
         starts = []
-        for i in range(self.cfg.assess.start_states):
-            seed_env(env, self.cfg.seed * START_SEED_STRIDE + 1000 * index + i)
+        for i in range(self.cfg.assess.start_states if count is None else count):
+            seed_env(env, (offset + self.cfg.seed * START_SEED_STRIDE + 1000 * index + i) % 2**32)
             starts.append(env.reset()["observation"])
         return torch.stack(starts)
+
+    def held_out_starts(self, condition: str) -> torch.Tensor:
+        """Start states of ``condition`` that are not scored, one per held-out episode of its
+        world model: those episodes' first states where the condition's env is the one the
+        model's data came from, else drawn by the condition's env's reset with seeds no scored
+        start uses."""
+        model_name, variant = CONDITIONS[condition]
+        _, held_out = self.episodes(model_name)
+        first = episode_spans(held_out)[0]
+        if model_name == variant:
+            return held_out.get("observation")[first]
+        return self.starts(condition, len(first), offset=HELD_OUT_START_SEEDS)
 
     # ------------------------------------------------------------------ stages
     def data(self) -> dict[str, Any]:
@@ -497,7 +515,7 @@ class Study:
         models = {name: self.load_model(name) for name in WORLD_MODELS}
         checks = {name: model.checks for name, model in models.items()}
         far = {name: self.far_checks(name, model) for name, model in models.items()}
-        held_out = {c: self.held_out_outcomes(c) for c in CHECKED_CONDITIONS}
+        held_out = {c: self.held_out_outcomes(c) for c in CONDITIONS}
         return write_report(
             self.dir,
             forecasts,
@@ -521,16 +539,15 @@ class Study:
         return OutcomeCheck.from_outcomes(
             forecast,
             success,
-            what=f"the {condition} forecasts from held-out episodes' first states",
+            what=f"the {condition} forecasts from start states they are not scored on",
         )
 
     def held_out_outcomes(self, condition: str) -> tuple[torch.Tensor, torch.Tensor]:
-        """The agent's forecasts ``[n]`` in ``condition`` from the first states of its world
-        model's held-out episodes (of the same env), and the outcomes ``[n, R]`` of its real
-        episodes from each (as many per start as the truth stage runs)."""
+        """The agent's forecasts ``[n]`` in ``condition`` from start states it is not scored
+        on (:meth:`held_out_starts`), and the outcomes ``[n, R]`` of its real episodes from
+        each (as many per start as the truth stage runs)."""
         model_name, variant = CONDITIONS[condition]
-        _, held_out = self.episodes(model_name)
-        starts = held_out.get("observation")[episode_spans(held_out)[0]]
+        starts = self.held_out_starts(condition)
         policy = self.load_policy().to(self.device)
         report = self.assessor(model_name, variant).assess(
             starts.to(self.device), policy=policy, seed=self.cfg.seed

@@ -379,19 +379,20 @@ def _far_checks_text(far_checks: Mapping[str, Sequence[ModelChecks]]) -> str:
 
 
 def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
-    """The agent's forecasts from held-out episodes' first states against its real episodes
-    from them, per condition, with the verdicts."""
+    """The agent's forecasts from start states they are not scored on against its real
+    episodes from them, per condition, with the verdicts."""
     if not forecast_checks:
         return ""
     first = next(iter(forecast_checks.values()))
     lines = [
         "### The forecasts, from start states they are not scored on",
         "",
-        "The forecast itself, checked as it is made but from other start states: the first "
-        "states of the world model's held-out episodes (the env its data came from, so not "
-        "out of distribution), against the agent's real episodes from each. A bias found here "
-        "is one the scored forecasts above can be expected to share; this check needs no "
-        "scored start. The test is two-sided, at level "
+        "The forecast itself, checked as it is made but from other start states, against the "
+        "agent's real episodes from each: in the conditions of the world models' own envs, "
+        "the first states of the model's held-out episodes; out of distribution, start states "
+        "drawn by that env's reset with seeds no scored start uses. A bias found here is one "
+        "the scored forecasts above can be expected to share; this check needs no scored "
+        "start. The test is two-sided, at level "
         f"{first.alpha:g}, on the per-start differences.",
         "",
         "| condition | starts | real runs each | forecast | real | gap (95 % interval) | p "
@@ -508,10 +509,10 @@ def _recalibration_text(scores) -> list[str]:
     held = [(c, s) for c, s in scores.items() if s.get("recalibrated_held_out")]
     if held:
         lines += [
-            "Recalibrated instead by the Platt map fitted on the episodes from the held-out "
-            "episodes' first states (the forecast check above), none of them a scored start: "
-            "what a user who ran the agent from some start states can make of its forecasts "
-            "for new ones. slope, intercept: the map, σ(slope·logit(f) + intercept).",
+            "Recalibrated instead by the Platt map fitted on the real episodes of the forecast "
+            "check above, from start states none of them scored: what a user who ran the agent "
+            "from some start states can make of its forecasts for new ones. slope, intercept: "
+            "the map, σ(slope·logit(f) + intercept).",
             "",
             head.replace(" |", " | slope | intercept |", 1),
             "|:---|---:|---:|" + "---:|" * (2 * len(keys)),

@@ -122,6 +122,6 @@ def test_the_held_out_forecast_checks_are_counted_over_the_seeds_that_made_them(
         None,
     ]
     text = markdown(result)
-    assert "## The forecasts from held-out episodes' first states" in text
+    assert "## The forecasts from start states they are not scored on" in text
     assert "| stochastic | -0.070 ± 0.071 | 1/2 | -0.120 ✗ | -0.020 | – |" in text
     assert aggregate({"seed0": third})["forecast_checks"] == {}

@@ -186,9 +186,10 @@ def test_summary_json(runs):
     assert set(summary["validation"]) == {*CONDITIONS, "overall"}
     for check in summary["checks"].values():
         assert isinstance(check["met"], bool) and isinstance(check["value"], float)
-    # the forecasts from held-out episodes' first states: the conditions of the data's own envs
+    # the forecasts from start states not scored: held-out episodes' first states in the
+    # conditions of the data's own envs, fresh draws of the env's reset out of distribution
     held_out = summary["forecast_checks"]
-    assert list(held_out) == ["deterministic", "stochastic"]
+    assert list(held_out) == list(CONDITIONS)
     for found in held_out.values():
         assert len(found["forecast"]) == len(found["real"]) == found["starts"] >= 1
         assert found["passed"] is False or found["starts"] >= found["min_starts"]
@@ -200,7 +201,7 @@ def test_summary_json(runs):
         assert (after is not None) == (condition in held_out)
         if after is not None:
             assert math.isfinite(after["slope"]) and 0 <= after["forecast"] <= 1
-    assert "Recalibrated instead by the Platt map fitted on the episodes" in report
+    assert "Recalibrated instead by the Platt map fitted on the real episodes" in report
     rows = {r["condition"]: r for r in _rows(runs["dir"])}
     for condition, row in summary["rows"].items():
         assert float(rows[condition]["brier"]) == pytest.approx(row["brier"])
@@ -318,3 +319,24 @@ def test_held_out_checks_benchmark_judges_the_run_both_ways(runs):
     closed = study.forecast_check("stochastic")
     saved = read_json(runs["dir"] / "summary.json")["forecast_checks"]["stochastic"]
     assert json.dumps(closed.as_dict()) == json.dumps(saved)  # the report's, made again (NaN too)
+
+
+def test_the_unscored_start_states_of_each_condition(runs):
+    """The forecast check's start states: the held-out episodes' first states in the world
+    models' own envs; out of distribution, as many fresh draws of that env's reset, none of
+    them a scored start, the same in every call."""
+    from rcvae_torchrl.data import episode_spans
+    from rcvae_torchrl.io import read_json
+    from recipes.pusher_competency.config import study_config
+
+    config = study_config({**read_json(runs["dir"] / "study_config.json"), "run_dir": runs["dir"]})
+    study = pipeline.Study(config, runs["dir"], torch.device("cpu"), progress=False)
+    _, held_out = study.episodes("deterministic")
+    first = episode_spans(held_out)[0]
+    own = study.held_out_starts("deterministic")
+    assert torch.equal(own, held_out["observation"][first])
+    ood = "out-of-distribution"
+    unscored = study.held_out_starts(ood)
+    assert unscored.shape == (len(first), 14) and torch.equal(unscored, study.held_out_starts(ood))
+    scored = study.starts(ood)
+    assert not (unscored[:, None] == scored[None]).all(-1).any()  # no scored start among them
