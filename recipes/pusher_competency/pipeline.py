@@ -136,6 +136,9 @@ HELD_OUT_SEEDS = 8_000
 # higher (mod 2**32).
 START_SEED_STRIDE = 7919
 HELD_OUT_START_SEEDS = 2**31
+#: The forecast check's real episodes per condition, at least (start states x real runs each):
+#: its gap's standard error is then at most 0.05, whatever the success rate (0.5 / √100).
+CHECK_EPISODES = 100
 
 
 def training_op_flop(config: StudyConfig) -> float:
@@ -223,16 +226,28 @@ class Study:
         return torch.stack(starts)
 
     def held_out_starts(self, condition: str) -> torch.Tensor:
-        """Start states of ``condition`` that are not scored, one per held-out episode of its
-        world model: those episodes' first states where the condition's env is the one the
-        model's data came from, else drawn by the condition's env's reset with seeds no scored
-        start uses."""
+        """Start states of ``condition`` that are not scored: the first states of its world
+        model's held-out episodes where the condition's env is the one the model's data came
+        from, then, up to :data:`CHECK_EPISODES` real episodes (with
+        :meth:`runs_per_start` each), start states drawn by the condition's env's reset with
+        seeds no scored start uses."""
         model_name, variant = CONDITIONS[condition]
-        _, held_out = self.episodes(model_name)
-        first = episode_spans(held_out)[0]
+        starts = torch.empty(0, 14)
         if model_name == variant:
-            return held_out.get("observation")[first]
-        return self.starts(condition, len(first), offset=HELD_OUT_START_SEEDS)
+            _, held_out = self.episodes(model_name)
+            starts = held_out.get("observation")[episode_spans(held_out)[0]]
+        missing = -(-CHECK_EPISODES // self.runs_per_start(variant)) - len(starts)
+        if missing <= 0:
+            return starts
+        drawn = self.starts(condition, missing, offset=HELD_OUT_START_SEEDS)
+        return torch.cat([starts.to(drawn.dtype), drawn])
+
+    def runs_per_start(self, variant: str) -> int:
+        """Real episodes per start state in the Pusher of ``variant``:
+        ``assess.seeds_per_start`` where it is deterministic (1 by default: more would repeat
+        it), ``assess.stochastic_seeds_per_start`` in the stochastic one."""
+        s = self.cfg.assess
+        return s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
 
     # ------------------------------------------------------------------ stages
     def data(self) -> dict[str, Any]:
@@ -487,7 +502,7 @@ class Study:
         times in the stochastic one, in batched envs over ``assess.real_workers`` workers;
         ``kw`` goes to :func:`~rcvae_torchrl.agent.real_outcomes`."""
         s = self.cfg.assess
-        runs = s.stochastic_seeds_per_start if variant == "stochastic" else s.seeds_per_start
+        runs = self.runs_per_start(variant)
         per_worker = -(-min(s.real_envs, len(starts) * runs) // s.real_workers)
         return real_outcomes(
             self.batched_env(variant, per_worker),

@@ -323,20 +323,23 @@ def test_held_out_checks_benchmark_judges_the_run_both_ways(runs):
 
 def test_the_unscored_start_states_of_each_condition(runs):
     """The forecast check's start states: the held-out episodes' first states in the world
-    models' own envs; out of distribution, as many fresh draws of that env's reset, none of
-    them a scored start, the same in every call."""
+    models' own envs, then fresh draws of the condition's env's reset up to CHECK_EPISODES real
+    episodes; none of them a scored start, the same in every call."""
     from rcvae_torchrl.data import episode_spans
     from rcvae_torchrl.io import read_json
     from recipes.pusher_competency.config import study_config
 
     config = study_config({**read_json(runs["dir"] / "study_config.json"), "run_dir": runs["dir"]})
     study = pipeline.Study(config, runs["dir"], torch.device("cpu"), progress=False)
-    _, held_out = study.episodes("deterministic")
-    first = episode_spans(held_out)[0]
-    own = study.held_out_starts("deterministic")
-    assert torch.equal(own, held_out["observation"][first])
-    ood = "out-of-distribution"
-    unscored = study.held_out_starts(ood)
-    assert unscored.shape == (len(first), 14) and torch.equal(unscored, study.held_out_starts(ood))
-    scored = study.starts(ood)
-    assert not (unscored[:, None] == scored[None]).all(-1).any()  # no scored start among them
+    for condition, (model, variant) in CONDITIONS.items():
+        unscored = study.held_out_starts(condition)
+        episodes = -(-pipeline.CHECK_EPISODES // study.runs_per_start(variant))
+        first = torch.empty(0, 14)
+        if model == variant:
+            _, held_out = study.episodes(model)
+            first = held_out["observation"][episode_spans(held_out)[0]]
+        assert len(unscored) == max(len(first), episodes), condition
+        assert torch.equal(unscored[: len(first)], first)
+        assert torch.equal(unscored, study.held_out_starts(condition))
+        scored = study.starts(condition)
+        assert not (unscored[:, None] == scored[None]).all(-1).any()  # no scored start among them
