@@ -389,10 +389,11 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
         "",
         "The forecast itself, checked as it is made but from other start states, against the "
         "agent's real episodes from each: in the conditions of the world models' own envs, "
-        "the first states of the model's held-out episodes; out of distribution, start states "
-        "drawn by that env's reset with seeds no scored start uses. A bias found here is one "
-        "the scored forecasts above can be expected to share; this check needs no scored "
-        "start. The test is two-sided, at level "
+        "the first states of the model's held-out episodes, topped up (where they give too "
+        "few real episodes for a sharp test) with start states drawn by the condition's env's "
+        "reset with seeds no scored start uses. A bias found here is one the scored forecasts "
+        "above can be expected to share; this check needs no scored start. The test is "
+        "two-sided, at level "
         f"{first.alpha:g}, on the per-start differences.",
         "",
         "| condition | starts | real runs each | forecast | real | gap (95 % interval) | p "
