@@ -49,3 +49,29 @@ def test_pixels_from_the_torchrl_env():
         and td["next", "pixels"].dtype.is_floating_point is False
     )
     assert td["next", "observation"].shape == (2, 14)
+
+
+def _import_in_child(**env_vars: str | None) -> str:
+    """``MUJOCO_GL`` after importing the envs in a fresh interpreter with ``env_vars`` (None:
+    unset); raises if the import fails."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in env_vars}
+    env.update({k: v for k, v in env_vars.items() if v is not None})
+    code = "import os, rcvae_torchrl.envs; print(os.environ.get('MUJOCO_GL'))"
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout.strip().splitlines()[-1]
+
+
+def test_an_egl_that_cannot_be_loaded_is_not_chosen():
+    """An EGL library that PyOpenGL cannot use made every import of the package fail (MuJoCo
+    and dm_control load their EGL backend when imported): here PyOpenGL is pinned to another
+    platform. EGL is then not chosen, and the import works."""
+    assert _import_in_child(MUJOCO_GL=None, PYOPENGL_PLATFORM="glx") == "None"
+
+
+def test_a_chosen_backend_is_left_as_it_is():
+    assert _import_in_child(MUJOCO_GL="disable") == "disable"
