@@ -5,8 +5,8 @@ the user has not chosen a backend, an EGL library is present, and MuJoCo and dm_
 with it (tried once, in a child process); otherwise dm_control's own choice stands, and
 rendering fails later with a clear message rather than at import. The try matters: both load
 their EGL backend when imported, so an EGL library that PyOpenGL cannot use (seen on a GPU
-machine whose image has the driver's EGL but not the loader PyOpenGL looks for, or with
-``PYOPENGL_PLATFORM`` set to another platform) would make every import of this package fail.
+machine, where PyOpenGL found no EGL functions in it, and with ``PYOPENGL_PLATFORM`` set to
+another platform) would make every import of this package fail.
 """
 
 from __future__ import annotations
