@@ -530,7 +530,9 @@ class Study:
         models = {name: self.load_model(name) for name in WORLD_MODELS}
         checks = {name: model.checks for name, model in models.items()}
         far = {name: self.far_checks(name, model) for name, model in models.items()}
-        held_out = {c: self.held_out_outcomes(c) for c in CONDITIONS}
+        # the forecast checks' forecasts and real episodes, the conditions side by side (the
+        # report writes no per-condition file, so all of them run)
+        held_out, _ = self.side_by_side("report", list(CONDITIONS), "held_out_outcomes")
         return write_report(
             self.dir,
             forecasts,

@@ -49,6 +49,10 @@ def _assert_same(a, b, where: str) -> None:
             _assert_same(a[key], b[key], f"{where}/{key}")
     elif isinstance(a, torch.Tensor):
         assert torch.equal(a, b), where
+    elif isinstance(a, tuple):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _assert_same(x, y, f"{where}[{i}]")
     else:
         assert a == b, where
 
@@ -85,10 +89,15 @@ def test_stage_jobs_in_two_workers_equal_one_process(tmp_path):
     forecasts = [study.forecast() for study in studies]
     assert forecasts[0] == forecasts[1]
     _same_files(serial, parallel, "forecast", CONDITIONS)
+    # the report's forecast checks (forecasts and real episodes from unscored starts)
+    checks = [s.side_by_side("report", list(CONDITIONS), "held_out_outcomes") for s in studies]
+    assert [elsewhere for _, elsewhere in checks] == [False, True]
+    _assert_same(checks[0][0], checks[1][0], "held_out_outcomes")
     assert said == [
         f"[data] {', '.join(WORLD_MODELS)} in 2 worker processes",
         f"[models] {', '.join(WORLD_MODELS)} in 2 worker processes",
         f"[forecast] {', '.join(CONDITIONS)} in 2 worker processes",
+        f"[report] {', '.join(CONDITIONS)} in 2 worker processes",
     ]
 
 
