@@ -7,8 +7,9 @@
    (:class:`~rcvae_torchrl.competency.CompetencyAssessor`).
 5. ``truth``: the same agent in the real env from the same start states.
 6. ``report``: the paper's table plus calibration, the figures, a GIF and ``report.md``, with
-   the world models' checks as far ahead as the forecast and the forecasts checked from the
-   first states of held-out episodes (against the agent's real episodes from them).
+   the world models' checks as far ahead as the forecast and the forecasts checked from start
+   states not scored (against the agent's real episodes from them), with the scored forecasts
+   through the Platt map fitted on those episodes beside them.
 
 Every stage writes its outputs atomically under the run directory and a marker when done
 (:class:`~rcvae_torchrl.stages.StageRunner`); running again with the same directory reuses
@@ -99,8 +100,9 @@ _FAR_ALPHA = 0.01
 #: Seeds of the far check's replays: ``_REPLAY_SEED + 1000 * seed`` (env ``i``: + i).
 _REPLAY_SEED = 90_000
 #: The conditions whose env is the one their world model's data came from (not out of
-#: distribution): their forecasts are checked from the first states of held-out episodes (the
-#: others' from start states drawn by their env's reset with HELD_OUT_START_SEEDS).
+#: distribution): their held-out episodes' first states start the forecast check (topped up, as
+#: the other conditions' starts are drawn, by their env's reset with HELD_OUT_START_SEEDS), and
+#: their recorded actions can be replayed (benchmarks/held_out_checks.py).
 CHECKED_CONDITIONS = tuple(c for c, (model, variant) in CONDITIONS.items() if model == variant)
 
 # Each stage and the files it writes (their sizes and hashes go into its marker); the report's

@@ -234,10 +234,10 @@ def write_report(
     own section (a model that failed them is named with its reasons) and in the summary.
     ``far_checks``: per model, the same checks with their coverage at horizons up to the
     forecast's, against replays of the held-out episodes' actions in the real env
-    (``Study.far_checks``). ``forecast_checks``: per condition, the agent's forecasts from the
-    first states of held-out episodes against its real episodes from them
-    (``Study.forecast_check``). ``held_out_maps``: per condition, the Platt map fitted on those
-    episodes, whose recalibration of the scored forecasts is reported beside them."""
+    (``Study.far_checks``). ``forecast_checks``: per condition, the agent's forecasts from start
+    states not scored against its real episodes from them (``Study.forecast_check``).
+    ``held_out_maps``: per condition, the Platt map fitted on those episodes, whose
+    recalibration of the scored forecasts is reported beside them."""
     rows = {c: condition_row(c, forecasts[c], truths[c]) for c in forecasts}
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     p, y = (torch.cat(t) for t in zip(*(_pairs(forecasts[c], truths[c]) for c in forecasts)))
