@@ -133,9 +133,8 @@ DAGGER_SEEDS = 80_000
 # those from held-out episodes' first states (the report's forecast check): HELD_OUT_SEEDS + ...
 REAL_SEEDS = 9_000
 HELD_OUT_SEEDS = 8_000
-# Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i; the
-# unscored ones of the forecast check of a condition out of distribution, HELD_OUT_START_SEEDS
-# higher (mod 2**32).
+# Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i; those
+# the forecast check draws (Study.held_out_starts), HELD_OUT_START_SEEDS higher (mod 2**32).
 START_SEED_STRIDE = 7919
 HELD_OUT_START_SEEDS = 2**31
 #: The forecast check's real episodes per condition, at least (start states x real runs each):
