@@ -147,6 +147,10 @@ class AgentStudyConfig:
 class AssessConfig:
     """The competency assessment and its ground truth.
 
+    ``start_states``: the scored start states per condition; 100 give each condition's gap
+    (forecast minus real) a standard error of at most 0.05 where a start has one real outcome
+    (0.5 / √100, whatever the success rate), as the report's forecast check has (with 40 the
+    sampling error alone moved a gap by more than 0.05 between start sets).
     ``horizon_s``: the task's deadline and the forecast's horizon; 12 s binds (a training task
     takes a scripted pusher about 4.5 s, an out-of-distribution one about 9 s).
     ``seeds_per_start`` / ``stochastic_seeds_per_start``: real episodes per start state in the
@@ -164,7 +168,7 @@ class AssessConfig:
     shared over ``torchrun`` ranks).
     """
 
-    start_states: int = 40
+    start_states: int = 100
     start_chunk: int = 4
     samples_per_member: int = 50
     horizon_s: float = 12.0
