@@ -437,17 +437,24 @@ class OutcomeCheck:
 
         return float(ttest_1samp(diff.numpy(), 0.0).pvalue)
 
+    @property
+    def standard_error(self) -> float:
+        """The standard error of :attr:`gap`: the sample standard deviation of the per-start
+        differences over √n (NaN with fewer than 2 starts). With one real episode per start
+        it is at most about 0.5 / √n, whatever the success rate."""
+        diff = (self.forecast - self.real).to(torch.float64)
+        if diff.numel() < 2:
+            return float("nan")
+        return float(diff.std(correction=1)) / diff.numel() ** 0.5
+
     def interval(self, confidence: float = 0.95) -> tuple[float, float]:
         """A ``confidence`` interval of :attr:`gap` (Student's t over the starts)."""
         check_unit_interval("confidence", confidence, include_zero=False)
-        diff = (self.forecast - self.real).to(torch.float64)
-        if diff.numel() < 2:
+        if self.starts < 2:
             return float("nan"), float("nan")
         from scipy.stats import t
 
-        half = float(t.ppf(0.5 + confidence / 2, diff.numel() - 1)) * float(
-            diff.std(correction=1) / diff.numel() ** 0.5
-        )
+        half = float(t.ppf(0.5 + confidence / 2, self.starts - 1)) * self.standard_error
         return self.gap - half, self.gap + half
 
     @property

@@ -32,6 +32,7 @@ COLUMNS = (
     ("validation", "forecast", "forecast P"),
     ("validation", "real", "real P"),
     ("validation", "gap", "gap"),
+    ("validation", "gap_se", "gap's standard error"),
     ("validation", "per_start_mae", "per-start MAE"),
     ("validation", "spearman", "Spearman"),
     ("validation", "auroc", "AUROC"),

@@ -31,8 +31,10 @@ from rcvae_torchrl.training import ModelChecks, OutcomeCheck
 from .config import AssessConfig
 from .pusher import CONDITIONS, FIGURE_PANELS
 from .trust import (
+    GAP_CONFIDENCE,
     RECALIBRATED_SCORES,
     RECALIBRATION_FOLDS,
+    TARGETS,
     competency_surfaces,
     trust_checks,
     validation,
@@ -467,6 +469,7 @@ def _validation_text(scores, assess: AssessConfig) -> str:
             rule,
             *body,
             "",
+            *_gap_text(scores),
             "![reliability over start states](start_reliability.png)",
             "",
             *_recalibration_text(scores),
@@ -480,6 +483,26 @@ def _validation_text(scores, assess: AssessConfig) -> str:
             "",
         ]
     )
+
+
+def _gap_text(scores) -> list[str]:
+    """Each condition's gap with its interval: how precisely these start states measure it."""
+    parts = [
+        f"{c} {s['gap_signed']:+.3f} ({s['gap_low']:+.3f} to {s['gap_high']:+.3f})"
+        for c, s in scores.items()
+        if "gap_signed" in s
+    ]
+    if not parts:
+        return []
+    tolerance = TARGETS["gap"]
+    return [
+        f"Forecast minus real, with its {GAP_CONFIDENCE:.0%} interval over the start states "
+        "(Student's t on the per-start differences): " + "; ".join(parts) + ". A gap whose "
+        f"interval lies wholly beyond ±{tolerance} misses the study's tolerance by more than "
+        "the draw of start states explains; one whose interval holds ±"
+        f"{tolerance} is a pass or a miss that these start states cannot tell apart.",
+        "",
+    ]
 
 
 def _recalibration_text(scores) -> list[str]:

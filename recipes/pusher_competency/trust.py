@@ -18,6 +18,7 @@ from rcvae_torchrl.competency import (
     time_to_success_scores,
     validate_forecasts,
 )
+from rcvae_torchrl.training import OutcomeCheck
 
 __all__ = ["TARGETS", "competency_surfaces", "trust_checks", "validation", "validation_figures"]
 
@@ -26,6 +27,9 @@ __all__ = ["TARGETS", "competency_surfaces", "trust_checks", "validation", "vali
 RECALIBRATION_FOLDS = 5
 #: The scores shown before and after recalibration.
 RECALIBRATED_SCORES = ("forecast", "gap", "per_start_mae", "brier_skill", "ece", "auroc")
+
+#: The confidence of the interval reported with each condition's gap.
+GAP_CONFIDENCE = 0.95
 
 #: The study's targets (per seed).
 TARGETS = {
@@ -61,6 +65,18 @@ def _oracle(outcome: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
     return {"oracle_auroc": best["auroc"], "oracle_brier_skill": best["brier_skill"]}
 
 
+def _gap_precision(p: torch.Tensor, outcome: torch.Tensor) -> dict[str, float]:
+    """Forecast minus real over start states, its standard error and 95 % interval."""
+    check = OutcomeCheck.from_outcomes(p, outcome)
+    low, high = check.interval(GAP_CONFIDENCE)
+    return {
+        "gap_signed": check.gap,
+        "gap_se": check.standard_error,
+        "gap_low": low,
+        "gap_high": high,
+    }
+
+
 def _task_skill(p: torch.Tensor, outcome: torch.Tensor, mask: torch.Tensor) -> float:
     """Brier skill with every start state (task) weighted alike, against the overall rate of
     the tasks: each task's Brier is the mean over its episodes."""
@@ -79,7 +95,11 @@ def validation(
     """Per condition and overall: the per-start and per-episode scores of the forecast, the
     Brier skill against the overall base rate (``bss_overall``) and against the condition's
     own (``brier_skill``), the scores of the oracle forecast (each start's real rate: the
-    ceiling), and the time-to-success CRPS against the condition's climatology. Overall,
+    ceiling), and the time-to-success CRPS against the condition's climatology. Per condition
+    also the gap's sign and precision: ``gap_signed`` (forecast minus real), ``gap_se`` (its
+    standard error over the start states) and ``gap_low`` / ``gap_high`` (its 95 % interval,
+    Student's t on the per-start differences, as :class:`~rcvae_torchrl.training.OutcomeCheck`
+    computes them: a start's real episodes need not be independent). Overall,
     ``bss_tasks`` weights every start state alike (in the pooled scores a start counts by its
     number of real episodes).
 
@@ -96,6 +116,7 @@ def validation(
         f, t = forecasts[c], truths[c]
         scores = validate_forecasts(f["p_success"], t["success"])
         scores.update(_oracle(t["success"]))
+        scores.update(_gap_precision(f["p_success"], t["success"]))
         base = ((overall_rate - t["success"].double()) ** 2).mean()
         scores["bss_overall"] = float(brier_skill_score(scores["brier"], base))
         scores.update(

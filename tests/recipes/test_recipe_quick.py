@@ -173,6 +173,10 @@ def test_summary_json(runs):
     assert all(len(r) == 3 and all(v > 0 for v in r.values()) for r in windows.values())
     assert list(summary["rows"]) == list(CONDITIONS)
     assert all(set(COLUMNS) <= set(row) for row in summary["rows"].values())
+    for c in CONDITIONS:  # the gap with its interval over the start states
+        v = summary["validation"][c]
+        assert v["gap"] == pytest.approx(abs(v["gap_signed"]))
+        assert v["gap_low"] <= v["gap_signed"] <= v["gap_high"] and v["gap_se"] >= 0
     assert set(summary["overall"]) == {"brier", "constant_brier", "success_rate"}
     names = set(summary["checks"])
     for condition in CONDITIONS:

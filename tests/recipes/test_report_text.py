@@ -136,3 +136,17 @@ def test_forecast_checks_section_gives_each_verdict():
     )
     assert "- **fair**" not in text  # a passed check needs no sentence
     assert _forecast_checks_text({}) == ""
+
+
+def test_the_gap_is_given_with_its_interval():
+    from recipes.pusher_competency.report import _gap_text
+
+    scores = {
+        "deterministic": {"gap_signed": 0.113, "gap_low": 0.041, "gap_high": 0.185},
+        "stochastic": {"gap_signed": -0.014, "gap_low": -0.03, "gap_high": 0.002},
+        "overall": {"gap": 0.02},  # pooled: no per-start interval
+    }
+    text = "\n".join(_gap_text(scores))
+    assert "deterministic +0.113 (+0.041 to +0.185); stochastic -0.014 (-0.030 to +0.002)." in text
+    assert "95% interval" in text and "overall" not in text
+    assert _gap_text({"overall": {"gap": 0.02}}) == []

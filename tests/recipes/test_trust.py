@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from scipy import stats
 
 from rcvae_torchrl.competency import PlattMap
 from recipes.pusher_competency.trust import (
@@ -45,6 +46,7 @@ def test_a_perfect_forecast_scores_perfectly():
         assert s["spearman"] == pytest.approx(1.0) and s["auroc"] == 1.0
         assert s["bss_overall"] == 1.0 and s["brier_skill"] == 1.0
         assert s["tts_crps"] == 0 and s["tts_crps_climatology"] > 0 and s["tts_skill"] == 1.0
+        assert s["gap_signed"] == s["gap_se"] == s["gap_low"] == s["gap_high"] == 0
     assert scores["overall"]["episodes"] == 8 + 8 * 30 + 8
     assert scores["overall"]["bss_tasks"] == 1.0 and scores["overall"]["oracle_auroc"] == 1.0
     surfaces = competency_surfaces(forecasts, truths, [0.03, 0.5], [1, 5, 20])
@@ -67,6 +69,12 @@ def test_a_constant_forecast_has_no_skill_and_fails_the_checks():
     for c in CONDITIONS:
         assert scores[c]["brier_skill"] == pytest.approx(0.0, abs=1e-12)  # base rate is 0.5
         assert scores[c]["auroc"] == 0.5 and scores[c]["oracle_brier_skill"] == 1.0
+        # per start 0.5 - 1 or 0.5 - 0: no bias, an interval from the spread over the 8 starts
+        se = (8 * 0.25 / 7) ** 0.5 / 8**0.5
+        half = stats.t.ppf(0.975, 7) * se
+        assert scores[c]["gap_signed"] == pytest.approx(0.0, abs=1e-12)
+        assert scores[c]["gap_se"] == pytest.approx(se)
+        assert (scores[c]["gap_low"], scores[c]["gap_high"]) == pytest.approx((-half, half))
     assert scores["overall"]["bss_tasks"] == pytest.approx(0.0, abs=1e-12)
     checks = trust_checks(scores, competency_surfaces(forecasts, truths, [0.03], [20]))
     assert not checks["AUROC >= 0.75 (all episodes)"]["met"]

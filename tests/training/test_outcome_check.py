@@ -49,6 +49,11 @@ def test_statistics_against_closed_forms():
     low, high = check.interval(0.9)
     half = stats.t.ppf(0.95, 3) * diff.std(ddof=1) / 2
     assert (low, high) == pytest.approx((-0.175 - half, -0.175 + half))
+    assert check.standard_error == pytest.approx(diff.std(ddof=1) / 2)
+    # one 0/1 outcome per start: at most about 0.5 / sqrt(n), whatever the rate
+    single = torch.rand(400, 1, generator=torch.Generator().manual_seed(3)) < 0.5
+    half_half = OutcomeCheck.from_outcomes(torch.full((400,), 0.5, dtype=torch.float64), single)
+    assert half_half.standard_error == pytest.approx(0.5 / 20, rel=0.01)
     assert check.measured and check.biased == (check.p_value < 0.05)
     # the same difference at every start: certain, either way (rounding is not spread)
     same = OutcomeCheck(forecast, forecast.clone(), runs=1, min_starts=4)
@@ -61,6 +66,7 @@ def test_statistics_against_closed_forms():
     assert few.message() == f"{WHAT} are unchecked: 4 start states, the outcome check needs 10"
     empty = OutcomeCheck(forecast[:0], real[:0], runs=3)
     assert math.isnan(empty.gap) and math.isnan(empty.p_value) and not empty.passed
+    assert math.isnan(empty.standard_error) and all(map(math.isnan, empty.interval()))
     back = OutcomeCheck.from_dict(check.as_dict())
     assert torch.equal(back.forecast, check.forecast) and torch.equal(back.real, check.real)
     assert back.p_value == check.p_value and back.as_dict() == check.as_dict()
