@@ -46,6 +46,7 @@ COLUMNS = (
     ("validation", "recalibrated.brier_skill", "BSS (own rate), recalibrated"),
     ("validation", "recalibrated_held_out.gap", "gap, recalibrated on held-out starts"),
     ("validation", "recalibrated_held_out.brier_skill", "BSS (own rate), held-out map"),
+    ("validation", "recalibrated_held_out.auroc", "AUROC, held-out map"),
 )
 #: Across seeds, the mean gap per condition must stay within this.
 MEAN_GAP = 0.05

@@ -536,13 +536,13 @@ def _recalibration_text(scores) -> list[str]:
             "Recalibrated instead by the Platt map fitted on the real episodes of the forecast "
             "check above, from start states none of them scored: what a user who ran the agent "
             "from some start states can make of its forecasts for new ones. slope, intercept: "
-            "the map, σ(slope·logit(f) + intercept).",
+            "the map, σ(slope·logit(f) + intercept) (overall: each condition's forecasts "
+            "through its own map, pooled).",
             "",
             head.replace(" |", " | slope | intercept |", 1),
             "|:---|---:|---:|" + "---:|" * (2 * len(keys)),
             *(
-                f"| {c} | {s['recalibrated_held_out']['slope']:.2f} | "
-                f"{s['recalibrated_held_out']['intercept']:+.2f} | "
+                f"| {c} | {_map_cells(s['recalibrated_held_out'])} | "
                 + " | ".join(f"{s[k]:.3f} | {s['recalibrated_held_out'][k]:.3f}" for k in keys)
                 + " |"
                 for c, s in held
@@ -550,6 +550,13 @@ def _recalibration_text(scores) -> list[str]:
             "",
         ]
     return lines
+
+
+def _map_cells(after: Mapping[str, Any]) -> str:
+    """A Platt map's slope and intercept cells ("–" for a pool of several maps)."""
+    if "slope" not in after:
+        return "– | –"
+    return f"{after['slope']:.2f} | {after['intercept']:+.2f}"
 
 
 _AGENT_TEXT = {

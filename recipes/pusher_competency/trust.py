@@ -108,7 +108,8 @@ def validation(
     own episodes (each fold by a map fitted on the other folds), and, for the conditions in
     ``held_out_maps``, ``recalibrated_held_out``: every scored forecast through the Platt map
     fitted on other start states (e.g. held-out episodes' first states), what a user who ran
-    the agent from some start states would make of the forecasts for new ones."""
+    the agent from some start states would make of the forecasts for new ones; overall too
+    when every condition has its map (each forecast through its condition's map, pooled)."""
     success, mask = _padded(truths, "success")
     overall_rate = float(success[mask].double().mean())
     out = {}
@@ -139,9 +140,10 @@ def validation(
     }
     for c, (_, scores) in recalibrated.items():
         out[c]["recalibrated"] = scores
-    for c, platt in (held_out_maps or {}).items():
-        mapped = apply_platt(forecasts[c]["p_success"], platt)
-        after = validate_forecasts(mapped, truths[c]["success"])
+    maps = held_out_maps or {}
+    mapped = {c: apply_platt(forecasts[c]["p_success"], platt) for c, platt in maps.items()}
+    for c, platt in maps.items():
+        after = validate_forecasts(mapped[c], truths[c]["success"])
         out[c]["recalibrated_held_out"] = {
             **{k: after[k] for k in RECALIBRATED_SCORES},
             "slope": platt.slope,
@@ -149,6 +151,9 @@ def validation(
         }
     after = validate_forecasts(torch.cat([r for r, _ in recalibrated.values()]), success, mask)
     out["overall"]["recalibrated"] = {k: after[k] for k in RECALIBRATED_SCORES}
+    if forecasts and set(mapped) == set(forecasts):  # every condition through its own map
+        after = validate_forecasts(torch.cat([mapped[c] for c in forecasts]), success, mask)
+        out["overall"]["recalibrated_held_out"] = {k: after[k] for k in RECALIBRATED_SCORES}
     return out
 
 

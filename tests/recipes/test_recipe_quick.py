@@ -206,6 +206,10 @@ def test_summary_json(runs):
         if after is not None:
             assert math.isfinite(after["slope"]) and 0 <= after["forecast"] <= 1
     assert "Recalibrated instead by the Platt map fitted on the real episodes" in report
+    # every condition had its map: the pooled forecasts through them, scored over all episodes
+    pooled = summary["validation"]["overall"]["recalibrated_held_out"]
+    assert 0 <= pooled["forecast"] <= 1 and "slope" not in pooled
+    assert "| overall | – | – |" in report
     rows = {r["condition"]: r for r in _rows(runs["dir"])}
     for condition, row in summary["rows"].items():
         assert float(rows[condition]["brier"]) == pytest.approx(row["brier"])

@@ -124,3 +124,16 @@ def test_a_map_fitted_elsewhere_recalibrates_the_scored_forecasts_beside_them():
     assert after["gap"] < 0.01 < plain["stochastic"]["gap"]
     assert after["brier_skill"] > plain["stochastic"]["brier_skill"]
     assert after["auroc"] == plain["stochastic"]["auroc"]  # a monotone map keeps the ranks
+    # a map for every condition: the pooled scores through them too (the map leaves the
+    # out-of-distribution forecasts alone here, so the pool is the two maps' and the plain one)
+    everywhere = validation(
+        forecasts, truths, radius=0.03, held_out_maps={**maps, "out-of-distribution": identity}
+    )
+    pooled = everywhere["overall"]["recalibrated_held_out"]
+    expected = (
+        scores["deterministic"]["recalibrated_held_out"]["forecast"] * 8
+        + after["forecast"] * 240
+        + plain["out-of-distribution"]["forecast"] * 8
+    ) / 256  # episode-weighted: 8, 8 x 30 and 8 episodes
+    assert pooled["forecast"] == pytest.approx(expected)
+    assert pooled["brier_skill"] > plain["overall"]["brier_skill"]
