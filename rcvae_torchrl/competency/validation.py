@@ -36,6 +36,7 @@ __all__ = [
     "episode_brier",
     "per_start_rates",
     "rank_correlation",
+    "rate_reliability",
     "start_reliability",
     "time_to_success_scores",
     "validate_forecasts",
@@ -80,6 +81,46 @@ def per_start_rates(outcome: Tensor, mask: Tensor | None = None) -> tuple[Tensor
     runs = outcome.shape[1] * torch.ones(outcome.shape[0]) if mask is None else mask.sum(1)
     hits = outcome.sum(1) if mask is None else (outcome & mask).sum(1)
     return hits.to(torch.float64) / runs.to(torch.float64), runs.to(torch.int64)
+
+
+def rate_reliability(outcome: Tensor, mask: Tensor | None = None) -> float:
+    """Split-half reliability of the per-start success rates of outcomes ``[B, R]``: how much
+    of their spread over the start states is the starts' own and how much the runs' noise.
+
+    Each start's runs (those in ``mask``) are dealt alternately into two halves; the rank
+    correlation r between the two halves' rates is stepped up to all the runs by the
+    Spearman-Brown formula, 2r / (1 + r). Its square root is about the rank correlation
+    between the true chances and the rates of R runs, the most that any forecast can reach
+    against those rates on average: the ceiling that the runs' noise leaves to a per-start
+    Spearman. A split-half estimate: with few start states it is noisy itself. NaN where fewer
+    than 2 start states have 2 runs or more, or where a half's rates do not vary.
+
+    In the example every start first succeeds in all its runs or in none (no noise: all the
+    spread is the starts' own), then in one of its two runs each (none of it is).
+
+    Example:
+        >>> sure = torch.tensor([[True] * 4, [False] * 4, [True] * 4, [False] * 4])
+        >>> rate_reliability(sure)
+        1.0
+        >>> rate_reliability(torch.tensor([[True, False], [False, True], [True, False]]))
+        nan
+    """
+    _checks.check_rank("outcome", outcome, 2, "[B, R]")
+    if outcome.dtype != torch.bool:
+        raise TypeError(f"outcome: expected bool outcomes of single episodes, got {outcome.dtype}")
+    mask = _runs_mask(mask, outcome, "the outcomes'")
+    position = mask.cumsum(1) - 1  # each run's index among its start's runs
+    first = mask & (position % 2 == 0)
+    second = mask & (position % 2 == 1)
+    both = second.any(1)  # starts with two runs or more
+    if int(both.sum()) < 2:
+        return math.nan
+
+    def rates(half: Tensor) -> Tensor:
+        return (outcome & half)[both].sum(1).double() / half[both].sum(1).double()
+
+    r = float(rank_correlation(rates(first), rates(second)))
+    return 2 * r / (1 + r) if math.isfinite(r) and r > -1 else math.nan
 
 
 def episode_brier(forecast: Tensor, outcome: Tensor, mask: Tensor | None = None) -> Tensor:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -432,6 +433,7 @@ _SCORE_COLUMNS = (
     ("brier_skill", "BSS (own rate)"),
     ("oracle_auroc", "oracle AUROC"),
     ("oracle_brier_skill", "oracle BSS (own rate)"),
+    ("oracle_spearman", "oracle Spearman"),
     ("tts_crps", "TTS CRPS (steps)"),
     ("tts_crps_climatology", "climatology"),
     ("starts", "starts"),
@@ -444,12 +446,7 @@ def _validation_text(scores, assess: AssessConfig) -> str:
     head = "| condition | " + " | ".join(label for _, label in _SCORE_COLUMNS) + " |"
     rule = "|:---|" + "---:|" * len(_SCORE_COLUMNS)
     body = [
-        f"| {c} | "
-        + " | ".join(
-            f"{s[k]:.3f}" if isinstance(s.get(k), float) else str(s.get(k, ""))
-            for k, _ in _SCORE_COLUMNS
-        )
-        + " |"
+        f"| {c} | " + " | ".join(_score_cell(s.get(k, "")) for k, _ in _SCORE_COLUMNS) + " |"
         for c, s in scores.items()
     ]
     return "\n".join(
@@ -463,7 +460,10 @@ def _validation_text(scores, assess: AssessConfig) -> str:
             "forecast distribution of the time to success against the real times, by CRPS, "
             "beside the condition's climatological distribution (lower is better). Oracle: the "
             "scores of a forecast equal to each start's own real success rate, the ceiling that "
-            "the outcomes' randomness leaves to any forecast.",
+            "the outcomes' randomness leaves to any forecast; oracle Spearman: about the rank "
+            "correlation that a forecast of each start's true chance reaches against rates of "
+            "this many runs (the square root of their split-half reliability), where a start "
+            "has several runs.",
             "",
             head,
             rule,
@@ -483,6 +483,13 @@ def _validation_text(scores, assess: AssessConfig) -> str:
             "",
         ]
     )
+
+
+def _score_cell(value: Any) -> str:
+    """A cell of the per-task table: 3 decimals, "–" where a score is undefined (NaN)."""
+    if isinstance(value, float):
+        return f"{value:.3f}" if math.isfinite(value) else "–"
+    return str(value)
 
 
 def _gap_text(scores) -> list[str]:

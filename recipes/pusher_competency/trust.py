@@ -3,6 +3,7 @@ competency surface over a grid of boundaries, and the checks of the study's targ
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -13,6 +14,7 @@ from rcvae_torchrl.competency import (
     apply_platt,
     brier_skill_score,
     cross_fitted_recalibration,
+    rate_reliability,
     start_reliability,
     success_on_grid,
     time_to_success_scores,
@@ -58,11 +60,19 @@ def _padded(truths: Mapping[str, Mapping[str, torch.Tensor]], key: str) -> tuple
 
 def _oracle(outcome: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:
     """The scores of the oracle forecast, each start's own real success rate: what no forecast
-    can beat on these episodes (the ceiling that the outcomes' randomness leaves)."""
+    can beat on these episodes (the ceiling that the outcomes' randomness leaves). For the
+    per-start Spearman, whose oracle would score itself, the ceiling is that of the true
+    chances against rates of this many runs: the square root of the rates' split-half
+    reliability (NaN with one run per start)."""
     m = torch.ones_like(outcome) if mask is None else mask
     rates = (outcome & m).sum(1) / m.sum(1).clamp_min(1)
     best = validate_forecasts(rates, outcome, mask)
-    return {"oracle_auroc": best["auroc"], "oracle_brier_skill": best["brier_skill"]}
+    reliability = rate_reliability(outcome, mask)
+    return {
+        "oracle_auroc": best["auroc"],
+        "oracle_brier_skill": best["brier_skill"],
+        "oracle_spearman": math.sqrt(reliability) if reliability >= 0 else math.nan,
+    }
 
 
 def _gap_precision(p: torch.Tensor, outcome: torch.Tensor) -> dict[str, float]:
@@ -132,6 +142,8 @@ def validation(
     p = torch.cat([forecasts[c]["p_success"] for c in forecasts])
     overall = validate_forecasts(p, success, mask)
     overall.update(_oracle(success, mask))
+    # over starts of one run and of many, pooled, the rates' reliability has no one meaning
+    overall.pop("oracle_spearman")
     overall["bss_overall"] = overall["brier_skill"]
     overall["bss_tasks"] = _task_skill(p, success, mask)
     out["overall"] = overall

@@ -15,6 +15,7 @@ MODULES = [
     "mixture",
     "outcome",
     "outcome_assessment",
+    "validation",
 ]
 
 

@@ -17,6 +17,7 @@ from rcvae_torchrl.competency import (
     expected_calibration_error,
     per_start_rates,
     rank_correlation,
+    rate_reliability,
     reliability_diagram,
     start_reliability,
     validate_forecasts,
@@ -75,6 +76,28 @@ def test_mask_drops_runs_that_do_not_exist():
     assert rates.tolist() == [0.5, 1.0] and runs.tolist() == [2, 2]
     with pytest.raises(ValueError, match="mask: expected at least one run per start state"):
         episode_brier(forecast, outcome, torch.zeros_like(mask))
+
+
+def test_rate_reliability_against_the_binomial_closed_form():
+    """True chances p_b, R runs each: the rates' reliability is var(p) / (var(p) + E[p(1-p)]/R)
+    (the share of their variance that is the starts' own); more runs, more reliable."""
+    g = torch.Generator().manual_seed(0)
+    p = torch.rand(4000, generator=g, dtype=torch.float64) * 0.6 + 0.2
+    for runs in (10, 30, 90):
+        outcome = torch.rand(4000, runs, generator=g, dtype=torch.float64) < p[:, None]
+        truth = p.var() / (p.var() + (p * (1 - p)).mean() / runs)
+        assert rate_reliability(outcome) == pytest.approx(float(truth), abs=0.03)
+    # a mask: the runs that exist are dealt into halves, the others left out
+    outcome = torch.rand(4000, 40, generator=g, dtype=torch.float64) < p[:, None]
+    mask = torch.ones_like(outcome)
+    mask[:, 30:] = False
+    noisy = outcome.clone()
+    noisy[:, 30:] = ~noisy[:, 30:]  # what the mask hides cannot move the result
+    assert rate_reliability(noisy, mask) == rate_reliability(outcome[:, :30])
+    # one run per start: nothing to split
+    assert math.isnan(rate_reliability(outcome[:, :1]))
+    with pytest.raises(TypeError, match="outcome: expected bool outcomes"):
+        rate_reliability(outcome.double())
 
 
 def test_brier_skill_score():

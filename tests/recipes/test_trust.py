@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from scipy import stats
@@ -48,6 +50,11 @@ def test_a_perfect_forecast_scores_perfectly():
         assert s["tts_crps"] == 0 and s["tts_crps_climatology"] > 0 and s["tts_skill"] == 1.0
         assert s["gap_signed"] == s["gap_se"] == s["gap_low"] == s["gap_high"] == 0
     assert scores["overall"]["episodes"] == 8 + 8 * 30 + 8
+    # each stochastic start succeeds in all its runs or in none: the rates are noiseless, a
+    # Spearman of 1 is in reach; one run per start has no reliability to split
+    assert scores["stochastic"]["oracle_spearman"] == 1.0
+    assert math.isnan(scores["deterministic"]["oracle_spearman"])
+    assert "oracle_spearman" not in scores["overall"]
     assert scores["overall"]["bss_tasks"] == 1.0 and scores["overall"]["oracle_auroc"] == 1.0
     surfaces = competency_surfaces(forecasts, truths, [0.03, 0.5], [1, 5, 20])
     for c in CONDITIONS:
