@@ -116,10 +116,8 @@ def rate_reliability(outcome: Tensor, mask: Tensor | None = None) -> float:
     if int(both.sum()) < 2:
         return math.nan
 
-    def rates(half: Tensor) -> Tensor:
-        return (outcome & half)[both].sum(1).double() / half[both].sum(1).double()
-
-    r = float(rank_correlation(rates(first), rates(second)))
+    halves = (per_start_rates(outcome[both], half[both])[0] for half in (first, second))
+    r = float(rank_correlation(*halves))
     return 2 * r / (1 + r) if math.isfinite(r) and r > -1 else math.nan
 
 

@@ -60,19 +60,19 @@ def _padded(truths: Mapping[str, Mapping[str, torch.Tensor]], key: str) -> tuple
 
 def _oracle(outcome: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:
     """The scores of the oracle forecast, each start's own real success rate: what no forecast
-    can beat on these episodes (the ceiling that the outcomes' randomness leaves). For the
-    per-start Spearman, whose oracle would score itself, the ceiling is that of the true
-    chances against rates of this many runs: the square root of the rates' split-half
-    reliability (NaN with one run per start)."""
+    can beat on these episodes (the ceiling that the outcomes' randomness leaves)."""
     m = torch.ones_like(outcome) if mask is None else mask
     rates = (outcome & m).sum(1) / m.sum(1).clamp_min(1)
     best = validate_forecasts(rates, outcome, mask)
-    reliability = rate_reliability(outcome, mask)
-    return {
-        "oracle_auroc": best["auroc"],
-        "oracle_brier_skill": best["brier_skill"],
-        "oracle_spearman": math.sqrt(reliability) if reliability >= 0 else math.nan,
-    }
+    return {"oracle_auroc": best["auroc"], "oracle_brier_skill": best["brier_skill"]}
+
+
+def _spearman_ceiling(outcome: torch.Tensor) -> float:
+    """The per-start Spearman's ceiling, whose oracle would score itself: that of the true
+    chances against rates of this many runs, the square root of the rates' split-half
+    reliability (NaN with one run per start)."""
+    reliability = rate_reliability(outcome)
+    return math.sqrt(reliability) if reliability >= 0 else math.nan
 
 
 def _gap_precision(p: torch.Tensor, outcome: torch.Tensor) -> dict[str, float]:
@@ -127,6 +127,7 @@ def validation(
         f, t = forecasts[c], truths[c]
         scores = validate_forecasts(f["p_success"], t["success"])
         scores.update(_oracle(t["success"]))
+        scores["oracle_spearman"] = _spearman_ceiling(t["success"])
         scores.update(_gap_precision(f["p_success"], t["success"]))
         base = ((overall_rate - t["success"].double()) ** 2).mean()
         scores["bss_overall"] = float(brier_skill_score(scores["brier"], base))
@@ -141,9 +142,8 @@ def validation(
         out[c] = scores
     p = torch.cat([forecasts[c]["p_success"] for c in forecasts])
     overall = validate_forecasts(p, success, mask)
-    overall.update(_oracle(success, mask))
-    # over starts of one run and of many, pooled, the rates' reliability has no one meaning
-    overall.pop("oracle_spearman")
+    overall.update(_oracle(success, mask))  # no Spearman ceiling: pooled, starts of one run
+    # and of many give the rates' reliability no one meaning
     overall["bss_overall"] = overall["brier_skill"]
     overall["bss_tasks"] = _task_skill(p, success, mask)
     out["overall"] = overall
