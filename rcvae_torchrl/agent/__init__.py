@@ -8,6 +8,7 @@ from .loop import AgentConfig, AgentResult, AgentTask, run_model_based_agent
 from .mpc import PlannerConfig, make_mpc_policy, policy_proposal
 from .policy import (
     POLICY_FORMAT_VERSION,
+    FixedRowsPolicy,
     MLPPolicy,
     ResidualPolicy,
     load_policy,
@@ -28,6 +29,7 @@ from .workers import EpisodeStartEnv, episode_workers, start_worker_episodes
 __all__ = [
     # amortised policy
     "POLICY_FORMAT_VERSION",
+    "FixedRowsPolicy",
     "MLPPolicy",
     "ResidualPolicy",
     "load_policy",

@@ -8,9 +8,11 @@ Observations are normalised with statistics fitted from data and saved with the 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
 
@@ -19,6 +21,7 @@ from rcvae_torchrl.io import StoredFileError, load_torch, save_torch
 
 __all__ = [
     "POLICY_FORMAT_VERSION",
+    "FixedRowsPolicy",
     "MLPPolicy",
     "ResidualPolicy",
     "load_policy",
@@ -92,6 +95,43 @@ class ResidualPolicy(nn.Module):
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         return (self.base(observation) + self.residual(observation)).clamp(-1.0, 1.0)
+
+
+class FixedRowsPolicy:
+    """A stateless TensorDict policy called on blocks of exactly ``rows`` rows, so that each
+    row's action does not depend on the batch it comes in.
+
+    A matrix product's float32 rounding can depend on the number of rows (the BLAS picks its
+    kernels by shape; one row is a matrix-vector product), so the same state can get a slightly
+    different action in a batch of 40 envs than in one of 100 or alone, and a contact-rich
+    episode amplifies the difference. Here every call flattens the input's batch, splits it
+    into blocks of ``rows`` (the last one padded with repeats of its last row, whose results
+    are dropped), calls ``policy`` on each and writes the results back: an episode's actions
+    then come out the same whether it runs alone, in a batched env of any size, in worker
+    processes or on other ranks (on the same machine and device).
+
+    Only for policies without state across calls (a planner's warm start would leak between
+    blocks). ``reset()`` is passed on to ``policy`` where it has one.
+    """
+
+    def __init__(self, policy: Callable[[TensorDictBase], TensorDictBase], rows: int = 64) -> None:
+        if not callable(policy):
+            raise TypeError(f"policy: expected a TensorDict policy, got {type(policy).__name__}")
+        check_positive_int("rows", rows)
+        self.policy, self.rows = policy, rows
+
+    def reset(self) -> None:
+        if hasattr(type(self.policy), "reset"):
+            self.policy.reset()
+
+    def __call__(self, tensordict: TensorDictBase) -> TensorDictBase:
+        flat = tensordict.reshape(-1)
+        n, parts = flat.shape[0], []
+        for low in range(0, n, self.rows):
+            block = flat[torch.arange(low, low + self.rows).clamp_max(n - 1)]
+            parts.append(self.policy(block)[: min(self.rows, n - low)])
+        tensordict.update(torch.cat(parts).reshape(tensordict.shape))
+        return tensordict
 
 
 def make_policy_module(policy: nn.Module) -> TensorDictModule:

@@ -26,6 +26,7 @@ from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.threads import threads_kept
 
 from .episodes import ResetToState, run_episodes
+from .policy import FixedRowsPolicy
 from .starts import start_episodes
 from .workers import episode_workers, start_worker_episodes
 
@@ -66,6 +67,7 @@ def real_outcomes(
     trace: Callable[[torch.Tensor], torch.Tensor] | None = None,
     seed: int = 0,
     workers: int = 1,
+    policy_rows: int | None = None,
     progress: bool = True,
     desc: str = "real episodes",
 ) -> RealOutcomes:
@@ -92,6 +94,11 @@ def real_outcomes(
     env to its episodes' starts; ``reset_to_state`` must then be picklable too. The outcomes
     are the one-env run's, episode by episode.
 
+    ``policy_rows``: call a stateless ``policy`` on blocks of exactly that many rows
+    (:class:`~rcvae_torchrl.agent.FixedRowsPolicy`), so that an episode's float32 arithmetic,
+    and with it its outcome, does not depend on how many episodes run beside it (the batch
+    size, the workers, the ranks); ``None`` (default): one call on the whole batch.
+
     Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) the ``B·R`` episodes are
     shared out over the ranks in blocks, each rank with its own ``env`` (and ``workers``
     processes) and ``policy``, and the outcomes gathered on every rank: the same as one
@@ -108,6 +115,8 @@ def real_outcomes(
             f"env: with workers={workers}, expected a function that makes the env (each worker "
             f"process builds its own), got {type(env).__name__}"
         )
+    if policy_rows is not None:
+        policy = FixedRowsPolicy(policy, policy_rows)
     b, r = len(starts), runs_per_start
     mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))
     index = torch.arange(b).repeat_interleave(r)[mine]

@@ -59,6 +59,10 @@ class CEMPlanner(MPCPlannerBase):
     True; wholly when the batch shape changes, or when :meth:`reset` is called. Without an
     ``InitTracker`` on the acting env, call :meth:`reset` between episodes.
 
+    **Devices.** Planning runs on ``env``'s device. An input on another device (a CPU simulator
+    acting with a world model on a GPU) is copied there for the plan, and the action is written
+    back on the input's own device.
+
     Args:
         env: a TorchRL env with ``batch_size=()`` and ``batch_locked=False`` (e.g. a
             ``ModelBasedEnvBase``), used only to score plans.
@@ -268,6 +272,22 @@ class CEMPlanner(MPCPlannerBase):
                 )
         return mean.select(tensordict.batch_dims, 0)
 
+    def forward(
+        self,
+        tensordict: TensorDictBase,
+        tensordict_out: TensorDictBase | None = None,
+        **kwargs,
+    ) -> TensorDictBase:
+        """Plan from ``tensordict`` (on any device) and write the action into it (or into
+        ``tensordict_out``), on the input's device."""
+        here, there = self.prior_mean.device, _device_of(tensordict)
+        if there is None or there == here:
+            return super().forward(tensordict, tensordict_out, **kwargs)
+        if "params" in kwargs or "vmap" in kwargs:
+            raise ValueError("CEMPlanner does not support functional calls (params, vmap)")
+        action = self.action_spec.project(self.planning(tensordict.to(here)))
+        return self._write_to_tensordict(tensordict, (action.to(there),), tensordict_out)
+
     def _check_actions(self, td_start: TensorDictBase, actions: Tensor) -> None:
         batch, action_shape = tuple(td_start.batch_size), tuple(self.action_shape)
         rank = len(batch) + 2 + len(action_shape)
@@ -287,6 +307,14 @@ class CEMPlanner(MPCPlannerBase):
             value = tensordict.get(key, None)
             if isinstance(value, Tensor):
                 _checks.check_finite(f"tensordict[{key!r}]", value)
+
+
+def _device_of(tensordict: TensorDictBase) -> torch.device | None:
+    """The device of ``tensordict``, or of its first tensor when it has none."""
+    if tensordict.device is not None:
+        return tensordict.device
+    first = next(iter(tensordict.values(True, True)), None)
+    return first.device if isinstance(first, Tensor) else None
 
 
 def _check_scored(scored: Tensor) -> None:

@@ -140,6 +140,9 @@ HELD_OUT_START_SEEDS = 2**31
 #: The forecast check's real episodes per condition, at least (start states x real runs each):
 #: its gap's standard error is then at most 0.05, whatever the success rate (0.5 / √100).
 CHECK_EPISODES = 100
+#: The real episodes' policy calls are made on blocks of this many rows (FixedRowsPolicy), so
+#: an episode comes out the same whatever the batched env's size, the workers or the ranks.
+POLICY_ROWS = 64
 
 
 def training_op_flop(config: StudyConfig) -> float:
@@ -371,7 +374,7 @@ class Study:
     def agent(self) -> dict[str, Any]:
         a, seed = self.cfg.agent, self.cfg.seed
         env = self.env("deterministic", time_limit=self.cfg.assess.horizon_s)
-        model = self.load_model("deterministic").cpu()
+        model = self.load_model("deterministic")  # the planner's device; the Pusher's is the CPU
         demos_path = self.dir / "agent" / "demonstrations.pt"
         if not demos_path.is_file():
             save_torch(demos_path, self._demonstrations(model, env))
@@ -511,6 +514,7 @@ class Study:
             starts,
             runs_per_start=runs,
             workers=s.real_workers,
+            policy_rows=POLICY_ROWS,
             reset_to_state=reset_to_state,
             max_steps=self.max_steps,
             seed=seed,
@@ -566,13 +570,12 @@ class Study:
         each (as many per start as the truth stage runs)."""
         model_name, variant = CONDITIONS[condition]
         starts = self.held_out_starts(condition)
-        policy = self.load_policy().to(self.device)
         report = self.assessor(model_name, variant).assess(
-            starts.to(self.device), policy=policy, seed=self.cfg.seed
+            starts.to(self.device), policy=self.load_policy().to(self.device), seed=self.cfg.seed
         )
         real = self.real_runs(
             variant,
-            make_policy_module(policy),
+            make_policy_module(self.load_policy()),  # the real Pusher runs on the CPU
             starts,
             seed=HELD_OUT_SEEDS + self.cfg.seed * 10 + list(CONDITIONS).index(condition),
             desc=f"held-out starts: {condition}",

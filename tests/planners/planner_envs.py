@@ -36,12 +36,14 @@ class PointMassEnv(EnvBase):
         success_radius: float = 0.1,
         terminate_on_success: bool = False,
         action_key: NestedKey = "action",
+        device: str | torch.device | None = None,
     ) -> None:
-        super().__init__(batch_size=())
+        super().__init__(batch_size=(), device=device)
         self.action_shape = torch.Size(action_shape)
         self.dt, self.double, self.success_radius = dt, double, success_radius
         self.terminate_on_success = terminate_on_success
         self.start = torch.full(self.action_shape, 0.8) if start is None else start
+        self.start = self.start.to(device)
         bounds = Bounded(low=low, high=high, shape=self.action_shape)
         self.full_action_spec = Composite({action_key: bounds})
         self.observation_spec = Composite(
@@ -74,8 +76,8 @@ class PointMassEnv(EnvBase):
             position=position,
             velocity=torch.zeros_like(position),
             success=(self._distance(position) < self.success_radius).unsqueeze(-1),
-            done=torch.zeros(*batch, 1, dtype=torch.bool),
-            terminated=torch.zeros(*batch, 1, dtype=torch.bool),
+            done=torch.zeros(*batch, 1, dtype=torch.bool, device=position.device),
+            terminated=torch.zeros(*batch, 1, dtype=torch.bool, device=position.device),
             batch_size=batch,
         )
 
@@ -125,8 +127,8 @@ class AnalyticPointMassEnv(PointMassEnv):
             return value.reshape(*td_start.batch_size, 1, 1, *self.action_shape).expand(shape)
 
         position, velocity = start("position"), start("velocity")
-        returns = torch.zeros(shape[: nb + 2])
-        alive = torch.ones(shape[: nb + 2], dtype=torch.bool)
+        returns = torch.zeros(shape[: nb + 2], device=actions.device)
+        alive = torch.ones(shape[: nb + 2], dtype=torch.bool, device=actions.device)
         success = torch.zeros_like(alive)
         for t in range(actions.shape[nb + 1]):
             action = actions.select(nb + 1, t).unsqueeze(nb + 1).expand(shape)

@@ -14,6 +14,7 @@ from planner_envs import (
 from tensordict import TensorDict
 
 from rcvae_torchrl.planners import CEMPlanner, make_cem_planner
+from rcvae_torchrl.planners.cem import _device_of
 
 SMALL = {"num_candidates": 64, "top_k": 8, "iterations": 3}
 LOW3, HIGH3 = torch.tensor([-0.5, -2.0, -0.2]), torch.tensor([1.5, 1.0, 0.3])
@@ -250,3 +251,27 @@ def test_proposal_joins_the_candidates_and_wins_when_best():
         CEMPlanner(env, horizon=6, seed=0, proposal=lambda t: best[:3])(td.clone())
     with pytest.raises(TypeError, match="proposal: expected a callable"):
         CEMPlanner(env, horizon=6, seed=0, proposal=3)
+
+
+def test_device_of_is_the_tensordicts_or_its_first_tensors():
+    on_cpu = torch.device("cpu")
+    assert _device_of(TensorDict(a=torch.zeros(2), batch_size=[2], device="cpu")) == on_cpu
+    assert _device_of(TensorDict(a=torch.zeros(2), batch_size=[2])) == on_cpu
+    assert _device_of(TensorDict({}, batch_size=[])) is None
+
+
+def test_an_input_on_the_envs_device_is_planned_in_place():
+    td = PointMassEnv().reset()
+    out = CEMPlanner(PointMassEnv(), horizon=5, seed=0, **SMALL)(td)
+    assert out is td and out["action"].device == torch.device("cpu")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="the env on a GPU needs CUDA")
+@pytest.mark.parametrize("env_cls", [PointMassEnv, AnalyticPointMassEnv])
+def test_a_cpu_state_is_planned_on_the_envs_device_and_answered_on_its_own(env_cls):
+    """A CPU simulator's state with the model env on a GPU: the same plan as on the GPU."""
+    td = env_cls().reset()
+    out = CEMPlanner(env_cls(device="cuda"), horizon=5, seed=0, **SMALL)(td.clone())
+    assert out["action"].device == torch.device("cpu")
+    on_gpu = CEMPlanner(env_cls(device="cuda"), horizon=5, seed=0, **SMALL)(td.to("cuda"))
+    torch.testing.assert_close(out["action"], on_gpu["action"].cpu(), rtol=0, atol=0)
