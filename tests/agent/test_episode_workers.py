@@ -7,7 +7,14 @@ from functools import partial
 import pytest
 import torch
 
-from rcvae_torchrl.agent import draw_starts, episode_workers, real_outcomes, reset_to_physics
+from rcvae_torchrl.agent import (
+    MLPPolicy,
+    draw_starts,
+    episode_workers,
+    make_policy_module,
+    real_outcomes,
+    reset_to_physics,
+)
 from rcvae_torchrl.envs import (
     ball_to_target,
     make_batched_pusher_env,
@@ -35,6 +42,15 @@ def _pusher_case(batched: bool):
     return make(), workers, make_scripted_policy(), pusher_starts(3), args
 
 
+def _learned_policy_case():
+    """A learned (matrix-product) policy called on fixed blocks of rows, in batched workers."""
+    env, workers, _, starts, args = _pusher_case(True)
+    torch.manual_seed(0)
+    mlp = MLPPolicy(14, 2, hidden=64)
+    mlp.obs_std.fill_(0.3)
+    return env, workers, make_policy_module(mlp.eval()), starts, args | dict(policy_rows=4)
+
+
 def _point_mass_case():
     make = partial(noisy_point_mass, 1.0)
     starts = draw_starts(make(), [0, 1, 2], physics=True)  # the simulator state crosses over
@@ -46,11 +62,12 @@ def _point_mass_case():
     return make(), make, _push_to_centre, starts, args
 
 
-@pytest.mark.parametrize("case", ["pusher", "batched pusher", "point_mass"])
+@pytest.mark.parametrize("case", ["pusher", "batched pusher", "learned policy", "point_mass"])
 def test_worker_outcomes_equal_the_one_env_run(case):
     cases = {
         "pusher": lambda: _pusher_case(False),
         "batched pusher": lambda: _pusher_case(True),
+        "learned policy": _learned_policy_case,
         "point_mass": _point_mass_case,
     }
     env, make, policy, starts, args = cases[case]()
