@@ -3,7 +3,7 @@
 
 from .dagger import PerturbedPolicy, dagger, label_states
 from .distill import DistillConfig, distill_policy
-from .episodes import EpisodeStats, ResetToState, run_episodes
+from .episodes import EpisodeStats, ResetToState, run_episodes, seed_episodes
 from .loop import AgentConfig, AgentResult, AgentTask, run_model_based_agent
 from .mpc import PlannerConfig, make_mpc_policy, policy_proposal
 from .policy import (
@@ -39,6 +39,7 @@ __all__ = [
     "EpisodeStats",
     "ResetToState",
     "run_episodes",
+    "seed_episodes",
     # start states in the real env
     "MODEL_FIELDS",
     "draw_starts",

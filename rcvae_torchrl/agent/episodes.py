@@ -9,12 +9,13 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
+from torchrl.envs.batched_envs import BatchedEnvBase
 from tqdm.auto import tqdm
 
 from rcvae_torchrl._checks import check_positive_int
 from rcvae_torchrl.data import TRAJ_KEY, check_actions, seed_env
 
-__all__ = ["EpisodeStats", "ResetToState", "run_episodes"]
+__all__ = ["EpisodeStats", "ResetToState", "run_episodes", "seed_episodes"]
 
 #: ``(env, start) -> tensordict``: reset ``env`` and put it in the given start state (a row of
 #: ``starts``: an observation, or a TensorDict from :func:`~rcvae_torchrl.agent.draw_starts`).
@@ -32,6 +33,17 @@ class EpisodeStats:
     @property
     def success_rate(self) -> float:
         return self.success.float().mean().item()
+
+
+def seed_episodes(env: EnvBase, seeds: Sequence[int]) -> None:
+    """Seed ``env`` for the episodes ``seeds``: an env with ``batch_size=[]`` takes one seed; a
+    batched env ``[N]`` takes ``N``, with ``env.set_seeds(seeds)`` when it has it (one seed per
+    sub-env; a TorchRL ``ParallelEnv`` or ``SerialEnv`` would only pass the call on to its
+    sub-envs), else with :func:`~rcvae_torchrl.data.seed_env` of the first."""
+    if env.batch_size and not isinstance(env, BatchedEnvBase) and hasattr(env, "set_seeds"):
+        env.set_seeds([int(s) for s in seeds])
+    else:
+        seed_env(env, int(seeds[0]))
 
 
 def run_episodes(
@@ -57,6 +69,13 @@ def run_episodes(
     ``max_steps``; it succeeds when ``success`` holds at any step: ``success`` names a flag the
     env writes under ``"next"`` (default ``"success"``), or is a function of the observations
     ``[T, S] -> [T]`` bool (for envs without a success flag).
+
+    A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator with ``set_seeds``)
+    runs the episodes ``N`` at a time, side by side, with one policy call per step for all of
+    them (a planner plans all ``N`` states at once); each sub-env is seeded with its episode's
+    seed (:func:`seed_episodes`), the last group is padded with repeats of its last episode
+    (dropped), and a sub-env's episode ends at its first ``done``. With a policy that acts on
+    each state alone (no shared randomness) the episodes equal the one-env run's.
     """
     check_positive_int("max_steps", max_steps)
     if len(seeds) == 0:
@@ -68,6 +87,10 @@ def run_episodes(
             )
         if reset_to_state is None:
             raise ValueError("reset_to_state: expected a function to start from given states")
+    if env.batch_size:
+        return _batched_episodes(
+            env, policy, seeds, starts, reset_to_state, max_steps, success, first_id, progress, desc
+        )
     wins, steps, parts = [], [], []
     for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
         seed_env(env, int(seed))
@@ -79,21 +102,76 @@ def run_episodes(
                 max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
             )
         check_actions(env, episode)
-        if callable(success):
-            won = success(episode["next", "observation"])
-            if not isinstance(won, torch.Tensor) or won.dtype != torch.bool:
-                got = won.dtype if isinstance(won, torch.Tensor) else type(won).__name__
-                raise TypeError(f"success: expected a bool tensor [T] of the episode, got {got}")
-        else:
-            won = episode["next", success]
-        if won.numel() != episode.shape[0]:
-            raise ValueError(
-                f"success: expected one flag per step of the episode ({episode.shape[0]}), got "
-                f"shape {tuple(won.shape)}"
-            )
-        won = won.reshape(-1)
+        won = _success_flags(episode, success)
         wins.append(bool(won.any()))
         steps.append(int(won.float().argmax()) + 1 if won.any() else episode.shape[0])
         episode[TRAJ_KEY] = torch.full(episode.shape, first_id + i, dtype=torch.int64)
         parts.append(episode.exclude("is_init"))
+    return EpisodeStats(torch.tensor(wins), torch.tensor(steps), torch.cat(parts))
+
+
+def _success_flags(
+    episode: TensorDictBase, success: str | Callable[[torch.Tensor], torch.Tensor]
+) -> torch.Tensor:
+    """The per-step success flags of ``episode`` (shape ``episode.shape``), from the env's
+    flag named ``success`` or a function of the observations."""
+    if callable(success):
+        won = success(episode["next", "observation"])
+        if not isinstance(won, torch.Tensor) or won.dtype != torch.bool:
+            got = won.dtype if isinstance(won, torch.Tensor) else type(won).__name__
+            raise TypeError(f"success: expected a bool tensor [T] of the episode, got {got}")
+    else:
+        won = episode["next", success]
+    if won.numel() != episode.numel():
+        raise ValueError(
+            f"success: expected one flag per step of the episode ({episode.numel()}), got "
+            f"shape {tuple(won.shape)}"
+        )
+    return won.reshape(episode.shape)
+
+
+def _batched_episodes(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    seeds: Sequence[int],
+    starts: torch.Tensor | TensorDictBase | None,
+    reset_to_state: ResetToState | None,
+    max_steps: int,
+    success: str | Callable[[torch.Tensor], torch.Tensor],
+    first_id: int,
+    progress: bool,
+    desc: str,
+) -> EpisodeStats:
+    """:func:`run_episodes` in a batched env ``[N]``: ``N`` episodes side by side at a time."""
+    if len(env.batch_size) != 1:
+        raise ValueError(f"env: expected batch_size [] or [N], got {list(env.batch_size)}")
+    n, total = env.batch_size[0], len(seeds)
+    wins, steps, parts = [], [], []
+    for low in tqdm(range(0, total, n), desc=desc, disable=not progress, leave=False):
+        rows = torch.arange(low, low + n).clamp_max(total - 1)  # pad with the last episode
+        seed_episodes(env, [int(seeds[i]) for i in rows])
+        td = env.reset() if starts is None else reset_to_state(env, starts[rows])
+        if hasattr(type(policy), "reset"):
+            policy.reset()
+        with torch.no_grad():
+            episode = env.rollout(
+                max_steps,
+                policy,
+                auto_reset=False,
+                tensordict=td,
+                break_when_any_done=False,
+                break_when_all_done=True,
+            )
+        check_actions(env, episode)
+        won = _success_flags(episode, success)
+        done = episode["next", "done"].reshape(episode.shape)
+        full = torch.full_like(done[:, 0], done.shape[1], dtype=torch.int64)
+        length = torch.where(done.any(1), done.float().argmax(1) + 1, full)
+        for j in range(min(n, total - low)):
+            end = int(length[j])
+            flags, kept = won[j, :end], episode[j, :end]
+            wins.append(bool(flags.any()))
+            steps.append(int(flags.float().argmax()) + 1 if flags.any() else end)
+            kept[TRAJ_KEY] = torch.full(kept.shape, first_id + low + j, dtype=torch.int64)
+            parts.append(kept.exclude("is_init"))
     return EpisodeStats(torch.tensor(wins), torch.tensor(steps), torch.cat(parts))

@@ -25,11 +25,10 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
-from torchrl.envs.batched_envs import BatchedEnvBase
 
 from rcvae_torchrl.data import seed_env
 
-from .episodes import ResetToState
+from .episodes import ResetToState, seed_episodes
 
 __all__ = [
     "MODEL_FIELDS",
@@ -179,13 +178,8 @@ def start_episodes(
     tensordict, ready for ``env.rollout(T, policy, auto_reset=False, tensordict=td)``.
 
     An env with ``batch_size=[]`` takes one seed and one start row; a batched env ``[N]``
-    takes ``N`` of each, seeded with ``env.set_seeds(seeds)`` when it has it (one seed per
-    sub-env; a TorchRL ``ParallelEnv`` or ``SerialEnv`` would only pass the call on to its
-    sub-envs), else with :func:`~rcvae_torchrl.data.seed_env` of the first. Then
+    takes ``N`` of each, seeded by :func:`~rcvae_torchrl.agent.seed_episodes`. Then
     ``reset_to_state(env, starts)``.
     """
-    if env.batch_size and not isinstance(env, BatchedEnvBase) and hasattr(env, "set_seeds"):
-        env.set_seeds([int(s) for s in seeds])
-    else:
-        seed_env(env, int(seeds[0]))
+    seed_episodes(env, seeds)
     return reset_to_state(env, starts)

@@ -185,10 +185,12 @@ class Study:
         """The real Pusher of ``variant`` with the study's randomness and success radius."""
         return make_env(variant, self.cfg.data, self.cfg.assess.success_radius, **kwargs)
 
-    def batched_env(self, variant: str, num_envs: int) -> Callable[[], EnvBase]:
+    def batched_env(
+        self, variant: str, num_envs: int, *, terminate_on_success: bool = False
+    ) -> Callable[[], EnvBase]:
         """A function that makes ``num_envs`` real Pushers of ``variant`` in one batched env,
-        episodes of the horizon's length that go on after success (picklable, so worker
-        processes can build it)."""
+        episodes of the horizon's length that go on after success unless
+        ``terminate_on_success`` (picklable, so worker processes can build it)."""
         d, s = self.cfg.data, self.cfg.assess
         return functools.partial(
             make_batched_pusher_env,
@@ -196,7 +198,7 @@ class Study:
             variant,
             success_radius=s.success_radius,
             time_limit=s.horizon_s,
-            terminate_on_success=False,
+            terminate_on_success=terminate_on_success,
             **variant_randomness(variant, d),
         )
 
@@ -349,9 +351,13 @@ class Study:
         return result.history
 
     def _demonstrations(self, model: RCVAEEnsemble, env: EnvBase) -> dict[str, Any]:
-        """MPC episodes with the executed action perturbed: observations and planner labels."""
+        """MPC episodes with the executed action perturbed: observations and planner labels
+        (``agent.demo_envs`` of them side by side in a batched env)."""
         a, seed = self.cfg.agent, self.cfg.seed
         behaviour = PerturbedPolicy(self.planner(model, env), a.action_noise, seed=seed)
+        if a.demo_envs > 1:
+            side_by_side = min(a.demo_envs, a.mpc_episodes)
+            env = self.batched_env("deterministic", side_by_side, terminate_on_success=True)()
         stats = run_episodes(
             env,
             behaviour,

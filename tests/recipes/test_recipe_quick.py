@@ -351,3 +351,26 @@ def test_the_unscored_start_states_of_each_condition(runs):
         assert torch.equal(unscored, study.held_out_starts(condition))
         scored = study.starts(condition)
         assert not (unscored[:, None] == scored[None]).all(-1).any()  # no scored start among them
+
+
+def test_demonstrations_side_by_side(runs):
+    """agent.demo_envs: the MPC episodes in one batched env, one plan of all states per step;
+    every episode recorded (a padded last group dropped), the same under the same seed."""
+    from rcvae_torchrl.io import read_json
+    from recipes.pusher_competency.config import study_config
+
+    saved = read_json(runs["dir"] / "study_config.json")
+    saved["agent"] |= {"mpc_episodes": 3, "demo_envs": 2}
+    config = study_config({**saved, "run_dir": runs["dir"]})
+    study = pipeline.Study(config, runs["dir"], torch.device("cpu"), progress=False)
+    model = study.load_model("deterministic")
+    env = study.env("deterministic", time_limit=config.assess.horizon_s)
+    demos = [study._demonstrations(model, env) for _ in range(2)]
+    info, pairs = demos[0]["info"], int(demos[0]["info"]["pairs"])
+    assert demos[0]["observations"].shape == (pairs, 14) and demos[0]["labels"].shape == (pairs, 2)
+    assert 3 <= pairs <= 3 * study.max_steps
+    assert info["mpc_noisy_success_rate"] * 3 == pytest.approx(
+        round(info["mpc_noisy_success_rate"] * 3)
+    )
+    for key in ("observations", "labels"):
+        assert torch.equal(demos[0][key], demos[1][key]), key
