@@ -275,3 +275,16 @@ def test_a_cpu_state_is_planned_on_the_envs_device_and_answered_on_its_own(env_c
     assert out["action"].device == torch.device("cpu")
     on_gpu = CEMPlanner(env_cls(device="cuda"), horizon=5, seed=0, **SMALL)(td.to("cuda"))
     torch.testing.assert_close(out["action"], on_gpu["action"].cpu(), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("env_cls", [PointMassEnv, AnalyticPointMassEnv])
+def test_an_input_on_another_device_takes_the_copy_path(env_cls):
+    """An input whose device differs from the env's (``cpu:0`` against ``cpu`` on any machine)
+    is copied to the env's device for the plan: the same action, written into the input."""
+    td = env_cls().reset()
+    elsewhere = td.clone().to("cpu:0")
+    assert elsewhere.device != torch.device("cpu")
+    out = CEMPlanner(env_cls(), horizon=5, seed=0, **SMALL)(elsewhere)
+    in_place = CEMPlanner(env_cls(), horizon=5, seed=0, **SMALL)(td)
+    assert out is elsewhere and out.device == torch.device("cpu:0")
+    torch.testing.assert_close(out["action"], in_place["action"], rtol=0, atol=0)
