@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -130,6 +130,48 @@ def _success_flags(
     return won.reshape(episode.shape)
 
 
+def episode_groups(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    seeds: Sequence[int],
+    start: Callable[[EnvBase, list[int], torch.Tensor], TensorDictBase],
+    max_steps: int,
+    *,
+    until_all_done: bool | None = None,
+    progress: bool = True,
+    desc: str = "episodes",
+) -> Iterator[tuple[int, int, TensorDictBase]]:
+    """The episodes ``seeds`` in a batched env, ``N = env.batch_size.numel()`` at a time: each
+    group begun by ``start(env, its seeds, its episode indices)`` (the last group padded with
+    repeats of its last episode), the policy reset (``policy.reset()`` where its class has
+    one), then rolled out for ``max_steps`` (a sub-env that is done stays done; with
+    ``until_all_done`` the rollout stops once all are). Yields ``(first episode index, episodes
+    kept, rollout [N, T])``."""
+    n, total = env.batch_size.numel(), len(seeds)
+    for low in tqdm(range(0, total, n), desc=desc, disable=not progress, leave=False):
+        rows = torch.arange(low, low + n).clamp_max(total - 1)  # pad with the last episode
+        td = start(env, [int(seeds[i]) for i in rows], rows)
+        if hasattr(type(policy), "reset"):
+            policy.reset()
+        with torch.no_grad():
+            episode = env.rollout(
+                max_steps,
+                policy,
+                auto_reset=False,
+                tensordict=td,
+                break_when_any_done=False,
+                break_when_all_done=until_all_done,
+            )
+        yield low, min(n, total - low), episode.reshape(n, episode.shape[-1])
+
+
+def episode_lengths(done: torch.Tensor) -> torch.Tensor:
+    """The length ``[N]`` of each sub-env's episode in a batched rollout's ``done`` ``[N, T]``:
+    up to its first done, or the whole rollout."""
+    full = torch.full_like(done[:, 0], done.shape[1], dtype=torch.int64)
+    return torch.where(done.any(1), done.float().argmax(1) + 1, full)
+
+
 def _batched_episodes(
     env: EnvBase,
     policy: Callable[[TensorDictBase], TensorDictBase],
@@ -145,29 +187,20 @@ def _batched_episodes(
     """:func:`run_episodes` in a batched env ``[N]``: ``N`` episodes side by side at a time."""
     if len(env.batch_size) != 1:
         raise ValueError(f"env: expected batch_size [] or [N], got {list(env.batch_size)}")
-    n, total = env.batch_size[0], len(seeds)
+
+    def start(env: EnvBase, group: list[int], rows: torch.Tensor) -> TensorDictBase:
+        seed_episodes(env, group)
+        return env.reset() if starts is None else reset_to_state(env, starts[rows])
+
     wins, steps, parts = [], [], []
-    for low in tqdm(range(0, total, n), desc=desc, disable=not progress, leave=False):
-        rows = torch.arange(low, low + n).clamp_max(total - 1)  # pad with the last episode
-        seed_episodes(env, [int(seeds[i]) for i in rows])
-        td = env.reset() if starts is None else reset_to_state(env, starts[rows])
-        if hasattr(type(policy), "reset"):
-            policy.reset()
-        with torch.no_grad():
-            episode = env.rollout(
-                max_steps,
-                policy,
-                auto_reset=False,
-                tensordict=td,
-                break_when_any_done=False,
-                break_when_all_done=True,
-            )
+    groups = episode_groups(
+        env, policy, seeds, start, max_steps, until_all_done=True, progress=progress, desc=desc
+    )
+    for low, keep, episode in groups:
         check_actions(env, episode)
         won = _success_flags(episode, success)
-        done = episode["next", "done"].reshape(episode.shape)
-        full = torch.full_like(done[:, 0], done.shape[1], dtype=torch.int64)
-        length = torch.where(done.any(1), done.float().argmax(1) + 1, full)
-        for j in range(min(n, total - low)):
+        length = episode_lengths(episode["next", "done"].reshape(episode.shape))
+        for j in range(keep):
             end = int(length[j])
             flags, kept = won[j, :end], episode[j, :end]
             wins.append(bool(flags.any()))

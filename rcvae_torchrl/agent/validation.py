@@ -17,7 +17,6 @@ from functools import partial
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
-from tqdm.auto import tqdm
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_non_negative_int, check_positive_int
@@ -25,7 +24,7 @@ from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.threads import threads_kept
 
-from .episodes import ResetToState, run_episodes
+from .episodes import ResetToState, episode_groups, episode_lengths, run_episodes
 from .policy import FixedRowsPolicy
 from .starts import start_episodes
 from .workers import episode_workers, start_worker_episodes
@@ -216,19 +215,18 @@ def _batched_outcomes(
 ) -> tuple:
     """Episodes ``index`` (start rows) with ``seeds``, ``n = env.batch_size.numel()`` at a
     time, each chunk begun with ``start(env, seeds[n], starts[n])``: outcomes ``[len]``."""
-    n, total = env.batch_size.numel(), len(seeds)
     parts = []
-    for lo in tqdm(range(0, total, n), desc=desc, disable=not progress, leave=False):
-        rows = torch.arange(lo, lo + n).clamp_max(total - 1)  # pad with the last episode
-        td = start(env, [int(seeds[i]) for i in rows], starts[index[rows]])
-        if hasattr(type(policy), "reset"):
-            policy.reset()
-        with torch.no_grad():
-            episode = env.rollout(
-                max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=False
-            )
-        keep = min(n, total - lo)
-        out = _chunk_outcomes(episode.reshape(n, episode.shape[-1]), success, trace, max_steps)
+    groups = episode_groups(
+        env,
+        policy,
+        seeds,
+        lambda env, group, rows: start(env, group, starts[index[rows]]),
+        max_steps,
+        progress=progress,
+        desc=desc,
+    )
+    for _, keep, episode in groups:
+        out = _chunk_outcomes(episode, success, trace, max_steps)
         parts.append([None if t is None else t[:keep] for t in dataclasses.astuple(out)])
     return tuple(None if t[0] is None else torch.cat(t) for t in zip(*parts))
 
@@ -243,11 +241,7 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
         won = episode["next", success].reshape(episode.shape)
     won = won & ~ended
     steps_run = episode.shape[1]
-    length = torch.where(
-        done.any(1),
-        done.float().argmax(1) + 1,
-        torch.full_like(done[:, 0], steps_run, dtype=torch.int64),
-    )
+    length = episode_lengths(done)
     hit = won.any(1)
     first = torch.where(hit, won.float().argmax(1), torch.full_like(length, max_steps))
     steps = torch.where(hit, first + 1, length)

@@ -142,8 +142,9 @@ def validation(
         out[c] = scores
     p = torch.cat([forecasts[c]["p_success"] for c in forecasts])
     overall = validate_forecasts(p, success, mask)
-    overall.update(_oracle(success, mask))  # no Spearman ceiling: pooled, starts of one run
-    # and of many give the rates' reliability no one meaning
+    # no Spearman ceiling overall: pooled, starts of one run and of many give the rates'
+    # reliability no one meaning
+    overall.update(_oracle(success, mask))
     overall["bss_overall"] = overall["brier_skill"]
     overall["bss_tasks"] = _task_skill(p, success, mask)
     out["overall"] = overall
