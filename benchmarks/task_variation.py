@@ -20,10 +20,13 @@ the episode's actuator strength) and each deadline:
 
     python benchmarks/task_variation.py [--noise 0.5 1.0 1.5] [--strength 0.2,0.4 ...]
                                         [--deadlines 4 8 12] [--starts 40] [--runs 30] [--quick]
-                                        [--out task_variation]
+                                        [--agent RUN_DIR] [--out task_variation]
 
 ``--strength`` adds settings with an episode-level actuator strength uniform in ``low,high``
-and no per-step noise (``low,high,std`` for both); each prints one table. Writes
+and no per-step noise (``low,high,std`` for both); each prints one table. ``--agent`` takes
+the policy of a finished study run (its distilled agent, trained in the deterministic Pusher
+and so the same whatever the stochastic setting) instead of the scripted pusher: the ceiling
+the study's own agent leaves. Writes
 ``benchmarks/results/<out>.json`` (default ``task_variation``; ``<out>_quick`` with ``--quick``).
 """
 
@@ -31,11 +34,13 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
+from pathlib import Path
 
 import torch
 from _report import conditions, print_table, write_json
 
-from rcvae_torchrl.agent import real_outcomes
+from rcvae_torchrl.agent import make_policy_module, real_outcomes
 from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import seed_env
 from rcvae_torchrl.envs import (
@@ -46,6 +51,9 @@ from rcvae_torchrl.envs import (
     reset_to_state,
 )
 from rcvae_torchrl.envs.scripted import make_scripted_policy
+from rcvae_torchrl.io import read_json
+from recipes.pusher_competency.config import study_config
+from recipes.pusher_competency.pipeline import Study
 
 START_SEEDS = 1000  # start states of variant v: seeds START_SEEDS + 1000 v + i
 REAL_SEEDS = 7
@@ -69,8 +77,10 @@ def first_steps(
     noise: float,
     steps: int,
     strength: tuple[float, float] | None = None,
+    policy: Callable | None = None,
 ):
-    """First success step ``[B, R]`` of the scripted pusher (``steps`` when none)."""
+    """First success step ``[B, R]`` of ``policy`` (a policy module; default the scripted
+    pusher), ``steps`` when none."""
     stochastic = variant == "stochastic"
     env = make_batched_pusher_env(
         min(MAX_ENVS, len(starts) * runs),
@@ -82,7 +92,7 @@ def first_steps(
     )
     out = real_outcomes(
         env,
-        make_scripted_policy(),
+        make_scripted_policy() if policy is None else policy,
         starts,
         runs_per_start=runs,
         reset_to_state=reset_to_state,
@@ -92,6 +102,13 @@ def first_steps(
         progress=False,
     )
     return out.first_step
+
+
+def agent_policy(run_dir: Path) -> Callable:
+    """The agent of the finished study run ``run_dir`` as a policy module."""
+    config = study_config(read_json(run_dir / "study_config.json", "run config"))
+    study = Study(config, run_dir, torch.device("cpu"), progress=False)
+    return make_policy_module(study.load_policy())
 
 
 def ceiling(success: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:
@@ -144,6 +161,13 @@ def main() -> None:
     parser.add_argument("--deadlines", type=float, nargs="+", default=[4.0, 8.0, 12.0])
     parser.add_argument("--starts", type=int, default=40)
     parser.add_argument("--runs", type=int, default=30)
+    parser.add_argument(
+        "--agent",
+        type=Path,
+        default=None,
+        metavar="RUN_DIR",
+        help="the distilled agent of a finished study run instead of the scripted pusher",
+    )
     parser.add_argument("--quick", action="store_true", help="8 starts, 5 runs, one noise")
     parser.add_argument(
         "--out", default="task_variation", help="results/<out>.json (<out>_quick with --quick)"
@@ -161,14 +185,15 @@ def main() -> None:
         settings.append((f"strength {values[0]}-{values[1]} noise {noise}", noise, values[:2]))
     steps = round(max(args.deadlines) / CONTROL_TIMESTEP)
     deadlines = [round(d / CONTROL_TIMESTEP) for d in args.deadlines]
+    policy = None if args.agent is None else agent_policy(args.agent)
     fixed = {  # the deterministic envs: one run per start (the outcome is fixed)
-        v: first_steps(v, draw(v, args.starts, i), 1, 0.0, steps)
+        v: first_steps(v, draw(v, args.starts, i), 1, 0.0, steps, policy=policy)
         for i, v in ((0, "deterministic"), (2, "ood"))
     }
     stochastic = draw("stochastic", args.starts, 1)
     results, started = {}, time.perf_counter()
     for name, noise, strength in settings:
-        first = first_steps("stochastic", stochastic, args.runs, noise, steps, strength)
+        first = first_steps("stochastic", stochastic, args.runs, noise, steps, strength, policy)
         rows, per_deadline = [], {}
         for seconds, k in zip(args.deadlines, deadlines):
             won = first < k
@@ -199,7 +224,7 @@ def main() -> None:
     write_json(
         f"{args.out}_quick" if args.quick else args.out,
         {
-            "settings": vars(args),
+            "settings": {**vars(args), "agent": None if args.agent is None else str(args.agent)},
             "conditions": conditions(),
             "seconds": time.perf_counter() - started,
             "deterministic_rate": {
