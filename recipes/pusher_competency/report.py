@@ -530,7 +530,8 @@ def _recalibration_text(scores) -> list[str]:
         f"Not the forecast above, but what a Platt map fitted on real episodes would make of it: "
         f"each condition's start states are split into {RECALIBRATION_FOLDS} folds and each "
         "fold's forecasts are recalibrated with the map fitted on the other folds' episodes, so "
-        "no start is recalibrated with its own outcomes. The checks score the forecast itself.",
+        "no start is recalibrated with its own outcomes. The checks score the forecast itself "
+        "(those marked through the held-out map: through the map below).",
         "",
         head,
         "|:---|" + "---:|" * (2 * len(keys)),

@@ -22,7 +22,14 @@ from rcvae_torchrl.competency import (
 )
 from rcvae_torchrl.training import OutcomeCheck
 
-__all__ = ["TARGETS", "competency_surfaces", "trust_checks", "validation", "validation_figures"]
+__all__ = [
+    "TARGETS",
+    "THROUGH_MAP",
+    "competency_surfaces",
+    "trust_checks",
+    "validation",
+    "validation_figures",
+]
 
 #: Recalibration (reported beside the forecast, never in its place): start states in this many
 #: folds, each fold recalibrated by a Platt map fitted on the others' real episodes.
@@ -251,6 +258,39 @@ def trust_checks(scores, surfaces) -> dict[str, dict[str, Any]]:
     for c, s in surfaces.items():
         out[f"competency surface: largest gap <= {TARGETS['gap']} ({c})"] = _met(
             s["max_gap"], s["max_gap"] <= TARGETS["gap"]
+        )
+    out.update(_held_out_map_checks(scores))
+    return out
+
+
+#: The suffix of a check that scores the forecast through the held-out map.
+THROUGH_MAP = "through the held-out map"
+
+
+def _held_out_map_checks(scores) -> dict[str, dict[str, Any]]:
+    """The calibration and skill targets for the scored forecasts through the Platt map fitted
+    on start states the scores do not use (``recalibrated_held_out``: a recalibration with an
+    honest split), for the conditions that have one: checks of their own, beside the
+    forecast's, never in their place."""
+    out = {}
+    for c, s in scores.items():
+        mapped = s.get("recalibrated_held_out")
+        if c == "overall" or not mapped:
+            continue
+        out[f"|forecast - empirical| <= {TARGETS['gap']:.2f} {THROUGH_MAP} ({c})"] = _met(
+            mapped["gap"], mapped["gap"] <= TARGETS["gap"]
+        )
+        if 0 < s["real"] < 1:
+            out[f"Brier skill vs the condition's base rate > 0 {THROUGH_MAP} ({c})"] = _met(
+                mapped["brier_skill"], mapped["brier_skill"] > 0
+            )
+    mapped = scores["overall"].get("recalibrated_held_out")
+    if mapped:
+        out[f"AUROC >= {TARGETS['auroc']} (all episodes) {THROUGH_MAP}"] = _met(
+            mapped["auroc"], mapped["auroc"] >= TARGETS["auroc"]
+        )
+        out[f"Brier skill vs the overall base rate >= {TARGETS['bss_overall']} {THROUGH_MAP}"] = (
+            _met(mapped["brier_skill"], mapped["brier_skill"] >= TARGETS["bss_overall"])
         )
     return out
 

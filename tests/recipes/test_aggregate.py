@@ -54,11 +54,20 @@ def test_nested_scores_are_aggregated():
     first, second = _summary(0.02, True), _summary(0.06, True)
     for s, gap in ((first, 0.01), (second, 0.03)):
         s["validation"]["stochastic"]["recalibrated"] = {"gap": gap}
-        s["validation"]["stochastic"]["recalibrated_held_out"] = {"gap": 2 * gap}
+        mapped = {"gap": 2 * gap, "forecast": 0.5 - 2 * gap}  # too pessimistic after the map
+        s["validation"]["stochastic"]["recalibrated_held_out"] = mapped
     result = aggregate({"seed0": first, "seed1": second})
     assert result["table"]["stochastic"]["recalibrated.gap"]["mean"] == pytest.approx(0.02)
     held_out = result["table"]["stochastic"]["recalibrated_held_out.gap"]
     assert held_out["mean"] == pytest.approx(0.04)
+    # the mean gap over seeds through each seed's held-out map, beside the forecast's own
+    name = "mean |forecast - real| over seeds <= 0.05 through the held-out map (stochastic)"
+    through = result["checks"][name]
+    assert through["mean"] == pytest.approx(0.04) and through["met"] == 1
+    assert through["signed_mean"] == pytest.approx(-0.04)
+    assert result["checks"]["mean |forecast - real| over seeds <= 0.05 (stochastic)"]["met"] == 1
+    second["validation"]["stochastic"].pop("recalibrated_held_out")  # one seed without a map
+    assert name not in aggregate({"seed0": first, "seed1": second})["checks"]
     assert "recalibrated.gap" not in result["table"]["overall"]
     assert "recalibrated_held_out.gap" not in result["table"]["overall"]
 

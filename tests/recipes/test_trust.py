@@ -10,6 +10,7 @@ from scipy import stats
 
 from rcvae_torchrl.competency import PlattMap
 from recipes.pusher_competency.trust import (
+    THROUGH_MAP,
     competency_surfaces,
     trust_checks,
     validation,
@@ -144,3 +145,40 @@ def test_a_map_fitted_elsewhere_recalibrates_the_scored_forecasts_beside_them():
     ) / 256  # episode-weighted: 8, 8 x 30 and 8 episodes
     assert pooled["forecast"] == pytest.approx(expected)
     assert pooled["brier_skill"] > plain["overall"]["brier_skill"]
+
+
+def test_the_held_out_map_has_checks_of_its_own_beside_the_forecasts():
+    """Through a map fitted on other start states, the calibration and skill targets are
+    checked again, each named as such; the forecast's own checks stay as they were."""
+    forecasts, truths = _case(perfect=True)
+    for c in CONDITIONS:  # ranks right, but too pessimistic: 0.6 and 0.2 for 1 and 0
+        forecasts[c]["p_success"] = torch.where(forecasts[c]["p_success"] > 0, 0.6, 0.2)
+    surfaces = competency_surfaces(forecasts, truths, [0.03], [20])
+    plain = trust_checks(validation(forecasts, truths, radius=0.03), surfaces)
+    assert not any(THROUGH_MAP in name for name in plain)
+    sharper = PlattMap(3.0, 1.5)  # 0.6 -> 0.938, 0.2 -> 0.065
+    maps = {c: sharper for c in CONDITIONS}
+    checks = trust_checks(validation(forecasts, truths, 0.03, held_out_maps=maps), surfaces)
+    assert {k: v for k, v in checks.items() if THROUGH_MAP not in k} == plain
+    through = {k: v for k, v in checks.items() if THROUGH_MAP in k}
+    for c in CONDITIONS:
+        gap = through[f"|forecast - empirical| <= 0.10 through the held-out map ({c})"]
+        assert gap["met"] and gap["value"] < 0.01
+        own = through[
+            f"Brier skill vs the condition's base rate > 0 through the held-out map ({c})"
+        ]
+        assert own["met"] and own["value"] > 0.9
+    assert through["AUROC >= 0.75 (all episodes) through the held-out map"]["met"]
+    overall = through["Brier skill vs the overall base rate >= 0.3 through the held-out map"]
+    assert (
+        overall["met"]
+        and overall["value"] > plain["Brier skill vs the overall base rate >= 0.3"]["value"]
+    )
+    # a map for some conditions only: no pooled checks, the others' own
+    some = trust_checks(
+        validation(forecasts, truths, 0.03, held_out_maps={"stochastic": sharper}), surfaces
+    )
+    assert sorted(k for k in some if THROUGH_MAP in k) == [
+        "Brier skill vs the condition's base rate > 0 through the held-out map (stochastic)",
+        "|forecast - empirical| <= 0.10 through the held-out map (stochastic)",
+    ]
