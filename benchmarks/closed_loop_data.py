@@ -42,11 +42,10 @@ from rcvae_torchrl.data import (
     split_episodes,
 )
 from rcvae_torchrl.envs import make_pusher_env
-from rcvae_torchrl.io import load_torch, read_json
+from rcvae_torchrl.io import load_torch
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.training import save_ensemble, train_ensemble
-from recipes.pusher_competency.config import study_config
-from recipes.pusher_competency.pipeline import Study
+from recipes.pusher_competency.pipeline import Study, study_of_run
 from recipes.pusher_competency.pusher import (
     CONDITIONS,
     MODEL_FUNCTIONS,
@@ -60,16 +59,15 @@ AGENT_DATA_SEED = 77_000
 FINISHED = ("data", "models", "agent/policy.pt", "forecast", "truth")
 
 
-def run_config(run_dir: Path):
-    """The study settings of ``run_dir`` (or of the run its ``agent/`` was made in), with the
-    start-state count of its forecasts."""
-    path = run_dir / "study_config.json"
-    if not path.is_file():
-        path = (run_dir / "agent").resolve().parent / "study_config.json"
-    saved = read_json(path, "run config")
+def run_study(run_dir: Path, work: Path | None = None) -> Study:
+    """The study of ``run_dir`` (with the settings of the run its ``agent/`` was made in where it
+    records none, and the start-state count of its forecasts), in ``work`` if given."""
+    origin = run_dir
+    if not (run_dir / "study_config.json").is_file():
+        origin = (run_dir / "agent").resolve().parent
     starts = load_torch(run_dir / "forecast" / "deterministic.pt", "forecast")["starts"]
-    saved["assess"]["start_states"] = len(starts)
-    return saved
+    changes = {"assess": {"start_states": len(starts)}}
+    return study_of_run(work or run_dir, changes=changes, settings_from=origin)
 
 
 def agent_episodes(study: Study, model_name: str, episodes: int):
@@ -98,9 +96,7 @@ def agent_episodes(study: Study, model_name: str, episodes: int):
 def refit(run_dir: Path, work: Path, model_name: str, args) -> dict:
     """Fine-tune ``run_dir``'s world model ``model_name`` on its data plus the agent's episodes;
     saved in ``work/models``. Returns the seconds spent and the validation losses."""
-    saved = run_config(run_dir)
-    config = study_config({**saved, "run_dir": str(run_dir)})
-    study = Study(config, run_dir, torch.device("cpu"), progress=False)
+    study = run_study(run_dir)
     start = time.perf_counter()
     extra_train, extra_val = agent_episodes(study, model_name, args.episodes)
     train, val = study.episodes(model_name)
@@ -148,9 +144,7 @@ def one_run(run_dir: Path, args) -> list[dict]:
     for part in ("data", "agent"):
         if not (work / part).exists():
             (work / part).symlink_to((run_dir / part).resolve())
-    saved = run_config(run_dir)
-    config = study_config({**saved, "run_dir": str(work)})
-    study = Study(config, work, torch.device("cpu"), progress=False)
+    study = run_study(run_dir, work)
     fits, rows = {}, []
     for condition in args.conditions:
         model_name = CONDITIONS[condition][0]

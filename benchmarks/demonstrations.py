@@ -30,16 +30,11 @@ from _report import (
     write_json,
 )
 
-from rcvae_torchrl.io import read_json
-from recipes.pusher_competency.config import study_config
-from recipes.pusher_competency.pipeline import Study
+from recipes.pusher_competency.pipeline import Study, study_of_run
 
 
 def _study(run_dir: Path, demo_envs: int, device: torch.device) -> Study:
-    saved = read_json(run_dir / "study_config.json")
-    saved["agent"]["demo_envs"] = demo_envs
-    config = study_config({**saved, "run_dir": str(run_dir)})
-    return Study(config, run_dir, device, progress=False)
+    return study_of_run(run_dir, device, changes={"agent": {"demo_envs": demo_envs}})
 
 
 def measure(

@@ -33,9 +33,8 @@ from _report import conditions, print_table, write_json
 from rcvae_torchrl.data import episode_spans
 from rcvae_torchrl.rollout import imagine
 from rcvae_torchrl.training import OutcomeCheck
-from recipes.pusher_competency.config import study_config
 from recipes.pusher_competency.data import replay_episodes
-from recipes.pusher_competency.pipeline import CHECKED_CONDITIONS, Study
+from recipes.pusher_competency.pipeline import CHECKED_CONDITIONS, Study, study_of_run
 from recipes.pusher_competency.pusher import CONDITIONS, success_boundary, variant_randomness
 
 REPLAY_SEED = 6_173
@@ -83,9 +82,8 @@ def main() -> None:
     parser.add_argument("--out", default="held_out_checks")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    saved = json.loads((args.run_dir / "study_config.json").read_text())
-    config = study_config({**saved, "run_dir": str(args.run_dir)})
-    study = Study(config, args.run_dir, torch.device("cpu"), progress=False)
+    study = study_of_run(args.run_dir)
+    config = study.cfg
     scored = json.loads((args.run_dir / "summary.json").read_text())["validation"]
     rows, results = [], {}
     for condition in CHECKED_CONDITIONS:
@@ -125,7 +123,6 @@ def main() -> None:
         args.out,
         {
             "run_dir": str(args.run_dir),
-            "profile": saved.get("profile"),
             "seed": config.seed,
             "settings": {"replays": args.replays, "samples_per_member": args.samples},
             "conditions": conditions(),

@@ -29,10 +29,9 @@ from rcvae_torchrl.envs import (
     resolution_tensor,
 )
 from rcvae_torchrl.envs.pusher import IN_DISTRIBUTION, OUT_OF_DISTRIBUTION, InitialStateRegion
-from rcvae_torchrl.io import load_torch, read_json
+from rcvae_torchrl.io import load_torch
 from rcvae_torchrl.model_env import make_rcvae_env
-from recipes.pusher_competency.config import study_config
-from recipes.pusher_competency.pipeline import Study
+from recipes.pusher_competency.pipeline import study_of_run
 from recipes.pusher_competency.pusher import CONDITIONS, success_boundary, success_fn
 
 #: The study's earlier out-of-distribution region: disjoint from the training starts, not from
@@ -65,8 +64,8 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=50, help="samples per member")
     args = parser.parse_args()
     run_dir = Path(args.run_dir)
-    config = study_config(read_json(run_dir / "study_config.json", "run config"))
-    study = Study(config, run_dir, torch.device("cpu"), progress=False)
+    study = study_of_run(run_dir)
+    config = study.cfg
     policy = study.load_policy()
     a = config.assess
     boundary = success_boundary(a.success_radius, a.horizon_s)

@@ -51,9 +51,7 @@ from rcvae_torchrl.envs import (
     reset_to_state,
 )
 from rcvae_torchrl.envs.scripted import make_scripted_policy
-from rcvae_torchrl.io import read_json
-from recipes.pusher_competency.config import study_config
-from recipes.pusher_competency.pipeline import Study
+from recipes.pusher_competency.pipeline import study_of_run
 
 START_SEEDS = 1000  # start states of variant v: seeds START_SEEDS + 1000 v + i
 REAL_SEEDS = 7
@@ -106,9 +104,7 @@ def first_steps(
 
 def agent_policy(run_dir: Path) -> Callable:
     """The agent of the finished study run ``run_dir`` as a policy module."""
-    config = study_config(read_json(run_dir / "study_config.json", "run config"))
-    study = Study(config, run_dir, torch.device("cpu"), progress=False)
-    return make_policy_module(study.load_policy())
+    return make_policy_module(study_of_run(run_dir).load_policy())
 
 
 def ceiling(success: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -58,7 +58,7 @@ from rcvae_torchrl.envs import (
     resolution_tensor,
 )
 from rcvae_torchrl.envs.scripted import ScriptedPusher
-from rcvae_torchrl.io import load_torch, save_torch
+from rcvae_torchrl.io import load_torch, read_json, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.processes import choose_workers, map_in_processes
@@ -75,7 +75,7 @@ from rcvae_torchrl.training import (
 )
 
 from .._settings import REPORT_FILES
-from .config import StudyConfig
+from .config import StudyConfig, study_config
 from .data import collect_pusher_data, replay_episodes
 from .pusher import (
     CONDITIONS,
@@ -90,7 +90,15 @@ from .pusher import (
 )
 from .report import write_report
 
-__all__ = ["FAR_FRACTIONS", "SHARDED_STAGES", "STAGES", "Study", "run_study", "training_op_flop"]
+__all__ = [
+    "FAR_FRACTIONS",
+    "SHARDED_STAGES",
+    "STAGES",
+    "Study",
+    "run_study",
+    "study_of_run",
+    "training_op_flop",
+]
 
 #: The far coverage check's horizons, as fractions of the forecast's: a world model that passes
 #: 1 s ahead can be overconfident while the ball is pushed, seconds later.
@@ -668,6 +676,25 @@ def run_study(
     for name, outputs in STAGES.items():
         runner.run(name, getattr(study, name), outputs, sharded=name in SHARDED_STAGES)
     return runner.summaries
+
+
+def study_of_run(
+    run_dir: str | Path,
+    device: str | torch.device = "cpu",
+    *,
+    changes: Mapping[str, Mapping[str, Any]] | None = None,
+    settings_from: str | Path | None = None,
+) -> Study:
+    """The study of the run in ``run_dir`` with the settings it recorded
+    (``study_config.json``; or those of the run in ``settings_from``), each section's keys
+    in ``changes`` replaced (e.g. ``{"agent": {"demo_envs": 8}}``): for scripts that measure
+    or extend a finished run. No progress bars, one worker."""
+    run_dir = Path(run_dir)
+    saved = read_json(Path(settings_from or run_dir) / "study_config.json", "run config")
+    for section, values in (changes or {}).items():
+        saved[section] = {**saved[section], **values}
+    config = study_config({**saved, "run_dir": str(run_dir)})
+    return Study(config, run_dir, torch.device(device), progress=False)
 
 
 def _study_job(config: StudyConfig, run_dir: str, device: str, method: str, name: str) -> Any:

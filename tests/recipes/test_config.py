@@ -12,6 +12,7 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
+from rcvae_torchrl.io import StoredFileError, write_json
 from recipes._settings import SEED_MAX, resolve_device, set_threads
 from recipes.pusher_competency.config import (
     RecipeConfig,
@@ -19,7 +20,7 @@ from recipes.pusher_competency.config import (
     register_configs,
     study_config,
 )
-from recipes.pusher_competency.pipeline import Study
+from recipes.pusher_competency.pipeline import Study, study_of_run, study_settings
 
 CONF = Path(__file__).resolve().parents[2] / "recipes" / "pusher_competency" / "conf"
 register_configs()
@@ -327,3 +328,19 @@ def test_a_run_dir_under_home_is_the_folder_that_was_checked(monkeypatch, tmp_pa
 def test_a_nested_setting_is_named_by_its_whole_path():
     with pytest.raises(ValueError, match=r"^agent\.distill\.epochs: expected an int >= 1, got 0"):
         study_config({"agent": {"distill": {"epochs": 0}}})
+
+
+def test_a_finished_run_is_opened_with_the_settings_it_recorded(tmp_path):
+    """``study_of_run``: a run's recorded settings, a section's keys changed on request, or
+    the settings of another run; a run that recorded none is named."""
+    recorded = dataclasses.replace(_config("seed=3", "assess.start_states=7"), run_dir="x")
+    write_json(tmp_path / "study_config.json", study_settings(recorded))
+    study = study_of_run(tmp_path, changes={"agent": {"demo_envs": 4}})
+    assert study.dir == tmp_path and study.cfg.run_dir == str(tmp_path)
+    assert (study.cfg.seed, study.cfg.assess.start_states, study.cfg.agent.demo_envs) == (3, 7, 4)
+    assert study.cfg.agent.mpc_episodes == recorded.agent.mpc_episodes  # the other keys kept
+    elsewhere = tmp_path / "work"
+    elsewhere.mkdir()
+    assert study_of_run(elsewhere, settings_from=tmp_path).cfg.seed == 3
+    with pytest.raises(StoredFileError, match=r"run config .*work/study_config.json"):
+        study_of_run(elsewhere)
