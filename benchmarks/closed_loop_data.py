@@ -59,7 +59,7 @@ AGENT_DATA_SEED = 77_000
 FINISHED = ("data", "models", "agent/policy.pt", "forecast", "truth")
 
 
-def run_study(run_dir: Path, work: Path | None = None) -> Study:
+def open_run(run_dir: Path, work: Path | None = None) -> Study:
     """The study of ``run_dir`` (with the settings of the run its ``agent/`` was made in where it
     records none, and the start-state count of its forecasts), in ``work`` if given."""
     origin = run_dir
@@ -96,7 +96,7 @@ def agent_episodes(study: Study, model_name: str, episodes: int):
 def refit(run_dir: Path, work: Path, model_name: str, args) -> dict:
     """Fine-tune ``run_dir``'s world model ``model_name`` on its data plus the agent's episodes;
     saved in ``work/models``. Returns the seconds spent and the validation losses."""
-    study = run_study(run_dir)
+    study = open_run(run_dir)
     start = time.perf_counter()
     extra_train, extra_val = agent_episodes(study, model_name, args.episodes)
     train, val = study.episodes(model_name)
@@ -144,7 +144,7 @@ def one_run(run_dir: Path, args) -> list[dict]:
     for part in ("data", "agent"):
         if not (work / part).exists():
             (work / part).symlink_to((run_dir / part).resolve())
-    study = run_study(run_dir, work)
+    study = open_run(run_dir, work)
     fits, rows = {}, []
     for condition in args.conditions:
         model_name = CONDITIONS[condition][0]
