@@ -30,11 +30,7 @@ from _report import (
     write_json,
 )
 
-from recipes.pusher_competency.pipeline import Study, study_of_run
-
-
-def _study(run_dir: Path, demo_envs: int, device: torch.device) -> Study:
-    return study_of_run(run_dir, device, changes={"agent": {"demo_envs": demo_envs}})
+from recipes.pusher_competency.pipeline import study_of_run
 
 
 def measure(
@@ -42,7 +38,10 @@ def measure(
 ) -> dict:
     """The time of one plan, and unless ``plan_only`` the demonstrations' times and outcomes at
     ``demo_envs`` 1 and ``side_by_side``."""
-    studies = {n: _study(run_dir, n, device) for n in (1, side_by_side)}
+    studies = {
+        n: study_of_run(run_dir, device, changes={"agent": {"demo_envs": n}})
+        for n in (1, side_by_side)
+    }
     model = studies[1].load_model("deterministic")
     horizon = studies[1].cfg.assess.horizon_s
     env = studies[1].env("deterministic", time_limit=horizon)

@@ -691,8 +691,8 @@ def study_of_run(
     or extend a finished run. No progress bars, one worker."""
     run_dir = Path(run_dir)
     saved = read_json(Path(settings_from or run_dir) / "study_config.json", "run config")
-    for section, values in (changes or {}).items():
-        saved[section] = {**saved[section], **values}
+    for section, values in (changes or {}).items():  # unknown names: study_config names them
+        saved[section] = {**saved.get(section, {}), **values}
     config = study_config({**saved, "run_dir": str(run_dir)})
     return Study(config, run_dir, torch.device(device), progress=False)
 

@@ -344,3 +344,5 @@ def test_a_finished_run_is_opened_with_the_settings_it_recorded(tmp_path):
     assert study_of_run(elsewhere, settings_from=tmp_path).cfg.seed == 3
     with pytest.raises(StoredFileError, match=r"run config .*work/study_config.json"):
         study_of_run(elsewhere)
+    with pytest.raises(ValueError, match="agnt: not a setting of the recipe"):
+        study_of_run(tmp_path, changes={"agnt": {"demo_envs": 4}})
