@@ -8,7 +8,8 @@ wall clock from a barrier to the end of the gathered result. Workloads (Pusher-s
 study's default world model):
 
 - training: ``train_ensemble`` of E = 4 members (2 per rank), 100 steps (``--training-steps``)
-  of 32 windows x 32 steps, on synthetic 14-D episodes; and the same in one process with 1, 2
+  of 32 windows x 32 steps, on synthetic 14-D episodes (``--compile``: the loss compiled, each
+  process compiling in its untimed warm-up run); and the same in one process with 1, 2
   and 4 members, which splits its time into a fixed part (every rank pays it in full) and a
   part per member, and gives the split's ceiling (4 members over 2, alone) and what running
   side by side adds (the 2-rank time over 2 members alone);
@@ -31,7 +32,7 @@ assumptions). The machine's load average is recorded before and after: other job
 2-core machine take cores away from the ranks.
 
     python benchmarks/scaling.py [--repeats 3] [--quick] [--only training ...] [--full-model]
-                                 [--training-steps 100] [--out scaling]
+                                 [--training-steps 100] [--compile] [--out scaling]
 """
 
 from __future__ import annotations
@@ -68,6 +69,7 @@ def _training(
     steps: int = 100,
     members: int = 4,
     data_parallel: int = 1,
+    compile: bool = False,
 ):
     from tensordict import TensorDict
 
@@ -102,6 +104,7 @@ def _training(
         window=32,
         val_every=steps // 2,
         data_parallel=data_parallel,
+        compile=compile,  # compiled in the warm-up run; the timed runs reuse it
     )
     model_config = rcvae_config(ModelConfig(hidden_dim=128 if full_model else 64))
 
@@ -512,6 +515,12 @@ def main() -> None:
         help="training steps per run (the default profile trains up to 5000: with more steps "
         "the one-off set-up weighs less)",
     )
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="train with the loss compiled (TrainConfig(compile=True)); each process compiles "
+        "in its warm-up run, which is not timed",
+    )
     parser.add_argument("--out", default="scaling", help="results/<out>.json")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -520,7 +529,11 @@ def main() -> None:
         "repeats": args.repeats,
         "quick": args.quick,
         "workload": {
-            name: {"full_model": args.full_model, "steps": args.training_steps}
+            name: {
+                "full_model": args.full_model,
+                "steps": args.training_steps,
+                "compile": args.compile,
+            }
             for name in ("training", "training_data_parallel")
         },
     }
