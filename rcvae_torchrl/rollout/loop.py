@@ -57,8 +57,17 @@ def _policy_action(policy: Policy, state: torch.Tensor, t: int, action_dim: int)
             f"policy: expected actions of dtype {state.dtype} (the model's), got {action.dtype} "
             f"at step {t}"
         )
-    check_finite(f"policy output at step {t}", action)
     return action
+
+
+def _check_policy_actions(finite: list[torch.Tensor], actions: list[torch.Tensor]) -> None:
+    """Raise, naming the first step, if a policy action was NaN or inf: ``finite`` holds each
+    step's "all finite" flag, read here once for the whole rollout (a read at every step would
+    make an accelerator wait for the host at every step)."""
+    ok = torch.stack(finite)
+    if not bool(ok.all()):
+        t = int((~ok).nonzero()[0, 0])
+        check_finite(f"policy output at step {t}", actions[t])
 
 
 def rollout(
@@ -86,7 +95,8 @@ def rollout(
         hook: called with a :class:`StepRecord` after every step.
         actions: open loop: ``[H, *P, A]`` (index t gives a_t for every particle; a view of an
             expanded tensor is fine).
-        policy: closed loop instead: called on s_t ``[*P, S]``, must return finite ``[*P, A]``.
+        policy: closed loop instead: called on s_t ``[*P, S]``, must return finite ``[*P, A]``
+            (checked once, after the last step: an error names the first bad step).
         bounds: clip every action to these bounds (the real env's action spec).
         generator: source of the sampling noise.
         noise: pre-drawn ``(ε_z [H, ...], ε_s [H, ...])`` instead of ``generator``.
@@ -95,11 +105,15 @@ def rollout(
         ``(s_H, h_H)``.
     """
     action_dim = ensemble.config.action_dim
+    finite: list[torch.Tensor] = []  # closed loop: each step's policy actions all finite
+    taken: list[torch.Tensor] = []
     for t in range(horizon):
         if actions is not None:
             action = actions[t]
         else:
             action = _policy_action(policy, observation, t, action_dim)
+            finite.append(torch.isfinite(action).all())
+            taken.append(action)
         if bounds is not None:
             action = torch.clamp(action, bounds.low, bounds.high)
         out = propagate(
@@ -113,4 +127,6 @@ def rollout(
         )
         hook(StepRecord(t, observation, action, out))
         observation, hidden = out.observation, out.hidden
+    if finite:
+        _check_policy_actions(finite, taken)
     return observation, hidden

@@ -156,6 +156,44 @@ def test_policy_with_wrong_output_is_rejected(ensemble):
         )
 
 
+def test_a_later_non_finite_policy_action_is_named_by_its_step(ensemble):
+    calls = []
+
+    def policy(s):
+        calls.append(None)
+        value = torch.inf if len(calls) == 3 else 0.0
+        return torch.full((*s.shape[:-1], 2), value)
+
+    with pytest.raises(
+        ValueError,
+        match=r"policy output at step 2: expected finite values, got 0 NaN and 8 inf entries in "
+        r"a tensor of shape \(4, 1, 2\)",
+    ):
+        imagine(ensemble, torch.zeros(1, 5), policy=policy, horizon=5, samples_per_member=1)
+
+
+def test_closed_loop_reads_nothing_back_per_step(ensemble, monkeypatch):
+    """The policy's actions are checked once per rollout, not once per step: the number of
+    values read back to the host does not grow with the horizon (on an accelerator each read
+    makes it wait for the host)."""
+    reads = []
+    for name in ("__bool__", "item", "__int__", "__float__", "tolist"):
+        original = getattr(torch.Tensor, name)
+
+        def counted(self, *args, _original=original, **kwargs):
+            reads.append(None)
+            return _original(self, *args, **kwargs)
+
+        monkeypatch.setattr(torch.Tensor, name, counted)
+
+    def count(horizon: int) -> int:
+        reads.clear()
+        imagine(ensemble, torch.zeros(2, 5), policy=lambda s: s[..., :2].tanh(), horizon=horizon)
+        return len(reads)
+
+    assert count(3) == count(12)
+
+
 def test_non_finite_model_output_is_an_error(ensemble):
     with torch.no_grad():
         ensemble.decoder[-1].bias.fill_(float("inf"))
