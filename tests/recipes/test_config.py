@@ -68,6 +68,8 @@ def test_profiles_scale_up():
     assert quick.data.scripted_episodes < default.data.scripted_episodes
     assert default.data.scripted_episodes < full.data.scripted_episodes
     assert quick.run_dir == "outputs/pusher_competency/quick"
+    # a GPU's imagination is launch-bound at the default chunk: the full profile's are bigger
+    assert full.assess.start_chunk > default.assess.start_chunk
 
 
 def test_weak_arm_profile_changes_only_the_stochastic_design():
