@@ -7,8 +7,9 @@ half-way runs again (and its own checkpoints, if any, let it continue), and a fi
 reused by the next run.
 
 A marker holds the summary, the size and SHA-256 of every output file of the stage (the files
-matching the patterns the stage declares) and a digest of its inputs (the run's settings and the
-output records of the stages before it). A rerun re-verifies what it reuses:
+matching the patterns the stage declares) and a digest of its inputs (the run's settings, or
+those the stage declares it reads, and the output records of the stages before it). A rerun
+re-verifies what it reuses:
 
 - an output file deleted, truncated or changed: the file is removed and the stage runs again
   (a line in the log says which file and why); its other files are reused where the stage
@@ -19,6 +20,14 @@ output records of the stages before it). A rerun re-verifies what it reuses:
 - a file the stage function cannot read (:class:`~rcvae_torchrl.io.StoredFileError`): the file
   is removed and the stage runs once more when it is one of the stage's own outputs; otherwise a
   :class:`StageError` names the stage, the file and what to do.
+
+Another run directory's finished stages can be reused (``reuse_from``): a stage that is not
+done in this run takes the other run's files when that run's marker records the same inputs
+(the settings the stage reads, ``stage_settings``, and the same files from every stage before
+it) and its files check out. The files are hard links where the file system allows (no copy;
+stages only ever replace a file, never write into it, so neither run changes the other's), else
+copies. A run whose settings differ only in what later stages read (e.g. how a forecast is
+scored) thus reuses the other's data and trained models.
 
 Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) rank 0 verifies, writes the
 markers and logs; a ``sharded`` stage runs on every rank (it shares its work out and writes its
@@ -33,6 +42,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import shutil
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
@@ -41,7 +52,13 @@ from typing import Any
 from torchrl.record.loggers import Logger
 
 from rcvae_torchrl import distributed
-from rcvae_torchrl.io import StoredFileError, read_json, record_run_config, write_json
+from rcvae_torchrl.io import (
+    StoredFileError,
+    atomic_write,
+    read_json,
+    record_run_config,
+    write_json,
+)
 from rcvae_torchrl.loggers import log_scalars
 
 __all__ = ["StageError", "StageRunner", "file_record"]
@@ -80,6 +97,16 @@ class StageRunner:
         config_name: the file the settings are recorded in.
         logger: a TorchRL logger the stage summaries' numbers go to (step: the stage's
             position in the run).
+        stage_settings: per stage name, the settings it reads: top-level keys of
+            ``settings``, or ``"section.key"`` for one key of a section (a mapping). A stage's
+            inputs are then those settings and the files of the stages before it, so that
+            changing a setting only later stages read keeps the earlier stages' results
+            reusable from another run directory (``reuse_from``). A stage not named reads all
+            settings. None (the default): every stage reads all settings. A setting a stage
+            reads but does not declare would let it be reused with a stale result: declare
+            generously.
+        reuse_from: another run directory whose finished stages this run takes (checked,
+            then hard-linked or copied) where their inputs are the same as this run's.
 
     Example:
         >>> import tempfile
@@ -96,12 +123,21 @@ class StageRunner:
         settings: Mapping[str, Any] | None = None,
         config_name: str = "study_config.json",
         logger: Logger | None = None,
+        stage_settings: Mapping[str, Sequence[str]] | None = None,
+        reuse_from: str | Path | None = None,
     ) -> None:
         self.run_dir = Path(run_dir)
         self.log = log
         self.logger = logger if distributed.is_main() else None
         self.summaries: dict[str, Any] = {}
+        self._settings = _as_json(dict(settings)) if settings is not None else None
+        # the digest of every setting and the files of every stage so far: the inputs of a
+        # stage that reads all settings (and what markers recorded before stage_settings)
         self._inputs = _digest(dict(settings) if settings is not None else None)
+        self._stage_settings = _checked_stage_settings(stage_settings, self._settings)
+        self._before: list[list[Any]] = []  # [name, output records] of the stages so far
+        self._reuse_from = _checked_reuse_from(reuse_from, self.run_dir)
+        self._config_name = config_name
         self._unverified = False  # the settings record was missing or unreadable
         if settings is not None and distributed.is_main():
             self._record_settings(dict(settings), self.run_dir / config_name)
@@ -139,6 +175,8 @@ class StageRunner:
         saved = self._reusable(name) if distributed.is_main() else None
         if saved is None and self._unverified and distributed.is_main():
             self._remove_unverified(name, outputs)
+        if saved is None and self._reuse_from is not None and distributed.is_main():
+            saved = self._borrowed(name, outputs)
         if distributed.broadcast(saved is not None):  # rank 0's view: every rank takes one branch
             saved = saved or read_json(self.marker(name), f"marker of stage {name!r}")
         elif distributed.is_main() or sharded:
@@ -152,7 +190,17 @@ class StageRunner:
         log_scalars(self.logger, summary, len(self.summaries), prefix=f"stages/{name}/")
         self.summaries[name] = summary
         self._inputs = _digest([self._inputs, name, saved["outputs"]])
+        self._before.append([name, saved["outputs"]])
         return self.summaries[name]
+
+    def _stage_inputs(self, name: str) -> str:
+        """The digest of stage ``name``'s inputs if it ran next: the settings it reads
+        (``stage_settings``) and the output records of the stages run so far."""
+        if self._stage_settings is None:
+            return self._inputs
+        keys = self._stage_settings.get(name)
+        read = self._settings if keys is None else {k: _setting(self._settings, k) for k in keys}
+        return _digest({"settings": read, "stages": self._before})
 
     # ------------------------------------------------------------------ verification
     def _reusable(self, name: str) -> dict[str, Any] | None:
@@ -169,7 +217,10 @@ class StageRunner:
             self.log(f"[{name}] {err}: removing it and running the stage again")
             path.unlink()
             return None
-        if saved.get("inputs") != self._inputs:
+        inputs = self._stage_inputs(name)
+        # a marker of all settings (written before the stage declared what it reads) still
+        # holds: every setting is the same
+        if saved.get("inputs") not in (inputs, self._inputs):
             self.log(
                 f"[{name}] its inputs changed (settings or an earlier stage's files): removing "
                 f"its {len(saved['outputs'])} files and running the stage again"
@@ -182,14 +233,88 @@ class StageRunner:
                 self.log(f"[{name}] {rel}: {why}; removing it and running the stage again")
             self._remove(bad)
             return None
+        if saved["inputs"] != inputs:  # recorded as the stage's own inputs from now on
+            saved["inputs"] = inputs
+            write_json(path, saved)
         self.log(f"[{name}] done earlier: reusing {path.parent.name}/{path.name} (files verified)")
         return saved
 
-    def _failed(self, records: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
-        """The recorded files that are missing or differ from their record, with the reason."""
+    def _borrowed(self, name: str, outputs: Sequence[str]) -> dict[str, Any] | None:
+        """The finished stage ``name`` of the ``reuse_from`` run, its files placed in this run
+        and its marker written here, when its inputs are this stage's and its files check out;
+        else None (a log line says why, when that run finished the stage)."""
+        other = self._reuse_from
+        path = other / "stages" / f"{name}.json"
+        if not path.is_file():
+            return None
+        where = f"{str(path)!r}"
+        try:
+            saved = read_json(path, f"marker of stage {name!r}")
+            if not isinstance(saved, dict) or not isinstance(saved.get("outputs"), dict):
+                raise StoredFileError(f"marker of stage {name!r} {where}: no file records")
+        except StoredFileError as err:
+            self.log(f"[{name}] not reused from {str(other)!r}: {err}")
+            return None
+        inputs = self._stage_inputs(name)
+        if saved.get("inputs") != inputs and not self._same_inputs_recorded(name, saved):
+            self.log(
+                f"[{name}] not reused from {str(other)!r}: its inputs differ (a setting the "
+                "stage reads, or an earlier stage's files)"
+            )
+            return None
+        bad = self._failed(saved["outputs"], other)
+        if bad:
+            rel, why = next(iter(bad.items()))
+            self.log(f"[{name}] not reused from {str(other)!r}: {rel}: {why}")
+            return None
+        own = self._matching(outputs)
+        if own:
+            self.log(
+                f"[{name}] not reused from {str(other)!r}: this run has {len(own)} files of "
+                "the stage's own (an unfinished run of it, which it resumes)"
+            )
+            return None
+        linked = sum(_place(other / rel, self.run_dir / rel) for rel in saved["outputs"])
+        saved = {**saved, "inputs": inputs}
+        write_json(self.marker(name), saved)
+        count = len(saved["outputs"])
+        self.log(
+            f"[{name}] reusing the finished stage of {str(other)!r} (files verified; {linked} of "
+            f"{count} hard-linked, {count - linked} copied)"
+        )
+        return saved
+
+    def _same_inputs_recorded(self, name: str, saved: Mapping[str, Any]) -> bool:
+        """Whether the other run's marker of stage ``name``, written with the digest of all
+        its settings (before its stages declared what they read), was made from the same
+        files of the earlier stages as this run's and from the same settings the stage reads:
+        its recorded inputs must be the digest of the settings that run recorded and of this
+        run's earlier files."""
+        try:
+            recorded = read_json(self._reuse_from / self._config_name, "run config")
+        except StoredFileError:
+            return False
+        chain = _digest(recorded)
+        for before, outputs in self._before:
+            chain = _digest([chain, before, outputs])
+        if saved.get("inputs") != chain or not isinstance(recorded, dict):
+            return False
+        keys = (self._stage_settings or {}).get(name)
+        if keys is None:
+            return recorded == self._settings
+        try:
+            return all(_setting(recorded, k) == _setting(self._settings, k) for k in keys)
+        except (KeyError, TypeError):
+            return False
+
+    def _failed(
+        self, records: Mapping[str, Mapping[str, Any]], root: Path | None = None
+    ) -> dict[str, str]:
+        """The recorded files (under ``root``, default the run directory) that are missing or
+        differ from their record, with the reason."""
         bad = {}
         for rel, record in records.items():
-            file = self.run_dir / rel
+            file = (root or self.run_dir) / rel
             if not file.is_file():
                 bad[rel] = "the file is missing"
                 continue
@@ -232,7 +357,7 @@ class StageRunner:
         saved = {
             **summary,
             "seconds": round(time.perf_counter() - start, 1),
-            "inputs": self._inputs,
+            "inputs": self._stage_inputs(name),
             "outputs": self._records(outputs) if distributed.is_main() else {},
         }
         if distributed.is_main():
@@ -274,3 +399,71 @@ class StageRunner:
 
     def _records(self, outputs: Sequence[str]) -> dict[str, dict[str, Any]]:
         return {str(p.relative_to(self.run_dir)): file_record(p) for p in self._matching(outputs)}
+
+
+def _as_json(settings: dict[str, Any]) -> Any:
+    """Settings as they read back from JSON (what a digest of them sees)."""
+    return json.loads(json.dumps(settings, sort_keys=True, default=str))
+
+
+def _setting(settings: Mapping[str, Any], key: str) -> Any:
+    """``settings[key]``, or ``settings[section][name]`` for ``key = "section.name"``."""
+    section, _, name = key.partition(".")
+    value = settings[section]
+    return value[name] if name else value
+
+
+def _checked_stage_settings(
+    stage_settings: Mapping[str, Sequence[str]] | None, settings: Mapping[str, Any] | None
+) -> dict[str, list[str]] | None:
+    """``stage_settings`` as lists, each key checked to name a setting."""
+    if stage_settings is None:
+        return None
+    if settings is None:
+        raise ValueError("stage_settings: expected the run's settings beside it, got settings=None")
+    checked = {}
+    for stage, keys in stage_settings.items():
+        if isinstance(keys, str):
+            raise TypeError(
+                f"stage_settings[{stage!r}]: expected a sequence of setting names, got the "
+                f"string {keys!r}"
+            )
+        for key in keys:
+            try:
+                _setting(settings, key)
+            except (KeyError, TypeError):
+                raise ValueError(
+                    f"stage_settings[{stage!r}]: {key!r} is not a setting; expected a key of "
+                    f"{sorted(settings)} or 'section.key' of a section's mapping"
+                ) from None
+        checked[stage] = list(keys)
+    return checked
+
+
+def _checked_reuse_from(reuse_from: str | Path | None, run_dir: Path) -> Path | None:
+    if reuse_from is None:
+        return None
+    other = Path(reuse_from)
+    if not other.is_dir():
+        raise ValueError(f"reuse_from: expected a run directory, got {str(other)!r} (not one)")
+    if other.resolve() == run_dir.resolve():
+        raise ValueError(
+            f"reuse_from: expected another run directory than run_dir, got {str(other)!r} for both"
+        )
+    return other
+
+
+def _place(source: Path, target: Path) -> bool:
+    """Put ``source`` at ``target`` atomically: a hard link (True) or, where the file system
+    cannot link them, a copy (False)."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    link = target.with_name(f".{target.name}.{os.getpid()}.link")
+    try:
+        link.unlink(missing_ok=True)
+        os.link(source, link)
+    except OSError:
+        with open(source, "rb") as src:
+            atomic_write(target, lambda f: shutil.copyfileobj(src, f))
+        return False
+    os.replace(link, target)
+    return True

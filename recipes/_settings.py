@@ -31,6 +31,7 @@ __all__ = [
     "check_device_name",
     "check_run_dir",
     "check_run_dir_name",
+    "check_reuse_from",
     "check_run_settings",
     "check_seed",
     "check_threads",
@@ -164,11 +165,26 @@ REPORT_FILES = (
 
 
 def check_run_settings(config: Any) -> None:
-    """The checks that depend on this machine: ``device`` (when the recipe has one) and
-    ``run_dir``; call once, before anything is created or written."""
+    """The checks that depend on this machine: ``device`` (when the recipe has one),
+    ``run_dir`` and ``reuse_from`` (when the recipe has it); call once, before anything is
+    created or written."""
     if hasattr(config, "device"):
         resolve_device(config.device)
     check_run_dir(config.run_dir)
+    if getattr(config, "reuse_from", None) is not None:
+        check_reuse_from(config.reuse_from, config.run_dir)
+
+
+def check_reuse_from(value: Any, run_dir: str) -> None:
+    """Require another run directory than ``run_dir``, one that exists and records its
+    settings (``study_config.json``)."""
+    path = Path(str(value)).expanduser()
+    if not (path / "study_config.json").is_file():
+        raise ValueError(
+            f"reuse_from: expected a run directory (with its study_config.json), got {value!r}"
+        )
+    if path.resolve() == Path(run_dir).expanduser().resolve():
+        raise ValueError(f"reuse_from: expected another directory than run_dir, got {value!r}")
 
 
 def _writable(node: Any) -> None:

@@ -32,9 +32,9 @@ class Pipeline:
         save_torch(self.dir / "b" / "z.pt", total)
         return {"total": float(total)}
 
-    def run(self, settings=None):
+    def run(self, settings=None, **kwargs):
         lines = []
-        runner = StageRunner(self.dir, lines.append, settings=settings or {"seed": 0})
+        runner = StageRunner(self.dir, lines.append, settings=settings or {"seed": 0}, **kwargs)
         runner.run("make", self.make, ("a/*.pt",))
         runner.run("use", self.use, ("b/*.pt",))
         return runner, lines
@@ -233,3 +233,131 @@ def test_an_unfinished_stage_of_unknown_settings_leaves_nothing_to_reuse(tmp_pat
     resumed = Pipeline(tmp_path, value=2.0)
     resumed.run({"value": 2.0})
     assert resumed.computed == []
+
+
+# ---------------------------------------------------------------------- reuse across runs
+# ``make`` reads the seed and ``data.n``; ``use`` reads every setting.
+READS = {"make": ["seed", "data.n"]}
+
+
+def _settings(n=2, scale=1.0):
+    return {"seed": 0, "data": {"n": n}, "score": {"scale": scale}}
+
+
+def test_a_run_reuses_another_runs_stages_whose_settings_are_the_same(tmp_path):
+    first = Pipeline(tmp_path / "first")
+    first.run(_settings(), stage_settings=READS)
+    second = Pipeline(tmp_path / "second")  # only a setting of the later stage differs
+    runner, lines = second.run(
+        _settings(scale=2.0), stage_settings=READS, reuse_from=tmp_path / "first"
+    )
+    assert second.computed == ["z"]  # make's files came from the first run
+    for rel in ("a/x.pt", "a/y.pt"):
+        a, b = tmp_path / "first" / rel, tmp_path / "second" / rel
+        assert a.read_bytes() == b.read_bytes() and a.stat().st_ino == b.stat().st_ino
+    assert any(
+        line.startswith("[make] reusing the finished stage of") and "2 of 2 hard-linked" in line
+        for line in lines
+    )
+    assert any("[use] not reused from" in line and "inputs differ" in line for line in lines)
+    assert runner.summaries["make"] == {"n": 2, "seconds": runner.summaries["make"]["seconds"]}
+    # the reused stage is this run's own now: a rerun verifies and reuses it here
+    again = Pipeline(tmp_path / "second")
+    _, lines = again.run(_settings(scale=2.0), stage_settings=READS)
+    assert again.computed == [] and all("files verified" in line for line in lines)
+
+
+def test_a_setting_the_stage_reads_stops_the_reuse(tmp_path):
+    Pipeline(tmp_path / "first").run(_settings(), stage_settings=READS)
+    other = Pipeline(tmp_path / "other")  # a setting make reads differs
+    _, lines = other.run(_settings(n=3), stage_settings=READS, reuse_from=tmp_path / "first")
+    assert other.computed == ["x", "y", "z"]
+    assert any("[make] not reused from" in line and "inputs differ" in line for line in lines)
+    same = Pipeline(tmp_path / "same")  # every setting the same: every stage reused
+    same.run(_settings(), stage_settings=READS, reuse_from=tmp_path / "first")
+    assert same.computed == []
+
+
+def test_a_changed_earlier_file_is_not_reused_from_the_other_run(tmp_path):
+    reads = {"make": ["seed"], "use": ["seed"]}
+    Pipeline(tmp_path / "first").run(_settings(), stage_settings=reads)
+    second = Pipeline(tmp_path / "second", value=2.0)
+    # an unfinished run of make here: the settings recorded, its files written, no marker
+    StageRunner(tmp_path / "second", settings=_settings(), stage_settings=reads)
+    for name in ("x", "y"):
+        save_torch(tmp_path / "second" / "a" / f"{name}.pt", torch.full((3,), 2.0))
+    runner, lines = second.run(_settings(), stage_settings=reads, reuse_from=tmp_path / "first")
+    assert any(
+        "[make] not reused from" in line and "2 files of the stage's own" in line for line in lines
+    )
+    # its make records other files, so use's inputs differ from the first run's
+    assert second.computed == ["z"] and runner.summaries["use"]["total"] == 12.0
+    assert any("[use] not reused from" in line and "inputs differ" in line for line in lines)
+
+
+def test_a_damaged_file_of_the_other_run_is_not_reused(tmp_path):
+    Pipeline(tmp_path / "first").run(_settings(), stage_settings=READS)
+    (tmp_path / "first" / "a" / "y.pt").write_bytes(b"garbage")
+    second = Pipeline(tmp_path / "second")
+    _, lines = second.run(_settings(), stage_settings=READS, reuse_from=tmp_path / "first")
+    # make runs here; its files come out as the first run's were, so use is reused
+    assert second.computed == ["x", "y"]
+    assert any(
+        "[make] not reused from" in line and "a/y.pt: its size changed" in line for line in lines
+    )
+    assert any(line.startswith("[use] reusing the finished stage of") for line in lines)
+    assert (tmp_path / "first" / "a" / "y.pt").read_bytes() == b"garbage"  # not touched
+
+
+def test_markers_of_all_settings_stay_reusable_when_stages_declare_what_they_read(tmp_path):
+    """A run directory made before its stages declared their settings is reused as it is
+    (every setting is the same), and its markers then record the stages' own inputs."""
+    Pipeline(tmp_path).run(_settings())
+    before = json.loads((tmp_path / "stages" / "make.json").read_text())["inputs"]
+    again = Pipeline(tmp_path)
+    _, lines = again.run(_settings(), stage_settings=READS)
+    assert again.computed == [] and all("files verified" in line for line in lines)
+    after = json.loads((tmp_path / "stages" / "make.json").read_text())["inputs"]
+    assert after != before
+    other = Pipeline(tmp_path / "other")  # and another run can now take them
+    other.run(_settings(scale=3.0), stage_settings=READS, reuse_from=tmp_path)
+    assert other.computed == ["z"]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"stage_settings": {"make": ["data.m"]}}, r"stage_settings\['make'\]: 'data.m' is not a"),
+        ({"stage_settings": {"make": ["nope"]}}, r"'nope' is not a setting; expected a key of"),
+        ({"stage_settings": {"make": "seed"}}, r"expected a sequence of setting names"),
+        ({"reuse_from": "/no/such/run"}, r"reuse_from: expected a run directory, got"),
+    ],
+)
+def test_bad_stage_settings_and_reuse_from_are_named(tmp_path, kwargs, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        StageRunner(tmp_path, settings=_settings(), **kwargs)
+
+
+def test_reuse_from_the_run_itself_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="reuse_from: expected another run directory"):
+        StageRunner(tmp_path, settings=_settings(), reuse_from=tmp_path / ".")
+    with pytest.raises(ValueError, match="stage_settings: expected the run's settings"):
+        StageRunner(tmp_path, stage_settings={"make": ["seed"]})
+
+
+def test_a_run_of_markers_of_all_settings_lends_the_stages_whose_settings_match(tmp_path):
+    """Another run made before its stages declared their settings: its recorded settings
+    and its markers' digests say what each stage was made with."""
+    Pipeline(tmp_path / "old").run(_settings())  # markers of all settings
+    second = Pipeline(tmp_path / "second")
+    _, lines = second.run(_settings(scale=2.0), stage_settings=READS, reuse_from=tmp_path / "old")
+    assert second.computed == ["z"]
+    assert any(line.startswith("[make] reusing the finished stage of") for line in lines)
+    third = Pipeline(tmp_path / "third")  # a setting make reads differs
+    third.run(_settings(n=3), stage_settings=READS, reuse_from=tmp_path / "old")
+    assert third.computed == ["x", "y", "z"]
+    # a marker whose digest does not follow from the recorded settings is not trusted
+    (tmp_path / "old" / "study_config.json").write_text(json.dumps(_settings(scale=2.0)))
+    fourth = Pipeline(tmp_path / "fourth")
+    fourth.run(_settings(scale=2.0), stage_settings=READS, reuse_from=tmp_path / "old")
+    assert fourth.computed == ["x", "y", "z"]

@@ -278,6 +278,11 @@ class RecipeConfig(StudyConfig):
     ``logger``: where training curves and stage summaries go, under ``<run_dir>/logs``:
     ``"csv"``, ``"tensorboard"``, ``"wandb"`` (offline), ``"mlflow"`` (a local file store) or
     ``"none"`` (see :func:`~rcvae_torchrl.loggers.make_logger`).
+
+    ``reuse_from``: a finished (or partly finished) run directory whose stages this run takes,
+    hard-linked, where the settings they read are the same (``pipeline.STAGE_SETTINGS``): e.g.
+    ``reuse_from=outputs/pusher_competency/default assess.start_states=200`` in a new
+    ``run_dir`` keeps that run's data, world models and agent and forecasts anew.
     """
 
     profile: str = "default"
@@ -287,6 +292,7 @@ class RecipeConfig(StudyConfig):
     stage_workers: Any = "auto"
     progress: bool = True
     logger: str = "csv"
+    reuse_from: str | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -10,7 +10,9 @@
 
 Under ``torchrun`` the training, forecast and real-episode stages share their work over the
 ranks and give the results of one process; rank 0 alone writes files and prints (see
-docs/scale_out.rst). Re-running with the same ``run_dir`` reuses the finished stages. The
+docs/scale_out.rst). Re-running with the same ``run_dir`` reuses the finished stages; a new
+``run_dir`` with ``reuse_from=<another run_dir>`` takes that run's finished stages whose
+settings are the same (e.g. its data, world models and agent when only ``assess.*`` differs). The
 console's lines also go to ``<run_dir>/run.log`` (plain text); training curves and stage
 summaries go to the logger chosen with ``logger=csv|tensorboard|wandb|mlflow|none`` under
 ``<run_dir>/logs``. Every
@@ -81,6 +83,7 @@ def _run(config: RecipeConfig, device: str, say: Callable[[str], None] | None) -
             log=say,
             logger=logger,
             stage_workers=config.stage_workers,
+            reuse_from=config.reuse_from,
         )
     finally:
         if logger is not None:

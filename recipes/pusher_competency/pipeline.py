@@ -94,6 +94,7 @@ __all__ = [
     "FAR_FRACTIONS",
     "SHARDED_STAGES",
     "STAGES",
+    "STAGE_SETTINGS",
     "Study",
     "run_study",
     "study_of_run",
@@ -132,6 +133,25 @@ STAGES = {
 }
 # Stages that share their work over torch.distributed ranks (the others run on rank 0).
 SHARDED_STAGES = ("models", "forecast", "truth")
+#: The settings each stage reads (sections, or one key of a section); the later stages read
+#: them all. Another run's finished stage is reused (``reuse_from``) when these and every
+#: earlier stage's files are the same: a run that changes only how forecasts are made or
+#: scored keeps the data, the world models and the agent. The agent acts within the horizon and
+#: success radius of the assessment (its episodes' length, its planner's goal).
+STAGE_SETTINGS = {
+    "data": ("seed", "data"),
+    "models": ("seed", "data", "model", "train"),
+    "agent": (
+        "seed",
+        "data",
+        "model",
+        "train",
+        "planner",
+        "agent",
+        "assess.horizon_s",
+        "assess.success_radius",
+    ),
+}
 
 # Disjoint seed ranges of the real episodes, per purpose (offset by 1000 per study seed).
 DEMONSTRATION_SEEDS = 50_000
@@ -649,6 +669,7 @@ def run_study(
     log: Callable[[str], None] = print,
     logger: Logger | None = None,
     stage_workers: int | str = 1,
+    reuse_from: str | Path | None = None,
 ) -> dict[str, Any]:
     """Run (or resume) the study in ``run_dir``; returns every stage's summary.
 
@@ -659,11 +680,20 @@ def run_study(
     int, or ``"auto"``: as many as idle cores allow (see
     :func:`~rcvae_torchrl.processes.choose_workers`). The results are the same either way. A
     worker's training curves reach ``logger`` when it finishes (and CSV beside its checkpoint
-    as it trains).
+    as it trains). ``reuse_from``: another run directory whose finished stages are taken
+    (hard-linked) where the settings they read (:data:`STAGE_SETTINGS`) and the files before
+    them are this run's.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    runner = StageRunner(run_dir, log, settings=study_settings(config), logger=logger)
+    runner = StageRunner(
+        run_dir,
+        log,
+        settings=study_settings(config),
+        logger=logger,
+        stage_settings=STAGE_SETTINGS,
+        reuse_from=reuse_from,
+    )
     study = Study(
         config,
         run_dir,

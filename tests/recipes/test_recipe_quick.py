@@ -374,3 +374,49 @@ def test_demonstrations_side_by_side(runs):
     )
     for key in ("observations", "labels"):
         assert torch.equal(demos[0][key], demos[1][key]), key
+
+
+def test_a_new_run_reuses_the_stages_whose_settings_are_the_same(runs, tmp_path):
+    """``reuse_from``: a run that changes how forecasts are made takes the finished run's data,
+    world models and agent (hard links of the same files) and runs the later stages; one that
+    changes the horizon (which the agent acts within) also trains its own agent."""
+    first = runs["dir"]
+    chunked = tmp_path / "chunked"
+    proc, _ = run_recipe(
+        *MICRO, f"run_dir={chunked}", f"reuse_from={first}", "assess.start_chunk=1"
+    )
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for stage in ("data", "models", "agent"):
+        assert f"[{stage}] reusing the finished stage of {str(first)!r}" in proc.stdout
+        for rel in json.loads((chunked / "stages" / f"{stage}.json").read_text())["outputs"]:
+            assert (chunked / rel).stat().st_ino == (first / rel).stat().st_ino, rel
+    for stage in ("forecast", "truth", "report"):
+        assert f"[{stage}] running" in proc.stdout
+    # the same agent from the same starts: the real episodes come out the same
+    for condition in CONDITIONS:
+        rel = f"truth/{condition}.pt"
+        assert (chunked / rel).read_bytes() == (first / rel).read_bytes(), rel
+    longer = tmp_path / "longer"
+    proc, _ = run_recipe(*MICRO, f"run_dir={longer}", f"reuse_from={first}", "assess.horizon_s=3.0")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "[models] reusing the finished stage of" in proc.stdout
+    assert "[agent] not reused from" in proc.stdout and "[agent] running" in proc.stdout
+
+
+@pytest.mark.parametrize(
+    ("where", "expected"),
+    [
+        ("missing", "reuse_from: expected a run directory (with its study_config.json), got"),
+        ("itself", "reuse_from: expected another directory than run_dir"),
+    ],
+)
+def test_a_bad_reuse_from_is_refused_before_anything_is_written(runs, tmp_path, where, expected):
+    run_dir = runs["dir"] if where == "itself" else tmp_path / "run"
+    other = run_dir if where == "itself" else tmp_path / "nothing"
+    snapshot = _snapshot(run_dir) if where == "itself" else None
+    proc, _ = run_recipe(*MICRO, f"run_dir={run_dir}", f"reuse_from={other}", timeout=120)
+    assert proc.returncode != 0 and expected in proc.stdout + proc.stderr
+    if where == "itself":
+        assert _snapshot(run_dir) == snapshot
+    else:
+        assert not run_dir.exists()
