@@ -52,8 +52,9 @@ from typing import Any
 from torchrl.record.loggers import Logger
 
 from rcvae_torchrl import distributed
-from rcvae_torchrl.io import (
+from rcvae_torchrl.io import (  # settings as they read back from JSON, as recorded
     StoredFileError,
+    _as_json,
     atomic_write,
     read_json,
     record_run_config,
@@ -210,9 +211,7 @@ class StageRunner:
         if not path.is_file():
             return None
         try:
-            saved = read_json(path, f"marker of stage {name!r}")
-            if not isinstance(saved, dict) or not isinstance(saved.get("outputs"), dict):
-                raise StoredFileError(f"marker of stage {name!r} {str(path)!r}: no file records")
+            saved = _read_marker(path, name)
         except StoredFileError as err:
             self.log(f"[{name}] {err}: removing it and running the stage again")
             path.unlink()
@@ -247,11 +246,8 @@ class StageRunner:
         path = other / "stages" / f"{name}.json"
         if not path.is_file():
             return None
-        where = f"{str(path)!r}"
         try:
-            saved = read_json(path, f"marker of stage {name!r}")
-            if not isinstance(saved, dict) or not isinstance(saved.get("outputs"), dict):
-                raise StoredFileError(f"marker of stage {name!r} {where}: no file records")
+            saved = _read_marker(path, name)
         except StoredFileError as err:
             self.log(f"[{name}] not reused from {str(other)!r}: {err}")
             return None
@@ -401,9 +397,13 @@ class StageRunner:
         return {str(p.relative_to(self.run_dir)): file_record(p) for p in self._matching(outputs)}
 
 
-def _as_json(settings: dict[str, Any]) -> Any:
-    """Settings as they read back from JSON (what a digest of them sees)."""
-    return json.loads(json.dumps(settings, sort_keys=True, default=str))
+def _read_marker(path: Path, name: str) -> dict[str, Any]:
+    """The marker of stage ``name`` at ``path``; :class:`StoredFileError` when it cannot be
+    read or records no files."""
+    saved = read_json(path, f"marker of stage {name!r}")
+    if not isinstance(saved, dict) or not isinstance(saved.get("outputs"), dict):
+        raise StoredFileError(f"marker of stage {name!r} {str(path)!r}: no file records")
+    return saved
 
 
 def _setting(settings: Mapping[str, Any], key: str) -> Any:
