@@ -154,13 +154,16 @@ class StudyConfig:
 @dataclass(frozen=True)
 class RecipeConfig(StudyConfig):
     """The study plus how to run it; ``logger``: ``"csv"``, ``"tensorboard"``, ``"wandb"``
-    (offline), ``"mlflow"`` (a local file store) or ``"none"``, under ``<run_dir>/logs``."""
+    (offline), ``"mlflow"`` (a local file store) or ``"none"``, under ``<run_dir>/logs``;
+    ``reuse_from``: a run directory whose finished stages are taken where the settings they
+    read are the same (``pipeline.STAGE_SETTINGS``)."""
 
     profile: str = "default"
     run_dir: str = "outputs/point_mass_competency/${profile}"
     threads: Any = "auto"
     progress: bool = True
     logger: str = "csv"
+    reuse_from: str | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()

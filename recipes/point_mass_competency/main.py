@@ -5,7 +5,8 @@
 
 The library used as a new user would, on an env this project did not write: dict float64
 observations prepared with ``prepare_env``, a stochastic variant through a TorchRL transform,
-start states replayed by seed. Re-running with the same ``run_dir`` reuses finished stages.
+start states replayed by seed. Re-running with the same ``run_dir`` reuses finished stages;
+``reuse_from=<another run_dir>`` takes that run's data and models where their settings match.
 The console's lines also go to ``<run_dir>/run.log``; training curves and stage summaries go to
 the logger chosen with ``logger=csv|tensorboard|wandb|mlflow|none`` under ``<run_dir>/logs``.
 """
@@ -48,7 +49,12 @@ def main(cfg: DictConfig) -> None:
         )
         try:
             summary = run_study(
-                config, run_dir, progress=config.progress, log=log.info, logger=logger
+                config,
+                run_dir,
+                progress=config.progress,
+                log=log.info,
+                logger=logger,
+                reuse_from=config.reuse_from,
             )
         finally:
             if logger is not None:

@@ -61,7 +61,7 @@ from .task import (
     success,
 )
 
-__all__ = ["STAGES", "Study", "run_study"]
+__all__ = ["STAGES", "STAGE_SETTINGS", "Study", "run_study"]
 
 # Each stage and the files it writes (their sizes and hashes go into its marker).
 STAGES = {
@@ -70,6 +70,12 @@ STAGES = {
     "forecast": ("forecast/*.pt",),
     "truth": ("truth/*.pt",),
     "report": REPORT_FILES,  # named one by one (see REPORT_FILES)
+}
+#: The settings each stage reads (the later stages read them all): another run's finished data
+#: and models are reused (``reuse_from``) when these and the earlier stages' files are the same.
+STAGE_SETTINGS = {
+    "data": ("seed", "task", "data"),
+    "models": ("seed", "task", "data", "model", "train"),
 }
 # disjoint seed ranges per purpose: data starts, condition c's starts, and real episodes
 DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000
@@ -265,14 +271,24 @@ def run_study(
     progress: bool = True,
     log: Callable[[str], None] = print,
     logger: Logger | None = None,
+    reuse_from: str | Path | None = None,
 ) -> dict[str, Any]:
     """Run (or resume) the study in ``run_dir``; returns every stage's summary.
 
     ``logger`` (a TorchRL logger) gets the training curves and every stage's numbers.
+    ``reuse_from``: another run directory whose finished stages are taken where the settings
+    they read (:data:`STAGE_SETTINGS`) and the files before them are this run's.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    runner = StageRunner(run_dir, log, settings=study_settings(config), logger=logger)
+    runner = StageRunner(
+        run_dir,
+        log,
+        settings=study_settings(config),
+        logger=logger,
+        stage_settings=STAGE_SETTINGS,
+        reuse_from=reuse_from,
+    )
     study = Study(config, run_dir, progress, logger)
     for name, outputs in STAGES.items():
         runner.run(name, getattr(study, name), outputs)

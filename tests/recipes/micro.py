@@ -19,3 +19,14 @@ MICRO = (
     "assess.horizon_s=2.0",
     "assess.surface_deadlines_s=[1.0,2.0]",
 )
+
+#: Overrides of a micro run of the point-mass recipe.
+POINT_MASS_MICRO = (
+    "profile=quick",
+    "threads=1",
+    "progress=false",
+    "data.episodes=4",
+    "train.max_steps=20",
+    "assess.start_states=2",
+    "task.deadline_s=1.0",
+)

@@ -10,21 +10,14 @@ import sys
 from pathlib import Path
 
 import pytest
+from micro import POINT_MASS_MICRO
 
 from recipes.point_mass_competency.report import COLUMNS
 from recipes.point_mass_competency.task import CONDITIONS
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "point_mass_competency" / "main.py"
-MICRO = (
-    "profile=quick",
-    "threads=1",
-    "progress=false",
-    "data.episodes=4",
-    "train.max_steps=20",
-    "assess.start_states=2",
-    "task.deadline_s=1.0",
-)
+MICRO = POINT_MASS_MICRO
 
 
 def _run(*overrides: str) -> subprocess.CompletedProcess:
@@ -96,3 +89,17 @@ def test_run_log_and_the_logger(run_dir):
     for experiment in experiments:  # both runs log every stage's numbers
         logged = (experiment / "scalars" / "stages" / "data" / f"{frames[0]}.csv").read_text()
         assert float(logged.split(",")[1]) == marker[frames[0]]
+
+
+def test_a_new_run_reuses_the_data_and_models_of_the_same_settings(run_dir, tmp_path):
+    """``reuse_from``: more imagined samples per member keep the data and the world models
+    (the same files, hard-linked) and forecast anew."""
+    new = tmp_path / "more_samples"
+    proc = _run(*MICRO, f"run_dir={new}", f"reuse_from={run_dir}", "assess.samples_per_member=8")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    for stage in ("data", "models"):
+        assert f"[{stage}] reusing the finished stage of {str(run_dir)!r}" in proc.stdout
+        for rel in json.loads((new / "stages" / f"{stage}.json").read_text())["outputs"]:
+            assert (new / rel).stat().st_ino == (run_dir / rel).stat().st_ino, rel
+    for stage in ("forecast", "truth", "report"):
+        assert f"[{stage}] running" in proc.stdout

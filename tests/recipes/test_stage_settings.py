@@ -1,8 +1,9 @@
-"""The settings each stage of the Pusher recipe declares (``STAGE_SETTINGS``) are all it reads.
+"""The settings each stage of a recipe declares (``STAGE_SETTINGS``) are all it reads.
 
 A stage is reused from another run when the settings it declares are the same there; one it
-reads without declaring would let a stale result through. The data, models and agent stages of
-a micro run are run here with a config that records every setting they read.
+reads without declaring would let a stale result through. The declared stages of a micro run of
+each recipe (the Pusher's data, models and agent; the point mass's data and models) are run here
+with a config that records every setting they read.
 """
 
 from __future__ import annotations
@@ -13,13 +14,16 @@ from typing import Any
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
-from micro import MICRO
+from micro import MICRO, POINT_MASS_MICRO
 
-from recipes.pusher_competency.config import register_configs, study_config
-from recipes.pusher_competency.pipeline import STAGE_SETTINGS, STAGES, Study, study_settings
+from recipes.point_mass_competency import config as point_mass_config
+from recipes.point_mass_competency import pipeline as point_mass
+from recipes.pusher_competency import config as pusher_config
+from recipes.pusher_competency import pipeline as pusher
 
-CONF = Path(__file__).resolve().parents[2] / "recipes" / "pusher_competency" / "conf"
-register_configs()
+RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+pusher_config.register_configs()
+point_mass_config.register_configs()
 # a micro run's models are too small to learn: their checks warn, as they should
 pytestmark = pytest.mark.filterwarnings("ignore::rcvae_torchrl.training.ModelCheckWarning")
 
@@ -39,19 +43,30 @@ class _Recorded:
         return value
 
 
-def test_the_early_stages_read_only_the_settings_they_declare(tmp_path):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose(config_name="pusher_competency", overrides=[*MICRO, f"run_dir={tmp_path}"])
-    config = study_config(cfg)
-    settings = study_settings(config)
-    partly = frozenset(
-        k.split(".")[0] for keys in STAGE_SETTINGS.values() for k in keys if "." in k
+def _study(recipe: str, run_dir: Path, config: Any) -> Any:
+    if recipe == "pusher":
+        return pusher.Study(config, run_dir, torch.device("cpu"), False)
+    return point_mass.Study(config, run_dir, False)
+
+
+@pytest.mark.parametrize("recipe", ["pusher", "point_mass"])
+def test_the_early_stages_read_only_the_settings_they_declare(recipe, tmp_path):
+    module, configs = (
+        (pusher, pusher_config) if recipe == "pusher" else (point_mass, point_mass_config)
     )
-    assert list(STAGE_SETTINGS) == list(STAGES)[: len(STAGE_SETTINGS)]  # the first stages
-    for stage, declared in STAGE_SETTINGS.items():
+    name = "pusher_competency" if recipe == "pusher" else "point_mass_competency"
+    micro = MICRO if recipe == "pusher" else POINT_MASS_MICRO
+    with initialize_config_dir(config_dir=str(RECIPES / name / "conf"), version_base="1.3"):
+        cfg = compose(config_name=name, overrides=[*micro, f"run_dir={tmp_path}"])
+    config = configs.study_config(cfg)
+    settings = module.study_settings(config)
+    keys = [k for declared in module.STAGE_SETTINGS.values() for k in declared]
+    partly = frozenset(k.split(".")[0] for k in keys if "." in k)
+    stages = list(module.STAGES)
+    assert list(module.STAGE_SETTINGS) == stages[: len(module.STAGE_SETTINGS)]  # the first ones
+    for stage, declared in module.STAGE_SETTINGS.items():
         seen: set[str] = set()
-        study = Study(_Recorded(config, seen, by_key=partly), tmp_path, torch.device("cpu"), False)
-        getattr(study, stage)()
+        getattr(_study(recipe, tmp_path, _Recorded(config, seen, by_key=partly)), stage)()
         # only study settings count (not how the recipe runs: run_dir, threads, ...)
         read = {k for k in seen if k.split(".")[0] in settings}
         undeclared = {k for k in read if k not in declared and k.split(".")[0] not in declared}
