@@ -194,3 +194,40 @@ def train_each_rank(out: str, config: TrainConfig, members: int = 4) -> None:
         {"weights": result.ensemble.state_dict(), "history": result.history},
         f"{out}.rank{distributed.rank()}",
     )
+
+
+def staged(run_dir: str, reuse_from: str | None, out: str) -> None:
+    """Two stages on every rank: ``make`` (rank 0 alone) writes ``a.pt``, the sharded
+    ``use`` sums it on every rank (rank 0 writes ``b.pt``); each rank saves which stage
+    functions it called and the summaries it got to ``out`` (``{rank}`` filled in)."""
+    from rcvae_torchrl.io import load_torch, save_torch
+    from rcvae_torchrl.stages import StageRunner
+
+    called = []
+    root = Path(run_dir)
+
+    def make():
+        called.append("make")
+        save_torch(root / "a.pt", torch.arange(4.0))
+        return {"n": 4}
+
+    def use():
+        called.append("use")
+        total = float(load_torch(root / "a.pt", "a").sum())
+        if distributed.is_main():
+            save_torch(root / "b.pt", torch.tensor(total))
+        return {"total": total}
+
+    settings = {"seed": 0, "data": {"n": 4}, "score": {"scale": 2.0 if reuse_from else 1.0}}
+    runner = StageRunner(
+        root,
+        lambda line: None,
+        settings=settings,
+        stage_settings={"make": ["seed", "data"]},
+        reuse_from=reuse_from,
+    )
+    runner.run("make", make, ("a.pt",))
+    runner.run("use", use, ("b.pt",), sharded=True)
+    torch.save(
+        {"called": called, "summaries": runner.summaries}, out.format(rank=distributed.rank())
+    )
