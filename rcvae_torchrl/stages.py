@@ -55,6 +55,7 @@ from rcvae_torchrl import distributed
 from rcvae_torchrl.io import (  # settings as they read back from JSON, as recorded
     StoredFileError,
     _as_json,
+    _differences,
     atomic_write,
     read_json,
     record_run_config,
@@ -253,10 +254,7 @@ class StageRunner:
             return None
         inputs = self._stage_inputs(name)
         if saved.get("inputs") != inputs and not self._same_inputs_recorded(name, saved):
-            self.log(
-                f"[{name}] not reused from {str(other)!r}: its inputs differ (a setting the "
-                "stage reads, or an earlier stage's files)"
-            )
+            self.log(f"[{name}] not reused from {str(other)!r}: {self._why_different(name)}")
             return None
         bad = self._failed(saved["outputs"], other)
         if bad:
@@ -279,6 +277,26 @@ class StageRunner:
             f"{count} hard-linked, {count - linked} copied)"
         )
         return saved
+
+    def _why_different(self, name: str) -> str:
+        """Which settings stage ``name`` reads differ in the ``reuse_from`` run (by the
+        settings it recorded), else that an earlier stage's files differ."""
+        try:
+            recorded = read_json(self._reuse_from / self._config_name, "run config")
+        except StoredFileError:
+            recorded = None
+        if not isinstance(recorded, dict):
+            return "its inputs differ (its settings record cannot be read to say which)"
+        keys = (self._stage_settings or {}).get(name) or sorted(recorded.keys() | self._settings)
+        changed = []
+        for key in keys:
+            there, here = (_setting_or_none(s, key) for s in (recorded, self._settings))
+            changed += [d for d in _differences(key, there, here) if there != here]
+        if not changed:
+            return "its inputs differ (an earlier stage's files)"
+        shown = "; ".join(f"{k}: {a!r} there, {b!r} here" for k, a, b in changed[:5])
+        more = f" and {len(changed) - 5} more" if len(changed) > 5 else ""
+        return f"settings it reads differ ({shown}{more})"
 
     def _same_inputs_recorded(self, name: str, saved: Mapping[str, Any]) -> bool:
         """Whether the other run's marker of stage ``name``, written with the digest of all
@@ -411,6 +429,13 @@ def _setting(settings: Mapping[str, Any], key: str) -> Any:
     section, _, name = key.partition(".")
     value = settings[section]
     return value[name] if name else value
+
+
+def _setting_or_none(settings: Mapping[str, Any], key: str) -> Any:
+    try:
+        return _setting(settings, key)
+    except (KeyError, TypeError):
+        return None
 
 
 def _checked_stage_settings(

@@ -259,7 +259,11 @@ def test_a_run_reuses_another_runs_stages_whose_settings_are_the_same(tmp_path):
         line.startswith("[make] reusing the finished stage of") and "2 of 2 hard-linked" in line
         for line in lines
     )
-    assert any("[use] not reused from" in line and "inputs differ" in line for line in lines)
+    assert any(
+        "[use] not reused from" in line
+        and line.endswith("settings it reads differ (score.scale: 1.0 there, 2.0 here)")
+        for line in lines
+    )
     assert runner.summaries["make"] == {"n": 2, "seconds": runner.summaries["make"]["seconds"]}
     # the reused stage is this run's own now: a rerun verifies and reuses it here
     again = Pipeline(tmp_path / "second")
@@ -272,7 +276,11 @@ def test_a_setting_the_stage_reads_stops_the_reuse(tmp_path):
     other = Pipeline(tmp_path / "other")  # a setting make reads differs
     _, lines = other.run(_settings(n=3), stage_settings=READS, reuse_from=tmp_path / "first")
     assert other.computed == ["x", "y", "z"]
-    assert any("[make] not reused from" in line and "inputs differ" in line for line in lines)
+    assert any(
+        "[make] not reused from" in line
+        and line.endswith("settings it reads differ (data.n: 2 there, 3 here)")
+        for line in lines
+    )
     same = Pipeline(tmp_path / "same")  # every setting the same: every stage reused
     same.run(_settings(), stage_settings=READS, reuse_from=tmp_path / "first")
     assert same.computed == []
@@ -292,7 +300,11 @@ def test_a_changed_earlier_file_is_not_reused_from_the_other_run(tmp_path):
     )
     # its make records other files, so use's inputs differ from the first run's
     assert second.computed == ["z"] and runner.summaries["use"]["total"] == 12.0
-    assert any("[use] not reused from" in line and "inputs differ" in line for line in lines)
+    assert any(
+        "[use] not reused from" in line
+        and line.endswith("inputs differ (an earlier stage's files)")
+        for line in lines
+    )
 
 
 def test_a_damaged_file_of_the_other_run_is_not_reused(tmp_path):

@@ -400,6 +400,7 @@ def test_a_new_run_reuses_the_stages_whose_settings_are_the_same(runs, tmp_path)
     proc, _ = run_recipe(*MICRO, f"run_dir={longer}", f"reuse_from={first}", "assess.horizon_s=3.0")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "[models] reusing the finished stage of" in proc.stdout
+    assert "settings it reads differ (assess.horizon_s: 2.0 there, 3.0 here)" in proc.stdout
     assert "[agent] not reused from" in proc.stdout and "[agent] running" in proc.stdout
 
 
