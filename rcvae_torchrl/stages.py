@@ -468,7 +468,7 @@ def _checked_stage_settings(
 def _checked_reuse_from(reuse_from: str | Path | None, run_dir: Path) -> Path | None:
     if reuse_from is None:
         return None
-    other = Path(reuse_from)
+    other = Path(reuse_from).expanduser()
     if not other.is_dir():
         raise ValueError(f"reuse_from: expected a run directory, got {str(other)!r} (not one)")
     if other.resolve() == run_dir.resolve():

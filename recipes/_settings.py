@@ -262,8 +262,9 @@ def build_config(cls: type[T], cfg: DictConfig | dict) -> T:
             sections[f.name] = _to_object(node, f"{f.name}.")
         else:
             sections[f.name] = node
-    if isinstance(sections.get("run_dir"), str):  # checked and used as the same folder
-        sections["run_dir"] = os.path.expanduser(sections["run_dir"])
+    for name in ("run_dir", "reuse_from"):  # checked and used as the same folder
+        if isinstance(sections.get(name), str):
+            sections[name] = os.path.expanduser(sections[name])
     config = cls(**sections)
     check_run_settings(config)
     return config

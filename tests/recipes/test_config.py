@@ -327,6 +327,18 @@ def test_a_run_dir_under_home_is_the_folder_that_was_checked(monkeypatch, tmp_pa
     assert study_config({"run_dir": "~/study"}).run_dir == str(tmp_path / "study")
 
 
+def test_reuse_from_under_home_is_the_run_that_was_checked(monkeypatch, tmp_path):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "study_config.json").write_text("{}")
+    config = study_config({"run_dir": "~/new", "reuse_from": "~/old"})
+    assert config.reuse_from == str(tmp_path / "old")
+    with pytest.raises(ValueError, match="reuse_from: expected another directory than run_dir"):
+        study_config({"run_dir": "~/old", "reuse_from": str(tmp_path / "old")})
+    with pytest.raises(ValueError, match=r"reuse_from: expected a run directory \(with its"):
+        study_config({"run_dir": "~/new", "reuse_from": "~/missing"})
+
+
 def test_a_nested_setting_is_named_by_its_whole_path():
     with pytest.raises(ValueError, match=r"^agent\.distill\.epochs: expected an int >= 1, got 0"):
         study_config({"agent": {"distill": {"epochs": 0}}})
