@@ -27,7 +27,9 @@ done in this run takes the other run's files when that run's marker records the 
 it) and its files check out. The files are hard links where the file system allows (no copy;
 stages only ever replace a file, never write into it, so neither run changes the other's), else
 copies. A run whose settings differ only in what later stages read (e.g. how a forecast is
-scored) thus reuses the other's data and trained models.
+scored) thus reuses the other's data and trained models. The marker of a reused stage records
+the seconds this run spent on it (placing the files) and, under ``reused_from``, the other run
+and the seconds the stage took where it ran.
 
 Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) rank 0 verifies, writes the
 markers and logs; a ``sharded`` stage runs on every rank (it shares its work out and writes its
@@ -268,8 +270,16 @@ class StageRunner:
                 "the stage's own (an unfinished run of it, which it resumes)"
             )
             return None
+        start = time.perf_counter()
         linked = sum(_place(other / rel, self.run_dir / rel) for rel in saved["outputs"])
-        saved = {**saved, "inputs": inputs}
+        # this run's seconds are the placing's; the stage's own, where it ran, are kept apart
+        ran = saved.get("reused_from", {}).get("seconds", saved.get("seconds"))
+        saved = {
+            **saved,
+            "inputs": inputs,
+            "seconds": round(time.perf_counter() - start, 1),
+            "reused_from": {"run_dir": str(other), "seconds": ran},
+        }
         write_json(self.marker(name), saved)
         count = len(saved["outputs"])
         self.log(

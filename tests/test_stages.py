@@ -264,7 +264,14 @@ def test_a_run_reuses_another_runs_stages_whose_settings_are_the_same(tmp_path):
         and line.endswith("settings it reads differ (score.scale: 1.0 there, 2.0 here)")
         for line in lines
     )
-    assert runner.summaries["make"] == {"n": 2, "seconds": runner.summaries["make"]["seconds"]}
+    # this run's seconds are the placing's; the stage's own stay with the other run's name
+    ran = json.loads((tmp_path / "first" / "stages" / "make.json").read_text())["seconds"]
+    summary = runner.summaries["make"]
+    assert summary["n"] == 2 and summary["seconds"] < 1.0
+    assert summary["reused_from"] == {"run_dir": str(tmp_path / "first"), "seconds": ran}
+    third = Pipeline(tmp_path / "third")  # reused again from the reuse: where it ran is kept
+    third_runner, _ = third.run(_settings(), stage_settings=READS, reuse_from=tmp_path / "second")
+    assert third_runner.summaries["make"]["reused_from"]["seconds"] == ran
     # the reused stage is this run's own now: a rerun verifies and reuses it here
     again = Pipeline(tmp_path / "second")
     _, lines = again.run(_settings(scale=2.0), stage_settings=READS)

@@ -334,6 +334,15 @@ def _model_checks_text(model_checks: Mapping[str, ModelChecks]) -> str:
     return "\n".join(lines) + "\n\n"
 
 
+def _stage_time(summary: dict[str, Any]) -> str:
+    """A stage's seconds in this run, and where it ran when it was reused from another run."""
+    text = f"{summary.get('seconds', '?')} s"
+    other = summary.get("reused_from")
+    if isinstance(other, dict):
+        text += f" (reused from {other.get('run_dir')!r}, where it took {other.get('seconds')} s)"
+    return text
+
+
 def _far_checks_text(far_checks: Mapping[str, Sequence[ModelChecks]]) -> str:
     """The coverage at horizons up to the forecast's, against replayed held-out episodes."""
     if not far_checks:
@@ -727,7 +736,7 @@ def _markdown(
         "",
         "## Stages",
         "",
-        *[f"- {name}: {s.get('seconds', '?')} s" for name, s in stages.items()],
+        *[f"- {name}: {_stage_time(s)}" for name, s in stages.items()],
         "",
     ]
     return "\n".join(lines)

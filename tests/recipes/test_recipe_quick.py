@@ -10,6 +10,7 @@ import csv
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 import time
@@ -392,6 +393,10 @@ def test_a_new_run_reuses_the_stages_whose_settings_are_the_same(runs, tmp_path)
             assert (chunked / rel).stat().st_ino == (first / rel).stat().st_ino, rel
     for stage in ("forecast", "truth", "report"):
         assert f"[{stage}] running" in proc.stdout
+    report = (chunked / "report.md").read_text()
+    ran = json.loads((first / "stages" / "models.json").read_text())["seconds"]
+    where = re.escape(f"(reused from {str(first)!r}, where it took {ran} s)")
+    assert re.search(rf"- models: [0-9.]+ s {where}", report), report[-600:]
     # the same agent from the same starts: the real episodes come out the same
     for condition in CONDITIONS:
         rel = f"truth/{condition}.pt"
