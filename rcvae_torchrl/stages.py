@@ -142,6 +142,7 @@ class StageRunner:
         self._before: list[list[Any]] = []  # [name, output records] of the stages so far
         self._reuse_from = _checked_reuse_from(reuse_from, self.run_dir)
         self._config_name = config_name
+        self._recorded_there: Any = None  # the reuse_from run's settings, once read
         self._unverified = False  # the settings record was missing or unreadable
         if settings is not None and distributed.is_main():
             self._record_settings(dict(settings), self.run_dir / config_name)
@@ -291,17 +292,15 @@ class StageRunner:
     def _why_different(self, name: str) -> str:
         """Which settings stage ``name`` reads differ in the ``reuse_from`` run (by the
         settings it recorded), else that an earlier stage's files differ."""
-        try:
-            recorded = read_json(self._reuse_from / self._config_name, "run config")
-        except StoredFileError:
-            recorded = None
-        if not isinstance(recorded, dict):
+        recorded = self._settings_there()
+        if recorded is None:
             return "its inputs differ (its settings record cannot be read to say which)"
         keys = (self._stage_settings or {}).get(name) or sorted(recorded.keys() | self._settings)
         changed = []
         for key in keys:
             there, here = (_setting_or_none(s, key) for s in (recorded, self._settings))
-            changed += [d for d in _differences(key, there, here) if there != here]
+            if there != here:
+                changed += _differences(key, there, here)
         if not changed:
             return "its inputs differ (an earlier stage's files)"
         shown = "; ".join(f"{k}: {a!r} there, {b!r} here" for k, a, b in changed[:5])
@@ -314,14 +313,13 @@ class StageRunner:
         files of the earlier stages as this run's and from the same settings the stage reads:
         its recorded inputs must be the digest of the settings that run recorded and of this
         run's earlier files."""
-        try:
-            recorded = read_json(self._reuse_from / self._config_name, "run config")
-        except StoredFileError:
+        recorded = self._settings_there()
+        if recorded is None:
             return False
         chain = _digest(recorded)
         for before, outputs in self._before:
             chain = _digest([chain, before, outputs])
-        if saved.get("inputs") != chain or not isinstance(recorded, dict):
+        if saved.get("inputs") != chain:
             return False
         keys = (self._stage_settings or {}).get(name)
         if keys is None:
@@ -330,6 +328,16 @@ class StageRunner:
             return all(_setting(recorded, k) == _setting(self._settings, k) for k in keys)
         except (KeyError, TypeError):
             return False
+
+    def _settings_there(self) -> dict[str, Any] | None:
+        """The settings the ``reuse_from`` run recorded (read once), None if unreadable."""
+        if self._recorded_there is None:
+            try:
+                recorded = read_json(self._reuse_from / self._config_name, "run config")
+            except StoredFileError:
+                recorded = None
+            self._recorded_there = recorded if isinstance(recorded, dict) else False
+        return None if self._recorded_there is False else self._recorded_there
 
     def _failed(
         self, records: Mapping[str, Mapping[str, Any]], root: Path | None = None
