@@ -1,8 +1,10 @@
 """Returns of candidate action sequences under the ensemble: the planner's fast path.
 
 Mirrors mbrl-lib's ``ModelEnv.evaluate_action_sequences``: ``R = |B|·C`` rows (start state x
-candidate), G particle groups per row, all G·R particles stepped together by the rollout loop,
-rewards kept per step and summed at the end; no TensorDict.
+candidate), G particle groups per row, all G·R particles stepped together by the rollout loop;
+every step's states kept, then the task's reward and success functions called once on all H
+steps (not once per step: the task's ops are dispatched once per scoring) and the rewards summed
+in time order; no TensorDict.
 
 Particle layout (flat index i = g·R + r, so ``"ts_inf"`` is member-major without copies):
 
@@ -79,51 +81,52 @@ def particle_groups(
     return particles if trajectory_sampling == "ts1" else 1
 
 
-class _Scores:
-    """Keeps each step's reward and success of every particle ``[n]``."""
+class _States:
+    """Keeps s_{t+1} of every step (the task functions score them all at once, after the loop)."""
 
-    def __init__(self, task: Task, n: int) -> None:
-        self.task, self.n = task, n
-        self.rewards: list[torch.Tensor] = []
-        self.successes: list[torch.Tensor] = []
+    def __init__(self) -> None:
+        self.states: list[torch.Tensor] = []
 
     def __call__(self, step: StepRecord) -> None:
-        obs = step.out.observation.reshape(self.n, -1)
-        action = step.action.reshape(self.n, -1)
-        reward = self.task.reward_fn(observation=obs, action=action)
-        success = self.task.success_fn(observation=obs)
-        if step.t == 0:  # the task functions' outputs checked once: the shapes never change
-            reward = self.task.checked_reward(reward, obs)
-            success = self.task.checked_success(success, obs)
-        self.rewards.append(reward.reshape(self.n).to(obs.dtype))
-        self.successes.append(success.reshape(self.n))
+        self.states.append(step.out.observation)
 
-    def result(self) -> tuple[torch.Tensor, torch.Tensor]:
-        success = torch.stack(self.successes)
-        returns = self.task.returns(torch.stack(self.rewards), success)
-        return returns, success.any(0)  # the first success is always within the episode
+
+def _scored(task: Task, states: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """``(returns [n], success [n])`` of the steps ``(a_t, s_{t+1})``, ``[H, n, ·]`` each: one
+    call of each task function for the whole horizon (the functions act on any batch), not one
+    per step, so eager scoring dispatches the task's ops once instead of H times."""
+    reward = task.checked_reward(task.reward_fn(observation=states, action=actions), states)
+    success = task.checked_success(task.success_fn(observation=states), states)
+    horizon, n = states.shape[:2]
+    success = success.reshape(horizon, n)
+    returns = task.returns(reward.reshape(horizon, n), success)
+    return returns, success.any(0)  # the first success is always within the episode
 
 
 def _score(ensemble, mode, task, hidden, obs, per_step, bounds, generator, noise):
     """All H steps of all particles, scored: ``(returns [n], success [n])``."""
-    hook = _Scores(task, per_step.shape[1])
+    if bounds is not None:  # every step's actions clipped at once, as the loop would clip them
+        per_step = torch.clamp(per_step, bounds.low, bounds.high)
+    horizon, n = per_step.shape[:2]
+    hook = _States()
+    rows = per_step
     if mode == "ts_inf":  # member-major views of the flat particles, no copies
         e = ensemble.ensemble_size
         obs = obs.view(e, -1, obs.shape[-1])
-        per_step = per_step.view(per_step.shape[0], e, -1, per_step.shape[-1])
+        rows = per_step.view(horizon, e, -1, per_step.shape[-1])
     rollout(
         ensemble,
         mode,
         obs,
         hidden,
-        per_step.shape[0],
+        horizon,
         hook,
-        actions=per_step,
-        bounds=bounds,
+        actions=rows,
         generator=generator,
         noise=noise,
     )
-    return hook.result()
+    states = torch.stack(hook.states).view(horizon, n, -1)
+    return _scored(task, states, per_step)
 
 
 def evaluate_action_sequences(

@@ -92,6 +92,26 @@ def test_fast_path_equals_env_rollout_under_the_same_seed(
         assert not bool(success.all())
 
 
+def test_task_functions_score_the_whole_horizon_in_one_call(ensemble, real_env, starts):
+    """Eager scoring calls the reward and the success function once per scoring call, on every
+    step's states ``[H, n, S]`` (and actions ``[H, n, A]``), not once per step."""
+    shapes: dict[str, list[tuple[int, ...]]] = {"reward": [], "success": []}
+
+    def reward(observation, action):
+        shapes["reward"].append((*observation.shape, *action.shape[-1:]))
+        return pusher_reward(observation=observation, action=action)
+
+    def success(observation):
+        shapes["success"].append(tuple(observation.shape))
+        return pusher_success(observation)
+
+    env = make_rcvae_env(ensemble, real_env, reward, success, terminate_on_success=True, seed=0)
+    c, h, p = 3, 5, 2 * E
+    actions = torch.rand(1, c, h, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    env.evaluate_action_sequences(_start(starts, (1,)), actions, p)
+    assert shapes == {"reward": [(h, p * c, 14, 2)], "success": [(h, p * c, 14)]}
+
+
 def test_success_detected_and_later_rewards_dropped(still_ball_env, starts):
     env = still_ball_env()
     obs = torch.stack([at_target(starts[0]), starts[1]])
