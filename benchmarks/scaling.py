@@ -13,6 +13,9 @@ study's default world model):
   and 4 members, which splits its time into a fixed part (every rank pays it in full) and a
   part per member, and gives the split's ceiling (4 members over 2, alone) and what running
   side by side adds (the 2-rank time over 2 members alone);
+- training_models: the study's models stage, two such ensembles of 5 members (its
+  deterministic and stochastic world models), one per rank at 2 ranks
+  (:func:`~rcvae_torchrl.distributed.parts`), one after the other at 1, their weights gathered;
 - training_data_parallel: the same training with ``TrainConfig(data_parallel=2)``: at 2 ranks
   both train all 4 members, each on 16 of every step's 32 windows, DDP all-reducing the
   gradients at every step (not in the gathered bytes); at 1 rank it is the training above;
@@ -59,7 +62,13 @@ from rcvae_torchrl import distributed
 
 WORLDS = (1, 2)
 # members, members, chunks, episodes
-UNITS = {"training": 4, "training_data_parallel": 4, "forecasting": 16, "validation": 16}
+UNITS = {
+    "training": 4,
+    "training_models": 10,
+    "training_data_parallel": 4,
+    "forecasting": 16,
+    "validation": 16,
+}
 
 
 # ---------------------------------------------------------------------- workloads
@@ -70,6 +79,7 @@ def _training(
     members: int = 4,
     data_parallel: int = 1,
     compile: bool = False,
+    seed: int = 0,
 ):
     from tensordict import TensorDict
 
@@ -108,10 +118,29 @@ def _training(
     )
     model_config = rcvae_config(ModelConfig(hidden_dim=128 if full_model else 64))
 
-    def run() -> None:
-        torch.manual_seed(0)
+    def run() -> dict[str, torch.Tensor]:
+        torch.manual_seed(seed)
         model = RCVAEEnsemble(model_config, members, functions=MODEL_FUNCTIONS)
         train_ensemble(model, train, val, config, progress=False, checks=False)
+        return model.state_dict()
+
+    return run
+
+
+def _training_models(quick: bool, steps: int = 100, **workload: Any):
+    """The study's models stage: two ensembles of 5 members (its deterministic and stochastic
+    world models; here the same synthetic episodes, drawn with seeds 0 and 1) trained with
+    :func:`_training`'s budget, side by side over the ranks (:func:`distributed.parts`: one per
+    rank at 2 ranks, one after the other at 1), every ensemble's weights then gathered."""
+    runs = [_training(quick, steps=steps, members=5, seed=job, **workload) for job in (0, 1)]
+
+    def run() -> None:
+        trained = {}
+        with distributed.parts(min(len(runs), distributed.world_size())) as part:
+            for job in range(part.index, len(runs), part.parts):
+                trained[job] = runs[job]()
+            leader = distributed.is_main()
+        distributed.all_gather(trained if leader else {})
 
     return run
 
@@ -215,6 +244,7 @@ def _batched_validation(quick: bool, workers: int):
 
 WORKLOADS = {
     "training": _training,
+    "training_models": _training_models,
     # all 4 members on each of the 2 ranks, each computing half of every step's windows
     "training_data_parallel": functools.partial(_training, data_parallel=2),
     "forecasting": _forecasting,
@@ -222,7 +252,8 @@ WORKLOADS = {
 }
 #: Workloads whose ranks all-reduce at every step (DDP's gradients): the projection's model
 #: (work shared once, one gather at the end) does not hold for them.
-NOT_PROJECTED = ("training_data_parallel",)
+#: Nor for two whole ensembles, one per part of the ranks: 2 jobs do not split over 8 ranks.
+NOT_PROJECTED = ("training_data_parallel", "training_models")
 
 
 # ---------------------------------------------------------------------- one rank
@@ -534,7 +565,7 @@ def main() -> None:
                 "steps": args.training_steps,
                 "compile": args.compile,
             }
-            for name in ("training", "training_data_parallel")
+            for name in ("training", "training_models", "training_data_parallel")
         },
     }
     results: dict[str, dict[int, dict]] = {name: {} for name in args.only}

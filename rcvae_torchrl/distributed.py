@@ -16,6 +16,9 @@ ranks use GPUs) and :func:`teardown` at the end, or use :func:`session`::
 
     torchrun --nproc_per_node=4 my_script.py
 
+Independent jobs (say, two ensembles to train) run side by side over the ranks with
+:func:`parts`: each job on its own part of the ranks, whose ranks share that job's work.
+
 Every piece of work is seeded by its index (a member, a chunk of start states, an episode), so
 the gathered result equals the single-process one under the same seed, whatever the number of
 ranks.
@@ -35,13 +38,16 @@ import torch
 import torch.distributed as dist
 
 __all__ = [
+    "Part",
     "Replicas",
     "all_gather",
+    "alone",
     "barrier",
     "broadcast",
     "init",
     "is_active",
     "is_main",
+    "parts",
     "rank",
     "replicas",
     "session",
@@ -52,27 +58,51 @@ __all__ = [
 ]
 
 
+#: The process group of the part of the ranks this rank works in (see :func:`parts`), or
+#: nothing: then every helper acts on all the ranks.
+_PART: list[Any] = []
+
+
+#: Stands for the group of this rank alone, within :func:`alone`.
+_ALONE = object()
+
+
+def _group() -> Any:
+    """The process group the helpers act on: this rank's part, else ``None`` (all ranks)."""
+    return _PART[-1] if _PART else None
+
+
 def is_active() -> bool:
-    """Whether a process group of more than one rank is up."""
-    return dist.is_available() and dist.is_initialized() and dist.get_world_size() > 1
+    """Whether a process group of more than one rank is up (within :func:`parts`: whether this
+    rank's part has more than one; within :func:`alone`: no)."""
+    if _group() is _ALONE:
+        return False
+    return dist.is_available() and dist.is_initialized() and dist.get_world_size(_group()) > 1
 
 
 def rank() -> int:
-    """This process's rank: the process group's, else ``RANK`` from the launcher, else 0."""
+    """This process's rank: the process group's (within :func:`parts`, its rank in its part;
+    within :func:`alone`, 0), else ``RANK`` from the launcher, else 0."""
+    if _group() is _ALONE:
+        return 0
     if dist.is_available() and dist.is_initialized():
-        return dist.get_rank()
+        return dist.get_rank(_group())
     return int(os.environ.get("RANK", 0))
 
 
 def world_size() -> int:
-    """The number of ranks: the process group's, else ``WORLD_SIZE``, else 1."""
+    """The number of ranks: the process group's (within :func:`parts`, this rank's part's;
+    within :func:`alone`, 1), else ``WORLD_SIZE``, else 1."""
+    if _group() is _ALONE:
+        return 1
     if dist.is_available() and dist.is_initialized():
-        return dist.get_world_size()
+        return dist.get_world_size(_group())
     return int(os.environ.get("WORLD_SIZE", 1))
 
 
 def is_main() -> bool:
-    """Whether this is rank 0, the one that writes files and logs."""
+    """Whether this is rank 0 (within :func:`parts`, of its part), the one that writes files
+    and logs."""
     return rank() == 0
 
 
@@ -137,6 +167,75 @@ def shard(n: int, rank_: int | None = None, world: int | None = None) -> range:
 
 
 @dataclass(frozen=True)
+class Part:
+    """Which of :func:`parts`' parts of the ranks this rank is in: ``index`` of ``parts``."""
+
+    index: int
+    parts: int
+
+
+@contextlib.contextmanager
+def parts(n: int) -> Iterator[Part]:
+    """Split the ranks into ``n`` parts of consecutive ranks (sizes differ by at most one, as
+    :func:`shard` splits them) and, inside the block, make every helper here act on this rank's
+    part alone: :func:`rank`, :func:`world_size`, :func:`is_main`, :func:`is_active`,
+    :func:`shard`, :func:`all_gather`, :func:`broadcast`, :func:`barrier`. So independent jobs
+    run side by side over the ranks, each job's ranks sharing its work (with one rank, the job
+    runs as in a single process). Yields this rank's :class:`Part`; leaves through a barrier
+    of all the ranks.
+
+    Every rank must enter it, with the same ``n`` (it creates the parts' process groups).
+    Without a process group the one process is the only part, whatever ``n``. Parts do not
+    nest, and within a part of several ranks :func:`replicas` with ``size > 1`` (which splits
+    all the ranks) raises.
+
+    Example (two ensembles trained at once on 2 ranks, one each)::
+
+        with distributed.parts(2) as part:
+            train_ensemble(models[part.index], ...)  # each part's rank 0 writes its checkpoint
+
+    Raises:
+        ValueError: ``n`` is not an int from 1 to the number of ranks, or parts are nested.
+    """
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"n: expected a positive int (the number of parts), got {n!r}")
+    if any(group is not _ALONE for group in _PART):
+        raise ValueError("parts: already within parts of the ranks (parts do not nest)")
+    if not is_active():
+        yield Part(0, 1)
+        return
+    world, rank_ = world_size(), rank()
+    if n > world:
+        raise ValueError(f"n: expected at most the number of ranks, {world}, got {n}")
+    blocks = [shard(world, k, n) for k in range(n)]
+    groups = [dist.new_group(list(block)) for block in blocks]  # every rank creates every group
+    index = next(k for k, block in enumerate(blocks) if rank_ in block)
+    _PART.append(groups[index])
+    done = False
+    try:
+        yield Part(index, n)
+        done = True
+    finally:
+        _PART.pop()
+        if done:  # (after an error the launcher ends the other ranks: no one to wait for)
+            dist.barrier()
+        dist.destroy_process_group(groups[index])
+
+
+@contextlib.contextmanager
+def alone() -> Iterator[None]:
+    """Inside the block this rank acts as the only rank of one: every helper here behaves as
+    in a single process and makes no collective call. For work one rank does while the others
+    wait for it (a stage that runs on rank 0 alone): a library call inside it that would share
+    its work over the ranks (and wait for ranks that never come) does it all here."""
+    _PART.append(_ALONE)
+    try:
+        yield
+    finally:
+        _PART.pop()
+
+
+@dataclass(frozen=True)
 class Replicas:
     """This rank's place when every block of work is shared by ``size`` ranks (data parallel).
 
@@ -166,6 +265,11 @@ def replicas(size: int) -> Replicas:
     if not is_active():
         return Replicas(0, 1, 0, 1)
     world, rank_ = world_size(), rank()
+    if size > 1 and _PART:
+        raise ValueError(
+            f"size: groups of {size} ranks cannot be made within parts of the ranks (making "
+            "them takes all the ranks); use size 1 there, or no parts"
+        )
     if world % size:
         raise ValueError(
             f"size: expected a divisor of the world size {world} (ranks per block), got {size}"
@@ -202,21 +306,26 @@ def all_gather(obj: Any) -> list[Any]:
     """
     if not is_active():
         return [obj]
-    out: list[Any] = [None] * dist.get_world_size()
-    dist.all_gather_object(out, obj)
+    out: list[Any] = [None] * world_size()
+    dist.all_gather_object(out, obj, group=_group())
     return out
 
 
 def broadcast(obj: Any, src: int = 0) -> Any:
-    """Rank ``src``'s ``obj`` on every rank (``obj`` itself without a group)."""
+    """Rank ``src``'s ``obj`` on every rank (``obj`` itself without a group; within
+    :func:`parts`, ``src`` is a rank of the part)."""
     if not is_active():
         return obj
     box = [obj]
-    dist.broadcast_object_list(box, src=src)
+    group = _group()
+    if group is None:
+        dist.broadcast_object_list(box, src=src)
+    else:  # src is a rank of the part
+        dist.broadcast_object_list(box, group=group, group_src=src)
     return box[0]
 
 
 def barrier() -> None:
     """Wait for every rank (a no-op without a group)."""
     if is_active():
-        dist.barrier()
+        dist.barrier(group=_group())

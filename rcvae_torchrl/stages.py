@@ -33,8 +33,9 @@ and the seconds the stage took where it ran.
 
 Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) rank 0 verifies, writes the
 markers and logs; a ``sharded`` stage runs on every rank (it shares its work out and writes its
-files on rank 0), any other stage on rank 0 alone, and every rank waits for a stage to end
-before the next one.
+files on rank 0), any other stage on rank 0 alone (inside
+:func:`~rcvae_torchrl.distributed.alone`: a library call in it that would share its work over
+the ranks does it all there), and every rank waits for a stage to end before the next one.
 
 With a TorchRL logger, every stage's numbers are logged too (``stages/<name>/<key>``, on rank 0),
 whether the stage ran or was reused.
@@ -42,6 +43,7 @@ whether the stage ran or was reused.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -185,7 +187,9 @@ class StageRunner:
         if distributed.broadcast(saved is not None):  # rank 0's view: every rank takes one branch
             saved = saved or read_json(self.marker(name), f"marker of stage {name!r}")
         elif distributed.is_main() or sharded:
-            saved = self._compute(name, fn, outputs)
+            # a stage on rank 0 alone acts as one process: a sharing call in it must not wait
+            with contextlib.nullcontext() if sharded else distributed.alone():
+                saved = self._compute(name, fn, outputs)
             distributed.barrier()
         else:
             distributed.barrier()

@@ -325,6 +325,30 @@ class Study:
         jobs = [(self.cfg, str(self.dir), str(self.device), method, name) for name in pending]
         return dict(zip(pending, map_in_processes(_study_job, jobs, workers))), True
 
+    def over_ranks(
+        self, stage: str, names: Sequence[str], method: str
+    ) -> tuple[dict[str, Any], list[str]]:
+        """Under torch.distributed, in a sharded stage (every rank calls it):
+        ``self.<method>(name)`` for each of ``names`` whose ``<stage>/<name>.pt`` is missing,
+        the jobs side by side on parts of the ranks (:func:`~rcvae_torchrl.distributed.parts`;
+        part p runs jobs p, p + n, ...), each part's ranks sharing its jobs' work. Returns
+        each job's result by name (from its part's first rank, on every rank) and the jobs
+        that ran without this run's rank 0 (and its logger)."""
+        pending = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
+        n = max(1, min(len(pending), distributed.world_size()))
+        mine: dict[str, Any] = {}
+        with distributed.parts(n) as part:
+            if n > 1:
+                self.say(f"[{stage}] {', '.join(pending)} side by side on {n} parts of the ranks")
+            for name in pending[part.index :: part.parts]:
+                mine[name] = getattr(self, method)(name)
+            leader = distributed.is_main()
+        results = {}
+        for theirs in distributed.all_gather(mine if leader else {}):
+            results.update(theirs)
+        elsewhere = [name for i, name in enumerate(pending) if i % n != 0]
+        return results, elsewhere
+
     def _train_config(self, name: str) -> TrainConfig:
         """The training settings of world model ``name``, seeded by the study's seed."""
         train = dataclasses.replace(self.cfg.train, seed=self.cfg.train.seed + self.cfg.seed)
@@ -334,10 +358,13 @@ class Study:
         return dataclasses.replace(train, open_loop_steps=steps)
 
     def models(self) -> dict[str, Any]:
-        histories, elsewhere = self.side_by_side("models", WORLD_MODELS, "train_world_model")
-        if elsewhere:  # the workers' training curves, into this run's logger
-            for name, history in histories.items():
-                log_history(self.logger, history, prefix=f"models/{name}/")
+        if distributed.is_active() and self.cfg.train.data_parallel == 1:
+            histories, elsewhere = self.over_ranks("models", WORLD_MODELS, "train_world_model")
+        else:  # one process (worker processes), or ranks sharing each member's windows
+            histories, workers = self.side_by_side("models", WORLD_MODELS, "train_world_model")
+            elsewhere = list(histories) if workers else []
+        for name in elsewhere:  # training curves made without this run's logger, into it
+            log_history(self.logger, histories[name], prefix=f"models/{name}/")
         distributed.barrier()
         summary = {}
         for name in WORLD_MODELS:

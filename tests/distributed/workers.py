@@ -208,6 +208,8 @@ def staged(run_dir: str, reuse_from: str | None, out: str) -> None:
 
     def make():
         called.append("make")
+        # rank 0 alone: a sharing call acts as one process (the other ranks never join it)
+        assert distributed.all_gather("make") == ["make"] and distributed.world_size() == 1
         save_torch(root / "a.pt", torch.arange(4.0))
         return {"n": 4}
 
@@ -231,3 +233,52 @@ def staged(run_dir: str, reuse_from: str | None, out: str) -> None:
     torch.save(
         {"called": called, "summaries": runner.summaries}, out.format(rank=distributed.rank())
     )
+
+
+def train_in_parts(out: str) -> None:
+    """Two ensembles (drawn with seeds 0 and 1) trained at once, each on its part of the ranks
+    (:func:`~rcvae_torchrl.distributed.parts`); each part's rank 0 saves its ensemble's weights
+    to ``<out>.part<p>``, and every rank what the helpers said within its part and after it to
+    ``<out>.rank<r>``."""
+    train_data, val_data = linear_data()
+    global_rank = distributed.rank()
+    errors = []
+    for n in (distributed.world_size() + 1, 2):  # more parts than ranks; then nested parts
+        try:
+            with distributed.parts(n), distributed.parts(1):
+                pass
+        except ValueError as error:
+            errors.append(str(error))
+    with distributed.parts(2) as part:
+        seen = {
+            "part": (part.index, part.parts),
+            "rank": distributed.rank(),
+            "world": distributed.world_size(),
+            "gathered": distributed.all_gather(global_rank),
+            "broadcast": distributed.broadcast(global_rank, src=distributed.world_size() - 1),
+            "replicas": None,
+        }
+        if distributed.is_active():
+            try:
+                distributed.replicas(2)
+            except ValueError as error:
+                seen["replicas"] = str(error)
+        result = train_ensemble(
+            small_ensemble(seed=part.index), train_data, val_data, CONFIG, progress=False,
+            checks=False,
+        )  # fmt: skip
+        if distributed.is_main():
+            torch.save(result.ensemble.state_dict(), f"{out}.part{part.index}")
+    seen["after"] = (distributed.rank(), distributed.world_size())
+    seen["errors"] = errors
+    with distributed.alone():  # no collective call: each rank on its own
+        seen["alone"] = (
+            distributed.rank(),
+            distributed.world_size(),
+            distributed.is_active(),
+            distributed.all_gather(global_rank),
+            distributed.broadcast(global_rank),
+        )
+        with distributed.parts(2) as part:
+            seen["alone"] += ((part.index, part.parts),)
+    torch.save(seen, f"{out}.rank{global_rank}")

@@ -1,0 +1,49 @@
+"""Independent jobs side by side over parts of the ranks (3 gloo ranks: parts of 2 and 1)."""
+
+import pytest
+import torch
+import workers
+from _ranks import run_ranks
+
+from rcvae_torchrl import distributed
+from rcvae_torchrl.training import train_ensemble
+
+pytestmark = pytest.mark.filterwarnings("ignore::rcvae_torchrl.training.ModelCheckWarning")
+
+
+def test_each_part_trains_its_ensemble_as_a_single_process_would(tmp_path):
+    out = str(tmp_path / "out")
+    run_ranks(workers.train_in_parts, out, world=3)
+    seen = [torch.load(f"{out}.rank{r}") for r in range(3)]
+    # ranks 0 and 1 form part 0, rank 2 part 1; the helpers act within the part
+    assert [s["part"] for s in seen] == [(0, 2), (0, 2), (1, 2)]
+    assert [(s["rank"], s["world"]) for s in seen] == [(0, 2), (1, 2), (0, 1)]
+    assert [s["gathered"] for s in seen] == [[0, 1], [0, 1], [2]]
+    assert [s["broadcast"] for s in seen] == [1, 1, 2]  # the part's last rank's
+    assert "within parts" in seen[0]["replicas"] and seen[2]["replicas"] is None
+    assert [s["after"] for s in seen] == [(0, 3), (1, 3), (2, 3)]  # all the ranks again
+    assert [s["alone"] for s in seen] == [(0, 1, False, [r], r, (0, 1)) for r in range(3)]
+    for s in seen:
+        assert s["errors"] == [
+            "n: expected at most the number of ranks, 3, got 4",
+            "parts: already within parts of the ranks (parts do not nest)",
+        ]
+    train, val = workers.linear_data()
+    for part in (0, 1):
+        alone = train_ensemble(
+            workers.small_ensemble(seed=part), train, val, workers.CONFIG, progress=False,
+            checks=False,
+        )  # fmt: skip
+        weights = torch.load(f"{out}.part{part}")
+        for name, value in alone.ensemble.state_dict().items():
+            assert torch.equal(weights[name], value), (part, name)
+
+
+def test_without_a_group_the_one_process_is_the_only_part():
+    with distributed.parts(3) as part:
+        assert part == distributed.Part(0, 1)
+        assert (distributed.rank(), distributed.world_size()) == (0, 1)
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="n: expected a positive int"):
+            with distributed.parts(bad):
+                pass
