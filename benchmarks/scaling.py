@@ -16,6 +16,8 @@ study's default world model):
 - training_models: the study's models stage, two such ensembles of 5 members (its
   deterministic and stochastic world models), one per rank at 2 ranks
   (:func:`~rcvae_torchrl.distributed.parts`), one after the other at 1, their weights gathered;
+  training_models_shared: the same two, one after the other, every rank sharing each one's
+  members (3 and 2 at 2 ranks);
 - training_data_parallel: the same training with ``TrainConfig(data_parallel=2)``: at 2 ranks
   both train all 4 members, each on 16 of every step's 32 windows, DDP all-reducing the
   gradients at every step (not in the gathered bytes); at 1 rank it is the training above;
@@ -65,6 +67,7 @@ WORLDS = (1, 2)
 UNITS = {
     "training": 4,
     "training_models": 10,
+    "training_models_shared": 10,
     "training_data_parallel": 4,
     "forecasting": 16,
     "validation": 16,
@@ -127,16 +130,19 @@ def _training(
     return run
 
 
-def _training_models(quick: bool, steps: int = 100, **workload: Any):
+def _training_models(quick: bool, steps: int = 100, parts: bool = True, **workload: Any):
     """The study's models stage: two ensembles of 5 members (its deterministic and stochastic
     world models; here the same synthetic episodes, drawn with seeds 0 and 1) trained with
     :func:`_training`'s budget, side by side over the ranks (:func:`distributed.parts`: one per
-    rank at 2 ranks, one after the other at 1), every ensemble's weights then gathered."""
+    rank at 2 ranks, one after the other at 1), every ensemble's weights then gathered; with
+    ``parts=False`` one after the other, all ranks sharing each one's members (3 and 2 at 2
+    ranks; the recipe's stage before it used parts)."""
     runs = [_training(quick, steps=steps, members=5, seed=job, **workload) for job in (0, 1)]
 
     def run() -> None:
         trained = {}
-        with distributed.parts(min(len(runs), distributed.world_size())) as part:
+        n = min(len(runs), distributed.world_size()) if parts else 1
+        with distributed.parts(n) as part:
             for job in range(part.index, len(runs), part.parts):
                 trained[job] = runs[job]()
             leader = distributed.is_main()
@@ -245,6 +251,7 @@ def _batched_validation(quick: bool, workers: int):
 WORKLOADS = {
     "training": _training,
     "training_models": _training_models,
+    "training_models_shared": functools.partial(_training_models, parts=False),
     # all 4 members on each of the 2 ranks, each computing half of every step's windows
     "training_data_parallel": functools.partial(_training, data_parallel=2),
     "forecasting": _forecasting,
@@ -253,7 +260,7 @@ WORKLOADS = {
 #: Workloads whose ranks all-reduce at every step (DDP's gradients): the projection's model
 #: (work shared once, one gather at the end) does not hold for them.
 #: Nor for two whole ensembles, one per part of the ranks: 2 jobs do not split over 8 ranks.
-NOT_PROJECTED = ("training_data_parallel", "training_models")
+NOT_PROJECTED = ("training_data_parallel", "training_models", "training_models_shared")
 
 
 # ---------------------------------------------------------------------- one rank
@@ -565,7 +572,12 @@ def main() -> None:
                 "steps": args.training_steps,
                 "compile": args.compile,
             }
-            for name in ("training", "training_models", "training_data_parallel")
+            for name in (
+                "training",
+                "training_models",
+                "training_models_shared",
+                "training_data_parallel",
+            )
         },
     }
     results: dict[str, dict[int, dict]] = {name: {} for name in args.only}
