@@ -132,7 +132,7 @@ STAGES = {
     "report": REPORT_FILES,
 }
 # Stages that share their work over torch.distributed ranks (the others run on rank 0).
-SHARDED_STAGES = ("models", "forecast", "truth")
+SHARDED_STAGES = ("data", "models", "forecast", "truth")
 #: The settings each stage reads (sections, or one key of a section); the later stages read
 #: them all. Another run's finished stage is reused (``reuse_from``) when these and every
 #: earlier stage's files are the same: a run that changes only how forecasts are made or
@@ -285,7 +285,11 @@ class Study:
 
     # ------------------------------------------------------------------ stages
     def data(self) -> dict[str, Any]:
-        self.side_by_side("data", WORLD_MODELS, "collect", host=True)  # the real env alone
+        if distributed.is_active():  # the two variants side by side on parts of the ranks
+            self.over_ranks("data", WORLD_MODELS, "collect", shared=False)
+        else:
+            self.side_by_side("data", WORLD_MODELS, "collect", host=True)  # the real env alone
+        distributed.barrier()
         return {
             f"{variant}_frames": int(load_episodes(self.dir / "data" / f"{variant}.pt").shape[0])
             for variant in WORLD_MODELS
@@ -326,23 +330,26 @@ class Study:
         return dict(zip(pending, map_in_processes(_study_job, jobs, workers))), True
 
     def over_ranks(
-        self, stage: str, names: Sequence[str], method: str
+        self, stage: str, names: Sequence[str], method: str, *, shared: bool = True
     ) -> tuple[dict[str, Any], list[str]]:
         """Under torch.distributed, in a sharded stage (every rank calls it):
         ``self.<method>(name)`` for each of ``names`` whose ``<stage>/<name>.pt`` is missing,
         the jobs side by side on parts of the ranks (:func:`~rcvae_torchrl.distributed.parts`;
-        part p runs jobs p, p + n, ...), each part's ranks sharing its jobs' work. Returns
-        each job's result by name (from its part's first rank, on every rank) and the jobs
-        that ran without this run's rank 0 (and its logger)."""
+        part p runs jobs p, p + n, ...), each part's ranks sharing its jobs' work (``shared``)
+        or its first rank running them alone (jobs that share nothing out). Returns each job's
+        result by name (from its part's first rank, on every rank) and the jobs that ran
+        without this run's rank 0 (and its logger)."""
+        # rank 0's view of what is missing: every rank makes the same parts
         pending = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
+        pending = distributed.broadcast(pending)
         n = max(1, min(len(pending), distributed.world_size()))
         mine: dict[str, Any] = {}
         with distributed.parts(n) as part:
             if n > 1:
                 self.say(f"[{stage}] {', '.join(pending)} side by side on {n} parts of the ranks")
-            for name in pending[part.index :: part.parts]:
-                mine[name] = getattr(self, method)(name)
             leader = distributed.is_main()
+            for name in pending[part.index :: part.parts] if shared or leader else ():
+                mine[name] = getattr(self, method)(name)
         results = {}
         for theirs in distributed.all_gather(mine if leader else {}):
             results.update(theirs)

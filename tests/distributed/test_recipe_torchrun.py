@@ -52,8 +52,11 @@ def test_recipe_under_torchrun_equals_one_process(tmp_path):
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2"]
     out = _run([*torchrun, "--standalone"], two).stdout
     assert out.count("ranks=2") == 1  # rank 0 alone prints
-    # the two world models trained at once, one per rank (distributed.parts)
-    assert "[models] deterministic, stochastic side by side on 2 parts of the ranks" in out
+    # the two variants' data and world models made at once, one per rank (distributed.parts)
+    for stage in ("data", "models"):
+        assert f"[{stage}] deterministic, stochastic side by side on 2 parts of the ranks" in out
+    for name in ("data/deterministic.pt", "data/stochastic.pt"):
+        assert (one / name).read_bytes() == (two / name).read_bytes(), name
     for name in ("models/deterministic.pt", "models/stochastic.pt"):
         a, b = (torch.load(d / name, weights_only=False) for d in (one, two))
         _assert_same(a["state_dict"], b["state_dict"], name)
