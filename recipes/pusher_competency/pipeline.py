@@ -335,25 +335,28 @@ class Study:
         """Under torch.distributed, in a sharded stage (every rank calls it):
         ``self.<method>(name)`` for each of ``names`` whose ``<stage>/<name>.pt`` is missing,
         the jobs side by side on parts of the ranks (:func:`~rcvae_torchrl.distributed.parts`;
-        part p runs jobs p, p + n, ...), each part's ranks sharing its jobs' work (``shared``)
-        or its first rank running them alone (jobs that share nothing out). Returns each job's
-        result by name (from its part's first rank, on every rank) and the jobs that ran
-        without this run's rank 0 (and its logger)."""
-        # rank 0's view of what is missing: every rank makes the same parts
-        pending = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
-        pending = distributed.broadcast(pending)
-        n = max(1, min(len(pending), distributed.world_size()))
+        part p runs jobs p, p + n, ... of ``names``, so a job resumed after a kill runs on the
+        ranks it ran on before), each part's ranks sharing its jobs' work (``shared``) or its
+        first rank running them alone (jobs that share nothing out). Returns each job's result
+        by name (from its part's first rank, on every rank) and the jobs that ran without this
+        run's rank 0 (and its logger)."""
+        names = list(names)
+        # rank 0's view of what is missing: every rank runs the same jobs
+        missing = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
+        missing = distributed.broadcast(missing)
+        n = max(1, min(len(names), distributed.world_size()))
         mine: dict[str, Any] = {}
         with distributed.parts(n) as part:
             if n > 1:
-                self.say(f"[{stage}] {', '.join(pending)} side by side on {n} parts of the ranks")
+                self.say(f"[{stage}] {', '.join(missing)} side by side on {n} parts of the ranks")
             leader = distributed.is_main()
-            for name in pending[part.index :: part.parts] if shared or leader else ():
-                mine[name] = getattr(self, method)(name)
+            for name in names[part.index :: part.parts] if shared or leader else ():
+                if name in missing:
+                    mine[name] = getattr(self, method)(name)
         results = {}
         for theirs in distributed.all_gather(mine if leader else {}):
             results.update(theirs)
-        elsewhere = [name for i, name in enumerate(pending) if i % n != 0]
+        elsewhere = [name for i, name in enumerate(names) if i % n and name in missing]
         return results, elsewhere
 
     def _train_config(self, name: str) -> TrainConfig:

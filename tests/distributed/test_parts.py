@@ -47,3 +47,16 @@ def test_without_a_group_the_one_process_is_the_only_part():
         with pytest.raises(ValueError, match="n: expected a positive int"):
             with distributed.parts(bad):
                 pass
+
+
+def test_a_resumed_job_runs_on_the_part_it_ran_on(tmp_path):
+    """Job ``b`` of ``[a, b]`` runs on part 1 (rank 1 alone) also when ``a`` is done: resumed
+    after a kill, its checkpoint is one rank's, as before (with 2 jobs missing or 1)."""
+    (tmp_path / "stage").mkdir()
+    (tmp_path / "stage" / "a.pt").write_bytes(b"done")
+    out = str(tmp_path / "out")
+    run_ranks(workers.jobs_over_ranks, str(tmp_path), out)
+    seen = [torch.load(f"{out}.rank{r}") for r in range(2)]
+    assert [s["ran"] for s in seen] == [[], ["b"]]
+    for s in seen:
+        assert s["results"] == {"b": "b on 0 of 1"} and s["elsewhere"] == ["b"]

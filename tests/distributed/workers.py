@@ -282,3 +282,24 @@ def train_in_parts(out: str) -> None:
         with distributed.parts(2) as part:
             seen["alone"] += ((part.index, part.parts),)
     torch.save(seen, f"{out}.rank{global_rank}")
+
+
+def jobs_over_ranks(run_dir: str, out: str) -> None:
+    """The Pusher recipe's ``Study.over_ranks`` with jobs ``a`` (done: ``stage/a.pt`` exists)
+    and ``b``: every rank saves the jobs it ran and what the call returned to
+    ``<out>.rank<r>``."""
+    from types import SimpleNamespace
+
+    from recipes.pusher_competency.pipeline import Study
+
+    ran = []
+
+    def job(name: str) -> str:
+        ran.append(name)
+        return f"{name} on {distributed.rank()} of {distributed.world_size()}"
+
+    study = SimpleNamespace(dir=Path(run_dir), say=lambda line: None, job=job)
+    results, elsewhere = Study.over_ranks(study, "stage", ["a", "b"], "job")
+    torch.save(
+        {"ran": ran, "results": results, "elsewhere": elsewhere}, f"{out}.rank{distributed.rank()}"
+    )
