@@ -114,7 +114,7 @@ def init(backend: str | None = None, timeout_s: float = 6 * 3600.0) -> bool:
         backend: ``"gloo"`` or ``"nccl"``; default NCCL when CUDA is available, else gloo.
             With NCCL each rank takes the GPU ``LOCAL_RANK``.
         timeout_s: how long a rank waits for the others at a collective (long stages such as
-            data collection run on rank 0 while the others wait).
+            training an agent run on rank 0 while the others wait).
     """
     if backend not in (None, "gloo", "nccl"):
         raise ValueError(f"backend: expected 'gloo', 'nccl' or None, got {backend!r}")

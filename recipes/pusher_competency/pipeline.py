@@ -132,7 +132,7 @@ STAGES = {
     "report": REPORT_FILES,
 }
 # Stages that share their work over torch.distributed ranks (the others run on rank 0).
-SHARDED_STAGES = ("data", "models", "forecast", "truth")
+SHARDED_STAGES = ("data", "models", "forecast", "truth", "report")
 #: The settings each stage reads (sections, or one key of a section); the later stages read
 #: them all. Another run's finished stage is reused (``reuse_from``) when these and every
 #: earlier stage's files are the same: a run that changes only how forecasts are made or
@@ -595,6 +595,12 @@ class Study:
         )
 
     def report(self) -> dict[str, Any]:
+        # the forecast checks' forecasts and real episodes, the conditions side by side (the
+        # report writes no per-condition file, so all of them run); under torchrun every rank
+        # takes its share of each condition's start states and real episodes
+        held_out, _ = self.side_by_side("report", list(CONDITIONS), "held_out_outcomes")
+        if not distributed.is_main():
+            return {}  # rank 0 writes the report
         forecasts = {
             c: load_torch(self.dir / "forecast" / f"{c}.pt", "forecast") for c in CONDITIONS
         }
@@ -606,9 +612,6 @@ class Study:
         models = {name: self.load_model(name) for name in WORLD_MODELS}
         checks = {name: model.checks for name, model in models.items()}
         far = {name: self.far_checks(name, model) for name, model in models.items()}
-        # the forecast checks' forecasts and real episodes, the conditions side by side (the
-        # report writes no per-condition file, so all of them run)
-        held_out, _ = self.side_by_side("report", list(CONDITIONS), "held_out_outcomes")
         return write_report(
             self.dir,
             forecasts,

@@ -3,6 +3,7 @@ same models, forecasts and real outcomes."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -65,6 +66,11 @@ def test_recipe_under_torchrun_equals_one_process(tmp_path):
             a, b = (torch.load(d / stage / path.name) for d in (one, two))
             _assert_same(a, b, f"{stage}/{path.name}")
     assert (one / "table.csv").read_text() == (two / "table.csv").read_text()
+    # the report's checks, those of the forecast checks from held-out start states included
+    # (their forecasts and real episodes shared over the ranks)
+    checks = [json.loads((d / "summary.json").read_text())["checks"] for d in (one, two)]
+    assert checks[0] == checks[1]
+    assert any("held-out" in name for name in checks[0])
     assert not list((two / "models").glob("*.members-*.pt"))  # block checkpoints removed
 
 
