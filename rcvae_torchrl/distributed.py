@@ -58,8 +58,8 @@ __all__ = [
 ]
 
 
-#: The process group of the part of the ranks this rank works in (see :func:`parts`), or
-#: nothing: then every helper acts on all the ranks.
+#: The process group of the part of the ranks this rank works in (see :func:`parts`; or
+#: :data:`_ALONE`, see :func:`alone`), or nothing: then every helper acts on all the ranks.
 _PART: list[Any] = []
 
 
