@@ -34,7 +34,7 @@ import torch
 
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout.aot import aot_scoring
-from rcvae_torchrl.rollout.loop import ActionBounds, StepRecord, rollout
+from rcvae_torchrl.rollout.loop import ActionBounds, rollout
 from rcvae_torchrl.rollout.sampling import TrajectorySampling, initial_hidden
 from rcvae_torchrl.rollout.task import Task
 
@@ -81,16 +81,6 @@ def particle_groups(
     return particles if trajectory_sampling == "ts1" else 1
 
 
-class _States:
-    """Keeps s_{t+1} of every step (the task functions score them all at once, after the loop)."""
-
-    def __init__(self) -> None:
-        self.states: list[torch.Tensor] = []
-
-    def __call__(self, step: StepRecord) -> None:
-        self.states.append(step.out.observation)
-
-
 def _scored(task: Task, states: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """``(returns [n], success [n])`` of the steps ``(a_t, s_{t+1})``, ``[H, n, ·]`` each: one
     call of each task function for the whole horizon (the functions act on any batch), not one
@@ -108,7 +98,7 @@ def _score(ensemble, mode, task, hidden, obs, per_step, bounds, generator, noise
     if bounds is not None:  # every step's actions clipped at once, as the loop would clip them
         per_step = torch.clamp(per_step, bounds.low, bounds.high)
     horizon, n = per_step.shape[:2]
-    hook = _States()
+    states: list[torch.Tensor] = []  # s_{t+1} of every step, scored together after the loop
     rows = per_step
     if mode == "ts_inf":  # member-major views of the flat particles, no copies
         e = ensemble.ensemble_size
@@ -120,13 +110,12 @@ def _score(ensemble, mode, task, hidden, obs, per_step, bounds, generator, noise
         obs,
         hidden,
         horizon,
-        hook,
+        lambda step: states.append(step.out.observation),
         actions=rows,
         generator=generator,
         noise=noise,
     )
-    states = torch.stack(hook.states).view(horizon, n, -1)
-    return _scored(task, states, per_step)
+    return _scored(task, torch.stack(states).view(horizon, n, -1), per_step)
 
 
 def evaluate_action_sequences(

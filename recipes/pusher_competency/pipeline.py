@@ -289,7 +289,6 @@ class Study:
             self.over_ranks("data", WORLD_MODELS, "collect", shared=False)
         else:
             self.side_by_side("data", WORLD_MODELS, "collect", host=True)  # the real env alone
-        distributed.barrier()
         return {
             f"{variant}_frames": int(load_episodes(self.dir / "data" / f"{variant}.pt").shape[0])
             for variant in WORLD_MODELS
@@ -320,7 +319,7 @@ class Study:
         device), else here one after the other (one worker, or ranks sharing each job's work).
         Returns each job's result by name, and whether they ran in workers (where this study's
         logger could not go)."""
-        pending = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
+        pending = self._missing(stage, names)
         most = self.workers if host else self.device_workers
         workers = 1 if distributed.is_active() else max(1, min(most, len(pending)))
         if workers == 1:
@@ -328,6 +327,10 @@ class Study:
         self.say(f"[{stage}] {', '.join(pending)} in {workers} worker processes")
         jobs = [(self.cfg, str(self.dir), str(self.device), method, name) for name in pending]
         return dict(zip(pending, map_in_processes(_study_job, jobs, workers))), True
+
+    def _missing(self, stage: str, names: Sequence[str]) -> list[str]:
+        """The jobs of ``names`` whose ``<stage>/<name>.pt`` is not written yet."""
+        return [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
 
     def over_ranks(
         self, stage: str, names: Sequence[str], method: str, *, shared: bool = True
@@ -342,8 +345,7 @@ class Study:
         run's rank 0 (and its logger)."""
         names = list(names)
         # rank 0's view of what is missing: every rank runs the same jobs
-        missing = [n for n in names if not (self.dir / stage / f"{n}.pt").is_file()]
-        missing = distributed.broadcast(missing)
+        missing = distributed.broadcast(self._missing(stage, names))
         n = max(1, min(len(names), distributed.world_size()))
         mine: dict[str, Any] = {}
         with distributed.parts(n) as part:

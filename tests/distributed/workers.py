@@ -299,6 +299,7 @@ def jobs_over_ranks(run_dir: str, out: str) -> None:
         return f"{name} on {distributed.rank()} of {distributed.world_size()}"
 
     study = SimpleNamespace(dir=Path(run_dir), say=lambda line: None, job=job)
+    study._missing = lambda stage, names: Study._missing(study, stage, names)
     results, elsewhere = Study.over_ranks(study, "stage", ["a", "b"], "job")
     torch.save(
         {"ran": ran, "results": results, "elsewhere": elsewhere}, f"{out}.rank{distributed.rank()}"
