@@ -44,11 +44,17 @@ def test_the_default_profile_is_the_dataclass_defaults():
     assert StudyConfig(**study) == StudyConfig()
 
 
-@pytest.mark.parametrize("profile", ["quick", "full", "weak_arm"])
+@pytest.mark.parametrize("profile", ["quick", "full", "weak_arm", "weak_arm_noise"])
 def test_profiles_hold_only_their_differences(profile):
-    """Every value a profile file sets differs from the dataclass default (one home per number)."""
+    """Every value a profile file sets differs from what it builds on (one home per number): the
+    dataclass defaults, or the profile its defaults list names."""
     values = yaml.safe_load((CONF / "profile" / f"{profile}.yaml").read_text())
-    defaults = OmegaConf.to_container(OmegaConf.structured(RecipeConfig))
+    bases = [b for b in values.pop("defaults", []) if b != "_self_"]
+    assert len(bases) <= 1, f"{profile}: builds on one profile at most, got {bases}"
+    if bases:
+        defaults = OmegaConf.to_container(_compose(f"profile={bases[0]}"), resolve=True)
+    else:
+        defaults = OmegaConf.to_container(OmegaConf.structured(RecipeConfig))
 
     def walk(node, default, path):
         for key, value in node.items():
@@ -85,6 +91,23 @@ def test_weak_arm_profile_changes_only_the_stochastic_design():
     assert dataclasses.replace(weak.train, max_steps=1, episode_start_fraction=0) == (
         dataclasses.replace(default.train, max_steps=1, episode_start_fraction=0)
     )
+
+
+def test_weak_arm_noise_profile_is_the_weak_arm_with_per_step_noise():
+    """The weak-arm study with per-step action noise std 0.1 on top; every other setting is the
+    weak-arm profile's, and a command-line override still wins over the profile."""
+    weak, noisy = _config("profile=weak_arm"), _config("profile=weak_arm_noise")
+    assert weak.data.stochastic_noise_std == 0 and noisy.data.stochastic_noise_std == 0.1
+    assert noisy.run_dir == "outputs/pusher_competency/weak_arm_noise"
+    same = dataclasses.replace(
+        noisy,
+        profile=weak.profile,
+        run_dir=weak.run_dir,
+        data=dataclasses.replace(noisy.data, stochastic_noise_std=0.0),
+    )
+    assert same == weak
+    override = _config("profile=weak_arm_noise", "data.stochastic_noise_std=0.2")
+    assert override.data.stochastic_noise_std == pytest.approx(0.2)
 
 
 # --------------------------------------------------------------------------- overrides
