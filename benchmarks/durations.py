@@ -54,7 +54,7 @@ WHAT = {
     "quick_profile": "`make run-quick` (the recipe's quick profile)",
     "default_profile": "`make run` (the recipe's default profile)",
     "weak_arm_profile": "`make run PROFILE=weak_arm` (the weak-arm study)",
-    "weak_arm_noise_profile": "`make run PROFILE=weak_arm_noise` (the weak arm with per-step noise)",
+    "weak_arm_noise_profile": "`make run PROFILE=weak_arm_noise` (weak arm, per-step noise)",
     "full_profile": "`recipes/pusher_competency/main.py profile=full device=cuda` (on a GPU)",
 }
 
