@@ -23,7 +23,7 @@ run-quick: setup
 	$(PY) recipes/pusher_competency/main.py profile=quick
 
 # The study for every seed of SEEDS (Hydra multirun) in PROFILE, then one table over them
-# (e.g. `make run-seeds PROFILE=weak_arm`: written under outputs/pusher_competency/seeds_weak_arm).
+# (e.g. `make run-seeds PROFILE=action_noise`: written under outputs/pusher_competency/seeds_action_noise).
 run-seeds: setup
 	$(PY) recipes/pusher_competency/main.py -m hydra/launcher=local seed=$(SEEDS) threads=1 stage_workers=1 \
 		profile=$(PROFILE) progress=false \

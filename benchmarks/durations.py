@@ -53,8 +53,8 @@ WHAT = {
     "test_suite": "`make test` (the default test suite)",
     "quick_profile": "`make run-quick` (the recipe's quick profile)",
     "default_profile": "`make run` (the recipe's default profile)",
-    "weak_arm_profile": "`make run PROFILE=weak_arm` (the weak-arm study)",
-    "weak_arm_noise_profile": "`make run PROFILE=weak_arm_noise` (weak arm, per-step noise)",
+    "weak_arm_profile": "`make run PROFILE=weak_arm` (the default without per-step noise)",
+    "action_noise_profile": "`make run PROFILE=action_noise` (the first stochastic design)",
     "full_profile": "`recipes/pusher_competency/main.py profile=full device=cuda` (on a GPU)",
 }
 

@@ -44,7 +44,7 @@ def test_the_default_profile_is_the_dataclass_defaults():
     assert StudyConfig(**study) == StudyConfig()
 
 
-@pytest.mark.parametrize("profile", ["quick", "full", "weak_arm", "weak_arm_noise"])
+@pytest.mark.parametrize("profile", ["quick", "full", "weak_arm", "action_noise"])
 def test_profiles_hold_only_their_differences(profile):
     """Every value a profile file sets differs from what it builds on (one home per number): the
     dataclass defaults, or the profile its defaults list names."""
@@ -69,7 +69,7 @@ def test_profiles_hold_only_their_differences(profile):
 
 def test_profiles_scale_up():
     quick, default, full = (_config(f"profile={p}") for p in ("quick", "default", "full"))
-    assert quick.train.max_steps < default.train.max_steps < full.train.max_steps
+    assert quick.train.max_steps < default.train.max_steps <= full.train.max_steps
     assert quick.assess.start_states < default.assess.start_states < full.assess.start_states
     assert quick.data.scripted_episodes < default.data.scripted_episodes
     assert default.data.scripted_episodes < full.data.scripted_episodes
@@ -78,36 +78,47 @@ def test_profiles_scale_up():
     assert full.assess.start_chunk > default.assess.start_chunk
 
 
-def test_weak_arm_profile_changes_only_the_stochastic_design():
-    """The weak-arm profile: strength drawn per episode, no per-step noise, an episode latent,
-    start windows and twice the training steps; every other setting is the default profile's."""
+def test_default_stochastic_design_is_a_weak_arm_with_a_little_per_step_noise():
+    """The default stochastic condition: the arm's strength drawn once per episode in 0.2-0.4
+    and action noise std 0.1 at every step; models with an episode latent, a quarter of their
+    windows at episode starts, 10,000 training steps."""
+    config = _config()
+    assert config.data.stochastic_strength == [0.2, 0.4]
+    assert config.data.stochastic_noise_std == pytest.approx(0.1)
+    assert config.model.episode_latent_dim == 4 and config.train.episode_start_fraction == 0.25
+    assert config.train.max_steps == 10000
+
+
+def test_weak_arm_profile_is_the_default_without_per_step_noise():
+    """Every setting of the weak-arm profile is the default's but the per-step noise, and a
+    command-line override still wins over the profile."""
     default, weak = _config(), _config("profile=weak_arm")
-    assert weak.data.stochastic_strength == [0.2, 0.4] and weak.data.stochastic_noise_std == 0
-    assert weak.model.episode_latent_dim == 4 and weak.train.episode_start_fraction == 0.25
-    assert weak.train.max_steps == 2 * default.train.max_steps
-    assert weak.run_dir == "outputs/pusher_competency/weak_arm"
+    assert weak.data.stochastic_noise_std == 0 and weak.run_dir.endswith("/weak_arm")
+    same = dataclasses.replace(
+        weak,
+        profile=default.profile,
+        run_dir=default.run_dir,
+        data=dataclasses.replace(weak.data, stochastic_noise_std=default.data.stochastic_noise_std),
+    )
+    assert same == default
+    override = _config("profile=weak_arm", "data.stochastic_noise_std=0.2")
+    assert override.data.stochastic_noise_std == pytest.approx(0.2)
+
+
+def test_action_noise_profile_changes_only_the_stochastic_design():
+    """The first design: a full-strength arm with per-step noise std 1.5, no episode latent, no
+    start windows and half the training steps; every other setting is the default's."""
+    default, noisy = _config(), _config("profile=action_noise")
+    assert noisy.data.stochastic_strength is None and noisy.data.stochastic_noise_std == 1.5
+    assert noisy.model.episode_latent_dim == 0 and noisy.train.episode_start_fraction == 0
+    assert 2 * noisy.train.max_steps == default.train.max_steps
+    assert noisy.run_dir == "outputs/pusher_competency/action_noise"
     for section in ("planner", "agent", "assess"):
-        assert getattr(weak, section) == getattr(default, section), section
-    assert dataclasses.replace(weak.train, max_steps=1, episode_start_fraction=0) == (
+        assert getattr(noisy, section) == getattr(default, section), section
+    assert dataclasses.replace(noisy.model, episode_latent_dim=4) == default.model
+    assert dataclasses.replace(noisy.train, max_steps=1, episode_start_fraction=0) == (
         dataclasses.replace(default.train, max_steps=1, episode_start_fraction=0)
     )
-
-
-def test_weak_arm_noise_profile_is_the_weak_arm_with_per_step_noise():
-    """The weak-arm study with per-step action noise std 0.1 on top; every other setting is the
-    weak-arm profile's, and a command-line override still wins over the profile."""
-    weak, noisy = _config("profile=weak_arm"), _config("profile=weak_arm_noise")
-    assert weak.data.stochastic_noise_std == 0 and noisy.data.stochastic_noise_std == 0.1
-    assert noisy.run_dir == "outputs/pusher_competency/weak_arm_noise"
-    same = dataclasses.replace(
-        noisy,
-        profile=weak.profile,
-        run_dir=weak.run_dir,
-        data=dataclasses.replace(noisy.data, stochastic_noise_std=0.0),
-    )
-    assert same == weak
-    override = _config("profile=weak_arm_noise", "data.stochastic_noise_std=0.2")
-    assert override.data.stochastic_noise_std == pytest.approx(0.2)
 
 
 # --------------------------------------------------------------------------- overrides
@@ -320,15 +331,16 @@ def test_the_stochastic_variant_takes_the_studys_randomness():
 
 
 def test_the_episode_latent_reaches_both_models():
-    """``model.episode_latent_dim`` sizes the models' latent drawn once per episode (0, the
-    default, leaves them without one); the models carry the Pusher's dimension names."""
+    """``model.episode_latent_dim`` sizes the models' latent drawn once per episode (4 by
+    default, 0 leaves them without one); the models carry the Pusher's dimension names."""
     from recipes.pusher_competency.pusher import rcvae_config
 
-    assert rcvae_config(_config().model).episode_latent_dim == 0
+    assert rcvae_config(_config().model).episode_latent_dim == 4
+    assert rcvae_config(_config("model.episode_latent_dim=0").model).episode_latent_dim == 0
     config = rcvae_config(_config("model.episode_latent_dim=3").model)
     assert config.episode_latent_dim == 3
     assert config.observation_names[:2] == ("shoulder_cos", "shoulder_sin")
-    assert _config("train.episode_start_fraction=0.25").train.episode_start_fraction == 0.25
+    assert _config("train.episode_start_fraction=0.5").train.episode_start_fraction == 0.5
 
 
 @pytest.mark.parametrize(
