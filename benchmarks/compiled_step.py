@@ -82,7 +82,7 @@ def imagination(
     if step is None:
         step = torch.compile(model.step, dynamic=False) if compiled else model.step
     device, cfg = model.device, model.config
-    hidden0 = torch.zeros(MEMBERS, per_member, cfg.hidden_dim, device=device)
+    hidden0 = torch.zeros(MEMBERS, per_member, model.carry_dim, device=device)
     obs0 = torch.zeros(MEMBERS, per_member, 14, device=device)
     action = torch.zeros(MEMBERS, per_member, 2, device=device)
     noise = [

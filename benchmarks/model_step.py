@@ -133,7 +133,7 @@ def matmul_peak_flops(device: torch.device | str = "cpu", repeats: int = 5) -> f
 def _step_inputs(model: RCVAEEnsemble, per_member: int) -> tuple[torch.Tensor, ...]:
     """h, s and a of ``per_member`` particles per member, zeros on the model's device."""
     device = model.device
-    hidden = torch.zeros(MEMBERS, per_member, model.config.hidden_dim, device=device)
+    hidden = torch.zeros(MEMBERS, per_member, model.carry_dim, device=device)
     obs = torch.zeros(MEMBERS, per_member, 14, device=device)
     return hidden, obs, torch.zeros(MEMBERS, per_member, 2, device=device)
 
