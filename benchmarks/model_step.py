@@ -131,7 +131,8 @@ def matmul_peak_flops(device: torch.device | str = "cpu", repeats: int = 5) -> f
 
 
 def _step_inputs(model: RCVAEEnsemble, per_member: int) -> tuple[torch.Tensor, ...]:
-    """h, s and a of ``per_member`` particles per member, zeros on the model's device."""
+    """The carried state (h and, with an episode latent, e), s and a of ``per_member``
+    particles per member, zeros on the model's device."""
     device = model.device
     hidden = torch.zeros(MEMBERS, per_member, model.carry_dim, device=device)
     obs = torch.zeros(MEMBERS, per_member, 14, device=device)
