@@ -75,7 +75,10 @@ def run_episodes(
     them (a planner plans all ``N`` states at once); each sub-env is seeded with its episode's
     seed (:func:`seed_episodes`), the last group is padded with repeats of its last episode
     (dropped), and a sub-env's episode ends at its first ``done``. With a policy that acts on
-    each state alone (no shared randomness) the episodes equal the one-env run's.
+    each state alone (no shared randomness) and whose rounding does not depend on the batch,
+    the episodes equal the one-env run's: wrap a stateless policy in
+    :class:`~rcvae_torchrl.agent.FixedRowsPolicy` for that (even an elementwise policy can
+    round a state otherwise in a batch than alone).
     """
     check_positive_int("max_steps", max_steps)
     if len(seeds) == 0:

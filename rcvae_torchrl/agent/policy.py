@@ -102,9 +102,12 @@ class FixedRowsPolicy:
     row's action does not depend on the batch it comes in.
 
     A matrix product's float32 rounding can depend on the number of rows (the BLAS picks its
-    kernels by shape; one row is a matrix-vector product), so the same state can get a slightly
+    kernels by shape; one row is a matrix-vector product), and so can an elementwise function's
+    (a vectorised kernel, of ``atan2`` say, rounds some values otherwise than the scalar loop
+    that takes a short tensor or the tail of a long one), so the same state can get a slightly
     different action in a batch of 40 envs than in one of 100 or alone, and a contact-rich
-    episode amplifies the difference. Here every call flattens the input's batch, splits it
+    episode amplifies the difference. A multiple of 32 rows (the default 64) leaves such
+    kernels no short tail in a block. Here every call flattens the input's batch, splits it
     into blocks of ``rows`` (the last one padded with repeats of its last row, whose results
     are dropped), calls ``policy`` on each and writes the results back: an episode's actions
     then come out the same whether it runs alone, in a batched env of any size, in worker

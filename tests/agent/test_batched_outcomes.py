@@ -29,6 +29,7 @@ def test_batched_outcomes_equal_the_one_env_run(terminate):
         trace=ball_to_target,
         seed=2,
         progress=False,
+        policy_rows=64,  # the scripted pusher's float32 actions then do not depend on the batch
     )
     policy = make_scripted_policy()
     serial = real_outcomes(

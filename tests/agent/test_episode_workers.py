@@ -38,7 +38,8 @@ def _pusher_case(batched: bool):
     noisy = dict(action_noise_std=1.0, time_limit=3.0, terminate_on_success=not batched)
     make = partial(make_pusher_env, "stochastic", **noisy)
     workers = partial(make_batched_pusher_env, 2, "stochastic", **noisy) if batched else make
-    args = dict(reset_to_state=reset_to_state, trace=ball_to_target)
+    # the scripted pusher on fixed blocks of rows: bare, its float32 actions can depend on the batch
+    args = dict(reset_to_state=reset_to_state, trace=ball_to_target, policy_rows=64)
     return make(), workers, make_scripted_policy(), pusher_starts(3), args
 
 

@@ -176,6 +176,7 @@ def outcomes(out: str | None = None) -> dict[str, RealOutcomes]:
         trace=ball_to_target,
         seed=2,
         progress=False,
+        policy_rows=64,  # the scripted pusher's actions then do not depend on the batch
     )
     result = {"one_env": one_env, "batched": batched}
     if out is not None:
