@@ -7,7 +7,11 @@ histogram estimator four ways: with and without ended episodes in a terminal bin
 (``bias_correction``). A fourth condition starts the deterministic model from the region the
 study used before as out of distribution: the ball near the fence (0.17-0.185 m) and moving, the
 arm swinging, in the training half of the arena. Prints the bits and the pattern's three ratios
-per setting and writes ``benchmarks/results/pattern_ablation.json``.
+per setting and writes ``benchmarks/results/pattern_ablation.json`` (``--out`` names another
+file). With the study's setting (ended episodes in a terminal bin, the shuffle correction) it also
+gives the aleatoric out-of-distribution / deterministic ratio second by second, beside the share
+of each condition's imagined episodes still running then: ended episodes add no entropy, so a
+condition whose episodes last longer keeps its bits longer.
 
     python benchmarks/pattern_ablation.py --run-dir outputs/pusher_competency/default
 """
@@ -58,10 +62,28 @@ def _starts(condition: str, run_dir: Path, count: int) -> torch.Tensor:
     return torch.stack(starts)
 
 
+def _per_second(det: dict[str, torch.Tensor], ood: dict[str, torch.Tensor]) -> list[dict]:
+    """The aleatoric OOD / deterministic ratio at each whole second (bits summed over dimensions,
+    averaged over start states), with the share of each condition's episodes still running."""
+    steps_per_s = round(1.0 / CONTROL_TIMESTEP)
+    rows = []
+    for t in range(0, det["aleatoric"].shape[-1], steps_per_s):
+        rows.append(
+            {
+                "second": t // steps_per_s,
+                "ratio": (ood["aleatoric"][t] / det["aleatoric"][t]).item(),
+                "running_det": det["running"][t].item(),
+                "running_ood": ood["running"][t].item(),
+            }
+        )
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--run-dir", default="outputs/pusher_competency/default")
     parser.add_argument("--samples", type=int, default=50, help="samples per member")
+    parser.add_argument("--out", default="pattern_ablation", help="results/<out>.json")
     args = parser.parse_args()
     run_dir = Path(args.run_dir)
     study = study_of_run(run_dir)
@@ -71,6 +93,7 @@ def main() -> None:
     boundary = success_boundary(a.success_radius, a.horizon_s)
     conditions = {**CONDITIONS, EARLIER_OOD_NAME: ("deterministic", "deterministic")}
     bits: dict[str, dict[str, list[float]]] = {}
+    over_time: dict[str, dict[str, torch.Tensor]] = {}  # the study's setting, per step
     for condition, (model_name, variant) in conditions.items():
         starts = _starts(condition, run_dir, a.start_states)
         env = make_rcvae_env(
@@ -100,6 +123,11 @@ def main() -> None:
                 generator=torch.Generator().manual_seed(config.seed),
             )
             key = f"episode_end={end}, bias_correction={bias}"
+            if end and bias == "shuffle":
+                over_time[condition] = {
+                    "aleatoric": u.aleatoric.sum(-1).flatten(0, -2).mean(0),
+                    "running": 1.0 - ended.float().flatten(0, -2).mean(0),
+                }
             bits.setdefault(key, {})[condition] = [
                 u.aleatoric.sum(-1).mean().item(),
                 u.epistemic.sum(-1).mean().item(),
@@ -126,13 +154,23 @@ def main() -> None:
         ["setting", *conditions],
         [[k, *(f"{v[0]:.2f}, {v[1]:.2f}" for v in b.values())] for k, b in bits.items()],
     )
+    per_second = _per_second(over_time[det], over_time[ood])
+    print_table(
+        "aleatoric out-of-distribution / deterministic second by second, study's setting",
+        ["second", "ratio", "running det", "running ood"],
+        [
+            [r["second"], *(round(r[k], 2) for k in ("ratio", "running_det", "running_ood"))]
+            for r in per_second
+        ],
+    )
     path = write_json(
-        "pattern_ablation",
+        args.out,
         {
             "run_dir": str(run_dir),
             "samples_per_member": args.samples,
             "bits": bits,
             "ratios": ratios,
+            "aleatoric_ood_over_det_by_second": per_second,
             "targets": {"aleatoric sto/det": ">= 1.5", "epistemic ood/det": ">= 1.3"},
             "ood_sector_deg": [math.degrees(v) for v in OUT_OF_DISTRIBUTION.angle],
         },
