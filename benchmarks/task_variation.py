@@ -41,7 +41,7 @@ import torch
 from _report import conditions, print_table, write_json
 
 from rcvae_torchrl.agent import make_policy_module, real_outcomes
-from rcvae_torchrl.competency import validate_forecasts
+from rcvae_torchrl.competency import pool_outcomes, validate_forecasts
 from rcvae_torchrl.data import seed_env
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
@@ -132,19 +132,6 @@ def _oracles(scores: dict[str, float]) -> tuple[float, float]:
     return scores["oracle_brier_skill"], scores["oracle_auroc"]
 
 
-def pooled(parts: list[torch.Tensor]) -> torch.Tensor:
-    """Outcomes of the conditions ``[B_c, R_c]`` stacked into ``[sum B, max R]`` with a mask."""
-    runs = max(p.shape[1] for p in parts)
-    rows, masks = [], []
-    for p in parts:
-        pad = runs - p.shape[1]
-        rows.append(torch.cat([p, p[:, :1].expand(-1, pad)], 1) if pad else p)
-        mask = torch.zeros(p.shape[0], runs, dtype=torch.bool)
-        mask[:, : p.shape[1]] = True
-        masks.append(mask)
-    return torch.cat(rows), torch.cat(masks)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--noise", type=float, nargs="+", default=[0.5, 1.0, 1.5])
@@ -194,7 +181,7 @@ def main() -> None:
         for seconds, k in zip(args.deadlines, deadlines):
             won = first < k
             own = ceiling(won)
-            both = ceiling(*pooled([fixed["deterministic"] < k, won, fixed["ood"] < k]))
+            both = ceiling(*pool_outcomes([fixed["deterministic"] < k, won, fixed["ood"] < k]))
             per_deadline[str(seconds)] = {"stochastic": own, "pooled": both}
             shown = ("rate", "rate_sd", "rate_min", "rate_max", "between_share")
             rows.append([seconds, *(own[k] for k in shown), *_oracles(own), *_oracles(both)])

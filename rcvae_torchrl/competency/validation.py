@@ -20,6 +20,7 @@ Layouts: forecasts ``[B]``; outcomes ``[B, R]`` bool (``runs`` may differ per st
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -35,6 +36,7 @@ __all__ = [
     "crps_samples",
     "episode_brier",
     "per_start_rates",
+    "pool_outcomes",
     "rank_correlation",
     "rate_reliability",
     "start_reliability",
@@ -81,6 +83,44 @@ def per_start_rates(outcome: Tensor, mask: Tensor | None = None) -> tuple[Tensor
     runs = outcome.shape[1] * torch.ones(outcome.shape[0]) if mask is None else mask.sum(1)
     hits = outcome.sum(1) if mask is None else (outcome & mask).sum(1)
     return hits.to(torch.float64) / runs.to(torch.float64), runs.to(torch.int64)
+
+
+def pool_outcomes(parts: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+    """Outcomes of several sets of start states, ``[B_i, R_i]`` bool each (e.g. the conditions
+    of a study, one run per start where the outcome is fixed, many where it varies), stacked
+    into ``[sum B_i, max R_i]`` with the mask of the runs that exist: the layout in which the
+    scores pool them, every episode counting once. A row's missing runs repeat its first run
+    (masked out, so never counted).
+
+    Example:
+        >>> fixed = torch.tensor([[True], [False]])
+        >>> varied = torch.tensor([[True, False, True]])
+        >>> outcome, mask = pool_outcomes([fixed, varied])
+        >>> outcome.shape, mask.sum(1).tolist()
+        (torch.Size([3, 3]), [1, 1, 3])
+    """
+    if not parts:
+        raise ValueError("parts: expected at least one [B, R] tensor of outcomes, got none")
+    for i, part in enumerate(parts):
+        _checks.check_rank(f"parts[{i}]", part, 2, "[B, R]")
+        if part.dtype != torch.bool:
+            raise TypeError(
+                f"parts[{i}]: expected bool outcomes of single episodes, got {part.dtype}"
+            )
+        if part.shape[1] == 0:
+            raise ValueError(
+                f"parts[{i}]: expected at least one run per start state, got shape "
+                f"{tuple(part.shape)}"
+            )
+    runs = max(part.shape[1] for part in parts)
+    rows, masks = [], []
+    for part in parts:
+        pad = runs - part.shape[1]
+        rows.append(torch.cat([part, part[:, :1].expand(-1, pad)], 1) if pad else part)
+        mask = torch.zeros(part.shape[0], runs, dtype=torch.bool, device=part.device)
+        mask[:, : part.shape[1]] = True
+        masks.append(mask)
+    return torch.cat(rows), torch.cat(masks)
 
 
 def rate_reliability(outcome: Tensor, mask: Tensor | None = None) -> float:

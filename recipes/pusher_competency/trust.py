@@ -14,6 +14,7 @@ from rcvae_torchrl.competency import (
     apply_platt,
     brier_skill_score,
     cross_fitted_recalibration,
+    pool_outcomes,
     rate_reliability,
     start_reliability,
     success_on_grid,
@@ -49,20 +50,6 @@ TARGETS = {
     "bss_overall": 0.3,  # Brier skill against the overall base rate
     "ood_real": (0.5, 0.9),
 }
-
-
-def _padded(truths: Mapping[str, Mapping[str, torch.Tensor]], key: str) -> tuple:
-    """Each condition's ``[B, R_c]`` outcomes padded to the longest ``R``, with the mask."""
-    runs = max(t[key].shape[1] for t in truths.values())
-    values, masks = [], []
-    for t in truths.values():
-        v = t[key]
-        pad = runs - v.shape[1]
-        values.append(torch.cat([v, v[:, :1].expand(-1, pad)], 1) if pad else v)
-        mask = torch.ones(v.shape[0], runs, dtype=torch.bool)
-        mask[:, v.shape[1] :] = False
-        masks.append(mask)
-    return torch.cat(values), torch.cat(masks)
 
 
 def _oracle(outcome: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:
@@ -127,7 +114,7 @@ def validation(
     fitted on other start states (e.g. held-out episodes' first states), what a user who ran
     the agent from some start states would make of the forecasts for new ones; overall too
     when every condition has its map (each forecast through its condition's map, pooled)."""
-    success, mask = _padded(truths, "success")
+    success, mask = pool_outcomes([t["success"] for t in truths.values()])
     overall_rate = float(success[mask].double().mean())
     out = {}
     for c in forecasts:
@@ -221,7 +208,7 @@ def validation_figures(forecasts, truths) -> dict[str, Any]:
     diagrams = {
         c: start_reliability(forecasts[c]["p_success"], truths[c]["success"]) for c in forecasts
     }
-    success, mask = _padded(truths, "success")
+    success, mask = pool_outcomes([t["success"] for t in truths.values()])
     p = torch.cat([forecasts[c]["p_success"] for c in forecasts])
     diagrams["all"] = start_reliability(p, success, mask)
     return diagrams

@@ -16,6 +16,7 @@ from rcvae_torchrl.competency import (
     episode_brier,
     expected_calibration_error,
     per_start_rates,
+    pool_outcomes,
     rank_correlation,
     rate_reliability,
     reliability_diagram,
@@ -76,6 +77,35 @@ def test_mask_drops_runs_that_do_not_exist():
     assert rates.tolist() == [0.5, 1.0] and runs.tolist() == [2, 2]
     with pytest.raises(ValueError, match="mask: expected at least one run per start state"):
         episode_brier(forecast, outcome, torch.zeros_like(mask))
+
+
+def test_pooled_outcomes_score_every_episode_once():
+    # three sets of starts with 1, 4 and 2 runs: the pooled Brier is the mean over the 11
+    # episodes of (forecast - outcome)^2, whatever the padding holds
+    g = torch.Generator().manual_seed(3)
+    parts = [torch.rand(b, r, generator=g) < 0.5 for b, r in ((3, 1), (1, 4), (2, 2))]
+    forecasts = [torch.rand(p.shape[0], generator=g) for p in parts]
+    outcome, mask = pool_outcomes(parts)
+    assert outcome.shape == (6, 4) and mask.sum(1).tolist() == [1, 1, 1, 4, 2, 2]
+    assert torch.equal(outcome[mask], torch.cat([p.reshape(-1) for p in parts]))
+    squares = [((f[:, None] - p.double()) ** 2).reshape(-1) for f, p in zip(forecasts, parts)]
+    expected = torch.cat(squares).mean()
+    pooled = episode_brier(torch.cat(forecasts), outcome, mask)
+    assert float(pooled) == pytest.approx(float(expected), abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("parts", "error", "match"),
+    [
+        ([], ValueError, "parts: expected at least one"),
+        ([torch.ones(3, dtype=torch.bool)], ValueError, r"parts\[0\]"),
+        ([torch.ones(2, 1, dtype=torch.bool), torch.ones(2, 3)], TypeError, r"parts\[1\]: .*bool"),
+        ([torch.ones(2, 0, dtype=torch.bool)], ValueError, "at least one run per start"),
+    ],
+)
+def test_pool_outcomes_names_the_bad_part(parts, error, match):
+    with pytest.raises(error, match=match):
+        pool_outcomes(parts)
 
 
 def test_rate_reliability_against_the_binomial_closed_form():
