@@ -271,7 +271,6 @@ def _rank(rank: int, world: int, port: int, name: str, args: dict, out: str) -> 
         RANK=str(rank),
         WORLD_SIZE=str(world),
         OMP_NUM_THREADS="1",
-        MUJOCO_GL="egl",
     )
     torch.set_num_threads(1)
     gathers: list[tuple[int, float]] = []

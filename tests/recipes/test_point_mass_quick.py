@@ -21,7 +21,12 @@ MICRO = POINT_MASS_MICRO
 
 
 def _run(*overrides: str) -> subprocess.CompletedProcess:
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": "egl"}
+    # The recipe renders nothing, so it must run where no offscreen OpenGL can: no backend is
+    # forced, and PyOpenGL is pointed away from EGL (forcing MUJOCO_GL=egl where EGL cannot be
+    # used, as on a GPU machine whose EGL library PyOpenGL could not load, fails dm_control's
+    # import and with it the whole run)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYOPENGL_PLATFORM": "glx"}
+    env.pop("MUJOCO_GL", None)
     return subprocess.run(
         [sys.executable, str(RECIPE), *overrides],
         cwd=ROOT,
