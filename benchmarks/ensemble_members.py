@@ -21,10 +21,10 @@ Beside it, two ceilings set by the agent's own outcomes:
 
 - the study's oracle (each start's real rate as the forecast, scored in-sample: a little
   optimistic, since the rate is fitted to the very runs it is scored on);
-- the forecast of each start's true chance, in expectation: a start with R > 1 runs and real
-  rate q has an expected Brier of q (1 - q) R / (R - 1) under its true chance (the unbiased
-  estimate of the binomial variance); a start run once is taken as fixed (its condition's
-  outcome does not vary per start), with no Brier left.
+- the forecast of each start's true chance, in expectation
+  (``rcvae_torchrl.competency.chance_brier_skill``: the oracle without its in-sample
+  optimism; a start's rate q over R > 1 runs counts q (1 - q) R / (R - 1), a start run once is
+  taken as fixed).
 
     python benchmarks/ensemble_members.py outputs/pusher_competency/seeds/seed* [--out NAME]
 
@@ -42,7 +42,7 @@ from pathlib import Path
 import torch
 from _report import print_table, write_json
 
-from rcvae_torchrl.competency import pool_outcomes, validate_forecasts
+from rcvae_torchrl.competency import chance_brier_skill, pool_outcomes, validate_forecasts
 from rcvae_torchrl.io import load_torch
 from recipes.pusher_competency.pusher import CONDITIONS
 
@@ -79,18 +79,6 @@ def members_skill(
     return float(1.0 - brier / reference)
 
 
-def true_chance_skill(outcome: torch.Tensor, mask: torch.Tensor) -> float:
-    """The pooled Brier skill, against the overall rate, that the forecast of each start's true
-    chance has in expectation (a start run once taken as fixed)."""
-    y, m = outcome.double(), mask.double()
-    runs = m.sum(1)
-    rate = (y * m).sum(1) / runs
-    expected = torch.where(runs > 1, rate * (1 - rate) * runs / (runs - 1).clamp_min(1), 0.0)
-    overall = float((y * m).sum() / m.sum())
-    reference = float((((y - overall) ** 2) * m).sum())
-    return 1.0 - float((expected * runs).sum()) / reference
-
-
 def score_run(run_dir: Path) -> dict:
     """The member subsets' skills, their fit and the two ceilings of one finished run."""
     forecasts = [load_torch(run_dir / "forecast" / f"{c}.pt", "forecast") for c in CONDITIONS]
@@ -104,7 +92,7 @@ def score_run(run_dir: Path) -> dict:
         "skill_by_members": skills,
         "infinite_members": members_skill(members, outcome, mask, float("inf")),
         "oracle_in_sample": validate_forecasts(rates, outcome, mask)["brier_skill"],
-        "true_chance_expected": true_chance_skill(outcome, mask),
+        "true_chance_expected": chance_brier_skill(outcome, mask),
     }
 
 

@@ -33,6 +33,7 @@ __all__ = [
     "StartReliability",
     "auroc",
     "brier_skill_score",
+    "chance_brier_skill",
     "crps_samples",
     "episode_brier",
     "per_start_rates",
@@ -181,6 +182,38 @@ def brier_skill_score(brier: Tensor | float, reference: Tensor | float) -> Tenso
         torch.as_tensor(reference, dtype=torch.float64),
     )
     return torch.where(reference > 0, 1.0 - brier / reference.clamp_min(1e-300), math.nan)
+
+
+def chance_brier_skill(outcome: Tensor, mask: Tensor | None = None) -> float:
+    """The Brier skill, against the outcomes' overall rate, that the forecast of every start's
+    true chance of success has in expectation: the ceiling that the outcomes' own randomness
+    leaves to any forecast, without the optimism of the oracle that forecasts each start's
+    observed rate (fitted to the very runs it is scored on).
+
+    Under its true chance ``p`` a start's episodes have an expected Brier of ``p (1 - p)``,
+    estimated without bias from its ``R >= 2`` runs with rate ``q`` as ``q (1 - q) R / (R - 1)``.
+    A start run once is taken as fixed (its outcome does not vary, as in a deterministic env):
+    nothing is left to its Brier. NaN where every outcome is the same. An estimate: with few
+    runs per start it is noisy, and can fall below 0 (the second example: two runs each).
+
+    Example:
+        >>> fixed = torch.tensor([[True, True], [False, False]])
+        >>> chance_brier_skill(fixed)
+        1.0
+        >>> chance_brier_skill(torch.tensor([[True, False], [False, True]]))
+        -1.0
+    """
+    _checks.check_rank("outcome", outcome, 2, "[B, R]")
+    if outcome.dtype != torch.bool:
+        raise TypeError(f"outcome: expected bool outcomes of single episodes, got {outcome.dtype}")
+    m = _runs_mask(mask, outcome, "the outcomes'").to(torch.float64)
+    y = outcome.to(torch.float64)
+    runs = m.sum(1)
+    rate = (y * m).sum(1) / runs
+    per_episode = torch.where(runs > 1, rate * (1 - rate) * runs / (runs - 1).clamp_min(1), 0.0)
+    overall = (y * m).sum() / m.sum()
+    reference = (((y - overall) ** 2) * m).sum() / m.sum()
+    return float(brier_skill_score((per_episode * runs).sum() / m.sum(), reference))
 
 
 def _average_ranks(x: Tensor) -> Tensor:

@@ -40,6 +40,7 @@ COLUMNS = (
     ("validation", "brier_skill", "BSS (own rate)"),
     ("validation", "oracle_auroc", "oracle AUROC"),
     ("validation", "oracle_brier_skill", "oracle BSS (own rate)"),
+    ("validation", "chance_brier_skill", "true-chance BSS (expected)"),
     ("validation", "oracle_spearman", "oracle Spearman"),
     ("validation", "bss_tasks", "BSS (tasks alike)"),
     ("validation", "tts_skill", "TTS CRPS skill"),

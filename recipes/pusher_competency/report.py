@@ -442,6 +442,7 @@ _SCORE_COLUMNS = (
     ("brier_skill", "BSS (own rate)"),
     ("oracle_auroc", "oracle AUROC"),
     ("oracle_brier_skill", "oracle BSS (own rate)"),
+    ("chance_brier_skill", "true-chance BSS (expected)"),
     ("oracle_spearman", "oracle Spearman"),
     ("tts_crps", "TTS CRPS (steps)"),
     ("tts_crps_climatology", "climatology"),

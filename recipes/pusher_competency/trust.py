@@ -13,6 +13,7 @@ from rcvae_torchrl.competency import (
     PlattMap,
     apply_platt,
     brier_skill_score,
+    chance_brier_skill,
     cross_fitted_recalibration,
     pool_outcomes,
     rate_reliability,
@@ -54,11 +55,17 @@ TARGETS = {
 
 def _oracle(outcome: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, float]:
     """The scores of the oracle forecast, each start's own real success rate: what no forecast
-    can beat on these episodes (the ceiling that the outcomes' randomness leaves)."""
+    can beat on these episodes (the ceiling that the outcomes' randomness leaves; in-sample, so
+    a little optimistic), and ``chance_brier_skill``, the Brier skill that each start's true
+    chance has in expectation (the same ceiling without that optimism)."""
     m = torch.ones_like(outcome) if mask is None else mask
     rates = (outcome & m).sum(1) / m.sum(1).clamp_min(1)
     best = validate_forecasts(rates, outcome, mask)
-    return {"oracle_auroc": best["auroc"], "oracle_brier_skill": best["brier_skill"]}
+    return {
+        "oracle_auroc": best["auroc"],
+        "oracle_brier_skill": best["brier_skill"],
+        "chance_brier_skill": chance_brier_skill(outcome, mask),
+    }
 
 
 def _spearman_ceiling(outcome: torch.Tensor) -> float:

@@ -12,6 +12,7 @@ from rcvae_torchrl.competency import (
     auroc,
     brier_score,
     brier_skill_score,
+    chance_brier_skill,
     crps_samples,
     episode_brier,
     expected_calibration_error,
@@ -106,6 +107,27 @@ def test_pooled_outcomes_score_every_episode_once():
 def test_pool_outcomes_names_the_bad_part(parts, error, match):
     with pytest.raises(error, match=match):
         pool_outcomes(parts)
+
+
+def test_the_true_chance_skill_is_unbiased_and_below_the_in_sample_oracle():
+    # starts of known chances run 30 times, pooled with starts of a fixed outcome run once:
+    # over many draws of the outcomes the estimate averages to the skill of forecasting the
+    # true chances, and in every draw the oracle of the observed rates scores above it
+    estimates, truths = [], []
+    for seed in range(40):
+        g = torch.Generator().manual_seed(seed)
+        chance = torch.rand(60, generator=g)
+        fixed = torch.rand(40, 1, generator=g) < 0.8
+        varied = torch.rand(60, 30, generator=g) < chance[:, None]
+        outcome, mask = pool_outcomes([varied, fixed])
+        truth = torch.cat([chance, fixed[:, 0].double()])
+        estimates.append(chance_brier_skill(outcome, mask))
+        truths.append(validate_forecasts(truth, outcome, mask)["brier_skill"])
+        rates, _ = per_start_rates(outcome, mask)
+        assert validate_forecasts(rates, outcome, mask)["brier_skill"] > estimates[-1]
+    assert sum(estimates) / 40 == pytest.approx(sum(truths) / 40, abs=0.01)
+    with pytest.raises(TypeError, match="outcome: expected bool"):
+        chance_brier_skill(outcome.float())
 
 
 def test_rate_reliability_against_the_binomial_closed_form():
