@@ -42,7 +42,12 @@ from pathlib import Path
 import torch
 from _report import print_table, write_json
 
-from rcvae_torchrl.competency import chance_brier_skill, pool_outcomes, validate_forecasts
+from rcvae_torchrl.competency import (
+    chance_brier_skill,
+    per_start_rates,
+    pool_outcomes,
+    validate_forecasts,
+)
 from rcvae_torchrl.io import load_torch
 from recipes.pusher_competency.pusher import CONDITIONS
 
@@ -80,13 +85,13 @@ def members_skill(
 
 
 def score_run(run_dir: Path) -> dict:
-    """The member subsets' skills, their fit and the two ceilings of one finished run."""
+    """The member subsets' skills, their limit and the two ceilings of one finished run."""
     forecasts = [load_torch(run_dir / "forecast" / f"{c}.pt", "forecast") for c in CONDITIONS]
     truths = [load_torch(run_dir / "truth" / f"{c}.pt", "truth") for c in CONDITIONS]
     members = torch.cat([f["p_success_member"] for f in forecasts]).double()
     outcome, mask = pool_outcomes([t["success"] for t in truths])
     skills = subset_skills(members, outcome, mask)
-    rates = (outcome & mask).sum(1).double() / mask.sum(1)
+    rates, _ = per_start_rates(outcome, mask)
     return {
         "members": members.shape[1],
         "skill_by_members": skills,
