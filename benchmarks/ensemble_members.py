@@ -8,15 +8,10 @@ finished runs given, this script scores the forecast made with every subset of k
 real episodes, pooled as the study pools its three conditions (every episode once), and the
 skill of infinitely many members of the same kind, each with as many samples as the run drew.
 
-Averaged over the subsets of k of E members, the Brier score of their mean forecast is, exactly,
-
-    Brier(k) = Brier(E) + (1 / k - 1 / E) * mean over episodes of s_b^2
-
-with ``s_b^2`` the members' sample variance (over members, unbiased) at the episode's start:
-the variance of a mean of k drawn without replacement from E. So the score falls as 1 / k and
-its limit, ``Brier(E) - mean s_b^2 / E``, is the unbiased estimate of the Brier score of the
-members' expected forecast (members taken as independent draws of the training, as the
-ensemble's bootstraps and initialisations make them). Its skill is ``k -> inf``.
+Averaged over the subsets of k of E members, the Brier score of their mean forecast falls as
+1 / k, exactly (``rcvae_torchrl.competency.members_brier_skill`` gives the closed form); its
+limit is the unbiased estimate of the Brier score of the members' expected forecast (members
+taken as independent draws of their training). Its skill is ``k -> inf``.
 Beside it, two ceilings set by the agent's own outcomes:
 
 - the study's oracle (each start's real rate as the forecast, scored in-sample: a little
@@ -44,6 +39,7 @@ from _report import print_table, write_json
 
 from rcvae_torchrl.competency import (
     chance_brier_skill,
+    members_brier_skill,
     per_start_rates,
     pool_outcomes,
     validate_forecasts,
@@ -67,23 +63,6 @@ def subset_skills(members: torch.Tensor, outcome: torch.Tensor, mask: torch.Tens
     return skills
 
 
-def members_skill(
-    members: torch.Tensor, outcome: torch.Tensor, mask: torch.Tensor, k: float
-) -> float:
-    """The pooled Brier skill, against the outcomes' overall rate, that the mean of k of the
-    members' forecasts ``[B, E]`` has on average over the subsets of k (``k = inf``: the limit
-    of infinitely many members): the closed form of the module's docstring."""
-    size = members.shape[1]
-    y, m = outcome.double(), mask.double()
-    mean = members.double().mean(1)
-    brier = (((mean[:, None] - y) ** 2) * m).sum() / m.sum()
-    spread = (members.double().var(1) * m.sum(1)).sum() / m.sum()  # per episode
-    brier = brier + (1.0 / k - 1.0 / size) * spread
-    overall = (y * m).sum() / m.sum()
-    reference = (((y - overall) ** 2) * m).sum() / m.sum()
-    return float(1.0 - brier / reference)
-
-
 def score_run(run_dir: Path) -> dict:
     """The member subsets' skills, their limit and the two ceilings of one finished run."""
     forecasts = [load_torch(run_dir / "forecast" / f"{c}.pt", "forecast") for c in CONDITIONS]
@@ -95,7 +74,7 @@ def score_run(run_dir: Path) -> dict:
     return {
         "members": members.shape[1],
         "skill_by_members": skills,
-        "infinite_members": members_skill(members, outcome, mask, float("inf")),
+        "infinite_members": members_brier_skill(members, outcome, mask),
         "oracle_in_sample": validate_forecasts(rates, outcome, mask)["brier_skill"],
         "true_chance_expected": chance_brier_skill(outcome, mask),
     }

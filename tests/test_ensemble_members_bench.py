@@ -12,7 +12,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
 import ensemble_members
 
-from rcvae_torchrl.competency import pool_outcomes
+from rcvae_torchrl.competency import members_brier_skill, pool_outcomes
 
 
 def _study(seed: int = 0):
@@ -28,12 +28,10 @@ def _study(seed: int = 0):
     return members, outcome, mask
 
 
-def test_the_closed_form_equals_the_mean_over_every_subset_of_k_members():
+def test_the_library_closed_form_equals_the_mean_over_every_subset_of_k_members():
     members, outcome, mask = _study()
     by_subsets = ensemble_members.subset_skills(members, outcome, mask)
     for k, skill in enumerate(by_subsets, start=1):
-        assert ensemble_members.members_skill(members, outcome, mask, k) == pytest.approx(
-            skill, abs=1e-12
-        )
-    limit = ensemble_members.members_skill(members, outcome, mask, float("inf"))
+        assert members_brier_skill(members, outcome, mask, k) == pytest.approx(skill, abs=1e-12)
+    limit = members_brier_skill(members, outcome, mask)
     assert by_subsets == sorted(by_subsets) and limit > by_subsets[-1]

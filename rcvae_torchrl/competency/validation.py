@@ -36,6 +36,7 @@ __all__ = [
     "chance_brier_skill",
     "crps_samples",
     "episode_brier",
+    "members_brier_skill",
     "per_start_rates",
     "pool_outcomes",
     "rank_correlation",
@@ -214,6 +215,61 @@ def chance_brier_skill(outcome: Tensor, mask: Tensor | None = None) -> float:
     overall = (y * m).sum() / m.sum()
     reference = (((y - overall) ** 2) * m).sum() / m.sum()
     return float(brier_skill_score((per_episode * runs).sum() / m.sum(), reference))
+
+
+def members_brier_skill(
+    member_forecasts: Tensor,
+    outcome: Tensor,
+    mask: Tensor | None = None,
+    members: float = math.inf,
+) -> float:
+    """The Brier skill, against the outcomes' overall rate, of an ensemble's mean forecast with
+    ``members`` members, from its ``E >= 2`` members' own forecasts ``[B, E]``: would more
+    members forecast better, or is the error one they share?
+
+    Averaged over every subset of ``k`` of the ``E`` members, the Brier score of the subset's
+    mean forecast is exactly ``Brier(E) + (1/k - 1/E) v``, with ``v`` the members' sample
+    variance (unbiased, over members) at each episode's start, averaged over the episodes: the
+    variance of a mean of ``k`` drawn from ``E``. For ``k <= E`` this is that average; beyond,
+    taking the members as independent draws of their training (as their initialisations and
+    data orders make them), it is the unbiased estimate of the Brier score of ``k`` such
+    members, and ``members=math.inf`` gives that of their expected forecast: the skill that no
+    number of members exceeds. A member's forecast from finitely many samples carries their
+    noise into ``v``, so the limit is that of infinitely many samples too.
+
+    Example:
+        >>> outcome = torch.tensor([[True], [False], [True], [False]])
+        >>> right = torch.tensor([[0.9, 0.7], [0.1, 0.3], [0.7, 0.9], [0.3, 0.1]])
+        >>> round(members_brier_skill(right, outcome, members=1), 3)  # a member alone
+        0.8
+        >>> round(members_brier_skill(right, outcome, members=2), 3)  # both: the mean forecast
+        0.84
+        >>> round(members_brier_skill(right, outcome), 3)  # their disagreement averaged away
+        0.88
+    """
+    _checks.check_rank("member_forecasts", member_forecasts, 2, "[B, E]")
+    _checks.check_floating("member_forecasts", member_forecasts)
+    _checks.check_probability("member_forecasts", member_forecasts)
+    if member_forecasts.shape[1] < 2:
+        raise ValueError(
+            "member_forecasts: expected the forecasts of at least 2 members [B, E >= 2], got "
+            f"shape {tuple(member_forecasts.shape)}"
+        )
+    if not (isinstance(members, int | float) and members >= 1):
+        raise ValueError(
+            f"members: expected a number of members >= 1 (or math.inf), got {members!r}"
+        )
+    f, mask = _outcomes(member_forecasts.mean(1), outcome, mask)
+    m = mask.to(torch.float64)
+    y = outcome.to(torch.float64)
+    spread = member_forecasts.to(torch.float64).var(1)  # per start, unbiased over members
+    brier = (((f[:, None] - y) ** 2) * m).sum() / m.sum()
+    brier = brier + (1.0 / members - 1.0 / member_forecasts.shape[1]) * (
+        (spread * m.sum(1)).sum() / m.sum()
+    )
+    overall = (y * m).sum() / m.sum()
+    reference = (((y - overall) ** 2) * m).sum() / m.sum()
+    return float(brier_skill_score(brier, reference))
 
 
 def _average_ranks(x: Tensor) -> Tensor:

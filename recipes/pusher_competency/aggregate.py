@@ -38,6 +38,7 @@ COLUMNS = (
     ("validation", "auroc", "AUROC"),
     ("validation", "bss_overall", "BSS (overall rate)"),
     ("validation", "brier_skill", "BSS (own rate)"),
+    ("validation", "brier_skill_members_limit", "BSS (own rate), infinite members"),
     ("validation", "oracle_auroc", "oracle AUROC"),
     ("validation", "oracle_brier_skill", "oracle BSS (own rate)"),
     ("validation", "chance_brier_skill", "true-chance BSS (expected)"),

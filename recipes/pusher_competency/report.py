@@ -440,6 +440,7 @@ _SCORE_COLUMNS = (
     ("auroc", "AUROC"),
     ("bss_overall", "BSS (overall rate)"),
     ("brier_skill", "BSS (own rate)"),
+    ("brier_skill_members_limit", "BSS (own rate), infinite members"),
     ("oracle_auroc", "oracle AUROC"),
     ("oracle_brier_skill", "oracle BSS (own rate)"),
     ("chance_brier_skill", "true-chance BSS (expected)"),
@@ -468,9 +469,15 @@ def _validation_text(scores, assess: AssessConfig) -> str:
             f"{assess.seeds_per_start} where the env is deterministic). BSS: Brier skill against "
             "a constant forecast of the overall or the condition's own base rate. TTS: the "
             "forecast distribution of the time to success against the real times, by CRPS, "
-            "beside the condition's climatological distribution (lower is better). Oracle: the "
+            "beside the condition's climatological distribution (lower is better). Infinite "
+            "members: the Brier skill that the mean of infinitely many members like these would "
+            "have (estimated from the members' own forecasts): below the target, the error is "
+            "one the members share, not their disagreement. Oracle: the "
             "scores of a forecast equal to each start's own real success rate, the ceiling that "
-            "the outcomes' randomness leaves to any forecast; oracle Spearman: about the rank "
+            "the outcomes' randomness leaves to any forecast (in-sample, so a little "
+            "optimistic); true-chance BSS: the Brier skill that a forecast of each start's true "
+            "chance has in expectation (the same ceiling without that optimism; a start run "
+            "once counts as fixed); oracle Spearman: about the rank "
             "correlation that a forecast of each start's true chance reaches against rates of "
             "this many runs (the square root of their split-half reliability), where a start "
             "has several runs.",

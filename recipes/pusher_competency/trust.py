@@ -15,6 +15,7 @@ from rcvae_torchrl.competency import (
     brier_skill_score,
     chance_brier_skill,
     cross_fitted_recalibration,
+    members_brier_skill,
     pool_outcomes,
     rate_reliability,
     start_reliability,
@@ -66,6 +67,16 @@ def _oracle(outcome: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
         "oracle_brier_skill": best["brier_skill"],
         "chance_brier_skill": chance_brier_skill(outcome, mask),
     }
+
+
+def _members_limit(forecast: Mapping[str, torch.Tensor], outcome: torch.Tensor) -> float:
+    """The Brier skill (against the condition's own rate) of infinitely many members of the
+    forecast's kind: what more members could add, where the forecast keeps each member's
+    (NaN with fewer than 2)."""
+    members = forecast.get("p_success_member")
+    if members is None or members.shape[-1] < 2:
+        return math.nan
+    return members_brier_skill(members, outcome)
 
 
 def _spearman_ceiling(outcome: torch.Tensor) -> float:
@@ -128,6 +139,7 @@ def validation(
         f, t = forecasts[c], truths[c]
         scores = validate_forecasts(f["p_success"], t["success"])
         scores.update(_oracle(t["success"]))
+        scores["brier_skill_members_limit"] = _members_limit(f, t["success"])
         scores["oracle_spearman"] = _spearman_ceiling(t["success"])
         scores.update(_gap_precision(f["p_success"], t["success"]))
         base = ((overall_rate - t["success"].double()) ** 2).mean()
@@ -146,6 +158,11 @@ def validation(
     # no Spearman ceiling overall: pooled, starts of one run and of many give the rates'
     # reliability no one meaning
     overall.update(_oracle(success, mask))
+    members = [forecasts[c].get("p_success_member") for c in forecasts]
+    if all(m is not None and m.shape[-1] >= 2 for m in members):
+        overall["brier_skill_members_limit"] = members_brier_skill(
+            torch.cat(members), success, mask
+        )
     overall["bss_overall"] = overall["brier_skill"]
     overall["bss_tasks"] = _task_skill(p, success, mask)
     out["overall"] = overall

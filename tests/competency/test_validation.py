@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import pytest
@@ -16,6 +17,7 @@ from rcvae_torchrl.competency import (
     crps_samples,
     episode_brier,
     expected_calibration_error,
+    members_brier_skill,
     per_start_rates,
     pool_outcomes,
     rank_correlation,
@@ -128,6 +130,38 @@ def test_the_true_chance_skill_is_unbiased_and_below_the_in_sample_oracle():
     assert sum(estimates) / 40 == pytest.approx(sum(truths) / 40, abs=0.01)
     with pytest.raises(TypeError, match="outcome: expected bool"):
         chance_brier_skill(outcome.float())
+
+
+def test_members_brier_skill_by_subsets_and_its_limit():
+    # every subset of k of 4 members, their mean forecast scored: the closed form's value at k
+    g = torch.Generator().manual_seed(4)
+    outcome = torch.rand(30, 6, generator=g) < 0.6
+    members = torch.rand(30, 4, generator=g, dtype=torch.float64)
+    for k in range(1, 5):
+        subsets = list(itertools.combinations(range(4), k))
+        briers = [episode_brier(members[:, list(s)].mean(1), outcome) for s in subsets]
+        reference = episode_brier(torch.full((30,), outcome.double().mean().item()), outcome)
+        expected = 1 - float(sum(briers) / len(briers)) / float(reference)
+        assert members_brier_skill(members, outcome, members=k) == pytest.approx(expected)
+    # members that agree have nothing to average away: their limit is their skill
+    same = members[:, :1].expand(30, 3)
+    assert members_brier_skill(same, outcome) == pytest.approx(
+        members_brier_skill(same, outcome, members=1)
+    )
+
+
+@pytest.mark.parametrize(
+    ("members", "k", "match"),
+    [
+        (torch.rand(5, 1), math.inf, r"member_forecasts: .*at least 2 members"),
+        (torch.rand(5), math.inf, r"member_forecasts"),
+        (torch.rand(5, 2) + 1.0, math.inf, r"member_forecasts"),
+        (torch.rand(5, 2), 0, r"members: expected a number of members >= 1"),
+    ],
+)
+def test_members_brier_skill_names_the_bad_argument(members, k, match):
+    with pytest.raises(ValueError, match=match):
+        members_brier_skill(members, torch.ones(5, 2, dtype=torch.bool), members=k)
 
 
 def test_rate_reliability_against_the_binomial_closed_form():

@@ -90,6 +90,30 @@ def test_a_constant_forecast_has_no_skill_and_fails_the_checks():
     assert not checks["Brier skill vs the condition's base rate > 0 (stochastic)"]["met"]
 
 
+def test_the_members_limit_removes_their_disagreement_not_their_shared_error():
+    forecasts, truths = _case(perfect=True)
+    scores = validation(forecasts, truths, radius=0.03)  # no members' forecasts: no limit
+    assert math.isnan(scores["stochastic"]["brier_skill_members_limit"])
+    assert "brier_skill_members_limit" not in scores["overall"]
+    for shared in (0.0, 0.1):
+        for c in CONDITIONS:
+            # two members: one 0.1 off the right answer, the other right; both off by `shared`
+            reach = truths[c]["success"][:, 0]
+            right = reach.double()
+            sign = torch.where(reach, -1.0, 1.0).double()
+            members = torch.stack([right + sign * (0.1 + shared), right + sign * shared], -1)
+            forecasts[c]["p_success_member"] = members
+            forecasts[c]["p_success"] = members.mean(-1)
+        scores = validation(forecasts, truths, radius=0.03)
+        for c in (*CONDITIONS, "overall"):  # every base rate is 0.5: a reference Brier of 0.25
+            # the mean is 0.05 + shared off; two members 0.1 apart vary by 0.005, whose half
+            # the limit takes off the Brier score
+            mean_off = 0.05 + shared
+            assert scores[c]["brier_skill"] == pytest.approx(1 - mean_off**2 / 0.25)
+            limit = 1 - (mean_off**2 - 0.005 / 2) / 0.25
+            assert scores[c]["brier_skill_members_limit"] == pytest.approx(limit)
+
+
 def test_the_recalibrated_scores_sit_beside_the_forecasts_own():
     forecasts, truths = _case(perfect=True)
     for c in CONDITIONS:  # ranks right, but 0.2 too optimistic on average
