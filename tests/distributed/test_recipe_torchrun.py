@@ -24,7 +24,7 @@ MICRO = (
 
 
 def _run(launcher: list[str], run_dir: Path, *overrides: str) -> subprocess.CompletedProcess:
-    # the GL backend left to the package's own choice (EGL only where it imports)
+    # no GL backend forced: the caller's, else the package's own choice (EGL only where it imports)
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     proc = subprocess.run(
         [*launcher, str(RECIPE), *MICRO, *overrides, f"run_dir={run_dir}"],
