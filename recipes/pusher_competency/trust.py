@@ -117,7 +117,10 @@ def validation(
     """Per condition and overall: the per-start and per-episode scores of the forecast, the
     Brier skill against the overall base rate (``bss_overall``) and against the condition's
     own (``brier_skill``), the scores of the oracle forecast (each start's real rate: the
-    ceiling), and the time-to-success CRPS against the condition's climatology. Per condition
+    ceiling) and ``chance_brier_skill`` (the true chances' expected skill), the Brier skill
+    that infinitely many members would reach (``brier_skill_members_limit``, where the
+    forecasts keep each member's ``p_success_member``), and the time-to-success CRPS against
+    the condition's climatology. Per condition
     also the gap's sign and precision: ``gap_signed`` (forecast minus real), ``gap_se`` (its
     standard error over the start states) and ``gap_low`` / ``gap_high`` (its 95 % interval,
     Student's t on the per-start differences, as :class:`~rcvae_torchrl.training.OutcomeCheck`
