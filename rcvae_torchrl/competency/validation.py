@@ -207,14 +207,12 @@ def chance_brier_skill(outcome: Tensor, mask: Tensor | None = None) -> float:
     _checks.check_rank("outcome", outcome, 2, "[B, R]")
     if outcome.dtype != torch.bool:
         raise TypeError(f"outcome: expected bool outcomes of single episodes, got {outcome.dtype}")
-    m = _runs_mask(mask, outcome, "the outcomes'").to(torch.float64)
-    y = outcome.to(torch.float64)
-    runs = m.sum(1)
-    rate = (y * m).sum(1) / runs
+    mask = _runs_mask(mask, outcome, "the outcomes'")
+    rate, runs = per_start_rates(outcome, mask)
+    runs = runs.to(torch.float64)
     per_episode = torch.where(runs > 1, rate * (1 - rate) * runs / (runs - 1).clamp_min(1), 0.0)
-    overall = (y * m).sum() / m.sum()
-    reference = (((y - overall) ** 2) * m).sum() / m.sum()
-    return float(brier_skill_score((per_episode * runs).sum() / m.sum(), reference))
+    expected = (per_episode * runs).sum() / runs.sum()
+    return float(brier_skill_score(expected, _base_rate_brier(outcome, mask)))
 
 
 def members_brier_skill(
@@ -259,17 +257,20 @@ def members_brier_skill(
         raise ValueError(
             f"members: expected a number of members >= 1 (or math.inf), got {members!r}"
         )
-    f, mask = _outcomes(member_forecasts.mean(1), outcome, mask)
-    m = mask.to(torch.float64)
-    y = outcome.to(torch.float64)
+    mask = _runs_mask(mask, outcome, "the outcomes'")
+    brier = episode_brier(member_forecasts.mean(1), outcome, mask)
+    runs = mask.sum(1).to(torch.float64)
     spread = member_forecasts.to(torch.float64).var(1)  # per start, unbiased over members
-    brier = (((f[:, None] - y) ** 2) * m).sum() / m.sum()
-    brier = brier + (1.0 / members - 1.0 / member_forecasts.shape[1]) * (
-        (spread * m.sum(1)).sum() / m.sum()
-    )
-    overall = (y * m).sum() / m.sum()
-    reference = (((y - overall) ** 2) * m).sum() / m.sum()
-    return float(brier_skill_score(brier, reference))
+    spread = (spread * runs).sum() / runs.sum()  # per episode
+    brier = brier + (1.0 / members - 1.0 / member_forecasts.shape[1]) * spread
+    return float(brier_skill_score(brier, _base_rate_brier(outcome, mask)))
+
+
+def _base_rate_brier(outcome: Tensor, mask: Tensor) -> Tensor:
+    """The Brier score of the constant forecast of the episodes' own rate (the reference of
+    the skills above)."""
+    rate = outcome[mask].to(torch.float64).mean()
+    return episode_brier(rate.expand(outcome.shape[0]), outcome, mask)
 
 
 def _average_ranks(x: Tensor) -> Tensor:

@@ -69,14 +69,15 @@ def _oracle(outcome: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str
     }
 
 
-def _members_limit(forecast: Mapping[str, torch.Tensor], outcome: torch.Tensor) -> float:
-    """The Brier skill (against the condition's own rate) of infinitely many members of the
-    forecast's kind: what more members could add, where the forecast keeps each member's
-    (NaN with fewer than 2)."""
-    members = forecast.get("p_success_member")
+def _members_limit(
+    members: torch.Tensor | None, outcome: torch.Tensor, mask: torch.Tensor | None = None
+) -> float:
+    """The Brier skill (against the outcomes' own rate) of infinitely many members of the kind
+    whose forecasts ``members`` ``[B, E]`` are: what more members could add (NaN without the
+    members' forecasts, or with fewer than 2)."""
     if members is None or members.shape[-1] < 2:
         return math.nan
-    return members_brier_skill(members, outcome)
+    return members_brier_skill(members, outcome, mask)
 
 
 def _spearman_ceiling(outcome: torch.Tensor) -> float:
@@ -142,7 +143,9 @@ def validation(
         f, t = forecasts[c], truths[c]
         scores = validate_forecasts(f["p_success"], t["success"])
         scores.update(_oracle(t["success"]))
-        scores["brier_skill_members_limit"] = _members_limit(f, t["success"])
+        scores["brier_skill_members_limit"] = _members_limit(
+            f.get("p_success_member"), t["success"]
+        )
         scores["oracle_spearman"] = _spearman_ceiling(t["success"])
         scores.update(_gap_precision(f["p_success"], t["success"]))
         base = ((overall_rate - t["success"].double()) ** 2).mean()
@@ -163,9 +166,7 @@ def validation(
     overall.update(_oracle(success, mask))
     members = [forecasts[c].get("p_success_member") for c in forecasts]
     if all(m is not None and m.shape[-1] >= 2 for m in members):
-        overall["brier_skill_members_limit"] = members_brier_skill(
-            torch.cat(members), success, mask
-        )
+        overall["brier_skill_members_limit"] = _members_limit(torch.cat(members), success, mask)
     overall["bss_overall"] = overall["brier_skill"]
     overall["bss_tasks"] = _task_skill(p, success, mask)
     out["overall"] = overall
