@@ -13,7 +13,7 @@ more are imported on their own because they pull in heavier dependencies:
 
 Example:
     >>> import rcvae_torchrl as rt
-    >>> model = rt.RCVAEEnsemble(rt.RCVAEConfig(14, 2, hidden_dim=16), ensemble_size=3)
+    >>> model = rt.RCVAEEnsemble(rt.RCVAEConfig(5, 1, hidden_dim=16), ensemble_size=3)
     >>> model.ensemble_size
     3
 """

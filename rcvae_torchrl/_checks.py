@@ -188,7 +188,7 @@ def check_shape(name: str, x: Tensor, expected: Sequence[int], layout: str) -> N
 
 
 def check_trailing(name: str, x: Tensor, trailing: Sequence[int], layout: str) -> None:
-    """Require ``x.shape`` to end with ``trailing``; ``layout`` describes it (``[*B, S=14]``)."""
+    """Require ``x.shape`` to end with ``trailing``; ``layout`` describes it (``[*B, S=5]``)."""
     n = len(trailing)
     if x.dim() < n or tuple(x.shape[x.dim() - n :]) != tuple(trailing):
         raise ValueError(f"{name}: expected shape {layout}, got {tuple(x.shape)}")

@@ -124,7 +124,15 @@ def _success_flags(
             got = won.dtype if isinstance(won, torch.Tensor) else type(won).__name__
             raise TypeError(f"success: expected a bool tensor [T] of the episode, got {got}")
     else:
-        won = episode["next", success]
+        flags = episode.get("next")
+        if success not in flags.keys(True, True):
+            raise KeyError(
+                f"success: the env writes no {success!r} flag (its entries under 'next': "
+                f"{sorted(map(str, flags.keys(True, True)))}); pass success= the name of its "
+                "flag, or a function of an episode's observations [T, S] -> [T] bool (e.g. a "
+                "SuccessBoundary's success_over_time)"
+            )
+        won = flags.get(success)
     if won.numel() != episode.numel():
         raise ValueError(
             f"success: expected one flag per step of the episode ({episode.numel()}), got "

@@ -24,7 +24,13 @@ from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.threads import threads_kept
 
-from .episodes import ResetToState, episode_groups, episode_lengths, run_episodes
+from .episodes import (
+    ResetToState,
+    _success_flags,
+    episode_groups,
+    episode_lengths,
+    run_episodes,
+)
 from .policy import FixedRowsPolicy
 from .starts import start_episodes
 from .workers import episode_workers, start_worker_episodes
@@ -175,17 +181,22 @@ def _check_batch(batch_size: torch.Size) -> None:
 
 
 def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
-    """``(success, first_step, steps, trace or None)`` of ``episodes`` episodes ``[n, ...]``."""
+    """``(success, first_step, steps, trace or None)`` of ``episodes`` episodes ``[n, ...]``.
+    Functions of the observations see one episode's ``[T, S]`` at a time: a success that
+    depends on the time (a survival boundary's ``success_over_time``) counts from each
+    episode's first step."""
     first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, horizon))
-    if callable(success):  # a function: the first success may lie before the episode's end
-        first = _first_steps(stats.data, success, episodes, horizon)
-    values = None
-    if trace is not None:
-        values = torch.full((episodes, horizon), float("nan"))
-        ids, per_step = stats.data[TRAJ_KEY], trace(stats.data["next", "observation"])
+    values = None if trace is None else torch.full((episodes, horizon), float("nan"))
+    if callable(success) or trace is not None:
+        ids, observations = stats.data[TRAJ_KEY], stats.data["next", "observation"]
         for i in range(episodes):
-            row = per_step[ids == i]
-            values[i, : row.numel()] = row
+            episode = observations[ids == i]
+            if callable(success):  # the first success may lie before the episode's end
+                hits = success(episode).reshape(-1).nonzero()
+                first[i] = int(hits[0, 0]) if hits.numel() else horizon
+            if values is not None:
+                row = trace(episode).reshape(-1)
+                values[i, : row.numel()] = row
     return stats.success, first, stats.steps, values
 
 
@@ -235,11 +246,7 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
     """Outcomes of a batched rollout ``[N, T]``: a sub-env's episode ends at its first done."""
     done = episode["next", "done"].reshape(episode.shape)
     ended = done.cumsum(1) - done.long() > 0  # steps after the episode's last one
-    if callable(success):
-        won = success(episode["next", "observation"]).reshape(episode.shape).to(torch.bool)
-    else:
-        won = episode["next", success].reshape(episode.shape)
-    won = won & ~ended
+    won = _success_flags(episode, success) & ~ended
     steps_run = episode.shape[1]
     length = episode_lengths(done)
     hit = won.any(1)
@@ -251,16 +258,6 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
         values = torch.full((episode.shape[0], max_steps), float("nan"))
         values[:, :steps_run] = per_step.masked_fill(ended, float("nan"))
     return RealOutcomes(hit, first, steps, values)
-
-
-def _first_steps(data, success, episodes: int, horizon: int) -> torch.Tensor:
-    ids, won = data[TRAJ_KEY], success(data["next", "observation"]).reshape(-1)
-    first = torch.full((episodes,), horizon, dtype=torch.int64)
-    for i in range(episodes):
-        hits = won[ids == i].nonzero()
-        if hits.numel():
-            first[i] = int(hits[0, 0])
-    return first
 
 
 def score_forecast(

@@ -33,7 +33,8 @@ def _check_truth(samples: torch.Tensor, truth: torch.Tensor) -> None:
 def forecast_error(samples: torch.Tensor, truth: torch.Tensor) -> torch.Tensor:
     """Euclidean distance ``[*B, T]`` between the pooled median forecast and the truth.
 
-    Distances are taken over the last dimension, so pass e.g. the ball's (x, y) only.
+    Distances are taken over the last dimension, so pass only the dimensions that matter
+    (e.g. an object's x, y).
     """
     _check_truth(samples, truth)
     median = _pooled(samples).median(dim=0).values

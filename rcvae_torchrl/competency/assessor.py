@@ -174,6 +174,12 @@ class CompetencyAssessor(KeyedModule):
         )
         self.dim_names = _dim_names(dim_names, model_env.ensemble.config)
         self.horizon = _horizon(horizon, boundary)
+        if boundary.is_survival and self.horizon < boundary.time_limit:
+            raise ValueError(
+                f"horizon: a survival boundary is decided at its time limit "
+                f"({boundary.time_limit} steps), so the imagined episodes must last that long; "
+                f"expected a horizon of at least {boundary.time_limit}, got {self.horizon}"
+            )
         self.dt = _dt(dt, boundary)
         self.policy = policy
         self.samples_per_member = samples_per_member
@@ -280,6 +286,7 @@ class CompetencyAssessor(KeyedModule):
             self.tensor_keys.competency,
             self.tensor_keys.observation,
             model_warning=self.model_warning,
+            survival=self.boundary.is_survival,
         )
 
     @property

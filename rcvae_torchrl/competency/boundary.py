@@ -2,7 +2,9 @@
 
 The paper forecasts "the probability of success ... based on a user specified success-failure
 boundary" (Acharya, Russell & Ahmed, 2022, Sec. IV): here a success region (any predicate over
-observations, or a ball around a target), a time limit, and an optional failure predicate.
+observations, or a ball around a target), a time limit, and an optional failure predicate; or,
+for tasks of staying inside rather than reaching (a pole upright, a cart on its track), a
+failure predicate alone that must not hold before the time limit (:meth:`SuccessBoundary.survival`).
 """
 
 from __future__ import annotations
@@ -28,9 +30,12 @@ class SuccessBoundary:
     ``t < time_limit`` (step indices along the time axis of the observations) and no failure
     occurred at or before ``t``. It fails when a failure occurs within the time limit before any
     success (a failure and a success at the same step count as a failure); otherwise it times out.
+    A survival boundary (:meth:`survival`, ``success is None``) has no success region: a
+    trajectory succeeds by reaching its time limit without a failure.
 
     Args:
-        success: predicate ``obs [..., D] -> bool [...]`` for the success region.
+        success: predicate ``obs [..., D] -> bool [...]`` for the success region; ``None`` for
+            a survival boundary (needs ``failure`` and a time limit).
         time_limit: number of steps that count; ``None`` for the whole horizon.
         time_limit_s: alternatively the limit in seconds, with ``dt`` (steps =
             ``floor(time_limit_s / dt)``).
@@ -49,21 +54,65 @@ class SuccessBoundary:
 
     def __init__(
         self,
-        success: Predicate,
+        success: Predicate | None,
         *,
         time_limit: int | None = None,
         time_limit_s: float | None = None,
         dt: float | None = None,
         failure: Predicate | None = None,
     ) -> None:
-        if not callable(success):
-            raise TypeError(f"success: expected a callable predicate, got {type(success).__name__}")
+        if success is not None and not callable(success):
+            raise TypeError(
+                f"success: expected a callable predicate (or None: a survival boundary), got "
+                f"{type(success).__name__}"
+            )
         if failure is not None and not callable(failure):
             raise TypeError(f"failure: expected a callable predicate, got {type(failure).__name__}")
         self.success = success
         self.failure = failure
         self.dt = dt
         self.time_limit = _time_limit_steps(time_limit, time_limit_s, dt)
+        if success is None and failure is None:
+            raise TypeError(
+                "success, failure: expected a success predicate, or (a survival boundary) a "
+                "failure predicate, got neither"
+            )
+        if success is None and math.isinf(self.time_limit):
+            raise ValueError(
+                "time_limit, time_limit_s: expected how long to last (a survival boundary, "
+                "success=None, is decided at its time limit), got neither"
+            )
+
+    @classmethod
+    def survival(cls, failure: Predicate, **kwargs: object) -> SuccessBoundary:
+        """Success when a trajectory reaches the time limit without a failure: a task of
+        staying inside a region (a pole upright, a vehicle in its lane) rather than reaching one
+        (the same as ``SuccessBoundary(None, failure=failure, ...)``).
+
+        A trajectory succeeds at step ``time_limit - 1``, the last that counts, when no failure
+        occurred at or before it, and fails at its first failure within the limit. One shorter
+        than the limit without a failure times out: it has not lasted the limit yet (the
+        :class:`~rcvae_torchrl.competency.CompetencyAssessor` refuses such a horizon).
+
+        Args:
+            failure: predicate ``obs [..., D] -> bool [...]`` of the states to avoid.
+            **kwargs: ``time_limit`` (how long to last, in steps; required, or
+                ``time_limit_s`` with ``dt``), ``time_limit_s``, ``dt`` as in the constructor.
+
+        Example:
+            >>> fallen = lambda obs: obs[..., 0].abs() > 0.5  # e.g. a pole's angle (rad)
+            >>> boundary = SuccessBoundary.survival(fallen, time_limit=3)
+            >>> obs = torch.tensor([[0.1, 0.2, 0.3, 0.4], [0.1, 0.6, 0.0, 0.0]]).unsqueeze(-1)
+            >>> _, success, failure = boundary.outcome(obs)  # [2, T=4, D=1]
+            >>> success.tolist(), failure.tolist()
+            ([True, False], [False, True])
+        """
+        return cls(None, failure=failure, **kwargs)  # type: ignore[arg-type]
+
+    @property
+    def is_survival(self) -> bool:
+        """Whether a trajectory succeeds by lasting the time limit (:meth:`survival`)."""
+        return self.success is None
 
     @classmethod
     def ball(
@@ -78,7 +127,7 @@ class SuccessBoundary:
         """Success when ``‖obs[..., position] - target‖ <= radius`` (Euclidean).
 
         Args:
-            position: observation indices of the controlled position (e.g. ball x, y).
+            position: observation indices of the controlled position (e.g. an end effector's x, y).
             radius: positive, finite radius, in the observation's units.
             target: observation indices holding the target (a sequence of ints), or a fixed
                 target position (a float tensor of ``len(position)`` entries).
@@ -129,7 +178,12 @@ class SuccessBoundary:
         return cls(inside, **kwargs)  # type: ignore[arg-type]
 
     def success_over_time(self, observation: Tensor) -> Tensor:
-        """Bool ``[..., T]``: in the success region at step ``t``, within the limit, not failed."""
+        """Bool ``[..., T]``: in the success region at step ``t``, within the limit, not failed
+        (for a survival boundary: ``t`` is the limit's last step, not failed)."""
+        if self.is_survival:
+            failed = self._failed_by_step(observation)
+            steps = torch.arange(failed.shape[-1], device=failed.device)
+            return (steps == self.time_limit - 1) & ~failed
         inside = self._evaluate(self.success, "success", observation)
         steps = torch.arange(inside.shape[-1], device=inside.device)
         inside = inside & (steps < self.time_limit)
@@ -195,7 +249,8 @@ class SuccessBoundary:
         return result
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}(time_limit={self.time_limit}, dt={self.dt})"
+        kind = ", survival" if self.is_survival else ""
+        return f"{type(self).__name__}(time_limit={self.time_limit}, dt={self.dt}{kind})"
 
 
 def _time_limit_steps(steps: int | None, seconds: float | None, dt: float | None) -> int | float:

@@ -78,7 +78,8 @@ class CompetencyReport:
     1. When the world model failed its self-checks (``model_warning``), the paragraph opens
        with a warning naming the dimensions it has not learned: such a forecast is never
        presented as trustworthy.
-    2. ``P(success within L) = p (c% interval low–high).`` L = min(time limit, T) steps, in
+    2. ``P(success within L) = p (c% interval low–high).`` (``P(no failure for L)`` for a
+       survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
     3. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
        what changed: each part's time-mean bits against the reference's, and which part rose
@@ -110,6 +111,8 @@ class CompetencyReport:
         uncertainty_key, competency_key, observation_key: where ``data`` holds each part.
         model_warning: why the world model is not trustworthy ('' when it passed its
             self-checks or has none).
+        survival: whether success is lasting the time limit without a failure
+            (:meth:`~rcvae_torchrl.competency.SuccessBoundary.survival`).
         reference: the uncertainty the summary compares with (:meth:`with_reference`).
     """
 
@@ -124,6 +127,7 @@ class CompetencyReport:
     observation_key: NestedKey = "observation"
     model_warning: str = ""
     reference: Reference | None = None
+    survival: bool = False
 
     @property
     def trustworthy(self) -> bool:
@@ -169,8 +173,7 @@ class CompetencyReport:
         aleatoric, epistemic = self.mean_bits()
         total = float(self.uncertainty.get(("summary", "total")).mean())
         n = self.batch_size.numel()
-        text = f"Over {n} start states: mean P(success within "
-        text += f"{_duration(self.time_limit, self.dt)}) = {p:.2f}. "
+        text = f"Over {n} start states: mean P({self._outcome()}) = {p:.2f}. "
         if self.reference is None:
             text += _doubt_sentence(aleatoric, epistemic, total)
         else:
@@ -228,6 +231,11 @@ class CompetencyReport:
     def __str__(self) -> str:
         return self.summary()
 
+    def _outcome(self) -> str:
+        """What P() is of: ``success within 30 s``, or ``no failure for 30 s`` (survival)."""
+        duration = _duration(self.time_limit, self.dt)
+        return f"no failure for {duration}" if self.survival else f"success within {duration}"
+
     def _paragraph(self, one: TensorDictBase) -> str:
         competency, uncertainty = one.get(self.competency_key), one.get(self.uncertainty_key)
         sentences = [
@@ -236,7 +244,7 @@ class CompetencyReport:
                 float(competency.get("p_success_low")),
                 float(competency.get("p_success_high")),
                 self.confidence,
-                _duration(self.time_limit, self.dt),
+                self._outcome(),
             ),
             self._uncertainty_sentence(uncertainty),
         ]
@@ -265,9 +273,9 @@ class CompetencyReport:
         return _change_sentence(aleatoric, epistemic, self.reference)
 
 
-def _success_sentence(p: float, low: float, high: float, confidence: float, within: str) -> str:
+def _success_sentence(p: float, low: float, high: float, confidence: float, outcome: str) -> str:
     """``P(success within 30 s) = 0.84 (95% interval 0.78–0.89).``"""
-    return f"P(success within {within}) = {p:.2f} ({confidence:.0%} interval {low:.2f}–{high:.2f})."
+    return f"P({outcome}) = {p:.2f} ({confidence:.0%} interval {low:.2f}–{high:.2f})."
 
 
 def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:

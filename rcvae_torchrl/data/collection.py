@@ -60,6 +60,7 @@ def collect_episodes(
     check_non_negative_int("first_id", first_id)
     max_frames = max_frames or 1000 * (num_episodes + num_envs - 1)
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
+    _check_policy_inputs(env, policy)
     env.set_seed(seed % 2**32)  # numpy-based envs take seeds below 2**32
     collector = Collector(
         env,
@@ -120,6 +121,23 @@ def check_actions(env: EnvBase, data: TensorDictBase, name: str = "policy") -> N
         f"{name}: expected actions inside the env's action_spec{detail}; clip them in the policy "
         "(the env would act on other actions than the ones recorded)"
     )
+
+
+def _check_policy_inputs(env: EnvBase, policy: object) -> None:
+    """A policy that declares ``in_keys`` must find them among the env's entries (observations,
+    state, done flags): say which are missing, and how an env gets an ``"observation"``."""
+    keys = getattr(policy, "in_keys", None)
+    if not isinstance(keys, (list, tuple)):
+        return
+    specs = (env.full_observation_spec, env.full_state_spec, env.full_done_spec)
+    available = {key for spec in specs for key in spec.keys(True, True)}
+    missing = [key for key in keys if key not in available and (key,) not in available]
+    if missing:
+        raise KeyError(
+            f"policy: reads {missing}, which {type(env).__name__} does not write (it writes "
+            f'{sorted(map(str, available))}); for a world model\'s "observation", concatenate '
+            "the env's entries with rcvae_torchrl.data.prepare_env(env, observation_keys=[...])"
+        )
 
 
 def _whole_episodes(data: TensorDict, num_episodes: int, first_id: int) -> TensorDict:

@@ -129,6 +129,13 @@ class CEMPlanner(MPCPlannerBase):
     ) -> None:
         if not isinstance(env, EnvBase):
             raise TypeError(f"env: expected a TorchRL EnvBase, got {type(env).__name__}")
+        if env.batch_locked:
+            raise ValueError(
+                f"env: expected an env that steps any batch of imagined states (a world model, "
+                f"e.g. rcvae_torchrl.make_rcvae_env(ensemble, real_env, ...)), got "
+                f"{type(env).__name__}, whose batch is locked (a real env: plan in its world "
+                "model, act in the real env)"
+            )
         _check_arguments(horizon, num_candidates, top_k, iterations, particles, momentum)
         _check_objective(objective, risk_level)
         _checks.check_unit_interval("discount", discount, include_zero=False)

@@ -360,7 +360,7 @@ class OutcomeCheck:
     Check the forecast as it is made: a closed-loop forecast against closed-loop real
     episodes. Judged open loop instead (the recorded actions of held-out episodes, imagined
     and replayed), a model whose closed-loop forecasts were within 0.04 of reality was 0.6 too
-    pessimistic: over seconds its open-loop errors carry the ball past a small target, errors
+    pessimistic: over seconds its open-loop errors carry an object past a small target, errors
     that an agent reacting to the imagined states corrects.
 
     Build it with :meth:`from_outcomes`.

@@ -309,6 +309,11 @@ def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str = "data") -
         raise TypeError(
             f"{name}: expected a flat TensorDict of episodes [frames], got {type(data).__name__}"
         )
+    if data.batch_dims != 1 or data.batch_size[0] == 0:
+        raise ValueError(
+            f"{name}: expected a flat TensorDict of episodes [frames] with at least one frame, "
+            f"got batch {tuple(data.batch_size)}"
+        )
     cfg = ensemble.config
     for key, size, axis in (
         ("observation", cfg.obs_dim, "S"),

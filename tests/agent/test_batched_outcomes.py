@@ -73,3 +73,26 @@ def test_batched_outcomes_by_a_success_function():
             reset_to_state=reset_to_state,
             max_steps=2,
         )
+
+
+def test_a_success_that_depends_on_time_counts_from_each_episodes_start():
+    """A function of an episode's observations ``[T, S]`` sees one episode at a time, in a
+    batched env and in one env alike: a survival boundary decides at its own step in every
+    episode, and a trace is every episode's own."""
+    from rcvae_torchrl.competency import SuccessBoundary
+
+    starts = pusher_starts(2)
+    lasted = SuccessBoundary.survival(lambda o: o[..., 0] > 2.0, time_limit=5)  # never fails
+    args = dict(
+        runs_per_start=2,
+        reset_to_state=reset_to_state,
+        max_steps=8,
+        success=lasted.success_over_time,
+        trace=lambda o: torch.arange(o.shape[-2], dtype=torch.float32).expand(o.shape[:-1]),
+        progress=False,
+    )
+    kwargs = dict(time_limit=3.0, terminate_on_success=False)
+    for env in (make_pusher_env("deterministic", **kwargs), make_batched_pusher_env(3, **kwargs)):
+        out = real_outcomes(env, make_scripted_policy(), starts, **args)
+        assert out.success.all() and (out.first_step == 4).all(), type(env).__name__
+        assert torch.equal(out.trace, torch.arange(8.0).expand(2, 2, 8))

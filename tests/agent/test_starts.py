@@ -138,6 +138,10 @@ def test_bad_starts_seeds_and_success_flags_are_named(reacher):
         real_outcomes(env, lambda td: td.set("action", torch.zeros(2)), starts[:0], **args)
     with pytest.raises(ValueError, match="seeds: expected at least one seed"):
         run_episodes(env, lambda td: td, seeds=[], max_steps=3)
+    with pytest.raises(
+        KeyError, match=r"success: the env writes no 'success' flag .*a function of"
+    ):
+        real_outcomes(env, lambda td: td.set("action", torch.zeros(2)), starts, **args)
     with pytest.raises(ValueError, match="max_steps: expected a positive integer, got 0"):
         real_outcomes(env, lambda td: td, starts, **{**args, "max_steps": 0})
     act = lambda td: td.set("action", torch.zeros(2))  # noqa: E731

@@ -515,3 +515,30 @@ def test_per_sample_nan_and_a_nan_distance_are_refused_by_name(env, starts, plan
         broken.success_over_time(torch.zeros(3, T, S))
     with pytest.raises(TypeError, match="distance: expected a callable, got float"):
         SuccessBoundary.within_distance(0.5, 0.03)
+
+
+def test_survival_forecast_is_the_chance_of_no_failure_within_the_limit(env, starts, plan):
+    """A survival boundary's P(success) is the share of imagined episodes with no failure in
+    the limit's steps; the summary says so; a horizon shorter than the limit is refused."""
+    limit = T - 2
+
+    def drifted(o: torch.Tensor) -> torch.Tensor:  # a threshold some imagined episodes cross
+        return (o[..., 8] - starts[:, None, 8]).abs() > 0.01
+
+    rollout = env.imagine(starts, plan[:, :limit], samples_per_member=N, generator=seeded())
+    first_failure = drifted(rollout["observation"]).any(-1)  # [E, N, B], within the limit
+    want = 1.0 - first_failure.float().mean((0, 1))
+    assert 0.0 < want.mean().item() < 1.0  # the check can tell a wrong answer
+
+    survive = SuccessBoundary.survival(drifted, time_limit=limit, dt=DT)
+    report = make_assessor(env, boundary=survive, horizon=T).assess(
+        starts, actions=plan, generator=seeded()
+    )
+    assert torch.allclose(report.competency["p_success"], want)
+    assert torch.equal(report.data["competency", "failure"], first_failure.permute(2, 0, 1))
+    assert report.summary(index=0).startswith(f"P(no failure for {limit * DT:g} s) = ")
+    assert "mean P(no failure for" in report.overall()
+    with pytest.raises(
+        ValueError, match=rf"horizon: .*expected a horizon of at least {limit}, got 2"
+    ):
+        make_assessor(env, boundary=survive, horizon=2)

@@ -93,6 +93,54 @@ def test_boundary_ball_time_limit_and_failure():
     assert success.tolist() == [True] and failure.tolist() == [False]
 
 
+def test_boundary_survival_lasts_the_time_limit():
+    # [4, T=5, D=1]: a failure is |x| > 0.5; the limit is 3 steps (decided at step 2)
+    obs = torch.zeros(4, 5, 1)
+    obs[1, 1, 0] = 1.0  # fails at step 1
+    obs[2, 2, 0] = -1.0  # fails at step 2, the deciding step: a failure
+    obs[3, 3, 0] = 1.0  # fails at step 3, after the limit: it lasted
+    boundary = SuccessBoundary.survival(lambda o: o[..., 0].abs() > 0.5, time_limit=3)
+    assert boundary.is_survival and not SuccessBoundary(lambda o: o[..., 0] > 0).is_survival
+    over_time, success, failure = boundary.outcome(obs)
+    assert over_time.tolist() == [
+        [False, False, True, False, False],
+        [False] * 5,
+        [False] * 5,
+        [False, False, True, False, False],
+    ]
+    assert success.tolist() == [True, False, False, True]
+    assert failure.tolist() == [False, True, True, False]
+    # an episode ends after its first failure or at the limit, whichever comes first
+    assert boundary.ended_over_time(obs).tolist() == [
+        [False, False, False, True, True],
+        [False, False, True, True, True],
+        [False, False, False, True, True],
+        [False, False, False, True, True],
+    ]
+    # a trajectory shorter than the limit has not lasted it yet: neither outcome
+    _, success, failure = boundary.outcome(obs[:2, :2])
+    assert success.tolist() == [False, False] and failure.tolist() == [False, True]
+    # the same boundary by the constructor, in seconds
+    seconds = SuccessBoundary(
+        None, failure=lambda o: o[..., 0].abs() > 0.5, time_limit_s=0.3, dt=0.1
+    )
+    assert seconds.time_limit == 3 and torch.equal(
+        seconds.outcome(obs)[1], boundary.outcome(obs)[1]
+    )
+    assert "survival" in repr(boundary)
+
+
+def test_boundary_survival_errors_name_the_argument():
+    with pytest.raises(TypeError, match="success, failure: expected a success predicate"):
+        SuccessBoundary(None, time_limit=3)
+    with pytest.raises(ValueError, match="time_limit, time_limit_s: expected how long to last"):
+        SuccessBoundary.survival(lambda o: o[..., 0] > 0)
+    with pytest.raises(TypeError, match="failure: expected a callable predicate, got int"):
+        SuccessBoundary.survival(3, time_limit=3)
+    with pytest.raises(TypeError, match=r"success: expected a callable predicate .*got str"):
+        SuccessBoundary("x", time_limit=3)
+
+
 def test_success_metric_keys_shapes_and_values(rollout):
     boundary = SuccessBoundary(lambda o: o[..., 0] > 1.0, time_limit=4, dt=0.5)
     out = SuccessMetric(boundary)(rollout)["competency"]

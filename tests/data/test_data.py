@@ -5,6 +5,7 @@ import functools
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -249,6 +250,13 @@ def test_collection_refuses_actions_out_of_the_spec_and_too_few_frames(num_envs)
         collect_episodes(
             make_env, make_exploration_policy(_Constant(0.0, torch.float64)), 1, **args
         )
+    reads_position = TensorDictModule(_Constant(0.0), in_keys=["position"], out_keys=["action"])
+    with pytest.raises(
+        KeyError,
+        match=r"policy: reads .+position.+, which \w+Env does not write .+"
+        r"rcvae_torchrl.data.prepare_env\(env, observation_keys",
+    ):
+        collect_episodes(make_env, reads_position, 1, **args)
     with pytest.raises(
         ValueError,
         match=r"^max_frames: 20 frames were collected and only 0 of the 1 episodes asked for ended",

@@ -67,7 +67,11 @@ def test_unsupported_envs():
     locked = Locked()
     Locked._batch_locked = True
     assert locked.batch_locked
-    with pytest.raises(ValueError, match="Environment is batch_locked"):
+    with pytest.raises(
+        ValueError,
+        match=r"env: expected an env that steps any batch .*make_rcvae_env.*got Locked, whose "
+        r"batch is locked \(a real env",
+    ):
         CEMPlanner(locked, horizon=4)
     env = PointMassEnv()
     env.full_action_spec = Composite(action=Categorical(3))

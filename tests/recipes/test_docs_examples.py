@@ -33,6 +33,7 @@ def test_world_model_in_your_recipe(tmp_path, monkeypatch):
     p = ns["report"].competency["p_success"]
     assert bool(((p >= 0) & (p <= 1)).all())
     assert ns["outcomes"].success.shape == (3, 4)
+    assert ns["lasted"].success.shape == (3, 4) and ns["lasting"].survival
     assert ns["reacher_config"].passthrough_dims == (4, 5)
 
 

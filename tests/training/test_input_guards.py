@@ -50,6 +50,12 @@ def test_data_of_another_layout_and_a_wrong_config_are_named(linear_data, small_
         _train(model, train, val.exclude("action"))
     with pytest.raises(TypeError, match=r"train_data: expected a flat TensorDict .*, got list"):
         _train(model, [train], val)
+    with pytest.raises(
+        ValueError, match=r"val_data: expected .* at least one frame, got batch \(0,\)"
+    ):
+        _train(model, train, val[:0])
+    with pytest.raises(ValueError, match=r"train_data: expected a flat .*, got batch \(2, \d+\)"):
+        _train(model, train.reshape(2, -1), val)
     with pytest.raises(TypeError, match="config: expected a TrainConfig, got dict"):
         train_ensemble(model, train, val, {"max_steps": 4}, progress=False)
     for name, bad in (("max_steps", 2.5), ("window", 3.5), ("lr", math.inf), ("patience", True)):
