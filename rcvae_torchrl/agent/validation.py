@@ -187,10 +187,9 @@ def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
     episode's first step."""
     first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, horizon))
     values = None if trace is None else torch.full((episodes, horizon), float("nan"))
-    if callable(success) or trace is not None:
-        ids, observations = stats.data[TRAJ_KEY], stats.data["next", "observation"]
-        for i in range(episodes):
-            episode = observations[ids == i]
+    if callable(success) or trace is not None:  # the episodes lie one after the other
+        lengths = torch.bincount(stats.data[TRAJ_KEY], minlength=episodes).tolist()
+        for i, episode in enumerate(stats.data["next", "observation"].split(lengths)):
             if callable(success):  # the first success may lie before the episode's end
                 hits = success(episode).reshape(-1).nonzero()
                 first[i] = int(hits[0, 0]) if hits.numel() else horizon

@@ -86,7 +86,14 @@ class UncertaintyMetric(KeyedModule):
     With ``episode_end=True`` the metric also reads ``tensordict["ended"]`` (bool
     ``[E, N, *B, T]``, e.g. from :meth:`SuccessBoundary.ended_over_time`): samples of episodes
     that have ended count in one shared terminal bin (histogram estimator only; see
-    :func:`~rcvae_torchrl.competency.decompose_uncertainty`).
+    :func:`~rcvae_torchrl.competency.decompose_uncertainty`). A step where every episode has
+    ended has no uncertainty, so the time means then also measure how long the episodes last;
+    two more entries measure the doubt while they run:
+
+    - ``"live"`` ``[*B, T]``: the share of the ``E·N`` imagined episodes still running;
+    - ``"per_live_step"``: the ``"summary"`` bits summed over time and divided by the steps the
+      episodes run on average (the sum of ``"live"``), ``[*B]``: bits per step of an episode's
+      life, which episodes that end sooner or later than others' do not change.
 
     Args:
         bin_width: histogram bin width, scalar or ``[D]`` (required by ``"histogram"``; optional
@@ -189,6 +196,12 @@ class UncertaintyMetric(KeyedModule):
         time_axis = -2 if per_dim else -1
         out["time_mean"] = TensorDict({k: v.mean(dim=time_axis) for k, v in parts.items()})
         out["summary"] = TensorDict({k: self._summary(v, per_dim) for k, v in parts.items()})
+        if self.episode_end:
+            live = (~args["ended"]).to(obs.dtype).mean(dim=(0, 1))  # [*B, T]
+            # time mean x T = the time sum, over the mean number of steps an episode runs
+            scale = live.shape[-1] / live.sum(dim=-1).clamp_min(torch.finfo(live.dtype).tiny)
+            out["live"] = live
+            out["per_live_step"] = TensorDict({k: v * scale for k, v in out["summary"].items()})
         if per_dim and self.dim_names is not None:
             out["by_dim"] = TensorDict(
                 {

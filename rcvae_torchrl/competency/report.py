@@ -36,12 +36,14 @@ _FEW_REFERENCE_STARTS = 10
 
 @dataclass(frozen=True)
 class Reference:
-    """What a report's uncertainty is compared with: mean bits of in-distribution starts."""
+    """What a report's uncertainty is compared with: mean bits of in-distribution starts, as
+    time means or (``per_live_step``) per step of the imagined episodes' life."""
 
     aleatoric: float
     epistemic: float
     rise: float = 1.3  #: a part counts as risen when it is at least this many times the reference
     name: str = "in-distribution reference"
+    per_live_step: bool = False  #: the bits are ``("uncertainty", "per_live_step", ·)``
 
     def __post_init__(self) -> None:
         for field_name in ("aleatoric", "epistemic"):
@@ -82,11 +84,17 @@ class CompetencyReport:
        survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
     3. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
-       what changed: each part's time-mean bits against the reference's, and which part rose
+       what changed: each part's bits against the reference's, and which part rose
        (at least ``rise`` times the reference; the larger rise when both did): ``Against the
        in-distribution reference, epistemic uncertainty rose 2.1x (0.29 -> 0.61 bits) and
        aleatoric 1.0x (10.2 -> 10.4 bits): the model has not seen states like this.`` (a
-       part below the reference "fell to" its ratio). Without one, the dominant type: the
+       part below the reference "fell to" its ratio; when neither rose, the sentence names a
+       part at ``1 / rise`` of the reference or less as fallen below it).
+       The bits are time means, or, when both reports were made with ``episode_end`` (their
+       ``"per_live_step"`` entries), bits per step of the imagined episodes' life: with ended
+       episodes counted as certain, a time mean also measures how long the episodes last, and
+       episodes that fail sooner than the reference's would look less uncertain for it.
+       Without a reference, the dominant type: the
        larger of the aleatoric and epistemic time-mean bits summed over dimensions
        (``("uncertainty", "summary", ·)``; a tie counts as aleatoric), given with its share
        of the total: ``Most of the doubt is epistemic (0.70
@@ -134,11 +142,18 @@ class CompetencyReport:
         """False when the world model failed its self-checks."""
         return not self.model_warning
 
-    def mean_bits(self) -> tuple[float, float]:
+    def mean_bits(self, per_live_step: bool = False) -> tuple[float, float]:
         """Aleatoric and epistemic time-mean bits (summed over dimensions), averaged over the
-        report's start states."""
-        summary = self.uncertainty.get("summary")
-        return float(summary.get("aleatoric").mean()), float(summary.get("epistemic").mean())
+        report's start states; with ``per_live_step``, bits per step of the imagined episodes'
+        life (``("uncertainty", "per_live_step", ·)``, from an assessment with
+        ``episode_end``)."""
+        part = _bits(self.uncertainty, per_live_step)
+        return float(part.get("aleatoric").mean()), float(part.get("epistemic").mean())
+
+    @property
+    def has_live_steps(self) -> bool:
+        """Whether the report holds bits per step of the episodes' life (``episode_end``)."""
+        return "per_live_step" in self.uncertainty.keys()
 
     def with_reference(
         self, reference: CompetencyReport | Reference, *, rise: float = 1.3, name: str | None = None
@@ -146,16 +161,22 @@ class CompetencyReport:
         """This report, with summaries that compare against ``reference``: a report of
         in-distribution start states (e.g. the training starts), or its :class:`Reference`."""
         if isinstance(reference, CompetencyReport):
-            aleatoric, epistemic = reference.mean_bits()
+            live = reference.has_live_steps and self.has_live_steps
+            aleatoric, epistemic = reference.mean_bits(live)
             starts = reference.data.numel()
             name = name or "in-distribution reference"
             if starts < _FEW_REFERENCE_STARTS:  # its mean bits are noisy: say on how few
                 name = f"{name} (of only {starts} start state{'s' if starts > 1 else ''})"
-            reference = Reference(aleatoric, epistemic, rise, name)
+            reference = Reference(aleatoric, epistemic, rise, name, live)
         elif not isinstance(reference, Reference):
             raise TypeError(
                 "reference: expected a CompetencyReport or a Reference, got "
                 f"{type(reference).__name__}"
+            )
+        elif reference.per_live_step and not self.has_live_steps:
+            raise ValueError(
+                "reference: its bits are per live step, but this report has none (assess with "
+                "episode_end=True, or give time-mean bits)"
             )
         return replace(self, reference=reference)
 
@@ -164,13 +185,14 @@ class CompetencyReport:
         or ``"aleatoric"``, the larger rise when both did), or ``None`` when neither did."""
         if self.reference is None:
             raise ValueError("reference: expected a report with a reference (with_reference)")
-        return _cause(*self.mean_bits(), self.reference)
+        return _cause(*self.mean_bits(self.reference.per_live_step), self.reference)
 
     def overall(self) -> str:
         """One paragraph over all start states: the mean forecast, and what changed against the
         reference (without one, the dominant part of the doubt)."""
         p = float(self.competency.get("p_success").mean())
-        aleatoric, epistemic = self.mean_bits()
+        live = self.reference is not None and self.reference.per_live_step
+        aleatoric, epistemic = self.mean_bits(live)
         total = float(self.uncertainty.get(("summary", "total")).mean())
         n = self.batch_size.numel()
         text = f"Over {n} start states: mean P({self._outcome()}) = {p:.2f}. "
@@ -270,6 +292,9 @@ class CompetencyReport:
             return _unreliable_split_sentence(aleatoric, epistemic, total)
         if self.reference is None:
             return _doubt_sentence(aleatoric, epistemic, total)
+        if self.reference.per_live_step:
+            part = uncertainty.get("per_live_step")
+            aleatoric, epistemic = float(part.get("aleatoric")), float(part.get("epistemic"))
         return _change_sentence(aleatoric, epistemic, self.reference)
 
 
@@ -310,14 +335,21 @@ def _change_sentence(aleatoric: float, epistemic: float, reference: Reference) -
     }
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
+    unit = "bits per live step" if reference.per_live_step else "bits"
     parts = [
         f"{k} {'uncertainty ' if i == 0 else ''}"
         f"{'rose ' if ratios[k] >= 1 and i == 0 else 'fell to ' if ratios[k] < 1 else ''}"
-        f"{ratios[k]:.1f}x ({refs[k]:.2f} -> {values[k]:.2f} bits)"
+        f"{ratios[k]:.1f}x ({refs[k]:.2f} -> {values[k]:.2f} {unit})"
         for i, k in enumerate(("epistemic", "aleatoric"))
     ]
     text = f"Against the {reference.name}, {parts[0]} and {parts[1]}"
     cause = _cause(aleatoric, epistemic, reference)
+    fell = [k for k in ("epistemic", "aleatoric") if ratios[k] * reference.rise <= 1]
+    if cause is None and fell:
+        return (
+            text
+            + f": neither part rose, the {' and '.join(fell)} doubt fell below the reference's."
+        )
     if cause is None:
         return text + ": neither part rose, the doubt is as in the reference."
     return text + f": the rise is {cause}, {_ROSE[cause]}."
@@ -331,6 +363,17 @@ def _cause(aleatoric: float, epistemic: float, reference: Reference) -> str | No
     }
     risen = [k for k in ratios if ratios[k] >= reference.rise]
     return max(risen, key=lambda k: ratios[k]) if risen else None
+
+
+def _bits(uncertainty: TensorDictBase, per_live_step: bool) -> TensorDictBase:
+    """The ``"summary"`` bits, or with ``per_live_step`` the ``"per_live_step"`` ones."""
+    if not per_live_step:
+        return uncertainty.get("summary")
+    if "per_live_step" not in uncertainty.keys():
+        raise ValueError(
+            "per_live_step: the report has no bits per live step (assess with episode_end=True)"
+        )
+    return uncertainty.get("per_live_step")
 
 
 def _dims_sentence(

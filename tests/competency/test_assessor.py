@@ -11,6 +11,7 @@ import rcvae_torchrl.competency.assessor as assessor_module
 from rcvae_torchrl.competency import (
     CompetencyAssessor,
     CompetencyReport,
+    Reference,
     SuccessBoundary,
     SuccessMetric,
     UncertaintyMetric,
@@ -234,8 +235,17 @@ def test_joint_estimator_has_no_dimension_breakdown(env, starts, plan):
 
 
 # ----------------------------------------------------------------- summary
-def hand_report(dt=0.05, **summary) -> CompetencyReport:
+def hand_report(dt=0.05, live=None, **summary) -> CompetencyReport:
+    """A one-start report with the given time-mean bits (and, with ``live``, bits per live
+    step, as an assessment with ``episode_end`` gives)."""
     summary = {"aleatoric": 0.4, "epistemic": 0.7, "total": 1.1, **summary}
+    uncertainty = {
+        "summary": {k: torch.tensor(v) for k, v in summary.items()},
+        "time_mean": {"total": torch.tensor([0.1, 0.9, 0.0, 0.5])},
+        "peak_step": torch.tensor([0, 89, 3, 19]),
+    }
+    if live is not None:
+        uncertainty["per_live_step"] = {k: torch.tensor(v) for k, v in live.items()}
     data = TensorDict(
         {
             "competency": {
@@ -243,11 +253,7 @@ def hand_report(dt=0.05, **summary) -> CompetencyReport:
                 "p_success_low": torch.tensor(0.78),
                 "p_success_high": torch.tensor(0.89),
             },
-            "uncertainty": {
-                "summary": {k: torch.tensor(v) for k, v in summary.items()},
-                "time_mean": {"total": torch.tensor([0.1, 0.9, 0.0, 0.5])},
-                "peak_step": torch.tensor([0, 89, 3, 19]),
-            },
+            "uncertainty": uncertainty,
         }
     )
     return CompetencyReport(data, ("a", "b", "c", "d"), 600, dt, 0.95)
@@ -291,8 +297,11 @@ def test_summary_against_a_reference_names_what_rose():
     lower = hand_report(aleatoric=0.2, epistemic=0.06, total=0.26).with_reference(reference)
     assert (
         "epistemic uncertainty fell to 0.3x (0.20 -> 0.06 bits) and aleatoric fell to 0.5x "
-        "(0.40 -> 0.20 bits): neither part rose"
+        "(0.40 -> 0.20 bits): neither part rose, the epistemic and aleatoric doubt fell below "
+        "the reference's."
     ) in lower.summary()
+    mixed = hand_report(aleatoric=0.48, epistemic=0.1, total=0.58).with_reference(reference)
+    assert "neither part rose, the epistemic doubt fell below the reference's." in str(mixed)
     from_report = hand_report(aleatoric=0.4, epistemic=0.8).with_reference(
         hand_report(aleatoric=0.4, epistemic=0.2), name="training starts"
     )
@@ -305,6 +314,46 @@ def test_summary_against_a_reference_names_what_rose():
         hand_report().with_reference(0.5)
     with pytest.raises(ValueError, match="rise: expected a factor > 1"):
         Reference(1.0, 1.0, rise=0.9)
+
+
+def test_episodes_that_end_sooner_are_compared_per_live_step():
+    """Time means that fell only because the imagined episodes ended sooner (failing early)
+    are not read as less doubt: two reports with bits per live step compare those."""
+    reference = hand_report(
+        aleatoric=4.0,
+        epistemic=1.0,
+        total=5.0,
+        live={
+            "aleatoric": 4.0,
+            "epistemic": 1.0,
+            "total": 5.0,
+        },
+    )
+    early = hand_report(
+        aleatoric=0.5,
+        epistemic=0.25,
+        total=0.75,
+        live={
+            "aleatoric": 4.2,
+            "epistemic": 2.0,
+            "total": 6.2,
+        },
+    )
+    compared = early.with_reference(reference)
+    assert compared.reference.per_live_step and compared.cause() == "epistemic"
+    assert (
+        "(of only 1 start state), epistemic uncertainty rose 2.0x (1.00 -> 2.00 bits per live "
+        "step) and aleatoric 1.0x (4.00 -> 4.20 bits per live step): the rise is epistemic"
+    ) in compared.summary()
+    assert "mean P(success within 30 s) = 0.84. Against" in compared.overall()
+    # without bits per live step on both sides, the time means (which fell) are compared
+    plain = hand_report(aleatoric=0.5, epistemic=0.25, total=0.75).with_reference(reference)
+    assert not plain.reference.per_live_step and plain.cause() is None
+    assert "(1.00 -> 0.25 bits)" in plain.summary() and "fell below" in plain.summary()
+    with pytest.raises(ValueError, match="reference: its bits are per live step, but this report"):
+        hand_report().with_reference(Reference(1.0, 1.0, per_live_step=True))
+    with pytest.raises(ValueError, match="per_live_step: the report has no bits per live step"):
+        hand_report().mean_bits(per_live_step=True)
 
 
 def test_a_model_that_failed_its_checks_is_flagged_in_every_summary(env, starts, plan):

@@ -129,3 +129,28 @@ def test_metric_reads_the_ended_entry():
     assert out["total"][:, :2].min().item() > 1.0
     with pytest.raises(KeyError, match="'ended' entry"):
         UncertaintyMetric(bin_width=0.1, episode_end=True)(td.exclude("ended"))
+
+
+def test_bits_per_live_step_do_not_depend_on_how_long_episodes_last():
+    # The same spread while an episode runs, for 2 steps in one start and 4 in another: the
+    # time means differ by the episodes' lengths, the bits per live step do not.
+    obs = torch.randn(2, 40, 1, 6, 2, generator=torch.Generator().manual_seed(0)).expand(
+        2, 40, 2, 6, 2
+    )
+    ended = torch.zeros(2, 40, 2, 6, dtype=torch.bool)
+    ended[:, :, 0, 2:] = True
+    ended[:, :, 1, 4:] = True
+    td = TensorDict({"observation": obs, "ended": ended}, batch_size=obs.shape[:-1])
+    out = UncertaintyMetric(bin_width=0.1, episode_end=True)(td)["uncertainty"]
+    assert torch.equal(out["live"], (~ended[0, 0]).float())
+    for kind in ("total", "aleatoric", "epistemic"):
+        by_step = out[kind].sum(-1)  # [B, T] summed over dimensions
+        want = by_step.sum(-1) / torch.tensor([2.0, 4.0])  # the time sum over the live steps
+        torch.testing.assert_close(out["per_live_step", kind], want)
+        torch.testing.assert_close(out["summary", kind], by_step.mean(-1))
+    # alike while they run: per live step within 1 %, the time means 2x apart
+    live = out["per_live_step", "total"]
+    assert abs(live[1] / live[0] - 1) < 0.01
+    assert out["summary", "total"][1] > 1.9 * out["summary", "total"][0]
+    plain = UncertaintyMetric(bin_width=0.1)(td)["uncertainty"]
+    assert "per_live_step" not in plain.keys() and "live" not in plain.keys()
