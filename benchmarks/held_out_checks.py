@@ -115,8 +115,8 @@ def main() -> None:
             )
     print_table(
         f"Held-out checks against the scored gap ({args.run_dir}, 1 thread)",
-        ["condition", "check", "starts", "forecast", "real", "gap (95 %)", "p", "verdict",
-         "scored gap"],
+        ["condition", "check", "starts", "forecast", "real", "gap (test's level)", "p",
+         "verdict", "scored gap"],
         rows,
     )  # fmt: skip
     write_json(

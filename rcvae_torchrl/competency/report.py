@@ -18,15 +18,19 @@ from torch import Tensor
 
 __all__ = ["CompetencyReport", "Reference"]
 
+# Aleatoric bits are the spread the members agree on: the env's randomness, or an error of
+# the model that every member makes (a model that has not learned a deterministic env spreads
+# its states too), which the ensemble cannot tell apart; the self-checks and a check of the
+# forecast against real episodes can.
 _REASONS = {
     "epistemic": "the model has not seen states like this",
-    "aleatoric": "the members agree that the states vary by chance, which more data would not "
-    "remove",
+    "aleatoric": "the members agree that the states vary this much: by chance, or by an error "
+    "they all make, which the ensemble cannot tell apart",
 }
 _ROSE = {
     "epistemic": "the model has not seen states like this: more data here would reduce it",
-    "aleatoric": "the outcome varies by chance more than in the reference, which more data "
-    "would not remove",
+    "aleatoric": "the members agree that the states vary more than in the reference: by "
+    "chance, or by an error they all make",
 }
 
 

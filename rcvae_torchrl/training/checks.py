@@ -24,6 +24,11 @@ narrow, or off centre), which a model whose randomness per episode was not learn
 :func:`train_ensemble <rcvae_torchrl.training.train_ensemble>` runs the checks after training,
 warns naming the flagged dimensions, and stores them with the model; the competency assessor
 flags a forecast made with a model that failed them.
+
+Passing them does not make a forecast right: they look ``coverage_steps`` ahead at most, a
+forecast much further, and an undertrained model can pass them and forecast far from reality.
+:class:`OutcomeCheck` checks the forecast itself, against real episodes from start states it is
+not scored on.
 """
 
 from __future__ import annotations
@@ -447,8 +452,11 @@ class OutcomeCheck:
             return float("nan")
         return float(diff.std(correction=1)) / diff.numel() ** 0.5
 
-    def interval(self, confidence: float = 0.95) -> tuple[float, float]:
-        """A ``confidence`` interval of :attr:`gap` (Student's t over the starts)."""
+    def interval(self, confidence: float | None = None) -> tuple[float, float]:
+        """A ``confidence`` interval of :attr:`gap` (Student's t over the starts); by default
+        at the test's own level, ``1 - alpha``, so that it holds 0 exactly when the check
+        passes."""
+        confidence = 1.0 - self.alpha if confidence is None else confidence
         check_unit_interval("confidence", confidence, include_zero=False)
         if self.starts < 2:
             return float("nan"), float("nan")
@@ -477,20 +485,25 @@ class OutcomeCheck:
         return "too optimistic" if self.gap > 0 else "too pessimistic"
 
     def message(self) -> str:
-        """One sentence when the check did not pass ('' when it did)."""
+        """One sentence when the check did not pass ('' when it did; :meth:`describe` says
+        it either way)."""
+        return "" if self.passed else self.describe()
+
+    def describe(self) -> str:
+        """One sentence: the verdict, the mean forecast and real rate, the gap with its
+        interval at the test's level, and the p-value."""
         if not self.measured:
             return (
                 f"{self.what} are unchecked: {self.starts} start states, the outcome check "
                 f"needs {self.min_starts}"
             )
-        if not self.biased:
-            return ""
         low, high = self.interval()
+        verdict = "unbiased as far as the test can tell" if self.passed else self.verdict
         return (
-            f"{self.what} are {self.verdict}: from {self.starts} start states they forecast "
+            f"{self.what} are {verdict}: from {self.starts} start states they forecast "
             f"success {float(self.forecast.mean()):.2f} on average where {self.runs} real "
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
-            f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, 95 % "
+            f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {1 - self.alpha:.0%} "
             f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g})"
         )
 

@@ -408,8 +408,8 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
         "two-sided, at level "
         f"{first.alpha:g}, on the per-start differences.",
         "",
-        "| condition | starts | real runs each | forecast | real | gap (95 % interval) | p "
-        "| verdict |",
+        f"| condition | starts | real runs each | forecast | real | gap "
+        f"({1 - first.alpha:.0%} interval) | p | verdict |",
         "|:---|---:|---:|---:|---:|---:|---:|:---|",
     ]
     verdicts = []

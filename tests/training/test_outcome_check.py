@@ -37,6 +37,23 @@ def test_real_outcomes_drawn_from_the_forecast_pass_and_a_shifted_truth_is_named
     )
     optimistic = OutcomeCheck.from_outcomes(forecast, drawn & (forecast[:, None] > 0.7))
     assert optimistic.biased and "the forecasts are too optimistic" in optimistic.message()
+    # a pass is described too, with its gap and its interval at the test's own level
+    assert fair.describe().startswith(f"{WHAT} are unbiased as far as the test can tell: ")
+    assert f"(gap {fair.gap:+.3f}, 99% interval {low:+.3f} to {high:+.3f}" in fair.describe()
+    assert biased.describe() == biased.message()
+
+
+def test_the_interval_holds_zero_exactly_when_the_check_passes():
+    forecast = _forecast(30, seed=1)
+    g = torch.Generator().manual_seed(2)
+    for shift in torch.linspace(-0.15, 0.15, 13).tolist():
+        truth = forecast[:, None] + shift
+        check = OutcomeCheck.from_outcomes(
+            forecast, torch.rand(30, 10, generator=g, dtype=torch.float64) < truth
+        )
+        low, high = check.interval()
+        assert (low <= 0 <= high) == check.passed, shift
+        assert check.interval() == check.interval(1 - check.alpha)
 
 
 def test_statistics_against_closed_forms():
