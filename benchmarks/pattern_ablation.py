@@ -11,7 +11,9 @@ per setting and writes ``benchmarks/results/pattern_ablation.json`` (``--out`` n
 file). With the study's setting (ended episodes in a terminal bin, the shuffle correction) it also
 gives the aleatoric out-of-distribution / deterministic ratio second by second, beside the share
 of each condition's imagined episodes still running then: ended episodes add no entropy, so a
-condition whose episodes last longer keeps its bits longer.
+condition whose episodes last longer keeps its bits longer. With that setting it also gives the
+bits per step of the episodes' life (``UncertaintyMetric``'s ``per_live_step``: the time sum over
+the mean number of steps an episode runs), which the episodes' lengths do not change.
 
     python benchmarks/pattern_ablation.py --run-dir outputs/pusher_competency/default
 """
@@ -24,8 +26,9 @@ from pathlib import Path
 
 import torch
 from _report import print_table, write_json
+from tensordict import TensorDict
 
-from rcvae_torchrl.competency import decompose_uncertainty
+from rcvae_torchrl.competency import UncertaintyMetric, decompose_uncertainty
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     make_pusher_env,
@@ -128,6 +131,18 @@ def main() -> None:
                     "aleatoric": u.aleatoric.sum(-1).flatten(0, -2).mean(0),
                     "running": 1.0 - ended.float().flatten(0, -2).mean(0),
                 }
+                # the same bits per step of the episodes' life (the metric's per_live_step)
+                live = UncertaintyMetric(
+                    resolution_tensor(),
+                    episode_end=True,
+                    bias_correction=bias,
+                    generator=torch.Generator().manual_seed(config.seed),
+                )(TensorDict({"observation": obs, "ended": ended}, batch_size=obs.shape[:-1]))
+                per_live = live["uncertainty", "per_live_step"]
+                bits.setdefault(f"{key}, per live step", {})[condition] = [
+                    per_live["aleatoric"].mean().item(),
+                    per_live["epistemic"].mean().item(),
+                ]
             bits.setdefault(key, {})[condition] = [
                 u.aleatoric.sum(-1).mean().item(),
                 u.epistemic.sum(-1).mean().item(),
