@@ -17,6 +17,7 @@ from functools import partial
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
+from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_non_negative_int, check_positive_int
@@ -121,6 +122,11 @@ def real_outcomes(
             f"process builds its own), got {type(env).__name__}"
         )
     if policy_rows is not None:
+        if isinstance(policy, MPCPlannerBase):
+            raise ValueError(
+                f"policy_rows: expected None for a planner (its warm start would carry over "
+                f"from one block of {policy_rows} rows to the next), got {policy_rows}"
+            )
         policy = FixedRowsPolicy(policy, policy_rows)
     b, r = len(starts), runs_per_start
     mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))

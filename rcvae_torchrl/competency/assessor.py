@@ -210,17 +210,22 @@ class CompetencyAssessor(KeyedModule):
         Args:
             start: start states ``[*B, S]``, or a tensordict holding them under the
                 ``observation`` key.
-            policy: closed loop (default: the assessor's ``policy``), ``horizon`` steps.
+            policy: closed loop (default: the assessor's ``policy``), ``horizon`` steps. A
+                policy whose class has ``reset()`` (a planner's warm start) is reset before
+                each chunk: its imagined episodes are new ones.
             actions: open loop instead: ``[T, A]`` (the same for every start state) or
                 ``[*B, T, A]``.
             generator: source of all sampling noise (default: the model env's), drawn chunk
                 after chunk.
             seed: instead of ``generator``: chunk ``k`` of ``start_chunk`` start states draws
-                its noise (imagination, and the estimator's shuffles) from generators seeded by
-                ``(seed, k)`` alone. Under ``torch.distributed``
-                (:mod:`rcvae_torchrl.distributed`) the chunks are shared out over the ranks
-                and the report gathered on every rank; it equals the single-process report
-                under the same seed. A sharded assessment needs a seed.
+                its noise (imagination, the estimator's shuffles, and with a closed-loop policy
+                the generator it holds as ``policy.generator`` and the model env's own, as a
+                planner draws and scores its candidates) from generators seeded by
+                ``(seed, k)`` alone; the policy's and the env's generators are left as they
+                were. Under ``torch.distributed`` (:mod:`rcvae_torchrl.distributed`) the
+                chunks are shared out over the ranks and the report gathered on every rank;
+                it equals the single-process report under the same seed. A sharded assessment
+                needs a seed.
             return_rollouts: also keep the rollouts, ``data["rollout"]`` ``[*B, E, N, T]``
                 (``E·N·T`` states per start state: memory).
         """
@@ -235,7 +240,9 @@ class CompetencyAssessor(KeyedModule):
         parts = []
         for k in mine:
             i = chunks[k]
-            with self._chunk_noise(seed, k, generator) as noise:
+            if policy is not None and hasattr(type(policy), "reset"):
+                policy.reset()  # e.g. a planner's warm start: each chunk's episodes are new
+            with self._chunk_noise(seed, k, generator, policy) as noise:
                 parts.append(
                     self._assess_chunk(
                         flat[i : i + self.start_chunk],
@@ -250,10 +257,16 @@ class CompetencyAssessor(KeyedModule):
 
     @contextlib.contextmanager
     def _chunk_noise(
-        self, seed: int | None, chunk: int, generator: torch.Generator | None
+        self,
+        seed: int | None,
+        chunk: int,
+        generator: torch.Generator | None,
+        policy: Policy | None = None,
     ) -> Iterator[torch.Generator | None]:
         """The imagination generator of chunk ``chunk``; with a seed, the estimator's
-        shuffles also draw from a generator of the chunk while it is assessed."""
+        shuffles also draw from a generator of the chunk while it is assessed, and so do the
+        generators a policy draws from (its ``generator`` attribute, as a planner's candidates,
+        and the model env's own, which scores them), their states restored afterwards."""
         if seed is None:
             yield generator
             return
@@ -262,11 +275,17 @@ class CompetencyAssessor(KeyedModule):
         saved = dict(args)
         if args.get("bias_correction") == "shuffle":
             args["generator"] = distributed.work_generator(seed, chunk, 1)
+        held = _generators_of(self.model_env, policy) if policy is not None else []
+        states = [g.get_state() for g in held]
+        for stream, g in enumerate(held, start=2):
+            g.manual_seed(distributed.work_generator(seed, chunk, stream).initial_seed())
         try:
             yield distributed.work_generator(seed, chunk, 0, device=device)
         finally:
             args.clear()
             args.update(saved)
+            for g, state in zip(held, states, strict=True):
+                g.set_state(state)
 
     def report(self, data: TensorDictBase, steps: int | None = None) -> CompetencyReport:
         """A :class:`CompetencyReport` of ``data`` (the TensorDict :meth:`assess` returns as
@@ -491,6 +510,16 @@ def _dim_names(names: Sequence[str] | None, config: Any) -> tuple[str, ...]:
             f"dim_names: expected {obs_dim} names (one per observation dimension), got {len(names)}"
         )
     return names
+
+
+def _generators_of(*owners: object) -> list[torch.Generator]:
+    """The distinct torch generators held as ``owner.generator``."""
+    found: list[torch.Generator] = []
+    for owner in owners:
+        g = getattr(owner, "generator", None)
+        if isinstance(g, torch.Generator) and all(g is not h for h in found):
+            found.append(g)
+    return found
 
 
 def _horizon(horizon: int | None, boundary: SuccessBoundary) -> int | None:

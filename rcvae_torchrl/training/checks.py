@@ -503,7 +503,7 @@ class OutcomeCheck:
             f"{self.what} are {verdict}: from {self.starts} start states they forecast "
             f"success {float(self.forecast.mean()):.2f} on average where {self.runs} real "
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
-            f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {1 - self.alpha:.0%} "
+            f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {100 * (1 - self.alpha):g} % "
             f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g})"
         )
 

@@ -409,7 +409,7 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
         f"{first.alpha:g}, on the per-start differences.",
         "",
         f"| condition | starts | real runs each | forecast | real | gap "
-        f"({1 - first.alpha:.0%} interval) | p | verdict |",
+        f"({100 * (1 - first.alpha):g} % interval) | p | verdict |",
         "|:---|---:|---:|---:|---:|---:|---:|:---|",
     ]
     verdicts = []

@@ -97,3 +97,25 @@ def test_real_outcomes_do_not_depend_on_the_batched_envs_size():
     for run in runs[1:]:
         for name in ("success", "first_step", "steps", "trace"):
             assert torch.equal(getattr(run, name).nan_to_num(), getattr(runs[0], name).nan_to_num())
+
+
+def test_a_planner_is_refused_blocks_of_rows():
+    """A planner's warm start would carry over from one block of rows to the next."""
+    from rcvae_torchrl.envs import pusher_reward, pusher_success
+    from rcvae_torchrl.model_env import RCVAEEnsembleEnv
+    from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+    from rcvae_torchrl.planners import CEMPlanner
+
+    ensemble = RCVAEEnsemble(RCVAEConfig(14, 2, hidden_dim=8, latent_dim=2, mlp_dim=8), 2)
+    model_env = RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, seed=0)
+    planner = CEMPlanner(model_env, horizon=2, num_candidates=4, top_k=2)
+    with pytest.raises(ValueError, match=r"policy_rows: expected None for a planner .* got 8"):
+        real_outcomes(
+            make_pusher_env(),
+            planner,
+            pusher_starts(1),
+            runs_per_start=1,
+            reset_to_state=reset_to_state,
+            max_steps=2,
+            policy_rows=8,
+        )

@@ -591,3 +591,29 @@ def test_survival_forecast_is_the_chance_of_no_failure_within_the_limit(env, sta
         ValueError, match=rf"horizon: .*expected a horizon of at least {limit}, got 2"
     ):
         make_assessor(env, boundary=survive, horizon=2)
+
+
+def test_a_planner_agent_is_reset_per_chunk_and_seeded_with_the_assessment(env, starts):
+    """A planner as the agent: its warm start does not leak from one chunk (or one call) into
+    the next, and under a seed its candidates (its own generator) and their scores (the model
+    env's) are drawn from the chunk's seed, so the forecast is reproducible and the
+    generators are left as they were."""
+    from rcvae_torchrl.planners import CEMPlanner
+
+    planner = CEMPlanner(env, horizon=2, num_candidates=6, top_k=2, iterations=1, seed=3)
+    assessor = make_assessor(env, policy=planner, start_chunk=2, samples_per_member=2)
+    resets = []
+    reset = planner.reset
+    planner.reset = lambda: (resets.append(1), reset())[1]
+    before = planner.generator.get_state(), env.generator.get_state()
+    first = assessor.assess(starts, seed=0)
+    assert len(resets) == 2  # one per chunk of 2 of the 3 start states
+    assert torch.equal(planner.generator.get_state(), before[0])
+    assert torch.equal(env.generator.get_state(), before[1])
+    planner(env.reset(TensorDict({"observation": starts[:1]}, batch_size=[1])))  # kept plan
+    planner.generator.manual_seed(99)  # and other generator states
+    env.generator.manual_seed(98)
+    again = assessor.assess(starts, seed=0)
+    assert_same(first.data, again.data)
+    other = assessor.assess(starts, seed=1).data["uncertainty", "total"]
+    assert not torch.equal(first.data["uncertainty", "total"], other)

@@ -39,7 +39,7 @@ def test_real_outcomes_drawn_from_the_forecast_pass_and_a_shifted_truth_is_named
     assert optimistic.biased and "the forecasts are too optimistic" in optimistic.message()
     # a pass is described too, with its gap and its interval at the test's own level
     assert fair.describe().startswith(f"{WHAT} are unbiased as far as the test can tell: ")
-    assert f"(gap {fair.gap:+.3f}, 99% interval {low:+.3f} to {high:+.3f}" in fair.describe()
+    assert f"(gap {fair.gap:+.3f}, 99 % interval {low:+.3f} to {high:+.3f}" in fair.describe()
     assert biased.describe() == biased.message()
 
 
