@@ -28,7 +28,7 @@ import torch
 from _report import print_table, write_json
 from tensordict import TensorDict
 
-from rcvae_torchrl.competency import UncertaintyMetric, decompose_uncertainty
+from rcvae_torchrl.competency import UncertaintyMetric
 from rcvae_torchrl.envs import (
     CONTROL_TIMESTEP,
     make_pusher_env,
@@ -116,36 +116,28 @@ def main() -> None:
                 generator=torch.Generator().manual_seed(config.seed),
             )["observation"]
         ended = boundary.ended_over_time(obs)
+        rollout = TensorDict({"observation": obs, "ended": ended}, batch_size=obs.shape[:-1])
         for end, bias in SETTINGS:
-            u = decompose_uncertainty(
-                obs,
-                "histogram",
-                bin_width=resolution_tensor(),
-                ended=ended if end else None,
+            u = UncertaintyMetric(
+                resolution_tensor(),
+                episode_end=end,
                 bias_correction=bias,
                 generator=torch.Generator().manual_seed(config.seed),
-            )
+            )(rollout)["uncertainty"]
             key = f"episode_end={end}, bias_correction={bias}"
             if end and bias == "shuffle":
                 over_time[condition] = {
-                    "aleatoric": u.aleatoric.sum(-1).flatten(0, -2).mean(0),
-                    "running": 1.0 - ended.float().flatten(0, -2).mean(0),
+                    "aleatoric": u["aleatoric"].sum(-1).mean(0),
+                    "running": u["live"].mean(0),
                 }
-                # the same bits per step of the episodes' life (the metric's per_live_step)
-                live = UncertaintyMetric(
-                    resolution_tensor(),
-                    episode_end=True,
-                    bias_correction=bias,
-                    generator=torch.Generator().manual_seed(config.seed),
-                )(TensorDict({"observation": obs, "ended": ended}, batch_size=obs.shape[:-1]))
-                per_live = live["uncertainty", "per_live_step"]
+                per_live = u["per_live_step"]  # the same bits per step of the episodes' life
                 bits.setdefault(f"{key}, per live step", {})[condition] = [
                     per_live["aleatoric"].mean().item(),
                     per_live["epistemic"].mean().item(),
                 ]
             bits.setdefault(key, {})[condition] = [
-                u.aleatoric.sum(-1).mean().item(),
-                u.epistemic.sum(-1).mean().item(),
+                u["summary", "aleatoric"].mean().item(),
+                u["summary", "epistemic"].mean().item(),
             ]
     det, sto, ood = "deterministic", "stochastic", "out-of-distribution"
     rows, ratios = [], {}

@@ -158,8 +158,12 @@ def run(seed: int, variant: str, args) -> list[dict]:
     held_out = draw_starts(env, seeds=[seed * 10_000 + 7000 + i for i in range(20)])
     ood_env, _ = make_env(noise, skip, OUT_OF_DISTRIBUTION)
     ood = draw_starts(ood_env, seeds=[seed * 10_000 + 9000 + i for i in range(20)])
-    kwargs = dict(reset_to_state=reset_by_seed, max_steps=boundary.time_limit, progress=False)
-    kwargs["success"] = boundary.success_over_time
+    kwargs = dict(
+        reset_to_state=reset_by_seed,
+        max_steps=boundary.time_limit,
+        success=boundary.success_over_time,
+        progress=False,
+    )
     real = real_outcomes(env, agent, starts, runs_per_start=args.runs, seed=seed, **kwargs)
     real_held = real_outcomes(env, agent, held_out, runs_per_start=args.runs, seed=seed, **kwargs)
     rows = []
