@@ -685,7 +685,10 @@ class Study:
 def _forecast_record(data) -> dict[str, torch.Tensor]:
     """The forecast of a condition as stored: the report's entries the later stages read."""
     u, c = data["uncertainty"], data["competency"]
+    # with episode_end: the share of imagined episodes still running [B, T]
+    live = {"live": u["live"]} if "live" in u.keys() else {}
     return {
+        **live,
         "total": u["total"],
         "aleatoric": u["aleatoric"],
         "epistemic": u["epistemic"],

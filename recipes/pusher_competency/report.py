@@ -104,29 +104,46 @@ def pattern_by_window(
     conditions live in the first seconds. Keys are the windows in seconds (``"1s"``, ...,
     the horizon last); values ``aleatoric_stochastic_over_deterministic``,
     ``epistemic_ood_over_deterministic`` and ``aleatoric_ood_over_deterministic``.
+
+    When every forecast holds ``"live"`` ``[B, T]`` (the share of its imagined episodes still
+    running, from a forecast with ``episode_end``), a last entry ``"per live step"`` gives the
+    ratios of the bits per step of the episodes' life: each start's bits summed over time,
+    divided by the steps its episodes run on average. An ended episode counts as certain, so
+    a time mean also measures how long the episodes last; this entry takes that out.
     """
     steps = forecasts["deterministic"]["aleatoric"].shape[-2]
     windows = sorted({min(round(w / dt), steps) for w in windows_s} | {steps})
-    out = {}
-    for t in windows:
-        bits = {
-            (c, k): f[k][..., :t, :].sum(-1).mean().item()
-            for c, f in forecasts.items()
-            for k in ("aleatoric", "epistemic")
-        }
-        det = "deterministic"
-        out[f"{t * dt:g}s"] = {
-            "aleatoric_stochastic_over_deterministic": _ratio(
-                bits["stochastic", "aleatoric"], bits[det, "aleatoric"]
-            ),
-            "epistemic_ood_over_deterministic": _ratio(
-                bits["out-of-distribution", "epistemic"], bits[det, "epistemic"]
-            ),
-            "aleatoric_ood_over_deterministic": _ratio(
-                bits["out-of-distribution", "aleatoric"], bits[det, "aleatoric"]
-            ),
-        }
+    out = {
+        f"{t * dt:g}s": _pattern_ratios(
+            {
+                (c, k): f[k][..., :t, :].sum(-1).mean().item()
+                for c, f in forecasts.items()
+                for k in ("aleatoric", "epistemic")
+            }
+        )
+        for t in windows
+    }
+    if all("live" in f for f in forecasts.values()):
+        out["per live step"] = _pattern_ratios(
+            {
+                (c, k): (f[k].sum((-2, -1)) / f["live"].sum(-1).clamp_min(1e-12)).mean().item()
+                for c, f in forecasts.items()
+                for k in ("aleatoric", "epistemic")
+            }
+        )
     return out
+
+
+def _pattern_ratios(bits: Mapping[tuple[str, str], float]) -> dict[str, float]:
+    """The pattern's three ratios from ``(condition, part) -> bits``."""
+    det, ood = "deterministic", "out-of-distribution"
+    return {
+        "aleatoric_stochastic_over_deterministic": _ratio(
+            bits["stochastic", "aleatoric"], bits[det, "aleatoric"]
+        ),
+        "epistemic_ood_over_deterministic": _ratio(bits[ood, "epistemic"], bits[det, "epistemic"]),
+        "aleatoric_ood_over_deterministic": _ratio(bits[ood, "aleatoric"], bits[det, "aleatoric"]),
+    }
 
 
 def _ratio(a: float, b: float) -> float:
@@ -710,7 +727,14 @@ def _markdown(
         "## The pattern over the first seconds",
         "",
         "The checks above average the bits over the whole horizon, as the paper's table does. "
-        "The same ratios with the bits averaged over the first seconds only:",
+        "The same ratios with the bits averaged over the first seconds only"
+        + (
+            "; and, last, per live step: each start's bits summed over time and divided by the "
+            "steps its imagined episodes run on average. An ended episode counts as certain, so "
+            "a time mean also measures how long the episodes last; this row takes that out."
+            if "per live step" in by_window
+            else ":"
+        ),
         "",
         "| window | aleatoric stochastic / deterministic | epistemic out-of-distribution / "
         "deterministic | aleatoric out-of-distribution / deterministic |",

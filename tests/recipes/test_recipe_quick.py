@@ -170,7 +170,8 @@ def test_summary_json(runs):
         summary
     )
     windows = summary["pattern_by_window"]
-    assert list(windows) == ["1s", "2s"]  # windows up to the horizon (2 s here), which closes them
+    # windows up to the horizon (2 s here), which closes them; then the bits per live step
+    assert list(windows) == ["1s", "2s", "per live step"]
     assert all(len(r) == 3 and all(v > 0 for v in r.values()) for r in windows.values())
     assert list(summary["rows"]) == list(CONDITIONS)
     assert all(set(COLUMNS) <= set(row) for row in summary["rows"].values())

@@ -34,3 +34,42 @@ def test_ratios_per_window_match_the_bits_averaged_over_that_window():
     whole = out["4s"]
     assert whole["aleatoric_stochastic_over_deterministic"] == pytest.approx(150 / 130)
     assert whole["epistemic_ood_over_deterministic"] == pytest.approx(80 / 70)
+
+
+def _ended(bits_alive: float, epistemic_alive: float, life: int, steps: int = 40):
+    """A forecast whose episodes all run ``life`` steps, with these bits while they run."""
+    alive = torch.arange(steps) < life
+    ale = torch.where(alive, bits_alive, 0.0)
+    epi = torch.where(alive, epistemic_alive, 0.0)
+    return {
+        "aleatoric": (ale / 2)[None, :, None].expand(3, steps, 2),
+        "epistemic": (epi / 2)[None, :, None].expand(3, steps, 2),
+        "live": alive.float()[None].expand(3, steps),
+    }
+
+
+def test_per_live_step_takes_the_episodes_lengths_out():
+    # the same bits per step alive; the deterministic episodes end after 10 steps, the others
+    # after 40 (the horizon) and 20: the time means differ by the lengths alone
+    forecasts = {
+        "deterministic": _ended(2.0, 1.0, life=10),
+        "stochastic": _ended(2.0, 1.0, life=40),
+        "out-of-distribution": _ended(2.0, 1.5, life=20),
+    }
+    out = pattern_by_window(forecasts, dt=0.1, windows_s=(1.0,))
+    assert list(out) == ["1s", "4s", "per live step"]
+    assert out["4s"]["aleatoric_stochastic_over_deterministic"] == pytest.approx(4.0)
+    assert out["4s"]["aleatoric_ood_over_deterministic"] == pytest.approx(2.0)
+    live = out["per live step"]
+    assert live["aleatoric_stochastic_over_deterministic"] == pytest.approx(1.0)
+    assert live["aleatoric_ood_over_deterministic"] == pytest.approx(1.0)
+    assert live["epistemic_ood_over_deterministic"] == pytest.approx(1.5)
+
+
+def test_per_live_step_needs_every_forecast_to_hold_live():
+    forecasts = {
+        "deterministic": _ended(2.0, 1.0, life=10),
+        "stochastic": _forecast(3.0, 4.0, 1.0, 2.0),  # saved without "live"
+        "out-of-distribution": _ended(2.0, 1.5, life=20),
+    }
+    assert "per live step" not in pattern_by_window(forecasts, dt=0.1, windows_s=(1.0,))
