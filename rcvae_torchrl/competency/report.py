@@ -331,12 +331,17 @@ def _ratio(value: float, reference: float) -> float:
     return float("inf") if value > 0 else 1.0
 
 
-def _change_sentence(aleatoric: float, epistemic: float, reference: Reference) -> str:
-    """What changed against the reference, and which part rose (the larger rise)."""
-    ratios = {
+def _ratios(aleatoric: float, epistemic: float, reference: Reference) -> dict[str, float]:
+    """Each part over the reference's (epistemic first)."""
+    return {
         "epistemic": _ratio(epistemic, reference.epistemic),
         "aleatoric": _ratio(aleatoric, reference.aleatoric),
     }
+
+
+def _change_sentence(aleatoric: float, epistemic: float, reference: Reference) -> str:
+    """What changed against the reference, and which part rose (the larger rise)."""
+    ratios = _ratios(aleatoric, epistemic, reference)
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
     unit = "bits per live step" if reference.per_live_step else "bits"
@@ -361,10 +366,7 @@ def _change_sentence(aleatoric: float, epistemic: float, reference: Reference) -
 
 def _cause(aleatoric: float, epistemic: float, reference: Reference) -> str | None:
     """The part at least ``rise`` times the reference (the larger rise when both are)."""
-    ratios = {
-        "epistemic": _ratio(epistemic, reference.epistemic),
-        "aleatoric": _ratio(aleatoric, reference.aleatoric),
-    }
+    ratios = _ratios(aleatoric, epistemic, reference)
     risen = [k for k in ratios if ratios[k] >= reference.rise]
     return max(risen, key=lambda k: ratios[k]) if risen else None
 
