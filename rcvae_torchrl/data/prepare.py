@@ -14,7 +14,16 @@ from dataclasses import dataclass
 
 import torch
 from tensordict.utils import NestedKey
-from torchrl.envs import CatTensors, Compose, DoubleToFloat, EnvBase, Transform, TransformedEnv
+from torchrl.envs import (
+    CatTensors,
+    Compose,
+    DoubleToFloat,
+    EnvBase,
+    ExcludeTransform,
+    Transform,
+    TransformedEnv,
+    UnsqueezeTransform,
+)
 
 from rcvae_torchrl._checks import check_non_negative_int
 
@@ -91,9 +100,12 @@ def prepare_env(
         env: any TorchRL env.
         observation_keys: the observation entries to model, concatenated in this order; default
             the env's ``"observation"`` if it has one, else every floating entry of at most one
-            dimension (scalars count as one dimension), in the spec's order.
+            dimension (scalars count as one dimension), in the spec's order. Name them for an
+            env that also carries constants among its observations (TorchRL's
+            ``PendulumEnv`` carries its ``"params"``): a constant is no state to model.
         keep_keys: keep the source entries beside ``"observation"`` (for task functions or
-            policies that read them).
+            policies that read them, and for envs that read their state back from them, as
+            TorchRL's stateless ``PendulumEnv`` does).
 
     Returns:
         ``(TransformedEnv, ObservationLayout)``: float64 entries (observations, action,
@@ -113,7 +125,7 @@ def prepare_env(
             f"env: {type(env).__name__} has no floating observation entry to model; name the "
             "entries with observation_keys"
         )
-    sizes = []
+    sizes, scalars = [], []
     for key in keys:
         if key not in spec.keys(True, True):
             raise KeyError(
@@ -127,18 +139,37 @@ def prepare_env(
                 f"{spec[key].dtype} and shape {tuple(shape)}"
             )
         sizes.append(int(shape.numel()))
+        if len(shape) == 0:
+            scalars.append(key)
     transforms: list[Transform] = []
     if _has_double(env):
         transforms.append(DoubleToFloat())
     if keys != [OBSERVATION_KEY]:
-        transforms.append(
-            CatTensors(
-                keys, OBSERVATION_KEY, del_keys=not keep_keys, unsqueeze_if_oor=True, sort=False
-            )
-        )
+        transforms += _concatenation(keys, scalars, keep_keys)
     # a transformed env keeps its own transforms, wrapped (not unwrapped into ours)
     prepared = TransformedEnv(env, Compose(*transforms), auto_unwrap=False)
     return prepared, ObservationLayout(tuple(_name(k) for k in keys), tuple(sizes))
+
+
+def _concatenation(
+    keys: list[NestedKey], scalars: list[NestedKey], keep_keys: bool
+) -> list[Transform]:
+    """The transforms that concatenate ``keys`` into ``"observation"``: scalar entries are first
+    copied as ``[1]`` vectors (``CatTensors`` cannot start from a scalar), the copies then
+    dropped; with ``keep_keys`` the source entries stay as they were."""
+    vectors = {key: ("_" + _name(key) + "_unsqueezed" if key in scalars else key) for key in keys}
+    transforms: list[Transform] = []
+    if scalars:
+        copies = [vectors[key] for key in scalars]
+        transforms.append(UnsqueezeTransform(-1, in_keys=scalars, out_keys=copies))
+    transforms.append(
+        CatTensors(list(vectors.values()), OBSERVATION_KEY, del_keys=not keep_keys, sort=False)
+    )
+    # the copies (deleted by CatTensors without keep_keys, where the scalar sources remain)
+    drop = [vectors[key] for key in scalars] if keep_keys else scalars
+    if drop:
+        transforms.append(ExcludeTransform(*drop))
+    return transforms
 
 
 def _has_double(env: EnvBase) -> bool:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.envs import DMControlEnv
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import DMControlEnv, EnvBase, PendulumEnv
 from torchrl.envs.utils import check_env_specs
 
 from rcvae_torchrl.data import ActionNoise, ObservationLayout, prepare_env, seed_env
@@ -43,6 +44,57 @@ def test_keys_are_concatenated_in_the_order_given(reacher):
     assert layout.keys == ("velocity", "position")
     td = env.reset()
     assert "velocity" not in td.keys() and td["observation"].shape == (4,)
+
+
+class _ScalarEnv(EnvBase):
+    """A stateful env with a scalar and a vector observation."""
+
+    def __init__(self):
+        super().__init__()
+        self.observation_spec = Composite(x=Unbounded(()), v=Unbounded((2,)))
+        self.action_spec = Bounded(-1.0, 1.0, (1,))
+        self.reward_spec = Unbounded((1,))
+        self._x = torch.zeros(())
+
+    def _reset(self, tensordict):
+        self._x = torch.zeros(())
+        return TensorDict({"x": self._x.clone(), "v": torch.zeros(2)})
+
+    def _step(self, tensordict):
+        self._x = self._x + tensordict["action"][0]
+        return TensorDict(
+            {
+                "x": self._x.clone(),
+                "v": torch.stack([self._x, -self._x]),
+                "reward": -self._x.abs().reshape(1),
+                "done": torch.zeros(1, dtype=torch.bool),
+                "terminated": torch.zeros(1, dtype=torch.bool),
+            }
+        )
+
+    def _set_seed(self, seed):
+        pass
+
+
+def test_scalar_entries_count_as_one_dimension_and_stay_scalars():
+    # TorchRL's pendulum reads its state back from the tensordict: the sources must stay
+    env, layout = prepare_env(PendulumEnv(), ["th", "thdot"])
+    assert layout == ObservationLayout(("th", "thdot"), (1, 1))
+    check_env_specs(env)
+    td = env.rollout(3)
+    assert td["th"].shape == (3,) and td["next", "observation"].shape == (3, 2)
+    expected = torch.stack([td["next", "th"], td["next", "thdot"]], -1)
+    torch.testing.assert_close(td["next", "observation"], expected)
+    assert not any("unsqueezed" in str(k) for k in td.keys(True, True))
+
+
+def test_scalar_entries_without_keeping_the_sources():
+    env, layout = prepare_env(_ScalarEnv(), ["x", "v"], keep_keys=False)
+    assert layout.names == ("x", "v[0]", "v[1]")
+    check_env_specs(env)
+    td = env.rollout(2, lambda td: td.set("action", torch.full((1,), 0.5)))
+    assert set(td["next"].keys()) == {"observation", "reward", "done", "terminated"}
+    torch.testing.assert_close(td["next", "observation"][-1], torch.tensor([1.0, 1.0, -1.0]))
 
 
 def test_bad_keys_are_clear_errors(reacher):
