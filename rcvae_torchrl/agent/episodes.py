@@ -68,7 +68,9 @@ def run_episodes(
     warm start must not leak across episodes). An episode ends at the env's ``done`` or after
     ``max_steps``; it succeeds when ``success`` holds at any step: ``success`` names a flag the
     env writes under ``"next"`` (default ``"success"``), or is a function of the observations
-    ``[T, S] -> [T]`` bool (for envs without a success flag).
+    ``[T, S] -> [T]`` bool (for envs without a success flag). An episode the env itself
+    truncates (its own time limit) before ``max_steps`` without a success is refused with a
+    ``ValueError`` (:func:`check_not_cut_short`): whether it would have succeeded is unknown.
 
     A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator with ``set_seeds``)
     runs the episodes ``N`` at a time, side by side, with one policy call per step for all of
@@ -106,6 +108,7 @@ def run_episodes(
             )
         check_actions(env, episode)
         won = _success_flags(episode, success)
+        check_not_cut_short(episode, won.any(), torch.tensor(episode.shape[0]), max_steps)
         wins.append(bool(won.any()))
         steps.append(int(won.float().argmax()) + 1 if won.any() else episode.shape[0])
         episode[TRAJ_KEY] = torch.full(episode.shape, first_id + i, dtype=torch.int64)
@@ -139,6 +142,40 @@ def _success_flags(
             f"shape {tuple(won.shape)}"
         )
     return won.reshape(episode.shape)
+
+
+def check_not_cut_short(
+    episode: TensorDictBase, hit: torch.Tensor, length: torch.Tensor, max_steps: int
+) -> None:
+    """Raise when an episode the env itself cut short (``truncated``: its own time limit, e.g.
+    a ``StepCounter``) before ``max_steps`` has no success: whether it would have succeeded
+    in the steps it was not given is unknown, and counting it as a failure would be wrong.
+
+    ``episode``: a rollout ``[T]`` or ``[N, T]``; ``hit``: whether each succeeded (``[]`` or
+    ``[N]``); ``length``: the steps each ran (to its first ``done``). An env without a
+    ``truncated`` entry counts a ``done`` without ``terminated`` as one; an env with neither
+    cuts nothing short.
+    """
+    step = episode.get("next")
+    keys = step.keys()
+    if "truncated" in keys:
+        truncated = step.get("truncated")
+    elif "terminated" in keys:
+        truncated = step.get("done") & ~step.get("terminated")
+    else:
+        return
+    truncated = truncated.reshape(episode.shape)
+    last = (length - 1).clamp_min(0).unsqueeze(-1)
+    cut = truncated.gather(-1, last).squeeze(-1) & ~hit & (length < max_steps)
+    if bool(cut.any()):
+        first = int(length.reshape(-1)[cut.reshape(-1).nonzero()[0, 0]])
+        raise ValueError(
+            f"env: {int(cut.sum())} episode(s) were cut short by the env itself (truncated, e.g. "
+            f"by its own time limit) before max_steps={max_steps} and without a success, the "
+            f"first after {first} steps: whether they would have succeeded is unknown. Raise "
+            f"the env's time limit (e.g. its StepCounter's max_steps) to at least {max_steps}, "
+            f"or ask for success within {first} steps"
+        )
 
 
 def episode_groups(
@@ -211,6 +248,8 @@ def _batched_episodes(
         check_actions(env, episode)
         won = _success_flags(episode, success)
         length = episode_lengths(episode["next", "done"].reshape(episode.shape))
+        before_end = torch.arange(episode.shape[1]) < length.unsqueeze(1)
+        check_not_cut_short(episode, (won & before_end).any(1), length, max_steps)
         for j in range(keep):
             end = int(length[j])
             flags, kept = won[j, :end], episode[j, :end]

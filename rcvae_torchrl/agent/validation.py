@@ -28,6 +28,7 @@ from rcvae_torchrl.threads import threads_kept
 from .episodes import (
     ResetToState,
     _success_flags,
+    check_not_cut_short,
     episode_groups,
     episode_lengths,
     run_episodes,
@@ -83,7 +84,9 @@ def real_outcomes(
     transforms, :func:`~rcvae_torchrl.data.seed_env`), then put in the start state with
     ``reset_to_state``. ``success`` and ``trace`` are as in
     :func:`~rcvae_torchrl.agent.run_episodes` (a flag the env writes, or a function of the
-    observations); ``trace`` maps observations ``[..., T, S] -> [..., T]``.
+    observations); ``trace`` maps observations ``[..., T, S] -> [..., T]``. The env's own
+    time limit must not end an episode before ``max_steps`` (as there, an episode it cuts
+    short without a success is refused: its outcome is unknown).
 
     ``env`` is a TorchRL env, or a function that makes one (called here when ``workers=1``).
     A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator) runs the episodes
@@ -255,6 +258,7 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
     steps_run = episode.shape[1]
     length = episode_lengths(done)
     hit = won.any(1)
+    check_not_cut_short(episode, hit, length, max_steps)
     first = torch.where(hit, won.float().argmax(1), torch.full_like(length, max_steps))
     steps = torch.where(hit, first + 1, length)
     values = None

@@ -1,0 +1,47 @@
+"""An episode the env itself cut short before max_steps, without a success, has no outcome."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rcvae_torchrl.agent import real_outcomes, run_episodes
+from rcvae_torchrl.envs import make_batched_pusher_env, make_pusher_env, reset_to_state
+from tests.pusher_fixtures import pusher_starts
+
+CUT = r"cut short by the env itself .* max_steps=45 .* after 20 steps"
+
+
+def _still(td):  # the arm does not move: the ball is never pushed onto the target
+    return td.set("action", torch.zeros(*td.batch_size, 2))
+
+
+def _never(observation):
+    return torch.zeros(observation.shape[:-1], dtype=torch.bool)
+
+
+def _at_once(observation):
+    return torch.ones(observation.shape[:-1], dtype=torch.bool)
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_an_env_time_limit_shorter_than_max_steps_is_refused(batched):
+    env = make_batched_pusher_env(2, time_limit=1.0) if batched else make_pusher_env(time_limit=1.0)
+    with pytest.raises(ValueError, match=CUT):
+        run_episodes(env, _still, seeds=[0, 1], max_steps=45, success=_never, progress=False)
+    # run to the env's own limit: a failure, known
+    stats = run_episodes(env, _still, seeds=[0, 1], max_steps=20, success=_never, progress=False)
+    assert not stats.success.any() and stats.steps.tolist() == [20, 20]
+    # a success before the cut is known too
+    stats = run_episodes(env, _still, seeds=[0, 1], max_steps=45, success=_at_once, progress=False)
+    assert stats.success.all() and stats.steps.tolist() == [1, 1]
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_real_outcomes_refuse_episodes_the_env_cut_short(batched):
+    env = make_batched_pusher_env(3, time_limit=1.0) if batched else make_pusher_env(time_limit=1.0)
+    args = dict(runs_per_start=2, reset_to_state=reset_to_state, success=_never, progress=False)
+    with pytest.raises(ValueError, match=CUT):
+        real_outcomes(env, _still, pusher_starts(2), max_steps=45, **args)
+    out = real_outcomes(env, _still, pusher_starts(2), max_steps=20, **args)
+    assert not out.success.any() and (out.steps == 20).all()
