@@ -8,6 +8,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase
 from torchrl.envs.batched_envs import BatchedEnvBase
 from tqdm.auto import tqdm
@@ -102,10 +103,7 @@ def run_episodes(
         td = env.reset() if starts is None else reset_to_state(env, starts[i])
         if hasattr(type(policy), "reset"):  # a planner's warm start (not an env's reset)
             policy.reset()
-        with torch.no_grad():
-            episode = env.rollout(
-                max_steps, policy, auto_reset=False, tensordict=td, break_when_any_done=True
-            )
+        episode = _rollout(env, policy, max_steps, td, break_when_any_done=True)
         check_actions(env, episode)
         won = _success_flags(episode, success)
         check_not_cut_short(episode, won.any(), torch.tensor(episode.shape[0]), max_steps)
@@ -114,6 +112,29 @@ def run_episodes(
         episode[TRAJ_KEY] = torch.full(episode.shape, first_id + i, dtype=torch.int64)
         parts.append(episode.exclude("is_init"))
     return EpisodeStats(torch.tensor(wins), torch.tensor(steps), torch.cat(parts))
+
+
+def _rollout(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase],
+    max_steps: int,
+    td: TensorDictBase,
+    **kwargs: Any,
+) -> TensorDictBase:
+    """``env.rollout`` of ``policy`` from ``td``; a policy that does not take the env's
+    TensorDict (a tensor policy ``observation -> action``) is named with how to wire it."""
+    try:
+        with torch.no_grad():
+            return env.rollout(max_steps, policy, auto_reset=False, tensordict=td, **kwargs)
+    except TypeError as err:
+        if isinstance(policy, TensorDictModuleBase):
+            raise
+        raise TypeError(
+            f"policy: calling {type(policy).__name__} in the env failed ({err}); a policy in a "
+            'real env maps the env\'s TensorDict to one with an "action": wire a tensor policy '
+            'observation -> action with TensorDictModule(policy, in_keys=["observation"], '
+            'out_keys=["action"]) (rcvae_torchrl.agent.make_policy_module)'
+        ) from err
 
 
 def _success_flags(
@@ -201,15 +222,14 @@ def episode_groups(
         td = start(env, [int(seeds[i]) for i in rows], rows)
         if hasattr(type(policy), "reset"):
             policy.reset()
-        with torch.no_grad():
-            episode = env.rollout(
-                max_steps,
-                policy,
-                auto_reset=False,
-                tensordict=td,
-                break_when_any_done=False,
-                break_when_all_done=until_all_done,
-            )
+        episode = _rollout(
+            env,
+            policy,
+            max_steps,
+            td,
+            break_when_any_done=False,
+            break_when_all_done=until_all_done,
+        )
         yield low, min(n, total - low), episode.reshape(n, episode.shape[-1])
 
 

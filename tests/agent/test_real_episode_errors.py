@@ -1,4 +1,5 @@
-"""An episode the env itself cut short before max_steps, without a success, has no outcome."""
+"""Real episodes whose outcome the library cannot know, and policies it cannot call, are refused
+with errors that say what to do."""
 
 from __future__ import annotations
 
@@ -45,3 +46,25 @@ def test_real_outcomes_refuse_episodes_the_env_cut_short(batched):
         real_outcomes(env, _still, pusher_starts(2), max_steps=45, **args)
     out = real_outcomes(env, _still, pusher_starts(2), max_steps=20, **args)
     assert not out.success.any() and (out.steps == 20).all()
+
+
+class _TensorPolicy(torch.nn.Module):
+    """A tensor policy ``observation -> action``, not wired to TensorDict keys."""
+
+    def forward(self, observation):
+        return torch.zeros(*observation.shape[:-1], 2)
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_a_tensor_policy_in_a_real_env_is_named_with_how_to_wire_it(batched):
+    from rcvae_torchrl.agent import make_policy_module
+
+    env = make_batched_pusher_env(2) if batched else make_pusher_env()
+    args = dict(seeds=[0, 1], max_steps=5, success=_never, progress=False)
+    with pytest.raises(
+        TypeError,
+        match=r"policy: calling _TensorPolicy in the env failed.*"
+        r"TensorDictModule\(policy, in_keys=\[\"observation\"\]",
+    ):
+        run_episodes(env, _TensorPolicy(), **args)
+    assert run_episodes(env, make_policy_module(_TensorPolicy()), **args).steps.tolist() == [5, 5]
