@@ -58,7 +58,18 @@ def as_tensor_policy(
 
     def call(observation: torch.Tensor) -> torch.Tensor:
         td = TensorDict({observation_key: observation}, batch_size=observation.shape[:-1])
-        return policy(td).get(action_key)
+        try:
+            return policy(td).get(action_key)
+        except KeyError as err:
+            reads = [k for k in getattr(policy, "in_keys", []) if k not in td.keys(True, True)]
+            if not reads:
+                raise
+            raise KeyError(
+                f"policy: reads {reads}, but in imagination the world model gives it only "
+                f"{observation_key!r} [..., S]: write the policy on {observation_key!r} (the "
+                "env's entries concatenated, as rcvae_torchrl.data.prepare_env's layout names "
+                "them)"
+            ) from err
 
     return call
 

@@ -449,6 +449,17 @@ def test_summary_of_a_batch(env, starts, plan):
 
 
 # ----------------------------------------------------------------- errors
+def test_a_policy_reading_the_real_envs_entries_is_named(env):
+    # in imagination the world model gives a policy "observation" alone
+    policy = TensorDictModule(
+        lambda cos, sin: torch.zeros(*cos.shape[:-1], A),
+        in_keys=["cos", "sin"],
+        out_keys=["action"],
+    )
+    with pytest.raises(KeyError, match=r"policy: reads \['cos', 'sin'\], but in imagination"):
+        make_assessor(env).assess(torch.zeros(2, S), policy=policy)
+
+
 def test_argument_errors(env):
     with pytest.raises(ValueError, match=r"bin_width: expected a scalar or a tensor of shape"):
         make_assessor(env, bin_width=torch.full((3,), 0.1))
