@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 
 import torch
@@ -12,6 +13,8 @@ from tqdm.auto import tqdm
 
 from rcvae_torchrl._checks import check_non_negative_int
 from rcvae_torchrl.threads import threads_kept
+
+from .exploration import action_bounds
 
 __all__ = ["TRAJ_KEY", "check_actions", "check_episode_ids", "collect_episodes", "merge_episodes"]
 
@@ -61,6 +64,7 @@ def collect_episodes(
     max_frames = max_frames or 1000 * (num_episodes + num_envs - 1)
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     _check_policy_inputs(env, policy)
+    _warn_narrow_bounds(env, policy)
     env.set_seed(seed % 2**32)  # numpy-based envs take seeds below 2**32
     collector = Collector(
         env,
@@ -138,6 +142,37 @@ def _check_policy_inputs(env: EnvBase, policy: object) -> None:
             f'{sorted(map(str, available))}); for a world model\'s "observation", concatenate '
             "the env's entries with rcvae_torchrl.data.prepare_env(env, observation_keys=[...])"
         )
+
+
+def _warn_narrow_bounds(env: EnvBase, policy: object) -> None:
+    """Warn when an exploration policy (one that holds its action bounds ``low``, ``high``,
+    as :class:`~rcvae_torchrl.data.GaussianExploration` and
+    :class:`~rcvae_torchrl.data.UniformRandomPolicy` do) covers less than the env's action
+    range: its default [-1, 1] is narrower than many envs' (a torque in [-2, 2]), and a world
+    model never shown the rest cannot forecast it."""
+    module = getattr(policy, "module", policy)  # a TensorDictModule's wrapped module
+    low, high = getattr(module, "low", None), getattr(module, "high", None)
+    if not (isinstance(low, torch.Tensor) and isinstance(high, torch.Tensor)):
+        return
+    try:
+        env_low, env_high = action_bounds(env)
+    except ValueError:  # an unbounded action spec: nothing to cover
+        return
+    tol = 1e-6 * (env_high - env_low).abs().clamp_min(1.0)
+    narrow = (low > env_low + tol) | (high < env_high - tol)
+    if bool(narrow.broadcast_to(env_low.shape).any()):
+        warnings.warn(
+            f"policy: {type(module).__name__} draws actions in [{_fmt(low)}, {_fmt(high)}], "
+            f"less than the env's action range [{_fmt(env_low)}, {_fmt(env_high)}]: the data "
+            "will not show the world model the rest; pass low=, high= from "
+            "rcvae_torchrl.data.action_bounds(env) if that is not meant",
+            stacklevel=3,
+        )
+
+
+def _fmt(bound: torch.Tensor) -> str:
+    values = bound.reshape(-1).tolist()
+    return f"{values[0]:g}" if len(set(values)) == 1 else str([round(v, 4) for v in values])
 
 
 def _whole_episodes(data: TensorDict, num_episodes: int, first_id: int) -> TensorDict:

@@ -225,13 +225,47 @@ def test_exploration_respects_the_action_bounds():
         UniformRandomPolicy(2, low=1.0, high=-1.0)
 
 
+def _pendulum():
+    """TorchRL's pendulum: a torque in [-2, 2]; 5-step episodes."""
+    from torchrl.envs import PendulumEnv, StepCounter, TransformedEnv
+
+    from rcvae_torchrl.data import prepare_env
+
+    return prepare_env(TransformedEnv(PendulumEnv(), StepCounter(5)), ["th", "thdot"])[0]
+
+
+def test_exploration_narrower_than_the_env_is_warned():
+    import warnings
+
+    from rcvae_torchrl.data import action_bounds
+
+    args = dict(num_episodes=1, frames_per_batch=5, progress=False)
+    with pytest.warns(
+        UserWarning,
+        match=r"UniformRandomPolicy draws actions in \[-1, 1\], less "
+        r"than the env's action range \[-2, 2\].*action_bounds\(env\)",
+    ):
+        narrow = collect_episodes(
+            _pendulum, make_exploration_policy(UniformRandomPolicy(1)), **args
+        )
+    assert narrow["action"].abs().max() <= 1.0
+    low, high = action_bounds(_pendulum())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the env's whole range: no warning
+        whole = UniformRandomPolicy(1, low=low, high=high)
+        collect_episodes(_pendulum, make_exploration_policy(whole), **args)
+        base = make_exploration_policy(GaussianExploration(_Constant(0.0, dims=1), 1.0))
+        with pytest.warns(UserWarning, match="GaussianExploration draws actions in"):
+            collect_episodes(_pendulum, base, **args)
+
+
 class _Constant(torch.nn.Module):
-    def __init__(self, value: float, dtype: torch.dtype = torch.float32) -> None:
+    def __init__(self, value: float, dtype: torch.dtype = torch.float32, dims: int = 2) -> None:
         super().__init__()
-        self.value, self.dtype = value, dtype
+        self.value, self.dtype, self.dims = value, dtype, dims
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
-        return torch.full((*observation.shape[:-1], 2), self.value, dtype=self.dtype)
+        return torch.full((*observation.shape[:-1], self.dims), self.value, dtype=self.dtype)
 
 
 @pytest.mark.parametrize("num_envs", [1, 2])
