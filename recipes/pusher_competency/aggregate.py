@@ -124,6 +124,30 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
         "checks": checks,
         "targets": TARGETS,
         "forecast_checks": _forecast_checks(summaries),
+        "pattern_per_live_step": _pattern_per_live_step(summaries),
+    }
+
+
+#: The pattern's ratios, as the report names them, with their labels.
+PATTERN_RATIOS = {
+    "aleatoric_stochastic_over_deterministic": "aleatoric stochastic / deterministic",
+    "epistemic_ood_over_deterministic": "epistemic out-of-distribution / deterministic",
+    "aleatoric_ood_over_deterministic": "aleatoric out-of-distribution / deterministic",
+}
+
+
+def _pattern_per_live_step(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """The pattern's ratios per live step over seeds (each report's last pattern row; seeds
+    whose forecasts kept no share of running episodes are left out, ``None``)."""
+    by_seed = [s.get("pattern_by_window", {}).get("per live step") for s in summaries.values()]
+    if not any(by_seed):
+        return {}
+    return {
+        key: {
+            **_stats([r[key] for r in by_seed if r]),
+            "by_seed": [r[key] if r else None for r in by_seed],
+        }
+        for key in PATTERN_RATIOS
     }
 
 
@@ -208,6 +232,24 @@ def markdown(result: dict[str, Any]) -> str:
                 for x in found["by_seed"]
             )
             lines.append(f"| {c} | {_cell(found)} | {found['biased']}/{found['seeds']} | {cells} |")
+    live = result.get("pattern_per_live_step") or {}
+    if live:
+        lines += [
+            "",
+            "## The pattern per live step",
+            "",
+            "The checks' ratios average the bits over the whole horizon, in which an ended "
+            "episode counts as certain: they also measure how long the episodes last. Per live "
+            "step (each start's bits over the steps its imagined episodes run; each report's "
+            "last pattern row) that is taken out; – marks a seed whose forecasts kept no share "
+            "of running episodes.",
+            "",
+            "| ratio | mean ± sd | " + " | ".join(result["seeds"]) + " |",
+            "|:---|---:|" + "---:|" * n,
+        ]
+        for key, label in PATTERN_RATIOS.items():
+            cells = " | ".join("–" if v is None else f"{v:.2f}" for v in live[key]["by_seed"])
+            lines.append(f"| {label} | {_cell(live[key])} | {cells} |")
     return "\n".join(lines) + "\n"
 
 

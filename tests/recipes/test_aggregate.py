@@ -134,3 +134,31 @@ def test_the_held_out_forecast_checks_are_counted_over_the_seeds_that_made_them(
     assert "## The forecasts from start states they are not scored on" in text
     assert "| stochastic | -0.070 ± 0.071 | 1/2 | -0.120 ✗ | -0.020 | – |" in text
     assert aggregate({"seed0": third})["forecast_checks"] == {}
+
+
+def test_the_pattern_per_live_step_over_the_seeds_that_kept_it():
+    def pattern(ale_sto: float, epi_ood: float, ale_ood: float) -> dict:
+        return {
+            "1s": {},
+            "per live step": {
+                "aleatoric_stochastic_over_deterministic": ale_sto,
+                "epistemic_ood_over_deterministic": epi_ood,
+                "aleatoric_ood_over_deterministic": ale_ood,
+            },
+        }
+
+    first, second, third = _summary(0.02, True), _summary(0.04, True), _summary(0.03, True)
+    first["pattern_by_window"] = pattern(1.0, 0.9, 1.1)
+    second["pattern_by_window"] = pattern(1.2, 1.1, 1.0)  # the third kept none
+    result = aggregate({"seed0": first, "seed1": second, "seed2": third})
+    live = result["pattern_per_live_step"]
+    assert live["aleatoric_stochastic_over_deterministic"]["mean"] == pytest.approx(1.1)
+    assert live["epistemic_ood_over_deterministic"]["by_seed"] == [0.9, 1.1, None]
+    text = markdown(result)
+    assert "## The pattern per live step" in text
+    assert (
+        "| aleatoric out-of-distribution / deterministic | 1.050 ± 0.071 | 1.10 | 1.00 | – |"
+        in text
+    )
+    assert aggregate({"seed0": third})["pattern_per_live_step"] == {}
+    assert "per live step" not in markdown(aggregate({"seed0": third}))
