@@ -362,6 +362,12 @@ class OutcomeCheck:
     is two-sided, on the per-start differences (a one-sample t-test: the R real episodes of
     one start need not be independent, as in a deterministic env, where they agree).
 
+    Right on average is not right per task: where the R episodes of a start are independent
+    draws of its chance (a stochastic env), a second test asks whether the forecasts miss
+    their own starts' rates by more than the chance of R episodes allows
+    (:attr:`per_start_p_value`, :attr:`scattered`), and :attr:`excess_error` says by how
+    much; :meth:`describe` gives both.
+
     Check the forecast as it is made: a closed-loop forecast against closed-loop real
     episodes. Judged open loop instead (the recorded actions of held-out episodes, imagined
     and replayed), a model whose closed-loop forecasts were within 0.04 of reality was 0.6 too
@@ -466,6 +472,58 @@ class OutcomeCheck:
         return self.gap - half, self.gap + half
 
     @property
+    def per_start_measured(self) -> bool:
+        """Whether the per-start test applies: measured, with R >= 2 real episodes per start
+        and some start whose episodes did not all agree. Where every start's episodes agree
+        (as in a deterministic env, whose R runs of one start are one outcome repeated), R
+        runs are no R independent draws of the start's chance, and no per-start rate can be
+        told from the forecast's."""
+        mixed = (self.real > 0) & (self.real < 1)
+        return self.measured and self.runs >= 2 and bool(mixed.any())
+
+    @property
+    def per_start_p_value(self) -> float:
+        """p-value of "each start's real episodes succeed at its own forecast's rate": beyond
+        the mean (:attr:`p_value`), whether the per-start differences exceed the binomial
+        chance of R independent episodes (Pearson's statistic ``Σ (k - R·f)² / (R·f·(1 - f))``
+        over the starts, forecasts kept within [0.001, 0.999], against 4,000 draws of the real
+        counts from the forecasts themselves, seeded: the same number on every call). NaN when
+        not :attr:`per_start_measured`."""
+        if not self.per_start_measured:
+            return float("nan")
+        f = self.forecast.clamp(1e-3, 1 - 1e-3)
+        runs = float(self.runs)
+
+        def pearson(counts: torch.Tensor) -> torch.Tensor:
+            return ((counts - runs * f).square() / (runs * f * (1 - f))).sum(-1)
+
+        draws = 4000
+        generator = torch.Generator().manual_seed(0)
+        simulated = torch.binomial(
+            torch.full((draws, f.numel()), runs, dtype=f.dtype), f.expand(draws, -1), generator
+        )
+        observed = pearson((self.real * runs).round())
+        return float((int((pearson(simulated) >= observed).sum()) + 1) / (draws + 1))
+
+    @property
+    def excess_error(self) -> float:
+        """The forecasts' root-mean-square error per start beyond the chance of R episodes:
+        ``sqrt(max(0, mean((f - r)²) - mean(f·(1 - f)) / R))``, an estimate of how far a
+        start's forecast lies from its true chance (NaN when not :attr:`per_start_measured`)."""
+        if not self.per_start_measured:
+            return float("nan")
+        f = self.forecast
+        noise = float((f * (1 - f)).mean()) / self.runs
+        return max(0.0, float((f - self.real).square().mean()) - noise) ** 0.5
+
+    @property
+    def scattered(self) -> bool:
+        """Per-start measured, and the forecasts miss their starts' real rates by more than
+        the chance of R episodes allows (level ``alpha``), whether or not they are biased on
+        average."""
+        return self.per_start_measured and self.per_start_p_value < self.alpha
+
+    @property
     def biased(self) -> bool:
         """Measured, and the forecasts differ from the real rates by more than chance allows
         (level ``alpha``)."""
@@ -505,6 +563,23 @@ class OutcomeCheck:
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
             f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {100 * (1 - self.alpha):g} % "
             f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g})"
+            + self._per_start_sentence()
+        )
+
+    def _per_start_sentence(self) -> str:
+        """How far the forecasts miss each start's own rate (where R independent runs tell)."""
+        if not self.per_start_measured:
+            return ""
+        if self.scattered:
+            return (
+                f"; per start they miss their start's real rate by more than the chance of "
+                f"{self.runs} episodes allows, by about {self.excess_error:.2f} (root mean "
+                f"square; p = {self.per_start_p_value:.2g}): trust them on average more than "
+                "for one task"
+            )
+        return (
+            f"; per start they agree with their start's real rate within the chance of "
+            f"{self.runs} episodes (p = {self.per_start_p_value:.2g})"
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -520,6 +595,9 @@ class OutcomeCheck:
             "gap": self.gap,
             "p_value": self.p_value,
             "passed": self.passed,
+            "per_start_p_value": self.per_start_p_value,
+            "excess_error": self.excess_error,
+            "scattered": self.scattered,
         }
 
     @classmethod

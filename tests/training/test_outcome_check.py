@@ -107,3 +107,59 @@ def test_bad_inputs_are_named():
         OutcomeCheck.from_outcomes(forecast, real, alpha=0.0)
     with pytest.raises(ValueError, match="min_starts: expected a positive integer"):
         OutcomeCheck.from_outcomes(forecast, real, min_starts=0)
+
+
+def _drawn(truth: torch.Tensor, runs: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(truth.numel(), runs, generator=g, dtype=torch.float64) < truth[:, None]
+
+
+def test_forecasts_right_on_average_but_wrong_per_start_are_named():
+    forecast = _forecast()
+    fair = OutcomeCheck.from_outcomes(forecast, _drawn(forecast, 30, seed=5), what=WHAT)
+    assert fair.per_start_measured and not fair.scattered and fair.per_start_p_value > 0.05
+    assert fair.excess_error < 0.05
+    assert "per start they agree with their start's real rate within the chance of 30" in (
+        fair.describe()
+    )
+    # each start's chance mirrored about 1/2: the mean holds, no start's forecast does
+    mirrored = OutcomeCheck.from_outcomes(forecast, _drawn(1 - forecast, 30, seed=6), what=WHAT)
+    assert abs(mirrored.gap) < 0.1 and mirrored.scattered and mirrored.per_start_p_value < 0.001
+    rms = float((2 * forecast - 1).square().mean().sqrt())  # |f - (1 - f)| per start
+    assert mirrored.excess_error == pytest.approx(rms, abs=0.05)
+    assert "per start they miss their start's real rate by more than the chance of 30 " in (
+        mirrored.describe()
+    )
+    assert mirrored.per_start_p_value == mirrored.per_start_p_value  # seeded: the same again
+
+
+def test_the_per_start_test_holds_its_level_when_the_forecasts_are_the_truth():
+    rejected = 0
+    for seed in range(40):
+        forecast = _forecast(25, seed=100 + seed)
+        check = OutcomeCheck.from_outcomes(forecast, _drawn(forecast, 10, seed=seed), alpha=0.1)
+        rejected += check.scattered
+    assert rejected <= 9  # 4 expected at the 10 % level; 10 or more has a chance below 1 %
+
+
+def test_the_excess_error_against_its_closed_form():
+    forecast = torch.tensor([0.2, 0.5, 0.6, 0.3] * 3, dtype=torch.float64)
+    real = torch.tensor([[True, False, False, False]] * 12)  # every start: 1 of 4
+    check = OutcomeCheck.from_outcomes(forecast, real)
+    noise = float((forecast * (1 - forecast)).mean()) / 4
+    expected = max(0.0, float((forecast - 0.25).square().mean()) - noise) ** 0.5
+    assert check.excess_error == pytest.approx(expected)
+    values = check.as_dict()
+    assert values["excess_error"] == check.excess_error
+    assert values["per_start_p_value"] == check.per_start_p_value
+
+
+def test_the_per_start_test_needs_independent_runs():
+    forecast = _forecast(20)
+    # a deterministic env: a start's runs are one outcome repeated
+    repeated = OutcomeCheck.from_outcomes(forecast, (forecast > 0.5)[:, None].expand(20, 5))
+    assert not repeated.per_start_measured and not repeated.scattered
+    assert math.isnan(repeated.per_start_p_value) and math.isnan(repeated.excess_error)
+    assert "per start" not in repeated.describe()
+    single = OutcomeCheck.from_outcomes(forecast, _drawn(forecast, 1, seed=0))
+    assert not single.per_start_measured
