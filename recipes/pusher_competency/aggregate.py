@@ -199,33 +199,27 @@ def markdown(result: dict[str, Any]) -> str:
     for name, c in result["checks"].items():
         value = _cell(c) if "sd" in c else format(c["mean"], ".3f")
         lines.append(f"| {_escaped(name)} | {value} | {c['met']}/{c['seeds']} |")
-    lines += [
-        "",
-        "## Every seed",
-        "",
+    lines += _section(
+        "Every seed",
         "Each check's value in each seed; ✗ marks a seed that misses it, – one where it did not "
         "apply.",
-        "",
-        "| check | " + " | ".join(result["seeds"]) + " |",
-        "|:---|" + "---:|" * n,
-    ]
+        ["check"],
+        result["seeds"],
+    )
     for name, c in result["checks"].items():
         if "by_seed" in c:
             cells = " | ".join(map(_seed_cell, c["by_seed"]))
             lines.append(f"| {_escaped(name)} | {cells} |")
     held_out = result.get("forecast_checks") or {}
     if held_out:
-        lines += [
-            "",
-            "## The forecasts from start states they are not scored on",
-            "",
+        lines += _section(
+            "The forecasts from start states they are not scored on",
             "Each run's self-check of its forecasts on start states it is not scored on (the "
             "report's section of that name): the gap, forecast minus real; ✗ marks a seed "
             "where the check found the forecasts biased, – one whose run made no such check.",
-            "",
-            "| condition | gap, mean ± sd | seeds flagged | " + " | ".join(result["seeds"]) + " |",
-            "|:---|---:|---:|" + "---:|" * n,
-        ]
+            ["condition", "gap, mean ± sd", "seeds flagged"],
+            result["seeds"],
+        )
         for c, found in held_out.items():
             cells = " | ".join(
                 "–" if x is None else f"{x['gap']:+.3f}" + ("" if x["passed"] else " ✗")
@@ -234,23 +228,35 @@ def markdown(result: dict[str, Any]) -> str:
             lines.append(f"| {c} | {_cell(found)} | {found['biased']}/{found['seeds']} | {cells} |")
     live = result.get("pattern_per_live_step") or {}
     if live:
-        lines += [
-            "",
-            "## The pattern per live step",
-            "",
+        lines += _section(
+            "The pattern per live step",
             "The checks' ratios average the bits over the whole horizon, in which an ended "
             "episode counts as certain: they also measure how long the episodes last. Per live "
             "step (each start's bits over the steps its imagined episodes run; each report's "
             "last pattern row) that is taken out; – marks a seed whose forecasts kept no share "
             "of running episodes.",
-            "",
-            "| ratio | mean ± sd | " + " | ".join(result["seeds"]) + " |",
-            "|:---|---:|" + "---:|" * n,
-        ]
+            ["ratio", "mean ± sd"],
+            result["seeds"],
+        )
         for key, label in PATTERN_RATIOS.items():
             cells = " | ".join("–" if v is None else f"{v:.2f}" for v in live[key]["by_seed"])
             lines.append(f"| {label} | {_cell(live[key])} | {cells} |")
     return "\n".join(lines) + "\n"
+
+
+def _section(title: str, text: str, head: list[str], seeds: list[str]) -> list[str]:
+    """The lines that open a section of one table: its title, its text, the table's head
+    (``head`` then a column per seed; the first column left-aligned, the others right)."""
+    columns = [*head, *seeds]
+    return [
+        "",
+        f"## {title}",
+        "",
+        text,
+        "",
+        "| " + " | ".join(columns) + " |",
+        "|:---|" + "---:|" * (len(columns) - 1),
+    ]
 
 
 def _escaped(name: str) -> str:
