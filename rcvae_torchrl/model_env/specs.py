@@ -133,6 +133,13 @@ def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]
             f"{env.action_key!r} and {env.reward_key!r}."
         )
     action = _unbatched(env.full_action_spec, nb)[ACTION_KEY]
+    if not action.dtype.is_floating_point:
+        raise TypeError(
+            f"real_env: {name}'s {ACTION_KEY!r} spec is {type(action).__name__} of dtype "
+            f"{action.dtype}; the world model, its planners and imagination take continuous "
+            "actions (a floating vector, as the ensemble's action_dim), which a discrete "
+            "action space is not"
+        )
     reward = _unbatched(env.full_reward_spec, nb)[REWARD_KEY]
     _check_shape(f"real_env {OBSERVATION_KEY!r} spec", obs.shape, (cfg.obs_dim,))
     _check_shape(f"real_env {ACTION_KEY!r} spec", action.shape, (cfg.action_dim,))

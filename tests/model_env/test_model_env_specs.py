@@ -99,6 +99,34 @@ def test_real_env_with_other_dims_is_refused(pusher_data, real_env):
     assert CONFIG.obs_dim == 14
 
 
+@pytest.mark.parametrize("discrete", ["OneHot", "Categorical"])
+def test_a_discrete_action_space_is_refused(discrete):
+    import torchrl.data
+    from torchrl.envs import EnvBase
+
+    from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+
+    class Discrete(EnvBase):  # the specs are all that is read
+        def __init__(self):
+            super().__init__()
+            self.observation_spec = torchrl.data.Composite(observation=torchrl.data.Unbounded((3,)))
+            self.action_spec = getattr(torchrl.data, discrete)(4)
+            self.reward_spec = torchrl.data.Unbounded((1,))
+
+        def _reset(self, tensordict):
+            raise NotImplementedError
+
+        def _step(self, tensordict):
+            raise NotImplementedError
+
+        def _set_seed(self, seed):
+            pass
+
+    model = RCVAEEnsemble(RCVAEConfig(3, 4, hidden_dim=8, mlp_dim=8), ensemble_size=2)
+    with pytest.raises(TypeError, match=rf"'action' spec is {discrete} of dtype .* continuous"):
+        RCVAEEnsembleEnv(model, pusher_reward, pusher_success, real_env=Discrete())
+
+
 @pytest.mark.parametrize("mode", MODES)
 def test_episode_latent_rides_in_the_hidden_state(pusher_data, real_env, starts, mode):
     """With an episode latent the model state carries it after h: the specs say so, a reset
