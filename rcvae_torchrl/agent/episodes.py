@@ -121,13 +121,15 @@ def _rollout(
     td: TensorDictBase,
     **kwargs: Any,
 ) -> TensorDictBase:
-    """``env.rollout`` of ``policy`` from ``td``; a policy that does not take the env's
+    """``env.rollout`` of ``policy`` from ``td``; a module that does not take the env's
     TensorDict (a tensor policy ``observation -> action``) is named with how to wire it."""
     try:
         with torch.no_grad():
             return env.rollout(max_steps, policy, auto_reset=False, tensordict=td, **kwargs)
     except TypeError as err:
-        if isinstance(policy, TensorDictModuleBase):
+        # a module that is no TensorDict module; a TypeError of a TensorDict function is not
+        # the policy's kind
+        if isinstance(policy, TensorDictModuleBase) or not isinstance(policy, torch.nn.Module):
             raise
         raise TypeError(
             f"policy: calling {type(policy).__name__} in the env failed ({err}); a policy in a "
