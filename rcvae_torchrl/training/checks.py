@@ -350,6 +350,21 @@ def check_model(
 _NO_SPREAD = 1e-9
 
 
+def _shifted(logit: torch.Tensor, mean: torch.Tensor | float) -> torch.Tensor:
+    """``σ(logit + c)`` with one offset ``c`` per row, found by bisection so that the row's
+    mean is ``mean``: ``logit`` ``[n]`` and ``mean`` a number, or ``mean`` ``[..., 1]`` (one
+    row each, the result ``[..., n]``)."""
+    mean = torch.as_tensor(mean, dtype=logit.dtype)
+    mean = mean.reshape(1) if mean.dim() == 0 else mean
+    low = torch.full_like(mean, -30.0)
+    high = torch.full_like(mean, 30.0)
+    for _ in range(60):  # the mean is increasing in c: halve the bracket
+        mid = (low + high) / 2
+        above = torch.sigmoid(logit + mid).mean(-1, keepdim=True) > mean
+        high, low = torch.where(above, mid, high), torch.where(above, low, mid)
+    return torch.sigmoid(logit + (low + high) / 2)
+
+
 @dataclass(frozen=True)
 class OutcomeCheck:
     """Forecasts of success against the real success rates of the same start states.
@@ -364,9 +379,9 @@ class OutcomeCheck:
 
     Right on average is not right per task: where the R episodes of a start are independent
     draws of its chance (a stochastic env), a second test asks whether the forecasts miss
-    their own starts' rates by more than the chance of R episodes allows
-    (:attr:`per_start_p_value`, :attr:`scattered`), and :attr:`excess_error` says by how
-    much; :meth:`describe` gives both.
+    their own starts' rates, beyond a shift they all share, by more than the chance of R
+    episodes allows (:attr:`per_start_p_value`, :attr:`scattered`), and :attr:`excess_error`
+    says by how much; :meth:`describe` gives both.
 
     Check the forecast as it is made: a closed-loop forecast against closed-loop real
     episodes. Judged open loop instead (the recorded actions of held-out episodes, imagined
@@ -483,38 +498,54 @@ class OutcomeCheck:
 
     @property
     def per_start_p_value(self) -> float:
-        """p-value of "each start's real episodes succeed at its own forecast's rate": beyond
-        the mean (:attr:`p_value`), whether the per-start differences exceed the binomial
-        chance of R independent episodes (Pearson's statistic ``Σ (k - R·f)² / (R·f·(1 - f))``
-        over the starts, forecasts kept within [0.001, 0.999], against 4,000 draws of the real
-        counts from the forecasts themselves, seeded: the same number on every call). NaN when
-        not :attr:`per_start_measured`."""
+        """p-value of "each start's real episodes succeed at its own forecast's rate, but for
+        a shift all starts share": beyond the mean (:attr:`p_value`, which judges the shift),
+        whether the per-start differences scatter more than the binomial chance of R
+        independent episodes allows. The shift is one logit offset ``c`` for all starts
+        (:meth:`shifted`, fitted so that the shifted forecasts' mean is the real rate; a
+        forecast of 0 stays 0), the statistic Pearson's over the starts,
+        ``Σ (k - R·g)² / (R·g·(1 - g))`` with ``g`` the shifted forecasts (kept within
+        [1e-6, 1 - 1e-6], so that a forecast of 0 that a success contradicts counts as the
+        miss it is). It is compared with 4,000 draws of the counts from ``g``, each with its
+        own offset fitted again, seeded: every call gives the same number. NaN when not
+        :attr:`per_start_measured`."""
         if not self.per_start_measured:
             return float("nan")
-        f = self.forecast.clamp(1e-3, 1 - 1e-3)
         runs = float(self.runs)
+        logit = self.forecast.clamp(1e-6, 1 - 1e-6).logit()
 
         def pearson(counts: torch.Tensor) -> torch.Tensor:
-            return ((counts - runs * f).square() / (runs * f * (1 - f))).sum(-1)
+            g = _shifted(logit, counts.mean(-1, keepdim=True) / runs).clamp(1e-6, 1 - 1e-6)
+            return ((counts - runs * g).square() / (runs * g * (1 - g))).sum(-1)
 
+        observed_counts = (self.real * runs).round()
+        g = _shifted(logit, observed_counts.mean() / runs).clamp(1e-6, 1 - 1e-6)
         draws = 4000
         generator = torch.Generator().manual_seed(0)
         simulated = torch.binomial(
-            torch.full((draws, f.numel()), runs, dtype=f.dtype), f.expand(draws, -1), generator
+            torch.full((draws, g.numel()), runs, dtype=g.dtype), g.expand(draws, -1), generator
         )
-        observed = pearson((self.real * runs).round())
+        observed = pearson(observed_counts)
         return float((int((pearson(simulated) >= observed).sum()) + 1) / (draws + 1))
+
+    def shifted(self) -> torch.Tensor:
+        """The forecasts with the shift all starts share taken out: ``σ(logit f + c)`` ``[n]``,
+        one offset ``c`` with the real rate as their mean (a forecast of 0 or 1 stays)."""
+        logit = self.forecast.clamp(1e-6, 1 - 1e-6).logit()
+        return _shifted(logit, self.real.mean())
 
     @property
     def excess_error(self) -> float:
-        """The forecasts' root-mean-square error per start beyond the chance of R episodes:
-        ``sqrt(max(0, mean((f - r)²) - mean(f·(1 - f)) / R))``, an estimate of how far a
-        start's forecast lies from its true chance (NaN when not :attr:`per_start_measured`)."""
+        """How far a start's forecast lies from its true chance beyond the shift all starts
+        share and the chance of R episodes: the root-mean-square of ``g - r`` for the shifted
+        forecasts ``g`` (:meth:`shifted`) with the binomial noise taken out,
+        ``sqrt(max(0, mean((g - r)²) - mean(g·(1 - g)) / R))`` (NaN when not
+        :attr:`per_start_measured`)."""
         if not self.per_start_measured:
             return float("nan")
-        f = self.forecast
-        noise = float((f * (1 - f)).mean()) / self.runs
-        return max(0.0, float((f - self.real).square().mean()) - noise) ** 0.5
+        g = self.shifted()
+        noise = float((g * (1 - g)).mean()) / self.runs
+        return max(0.0, float((g - self.real).square().mean()) - noise) ** 0.5
 
     @property
     def scattered(self) -> bool:
@@ -570,15 +601,16 @@ class OutcomeCheck:
         """How far the forecasts miss each start's own rate (where R independent runs tell)."""
         if not self.per_start_measured:
             return ""
+        shift = " beyond the shift they share" if self.biased else ""
         if self.scattered:
             return (
-                f"; per start they miss their start's real rate by more than the chance of "
-                f"{self.runs} episodes allows, by about {self.excess_error:.2f} (root mean "
-                f"square; p = {self.per_start_p_value:.2g}): trust them on average more than "
-                "for one task"
+                f"; per start they miss their start's real rate{shift} by more than the chance "
+                f"of {self.runs} episodes allows, by about {self.excess_error:.2f} (root mean "
+                f"square; p = {self.per_start_p_value:.2g})"
+                + ("" if self.biased else ": trust them on average more than for one task")
             )
         return (
-            f"; per start they agree with their start's real rate within the chance of "
+            f"; per start they agree with their start's real rate{shift} within the chance of "
             f"{self.runs} episodes (p = {self.per_start_p_value:.2g})"
         )
 

@@ -143,15 +143,43 @@ def test_the_per_start_test_holds_its_level_when_the_forecasts_are_the_truth():
 
 
 def test_the_excess_error_against_its_closed_form():
-    forecast = torch.tensor([0.2, 0.5, 0.6, 0.3] * 3, dtype=torch.float64)
-    real = torch.tensor([[True, False, False, False]] * 12)  # every start: 1 of 4
+    from scipy.optimize import brentq
+    from scipy.special import expit, logit
+
+    forecast = torch.tensor([0.1, 0.9, 0.5, 0.2] * 3, dtype=torch.float64)
+    real = torch.arange(20)[None, :].expand(12, 20) < 5  # every start: 5 of 20
     check = OutcomeCheck.from_outcomes(forecast, real)
-    noise = float((forecast * (1 - forecast)).mean()) / 4
-    expected = max(0.0, float((forecast - 0.25).square().mean()) - noise) ** 0.5
-    assert check.excess_error == pytest.approx(expected)
+    # the shared shift: one logit offset that brings the forecasts' mean to the real 0.25
+    z = logit(forecast.numpy())
+    offset = brentq(lambda c: expit(z + c).mean() - 0.25, -30, 30, xtol=1e-14)
+    shifted = torch.from_numpy(expit(z + offset))
+    torch.testing.assert_close(check.shifted(), shifted)
+    noise = float((shifted * (1 - shifted)).mean()) / 20
+    expected = (float((shifted - 0.25).square().mean()) - noise) ** 0.5
+    assert check.excess_error == pytest.approx(expected) and expected > 0.2
     values = check.as_dict()
     assert values["excess_error"] == check.excess_error
     assert values["per_start_p_value"] == check.per_start_p_value
+
+
+def test_a_shift_all_starts_share_is_a_bias_not_a_scatter():
+    scattered, biased = 0, 0
+    for seed in range(20):
+        forecast = 0.1 + 0.7 * _forecast(20, seed=200 + seed)
+        check = OutcomeCheck.from_outcomes(forecast, _drawn(forecast - 0.1, 20, seed=seed))
+        scattered += check.scattered
+        biased += check.biased
+    assert biased >= 18 and scattered <= 2  # 0.2 expected at the 1 % level
+    assert "beyond the shift they share" in check.describe()
+    assert "trust them on average" not in check.describe()
+
+
+def test_a_forecast_of_zero_that_a_success_contradicts_is_a_miss():
+    forecast = torch.cat([torch.zeros(6), torch.full((6,), 0.5)]).double()
+    real = _drawn(forecast, 20, seed=3)
+    real[0, 0] = True  # impossible under a forecast of 0
+    check = OutcomeCheck.from_outcomes(forecast, real)
+    assert check.scattered and check.per_start_p_value < 0.001
 
 
 def test_the_per_start_test_needs_independent_runs():
