@@ -464,6 +464,32 @@ class OutcomeCheck:
         return float(ttest_1samp(diff.numpy(), 0.0).pvalue)
 
     @property
+    def exact_p_value(self) -> float:
+        """Two-sided p-value of "the forecasts are the starts' chances", judged by the mean
+        gap alone: the gap against 4,000 draws of the real outcomes from the forecasts
+        themselves (seeded: the same number on every call), R independent episodes per start
+        where some start's episodes disagree, else one outcome per start repeated (as in a
+        deterministic env); twice the smaller tail, at most 1. Exact where the t-test of
+        :attr:`p_value` is not: with few successes (or failures) its estimate of the spread
+        rests on a handful of episodes. NaN with no start."""
+        if self.starts == 0:
+            return float("nan")
+        runs = self.runs if bool(((self.real > 0) & (self.real < 1)).any()) else 1
+        draws = 4000
+        generator = torch.Generator().manual_seed(1)
+        f = self.forecast.clamp(0.0, 1.0)
+        counts = torch.binomial(
+            torch.full((draws, f.numel()), float(runs), dtype=f.dtype),
+            f.expand(draws, -1),
+            generator,
+        )
+        simulated = (f - counts / runs).mean(-1)
+        gap, tie = self.gap, 1e-12  # equal gaps up to rounding count as reached
+        upper = (int((simulated >= gap - tie).sum()) + 1) / (draws + 1)
+        lower = (int((simulated <= gap + tie).sum()) + 1) / (draws + 1)
+        return min(1.0, 2 * min(upper, lower))
+
+    @property
     def standard_error(self) -> float:
         """The standard error of :attr:`gap`: the sample standard deviation of the per-start
         differences over √n (NaN with fewer than 2 starts). With one real episode per start
@@ -475,8 +501,9 @@ class OutcomeCheck:
 
     def interval(self, confidence: float | None = None) -> tuple[float, float]:
         """A ``confidence`` interval of :attr:`gap` (Student's t over the starts); by default
-        at the test's own level, ``1 - alpha``, so that it holds 0 exactly when the check
-        passes."""
+        at the test's own level, ``1 - alpha``, so that it holds 0 exactly when the t-test
+        passes (and then the check passes; it also passes where the outcomes' exact chance
+        does not find the gap beyond chance, :attr:`biased`)."""
         confidence = 1.0 - self.alpha if confidence is None else confidence
         check_unit_interval("confidence", confidence, include_zero=False)
         if self.starts < 2:
@@ -557,8 +584,11 @@ class OutcomeCheck:
     @property
     def biased(self) -> bool:
         """Measured, and the forecasts differ from the real rates by more than chance allows
-        (level ``alpha``)."""
-        return self.measured and self.p_value < self.alpha
+        (level ``alpha``): by the t-test over the starts (:attr:`p_value`: a bias that the
+        forecasts of other starts from the same distribution share) and by the outcomes'
+        exact chance were the forecasts the starts' chances (:attr:`exact_p_value`), which
+        keeps a few rare successes from reading as a bias."""
+        return self.measured and max(self.p_value, self.exact_p_value) < self.alpha
 
     @property
     def passed(self) -> bool:
@@ -587,14 +617,14 @@ class OutcomeCheck:
                 f"needs {self.min_starts}"
             )
         low, high = self.interval()
-        verdict = "unbiased as far as the test can tell" if self.passed else self.verdict
+        verdict = "unbiased as far as the tests can tell" if self.passed else self.verdict
         return (
             f"{self.what} are {verdict}: from {self.starts} start states they forecast "
             f"success {float(self.forecast.mean()):.2f} on average where {self.runs} real "
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
             f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {100 * (1 - self.alpha):g} % "
-            f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g})"
-            + self._per_start_sentence()
+            f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g}, by the outcomes' "
+            f"exact chance {self.exact_p_value:.2g})" + self._per_start_sentence()
         )
 
     def _per_start_sentence(self) -> str:
@@ -626,6 +656,7 @@ class OutcomeCheck:
             "starts": self.starts,
             "gap": self.gap,
             "p_value": self.p_value,
+            "exact_p_value": self.exact_p_value,
             "passed": self.passed,
             "per_start_p_value": self.per_start_p_value,
             "excess_error": self.excess_error,
