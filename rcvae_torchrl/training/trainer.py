@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,7 +47,7 @@ from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
-from .checks import ModelChecks, check_model
+from .checks import ModelChecks, ModelCheckWarning, check_model
 
 __all__ = [
     "TrainConfig",
@@ -294,9 +295,29 @@ def train_ensemble(
         member_steps=state.stop_step,
     )
     if checks:
-        found = check_model(ensemble, val_data, seed=config.seed) if distributed.is_main() else None
+        found = None
+        if distributed.is_main():
+            found = check_model(ensemble, val_data, seed=config.seed, warn=False)
+            if not found.passed:
+                message = found.message() + _stopped_early_hint(found, state.stop_step, config)
+                warnings.warn(message, ModelCheckWarning, stacklevel=2)
         result.checks = ensemble.checks = distributed.broadcast(found)
     return result
+
+
+def _stopped_early_hint(found: ModelChecks, stop_step: torch.Tensor, config: TrainConfig) -> str:
+    """Where members that have not learned a dimension stopped before ``max_steps``, say so:
+    early stopping (``patience``) may have ended them before they learned it."""
+    early = stop_step < config.max_steps
+    if not found.unlearned or not bool(early.any()):
+        return ""
+    steps = stop_step[early]
+    return (
+        f"; {int(early.sum())} of {stop_step.numel()} members stopped early, after "
+        f"{int(steps.min())}–{int(steps.max())} of max_steps={config.max_steps} steps "
+        f"(patience={config.patience} validations without improvement): training longer (a "
+        "larger patience, more steps or more data) may teach them"
+    )
 
 
 def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str = "data") -> None:

@@ -191,3 +191,23 @@ def test_reacher_goal_relative_dimensions_are_flagged():
     flagged = {layout.names[i] for i in result.checks.flagged}
     assert {"to_target[0]", "to_target[1]"} <= flagged
     assert not flagged & {"position[0]", "position[1]", "velocity[0]", "velocity[1]"}
+
+
+def test_a_warning_of_members_that_stopped_early_says_so():
+    train = _with_noise_dim(linear_episodes(24, 40, seed=0), 0)
+    val = _with_noise_dim(linear_episodes(8, 40, seed=1), 1)
+    val[TRAJ_KEY] += 100
+    torch.manual_seed(0)
+    config = RCVAEConfig(4, 1, hidden_dim=16, latent_dim=2, mlp_dim=32, observation_names=NAMES)
+    # a patience of one validation stops members at their first step back
+    budget = TrainConfig(max_steps=400, batch_windows=16, window=8, val_every=10, patience=1)
+    with pytest.warns(ModelCheckWarning, match=r"has not learned noise") as caught:
+        result = train_ensemble(RCVAEEnsemble(config, 2), train, val, budget, progress=False)
+    early = result.member_steps[result.member_steps < 400]
+    assert early.numel() > 0
+    message = str(caught[-1].message)
+    assert (
+        f"{early.numel()} of 2 members stopped early, after {int(early.min())}–"
+        f"{int(early.max())} of max_steps=400 steps (patience=1 validations" in message
+    )
+    assert "a larger patience, more steps or more data" in message
