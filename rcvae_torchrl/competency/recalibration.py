@@ -18,6 +18,7 @@ Layouts as in :mod:`rcvae_torchrl.competency.validation`: forecasts ``[B]``, out
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple
 
 import torch
@@ -73,6 +74,15 @@ def fit_platt(
         theta = theta - step
         if float(step.abs().max()) < 1e-10:
             break
+    if float(theta[0]) <= 0:
+        warnings.warn(
+            "fit_platt: the fitted slope is not positive: in these episodes success does not "
+            "rise with the forecast, and the map flattens or reverses the forecasts' order; "
+            "they do not rank these starts, which no map can mend (it may still move their "
+            "mean)",
+            UserWarning,
+            stacklevel=2,
+        )
     return PlattMap(float(theta[0]), float(theta[1]))
 
 

@@ -101,3 +101,17 @@ def test_bad_arguments_are_named(kwargs, match):
 def test_outcomes_must_be_episodes():
     with pytest.raises(TypeError, match="outcome: expected bool"):
         fit_platt(torch.tensor([0.5, 0.5]), torch.ones(2, 3))
+
+
+def test_a_map_that_reverses_the_forecasts_order_is_warned():
+    # success falls as the forecast rises: the fitted slope is negative
+    forecast = torch.linspace(0.1, 0.9, 40, dtype=torch.float64)
+    outcome = (torch.arange(20)[None, :] < (20 * (1 - forecast))[:, None]).bool()
+    with pytest.warns(UserWarning, match="fit_platt: the fitted slope is not positive"):
+        platt = fit_platt(forecast, outcome)
+    assert platt.slope < 0
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an increasing relation: no warning
+        assert fit_platt(forecast, outcome.flip(0)).slope > 0
