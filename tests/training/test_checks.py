@@ -37,13 +37,19 @@ def _with_noise_dim(data, seed):
     return out
 
 
-@pytest.fixture(scope="module")
-def trained():
+def _noisy_system():
+    """Episodes of a linear system with a fourth, unlearnable noise dimension, and a model."""
     train = _with_noise_dim(linear_episodes(24, 40, seed=0), 0)
     val = _with_noise_dim(linear_episodes(8, 40, seed=1), 1)
     val[TRAJ_KEY] += 100
     torch.manual_seed(0)
     config = RCVAEConfig(4, 1, hidden_dim=16, latent_dim=2, mlp_dim=32, observation_names=NAMES)
+    return train, val, config
+
+
+@pytest.fixture(scope="module")
+def trained():
+    train, val, config = _noisy_system()
     budget = TrainConfig(max_steps=400, batch_windows=16, window=8, val_every=100, lr=3e-3)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -194,11 +200,7 @@ def test_reacher_goal_relative_dimensions_are_flagged():
 
 
 def test_a_warning_of_members_that_stopped_early_says_so():
-    train = _with_noise_dim(linear_episodes(24, 40, seed=0), 0)
-    val = _with_noise_dim(linear_episodes(8, 40, seed=1), 1)
-    val[TRAJ_KEY] += 100
-    torch.manual_seed(0)
-    config = RCVAEConfig(4, 1, hidden_dim=16, latent_dim=2, mlp_dim=32, observation_names=NAMES)
+    train, val, config = _noisy_system()
     # a patience of one validation stops members at their first step back
     budget = TrainConfig(max_steps=400, batch_windows=16, window=8, val_every=10, patience=1)
     with pytest.warns(ModelCheckWarning, match=r"has not learned noise") as caught:
