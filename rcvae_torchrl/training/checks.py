@@ -348,6 +348,9 @@ def check_model(
 
 #: Per-start differences closer than this are one difference (rounding, not spread).
 _NO_SPREAD = 1e-9
+#: The tests read a forecast within [this, 1 - this]: one made from finitely many imagined
+#: episodes does not tell a chance below about 1/1000 from 0 (nor one above 0.999 from 1).
+_RESOLUTION = 1e-3
 
 
 def _shifted(logit: torch.Tensor, mean: torch.Tensor | float) -> torch.Tensor:
@@ -469,7 +472,8 @@ class OutcomeCheck:
         gap alone: the gap against 4,000 draws of the real outcomes from the forecasts
         themselves (seeded: the same number on every call), R independent episodes per start
         where some start's episodes disagree, else one outcome per start repeated (as in a
-        deterministic env); twice the smaller tail, at most 1. Exact where the t-test of
+        deterministic env; forecasts read within [0.001, 0.999]); twice the smaller tail, at
+        most 1. Exact where the t-test of
         :attr:`p_value` is not: with few successes (or failures) its estimate of the spread
         rests on a handful of episodes. NaN with no start."""
         if self.starts == 0:
@@ -477,14 +481,14 @@ class OutcomeCheck:
         runs = self.runs if bool(((self.real > 0) & (self.real < 1)).any()) else 1
         draws = 4000
         generator = torch.Generator().manual_seed(1)
-        f = self.forecast.clamp(0.0, 1.0)
+        f = self.forecast.clamp(_RESOLUTION, 1 - _RESOLUTION)
         counts = torch.binomial(
             torch.full((draws, f.numel()), float(runs), dtype=f.dtype),
             f.expand(draws, -1),
             generator,
         )
         simulated = (f - counts / runs).mean(-1)
-        gap, tie = self.gap, 1e-12  # equal gaps up to rounding count as reached
+        gap, tie = float((f - self.real).mean()), 1e-12  # equal up to rounding: reached
         upper = (int((simulated >= gap - tie).sum()) + 1) / (draws + 1)
         lower = (int((simulated <= gap + tie).sum()) + 1) / (draws + 1)
         return min(1.0, 2 * min(upper, lower))
@@ -532,21 +536,23 @@ class OutcomeCheck:
         (:meth:`shifted`, fitted so that the shifted forecasts' mean is the real rate; a
         forecast of 0 stays 0), the statistic Pearson's over the starts,
         ``Σ (k - R·g)² / (R·g·(1 - g))`` with ``g`` the shifted forecasts (kept within
-        [1e-6, 1 - 1e-6], so that a forecast of 0 that a success contradicts counts as the
-        miss it is). It is compared with 4,000 draws of the counts from ``g``, each with its
-        own offset fitted again, seeded: every call gives the same number. NaN when not
-        :attr:`per_start_measured`."""
+        [0.001, 0.999]: a forecast from finitely many imagined episodes does not tell a
+        chance below about 1/1000 from 0). It is compared with 4,000 draws of the counts
+        from ``g``, each with its own offset fitted again, seeded: every call gives the same
+        number. NaN when not :attr:`per_start_measured`."""
         if not self.per_start_measured:
             return float("nan")
         runs = float(self.runs)
-        logit = self.forecast.clamp(1e-6, 1 - 1e-6).logit()
+        logit = self.forecast.clamp(_RESOLUTION, 1 - _RESOLUTION).logit()
 
         def pearson(counts: torch.Tensor) -> torch.Tensor:
-            g = _shifted(logit, counts.mean(-1, keepdim=True) / runs).clamp(1e-6, 1 - 1e-6)
+            g = _shifted(logit, counts.mean(-1, keepdim=True) / runs).clamp(
+                _RESOLUTION, 1 - _RESOLUTION
+            )
             return ((counts - runs * g).square() / (runs * g * (1 - g))).sum(-1)
 
         observed_counts = (self.real * runs).round()
-        g = _shifted(logit, observed_counts.mean() / runs).clamp(1e-6, 1 - 1e-6)
+        g = _shifted(logit, observed_counts.mean() / runs).clamp(_RESOLUTION, 1 - _RESOLUTION)
         draws = 4000
         generator = torch.Generator().manual_seed(0)
         simulated = torch.binomial(
@@ -558,7 +564,7 @@ class OutcomeCheck:
     def shifted(self) -> torch.Tensor:
         """The forecasts with the shift all starts share taken out: ``σ(logit f + c)`` ``[n]``,
         one offset ``c`` with the real rate as their mean (a forecast of 0 or 1 stays)."""
-        logit = self.forecast.clamp(1e-6, 1 - 1e-6).logit()
+        logit = self.forecast.clamp(_RESOLUTION, 1 - _RESOLUTION).logit()
         return _shifted(logit, self.real.mean())
 
     @property
