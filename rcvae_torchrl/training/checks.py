@@ -473,9 +473,9 @@ class OutcomeCheck:
         themselves (seeded: the same number on every call), R independent episodes per start
         where some start's episodes disagree, else one outcome per start repeated (as in a
         deterministic env; forecasts read within [0.001, 0.999]); twice the smaller tail, at
-        most 1. Exact where the t-test of
-        :attr:`p_value` is not: with few successes (or failures) its estimate of the spread
-        rests on a handful of episodes. NaN with no start."""
+        most 1. Exact where the t-test of :attr:`p_value` is not: with few successes (or
+        failures) its estimate of the spread rests on a handful of episodes. NaN with no
+        start."""
         if self.starts == 0:
             return float("nan")
         runs = self.runs if bool(((self.real > 0) & (self.real < 1)).any()) else 1
@@ -616,7 +616,8 @@ class OutcomeCheck:
 
     def describe(self) -> str:
         """One sentence: the verdict, the mean forecast and real rate, the gap with its
-        interval at the test's level, and the p-value."""
+        interval at the test's level, the two p-values (:attr:`biased`) and, where it applies,
+        the per-start test's verdict."""
         if not self.measured:
             return (
                 f"{self.what} are unchecked: {self.starts} start states, the outcome check "
