@@ -1,0 +1,99 @@
+"""The whole API on an env the project did not write and that is unlike its own: TorchRL's
+pure-torch ``PendulumEnv`` (scalar observations, a torque in [-2, 2], a stateless env that reads
+its state back from the TensorDict and carries its constants), its episodes cut by a
+``StepCounter``."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torchrl.envs import PendulumEnv, StepCounter, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from rcvae_torchrl import CompetencyAssessor, SuccessBoundary, make_rcvae_env
+from rcvae_torchrl.agent import real_outcomes, score_forecast
+from rcvae_torchrl.data import (
+    UniformRandomPolicy,
+    action_bounds,
+    collect_episodes,
+    make_exploration_policy,
+    prepare_env,
+    split_episodes,
+)
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.training import TrainConfig, train_ensemble
+
+STEPS = 20  # the env's own time limit, and the task's
+
+
+def _env():
+    return prepare_env(TransformedEnv(PendulumEnv(), StepCounter(STEPS)), ["th", "thdot"])[0]
+
+
+class _Upright(torch.nn.Module):
+    """A PD torque towards the top, within the env's [-2, 2]."""
+
+    def forward(self, observation):
+        return (-5 * observation[..., :1] - observation[..., 1:]).clamp(-2, 2)
+
+
+def _reset_to(env, start):
+    """The pendulum takes a given state: ``reset(td, set_state=True)``."""
+    td = TensorDict({"th": start[0], "thdot": start[1], **PendulumEnv.gen_params().to_dict()})
+    return env.reset(td, set_state=True)
+
+
+def _reward(observation, action):
+    return -observation[..., :1].abs()
+
+
+def _upright(observation):
+    return observation[..., 0].abs() < 0.3
+
+
+def test_the_pendulum_from_data_to_a_checked_forecast():
+    torch.manual_seed(0)
+    env = _env()
+    check_env_specs(env)
+    low, high = action_bounds(env)
+    assert low.tolist() == [-2.0] and high.tolist() == [2.0]
+    explore = make_exploration_policy(UniformRandomPolicy(1, hold=3, low=low, high=high))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)  # the env's whole action range: no warning
+        data = collect_episodes(_env, explore, 12, seed=0, frames_per_batch=STEPS, progress=False)
+    assert data["observation"].shape == (12 * STEPS, 2) and data["action"].abs().max() > 1.5
+    train, val = split_episodes(data, val_fraction=0.25, seed=0)
+    config = RCVAEConfig(
+        2, 1, hidden_dim=8, latent_dim=2, mlp_dim=8, observation_names=("th", "thdot")
+    )
+    model = RCVAEEnsemble(config, 2)
+    budget = TrainConfig(max_steps=10, batch_windows=4, window=8, val_every=5, val_windows=4)
+    train_ensemble(model, train, val, budget, progress=False, checks=False)
+
+    model_env = make_rcvae_env(model, env, _reward, _upright, seed=0)
+    check_env_specs(model_env)
+    agent = TensorDictModule(_Upright(), in_keys=["observation"], out_keys=["action"])
+    boundary = SuccessBoundary.within_distance(
+        lambda observation: observation[..., 0].abs(), 0.3, time_limit=STEPS, dt=0.05
+    )
+    assessor = CompetencyAssessor(
+        model_env, boundary, bin_width=torch.tensor([0.05, 0.2]), samples_per_member=4
+    )
+    starts = torch.tensor([[0.2, 0.0], [-1.0, 0.5], [2.5, 0.0], [0.1, -0.2]])
+    report = assessor.assess(starts, policy=agent, seed=0)
+    p = report.competency["p_success"]
+    assert p.shape == (4,) and bool(((p >= 0) & (p <= 1)).all())
+
+    assert torch.allclose(_reset_to(env, starts[1])["observation"], starts[1])
+    args = dict(runs_per_start=2, reset_to_state=_reset_to, success=boundary.success_over_time)
+    real = real_outcomes(env, agent, starts, max_steps=STEPS, progress=False, **args)
+    assert real.success.shape == (4, 2)
+    assert real.success[0].all() and real.success[3].all()  # near the top: caught at once
+    assert set(score_forecast(p, real)) >= {"auroc", "brier"}
+    # the env's own StepCounter would cut a longer episode short: refused, not a failure
+    with pytest.raises(ValueError, match="cut short by the env itself"):
+        real_outcomes(env, agent, starts[2:3], max_steps=STEPS + 10, progress=False, **args)
