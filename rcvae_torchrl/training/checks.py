@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import torch
@@ -392,7 +393,8 @@ class OutcomeCheck:
     pessimistic: over seconds its open-loop errors carry an object past a small target, errors
     that an agent reacting to the imagined states corrects.
 
-    Build it with :meth:`from_outcomes`.
+    Build it with :meth:`from_outcomes`. Its fields are not changed after it is made, so each
+    Monte-Carlo p-value is drawn once and kept.
     """
 
     forecast: torch.Tensor  #: ``[n]`` the forecast P(success) per start
@@ -466,7 +468,7 @@ class OutcomeCheck:
 
         return float(ttest_1samp(diff.numpy(), 0.0).pvalue)
 
-    @property
+    @cached_property
     def exact_p_value(self) -> float:
         """Two-sided p-value of "the forecasts are the starts' chances", judged by the mean
         gap alone: the gap against 4,000 draws of the real outcomes from the forecasts
@@ -478,7 +480,7 @@ class OutcomeCheck:
         start."""
         if self.starts == 0:
             return float("nan")
-        runs = self.runs if bool(((self.real > 0) & (self.real < 1)).any()) else 1
+        runs = self.runs if self._independent_runs else 1
         draws = 4000
         generator = torch.Generator().manual_seed(1)
         f = self.forecast.clamp(_RESOLUTION, 1 - _RESOLUTION)
@@ -524,10 +526,15 @@ class OutcomeCheck:
         (as in a deterministic env, whose R runs of one start are one outcome repeated), R
         runs are no R independent draws of the start's chance, and no per-start rate can be
         told from the forecast's."""
-        mixed = (self.real > 0) & (self.real < 1)
-        return self.measured and self.runs >= 2 and bool(mixed.any())
+        return self.measured and self.runs >= 2 and self._independent_runs
 
-    @property
+    @cached_property
+    def _independent_runs(self) -> bool:
+        """Whether some start's real episodes disagree: then its R runs are taken for R
+        independent draws of its chance, else for one outcome repeated."""
+        return bool(((self.real > 0) & (self.real < 1)).any())
+
+    @cached_property
     def per_start_p_value(self) -> float:
         """p-value of "each start's real episodes succeed at its own forecast's rate, but for
         a shift all starts share": beyond the mean (:attr:`p_value`, which judges the shift),
@@ -543,16 +550,15 @@ class OutcomeCheck:
         if not self.per_start_measured:
             return float("nan")
         runs = float(self.runs)
-        logit = self.forecast.clamp(_RESOLUTION, 1 - _RESOLUTION).logit()
 
         def pearson(counts: torch.Tensor) -> torch.Tensor:
-            g = _shifted(logit, counts.mean(-1, keepdim=True) / runs).clamp(
+            g = _shifted(self._logit, counts.mean(-1, keepdim=True) / runs).clamp(
                 _RESOLUTION, 1 - _RESOLUTION
             )
             return ((counts - runs * g).square() / (runs * g * (1 - g))).sum(-1)
 
         observed_counts = (self.real * runs).round()
-        g = _shifted(logit, observed_counts.mean() / runs).clamp(_RESOLUTION, 1 - _RESOLUTION)
+        g = _shifted(self._logit, observed_counts.mean() / runs).clamp(_RESOLUTION, 1 - _RESOLUTION)
         draws = 4000
         generator = torch.Generator().manual_seed(0)
         simulated = torch.binomial(
@@ -564,8 +570,12 @@ class OutcomeCheck:
     def shifted(self) -> torch.Tensor:
         """The forecasts with the shift all starts share taken out: ``σ(logit f + c)`` ``[n]``,
         one offset ``c`` with the real rate as their mean (a forecast of 0 or 1 stays)."""
-        logit = self.forecast.clamp(_RESOLUTION, 1 - _RESOLUTION).logit()
-        return _shifted(logit, self.real.mean())
+        return _shifted(self._logit, self.real.mean())
+
+    @cached_property
+    def _logit(self) -> torch.Tensor:
+        """The forecasts' logits, as the tests read them (within [0.001, 0.999])."""
+        return self.forecast.clamp(_RESOLUTION, 1 - _RESOLUTION).logit()
 
     @property
     def excess_error(self) -> float:
