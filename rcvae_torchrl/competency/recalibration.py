@@ -54,8 +54,13 @@ def fit_platt(
     iterations: int = 50,
 ) -> PlattMap:
     """The Platt map maximising the likelihood of the episodes' outcomes, every episode one
-    observation, minus ``ridge / 2 · ((a - 1)² + b²)``; Newton's method (the objective is
-    concave, so it converges from the identity)."""
+    observation, minus ``ridge / 2 · ((a - 1)² + b²)``: Newton's method from the identity, each
+    step halved until the objective rises (the objective is strictly concave, so this
+    converges; a full step overshoots where forecasts of 0 or 1 meet outcomes that disagree).
+
+    Raises:
+        RuntimeError: no convergence within ``iterations`` steps.
+    """
     _checks.check_positive("ridge", ridge)
     if isinstance(iterations, bool) or not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: expected a positive integer, got {iterations!r}")
@@ -63,17 +68,34 @@ def fit_platt(
     x = _logit(f)[:, None].expand_as(outcome)[mask]
     y = outcome[mask].to(torch.float64)
     design = torch.stack([x, torch.ones_like(x)], dim=-1)  # [n, 2]
-    theta = torch.tensor([1.0, 0.0], dtype=torch.float64)
-    prior = theta.clone()
+    prior = torch.tensor([1.0, 0.0], dtype=torch.float64)
     penalty = ridge * torch.eye(2, dtype=torch.float64)
+
+    def objective(theta: Tensor) -> float:
+        z = design @ theta
+        fit = (y * z - torch.nn.functional.softplus(z)).sum()
+        return float(fit - ridge / 2 * (theta - prior).square().sum())
+
+    theta, value, converged = prior.clone(), objective(prior), False
     for _ in range(iterations):
         p = torch.sigmoid(design @ theta)
         grad = design.T @ (p - y) + ridge * (theta - prior)
         hess = (design * (p * (1 - p))[:, None]).T @ design + penalty
         step = torch.linalg.solve(hess, grad)
-        theta = theta - step
+        for _ in range(60):  # halve the step until the objective does not fall
+            trial = objective(theta - step)
+            if trial >= value:
+                break
+            step = step / 2
+        theta, value = theta - step, max(trial, value)
         if float(step.abs().max()) < 1e-10:
+            converged = True
             break
+    if not converged:
+        raise RuntimeError(
+            f"fit_platt: Newton's method did not converge in {iterations} iterations (last "
+            f"step {float(step.abs().max()):.3g}); raise iterations"
+        )
     if float(theta[0]) <= 0:
         warnings.warn(
             "fit_platt: the fitted slope is not positive: in these episodes success does not "

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -110,8 +112,45 @@ def test_a_map_that_reverses_the_forecasts_order_is_warned():
     with pytest.warns(UserWarning, match="fit_platt: the fitted slope is not positive"):
         platt = fit_platt(forecast, outcome)
     assert platt.slope < 0
-    import warnings
-
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # an increasing relation: no warning
         assert fit_platt(forecast, outcome.flip(0)).slope > 0
+
+
+def _penalised_optimum(forecast: torch.Tensor, outcome: torch.Tensor, ridge: float) -> PlattMap:
+    """The penalised likelihood's maximum found by scipy's Nelder-Mead (no derivatives)."""
+    import numpy as np
+    from scipy.optimize import minimize
+
+    f = forecast.double().clamp(1e-4, 1 - 1e-4)
+    x = (torch.log(f) - torch.log1p(-f))[:, None].expand_as(outcome).reshape(-1).numpy()
+    y = outcome.reshape(-1).double().numpy()
+
+    def loss(t):
+        z = t[0] * x + t[1]
+        return -(y * z - np.logaddexp(0, z)).sum() + ridge / 2 * ((t[0] - 1) ** 2 + t[1] ** 2)
+
+    best = minimize(loss, [1.0, 0.0], method="Nelder-Mead", options={"xatol": 1e-9, "fatol": 1e-12})
+    return PlattMap(*map(float, best.x))
+
+
+@pytest.mark.parametrize("certain", [1, 2, 3])
+def test_forecasts_of_certainty_that_fail_do_not_throw_the_fit(certain):
+    # forecasts of exactly 1 whose episodes all fail sit at logit(1 - 1e-4) ~ 9.2, where a full
+    # Newton step from the identity overshoots: the fit must still find the optimum
+    f = torch.linspace(0.05, 0.95, 30)
+    outcome = torch.rand(30, 4, generator=torch.Generator().manual_seed(certain)) < f[:, None]
+    f[:certain], outcome[:certain] = 1.0, False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # some of these optima flatten the map
+        platt = fit_platt(f, outcome)
+    expected = _penalised_optimum(f, outcome, ridge=1.0)
+    assert platt.slope == pytest.approx(expected.slope, abs=1e-4)
+    assert platt.intercept == pytest.approx(expected.intercept, abs=1e-4)
+    assert abs(platt.slope) < 1.0  # the failures flatten the map, they do not steepen it
+
+
+def test_a_fit_that_has_not_converged_is_an_error():
+    f = _forecasts(50, 10)
+    with pytest.raises(RuntimeError, match="fit_platt: Newton's method did not converge in 1 "):
+        fit_platt(f, _draw((f - 0.3).clamp(0.01, 0.99), 5, 11), iterations=1)
