@@ -57,6 +57,11 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
     of a temporary file.
     """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(
+            f"{str(path)!r} is a directory; expected the path of a file (e.g. "
+            f"{str(path / 'name')!r})"
+        )
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -85,6 +90,8 @@ def _existing_file(path: object, what: str) -> Path:
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path: expected a str or a path of {what}, got {type(path).__name__}")
     path = Path(path)
+    if path.is_dir():
+        raise StoredFileError(f"{what} {str(path)!r}: is a directory, expected a file", path)
     if not path.is_file():
         raise StoredFileError(f"{what} {str(path)!r}: the file is missing", path)
     return path
@@ -116,8 +123,20 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
         return torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
     except Exception as err:  # torch raises several types for damaged archives
         raise StoredFileError(
-            f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): {err}", path
+            f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): "
+            f"{_load_failure(err)}",
+            path,
         ) from err
+
+
+def _load_failure(err: Exception) -> str:
+    """What ``torch.load`` found wrong, without its advice to load with ``weights_only=False``
+    (which runs whatever code the file holds)."""
+    text = str(err)
+    _, found, after = text.partition("WeightsUnpickler error:")
+    if found:
+        return next((line.strip() for line in after.splitlines() if line.strip()), "unreadable")
+    return text
 
 
 def _differences(key: str, old: Any, new: Any) -> list[tuple[str, Any, Any]]:

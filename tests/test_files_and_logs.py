@@ -106,3 +106,18 @@ def test_a_terminal_keeps_its_colours(tmp_path):
         log.info("\033[92mgreen\033[0m")
     assert console.getvalue() == "\033[92mgreen\033[0m\n"
     assert (tmp_path / "run.log").read_text().endswith(" green\n")
+
+
+def test_a_folder_or_a_damaged_file_is_named_as_what_it_is(tmp_path):
+    from rcvae_torchrl.io import StoredFileError, load_torch
+
+    with pytest.raises(IsADirectoryError, match=r"is a directory; expected the path of a file"):
+        save_torch(tmp_path, {"a": 1})
+    assert list(tmp_path.iterdir()) == []  # no temp file left beside it
+    with pytest.raises(StoredFileError, match=r"the model '.*': is a directory, expected a file"):
+        load_torch(tmp_path, "the model")
+    damaged = tmp_path / "damaged.pt"
+    damaged.write_bytes(bytes(range(256)) * 2)
+    with pytest.raises(StoredFileError, match=r"is truncated or corrupt \(512 bytes\)") as err:
+        load_torch(damaged)
+    assert "weights_only" not in str(err.value)  # torch's advice to load it unsafely is dropped

@@ -13,6 +13,8 @@ __all__ = ["load_episodes", "save_episodes"]
 
 def save_episodes(data: TensorDictBase, path: str | Path) -> Path:
     """Write a flat TensorDict ``[frames]`` of tensors to ``path`` (atomic, tensors only)."""
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"data: expected a flat TensorDict [frames], got {type(data).__name__}")
     if data.ndim != 1:
         raise ValueError(f"data: expected a flat TensorDict [frames], got {tuple(data.shape)}")
     payload = {"batch_size": list(data.shape), "data": data.to_dict()}

@@ -250,6 +250,8 @@ def train_ensemble(
     path = Path(checkpoint_path) if checkpoint_path is not None else None
     if resume and path is None:
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")
+    if path is not None:
+        _check_checkpoint_path(path, resume)
     if not isinstance(config, TrainConfig):
         raise TypeError(f"config: expected a TrainConfig, got {type(config).__name__}")
     for name, data in (("train_data", train_data), ("val_data", val_data)):
@@ -739,6 +741,28 @@ def _data_digest(train_data: TensorDictBase, val_data: TensorDictBase) -> str:
             for name, d in (("train", train_data), ("val", val_data))
         }
     )
+
+
+def _check_checkpoint_path(path: Path, resume: bool) -> None:
+    """Refuse a ``checkpoint_path`` that training would write over and that is not a training
+    checkpoint (a folder, a user's episodes, a model saved with ``save_ensemble``)."""
+    if path.is_dir():
+        raise ValueError(
+            f"checkpoint_path: {str(path)!r} is a directory; expected the path of a file (e.g. "
+            f"{str(path / 'model.pt')!r})"
+        )
+    if resume or not path.is_file():  # resuming reads it, and refuses what it cannot resume
+        return
+    try:
+        found = "training" in read_checkpoint(path)
+        reason = "it holds no training state: a model saved with save_ensemble?"
+    except CheckpointError as err:
+        found, reason = False, str(err)
+    if not found:
+        raise ValueError(
+            f"checkpoint_path: {str(path)!r} exists and is not a training checkpoint ({reason}); "
+            "training would overwrite it: give a new path"
+        )
 
 
 def _training_payload(

@@ -102,3 +102,35 @@ def test_resume_with_other_settings_names_only_the_settings_that_differ(
             checkpoint_path=path,
             resume=True,
         )
+
+
+def test_training_never_writes_over_what_is_not_a_training_checkpoint(
+    tmp_path, linear_data, small_ensemble
+):
+    """A user's episodes, a saved model or a folder at ``checkpoint_path`` is refused before
+    any step, and left as it was; a training checkpoint is overwritten (a new run)."""
+    from rcvae_torchrl.data import load_episodes, save_episodes
+    from rcvae_torchrl.training import save_ensemble
+
+    train, val = linear_data
+    episodes = save_episodes(train, tmp_path / "episodes.pt")
+    before = episodes.read_bytes()
+    with pytest.raises(ValueError, match=r"checkpoint_path: .*episodes.pt' exists and is not a tr"):
+        _train(small_ensemble(2), train, val, checkpoint_path=episodes)
+    assert episodes.read_bytes() == before
+    assert (load_episodes(episodes) == train).all()
+    model = save_ensemble(small_ensemble(2), tmp_path / "model.pt")
+    with pytest.raises(ValueError, match=r"no training state: a model saved with save_ensemble"):
+        _train(small_ensemble(2), train, val, checkpoint_path=model)
+    junk = tmp_path / "notes.pt"
+    junk.write_bytes(b"my notes")
+    with pytest.raises(ValueError, match=r"notes.pt' exists and is not a training checkpoint"):
+        _train(small_ensemble(2), train, val, checkpoint_path=junk)
+    assert junk.read_bytes() == b"my notes"
+    with pytest.raises(ValueError, match=r"checkpoint_path: .* is a directory; expected the pat"):
+        _train(small_ensemble(2), train, val, checkpoint_path=tmp_path)
+    assert not (tmp_path.parent / "logs").exists()
+    run = tmp_path / "run.pt"
+    _train(small_ensemble(2), train, val, checkpoint_path=run)
+    again = _train(small_ensemble(2, seed=1), train, val, checkpoint_path=run)  # a new run
+    assert again.steps == BUDGET.max_steps
