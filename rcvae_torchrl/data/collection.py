@@ -11,7 +11,11 @@ from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, SerialEnv
 from tqdm.auto import tqdm
 
-from rcvae_torchrl._checks import check_non_negative_int
+from rcvae_torchrl._checks import (
+    check_non_negative_int,
+    check_positive_int,
+    check_positive_int_or_none,
+)
 from rcvae_torchrl.threads import threads_kept
 
 from .exploration import action_bounds
@@ -56,10 +60,18 @@ def collect_episodes(
             ``num_episodes`` episodes have ended is a ``ValueError``.
         first_id: the id of the first episode.
     """
-    if num_episodes < 1:
-        raise ValueError(f"num_episodes: expected >= 1, got {num_episodes}")
-    if num_envs < 1:
-        raise ValueError(f"num_envs: expected >= 1, got {num_envs}")
+    if isinstance(make_env, EnvBase) or not callable(make_env):
+        raise TypeError(
+            "make_env: expected a function that makes the env (e.g. lambda: env, or a "
+            f"functools.partial of its constructor), got {_what(make_env)}"
+        )
+    for name, value in (
+        ("num_episodes", num_episodes),
+        ("num_envs", num_envs),
+        ("frames_per_batch", frames_per_batch),
+    ):
+        check_positive_int(name, value)
+    check_positive_int_or_none("max_frames", max_frames)
     check_non_negative_int("first_id", first_id)
     max_frames = max_frames or 1000 * (num_episodes + num_envs - 1)
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
@@ -113,9 +125,12 @@ def check_actions(env: EnvBase, data: TensorDictBase, name: str = "policy") -> N
     space = getattr(spec, "space", None)
     low, high = getattr(space, "low", None), getattr(space, "high", None)
     detail = ""
-    if low is not None and high is not None:
+    nan = action.isnan().reshape(-1, action.shape[-1]).any(dim=-1)
+    if bool(nan.any()):
+        detail = f": {int(nan.sum())} of {nan.numel()} actions are NaN"
+    elif low is not None and high is not None:
         below, above = (low - action).clamp_min(0), (action - high).clamp_min(0)
-        excess = torch.maximum(below, above).nan_to_num(nan=torch.inf)
+        excess = torch.maximum(below, above)
         out = excess > 0
         detail = (
             f": {int(out.any(dim=-1).sum())} of {out[..., 0].numel()} actions fall outside "
@@ -130,6 +145,12 @@ def check_actions(env: EnvBase, data: TensorDictBase, name: str = "policy") -> N
 def _check_policy_inputs(env: EnvBase, policy: object) -> None:
     """A policy that declares ``in_keys`` must find them among the env's entries (observations,
     state, done flags): say which are missing, and how an env gets an ``"observation"``."""
+    out_keys = getattr(policy, "out_keys", None)
+    if isinstance(out_keys, (list, tuple)) and not _writes(out_keys, env.action_key):
+        raise KeyError(
+            f"policy: writes {list(out_keys)}, not the env's action {env.action_key!r}; "
+            f"give it out_keys=[{env.action_key!r}]"
+        )
     keys = getattr(policy, "in_keys", None)
     if not isinstance(keys, (list, tuple)):
         return
@@ -142,6 +163,17 @@ def _check_policy_inputs(env: EnvBase, policy: object) -> None:
             f'{sorted(map(str, available))}); for a world model\'s "observation", concatenate '
             "the env's entries with rcvae_torchrl.data.prepare_env(env, observation_keys=[...])"
         )
+
+
+def _writes(keys: list | tuple, key: str | tuple) -> bool:
+    """Whether ``key`` is among ``keys`` (a key and its one-element tuple are the same)."""
+    wanted = key if isinstance(key, tuple) else (key,)
+    return any((k if isinstance(k, tuple) else (k,)) == wanted for k in keys)
+
+
+def _what(value: object) -> str:
+    """``value`` named for an error by its type (an env as one)."""
+    return f"{'the env ' if isinstance(value, EnvBase) else ''}{type(value).__name__}"
 
 
 def _warn_narrow_bounds(env: EnvBase, policy: object) -> None:

@@ -260,6 +260,12 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             observation = self._sample_start_states(batch)
         else:
             _checks.check_observation(self.ensemble, "tensordict['observation']", given)
+            if given.shape[:-1] != batch:
+                raise ValueError(
+                    f"tensordict['observation']: expected shape [*B, S={given.shape[-1]}] with "
+                    f"[*B] the tensordict's batch_size {list(batch)}, got {tuple(given.shape)}; "
+                    f"build it with TensorDict({{...}}, batch_size={list(given.shape[:-1])})"
+                )
             observation = given.clone()
         member = None if tensordict is None else tensordict.get(MEMBER_KEY, None)
         state = self._initial_state(observation, member)

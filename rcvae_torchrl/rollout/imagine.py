@@ -55,6 +55,11 @@ def as_tensor_policy(
         if not callable(policy):
             raise TypeError(f"policy: expected a callable, got {type(policy).__name__}")
         return policy
+    writes = [k if isinstance(k, str) or len(k) > 1 else k[0] for k in policy.out_keys]
+    if action_key not in writes:
+        raise KeyError(
+            f"policy: writes {writes}, not {action_key!r}; give it out_keys=[{action_key!r}]"
+        )
 
     def call(observation: torch.Tensor) -> torch.Tensor:
         td = TensorDict({observation_key: observation}, batch_size=observation.shape[:-1])

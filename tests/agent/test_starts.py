@@ -167,7 +167,10 @@ def test_run_episodes_refuses_actions_the_env_would_not_apply_as_recorded():
     from rcvae_torchrl.data import check_actions
 
     nan = TensorDict(action=torch.tensor([[0.0, float("nan")], [0.0, 0.0]]), batch_size=[2])
-    with pytest.raises(ValueError, match=r"1 of 2 actions fall outside .* by up to inf"):
+    with pytest.raises(
+        ValueError,
+        match=r"policy: expected actions inside the env.s action_spec: 1 of 2 actions are NaN",
+    ):
         check_actions(env, nan)  # (the env itself refuses to step with a NaN action)
     with pytest.raises(
         TypeError, match=r"^policy: expected actions of the env's action_spec dtype torch.float32"

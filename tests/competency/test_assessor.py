@@ -458,6 +458,9 @@ def test_a_policy_reading_the_real_envs_entries_is_named(env):
     )
     with pytest.raises(KeyError, match=r"policy: reads \['cos', 'sin'\], but in imagination"):
         make_assessor(env).assess(torch.zeros(2, S), policy=policy)
+    writes_act = TensorDictModule(lambda s: s[..., :A], in_keys=["observation"], out_keys=["act"])
+    with pytest.raises(KeyError, match=r"policy: writes \['act'\], not 'action'; give it out_k"):
+        make_assessor(env).assess(torch.zeros(2, S), policy=writes_act)
 
 
 def test_argument_errors(env):

@@ -291,6 +291,19 @@ def test_collection_refuses_actions_out_of_the_spec_and_too_few_frames(num_envs)
         r"rcvae_torchrl.data.prepare_env\(env, observation_keys",
     ):
         collect_episodes(make_env, reads_position, 1, **args)
+    writes_act = TensorDictModule(_Constant(0.0), in_keys=["observation"], out_keys=["act"])
+    with pytest.raises(KeyError, match=r"policy: writes \['act'\], not the env's action 'action'"):
+        collect_episodes(make_env, writes_act, 1, **args)
+    with pytest.raises(
+        TypeError,
+        match=r"^make_env: expected a function that makes the env .*"
+        r"got the env TransformedEnv",
+    ):
+        collect_episodes(make_env(), make_exploration_policy(_Constant(0.0)), 1, **args)
+    for name, bad in (("num_episodes", 2.5), ("frames_per_batch", 0), ("max_frames", "10")):
+        counts = {"num_episodes": 1, **args, name: bad}
+        with pytest.raises(ValueError, match=rf"^{name}: expected a positive integer"):
+            collect_episodes(make_env, make_exploration_policy(_Constant(0.0)), **counts)
     with pytest.raises(
         ValueError,
         match=r"^max_frames: 20 frames were collected and only 0 of the 1 episodes asked for ended",

@@ -99,6 +99,13 @@ def test_reset_inputs(make_env, starts):
         env.reset(
             TensorDict({"observation": starts[:2], "member": torch.tensor([0, 7])}, batch_size=[2])
         )
+    with pytest.raises(
+        ValueError,
+        match=r"tensordict\['observation'\]: expected shape \[\*B, S=14\] with \[\*B\] the "
+        r"tensordict's batch_size \[\], got \(3, 14\); build it with TensorDict\(\{\.\.\.\}, "
+        r"batch_size=\[3\]\)",
+    ):
+        env.reset(TensorDict({"observation": starts[:3]}))  # no batch_size: tensordict's []
 
 
 def test_task_functions_with_wrong_outputs(ensemble, starts):
