@@ -119,8 +119,9 @@ class CompetencyAssessor(KeyedModule):
         >>> report = assessor.assess(torch.zeros(2, 3), actions=torch.zeros(10, 1))
         >>> report.data["competency", "p_success"].shape, report.data["uncertainty", "total"].shape
         (torch.Size([2]), torch.Size([2, 10, 3]))
+        >>> # an untrained model has no self-checks: its summary opens with a warning
         >>> print(report.summary(index=0))  # doctest: +ELLIPSIS
-        P(success within 1 s) = ... (95% interval ...). Most of the doubt is ... Most uncertain: ...
+        Warning: the world model has no self-checks ... P(success within 1 s) = ... (95% ...
     """
 
     @dataclass
@@ -311,11 +312,16 @@ class CompetencyAssessor(KeyedModule):
     @property
     def model_warning(self) -> str:
         """Why the world model is not trustworthy: the message of its failed self-checks
-        (``ensemble.checks``, set by training), '' when it passed them or has none."""
+        (``ensemble.checks``, set by training), or that it has none; '' when it passed them."""
         checks = getattr(self.model_env.ensemble, "checks", None)
-        if checks is None or checks.passed:
-            return ""
-        return checks.message()
+        if checks is None:
+            return (
+                "the world model has no self-checks (trained with checks=False, or not trained "
+                "here), so nothing shows it learned what this forecast needs; check it on "
+                "held-out episodes: ensemble.checks = "
+                "rcvae_torchrl.training.check_model(ensemble, held_out_episodes)"
+            )
+        return "" if checks.passed else checks.message()
 
     # ----------------------------------------------------------------- one chunk
     def _assess_chunk(

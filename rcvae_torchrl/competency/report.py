@@ -82,7 +82,8 @@ class CompetencyReport:
     **Summary rules** (:meth:`summary`), one paragraph per start state:
 
     1. When the world model failed its self-checks (``model_warning``), the paragraph opens
-       with a warning naming the dimensions it has not learned: such a forecast is never
+       with a warning naming the dimensions it has not learned; when it has none (trained
+       with ``checks=False``, or not trained), a warning saying so: such a forecast is never
        presented as trustworthy.
     2. ``P(success within L) = p (c% interval low–high).`` (``P(no failure for L)`` for a
        survival boundary) L = min(time limit, T) steps, in
@@ -143,7 +144,7 @@ class CompetencyReport:
 
     @property
     def trustworthy(self) -> bool:
-        """False when the world model failed its self-checks."""
+        """False when the world model failed its self-checks or has none."""
         return not self.model_warning
 
     def mean_bits(self, per_live_step: bool = False) -> tuple[float, float]:
@@ -316,12 +317,13 @@ def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:
 
 
 def _unreliable_split_sentence(aleatoric: float, epistemic: float, total: float) -> str:
-    """The bits without a cause: a model that failed its self-checks may call missing knowledge
-    chance (an unlearned dimension spread by its noise) or hide it (an overconfident one)."""
+    """The bits without a cause: a model that failed its self-checks (or has none) may call
+    missing knowledge chance (an unlearned dimension spread by its noise) or hide it (an
+    overconfident one)."""
     return (
         f"Uncertainty: {aleatoric:.2f} bits aleatoric and {epistemic:.2f} epistemic of "
-        f"{total:.2f}; with the model's failed self-checks this split does not say whether "
-        "more data would help."
+        f"{total:.2f}; with the model's self-checks failed or missing this split does not say "
+        "whether more data would help."
     )
 
 

@@ -31,14 +31,25 @@ CONFIG = RCVAEConfig(S, A, hidden_dim=16, latent_dim=4, mlp_dim=16, passthrough_
 DT = 0.05
 
 
+class Passed:
+    """Self-checks a model passed: these tests are of the report, not of a trained model."""
+
+    passed = True
+
+    def message(self) -> str:
+        return ""
+
+
 def make_ensemble(seed: int = 0) -> RCVAEEnsemble:
-    """A tiny untrained ensemble with a normaliser fitted on random Pusher-scale data."""
+    """A tiny untrained ensemble with a normaliser fitted on random Pusher-scale data, marked
+    as having passed its self-checks."""
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
     model = RCVAEEnsemble(CONFIG, ensemble_size=E)
     obs = torch.randn(200, S, generator=gen) * 0.1
     actions = torch.rand(200, A, generator=gen) * 2 - 1
     model.fit_normalizer(obs, actions, next_observations=obs + 0.01 * torch.randn_like(obs))
+    model.checks = Passed()
     return model
 
 
@@ -372,8 +383,18 @@ def test_a_model_that_failed_its_checks_is_flagged_in_every_summary(env, starts,
         # its aleatoric / epistemic split is no evidence: no cause is given for the doubt
         assert "this split does not say whether more data would help" in text
         assert "Most of the doubt" not in text and "by an error they all make" not in text
-    env.ensemble.checks = None
+    env.ensemble.checks = Passed()
     assert make_assessor(env).assess(starts, actions=plan, generator=seeded()).trustworthy
+
+
+def test_a_model_without_self_checks_is_never_presented_as_trustworthy(env, starts, plan):
+    env.ensemble.checks = None  # trained with checks=False, or not trained
+    report = make_assessor(env).assess(starts, actions=plan, generator=seeded())
+    assert not report.trustworthy
+    text = report.summary(index=0)
+    assert text.startswith("Warning: the world model has no self-checks (trained with checks=Fa")
+    assert "ensemble.checks = rcvae_torchrl.training.check_model(ensemble, held_out" in text
+    assert "with the model's self-checks failed or missing this split does not say" in text
 
 
 def replace_top_k(report: CompetencyReport, top_k: int) -> CompetencyReport:
