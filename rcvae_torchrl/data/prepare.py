@@ -75,6 +75,10 @@ class ObservationLayout:
         return list(range(start, start + self.sizes[self.keys.index(key)]))
 
 
+def _type_name(value: object) -> str:
+    return f"the class {value.__name__}" if isinstance(value, type) else type(value).__name__
+
+
 def _name(key: NestedKey) -> str:
     return key if isinstance(key, str) else ".".join(key)
 
@@ -84,8 +88,14 @@ def _floating_entries(env: EnvBase) -> list[NestedKey]:
     return [
         key
         for key in spec.keys(True, True)
-        if spec[key].dtype.is_floating_point and len(spec[key].shape) - len(env.batch_size) <= 1
+        if _is_floating(spec[key]) and len(spec[key].shape) - len(env.batch_size) <= 1
     ]
+
+
+def _is_floating(spec: object) -> bool:
+    """A floating tensor entry (a non-tensor entry's spec has no dtype)."""
+    dtype = getattr(spec, "dtype", None)
+    return dtype is not None and dtype.is_floating_point
 
 
 def prepare_env(
@@ -116,8 +126,19 @@ def prepare_env(
         KeyError: a named entry the env does not have.
         ValueError: an entry that is not floating point or has more than one dimension.
     """
+    if not isinstance(env, EnvBase):
+        raise TypeError(f"env: expected a TorchRL env (an EnvBase), got {_type_name(env)}")
+    if isinstance(observation_keys, str):
+        raise TypeError(
+            f"observation_keys: expected a list of keys, e.g. [{observation_keys!r}], got the "
+            f"string {observation_keys!r}"
+        )
+    if not isinstance(keep_keys, bool):
+        raise TypeError(f"keep_keys: expected True or False, got {keep_keys!r}")
     spec = env.observation_spec
     keys = list(observation_keys) if observation_keys is not None else None
+    if keys is not None and len(set(keys)) != len(keys):
+        raise ValueError(f"observation_keys: expected each key once, got {keys}")
     if keys is None:
         keys = [OBSERVATION_KEY] if OBSERVATION_KEY in spec.keys() else _floating_entries(env)
     if not keys:
@@ -133,10 +154,11 @@ def prepare_env(
                 f"{sorted(map(_name, spec.keys(True, True)))})"
             )
         shape = spec[key].shape[len(env.batch_size) :]
-        if not spec[key].dtype.is_floating_point or len(shape) > 1:
+        if not _is_floating(spec[key]) or len(shape) > 1:
             raise ValueError(
                 f"observation_keys: {key!r} must be a floating vector or scalar, got dtype "
-                f"{spec[key].dtype} and shape {tuple(shape)}"
+                f"{getattr(spec[key], 'dtype', None)} ({type(spec[key]).__name__}) and shape "
+                f"{tuple(shape)}"
             )
         sizes.append(int(shape.numel()))
         if len(shape) == 0:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
-from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.data import Bounded, Composite, NonTensor, Unbounded
 from torchrl.envs import DMControlEnv, EnvBase, PendulumEnv
 from torchrl.envs.utils import check_env_specs
 
@@ -102,6 +102,27 @@ def test_bad_keys_are_clear_errors(reacher):
         prepare_env(reacher, ["pos"])
     with pytest.raises(KeyError, match="key: expected one of"):
         ObservationLayout(("a",), (2,)).indices("b")
+    with pytest.raises(TypeError, match=r"observation_keys: expected a list of keys, e.g. \['x'\]"):
+        prepare_env(_ScalarEnv(), "x")  # not the keys 'x' character by character
+    with pytest.raises(
+        ValueError, match=r"observation_keys: expected each key once, got \['x', 'x'\]"
+    ):
+        prepare_env(_ScalarEnv(), ["x", "x"])
+    with pytest.raises(TypeError, match="keep_keys: expected True or False, got 'no'"):
+        prepare_env(_ScalarEnv(), ["x"], keep_keys="no")
+    for env, given in ((None, "NoneType"), (_ScalarEnv, "the class _ScalarEnv")):
+        with pytest.raises(TypeError, match=f"env: expected a TorchRL env .*, got {given}"):
+            prepare_env(env)
+
+
+def test_entries_that_are_not_tensors_are_left_out_or_named():
+    env = _ScalarEnv()
+    env.observation_spec = Composite(x=Unbounded(()), v=Unbounded((2,)), note=NonTensor(shape=()))
+    assert prepare_env(env)[1].keys == ("x", "v")  # by default: only floating tensors
+    with pytest.raises(
+        ValueError, match=r"'note' must be a floating .* got dtype None \(NonTensor"
+    ):
+        prepare_env(env, ["x", "note"])
 
 
 def test_the_model_env_names_the_fix_for_a_raw_dm_control_env(reacher):
