@@ -23,6 +23,17 @@ __all__ = ["EpisodeStats", "ResetToState", "run_episodes", "seed_episodes"]
 ResetToState = Callable[[EnvBase, Any], TensorDictBase]
 
 
+def reset_to(reset_to_state: ResetToState, env: EnvBase, state: Any) -> TensorDictBase:
+    """``reset_to_state(env, state)``, checked: it must give the env's reset tensordict."""
+    td = reset_to_state(env, state)
+    if not isinstance(td, TensorDictBase):
+        raise TypeError(
+            "reset_to_state: expected the env's reset TensorDict (e.g. what "
+            f"env.reset(td, set_state=True) returns), got {type(td).__name__}"
+        )
+    return td
+
+
 @dataclass
 class EpisodeStats:
     """Outcomes of episodes run by :func:`run_episodes`."""
@@ -100,7 +111,7 @@ def run_episodes(
     wins, steps, parts = [], [], []
     for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
         seed_env(env, int(seed))
-        td = env.reset() if starts is None else reset_to_state(env, starts[i])
+        td = env.reset() if starts is None else reset_to(reset_to_state, env, starts[i])
         if hasattr(type(policy), "reset"):  # a planner's warm start (not an env's reset)
             policy.reset()
         episode = _rollout(env, policy, max_steps, td, break_when_any_done=True)
@@ -260,7 +271,7 @@ def _batched_episodes(
 
     def start(env: EnvBase, group: list[int], rows: torch.Tensor) -> TensorDictBase:
         seed_episodes(env, group)
-        return env.reset() if starts is None else reset_to_state(env, starts[rows])
+        return env.reset() if starts is None else reset_to(reset_to_state, env, starts[rows])
 
     wins, steps, parts = [], [], []
     groups = episode_groups(

@@ -28,7 +28,7 @@ from torchrl.envs import EnvBase
 
 from rcvae_torchrl.data import seed_env
 
-from .episodes import ResetToState, seed_episodes
+from .episodes import ResetToState, reset_to, seed_episodes
 
 __all__ = [
     "MODEL_FIELDS",
@@ -182,4 +182,4 @@ def start_episodes(
     ``reset_to_state(env, starts)``.
     """
     seed_episodes(env, seeds)
-    return reset_to_state(env, starts)
+    return reset_to(reset_to_state, env, starts)

@@ -20,7 +20,7 @@ from torchrl.envs import EnvBase
 from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
-from rcvae_torchrl._checks import check_non_negative_int, check_positive_int
+from rcvae_torchrl._checks import check_finite, check_non_negative_int, check_positive_int
 from rcvae_torchrl.competency import validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.threads import threads_kept
@@ -119,6 +119,10 @@ def real_outcomes(
     check_non_negative_int("seed", seed)
     if len(starts) == 0:
         raise ValueError("starts: expected at least one start state, got none")
+    leaves = starts.values(True, True) if isinstance(starts, TensorDictBase) else [starts]
+    for leaf in leaves:
+        if isinstance(leaf, torch.Tensor):
+            check_finite("starts", leaf)
     if workers > 1 and (isinstance(env, EnvBase) or not callable(env)):
         raise ValueError(
             f"env: with workers={workers}, expected a function that makes the env (each worker "
@@ -275,4 +279,10 @@ def score_forecast(
     """:func:`~rcvae_torchrl.competency.validate_forecasts` of forecasts ``[B]`` against the
     real outcomes (per-start error and rank correlation, AUROC, Brier over episodes and its
     skill against ``base_rate``, ECE)."""
+    if not isinstance(outcomes, RealOutcomes):
+        raise TypeError(
+            f"outcomes: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"
+            "; for a bool [B, R] tensor of outcomes use rcvae_torchrl.competency."
+            "validate_forecasts"
+        )
     return validate_forecasts(forecast.cpu(), outcomes.success, base_rate=base_rate)

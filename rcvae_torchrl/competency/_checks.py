@@ -16,6 +16,7 @@ from rcvae_torchrl._checks import (  # noqa: F401  (re-exported for the competen
     as_tensor,
     check_bool,
     check_choice,
+    check_dtype,
     check_finite,
     check_floating,
     check_min_rank,

@@ -402,6 +402,7 @@ class CompetencyAssessor(KeyedModule):
                 f"got {tuple(start.shape)}"
             )
         _checks.check_floating(name, start)
+        _checks.check_dtype(name, start, self.model_env.ensemble.dtype)
         bad = ~torch.isfinite(start.reshape(-1, obs_dim)).all(dim=-1)
         if bool(bad.any()):
             raise ValueError(

@@ -115,9 +115,25 @@ def load_ensemble(
         CheckpointError: missing, corrupt or truncated file; another kind of file; an unknown
             format version; a config or weights that do not match.
     """
+    device = _device(map_location)
     payload = read_checkpoint(path)
     ensemble = ensemble_from_payload(payload, str(path), expected_config, functions)
-    return ensemble.to(map_location)
+    return ensemble.to(device)
+
+
+def _device(map_location: object) -> torch.device:
+    """``map_location`` as a device this machine has."""
+    try:
+        device = torch.device(map_location)  # type: ignore[arg-type]
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(
+            f"map_location: expected a device (e.g. 'cpu' or 'cuda:0'), got {map_location!r}"
+        ) from err
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(
+            f"map_location: {map_location!r} asked for, but CUDA is not available here"
+        )
+    return device
 
 
 def ensemble_from_payload(

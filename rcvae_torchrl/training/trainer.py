@@ -40,7 +40,13 @@ from rcvae_torchrl._checks import (
     check_positive_int,
     check_trailing,
 )
-from rcvae_torchrl.data import make_window_buffer, resample_episodes, sample_windows
+from rcvae_torchrl.data import (
+    TRAJ_KEY,
+    episode_spans,
+    make_window_buffer,
+    resample_episodes,
+    sample_windows,
+)
 from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.loggers import log_scalars
 from rcvae_torchrl.models import RCVAEEnsemble
@@ -255,7 +261,7 @@ def train_ensemble(
     if not isinstance(config, TrainConfig):
         raise TypeError(f"config: expected a TrainConfig, got {type(config).__name__}")
     for name, data in (("train_data", train_data), ("val_data", val_data)):
-        _check_episodes(ensemble, data, name)
+        _check_episodes(ensemble, data, name, config.window)
     torch.manual_seed(config.seed)
     if not ensemble.normalizer.fitted:
         ensemble.fit_normalizer(
@@ -322,9 +328,10 @@ def _stopped_early_hint(found: ModelChecks, stop_step: torch.Tensor, config: Tra
     )
 
 
-def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str = "data") -> None:
+def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str, window: int) -> None:
     """Require flat episodes ``[frames]`` that ``ensemble`` can learn from, all of them checked
-    before any is used: ``"observation"`` ``[frames, S]``, ``"action"`` ``[frames, A]`` and
+    before any is used: episode ids (:data:`TRAJ_KEY`) and an episode of at least ``window``
+    steps, ``"observation"`` ``[frames, S]``, ``"action"`` ``[frames, A]`` and
     ``("next", "observation")`` ``[frames, S]`` in the model's dtype, every entry finite (a NaN
     that no sampled window happens to hold would otherwise pass, and a NaN in the normaliser's
     statistics spoils every prediction). Errors name ``name`` and the entry."""
@@ -348,9 +355,24 @@ def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str = "data") -
         if x is None:
             keys = sorted(map(str, data.keys(True, True)))
             raise ValueError(f"{name}: expected an entry {key!r}, got the entries {keys}")
+        if x.dim() != 2:  # the TensorDict holds [frames] first: the rest must be [size]
+            raise ValueError(
+                f"{label}: expected shape [frames, {axis}={size}], got {tuple(x.shape)}"
+            )
         check_trailing(label, x, (size,), f"[frames, {axis}={size}]")
         check_dtype(label, x, ensemble.dtype)
         check_finite(label, x)
+    if TRAJ_KEY not in data.keys(True):
+        raise ValueError(
+            f"{name}: expected episode ids under {TRAJ_KEY} (collect_episodes writes them), got "
+            f"the entries {sorted(map(str, data.keys(True, True)))}"
+        )
+    longest = int(episode_spans(data)[1].max())
+    if longest < window:
+        raise ValueError(
+            f"{name}: expected an episode of at least TrainConfig.window = {window} steps, got "
+            f"episodes of at most {longest}; collect longer episodes or shorten the window"
+        )
 
 
 def _replicas(config: TrainConfig) -> distributed.Replicas:

@@ -68,3 +68,26 @@ def test_a_tensor_policy_in_a_real_env_is_named_with_how_to_wire_it(batched):
     ):
         run_episodes(env, _TensorPolicy(), **args)
     assert run_episodes(env, make_policy_module(_TensorPolicy()), **args).steps.tolist() == [5, 5]
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_bad_starts_and_a_reset_that_returns_nothing_are_named(batched):
+    env = make_batched_pusher_env(2) if batched else make_pusher_env()
+    args = dict(runs_per_start=1, success=_never, max_steps=5, progress=False)
+    starts = pusher_starts(2)
+    starts[1, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"^starts: expected finite values, got 1 NaN"):
+        real_outcomes(env, _still, starts, reset_to_state=reset_to_state, **args)
+
+    def forgets_to_return(env, start):
+        reset_to_state(env, start)
+
+    with pytest.raises(TypeError, match=r"^reset_to_state: expected the env's reset TensorDict"):
+        real_outcomes(env, _still, pusher_starts(2), reset_to_state=forgets_to_return, **args)
+
+
+def test_a_score_of_plain_outcomes_names_the_function_for_them():
+    from rcvae_torchrl.agent import score_forecast
+
+    with pytest.raises(TypeError, match=r"outcomes: expected the RealOutcomes .*, got Tensor; .*"):
+        score_forecast(torch.full((2,), 0.5), torch.ones(2, 3, dtype=torch.bool))

@@ -542,6 +542,8 @@ def test_assess_errors(env, starts, plan):
         assessor.assess(starts[:, :5], actions=plan)
     with pytest.raises(KeyError, match="start: expected the start states"):
         assessor.assess(TensorDict({"obs": starts}, batch_size=[3]), actions=plan)
+    with pytest.raises(TypeError, match=r"^start_states: expected dtype torch.float32 \(the mo"):
+        assessor.assess(starts.double(), actions=plan)
     no_limit = make_assessor(env, boundary=boundary(time_limit=None, dt=None))
     with pytest.raises(ValueError, match="horizon: a closed-loop assessment needs a horizon"):
         no_limit.assess(starts, policy=lambda obs: torch.zeros(*obs.shape[:-1], A))

@@ -45,6 +45,13 @@ def test_missing_truncated_and_foreign_files(tmp_path, small_ensemble):
     torch.save({"weights": torch.zeros(3)}, tmp_path / "foreign.pt")
     with pytest.raises(CheckpointError, match="expected an rcvae_torchrl checkpoint"):
         load_ensemble(tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match=r"checkpoint '.*': is a directory, expected a file"):
+        load_ensemble(tmp_path)
+    with pytest.raises(ValueError, match=r"map_location: expected a device .*, got 'banana'"):
+        load_ensemble(path, map_location="banana")
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match=r"map_location: 'cuda' asked for, but CUDA is not"):
+            load_ensemble(path, map_location="cuda")
 
 
 def _edit(path, tmp_path, change):

@@ -134,3 +134,26 @@ def test_training_never_writes_over_what_is_not_a_training_checkpoint(
     _train(small_ensemble(2), train, val, checkpoint_path=run)
     again = _train(small_ensemble(2, seed=1), train, val, checkpoint_path=run)  # a new run
     assert again.steps == BUDGET.max_steps
+
+
+def test_data_of_the_wrong_rank_or_too_short_for_a_window_names_the_dataset(
+    linear_data, small_ensemble
+):
+    train, val = linear_data
+    model = small_ensemble(2)
+    extra_dim = train.clone()
+    extra_dim["observation"] = extra_dim["observation"].unsqueeze(1)
+    with pytest.raises(
+        ValueError,
+        match=r"^train_data\['observation'\]: expected shape \[frames, S=3\], got \(\d+, 1, 3\)",
+    ):
+        _train(model, extra_dim, val)
+    short = linear_episodes(4, 5, seed=2)  # 5 steps each, the window is 8
+    with pytest.raises(
+        ValueError,
+        match=r"^val_data: expected an episode of at least TrainConfig.window = 8 steps, got "
+        r"episodes of at most 5",
+    ):
+        _train(model, train, short)
+    with pytest.raises(ValueError, match=r"^train_data: expected episode ids under \('collector'"):
+        _train(model, train.exclude(TRAJ_KEY), val)
