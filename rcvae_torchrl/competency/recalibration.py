@@ -113,6 +113,11 @@ def apply_platt(forecast: Tensor, platt: PlattMap) -> Tensor:
     _checks.check_tensor("forecast", forecast)
     _checks.check_floating("forecast", forecast)
     _checks.check_probability("forecast", forecast)
+    if not isinstance(platt, PlattMap):
+        raise TypeError(
+            f"platt: expected a PlattMap (fit_platt's; PlattMap(slope, intercept)), got "
+            f"{type(platt).__name__}"
+        )
     if not (math.isfinite(platt.slope) and math.isfinite(platt.intercept)):
         raise ValueError(f"platt: expected a finite slope and intercept, got {platt}")
     z = platt.slope * _logit(forecast) + platt.intercept

@@ -10,7 +10,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from rcvae_torchrl._checks import check_bounds
+from rcvae_torchrl._checks import check_bounds, check_positive_int
 
 __all__ = [
     "GaussianExploration",
@@ -96,8 +96,8 @@ class UniformRandomPolicy(nn.Module):
         high: Bound = 1.0,
     ) -> None:
         super().__init__()
-        if hold < 1:
-            raise ValueError(f"hold: expected >= 1 steps, got {hold}")
+        check_positive_int("action_dim", action_dim)
+        check_positive_int("hold", hold)
         self.action_dim, self.hold = action_dim, hold
         self.low, self.high = _bounds(low, high)
         self.generator = torch.Generator().manual_seed(seed)

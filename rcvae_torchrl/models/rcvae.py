@@ -122,6 +122,11 @@ class RCVAEEnsemble(nn.Module):
             raise ValueError(f"ensemble_size: expected a positive int, got {ensemble_size!r}.")
         self.config = config
         self.ensemble_size = ensemble_size
+        if functions is not None and not isinstance(functions, ModelFunctions):
+            raise TypeError(
+                "functions: expected a ModelFunctions (its state constraints and input features "
+                f"by name) or None, got {type(functions).__name__}"
+            )
         self.functions = functions if functions is not None else ModelFunctions()
         self.state_constraint = self.functions.state_constraint(config.state_constraint)
         features = self.functions.features(config.input_features)

@@ -405,6 +405,17 @@ class OutcomeCheck:
     #: what was forecast, for the message (e.g. "the agent from held-out episodes' starts")
     what: str = "the forecasts"
 
+    def __post_init__(self) -> None:
+        for name in ("forecast", "real"):
+            _checks.check_tensor(name, getattr(self, name))
+            _checks.check_rank(name, getattr(self, name), 1, "[n]")
+        if self.real.shape != self.forecast.shape:
+            raise ValueError(
+                f"real: expected one success rate per forecast ({self.forecast.shape[0]}), got "
+                f"{self.real.shape[0]}"
+            )
+        check_positive_int("runs", self.runs)
+
     @classmethod
     def from_outcomes(
         cls,

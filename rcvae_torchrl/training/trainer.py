@@ -39,6 +39,7 @@ from rcvae_torchrl._checks import (
     check_positive,
     check_positive_int,
     check_trailing,
+    check_unit_interval,
 )
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -138,11 +139,7 @@ class TrainConfig:
     compile: bool = False
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.episode_start_fraction <= 1.0:
-            raise ValueError(
-                "episode_start_fraction: expected a value in [0, 1], got "
-                f"{self.episode_start_fraction!r}"
-            )
+        check_unit_interval("episode_start_fraction", self.episode_start_fraction)
         for name in ("max_steps", "batch_windows", "val_every", "val_windows", "patience"):
             check_positive_int(name, getattr(self, name))
         check_positive_int("window", self.window)
@@ -150,15 +147,11 @@ class TrainConfig:
             raise ValueError(f"window: expected >= 2 steps, got {self.window}")
         check_positive("lr", self.lr)
         check_positive("grad_clip", self.grad_clip)
-        if not 0 < self.lr_final_fraction <= 1:
-            raise ValueError(
-                f"lr_final_fraction: expected a value in (0, 1], got {self.lr_final_fraction}"
-            )
+        check_unit_interval("lr_final_fraction", self.lr_final_fraction, include_zero=False)
         check_positive("beta", self.beta)
         check_non_negative("free_nats", self.free_nats)
         check_non_negative_int("open_loop_steps", self.open_loop_steps)
-        if not 0.0 <= self.nll_beta <= 1.0:
-            raise ValueError(f"nll_beta: expected a value in [0, 1], got {self.nll_beta!r}")
+        check_unit_interval("nll_beta", self.nll_beta)
         for name in ("bootstrap", "compile"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
@@ -253,6 +246,8 @@ def train_ensemble(
             one-step and open-loop errors against copying the previous state and against the
             data's spread; a warning names every dimension the model has not learned.
     """
+    if not isinstance(ensemble, RCVAEEnsemble):
+        raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
     path = Path(checkpoint_path) if checkpoint_path is not None else None
     if resume and path is None:
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")

@@ -100,6 +100,11 @@ def test_bad_arguments_are_named(kwargs, match):
         cross_fitted_recalibration(f, _draw(f, 2, 9), **kwargs)
 
 
+def test_a_map_must_be_a_platt_map():
+    with pytest.raises(TypeError, match=r"^platt: expected a PlattMap .*, got tuple"):
+        apply_platt(torch.tensor([0.5]), (1.0, 0.0))
+
+
 def test_outcomes_must_be_episodes():
     with pytest.raises(TypeError, match="outcome: expected bool"):
         fit_platt(torch.tensor([0.5, 0.5]), torch.ones(2, 3))

@@ -223,6 +223,9 @@ def test_exploration_respects_the_action_bounds():
     assert torch.equal(bounds[0], -torch.ones(2)) and torch.equal(bounds[1], torch.ones(2))
     with pytest.raises(ValueError, match="low, high: expected finite bounds with low <= high"):
         UniformRandomPolicy(2, low=1.0, high=-1.0)
+    for args, name in (((0,), "action_dim"), ((2, 0), "hold"), ((2.0,), "action_dim")):
+        with pytest.raises(ValueError, match=rf"^{name}: expected a positive integer"):
+            UniformRandomPolicy(*args)
 
 
 def _pendulum():

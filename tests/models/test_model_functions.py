@@ -101,6 +101,8 @@ def test_unknown_or_bad_functions_are_clear_errors():
         ModelFunctions(input_features={"bad": (3, 2)})
     with pytest.raises(ValueError, match=r"input_features\['bad'\].dim: expected an int >= 1"):
         ModelFunctions(input_features={"bad": (_norm_and_square, 0)})
+    with pytest.raises(TypeError, match=r"^functions: expected a ModelFunctions .*, got dict"):
+        RCVAEEnsemble(_config(), 2, functions={"state_constraints": {}})
     model = RCVAEEnsemble(_config(input_features="norm_square"), 2, functions=FUNCTIONS)
     with pytest.raises(ValueError, match=r"features: expected \[\.\.\., F=2\]"):
         model.normalizer.fit(torch.randn(4, 50, 3))

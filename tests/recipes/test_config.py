@@ -209,7 +209,7 @@ def test_the_schema_is_the_base_of_every_profile():
         ("train.beta=0", r"^train\.beta: expected a positive number, got 0"),
         ("train.free_nats=-2", r"^train\.free_nats: expected a finite number >= 0, got -2"),
         ("train.open_loop_steps=-3", r"^train\.open_loop_steps: expected an integer >= 0"),
-        ("train.nll_beta=2", r"^train\.nll_beta: expected a value in \[0, 1\]"),
+        ("train.nll_beta=2", r"^train\.nll_beta: expected a float in \[0, 1\]"),
         ("assess.horizon_s=-5", r"^assess\.horizon_s: expected a positive whole number"),
         ("assess.real_workers=0", r"^assess\.real_workers: expected an integer >= 1, got 0"),
         ("data.time_limit=inf", r"^data\.time_limit: expected a positive whole number"),
@@ -233,7 +233,7 @@ def test_the_schema_is_the_base_of_every_profile():
         ("model.episode_latent_dim=-1", r"^model\.episode_latent_dim: expected an integer >= 0"),
         (
             "train.episode_start_fraction=1.5",
-            r"^train\.episode_start_fraction: expected a value in \[0, 1\]",
+            r"^train\.episode_start_fraction: expected a float in \[0, 1\]",
         ),
     ],
 )

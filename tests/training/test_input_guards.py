@@ -157,3 +157,14 @@ def test_data_of_the_wrong_rank_or_too_short_for_a_window_names_the_dataset(
         _train(model, train, short)
     with pytest.raises(ValueError, match=r"^train_data: expected episode ids under \('collector'"):
         _train(model, train.exclude(TRAJ_KEY), val)
+
+
+def test_a_model_that_is_not_an_ensemble_is_named(linear_data):
+    with pytest.raises(TypeError, match=r"^ensemble: expected an RCVAEEnsemble, got NoneType"):
+        _train(None, *linear_data)
+
+
+def test_fractions_that_are_not_numbers_are_named():
+    for name, bad in (("episode_start_fraction", "a"), ("lr_final_fraction", None)):
+        with pytest.raises(TypeError, match=rf"^{name}: expected a float in .*, got {bad!r}"):
+            TrainConfig(**{name: bad})

@@ -220,3 +220,15 @@ def test_rare_successes_forecast_right_are_no_bias():
     won = torch.zeros(12, 20, dtype=torch.bool)
     won[:5, 0] = True
     assert OutcomeCheck.from_outcomes(zero, won).exact_p_value < 0.001
+
+
+def test_a_check_built_by_hand_names_what_does_not_fit():
+    forecast = torch.full((4,), 0.5, dtype=torch.float64)
+    with pytest.raises(
+        ValueError, match=r"^real: expected one success rate per forecast \(4\), got 3"
+    ):
+        OutcomeCheck(forecast, forecast[:3], runs=2)
+    with pytest.raises(ValueError, match=r"^runs: expected a positive integer, got 0"):
+        OutcomeCheck(forecast, forecast, runs=0)
+    with pytest.raises(TypeError, match=r"^forecast: expected a torch.Tensor, got list"):
+        OutcomeCheck([0.5], forecast[:1], runs=1)

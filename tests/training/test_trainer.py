@@ -56,7 +56,7 @@ def test_windows_from_episode_starts_change_the_training(linear_data, small_ense
     c = train_ensemble(small_ensemble(seed=1), train, val, CONFIG, progress=False).ensemble
     assert all(torch.equal(x, y) for x, y in zip(a.parameters(), b.parameters()))
     assert not all(torch.equal(x, y) for x, y in zip(a.parameters(), c.parameters()))
-    with pytest.raises(ValueError, match=r"episode_start_fraction: expected a value in \[0, 1\]"):
+    with pytest.raises(ValueError, match=r"episode_start_fraction: expected a float in \[0, 1\]"):
         TrainConfig(episode_start_fraction=1.5)
 
 
@@ -140,7 +140,7 @@ def test_cosine_learning_rate_schedule():
     assert all(a >= b for a, b in itertools.pairwise(rates))
     constant = TrainConfig(max_steps=100, lr=2e-3)
     assert {constant.lr_at(s) for s in (0, 37, 100)} == {2e-3}
-    with pytest.raises(ValueError, match=r"lr_final_fraction: expected a value in \(0, 1\]"):
+    with pytest.raises(ValueError, match=r"lr_final_fraction: expected a float in \(0, 1\]"):
         TrainConfig(lr_final_fraction=0.0)
 
 
