@@ -84,6 +84,13 @@ class RCVAEConfig:
             )
         if self.latent_min_std < 0:
             raise ValueError(f"RCVAEConfig.latent_min_std must be >= 0, got {self.latent_min_std}.")
+        for name in ("state_constraint", "input_features"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, str):
+                raise TypeError(
+                    f"RCVAEConfig.{name} must be the name of a function (a str, looked up in the "
+                    f"ensemble's ModelFunctions) or None, got {value!r}."
+                )
         dims = self.passthrough_dims
         if isinstance(dims, (str, bytes)) or not isinstance(dims, Sequence):
             raise TypeError(

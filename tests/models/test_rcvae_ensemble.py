@@ -36,6 +36,8 @@ def test_config_errors(kwargs, match):
         ({"passthrough_dims": (1.7,)}, TypeError, r"passthrough_dims must hold ints, got \(1.7,\)"),
         ({"passthrough_dims": "12"}, TypeError, "passthrough_dims must be a sequence of ints"),
         ({"observation_names": "abc"}, TypeError, "observation_names must be a sequence of str"),
+        ({"state_constraint": 3}, TypeError, r"state_constraint must be the name of a function"),
+        ({"input_features": len}, TypeError, r"input_features must be the name of a function"),
     ],
 )
 def test_config_values_are_taken_as_given_or_refused(kwargs, error, match):
