@@ -21,7 +21,7 @@ from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_finite, check_non_negative_int, check_positive_int
-from rcvae_torchrl.competency import validate_forecasts
+from rcvae_torchrl.competency import SuccessBoundary, validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.threads import threads_kept
 
@@ -119,6 +119,7 @@ def real_outcomes(
     check_non_negative_int("seed", seed)
     if len(starts) == 0:
         raise ValueError("starts: expected at least one start state, got none")
+    _check_steps_cover_the_boundary(success, max_steps)
     leaves = starts.values(True, True) if isinstance(starts, TensorDictBase) else [starts]
     for leaf in leaves:
         if isinstance(leaf, torch.Tensor):
@@ -271,6 +272,20 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
         values = torch.full((episode.shape[0], max_steps), float("nan"))
         values[:, :steps_run] = per_step.masked_fill(ended, float("nan"))
     return RealOutcomes(hit, first, steps, values)
+
+
+def _check_steps_cover_the_boundary(success: object, max_steps: int) -> None:
+    """Where ``success`` is a :class:`~rcvae_torchrl.competency.SuccessBoundary`'s method, the
+    episodes must run to its time limit: a survival judged on fewer steps is never one."""
+    boundary = getattr(success, "__self__", None)
+    if not isinstance(boundary, SuccessBoundary) or boundary.time_limit is None:
+        return
+    if max_steps < boundary.time_limit:
+        raise ValueError(
+            f"max_steps: expected at least the boundary's time_limit ({boundary.time_limit} "
+            f"steps), got {max_steps}: the episodes would stop before the boundary can judge "
+            "them (a survival would never be one)"
+        )
 
 
 def score_forecast(

@@ -17,8 +17,10 @@ ranks share out the members instead, and the ranks of a group share every step's
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -211,7 +213,7 @@ def train_ensemble(
     logger: Logger | None = None,
     log_prefix: str = "",
     progress: bool = True,
-    checks: bool = True,
+    checks: bool | Mapping[str, Any] = True,
 ) -> TrainResult:
     """Train ``ensemble`` on episodes (flat TensorDicts ``[frames]`` from ``collect_episodes``).
 
@@ -244,19 +246,26 @@ def train_ensemble(
         checks: run the model's self-checks on ``val_data`` after training
             (:func:`~rcvae_torchrl.training.check_model`): per state dimension, held-out
             one-step and open-loop errors against copying the previous state and against the
-            data's spread; a warning names every dimension the model has not learned.
+            data's spread, and the coverage of its spread; a warning names every dimension the
+            model has not learned. A mapping runs them with these arguments of
+            ``check_model`` (e.g. ``{"coverage_steps": 5}``: a system that an open-loop
+            drive sends off its course within the default 20 steps, such as an inverted
+            pendulum, is checked nearer).
     """
     if not isinstance(ensemble, RCVAEEnsemble):
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
     path = Path(checkpoint_path) if checkpoint_path is not None else None
     if resume and path is None:
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")
+    check_args = _check_args(checks)
     if path is not None:
         _check_checkpoint_path(path, resume)
     if not isinstance(config, TrainConfig):
         raise TypeError(f"config: expected a TrainConfig, got {type(config).__name__}")
     for name, data in (("train_data", train_data), ("val_data", val_data)):
         _check_episodes(ensemble, data, name, config.window)
+        if distributed.is_main():
+            _warn_short_episodes(data, name, config.window)
     torch.manual_seed(config.seed)
     if not ensemble.normalizer.fitted:
         ensemble.fit_normalizer(
@@ -297,15 +306,84 @@ def train_ensemble(
         state.history,
         member_steps=state.stop_step,
     )
-    if checks:
+    if distributed.is_main():
+        _warn_stuck_members(state, config)
+    if checks is not False:  # True or a mapping of check_model's arguments (even empty)
         found = None
         if distributed.is_main():
-            found = check_model(ensemble, val_data, seed=config.seed, warn=False)
+            found = check_model(
+                ensemble, val_data, **{"seed": config.seed, **check_args, "warn": False}
+            )
             if not found.passed:
                 message = found.message() + _stopped_early_hint(found, state.stop_step, config)
                 warnings.warn(message, ModelCheckWarning, stacklevel=2)
         result.checks = ensemble.checks = distributed.broadcast(found)
     return result
+
+
+def _check_args(checks: object) -> dict[str, Any]:
+    """``train_ensemble``'s ``checks`` as arguments of ``check_model`` (none for a bool)."""
+    if isinstance(checks, bool):
+        return {}
+    if not isinstance(checks, Mapping):
+        raise TypeError(
+            f"checks: expected True, False or a mapping of check_model's arguments, got "
+            f"{type(checks).__name__}"
+        )
+    known = set(inspect.signature(check_model).parameters) - {"ensemble", "data", "warn"}
+    unknown = sorted(set(checks) - known)
+    if unknown:
+        raise TypeError(f"checks: unknown check_model arguments {unknown} (known: {sorted(known)})")
+    return dict(checks)
+
+
+def _warn_short_episodes(data: TensorDictBase, name: str, window: int) -> None:
+    """Warn that episodes shorter than ``window`` are never drawn (a window never crosses an
+    episode's end), and how many of them the env ended (``("next", "terminated")``): quick
+    failures or successes whose endings the model then never sees."""
+    first, lengths = episode_spans(data)
+    short = lengths < window
+    if not bool(short.any()):
+        return
+    ended = ""
+    if ("next", "terminated") in data.keys(True):
+        last = data.get(("next", "terminated"))[first + lengths - 1]
+        terminated = last.reshape(lengths.shape[0], -1).any(-1)
+        ended = (
+            f"; {int((terminated & short).sum())} of them (of the {int(terminated.sum())} "
+            "episodes the env terminated) end in a termination the model then never sees"
+        )
+    warnings.warn(
+        f"{name}: {int(short.sum())} of {lengths.numel()} episodes ({int(lengths[short].sum())} "
+        f"frames) are shorter than the window (TrainConfig.window = {window} steps) and are "
+        f"never drawn{ended}; a shorter window, or episodes that last at least as long, let "
+        "the model learn from them",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
+def _warn_stuck_members(state: _State, config: TrainConfig) -> None:
+    """Warn about members that kept their first validation's weights: their validation loss
+    never improved after it, so early stopping ended them before they trained."""
+    if not state.history:
+        return
+    first = torch.tensor(state.history[0]["val_loss_member"], dtype=state.best_val.dtype)
+    stuck = ((state.best_val == first) & (state.stop_step < config.max_steps)).nonzero()
+    if stuck.numel() == 0:
+        return
+    members = stuck.flatten().tolist()
+    warnings.warn(
+        f"train_ensemble: member(s) {members} kept the weights of their first validation "
+        f"(step {int(state.history[0]['step'])}, validation loss "
+        f"{', '.join(f'{float(first[m]):.3g}' for m in members)}; the ensemble's best "
+        f"{float(state.best_val.min()):.3g}): their validation loss never improved after it, "
+        f"and early stopping (patience={config.patience}) ended them barely trained; the "
+        "ensemble's spread and forecasts inherit them. Look at the validation loss "
+        "(log_history), lower the learning rate or raise patience",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _stopped_early_hint(found: ModelChecks, stop_step: torch.Tensor, config: TrainConfig) -> str:

@@ -91,3 +91,30 @@ def test_a_score_of_plain_outcomes_names_the_function_for_them():
 
     with pytest.raises(TypeError, match=r"outcomes: expected the RealOutcomes .*, got Tensor; .*"):
         score_forecast(torch.full((2,), 0.5), torch.ones(2, 3, dtype=torch.bool))
+
+
+def test_episodes_shorter_than_the_boundary_s_time_limit_are_refused():
+    from rcvae_torchrl.competency import SuccessBoundary
+
+    stay = SuccessBoundary.survival(_never, time_limit=20)
+    args = dict(runs_per_start=1, reset_to_state=reset_to_state, progress=False)
+    with pytest.raises(
+        ValueError, match=r"^max_steps: expected at least the boundary's time_limit"
+    ):
+        real_outcomes(
+            make_pusher_env(),
+            _still,
+            pusher_starts(2),
+            max_steps=10,
+            success=stay.success_over_time,
+            **args,
+        )
+    out = real_outcomes(
+        make_pusher_env(),
+        _still,
+        pusher_starts(2),
+        max_steps=20,
+        success=stay.success_over_time,
+        **args,
+    )
+    assert out.success.all()  # nothing fails: every episode survives its 20 steps

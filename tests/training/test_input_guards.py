@@ -168,3 +168,55 @@ def test_fractions_that_are_not_numbers_are_named():
     for name, bad in (("episode_start_fraction", "a"), ("lr_final_fraction", None)):
         with pytest.raises(TypeError, match=rf"^{name}: expected a float in .*, got {bad!r}"):
             TrainConfig(**{name: bad})
+
+
+def test_episodes_too_short_for_a_window_are_named_with_the_terminations_lost(
+    linear_data, small_ensemble
+):
+    train, val = linear_data
+    short = linear_episodes(3, 5, seed=4)  # 5 steps, the window is 8
+    short[TRAJ_KEY] = short[TRAJ_KEY] + 500
+    short["next", "terminated"] = short["next", "done"].clone()
+    short["next", "terminated"][:5] = False  # the first of them ran out, the others ended
+    long = train.clone().set(("next", "terminated"), torch.zeros_like(train["next", "done"]))
+    train = torch.cat([long, short])
+    with pytest.warns(
+        UserWarning,
+        match=r"^train_data: 3 of \d+ episodes \(15 frames\) are shorter than the window "
+        r"\(TrainConfig.window = 8 steps\) and are never drawn; 2 of them \(of the 2 episodes "
+        r"the env terminated\) end in a termination",
+    ):
+        _train(small_ensemble(2), train, val)
+
+
+def test_a_member_that_kept_its_first_validation_is_named():
+    from rcvae_torchrl.data import split_episodes
+
+    train, val = split_episodes(linear_episodes(40, 30, seed=0), 0.25, seed=0)
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=16, latent_dim=2, mlp_dim=16), 3)
+    budget = TrainConfig(
+        max_steps=40, batch_windows=4, window=8, val_every=2, val_windows=4, patience=2, lr=3.0
+    )  # a learning rate that throws the weights away at once
+    with pytest.warns(
+        UserWarning,
+        match=r"^train_ensemble: member\(s\) \[0, 2\] kept the weights of their first validation "
+        r"\(step 2, .*early stopping \(patience=2\) ended them barely trained",
+    ):
+        result = train_ensemble(model, train, val, budget, progress=False, checks=False)
+    # they stopped after patience validations without improvement on the first
+    assert result.member_steps[[0, 2]].tolist() == [6, 6] and result.member_steps[1] > 6
+
+
+def test_the_self_checks_take_check_model_s_arguments(linear_data, small_ensemble):
+    train, val = linear_data
+    result = train_ensemble(
+        small_ensemble(2), train, val, BUDGET, progress=False, checks={"coverage_steps": 5}
+    )
+    assert result.checks.coverage_steps == 5
+    default = train_ensemble(small_ensemble(2), train, val, BUDGET, progress=False, checks={})
+    assert default.checks.coverage_steps == 20
+    with pytest.raises(TypeError, match=r"^checks: unknown check_model arguments \['horizon'\]"):
+        train_ensemble(small_ensemble(2), train, val, BUDGET, progress=False, checks={"horizon": 5})
+    with pytest.raises(TypeError, match=r"^checks: expected True, False or a mapping .*, got str"):
+        train_ensemble(small_ensemble(2), train, val, BUDGET, progress=False, checks="yes")
