@@ -58,9 +58,12 @@ def physics_of(env: EnvBase):
     base = getattr(env, "base_env", env)
     physics = getattr(getattr(base, "_env", None), "physics", None)
     if physics is None:
+        inside = f" over a {type(base).__name__}" if base is not env else ""
         raise TypeError(
             f"env: expected a TorchRL env over a dm_control environment (DMControlEnv or "
-            f"DMControlWrapper, possibly transformed), got {type(env).__name__}"
+            f"DMControlWrapper, possibly transformed), got a {type(env).__name__}{inside}; "
+            "for another simulator, pass reset_to_state a function (env, start) -> the env's "
+            "reset TensorDict that sets its state"
         )
     return physics
 

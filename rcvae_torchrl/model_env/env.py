@@ -375,7 +375,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         says: the per-member layout is what the uncertainty decomposition needs. Entries: see
         :func:`~rcvae_torchrl.rollout.imagine` (with this env's task and action bounds); entry
         t is the transition s_t -> s_{t+1}, the same numbers as ``env.rollout``'s
-        ``("next", ·)`` (and ``"action"``).
+        ``("next", ·)`` (and ``"action"``), but flat: there is no ``"next"``, and
+        ``"observation"`` at t is s_{t+1} (the start states are not in the rollout).
 
         **Equivalence with ``env.rollout``.** With the same generator state, a TS-∞ rollout of
         the tensordict ``[E, N, *B]`` whose ``"member"`` is e along dim 0 (flattened in that

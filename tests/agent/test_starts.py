@@ -49,6 +49,10 @@ def test_a_reset_that_is_not_a_function_of_the_seed_is_detected(reacher):
         reset_by_seed(reacher, start)
     with pytest.raises(TypeError, match="expected a TorchRL env over a dm_control environment"):
         reset_to_physics(object(), start)
+    from torchrl.envs import PendulumEnv, StepCounter, TransformedEnv
+
+    with pytest.raises(TypeError, match=r"got a TransformedEnv over a PendulumEnv; for another"):
+        reset_to_physics(TransformedEnv(PendulumEnv(), StepCounter(5)), start)
 
 
 def test_real_outcomes_repeat_runs_with_their_own_noise():
