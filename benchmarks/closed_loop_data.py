@@ -37,7 +37,7 @@ from scipy.stats import spearmanr
 from rcvae_torchrl.data import (
     GaussianExploration,
     collect_episodes,
-    make_exploration_policy,
+    make_policy_module,
     merge_episodes,
     split_episodes,
 )
@@ -84,7 +84,7 @@ def agent_episodes(study: Study, model_name: str, episodes: int):
     behaviour = GaussianExploration(study.load_policy(), d.exploration_std, seed=AGENT_DATA_SEED)
     data = collect_episodes(
         make_env,
-        make_exploration_policy(behaviour),
+        make_policy_module(behaviour),
         episodes,
         seed=AGENT_DATA_SEED + seed,
         num_envs=4,

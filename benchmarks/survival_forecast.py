@@ -53,7 +53,7 @@ from rcvae_torchrl.data import (
     GaussianExploration,
     action_bounds,
     collect_episodes,
-    make_exploration_policy,
+    make_policy_module,
     merge_episodes,
     prepare_env,
     split_episodes,
@@ -143,7 +143,7 @@ def run(seed: int, variant: str, args) -> list[dict]:
         parts.append(
             collect_episodes(
                 lambda: make_env(noise, skip, WIDE, steps=args.episode_steps)[0],
-                make_exploration_policy(behaviour),
+                make_policy_module(behaviour),
                 args.episodes,
                 seed=seed * 10_000 + 1000 * (i + 1),
                 first_id=i * args.episodes,

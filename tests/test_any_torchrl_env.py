@@ -20,7 +20,7 @@ from rcvae_torchrl.data import (
     UniformRandomPolicy,
     action_bounds,
     collect_episodes,
-    make_exploration_policy,
+    make_policy_module,
     prepare_env,
     split_episodes,
 )
@@ -61,7 +61,7 @@ def test_the_pendulum_from_data_to_a_checked_forecast():
     check_env_specs(env)
     low, high = action_bounds(env)
     assert low.tolist() == [-2.0] and high.tolist() == [2.0]
-    explore = make_exploration_policy(UniformRandomPolicy(1, hold=3, low=low, high=high))
+    explore = make_policy_module(UniformRandomPolicy(1, hold=3, low=low, high=high))
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)  # the env's whole action range: no warning
         data = collect_episodes(_env, explore, 12, seed=0, frames_per_batch=STEPS, progress=False)

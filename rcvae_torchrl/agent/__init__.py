@@ -1,6 +1,8 @@
 """The agent: MPC over the world model, its distillation into an amortised policy, episodes
 (in this process or in worker processes)."""
 
+from rcvae_torchrl.data import make_policy_module  # one wrapper: also the agent's
+
 from .dagger import PerturbedPolicy, dagger, label_states
 from .distill import DistillConfig, distill_policy
 from .episodes import EpisodeStats, ResetToState, run_episodes, seed_episodes
@@ -12,7 +14,6 @@ from .policy import (
     MLPPolicy,
     ResidualPolicy,
     load_policy,
-    make_policy_module,
     save_policy,
 )
 from .starts import (

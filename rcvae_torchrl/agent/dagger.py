@@ -22,10 +22,11 @@ from torch import nn
 from torchrl.envs import EnvBase
 
 from rcvae_torchrl._checks import check_bounds, check_positive_int
+from rcvae_torchrl.data import make_policy_module
 
 from .distill import DistillConfig, distill_policy
 from .episodes import run_episodes
-from .policy import ResidualPolicy, make_policy_module
+from .policy import ResidualPolicy
 
 __all__ = ["PerturbedPolicy", "dagger", "label_states"]
 

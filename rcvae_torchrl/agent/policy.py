@@ -13,7 +13,6 @@ from pathlib import Path
 
 import torch
 from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModule
 from torch import nn
 
 from rcvae_torchrl._checks import check_positive_int
@@ -25,7 +24,6 @@ __all__ = [
     "MLPPolicy",
     "ResidualPolicy",
     "load_policy",
-    "make_policy_module",
     "save_policy",
 ]
 
@@ -135,11 +133,6 @@ class FixedRowsPolicy:
             parts.append(self.policy(block)[: min(self.rows, n - low)])
         tensordict.update(torch.cat(parts).reshape(tensordict.shape))
         return tensordict
-
-
-def make_policy_module(policy: nn.Module) -> TensorDictModule:
-    """Wire a policy to TorchRL keys: reads ``"observation"``, writes ``"action"``."""
-    return TensorDictModule(policy, in_keys=["observation"], out_keys=["action"])
 
 
 def save_policy(policy: MLPPolicy | ResidualPolicy, path: str | Path) -> Path:

@@ -5,7 +5,7 @@ from .exploration import (
     GaussianExploration,
     UniformRandomPolicy,
     action_bounds,
-    make_exploration_policy,
+    make_policy_module,
 )
 from .prepare import ActionNoise, ObservationLayout, prepare_env, seed_env
 from .replay import (
@@ -28,7 +28,7 @@ __all__ = [
     "GaussianExploration",
     "UniformRandomPolicy",
     "action_bounds",
-    "make_exploration_policy",
+    "make_policy_module",
     # any env as the library expects it
     "ActionNoise",
     "ObservationLayout",

@@ -16,7 +16,7 @@ __all__ = [
     "GaussianExploration",
     "UniformRandomPolicy",
     "action_bounds",
-    "make_exploration_policy",
+    "make_policy_module",
 ]
 
 Bound = float | torch.Tensor
@@ -112,6 +112,7 @@ class UniformRandomPolicy(nn.Module):
         return self._action.to(observation.device, observation.dtype)
 
 
-def make_exploration_policy(module: nn.Module) -> TensorDictModule:
-    """Wire an observation -> action module to TorchRL keys (``"observation"`` -> ``"action"``)."""
-    return TensorDictModule(module, in_keys=["observation"], out_keys=["action"])
+def make_policy_module(policy: nn.Module) -> TensorDictModule:
+    """Wire a tensor policy (``observation -> action``, an exploration policy, an agent) to
+    TorchRL keys: reads ``"observation"``, writes ``"action"``."""
+    return TensorDictModule(policy, in_keys=["observation"], out_keys=["action"])

@@ -34,7 +34,7 @@ from rcvae_torchrl.competency import CompetencyAssessor, CompetencyReport
 from rcvae_torchrl.data import (
     GaussianExploration,
     load_episodes,
-    make_exploration_policy,
+    make_policy_module,
     merge_episodes,
     save_episodes,
     split_episodes,
@@ -117,7 +117,7 @@ class Study:
         for level, std in enumerate(d.exploration_std):
             first = DATA_SEEDS + 10_000 * seed + 1000 * level
             starts = starts_in_region(env, self.cfg.task, "inner", per_level, first)
-            behaviour = make_exploration_policy(GaussianExploration(self.agent, std, seed=first))
+            behaviour = make_policy_module(GaussianExploration(self.agent, std, seed=first))
             stats = run_episodes(
                 env,
                 behaviour,

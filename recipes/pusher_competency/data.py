@@ -13,7 +13,7 @@ from rcvae_torchrl.data import (
     UniformRandomPolicy,
     collect_episodes,
     episode_spans,
-    make_exploration_policy,
+    make_policy_module,
 )
 from rcvae_torchrl.envs import CONTROL_TIMESTEP, make_batched_pusher_env, make_pusher_env
 from rcvae_torchrl.envs.scripted import ScriptedPusher
@@ -53,7 +53,7 @@ def collect_pusher_data(
     )
     parts = []
     if scripted_episodes:
-        policy = make_exploration_policy(
+        policy = make_policy_module(
             GaussianExploration(ScriptedPusher(), exploration_std, seed=seed)
         )
         parts.append(
@@ -69,7 +69,7 @@ def collect_pusher_data(
         )
     if random_episodes:
         make_random_env = functools.partial(make_env, time_limit=random_time_limit)
-        policy = make_exploration_policy(UniformRandomPolicy(2, random_hold, seed=seed + 1))
+        policy = make_policy_module(UniformRandomPolicy(2, random_hold, seed=seed + 1))
         parts.append(
             collect_episodes(
                 make_random_env,

@@ -13,7 +13,7 @@ from rcvae_torchrl.data import (
     UniformRandomPolicy,
     collect_episodes,
     episode_spans,
-    make_exploration_policy,
+    make_policy_module,
     make_window_buffer,
     resample_episodes,
     sample_windows,
@@ -25,7 +25,7 @@ from rcvae_torchrl.envs.scripted import ScriptedPusher
 
 @pytest.fixture(scope="module")
 def episodes():
-    policy = make_exploration_policy(UniformRandomPolicy(2, hold=3, seed=0))
+    policy = make_policy_module(UniformRandomPolicy(2, hold=3, seed=0))
     make_env = functools.partial(make_pusher_env, "deterministic", time_limit=2.0)
     return collect_episodes(make_env, policy, 6, seed=1, frames_per_batch=50, progress=False)
 
@@ -47,7 +47,7 @@ def test_collection_is_reproducible():
     make_env = functools.partial(make_pusher_env, "stochastic", time_limit=1.0)
 
     def run(seed):
-        policy = make_exploration_policy(GaussianExploration(ScriptedPusher(), 0.3, seed=seed))
+        policy = make_policy_module(GaussianExploration(ScriptedPusher(), 0.3, seed=seed))
         return collect_episodes(make_env, policy, 2, seed=seed, frames_per_batch=20, progress=False)
 
     a, b, c = run(3), run(3), run(4)
@@ -199,7 +199,7 @@ def test_collections_get_unique_ids_and_duplicates_are_refused(episodes):
     assert torch.equal(torch.unique(merged[TRAJ_KEY]), torch.arange(12))
     assert torch.equal(merged[TRAJ_KEY][: episodes.shape[0]], episodes[TRAJ_KEY])
     split_episodes(merged, 0.2)  # accepted
-    policy = make_exploration_policy(UniformRandomPolicy(2, hold=3, seed=0))
+    policy = make_policy_module(UniformRandomPolicy(2, hold=3, seed=0))
     make_env = functools.partial(make_pusher_env, "deterministic", time_limit=1.0)
     more = collect_episodes(make_env, policy, 2, first_id=6, progress=False)
     assert torch.unique(more[TRAJ_KEY]).tolist() == [6, 7]
@@ -248,16 +248,14 @@ def test_exploration_narrower_than_the_env_is_warned():
         match=r"UniformRandomPolicy draws actions in \[-1, 1\], less "
         r"than the env's action range \[-2, 2\].*action_bounds\(env\)",
     ):
-        narrow = collect_episodes(
-            _pendulum, make_exploration_policy(UniformRandomPolicy(1)), **args
-        )
+        narrow = collect_episodes(_pendulum, make_policy_module(UniformRandomPolicy(1)), **args)
     assert narrow["action"].abs().max() <= 1.0
     low, high = action_bounds(_pendulum())
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the env's whole range: no warning
         whole = UniformRandomPolicy(1, low=low, high=high)
-        collect_episodes(_pendulum, make_exploration_policy(whole), **args)
-        base = make_exploration_policy(GaussianExploration(_Constant(0.0, dims=1), 1.0))
+        collect_episodes(_pendulum, make_policy_module(whole), **args)
+        base = make_policy_module(GaussianExploration(_Constant(0.0, dims=1), 1.0))
         with pytest.warns(UserWarning, match="GaussianExploration draws actions in"):
             collect_episodes(_pendulum, base, **args)
 
@@ -275,18 +273,16 @@ class _Constant(torch.nn.Module):
 def test_collection_refuses_actions_out_of_the_spec_and_too_few_frames(num_envs):
     make_env = functools.partial(make_pusher_env, "deterministic", time_limit=2.0)
     args = {"num_envs": num_envs, "frames_per_batch": 20, "progress": False}
-    data = collect_episodes(make_env, make_exploration_policy(_Constant(-1.0)), 2, **args)
+    data = collect_episodes(make_env, make_policy_module(_Constant(-1.0)), 2, **args)
     assert data["action"].eq(-1.0).all()  # on the bound: kept as the env applied it
     with pytest.raises(
         ValueError,
         match=r"^policy: expected actions inside the env's action_spec: 80 of 80 actions fall "
         r"outside \[\[-1\.0, -1\.0\], \[1\.0, 1\.0\]\], by up to 0\.25",
     ):
-        collect_episodes(make_env, make_exploration_policy(_Constant(1.25)), 2, **args)
+        collect_episodes(make_env, make_policy_module(_Constant(1.25)), 2, **args)
     with pytest.raises(TypeError, match=r"expected actions of the env's action_spec dtype"):
-        collect_episodes(
-            make_env, make_exploration_policy(_Constant(0.0, torch.float64)), 1, **args
-        )
+        collect_episodes(make_env, make_policy_module(_Constant(0.0, torch.float64)), 1, **args)
     reads_position = TensorDictModule(_Constant(0.0), in_keys=["position"], out_keys=["action"])
     with pytest.raises(
         KeyError,
@@ -302,15 +298,13 @@ def test_collection_refuses_actions_out_of_the_spec_and_too_few_frames(num_envs)
         match=r"^make_env: expected a function that makes the env .*"
         r"got the env TransformedEnv",
     ):
-        collect_episodes(make_env(), make_exploration_policy(_Constant(0.0)), 1, **args)
+        collect_episodes(make_env(), make_policy_module(_Constant(0.0)), 1, **args)
     for name, bad in (("num_episodes", 2.5), ("frames_per_batch", 0), ("max_frames", "10")):
         counts = {"num_episodes": 1, **args, name: bad}
         with pytest.raises(ValueError, match=rf"^{name}: expected a positive integer"):
-            collect_episodes(make_env, make_exploration_policy(_Constant(0.0)), **counts)
+            collect_episodes(make_env, make_policy_module(_Constant(0.0)), **counts)
     with pytest.raises(
         ValueError,
         match=r"^max_frames: 20 frames were collected and only 0 of the 1 episodes asked for ended",
     ):
-        collect_episodes(
-            make_env, make_exploration_policy(_Constant(0.0)), 1, max_frames=10, **args
-        )
+        collect_episodes(make_env, make_policy_module(_Constant(0.0)), 1, max_frames=10, **args)

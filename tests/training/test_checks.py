@@ -166,7 +166,7 @@ def test_reacher_goal_relative_dimensions_are_flagged():
         GaussianExploration,
         action_bounds,
         collect_episodes,
-        make_exploration_policy,
+        make_policy_module,
         prepare_env,
         split_episodes,
     )
@@ -179,7 +179,7 @@ def test_reacher_goal_relative_dimensions_are_flagged():
             return torch.zeros(*observation.shape[:-1], 2)
 
     low, high = action_bounds(env)
-    behaviour = make_exploration_policy(GaussianExploration(Still(), 0.7, low=low, high=high))
+    behaviour = make_policy_module(GaussianExploration(Still(), 0.7, low=low, high=high))
     data = collect_episodes(
         lambda: prepare_env(DMControlEnv("reacher", "easy"))[0],
         behaviour,
