@@ -102,7 +102,27 @@ def collect_episodes(
         bar.close()
     data = _whole_episodes(torch.cat(parts), num_episodes, first_id)
     check_actions(env, data)
+    _check_finite_observations(env, data)
     return data
+
+
+def _check_finite_observations(env: EnvBase, data: TensorDictBase) -> None:
+    """The env's floating observations must be finite: name the first episode and step where
+    one is not (a model cannot learn from them, and training would refuse them later)."""
+    for key in (("next", "observation"), "observation"):
+        value = data.get(key, None)
+        if value is None or not value.is_floating_point():
+            continue
+        bad = ~torch.isfinite(value).reshape(value.shape[0], -1).all(-1)
+        if bool(bad.any()):
+            frame = int(bad.nonzero()[0, 0])
+            episode = int(data.get(TRAJ_KEY)[frame])
+            start = int((data.get(TRAJ_KEY) == episode).nonzero()[0, 0])
+            raise ValueError(
+                f"env: {type(env).__name__} gave non-finite {key!r} (NaN or inf) in "
+                f"{int(bad.sum())} of {bad.numel()} frames, first in episode {episode} at step "
+                f"{frame - start}; a world model cannot learn from them"
+            )
 
 
 def check_actions(env: EnvBase, data: TensorDictBase, name: str = "policy") -> None:

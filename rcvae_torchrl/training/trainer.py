@@ -266,6 +266,14 @@ def train_ensemble(
         _check_episodes(ensemble, data, name, config.window)
         if distributed.is_main():
             _warn_short_episodes(data, name, config.window)
+    if train_data is val_data and distributed.is_main():
+        warnings.warn(
+            "val_data: the same episodes as train_data: validation then measures the fit, not "
+            "how the model does on episodes it has not seen, and early stopping and the "
+            "self-checks lose their meaning; hold episodes out with split_episodes",
+            UserWarning,
+            stacklevel=2,
+        )
     torch.manual_seed(config.seed)
     if not ensemble.normalizer.fitted:
         ensemble.fit_normalizer(

@@ -6,6 +6,8 @@ import pytest
 import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
+from torchrl.data import Bounded, Composite, Unbounded
+from torchrl.envs import EnvBase
 
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -308,3 +310,45 @@ def test_collection_refuses_actions_out_of_the_spec_and_too_few_frames(num_envs)
         match=r"^max_frames: 20 frames were collected and only 0 of the 1 episodes asked for ended",
     ):
         collect_episodes(make_env, make_policy_module(_Constant(0.0)), 1, max_frames=10, **args)
+
+
+class _NanAtStep(EnvBase):
+    """A 2-D point whose observation turns NaN at step 3 of every episode (5 steps long)."""
+
+    def __init__(self):
+        super().__init__()
+        self.observation_spec = Composite(observation=Unbounded((2,)))
+        self.action_spec = Bounded(-1.0, 1.0, (2,))
+        self.reward_spec = Unbounded((1,))
+
+    def _reset(self, tensordict):
+        self.t, self.p = 0, torch.zeros(2)
+        return TensorDict({"observation": self.p.clone()})
+
+    def _step(self, tensordict):
+        self.t += 1
+        self.p = self.p + 0.1 * tensordict["action"]
+        if self.t == 3:
+            self.p = torch.full((2,), float("nan"))
+        done = torch.tensor([self.t >= 5])
+        return TensorDict(
+            {
+                "observation": self.p.clone(),
+                "reward": torch.zeros(1),
+                "done": done,
+                "terminated": done,
+            }
+        )
+
+    def _set_seed(self, seed):
+        pass
+
+
+def test_an_env_that_gives_nan_observations_is_named_at_collection():
+    policy = make_policy_module(UniformRandomPolicy(2, seed=0))
+    with pytest.raises(
+        ValueError,
+        match=r"^env: _NanAtStep gave non-finite \('next', 'observation'\) \(NaN or inf\) in 6 of "
+        r"10 frames, first in episode 0 at step 2; a world model cannot learn from them",
+    ):
+        collect_episodes(_NanAtStep, policy, 2, frames_per_batch=10, progress=False)

@@ -220,3 +220,9 @@ def test_the_self_checks_take_check_model_s_arguments(linear_data, small_ensembl
         train_ensemble(small_ensemble(2), train, val, BUDGET, progress=False, checks={"horizon": 5})
     with pytest.raises(TypeError, match=r"^checks: expected True, False or a mapping .*, got str"):
         train_ensemble(small_ensemble(2), train, val, BUDGET, progress=False, checks="yes")
+
+
+def test_validating_on_the_training_episodes_is_warned(linear_data, small_ensemble):
+    train, _ = linear_data
+    with pytest.warns(UserWarning, match=r"^val_data: the same episodes as train_data"):
+        _train(small_ensemble(2), train, train)
