@@ -373,11 +373,11 @@ def _warn_short_episodes(data: TensorDictBase, name: str, window: int) -> None:
 
 def _warn_stuck_members(state: _State, config: TrainConfig) -> None:
     """Warn about members that kept their first validation's weights: their validation loss
-    never improved after it, so early stopping ended them before they trained."""
-    if not state.history:
+    never improved after it (early stopping then ends them barely trained)."""
+    if len(state.history) < 2:
         return
     first = torch.tensor(state.history[0]["val_loss_member"], dtype=state.best_val.dtype)
-    stuck = ((state.best_val == first) & (state.stop_step < config.max_steps)).nonzero()
+    stuck = (state.best_val == first).nonzero()
     if stuck.numel() == 0:
         return
     members = stuck.flatten().tolist()
@@ -386,7 +386,8 @@ def _warn_stuck_members(state: _State, config: TrainConfig) -> None:
         f"(step {int(state.history[0]['step'])}, validation loss "
         f"{', '.join(f'{float(first[m]):.3g}' for m in members)}; the ensemble's best "
         f"{float(state.best_val.min()):.3g}): their validation loss never improved after it, "
-        f"and early stopping (patience={config.patience}) ended them barely trained; the "
+        f"so they are barely trained (stopped at step(s) "
+        f"{[int(state.stop_step[m]) for m in members]}, patience={config.patience}); the "
         "ensemble's spread and forecasts inherit them. Look at the validation loss "
         "(log_history), lower the learning rate or raise patience",
         UserWarning,

@@ -201,7 +201,7 @@ def test_a_member_that_kept_its_first_validation_is_named():
     with pytest.warns(
         UserWarning,
         match=r"^train_ensemble: member\(s\) \[0, 2\] kept the weights of their first validation "
-        r"\(step 2, .*early stopping \(patience=2\) ended them barely trained",
+        r"\(step 2, .*so they are barely trained \(stopped at step\(s\) \[6, 6\], patience=2\)",
     ):
         result = train_ensemble(model, train, val, budget, progress=False, checks=False)
     # they stopped after patience validations without improvement on the first
