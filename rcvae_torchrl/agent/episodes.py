@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -9,7 +10,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
 from tqdm.auto import tqdm
 
@@ -24,13 +25,33 @@ ResetToState = Callable[[EnvBase, Any], TensorDictBase]
 
 
 def reset_to(reset_to_state: ResetToState, env: EnvBase, state: Any) -> TensorDictBase:
-    """``reset_to_state(env, state)``, checked: it must give the env's reset tensordict."""
+    """``reset_to_state(env, state)``, checked: it must give the env's reset tensordict, and
+    where ``state`` is a TensorDict with an ``"observation"``, the reset's must be that one
+    (to 1e-4, relative above 1): a reset that did not take the state starts elsewhere."""
     td = reset_to_state(env, state)
     if not isinstance(td, TensorDictBase):
         raise TypeError(
             "reset_to_state: expected the env's reset TensorDict (e.g. what "
             f"env.reset(td, set_state=True) returns), got {type(td).__name__}"
         )
+    wanted = state.get("observation", None) if isinstance(state, TensorDictBase) else None
+    got = td.get("observation", None)
+    if isinstance(wanted, torch.Tensor) and isinstance(got, torch.Tensor):
+        if wanted.shape != got.shape:
+            raise ValueError(
+                f"reset_to_state: the env's reset observation has shape {tuple(got.shape)}, the "
+                f"start's {tuple(wanted.shape)}"
+            )
+        gap = (got.double() - wanted.double().to(got.device)).abs()
+        off = gap > 1e-4 * wanted.double().abs().clamp_min(1.0).to(got.device)
+        if bool(off.any()):
+            raise ValueError(
+                f"reset_to_state: the env's reset observation differs from the start's by up "
+                f"to {float(gap.max()):.4g} ({int(off.sum())} of {off.numel()} entries): the "
+                "env did not start from the given state (does its reset take a state? e.g. "
+                "TorchRL's reset(td, set_state=True), or a batching transform whose reset "
+                "drops it)"
+            )
     return td
 
 
@@ -51,11 +72,27 @@ def seed_episodes(env: EnvBase, seeds: Sequence[int]) -> None:
     """Seed ``env`` for the episodes ``seeds``: an env with ``batch_size=[]`` takes one seed; a
     batched env ``[N]`` takes ``N``, with ``env.set_seeds(seeds)`` when it has it (one seed per
     sub-env; a TorchRL ``ParallelEnv`` or ``SerialEnv`` would only pass the call on to its
-    sub-envs), else with :func:`~rcvae_torchrl.data.seed_env` of the first."""
-    if env.batch_size and not isinstance(env, BatchedEnvBase) and hasattr(env, "set_seeds"):
-        env.set_seeds([int(s) for s in seeds])
-    else:
-        seed_env(env, int(seeds[0]))
+    sub-envs), else with :func:`~rcvae_torchrl.data.seed_env` of the first, and a warning: the
+    episodes are then not those of one env run episode by episode."""
+    base = env
+    while isinstance(base, TransformedEnv):
+        base = base.base_env
+    # a TorchRL batched env passes an unknown attribute on to its sub-envs (and a transformed
+    # one recursed looking for it): ask the type, not the instance
+    if env.batch_size and not isinstance(base, BatchedEnvBase) and hasattr(type(base), "set_seeds"):
+        base.set_seeds([int(s) for s in seeds])
+        return
+    if env.batch_size:
+        warnings.warn(
+            f"env: {type(base).__name__} [{', '.join(map(str, env.batch_size))}] has no "
+            "set_seeds(seeds), so it is seeded with its first episode's seed only: its episodes "
+            "are not those of one env run episode by episode, and noise inside its sub-envs (a "
+            "SerialEnv's or ParallelEnv's transforms) is not restarted; for outcomes equal to "
+            "one env's, pass a function that makes one env, with workers=K",
+            UserWarning,
+            stacklevel=3,
+        )
+    seed_env(env, int(seeds[0]))
 
 
 def run_episodes(
@@ -282,7 +319,8 @@ def _batched_episodes(
         won = _success_flags(episode, success)
         length = episode_lengths(episode["next", "done"].reshape(episode.shape))
         before_end = torch.arange(episode.shape[1]) < length.unsqueeze(1)
-        check_not_cut_short(episode, (won & before_end).any(1), length, max_steps)
+        hit = (won & before_end).any(1)  # rows past keep pad the last group: not asked for
+        check_not_cut_short(episode[:keep], hit[:keep], length[:keep], max_steps)
         for j in range(keep):
             end = int(length[j])
             flags, kept = won[j, :end], episode[j, :end]

@@ -63,7 +63,8 @@ def physics_of(env: EnvBase):
             f"env: expected a TorchRL env over a dm_control environment (DMControlEnv or "
             f"DMControlWrapper, possibly transformed), got a {type(env).__name__}{inside}; "
             "for another simulator, pass reset_to_state a function (env, start) -> the env's "
-            "reset TensorDict that sets its state"
+            "reset TensorDict that sets its state; for a SerialEnv or ParallelEnv of dm_control "
+            "envs, pass real_outcomes a function that makes one, with workers=K"
         )
     return physics
 
@@ -81,8 +82,14 @@ def draw_starts(env: EnvBase, seeds: Sequence[int], *, physics: bool = False) ->
 
     Returns a TensorDict ``[B]`` with ``"observation"`` ``[B, S]``, ``"seed"`` ``[B]`` and,
     with ``physics=True`` (dm_control envs), the simulator state under ``"physics"`` for
-    :func:`reset_to_physics`.
+    :func:`reset_to_physics`. ``env`` is one env (``batch_size=[]``): a batched env's reset
+    draws several starts per seed, which no seed can replay one by one.
     """
+    if env.batch_size:
+        raise ValueError(
+            f"env: expected one env (batch_size []), got batch_size {list(env.batch_size)}; "
+            "draw the starts from an env of the same kind unbatched"
+        )
     rows = []
     for seed in seeds:
         if isinstance(seed, (bool, float)) or not isinstance(seed, (int, np.integer, torch.Tensor)):

@@ -117,6 +117,11 @@ def real_outcomes(
     check_positive_int("workers", workers)
     check_positive_int("max_steps", max_steps)
     check_non_negative_int("seed", seed)
+    if isinstance(starts, torch.Tensor) and starts.dim() < 2:
+        raise ValueError(
+            f"starts: expected start states [B, S] (or a TensorDict [B]), got shape "
+            f"{tuple(starts.shape)}; one start is starts[None]"
+        )
     if len(starts) == 0:
         raise ValueError("starts: expected at least one start state, got none")
     _check_steps_cover_the_boundary(success, max_steps)
@@ -249,9 +254,9 @@ def _batched_outcomes(
         progress=progress,
         desc=desc,
     )
-    for _, keep, episode in groups:
-        out = _chunk_outcomes(episode, success, trace, max_steps)
-        parts.append([None if t is None else t[:keep] for t in dataclasses.astuple(out)])
+    for _, keep, episode in groups:  # rows past keep pad the last group: not episodes asked for
+        out = _chunk_outcomes(episode[:keep], success, trace, max_steps)
+        parts.append(list(dataclasses.astuple(out)))
     return tuple(None if t[0] is None else torch.cat(t) for t in zip(*parts))
 
 

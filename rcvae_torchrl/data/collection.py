@@ -51,10 +51,13 @@ def collect_episodes(
             constructor).
         policy: a TorchRL policy (TensorDictModule or callable on tensordicts).
         num_episodes: episodes to collect (>= 1).
-        seed: seeds the env(s) (start states and noise).
+        seed: seeds the env(s) (start states and noise), not the policy: an exploration
+            policy with its own generator (``GaussianExploration``, ``UniformRandomPolicy``)
+            is seeded where it is made, so the same data needs a new one.
         num_envs: envs stepped together in a ``SerialEnv``: the policy runs once per step for
             all of them, which pays off when a policy call costs more than an env step.
-        frames_per_batch: collector batch size (rounded up to a multiple of ``num_envs``).
+        frames_per_batch: collector batch size (rounded up to a multiple of the frames one step
+            gives: ``num_envs`` times the env's own batch size).
         max_frames: safety cap on frames (default: 1,000 × (``num_episodes`` + ``num_envs``
             − 1), room for episodes of up to 1,000 steps in every env). Reaching it before
             ``num_episodes`` episodes have ended is a ``ValueError``.
@@ -75,13 +78,14 @@ def collect_episodes(
     check_non_negative_int("first_id", first_id)
     max_frames = max_frames or 1000 * (num_episodes + num_envs - 1)
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
+    rows = max(1, env.batch_size.numel())  # frames one step gives (a SerialEnv's, a batched env's)
     _check_policy_inputs(env, policy)
     _warn_narrow_bounds(env, policy)
     env.set_seed(seed % 2**32)  # numpy-based envs take seeds below 2**32
     collector = Collector(
         env,
         policy,
-        frames_per_batch=-(-frames_per_batch // num_envs) * num_envs,
+        frames_per_batch=-(-frames_per_batch // rows) * rows,
         total_frames=-1,
         split_trajs=False,
         auto_register_policy_transforms=False,

@@ -257,7 +257,9 @@ def seed_env(env: EnvBase, seed: int) -> None:
     """
     check_non_negative_int("seed", seed)
     env.set_seed(seed % 2**32)
-    transform = getattr(env, "transform", None)
+    # only a TransformedEnv's own transforms: a ParallelEnv would send the lookup to its
+    # workers (and fail there); transforms inside a batched env's sub-envs are not reached
+    transform = env.transform if isinstance(env, TransformedEnv) else None
     parts = list(transform) if isinstance(transform, Compose) else [transform]
     for part in parts:
         if callable(getattr(part, "reseed", None)):

@@ -373,11 +373,13 @@ def _warn_short_episodes(data: TensorDictBase, name: str, window: int) -> None:
 
 def _warn_stuck_members(state: _State, config: TrainConfig) -> None:
     """Warn about members that kept their first validation's weights: their validation loss
-    never improved after it (early stopping then ends them barely trained)."""
+    never improved after it in ``patience`` validations (a run too short for that says
+    nothing)."""
     if len(state.history) < 2:
         return
     first = torch.tensor(state.history[0]["val_loss_member"], dtype=state.best_val.dtype)
-    stuck = (state.best_val == first).nonzero()
+    long_enough = (state.stop_step < config.max_steps) | (len(state.history) > config.patience)
+    stuck = ((state.best_val == first) & long_enough).nonzero()
     if stuck.numel() == 0:
         return
     members = stuck.flatten().tolist()
