@@ -92,9 +92,13 @@ def real_outcomes(
     A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator) runs the episodes
     ``N`` at a time with one policy call per step: each chunk is started with
     :func:`~rcvae_torchrl.agent.start_episodes` (one seed per sub-env, the seeds above, so the
-    outcomes equal the one-env run's) and runs ``max_steps`` steps (a sub-env that is done
-    stays done). The last chunk is padded with repeats of its last episode, whose results are
-    dropped.
+    outcomes equal the one-env run's, where the env has ``set_seeds(seeds)``; a TorchRL
+    ``SerialEnv``, ``ParallelEnv`` or ``BatchSizeTransform`` has none, is seeded with the
+    chunk's first seed and warned about: for those, pass a function that makes one env and
+    ``workers=K``) and runs ``max_steps`` steps (a sub-env that is done stays done). The last
+    chunk is padded with repeats of its last episode, whose results are dropped. Where the
+    starts are a TensorDict with an ``"observation"``, the reset must give that observation
+    (a reset that did not take the state is refused).
 
     With ``workers=K > 1``, ``env`` must be a picklable function that makes the env: the
     episodes run in ``K`` worker processes of a TorchRL ``ParallelEnv``
