@@ -80,6 +80,11 @@ def test_statistics_against_closed_forms():
     assert off.p_value == 0.0  # to the t-test the same difference everywhere is certain
     # but 4 single outcomes cannot show a gap of 0.1: by the outcomes' chance it is no bias
     assert off.exact_p_value > 0.5 and not off.biased
+    # and the sentence says why the gap, outside the t-test's interval, is not named a bias
+    assert off.describe().startswith(
+        f"{off.what} are not named biased: the t-test alone would name them, but the outcomes' "
+        "exact chance allows the gap: "
+    )
     all_won = torch.ones(40, 1, dtype=torch.bool)  # 40 of 40 where 0.5 was forecast
     sure = OutcomeCheck.from_outcomes(torch.full((40,), 0.5, dtype=torch.float64), all_won)
     assert sure.p_value == 0.0 and sure.exact_p_value < 0.001 and sure.biased
