@@ -62,20 +62,25 @@ def test_a_batched_env_with_set_seeds_is_seeded_per_episode_without_a_warning():
         seed_episodes(env, [0, 1])
 
 
+def _outcomes(env, starts, reset=reset_to_state, max_steps: int = 5):
+    """One run of the still arm from each start, never a success."""
+    return real_outcomes(
+        env,
+        _still,
+        starts,
+        runs_per_start=1,
+        reset_to_state=reset,
+        max_steps=max_steps,
+        success=_never,
+        progress=False,
+    )
+
+
 def test_only_the_episodes_asked_for_count_as_cut_short():
     # 3 episodes in an env of 8: the 5 rows that pad the group are no episodes of the user's
     env = make_batched_pusher_env(8, time_limit=1.0)
     with pytest.raises(ValueError, match=r"^env: 3 episode\(s\) were cut short by the env itself"):
-        real_outcomes(
-            env,
-            _still,
-            pusher_starts(3),
-            runs_per_start=1,
-            reset_to_state=reset_to_state,
-            max_steps=45,
-            success=_never,
-            progress=False,
-        )
+        _outcomes(env, pusher_starts(3), max_steps=45)
 
 
 def test_a_reset_that_does_not_reach_the_start_is_refused():
@@ -83,35 +88,15 @@ def test_a_reset_that_does_not_reach_the_start_is_refused():
         return env.reset()
 
     starts = TensorDict({"observation": pusher_starts(2)}, batch_size=[2])
-
     with pytest.raises(
         ValueError, match=r"^reset_to_state: the env's reset observation differs from the start's"
     ):
-        real_outcomes(
-            make_pusher_env(),
-            _still,
-            starts,
-            runs_per_start=1,
-            reset_to_state=ignores_the_start,
-            max_steps=5,
-            success=_never,
-            progress=False,
-        )
+        _outcomes(make_pusher_env(), starts, reset=ignores_the_start)
 
 
 def test_starts_of_one_state_and_starts_drawn_from_a_batched_env_are_named():
-    starts = pusher_starts(2)
     with pytest.raises(ValueError, match=r"^starts: expected start states \[B, S\] .* \(14,\)"):
-        real_outcomes(
-            make_pusher_env(),
-            _still,
-            starts[0],
-            runs_per_start=1,
-            reset_to_state=reset_to_state,
-            max_steps=5,
-            success=_never,
-            progress=False,
-        )
+        _outcomes(make_pusher_env(), pusher_starts(2)[0])
     with pytest.raises(ValueError, match=r"^env: expected one env \(batch_size \[\]\), got batch"):
         draw_starts(make_batched_pusher_env(2), [0, 1])
 
