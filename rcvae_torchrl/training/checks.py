@@ -651,6 +651,11 @@ class OutcomeCheck:
                 "not named biased: the t-test alone would name them, but the outcomes' exact "
                 "chance allows the gap"
             )
+        elif self.passed and self.exact_p_value < self.alpha:
+            verdict = (
+                "not named biased: the outcomes' exact chance alone would name them, but the "
+                "t-test allows the gap (its interval below holds 0)"
+            )
         return (
             f"{self.what} are {verdict}: from {self.starts} start states they forecast "
             f"success {float(self.forecast.mean()):.2f} on average where {self.runs} real "
@@ -662,6 +667,11 @@ class OutcomeCheck:
 
     def _per_start_sentence(self) -> str:
         """How far the forecasts miss each start's own rate (where R independent runs tell)."""
+        if self.measured and self.runs >= 2 and not self._independent_runs:
+            return (
+                f"; per start not tested: each start's {self.runs} episodes agree (one outcome "
+                "repeated, as in a deterministic env), so they tell no start's chance"
+            )
         if not self.per_start_measured:
             return ""
         shift = " beyond the shift they share" if self.biased else ""

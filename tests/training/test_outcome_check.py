@@ -203,9 +203,27 @@ def test_the_per_start_test_needs_independent_runs():
     repeated = OutcomeCheck.from_outcomes(forecast, (forecast > 0.5)[:, None].expand(20, 5))
     assert not repeated.per_start_measured and not repeated.scattered
     assert math.isnan(repeated.per_start_p_value) and math.isnan(repeated.excess_error)
-    assert "per start" not in repeated.describe()
+    assert repeated.describe().endswith(
+        "; per start not tested: each start's 5 episodes agree (one outcome repeated, as in a "
+        "deterministic env), so they tell no start's chance"
+    )
     single = OutcomeCheck.from_outcomes(forecast, _drawn(forecast, 1, seed=0))
-    assert not single.per_start_measured
+    assert not single.per_start_measured and "per start" not in single.describe()
+
+
+def test_a_gap_only_the_exact_test_rejects_is_not_called_unbiased():
+    # a deterministic env, one run per start: forecasts near 0 at starts that succeed are
+    # beyond the outcomes' chance, while the per-start differences' spread keeps the t-test
+    forecast = torch.full((30,), 0.5, dtype=torch.float64)
+    forecast[:6] = 0.005
+    real = torch.zeros(30, 1, dtype=torch.bool)
+    real[:6] = True  # the starts forecast 0.005 all succeed
+    real[6:19] = True  # the others at about their forecast
+    check = OutcomeCheck.from_outcomes(forecast, real)
+    assert check.exact_p_value < check.alpha <= check.p_value and not check.biased
+    assert check.describe().startswith(
+        f"{check.what} are not named biased: the outcomes' exact chance alone would name them"
+    )
 
 
 def test_rare_successes_forecast_right_are_no_bias():
