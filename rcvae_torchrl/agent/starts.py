@@ -146,7 +146,10 @@ def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     The state is set inside the task's ``initialize_episode`` (after the task's own
     initialisation), so the observation, the wrappers and the transforms all see a regular
     reset. The task's ``after_step`` is called once more (a no-op for most dm_control tasks),
-    so tasks that cache what they observe there see the new state.
+    so tasks that cache what they observe there see the new state. The start's model fields
+    (:data:`MODEL_FIELDS`: masses, site positions) hold for this episode only: the env's next
+    reset, whoever calls it, first puts its own back (a heavier arm set for one start does not
+    leak into the starts drawn after it).
     """
     physics = physics_of(env)  # a clear error for an env without a dm_control physics
     task = getattr(env, "base_env", env)._env.task
@@ -159,7 +162,20 @@ def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
                 f"start['physics', {name!r}]: expected {size} finite values, got shape "
                 f"{tuple(value.shape)} with {int((~torch.isfinite(value)).sum())} non-finite"
             )
+    # a restore still pending (two of these resets in a row): its model is the env's own
+    pending = task.__dict__.pop("initialize_episode", None)
+    own = getattr(pending, "own", None)
+    if own is None:
+        own = {f: np.array(getattr(physics.model, f)).copy() for f in MODEL_FIELDS}
     original = task.initialize_episode
+
+    def restore_then_initialize(physics_) -> None:  # the next reset: the env's own model
+        for field in MODEL_FIELDS:
+            getattr(physics_.model, field)[:] = own[field]
+        task.__dict__.pop("initialize_episode", None)
+        original(physics_)
+
+    restore_then_initialize.own = own  # type: ignore[attr-defined]
 
     def initialize(physics_) -> None:
         original(physics_)
@@ -174,7 +190,7 @@ def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     try:
         td = env.reset()
     finally:
-        del task.initialize_episode
+        task.initialize_episode = restore_then_initialize
     return td
 
 

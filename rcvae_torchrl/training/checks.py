@@ -654,7 +654,7 @@ class OutcomeCheck:
         elif self.passed and self.exact_p_value < self.alpha:
             verdict = (
                 "not named biased: the outcomes' exact chance alone would name them, but the "
-                "t-test allows the gap (its interval below holds 0)"
+                "t-test allows the gap (its interval holds 0)"
             )
         return (
             f"{self.what} are {verdict}: from {self.starts} start states they forecast "

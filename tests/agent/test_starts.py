@@ -9,6 +9,7 @@ from torchrl.envs import DMControlEnv
 
 from rcvae_torchrl.agent import (
     draw_starts,
+    physics_of,
     real_outcomes,
     reset_by_seed,
     reset_to_physics,
@@ -33,6 +34,22 @@ def test_seeded_and_physics_resets_give_the_drawn_start(reacher):
         )
         td = reset_to_physics(reacher, starts[i])  # the target too: a model field
         assert torch.equal(td["observation"], starts["observation"][i])
+
+
+def test_a_start_s_model_holds_for_its_episode_only():
+    env = prepare_env(DMControlEnv("reacher", "easy"))[0]  # its own: the model is changed
+    physics = physics_of(env)
+    own = physics.model.body_mass.copy()
+    seeded = draw_starts(env, [3])
+    heavy = draw_starts(env, [1], physics=True)[0].clone()
+    heavy["physics", "model", "body_mass"] = heavy["physics", "model", "body_mass"] * 3
+    for _ in range(2):  # twice in a row too: the env's own model is still the one put back
+        reset_to_physics(env, heavy)
+        assert (physics.model.body_mass == own * 3).all()
+    env.reset()  # anyone's next reset: the env's own masses again
+    assert (physics.model.body_mass == own).all()
+    again = draw_starts(env, [3])
+    assert torch.equal(again["observation"], seeded["observation"])
 
 
 def test_physics_resets_reach_states_no_reset_draws(reacher):
