@@ -302,7 +302,8 @@ def score_forecast(
 ) -> dict[str, float]:
     """:func:`~rcvae_torchrl.competency.validate_forecasts` of forecasts ``[B]`` against the
     real outcomes (per-start error and rank correlation, AUROC, Brier over episodes and its
-    skill against ``base_rate``, ECE)."""
+    skill against ``base_rate``, ECE). Its ``"gap"`` is unsigned, ``|mean forecast - real
+    rate|``; :class:`~rcvae_torchrl.training.OutcomeCheck`'s is signed (forecast minus real)."""
     if not isinstance(outcomes, RealOutcomes):
         raise TypeError(
             f"outcomes: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"
