@@ -7,6 +7,7 @@ from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import unravel_key
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, SerialEnv
 from tqdm.auto import tqdm
@@ -170,7 +171,8 @@ def _check_policy_inputs(env: EnvBase, policy: object) -> None:
     """A policy that declares ``in_keys`` must find them among the env's entries (observations,
     state, done flags): say which are missing, and how an env gets an ``"observation"``."""
     out_keys = getattr(policy, "out_keys", None)
-    if isinstance(out_keys, (list, tuple)) and not _writes(out_keys, env.action_key):
+    wanted = unravel_key(env.action_key)
+    if isinstance(out_keys, (list, tuple)) and wanted not in map(unravel_key, out_keys):
         raise KeyError(
             f"policy: writes {list(out_keys)}, not the env's action {env.action_key!r}; "
             f"give it out_keys=[{env.action_key!r}]"
@@ -187,12 +189,6 @@ def _check_policy_inputs(env: EnvBase, policy: object) -> None:
             f'{sorted(map(str, available))}); for a world model\'s "observation", concatenate '
             "the env's entries with rcvae_torchrl.data.prepare_env(env, observation_keys=[...])"
         )
-
-
-def _writes(keys: list | tuple, key: str | tuple) -> bool:
-    """Whether ``key`` is among ``keys`` (a key and its one-element tuple are the same)."""
-    wanted = key if isinstance(key, tuple) else (key,)
-    return any((k if isinstance(k, tuple) else (k,)) == wanted for k in keys)
 
 
 def _what(value: object) -> str:

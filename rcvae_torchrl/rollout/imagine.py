@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import unravel_key
 
 from rcvae_torchrl import _checks
 from rcvae_torchrl.models import RCVAEEnsemble
@@ -55,8 +56,8 @@ def as_tensor_policy(
         if not callable(policy):
             raise TypeError(f"policy: expected a callable, got {type(policy).__name__}")
         return policy
-    writes = [k if isinstance(k, str) or len(k) > 1 else k[0] for k in policy.out_keys]
-    if action_key not in writes:
+    writes = [unravel_key(k) for k in policy.out_keys]  # ("action",) is "action"
+    if unravel_key(action_key) not in writes:
         raise KeyError(
             f"policy: writes {writes}, not {action_key!r}; give it out_keys=[{action_key!r}]"
         )

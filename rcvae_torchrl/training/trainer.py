@@ -40,7 +40,6 @@ from rcvae_torchrl._checks import (
     check_non_negative_int,
     check_positive,
     check_positive_int,
-    check_trailing,
     check_unit_interval,
 )
 from rcvae_torchrl.data import (
@@ -263,9 +262,9 @@ def train_ensemble(
     if not isinstance(config, TrainConfig):
         raise TypeError(f"config: expected a TrainConfig, got {type(config).__name__}")
     for name, data in (("train_data", train_data), ("val_data", val_data)):
-        _check_episodes(ensemble, data, name, config.window)
+        spans = _check_episodes(ensemble, data, name, config.window)
         if distributed.is_main():
-            _warn_short_episodes(data, name, config.window)
+            _warn_short_episodes(data, name, config.window, spans)
     if train_data is val_data and distributed.is_main():
         warnings.warn(
             "val_data: the same episodes as train_data: validation then measures the fit, not "
@@ -345,11 +344,14 @@ def _check_args(checks: object) -> dict[str, Any]:
     return dict(checks)
 
 
-def _warn_short_episodes(data: TensorDictBase, name: str, window: int) -> None:
+def _warn_short_episodes(
+    data: TensorDictBase, name: str, window: int, spans: tuple[torch.Tensor, torch.Tensor]
+) -> None:
     """Warn that episodes shorter than ``window`` are never drawn (a window never crosses an
     episode's end), and how many of them the env ended (``("next", "terminated")``): quick
-    failures or successes whose endings the model then never sees."""
-    first, lengths = episode_spans(data)
+    failures or successes whose endings the model then never sees. ``spans``: the episodes'
+    first frames and lengths (``episode_spans``)."""
+    first, lengths = spans
     short = lengths < window
     if not bool(short.any()):
         return
@@ -412,13 +414,16 @@ def _stopped_early_hint(found: ModelChecks, stop_step: torch.Tensor, config: Tra
     )
 
 
-def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str, window: int) -> None:
+def _check_episodes(
+    ensemble: RCVAEEnsemble, data: object, name: str, window: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Require flat episodes ``[frames]`` that ``ensemble`` can learn from, all of them checked
     before any is used: episode ids (:data:`TRAJ_KEY`) and an episode of at least ``window``
     steps, ``"observation"`` ``[frames, S]``, ``"action"`` ``[frames, A]`` and
     ``("next", "observation")`` ``[frames, S]`` in the model's dtype, every entry finite (a NaN
     that no sampled window happens to hold would otherwise pass, and a NaN in the normaliser's
-    statistics spoils every prediction). Errors name ``name`` and the entry."""
+    statistics spoils every prediction). Errors name ``name`` and the entry. Returns the
+    episodes' spans (``episode_spans``)."""
     if not isinstance(data, TensorDictBase):
         raise TypeError(
             f"{name}: expected a flat TensorDict of episodes [frames], got {type(data).__name__}"
@@ -439,11 +444,10 @@ def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str, window: in
         if x is None:
             keys = sorted(map(str, data.keys(True, True)))
             raise ValueError(f"{name}: expected an entry {key!r}, got the entries {keys}")
-        if x.dim() != 2:  # the TensorDict holds [frames] first: the rest must be [size]
+        if x.dim() != 2 or x.shape[-1] != size:  # the TensorDict's batch is [frames] already
             raise ValueError(
                 f"{label}: expected shape [frames, {axis}={size}], got {tuple(x.shape)}"
             )
-        check_trailing(label, x, (size,), f"[frames, {axis}={size}]")
         check_dtype(label, x, ensemble.dtype)
         check_finite(label, x)
     if TRAJ_KEY not in data.keys(True):
@@ -451,12 +455,14 @@ def _check_episodes(ensemble: RCVAEEnsemble, data: object, name: str, window: in
             f"{name}: expected episode ids under {TRAJ_KEY} (collect_episodes writes them), got "
             f"the entries {sorted(map(str, data.keys(True, True)))}"
         )
-    longest = int(episode_spans(data)[1].max())
+    spans = episode_spans(data)
+    longest = int(spans[1].max())
     if longest < window:
         raise ValueError(
             f"{name}: expected an episode of at least TrainConfig.window = {window} steps, got "
             f"episodes of at most {longest}; collect longer episodes or shorten the window"
         )
+    return spans
 
 
 def _replicas(config: TrainConfig) -> distributed.Replicas:
