@@ -226,3 +226,14 @@ def test_validating_on_the_training_episodes_is_warned(linear_data, small_ensemb
     train, _ = linear_data
     with pytest.warns(UserWarning, match=r"^val_data: the same episodes as train_data"):
         _train(small_ensemble(2), train, train)
+
+
+def test_only_flat_episodes_are_saved(tmp_path, linear_data):
+    from rcvae_torchrl.data import save_episodes
+
+    train, _ = linear_data
+    with pytest.raises(TypeError, match=r"^data: expected a flat TensorDict \[frames\], got dict"):
+        save_episodes(train.to_dict(), tmp_path / "episodes.pt")
+    with pytest.raises(ValueError, match=r"^data: expected a flat TensorDict \[frames\], got \(2,"):
+        save_episodes(train.reshape(2, -1), tmp_path / "episodes.pt")
+    assert not (tmp_path / "episodes.pt").exists()
