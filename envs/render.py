@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import os
+import signal
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -36,15 +40,49 @@ def render_frame(
     return _physics(env).render(height=height, width=width, camera_id=camera)
 
 
-def gl_unavailable_reason() -> str | None:
-    """None when offscreen rendering works here, else why it does not."""
-    from .factory import make_pusher_env
+#: Renders one small frame of a one-geom MuJoCo scene through dm_control (the backend the
+#: Pusher renders with: ``MUJOCO_GL`` as this process has it).
+_RENDER_CHECK = (
+    "from dm_control import mujoco\n"
+    'xml = \'<mujoco><worldbody><light pos="0 0 1"/><geom size=".1"/></worldbody></mujoco>\'\n'
+    "mujoco.Physics.from_xml_string(xml).render(height=16, width=16)"
+)
+_RENDER_CHECK_S = 120
 
+
+def gl_unavailable_reason() -> str | None:
+    """None when offscreen rendering works here, else why it does not.
+
+    Tried in a child process, once per ``MUJOCO_GL`` value: where no OpenGL context can be
+    made, a backend may end the process rather than raise (GLFW without a display aborted a
+    GPU machine's test run), which no ``except`` can catch."""
+    return _render_check(os.environ.get("MUJOCO_GL"))
+
+
+@functools.cache
+def _render_check(backend: str | None) -> str | None:
+    head = f"offscreen OpenGL unavailable (MUJOCO_GL={backend})"
     try:
-        render_frame(make_pusher_env(seed=0), 16, 16)
-    except Exception as err:  # any backend failure means "cannot render here"
-        return f"offscreen OpenGL unavailable (MUJOCO_GL={os.environ.get('MUJOCO_GL')}): {err}"
-    return None
+        done = subprocess.run(
+            [sys.executable, "-c", _RENDER_CHECK],
+            capture_output=True,
+            text=True,
+            timeout=_RENDER_CHECK_S,
+        )
+    except subprocess.TimeoutExpired:
+        return f"{head}: a test render did not finish in {_RENDER_CHECK_S} s"
+    except OSError as err:
+        return f"{head}: no process could be started for a test render: {err}"
+    if done.returncode == 0:
+        return None
+    if done.returncode < 0:
+        try:
+            name = signal.Signals(-done.returncode).name
+        except ValueError:
+            name = f"signal {-done.returncode}"
+        return f"{head}: a test render ended its process ({name})"
+    lines = done.stderr.strip().splitlines()
+    return f"{head}: {lines[-1] if lines else f'exit status {done.returncode}'}"
 
 
 def save_video(frames: list[np.ndarray], path: str | Path, fps: float) -> Path:

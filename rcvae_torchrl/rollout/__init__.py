@@ -16,6 +16,7 @@
 from rcvae_torchrl.rollout.aot import (
     SCORING_CACHE_ENV,
     AOTCacheWarning,
+    AOTLoadError,
     AOTScoring,
     aot_scoring,
     default_cache_dir,
@@ -88,6 +89,7 @@ __all__ = [
     "plan_actions",
     # compiled scoring
     "AOTCacheWarning",
+    "AOTLoadError",
     "AOTScoring",
     "COMPILE_MODES",
     "Compile",

@@ -19,9 +19,15 @@ What the package serves, and what it does not:
   their module's source and the values they read (:mod:`rcvae_torchrl.fingerprint`).
 
 Cache layout: ``<cache_dir>/<key digest>.pt2`` (written atomically) and ``<key digest>.json``
-(the key itself, the package's SHA-256 and how long the build took). A package whose bytes do
-not match the recorded digest, or which fails to load, is reported with an
-:class:`AOTCacheWarning` and built again. The directory is ``cache_dir`` when given, else the
+(the key itself, the package's SHA-256, how long the build took and whether a new process
+loaded it). A package whose bytes do not match the recorded digest, or which fails to load, is
+reported with an :class:`AOTCacheWarning` and built again.
+
+A package is first loaded in a child process, once per package: some torch builds crash
+(a segmentation fault or an abort, which no ``except`` catches) rather than raise when loading
+one, and the crash then ends only the child. Such a torch gets an :class:`AOTLoadError`, in
+every later process too (the record keeps the verdict), and ``compile=True`` or eager scoring
+still serve. The directory is ``cache_dir`` when given, else the
 environment variable ``RCVAE_TORCHRL_CACHE``, else ``$XDG_CACHE_HOME/rcvae_torchrl/aot_scoring``
 (``~/.cache/...``). Deleting it is always safe.
 """
@@ -35,6 +41,9 @@ import io
 import logging
 import os
 import platform
+import signal
+import subprocess
+import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -52,6 +61,7 @@ from rcvae_torchrl.rollout.task import Task
 
 __all__ = [
     "AOTCacheWarning",
+    "AOTLoadError",
     "AOTScoring",
     "SCORING_CACHE_ENV",
     "aot_scoring",
@@ -73,6 +83,11 @@ _FORMAT = 1  # the layout of the package's inputs; bump it when it changes
 
 class AOTCacheWarning(UserWarning):
     """A cached package could not be used (corrupt, truncated, unloadable) and is rebuilt."""
+
+
+class AOTLoadError(RuntimeError):
+    """This torch cannot load the package here: loading it crashed a new process, or a
+    package just built would not load."""
 
 
 def default_cache_dir() -> Path:
@@ -245,6 +260,67 @@ def _open(package: Path) -> Any:
     return AOTICompiledModel(loader(str(package), "model", False, 1, -1))
 
 
+#: What the child process runs to load a package (its path is the argument).
+_LOAD_CHECK = "import sys\nfrom rcvae_torchrl.rollout.aot import _open\n_open(sys.argv[1])"
+_LOAD_CHECK_S = 600
+
+
+def _load_in_a_child(package: Path) -> tuple[bool, str | None]:
+    """``(crashed, problem)`` of loading ``package`` in a new interpreter (this one's import
+    path): ``(False, None)`` when it loads; ``crashed`` when a signal ended the child."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", _LOAD_CHECK, str(package)],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=_LOAD_CHECK_S,
+        )
+    except subprocess.TimeoutExpired:
+        return True, f"loading it did not finish in {_LOAD_CHECK_S} s in a new process"
+    except OSError as err:
+        return False, f"no new process could be started to load it: {err}"
+    if done.returncode == 0:
+        return False, None
+    if done.returncode < 0:
+        try:
+            name = signal.Signals(-done.returncode).name
+        except ValueError:
+            name = f"signal {-done.returncode}"
+        return True, f"loading it killed a new process ({name})"
+    lines = done.stderr.strip().splitlines()
+    return False, f"loading it failed in a new process: {lines[-1] if lines else done.returncode}"
+
+
+def _load_error(package: Path, problem: str) -> AOTLoadError:
+    return AOTLoadError(
+        f"AOT scoring package {str(package)!r}: {problem}; torch {torch.__version__} cannot "
+        f"run ahead-of-time compiled packages here: score with compile=True (torch.compile) "
+        f"or compile=False (eager) instead"
+    )
+
+
+def _open_checked(package: Path, record: Path, meta: dict[str, Any], built: bool) -> Any:
+    """:func:`_open`, once a new process has loaded the package (``"loads"`` in its record):
+    a crash there is an :class:`AOTLoadError` (recorded, so later processes need not crash to
+    learn it), as is any failure of a package just ``built``; another failure of a cached one
+    is an error for :func:`_load` to rebuild it."""
+    if meta.get("loads") is False:
+        raise _load_error(package, meta.get("load_problem", "it would not load"))
+    if meta.get("loads") is not True:
+        crashed, problem = _load_in_a_child(package)
+        if problem is None:
+            write_json(record, {**meta, "loads": True})
+        elif crashed:
+            write_json(record, {**meta, "loads": False, "load_problem": problem})
+        if problem is not None and (crashed or built):
+            raise _load_error(package, problem)
+        if problem is not None:
+            raise StoredFileError(f"AOT scoring package {str(package)!r}: {problem}", package)
+    return _open(package)
+
+
 class AOTScoring:
     """A loaded package: ``scoring(ensemble, hidden, obs, per_step, bounds, noise)`` ->
     ``(returns [n], success [n])``, the arguments as the eager rollout takes them (TS-∞
@@ -280,7 +356,9 @@ def _load(package: Path, record: Path) -> tuple[Any, dict] | None:
                 f"SHA-256 recorded in {str(record)!r}: corrupt or truncated",
                 package,
             )
-        return _open(package), meta
+        return _open_checked(package, record, meta, built=False), meta
+    except AOTLoadError:
+        raise
     except Exception as err:  # a damaged archive raises several kinds of error
         warnings.warn(
             f"cached AOT scoring package cannot be used, building it again: {err}",
@@ -351,8 +429,10 @@ def aot_scoring(
         build_s = time.perf_counter() - start
         atomic_write(package, lambda f: f.write(data))
         sha = hashlib.sha256(data).hexdigest()
-        write_json(record, {"sha256": sha, "bytes": len(data), "build_s": build_s, "key": key})
-        scoring = AOTScoring(_open(package), horizon, package, build_s, True)
+        meta = {"sha256": sha, "bytes": len(data), "build_s": build_s, "key": key}
+        write_json(record, meta)
+        runner = _open_checked(package, record, meta, built=True)
+        scoring = AOTScoring(runner, horizon, package, build_s, True)
         log.info("built AOT scoring package %s in %.1f s", package, build_s)
     _LOADED[(directory, name)] = scoring
     return scoring

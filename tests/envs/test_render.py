@@ -1,7 +1,7 @@
 import imageio.v2 as imageio
 import pytest
 
-from rcvae_torchrl.envs import make_pusher_env
+from rcvae_torchrl.envs import make_pusher_env, render
 from rcvae_torchrl.envs.render import (
     gl_unavailable_reason,
     record_episode,
@@ -28,6 +28,29 @@ def test_record_episode_gif(tmp_path):
     frames = imageio.mimread(path)
     assert len(frames) == td.shape[0] // 2 + 1
     assert td["next", "success"].any()
+
+
+@pytest.mark.parametrize(
+    ("check", "why"),
+    [
+        ("import os\nos.abort()", "a test render ended its process (SIGABRT)"),
+        ("raise RuntimeError('no EGL context')", "RuntimeError: no EGL context"),
+    ],
+)
+def test_a_backend_that_cannot_render_is_a_reason_not_a_crash(monkeypatch, check, why):
+    """The test render runs in a child process (GLFW without a display aborted a GPU
+    machine's test run in-process), once per backend."""
+    runs, run = [], render.subprocess.run
+    monkeypatch.setattr(render.subprocess, "run", lambda *a, **k: runs.append(a) or run(*a, **k))
+    monkeypatch.setattr(render, "_RENDER_CHECK", check)
+    render._render_check.cache_clear()
+    try:
+        for _ in range(2):
+            reason = gl_unavailable_reason()
+            assert reason.startswith("offscreen OpenGL unavailable (MUJOCO_GL=")
+            assert reason.endswith(why) and len(runs) == 1
+    finally:
+        render._render_check.cache_clear()
 
 
 def test_save_video_rejects_bad_input(tmp_path):

@@ -26,6 +26,7 @@ from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.rollout import (
     ActionBounds,
     AOTCacheWarning,
+    AOTLoadError,
     Task,
     aot,
     default_cache_dir,
@@ -204,6 +205,79 @@ def test_a_corrupt_package_is_rebuilt_with_a_warning(tmp_path, aot_cache_dir, mo
     assert package.read_bytes() == good
     assert json.loads(record.read_text())["bytes"] == len(good)
     _assert_same(got, _scores(model, 5, 2 * E, False))
+
+
+def _unchecked(record: Path) -> None:
+    """The record as before a new process loaded its package."""
+    meta = json.loads(record.read_text())
+    del meta["loads"]
+    record.write_text(json.dumps(meta))
+
+
+def test_a_package_is_first_loaded_in_a_new_process_once(tmp_path, aot_cache_dir, monkeypatch):
+    """A real child process loads it; the record keeps the verdict, so later processes load
+    it without one."""
+    directory, package = _cached_copy(tmp_path, aot_cache_dir)
+    record = package.with_suffix(".json")
+    assert json.loads(record.read_text())["loads"] is True, "the session's build was checked"
+    _unchecked(record)
+    children, real = [], aot._load_in_a_child
+    monkeypatch.setattr(aot, "_load_in_a_child", lambda path: children.append(path) or real(path))
+    model, want = _model(), _scores(_model(), 5, 2 * E, False)
+    for _ in range(2):  # the second time as in a new process
+        monkeypatch.setattr(aot, "_LOADED", {})
+        _assert_same(_scores(model, 5, 2 * E, "aot", cache_dir=directory), want)
+        assert children == [package] and json.loads(record.read_text())["loads"] is True
+
+
+@pytest.mark.parametrize("cached", [True, False])
+def test_a_package_that_crashes_its_loader_is_an_error_not_a_crash(
+    tmp_path, aot_cache_dir, monkeypatch, cached
+):
+    """Some torch builds crash loading a package (every AOT test on a GPU machine's torch
+    2.11 ended its process): the crash ends a child, this process gets an error, and a later
+    process reads the verdict from the record without crashing a child again."""
+    directory, package = _cached_copy(tmp_path, aot_cache_dir)
+    record, good = package.with_suffix(".json"), package.read_bytes()
+    if cached:
+        _unchecked(record)
+    else:  # built in this call
+        package.unlink()
+        record.unlink()
+        monkeypatch.setattr(aot, "_build", lambda *args: good)
+    monkeypatch.setattr(aot, "_LOAD_CHECK", "import os\nos.abort()")
+    monkeypatch.setattr(aot, "_LOADED", {})
+    crash = r"killed a new process \(SIGABRT\); torch .* compile=True \(torch.compile\)"
+    with pytest.raises(AOTLoadError, match=crash):
+        _scores(_model(), 5, 2 * E, "aot", cache_dir=directory)
+    assert json.loads(record.read_text())["loads"] is False
+
+    def no_child(path):
+        raise AssertionError("loaded it in a child again")
+
+    monkeypatch.setattr(aot, "_load_in_a_child", no_child)
+    monkeypatch.setattr(aot, "_LOADED", {})
+    with pytest.raises(AOTLoadError, match=crash):
+        _scores(_model(), 5, 2 * E, "aot", cache_dir=directory)
+
+
+def test_a_cached_package_a_new_process_cannot_load_is_rebuilt(
+    tmp_path, aot_cache_dir, monkeypatch
+):
+    """An error (not a crash) loading a cached package: rebuilt with a warning; the rebuilt
+    one failing too is an error."""
+    directory, package = _cached_copy(tmp_path, aot_cache_dir)
+    _unchecked(package.with_suffix(".json"))
+    builds, good = [], package.read_bytes()
+    monkeypatch.setattr(aot, "_build", lambda *args: builds.append(args) or good)
+    monkeypatch.setattr(aot, "_LOAD_CHECK", "raise SystemExit('no runner for this package')")
+    monkeypatch.setattr(aot, "_LOADED", {})
+    with (
+        pytest.warns(AOTCacheWarning, match="building it again: .*no runner for this package"),
+        pytest.raises(AOTLoadError, match="failed in a new process: no runner for this package"),
+    ):
+        _scores(_model(), 5, 2 * E, "aot", cache_dir=directory)
+    assert len(builds) == 1
 
 
 def test_the_cache_directory(monkeypatch, tmp_path):
