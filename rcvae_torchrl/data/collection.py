@@ -276,9 +276,22 @@ def merge_episodes(*datasets: TensorDictBase) -> TensorDict:
     """
     if not datasets:
         raise ValueError("datasets: expected at least one dataset, got none")
+    for i, data in enumerate(datasets):
+        if not isinstance(data, TensorDictBase):
+            raise TypeError(
+                f"datasets[{i}]: expected a TensorDict of episodes, got {type(data).__name__}"
+            )
     parts, offset = [], 0
+    keys = set(datasets[0].keys(True, True))
     for i, data in enumerate(datasets):
         check_episode_ids(data, f"datasets[{i}]")
+        mine = set(data.keys(True, True))
+        if mine != keys:
+            missing, extra = sorted(map(str, keys - mine)), sorted(map(str, mine - keys))
+            what = " and ".join(
+                [f"lacks {missing}"] * bool(missing) + [f"has {extra} besides"] * bool(extra)
+            )
+            raise ValueError(f"datasets[{i}]: expected the entries of datasets[0], but it {what}")
         ids = data.get(TRAJ_KEY)
         runs = torch.unique_consecutive(ids, return_inverse=True)[1]
         renumbered = data.clone()

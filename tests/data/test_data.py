@@ -201,6 +201,15 @@ def test_collections_get_unique_ids_and_duplicates_are_refused(episodes):
     assert torch.equal(torch.unique(merged[TRAJ_KEY]), torch.arange(12))
     assert torch.equal(merged[TRAJ_KEY][: episodes.shape[0]], episodes[TRAJ_KEY])
     split_episodes(merged, 0.2)  # accepted
+    fewer = episodes.exclude("action")
+    with pytest.raises(
+        ValueError,
+        match=r"datasets\[1\]: expected the entries of datasets\[0\], but it lacks "
+        r"\['action'\]$",
+    ):
+        merge_episodes(episodes, fewer)
+    with pytest.raises(TypeError, match=r"datasets\[1\]: expected a TensorDict of episodes"):
+        merge_episodes(episodes, [episodes])
     policy = make_policy_module(UniformRandomPolicy(2, hold=3, seed=0))
     make_env = functools.partial(make_pusher_env, "deterministic", time_limit=1.0)
     more = collect_episodes(make_env, policy, 2, first_id=6, progress=False)
