@@ -41,21 +41,38 @@ _FEW_REFERENCE_STARTS = 10
 @dataclass(frozen=True)
 class Reference:
     """What a report's uncertainty is compared with: mean bits of in-distribution starts, as
-    time means or (``per_live_step``) per step of the imagined episodes' life."""
+    time means or (``per_live_step``) per step of the imagined episodes' life.
+
+    ``aleatoric_high`` / ``epistemic_high``: the bits that a share ``quantile`` of the
+    reference's start states stay at or below (None: not known). One start state's part rose
+    only when it is both ``rise`` times the mean and above this level: in-distribution start
+    states spread around their mean, and a start as uncertain as many of the reference's own
+    is no sign of states the model has not seen. Means over many start states (``overall``,
+    ``cause``) are compared with the mean alone.
+    """
 
     aleatoric: float
     epistemic: float
     rise: float = 1.3  #: a part counts as risen when it is at least this many times the reference
     name: str = "in-distribution reference"
     per_live_step: bool = False  #: the bits are ``("uncertainty", "per_live_step", ·)``
+    aleatoric_high: float | None = None
+    epistemic_high: float | None = None
+    quantile: float = 0.95
 
     def __post_init__(self) -> None:
-        for field_name in ("aleatoric", "epistemic"):
+        for field_name in ("aleatoric", "epistemic", "aleatoric_high", "epistemic_high"):
             value = getattr(self, field_name)
-            if not np.isfinite(value) or value < 0:
+            if field_name.endswith("_high") and value is None:
+                continue
+            if not isinstance(value, int | float) or not np.isfinite(value) or value < 0:
                 raise ValueError(f"reference.{field_name}: expected bits >= 0, got {value!r}")
         if not self.rise > 1:
             raise ValueError(f"rise: expected a factor > 1, got {self.rise!r}")
+        if not (isinstance(self.quantile, float) and 0.0 < self.quantile < 1.0):
+            raise ValueError(
+                f"quantile: expected a share of start states in (0, 1), got {self.quantile!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -84,7 +101,8 @@ class CompetencyReport:
     1. When the world model failed its self-checks (``model_warning``), the paragraph opens
        with a warning naming the dimensions it has not learned; when it has none (trained
        with ``checks=False``, or not trained), a warning saying so: such a forecast is never
-       presented as trustworthy.
+       presented as trustworthy. So does a forecast check that did not pass
+       (:meth:`with_forecast_check`).
     2. ``P(success within L) = p (c% interval low–high).`` (``P(no failure for L)`` for a
        survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
@@ -94,7 +112,11 @@ class CompetencyReport:
        in-distribution reference, epistemic uncertainty rose 2.1x (0.29 -> 0.61 bits) and
        aleatoric 1.0x (10.2 -> 10.4 bits): the model has not seen states like this.`` (a
        part below the reference "fell to" its ratio; when neither rose, the sentence names a
-       part at ``1 / rise`` of the reference or less as fallen below it).
+       part at ``1 / rise`` of the reference or less as fallen below it). One start state's
+       part rose only when it is also above the level that ``quantile`` of the reference's
+       start states stay at or below (where the reference knows it, see :class:`Reference`):
+       ``... neither part rose beyond the reference's own start states, 95% of which reach
+       0.46 epistemic bits.``
        The bits are time means, or, when both reports were made with ``episode_end`` (their
        ``"per_live_step"`` entries), bits per step of the imagined episodes' life: with ended
        episodes counted as certain, a time mean also measures how long the episodes last, and
@@ -104,7 +126,7 @@ class CompetencyReport:
        (``("uncertainty", "summary", ·)``; a tie counts as aleatoric), given with its share
        of the total: ``Most of the doubt is epistemic (0.70
        of 1.10 bits): the model has not seen states like this.`` When all three are 0 the
-       sentence says so. With a ``model_warning`` neither: the bits are given without a cause
+       sentence says so. With a warning (rule 1) neither: the bits are given without a cause
        (a model that failed its checks may take missing knowledge for chance, or hide it).
     4. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
        each with its mean bits and the time of its peak. Left out for joint estimators.
@@ -127,6 +149,7 @@ class CompetencyReport:
         survival: whether success is lasting the time limit without a failure
             (:meth:`~rcvae_torchrl.competency.SuccessBoundary.survival`).
         reference: the uncertainty the summary compares with (:meth:`with_reference`).
+        forecast_check: the forecast checked against real episodes (:meth:`with_forecast_check`).
     """
 
     data: TensorDictBase
@@ -141,11 +164,36 @@ class CompetencyReport:
     model_warning: str = ""
     reference: Reference | None = None
     survival: bool = False
+    forecast_check: Any = None
 
     @property
     def trustworthy(self) -> bool:
-        """False when the world model failed its self-checks or has none."""
-        return not self.model_warning
+        """False when the world model failed its self-checks or has none, or when the forecast
+        check (:meth:`with_forecast_check`) did not pass."""
+        return not self.warning
+
+    @property
+    def warning(self) -> str:
+        """Why this forecast is not trustworthy ('' when nothing says so): ``model_warning``,
+        and the sentence of a forecast check that did not pass."""
+        parts = [self.model_warning] if self.model_warning else []
+        if self.forecast_check is not None and not self.forecast_check.passed:
+            parts.append(self.forecast_check.describe())
+        return "; ".join(parts)
+
+    def with_forecast_check(self, check: Any) -> CompetencyReport:
+        """This report, with the check of the same agent's forecasts against its real episodes
+        from other start states of the distribution these come from (an
+        :class:`~rcvae_torchrl.training.OutcomeCheck`, e.g. from held-out episodes' first
+        states). A check that did not pass (a bias, or too few start states to tell) opens
+        every summary as a warning, the bits then given without a cause, and the report is not
+        :attr:`trustworthy`; one that passed closes :meth:`overall`."""
+        if not (hasattr(check, "passed") and callable(getattr(check, "describe", None))):
+            raise TypeError(
+                "check: expected an OutcomeCheck (rcvae_torchrl.training.OutcomeCheck."
+                f"from_outcomes), got {type(check).__name__}"
+            )
+        return replace(self, forecast_check=check)
 
     def mean_bits(self, per_live_step: bool = False) -> tuple[float, float]:
         """Aleatoric and epistemic time-mean bits (summed over dimensions), averaged over the
@@ -161,18 +209,35 @@ class CompetencyReport:
         return "per_live_step" in self.uncertainty.keys()
 
     def with_reference(
-        self, reference: CompetencyReport | Reference, *, rise: float = 1.3, name: str | None = None
+        self,
+        reference: CompetencyReport | Reference,
+        *,
+        rise: float = 1.3,
+        name: str | None = None,
+        quantile: float = 0.95,
     ) -> CompetencyReport:
         """This report, with summaries that compare against ``reference``: a report of
-        in-distribution start states (e.g. the training starts), or its :class:`Reference`."""
+        in-distribution start states (e.g. the training starts), or its :class:`Reference`.
+        From a report, the reference keeps its mean bits and, with at least 10 start states,
+        the level that ``quantile`` of them stay at or below (one start state's part rose only
+        above it)."""
         if isinstance(reference, CompetencyReport):
             live = reference.has_live_steps and self.has_live_steps
             aleatoric, epistemic = reference.mean_bits(live)
             starts = reference.data.numel()
             name = name or "in-distribution reference"
-            if starts < _FEW_REFERENCE_STARTS:  # its mean bits are noisy: say on how few
+            highs: dict[str, float | None] = {"aleatoric_high": None, "epistemic_high": None}
+            if starts < _FEW_REFERENCE_STARTS:  # its bits are noisy: say on how few
                 name = f"{name} (of only {starts} start state{'s' if starts > 1 else ''})"
-            reference = Reference(aleatoric, epistemic, rise, name, live)
+            elif isinstance(quantile, float) and 0.0 < quantile < 1.0:  # else refused below
+                part = _bits(reference.uncertainty, live)
+                highs = {
+                    f"{k}_high": float(part.get(k).reshape(-1).double().quantile(quantile))
+                    for k in ("aleatoric", "epistemic")
+                }
+            reference = Reference(
+                aleatoric, epistemic, rise, name, live, **highs, quantile=quantile
+            )
         elif not isinstance(reference, Reference):
             raise TypeError(
                 "reference: expected a CompetencyReport or a Reference, got "
@@ -205,7 +270,9 @@ class CompetencyReport:
             text += _doubt_sentence(aleatoric, epistemic, total)
         else:
             text += _change_sentence(aleatoric, epistemic, self.reference)
-        return (f"Warning: {self.model_warning}. " if self.model_warning else "") + text
+        if self.forecast_check is not None and self.forecast_check.passed:
+            text += f" Forecast check: {self.forecast_check.describe()}."
+        return (f"Warning: {self.warning}. " if self.warning else "") + text
 
     @property
     def batch_size(self) -> torch.Size:
@@ -285,22 +352,22 @@ class CompetencyReport:
                     self.top_k,
                 )
             )
-        if self.model_warning:
-            sentences.insert(0, f"Warning: {self.model_warning}.")
+        if self.warning:
+            sentences.insert(0, f"Warning: {self.warning}.")
         return " ".join(s for s in sentences if s)
 
     def _uncertainty_sentence(self, uncertainty: TensorDictBase) -> str:
         aleatoric, epistemic, total = (
             float(uncertainty.get(("summary", k))) for k in ("aleatoric", "epistemic", "total")
         )
-        if self.model_warning:  # a model that failed its checks: its split is not evidence
+        if self.warning:  # a model that failed its checks: its split is not evidence
             return _unreliable_split_sentence(aleatoric, epistemic, total)
         if self.reference is None:
             return _doubt_sentence(aleatoric, epistemic, total)
         if self.reference.per_live_step:
             part = uncertainty.get("per_live_step")
             aleatoric, epistemic = float(part.get("aleatoric")), float(part.get("epistemic"))
-        return _change_sentence(aleatoric, epistemic, self.reference)
+        return _change_sentence(aleatoric, epistemic, self.reference, one_start=True)
 
 
 def _success_sentence(p: float, low: float, high: float, confidence: float, outcome: str) -> str:
@@ -322,7 +389,7 @@ def _unreliable_split_sentence(aleatoric: float, epistemic: float, total: float)
     overconfident one)."""
     return (
         f"Uncertainty: {aleatoric:.2f} bits aleatoric and {epistemic:.2f} epistemic of "
-        f"{total:.2f}; with the model's self-checks failed or missing this split does not say "
+        f"{total:.2f}; with the warning above this split does not say "
         "whether more data would help."
     )
 
@@ -341,36 +408,61 @@ def _ratios(aleatoric: float, epistemic: float, reference: Reference) -> dict[st
     }
 
 
-def _change_sentence(aleatoric: float, epistemic: float, reference: Reference) -> str:
-    """What changed against the reference, and which part rose (the larger rise)."""
+def _change_sentence(
+    aleatoric: float, epistemic: float, reference: Reference, one_start: bool = False
+) -> str:
+    """What changed against the reference, and which part rose (the larger rise); for
+    ``one_start``, a part rose only above the reference's start states' spread."""
     ratios = _ratios(aleatoric, epistemic, reference)
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
     unit = "bits per live step" if reference.per_live_step else "bits"
+    shown = {k: round(r, 1) for k, r in ratios.items()}  # "fell to 1.0x" would read wrong
     parts = [
         f"{k} {'uncertainty ' if i == 0 else ''}"
-        f"{'rose ' if ratios[k] >= 1 and i == 0 else 'fell to ' if ratios[k] < 1 else ''}"
+        f"{'rose ' if shown[k] >= 1 and i == 0 else 'fell to ' if shown[k] < 1 else ''}"
         f"{ratios[k]:.1f}x ({refs[k]:.2f} -> {values[k]:.2f} {unit})"
         for i, k in enumerate(("epistemic", "aleatoric"))
     ]
     text = f"Against the {reference.name}, {parts[0]} and {parts[1]}"
-    cause = _cause(aleatoric, epistemic, reference)
+    cause = _cause(aleatoric, epistemic, reference, one_start)
+    if cause is not None:
+        return text + f": the rise is {cause}, {_ROSE[cause]}."
+    within = [k for k in ("epistemic", "aleatoric") if ratios[k] >= reference.rise]
+    if within:  # risen against the mean, not above the spread of the reference's starts
+        levels = " and ".join(f"{_high(reference, k):.2f} {k} {unit}" for k in within)
+        return (
+            text + f": neither part rose beyond the reference's own start states, "
+            f"{reference.quantile:.0%} of which reach {levels}."
+        )
     fell = [k for k in ("epistemic", "aleatoric") if ratios[k] * reference.rise <= 1]
-    if cause is None and fell:
+    if fell:
         return (
             text
             + f": neither part rose, the {' and '.join(fell)} doubt fell below the reference's."
         )
-    if cause is None:
-        return text + ": neither part rose, the doubt is as in the reference."
-    return text + f": the rise is {cause}, {_ROSE[cause]}."
+    return text + ": neither part rose, the doubt is as in the reference."
 
 
-def _cause(aleatoric: float, epistemic: float, reference: Reference) -> str | None:
-    """The part at least ``rise`` times the reference (the larger rise when both are)."""
+def _high(reference: Reference, part: str) -> float | None:
+    """The level ``reference.quantile`` of its start states stay at or below, for ``part``."""
+    return reference.aleatoric_high if part == "aleatoric" else reference.epistemic_high
+
+
+def _cause(
+    aleatoric: float, epistemic: float, reference: Reference, one_start: bool = False
+) -> str | None:
+    """The part at least ``rise`` times the reference (the larger rise when both are); for
+    ``one_start``, also above the level of its start states' ``quantile`` where known."""
     ratios = _ratios(aleatoric, epistemic, reference)
-    risen = [k for k in ratios if ratios[k] >= reference.rise]
-    return max(risen, key=lambda k: ratios[k]) if risen else None
+    values = {"epistemic": epistemic, "aleatoric": aleatoric}
+
+    def risen(k: str) -> bool:
+        high = _high(reference, k) if one_start else None
+        return ratios[k] >= reference.rise and (high is None or values[k] > high)
+
+    parts = [k for k in ratios if risen(k)]
+    return max(parts, key=lambda k: ratios[k]) if parts else None
 
 
 def _bits(uncertainty: TensorDictBase, per_live_step: bool) -> TensorDictBase:

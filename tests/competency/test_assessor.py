@@ -327,6 +327,90 @@ def test_summary_against_a_reference_names_what_rose():
         Reference(1.0, 1.0, rise=0.9)
 
 
+def _starts_report(epistemic: list[float], aleatoric: float = 0.4) -> CompetencyReport:
+    """A report of ``len(epistemic)`` start states with these time-mean epistemic bits."""
+    data = torch.stack(
+        [hand_report(aleatoric=aleatoric, epistemic=e, total=aleatoric + e).data for e in epistemic]
+    )
+    return CompetencyReport(data, ("a", "b", "c", "d"), 600, 0.05, 0.95)
+
+
+def test_one_start_rose_only_beyond_the_spread_of_the_references_own_starts():
+    """In-distribution start states spread around their mean: against the mean alone, 6 of
+    20 of the reference's own starts read as states the model has not seen (as 1 to 5 of 30
+    did on a reacher); against the level 95 % of them stay at or below, one does."""
+    from rcvae_torchrl.competency import Reference
+
+    reference = _starts_report([0.1 + 0.02 * i for i in range(20)])  # mean 0.29
+    high = float(torch.tensor([0.1 + 0.02 * i for i in range(20)]).quantile(0.95))
+    inside = hand_report(aleatoric=0.4, epistemic=0.45, total=0.85).with_reference(reference)
+    assert inside.reference.epistemic_high == pytest.approx(high)  # 0.461
+    assert inside.reference.aleatoric_high == pytest.approx(0.4)
+    assert (
+        "epistemic uncertainty rose 1.6x (0.29 -> 0.45 bits) and aleatoric 1.0x (0.40 -> 0.40 "
+        "bits): neither part rose beyond the reference's own start states, 95% of which reach "
+        "0.46 epistemic bits."
+    ) in inside.summary()
+    beyond = hand_report(aleatoric=0.4, epistemic=0.6, total=1.0).with_reference(reference)
+    assert "the rise is epistemic, the model has not seen states like this" in beyond.summary()
+    own = reference.with_reference(reference)
+    flagged = [i for i in range(20) if "the rise is" in own.summary(index=i)]
+    assert flagged == [19]
+    by_mean = reference.with_reference(Reference(0.4, 0.29))  # no spread known: the mean alone
+    assert sum("the rise is" in by_mean.summary(index=i) for i in range(20)) == 6
+    # a mean over start states is compared with the reference's mean
+    assert _starts_report([0.45] * 12).with_reference(reference).cause() == "epistemic"
+    assert (
+        "the rise is epistemic" in _starts_report([0.45] * 12).with_reference(reference).overall()
+    )
+    # a stricter level: fewer of the reference's own starts above it
+    assert own.reference.quantile == 0.95
+    strict = reference.with_reference(reference, quantile=0.5)
+    assert strict.reference.epistemic_high == pytest.approx(0.29)
+    with pytest.raises(ValueError, match=r"quantile: expected a share of start states in \(0, 1\)"):
+        hand_report().with_reference(reference, quantile=1.0)
+    with pytest.raises(ValueError, match=r"reference.epistemic_high: expected bits >= 0"):
+        Reference(0.4, 0.2, epistemic_high=-0.1)
+
+
+def test_a_forecast_check_that_did_not_pass_opens_every_summary():
+    """The check of the agent's forecasts against real episodes of other starts: a bias makes
+    the report untrustworthy and its bits causeless; a passed check closes the overview."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    g = torch.Generator().manual_seed(0)
+    real = torch.rand(20, 5, generator=g) < 0.3  # 20 held-out starts, 5 real episodes each
+    optimistic = OutcomeCheck.from_outcomes(torch.full((20,), 0.9), real, what="the forecasts")
+    assert optimistic.biased
+    report = _starts_report([0.7, 0.2]).with_forecast_check(optimistic)
+    assert not report.trustworthy and report.warning == optimistic.describe()
+    for i in range(2):
+        text = report.summary(index=i)
+        assert text.startswith("Warning: the forecasts are too optimistic: from 20 start states")
+        assert "with the warning above this split does not say" in text
+        assert "the model has not seen states like this" not in text
+    assert report.overall().startswith("Warning: the forecasts are too optimistic")
+    fair = OutcomeCheck.from_outcomes(real.float().mean(1).clamp(0.05, 0.95), real)
+    assert fair.passed
+    checked = _starts_report([0.7, 0.2]).with_forecast_check(fair)
+    assert checked.trustworthy and checked.summary(index=0).startswith("P(success within 30 s)")
+    assert checked.overall().endswith(f" Forecast check: {fair.describe()}.")
+    few = OutcomeCheck.from_outcomes(torch.full((4,), 0.3), real[:4])  # too few starts to tell
+    assert "are unchecked: 4 start states" in hand_report().with_forecast_check(few).warning
+    both = replace_warning(_starts_report([0.7]), "the world model has not learned b")
+    assert both.with_forecast_check(optimistic).warning.startswith(
+        "the world model has not learned b; the forecasts are too optimistic"
+    )
+    with pytest.raises(TypeError, match="check: expected an OutcomeCheck"):
+        hand_report().with_forecast_check(0.3)
+
+
+def replace_warning(report: CompetencyReport, warning: str) -> CompetencyReport:
+    import dataclasses
+
+    return dataclasses.replace(report, model_warning=warning)
+
+
 def test_episodes_that_end_sooner_are_compared_per_live_step():
     """Time means that fell only because the imagined episodes ended sooner (failing early)
     are not read as less doubt: two reports with bits per live step compare those."""
@@ -394,7 +478,7 @@ def test_a_model_without_self_checks_is_never_presented_as_trustworthy(env, star
     text = report.summary(index=0)
     assert text.startswith("Warning: the world model has no self-checks (trained with checks=Fa")
     assert "ensemble.checks = rcvae_torchrl.training.check_model(ensemble, held_out" in text
-    assert "with the model's self-checks failed or missing this split does not say" in text
+    assert "with the warning above this split does not say" in text
 
 
 def replace_top_k(report: CompetencyReport, top_k: int) -> CompetencyReport:
