@@ -267,7 +267,8 @@ _LOAD_CHECK_S = 600
 
 def _load_in_a_child(package: Path) -> tuple[bool, str | None]:
     """``(crashed, problem)`` of loading ``package`` in a new interpreter (this one's import
-    path): ``(False, None)`` when it loads; ``crashed`` when a signal ended the child."""
+    path): ``(False, None)`` when it loads; ``crashed`` when a signal ended the child (or it
+    hung); ``(False, "")``, with a warning, when no child could be started."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     try:
         done = subprocess.run(
@@ -279,8 +280,14 @@ def _load_in_a_child(package: Path) -> tuple[bool, str | None]:
         )
     except subprocess.TimeoutExpired:
         return True, f"loading it did not finish in {_LOAD_CHECK_S} s in a new process"
-    except OSError as err:
-        return False, f"no new process could be started to load it: {err}"
+    except OSError as err:  # nothing learnt about the package: loaded here, unrecorded
+        warnings.warn(
+            f"AOT scoring package {str(package)!r} not first loaded in a new process (none "
+            f"could be started: {err}); loading it in this one",
+            AOTCacheWarning,
+            stacklevel=5,
+        )
+        return False, ""
     if done.returncode == 0:
         return False, None
     if done.returncode < 0:
@@ -310,6 +317,8 @@ def _open_checked(package: Path, record: Path, meta: dict[str, Any], built: bool
         raise _load_error(package, meta.get("load_problem", "it would not load"))
     if meta.get("loads") is not True:
         crashed, problem = _load_in_a_child(package)
+        if problem == "":  # not checked
+            return _open(package)
         if problem is None:
             write_json(record, {**meta, "loads": True})
         elif crashed:

@@ -261,6 +261,25 @@ def test_a_package_that_crashes_its_loader_is_an_error_not_a_crash(
         _scores(_model(), 5, 2 * E, "aot", cache_dir=directory)
 
 
+def test_without_a_new_process_the_package_is_loaded_here_unrecorded(
+    tmp_path, aot_cache_dir, monkeypatch
+):
+    directory, package = _cached_copy(tmp_path, aot_cache_dir)
+    record = package.with_suffix(".json")
+    _unchecked(record)
+
+    def no_process(*args, **kwargs):
+        raise OSError("Resource temporarily unavailable")
+
+    monkeypatch.setattr(aot.subprocess, "run", no_process)
+    monkeypatch.setattr(aot, "_LOADED", {})
+    model = _model()
+    with pytest.warns(AOTCacheWarning, match="none could be started: Resource temporarily"):
+        got = _scores(model, 5, 2 * E, "aot", cache_dir=directory)
+    _assert_same(got, _scores(model, 5, 2 * E, False))
+    assert "loads" not in json.loads(record.read_text())
+
+
 def test_a_cached_package_a_new_process_cannot_load_is_rebuilt(
     tmp_path, aot_cache_dir, monkeypatch
 ):
