@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import functools
 import os
-import signal
-import subprocess
-import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,6 +14,7 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
 from rcvae_torchrl.io import atomic_write
+from rcvae_torchrl.processes import try_in_a_child
 
 __all__ = ["gl_unavailable_reason", "record_episode", "render_frame", "save_video"]
 
@@ -63,26 +61,10 @@ def gl_unavailable_reason() -> str | None:
 def _render_check(backend: str | None) -> str | None:
     head = f"offscreen OpenGL unavailable (MUJOCO_GL={backend})"
     try:
-        done = subprocess.run(
-            [sys.executable, "-c", _RENDER_CHECK],
-            capture_output=True,
-            text=True,
-            timeout=_RENDER_CHECK_S,
-        )
-    except subprocess.TimeoutExpired:
-        return f"{head}: a test render did not finish in {_RENDER_CHECK_S} s"
+        outcome = try_in_a_child(_RENDER_CHECK, timeout=_RENDER_CHECK_S)
     except OSError as err:
         return f"{head}: no process could be started for a test render: {err}"
-    if done.returncode == 0:
-        return None
-    if done.returncode < 0:
-        try:
-            name = signal.Signals(-done.returncode).name
-        except ValueError:
-            name = f"signal {-done.returncode}"
-        return f"{head}: a test render ended its process ({name})"
-    lines = done.stderr.strip().splitlines()
-    return f"{head}: {lines[-1] if lines else f'exit status {done.returncode}'}"
+    return None if outcome.problem is None else f"{head}: a test render failed: {outcome.problem}"
 
 
 def save_video(frames: list[np.ndarray], path: str | Path, fps: float) -> Path:

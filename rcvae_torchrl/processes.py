@@ -13,14 +13,19 @@ from __future__ import annotations
 
 import concurrent.futures
 import multiprocessing
+import os
+import signal
+import subprocess
+import sys
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import torch
 
 from rcvae_torchrl.threads import free_cores, set_threads
 
-__all__ = ["check_workers", "choose_workers", "map_in_processes"]
+__all__ = ["ChildOutcome", "check_workers", "choose_workers", "map_in_processes", "try_in_a_child"]
 
 T = TypeVar("T")
 
@@ -87,3 +92,38 @@ def map_in_processes(
     with concurrent.futures.ProcessPoolExecutor(min(workers, len(jobs)), context) as pool:
         futures = [pool.submit(_call, threads, fn, tuple(args)) for args in jobs]
         return [f.result() for f in futures]
+
+
+@dataclass(frozen=True)
+class ChildOutcome:
+    """How a try in a child process went (:func:`try_in_a_child`)."""
+
+    problem: str | None  #: None when it exited with status 0, else what went wrong
+    crashed: bool = False  #: a signal ended it (a segmentation fault, an abort), or it hung
+
+
+def try_in_a_child(code: str, *args: str, timeout: float) -> ChildOutcome:
+    """Run ``code`` (as ``python -c code args...``) in a new interpreter with this one's import
+    path, for what may end a process rather than raise (a native library's crash or abort):
+    the child ends, this process learns how. ``OSError`` when no child can be started."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    try:
+        done = subprocess.run(
+            [sys.executable, "-c", code, *args],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
+    except subprocess.TimeoutExpired:
+        return ChildOutcome(f"it did not finish in {timeout:g} s", crashed=True)
+    if done.returncode == 0:
+        return ChildOutcome(None)
+    if done.returncode < 0:
+        try:
+            name = signal.Signals(-done.returncode).name
+        except ValueError:
+            name = f"signal {-done.returncode}"
+        return ChildOutcome(f"its process was ended by {name}", crashed=True)
+    lines = done.stderr.strip().splitlines()
+    return ChildOutcome(lines[-1] if lines else f"exit status {done.returncode}")

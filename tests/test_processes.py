@@ -54,3 +54,34 @@ def test_a_job_error_is_raised_in_the_caller():
         map_in_processes(math.sqrt, [(4.0,), (-1.0,)], 2)
     with pytest.raises(ValueError, match="workers: expected a positive int"):
         map_in_processes(math.sqrt, [(4.0,)], 0)
+
+
+@pytest.mark.parametrize(
+    ("code", "problem", "crashed"),
+    [
+        ("pass", None, False),
+        ("import os\nos.abort()", "its process was ended by SIGABRT", True),
+        (
+            "import os, signal\nos.kill(os.getpid(), signal.SIGSEGV)",
+            "its process was ended by SIGSEGV",
+            True,
+        ),
+        ("raise ValueError('bad state')", "ValueError: bad state", False),
+        ("import sys\nsys.exit(3)", "exit status 3", False),
+        ("import time\ntime.sleep(30)", "it did not finish in 1 s", True),
+    ],
+)
+def test_a_try_in_a_child_says_how_it_ended(code, problem, crashed):
+    """What would end a process (a native crash, an abort) ends only the child."""
+    from rcvae_torchrl.processes import try_in_a_child
+
+    outcome = try_in_a_child(code, timeout=1.0 if "sleep" in code else 60.0)
+    assert outcome.problem == problem and outcome.crashed is crashed
+
+
+def test_a_try_in_a_child_has_this_import_path_and_arguments(tmp_path, monkeypatch):
+    from rcvae_torchrl.processes import try_in_a_child
+
+    (tmp_path / "only_here.py").write_text("import sys\nif sys.argv[1] != 'x y': sys.exit(9)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert try_in_a_child("import only_here", "x y", timeout=60.0).problem is None

@@ -41,9 +41,6 @@ import io
 import logging
 import os
 import platform
-import signal
-import subprocess
-import sys
 import time
 import warnings
 from collections.abc import Callable
@@ -56,6 +53,7 @@ from torch import nn
 from rcvae_torchrl.fingerprint import describe, digest, source_digest
 from rcvae_torchrl.io import StoredFileError, atomic_write, read_json, write_json
 from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.processes import try_in_a_child
 from rcvae_torchrl.rollout.loop import ActionBounds
 from rcvae_torchrl.rollout.task import Task
 
@@ -266,20 +264,11 @@ _LOAD_CHECK_S = 600
 
 
 def _load_in_a_child(package: Path) -> tuple[bool, str | None]:
-    """``(crashed, problem)`` of loading ``package`` in a new interpreter (this one's import
-    path): ``(False, None)`` when it loads; ``crashed`` when a signal ended the child (or it
-    hung); ``(False, "")``, with a warning, when no child could be started."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    """``(crashed, problem)`` of loading ``package`` in a new interpreter: ``(False, None)``
+    when it loads; ``crashed`` when a signal ended the child (or it hung); ``(False, "")``,
+    with a warning, when no child could be started."""
     try:
-        done = subprocess.run(
-            [sys.executable, "-c", _LOAD_CHECK, str(package)],
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=_LOAD_CHECK_S,
-        )
-    except subprocess.TimeoutExpired:
-        return True, f"loading it did not finish in {_LOAD_CHECK_S} s in a new process"
+        outcome = try_in_a_child(_LOAD_CHECK, str(package), timeout=_LOAD_CHECK_S)
     except OSError as err:  # nothing learnt about the package: loaded here, unrecorded
         warnings.warn(
             f"AOT scoring package {str(package)!r} not first loaded in a new process (none "
@@ -288,16 +277,9 @@ def _load_in_a_child(package: Path) -> tuple[bool, str | None]:
             stacklevel=5,
         )
         return False, ""
-    if done.returncode == 0:
+    if outcome.problem is None:
         return False, None
-    if done.returncode < 0:
-        try:
-            name = signal.Signals(-done.returncode).name
-        except ValueError:
-            name = f"signal {-done.returncode}"
-        return True, f"loading it killed a new process ({name})"
-    lines = done.stderr.strip().splitlines()
-    return False, f"loading it failed in a new process: {lines[-1] if lines else done.returncode}"
+    return outcome.crashed, f"loading it in a new process failed: {outcome.problem}"
 
 
 def _load_error(package: Path, problem: str) -> AOTLoadError:

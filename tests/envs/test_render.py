@@ -1,6 +1,7 @@
 import imageio.v2 as imageio
 import pytest
 
+from rcvae_torchrl import processes
 from rcvae_torchrl.envs import make_pusher_env, render
 from rcvae_torchrl.envs.render import (
     gl_unavailable_reason,
@@ -33,15 +34,18 @@ def test_record_episode_gif(tmp_path):
 @pytest.mark.parametrize(
     ("check", "why"),
     [
-        ("import os\nos.abort()", "a test render ended its process (SIGABRT)"),
-        ("raise RuntimeError('no EGL context')", "RuntimeError: no EGL context"),
+        ("import os\nos.abort()", "a test render failed: its process was ended by SIGABRT"),
+        (
+            "raise RuntimeError('no EGL context')",
+            "a test render failed: RuntimeError: no EGL context",
+        ),
     ],
 )
 def test_a_backend_that_cannot_render_is_a_reason_not_a_crash(monkeypatch, check, why):
     """The test render runs in a child process (GLFW without a display aborted a GPU
     machine's test run in-process), once per backend."""
-    runs, run = [], render.subprocess.run
-    monkeypatch.setattr(render.subprocess, "run", lambda *a, **k: runs.append(a) or run(*a, **k))
+    runs, run = [], processes.subprocess.run
+    monkeypatch.setattr(processes.subprocess, "run", lambda *a, **k: runs.append(a) or run(*a, **k))
     monkeypatch.setattr(render, "_RENDER_CHECK", check)
     render._render_check.cache_clear()
     try:

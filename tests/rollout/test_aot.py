@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from rcvae_torchrl import processes
 from rcvae_torchrl.envs import pusher_reward, pusher_success
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.rollout import (
@@ -247,7 +248,10 @@ def test_a_package_that_crashes_its_loader_is_an_error_not_a_crash(
         monkeypatch.setattr(aot, "_build", lambda *args: good)
     monkeypatch.setattr(aot, "_LOAD_CHECK", "import os\nos.abort()")
     monkeypatch.setattr(aot, "_LOADED", {})
-    crash = r"killed a new process \(SIGABRT\); torch .* compile=True \(torch.compile\)"
+    crash = (
+        r"loading it in a new process failed: its process was ended by SIGABRT; torch .* "
+        r"compile=True \(torch.compile\)"
+    )
     with pytest.raises(AOTLoadError, match=crash):
         _scores(_model(), 5, 2 * E, "aot", cache_dir=directory)
     assert json.loads(record.read_text())["loads"] is False
@@ -271,7 +275,7 @@ def test_without_a_new_process_the_package_is_loaded_here_unrecorded(
     def no_process(*args, **kwargs):
         raise OSError("Resource temporarily unavailable")
 
-    monkeypatch.setattr(aot.subprocess, "run", no_process)
+    monkeypatch.setattr(processes.subprocess, "run", no_process)
     monkeypatch.setattr(aot, "_LOADED", {})
     model = _model()
     with pytest.warns(AOTCacheWarning, match="none could be started: Resource temporarily"):
@@ -293,7 +297,7 @@ def test_a_cached_package_a_new_process_cannot_load_is_rebuilt(
     monkeypatch.setattr(aot, "_LOADED", {})
     with (
         pytest.warns(AOTCacheWarning, match="building it again: .*no runner for this package"),
-        pytest.raises(AOTLoadError, match="failed in a new process: no runner for this package"),
+        pytest.raises(AOTLoadError, match="in a new process failed: no runner for this package"),
     ):
         _scores(_model(), 5, 2 * E, "aot", cache_dir=directory)
     assert len(builds) == 1
