@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import ctypes.util
 import os
-import subprocess
-import sys
 
 #: What loads the EGL backend at import: MuJoCo (whose own import lets an ImportError of its
 #: renderer pass, not other errors) and dm_control's renderer (which lets none pass).
@@ -24,14 +22,12 @@ _PROBE = "import mujoco\nfrom dm_control import _render"
 def egl_imports() -> bool:
     """Whether MuJoCo and dm_control import with ``MUJOCO_GL=egl`` here, tried in a child
     process (a failed import would leave PyOpenGL half set up in this one)."""
-    env = {**os.environ, "MUJOCO_GL": "egl"}
+    from rcvae_torchrl.processes import try_in_a_child
+
     try:
-        done = subprocess.run(
-            [sys.executable, "-c", _PROBE], env=env, capture_output=True, timeout=120
-        )
-    except (OSError, subprocess.SubprocessError):
+        return try_in_a_child(_PROBE, timeout=120, env={"MUJOCO_GL": "egl"}).problem is None
+    except OSError:
         return False
-    return done.returncode == 0
 
 
 def select_gl_backend() -> str | None:

@@ -102,11 +102,15 @@ class ChildOutcome:
     crashed: bool = False  #: a signal ended it (a segmentation fault, an abort), or it hung
 
 
-def try_in_a_child(code: str, *args: str, timeout: float) -> ChildOutcome:
+def try_in_a_child(
+    code: str, *args: str, timeout: float, env: dict[str, str] | None = None
+) -> ChildOutcome:
     """Run ``code`` (as ``python -c code args...``) in a new interpreter with this one's import
-    path, for what may end a process rather than raise (a native library's crash or abort):
-    the child ends, this process learns how. ``OSError`` when no child can be started."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    path and environment (plus ``env``), for what may end a process rather than raise (a
+    native library's crash or abort) or leave it half set up (a failed import): the child
+    ends, this process learns how. ``OSError`` when no child can be started."""
+    path = os.pathsep.join(p for p in sys.path if p)
+    env = {**os.environ, "PYTHONPATH": path, **(env or {})}
     try:
         done = subprocess.run(
             [sys.executable, "-c", code, *args],
