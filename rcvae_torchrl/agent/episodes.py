@@ -240,12 +240,19 @@ def check_not_cut_short(
     cut = truncated.gather(-1, last).squeeze(-1) & ~hit & (length < max_steps)
     if bool(cut.any()):
         first = int(length.reshape(-1)[cut.reshape(-1).nonzero()[0, 0]])
+        # episodes are checked as they are run: one, or the group that ran together
+        which = (
+            "an episode was"
+            if cut.numel() == 1
+            else f"{int(cut.sum())} of the {cut.numel()} episodes run together were"
+        )
         raise ValueError(
-            f"env: {int(cut.sum())} episode(s) were cut short by the env itself (truncated, e.g. "
-            f"by its own time limit) before max_steps={max_steps} and without a success, the "
-            f"first after {first} steps: whether they would have succeeded is unknown. Raise "
-            f"the env's time limit (e.g. its StepCounter's max_steps) to at least {max_steps}, "
-            f"or ask for success within {first} steps"
+            f"env: {which} cut short by the env itself (truncated, e.g. by its own time limit) "
+            f"before max_steps={max_steps} and without a success, the first after {first} "
+            f"steps: whether it would have succeeded is unknown. Let the env run at least "
+            f"{max_steps} steps (a StepCounter's max_steps; a dm_control task's time limit in "
+            f"seconds, e.g. DMControlEnv(domain, task, time_limit=...)), or ask for success "
+            f"within {first} steps"
         )
 
 

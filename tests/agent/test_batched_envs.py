@@ -79,7 +79,7 @@ def _outcomes(env, starts, reset=reset_to_state, max_steps: int = 5):
 def test_only_the_episodes_asked_for_count_as_cut_short():
     # 3 episodes in an env of 8: the 5 rows that pad the group are no episodes of the user's
     env = make_batched_pusher_env(8, time_limit=1.0)
-    with pytest.raises(ValueError, match=r"^env: 3 episode\(s\) were cut short by the env itself"):
+    with pytest.raises(ValueError, match=r"^env: 3 of the 3 episodes run together were cut short"):
         _outcomes(env, pusher_starts(3), max_steps=45)
 
 
