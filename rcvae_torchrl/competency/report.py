@@ -102,7 +102,8 @@ class CompetencyReport:
        with a warning naming the dimensions it has not learned; when it has none (trained
        with ``checks=False``, or not trained), a warning saying so: such a forecast is never
        presented as trustworthy. So does a forecast check that did not pass
-       (:meth:`with_forecast_check`).
+       (:meth:`with_forecast_check`): ``Warning: forecast check on other start states: the
+       forecasts are too optimistic: ...``.
     2. ``P(success within L) = p (c% interval low–high).`` (``P(no failure for L)`` for a
        survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
@@ -178,7 +179,7 @@ class CompetencyReport:
         and the sentence of a forecast check that did not pass."""
         parts = [self.model_warning] if self.model_warning else []
         if self.forecast_check is not None and not self.forecast_check.passed:
-            parts.append(self.forecast_check.describe())
+            parts.append(f"forecast check on other start states: {self.forecast_check.describe()}")
         return "; ".join(parts)
 
     def with_forecast_check(self, check: Any) -> CompetencyReport:
@@ -259,7 +260,8 @@ class CompetencyReport:
 
     def overall(self) -> str:
         """One paragraph over all start states: the mean forecast, and what changed against the
-        reference (without one, the dominant part of the doubt)."""
+        reference (without one, the dominant part of the doubt), with how many start states
+        rose one by one (a mean can rise by a few outliers); a passed forecast check last."""
         p = float(self.competency.get("p_success").mean())
         live = self.reference is not None and self.reference.per_live_step
         aleatoric, epistemic = self.mean_bits(live)
@@ -270,9 +272,25 @@ class CompetencyReport:
             text += _doubt_sentence(aleatoric, epistemic, total)
         else:
             text += _change_sentence(aleatoric, epistemic, self.reference)
+            text += self._one_by_one_sentence()
         if self.forecast_check is not None and self.forecast_check.passed:
-            text += f" Forecast check: {self.forecast_check.describe()}."
+            text += f" Forecast check on other start states: {self.forecast_check.describe()}."
         return (f"Warning: {self.warning}. " if self.warning else "") + text
+
+    def _one_by_one_sentence(self) -> str:
+        """How many start states rose one by one (the rule of their own paragraphs): a mean
+        over the starts can rise with a few outliers, or hide them."""
+        part = _bits(self.uncertainty, self.reference.per_live_step)
+        pairs = zip(
+            part.get("aleatoric").reshape(-1).tolist(),
+            part.get("epistemic").reshape(-1).tolist(),
+            strict=True,
+        )
+        causes = [_cause(a, e, self.reference, one_start=True) for a, e in pairs]
+        return (
+            f" Start state by start state, the rise is epistemic in {causes.count('epistemic')} "
+            f"of {len(causes)} and aleatoric in {causes.count('aleatoric')}."
+        )
 
     @property
     def batch_size(self) -> torch.Size:
@@ -357,16 +375,17 @@ class CompetencyReport:
         return " ".join(s for s in sentences if s)
 
     def _uncertainty_sentence(self, uncertainty: TensorDictBase) -> str:
+        # the bits the reference compares (per live step where it does), in every sentence
+        live = self.reference is not None and self.reference.per_live_step
+        part = _bits(uncertainty, live)
         aleatoric, epistemic, total = (
-            float(uncertainty.get(("summary", k))) for k in ("aleatoric", "epistemic", "total")
+            float(part.get(k)) for k in ("aleatoric", "epistemic", "total")
         )
         if self.warning:  # a model that failed its checks: its split is not evidence
-            return _unreliable_split_sentence(aleatoric, epistemic, total)
+            unit = "bits per live step" if live else "bits"
+            return _unreliable_split_sentence(aleatoric, epistemic, total, unit)
         if self.reference is None:
             return _doubt_sentence(aleatoric, epistemic, total)
-        if self.reference.per_live_step:
-            part = uncertainty.get("per_live_step")
-            aleatoric, epistemic = float(part.get("aleatoric")), float(part.get("epistemic"))
         return _change_sentence(aleatoric, epistemic, self.reference, one_start=True)
 
 
@@ -383,12 +402,14 @@ def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:
     return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {_REASONS[kind]}."
 
 
-def _unreliable_split_sentence(aleatoric: float, epistemic: float, total: float) -> str:
+def _unreliable_split_sentence(
+    aleatoric: float, epistemic: float, total: float, unit: str = "bits"
+) -> str:
     """The bits without a cause: a model that failed its self-checks (or has none) may call
     missing knowledge chance (an unlearned dimension spread by its noise) or hide it (an
     overconfident one)."""
     return (
-        f"Uncertainty: {aleatoric:.2f} bits aleatoric and {epistemic:.2f} epistemic of "
+        f"Uncertainty: {aleatoric:.2f} {unit} aleatoric and {epistemic:.2f} epistemic of "
         f"{total:.2f}; with the warning above this split does not say "
         "whether more data would help."
     )

@@ -661,8 +661,9 @@ class OutcomeCheck:
             f"success {float(self.forecast.mean()):.2f} on average where {self.runs} real "
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
             f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {100 * (1 - self.alpha):g} % "
-            f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g}, by the outcomes' "
-            f"exact chance {self.exact_p_value:.2g})" + self._per_start_sentence()
+            f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g} by a t-test over the "
+            f"starts, {self.exact_p_value:.2g} by the outcomes' exact chance)"
+            + self._per_start_sentence()
         )
 
     def _per_start_sentence(self) -> str:

@@ -360,8 +360,12 @@ def test_one_start_rose_only_beyond_the_spread_of_the_references_own_starts():
     assert sum("the rise is" in by_mean.summary(index=i) for i in range(20)) == 6
     # a mean over start states is compared with the reference's mean
     assert _starts_report([0.45] * 12).with_reference(reference).cause() == "epistemic"
-    assert (
-        "the rise is epistemic" in _starts_report([0.45] * 12).with_reference(reference).overall()
+    outliers = _starts_report([0.3] * 10 + [1.0] * 2).with_reference(reference)
+    assert outliers.cause() == "epistemic"  # the mean 0.42 rose 1.4x, by two starts
+    assert outliers.overall().endswith(
+        "the rise is epistemic, the model has not seen states like this: more data here would "
+        "reduce it. Start state by start state, the rise is epistemic in 2 of 12 and aleatoric "
+        "in 0."
     )
     # a stricter level: fewer of the reference's own starts above it
     assert own.reference.quantile == 0.95
@@ -383,24 +387,35 @@ def test_a_forecast_check_that_did_not_pass_opens_every_summary():
     optimistic = OutcomeCheck.from_outcomes(torch.full((20,), 0.9), real, what="the forecasts")
     assert optimistic.biased
     report = _starts_report([0.7, 0.2]).with_forecast_check(optimistic)
-    assert not report.trustworthy and report.warning == optimistic.describe()
+    on_others = f"forecast check on other start states: {optimistic.describe()}"
+    assert not report.trustworthy and report.warning == on_others
     for i in range(2):
         text = report.summary(index=i)
-        assert text.startswith("Warning: the forecasts are too optimistic: from 20 start states")
+        assert text.startswith(
+            "Warning: forecast check on other start states: the forecasts are too optimistic: "
+            "from 20 start states"
+        )
         assert "with the warning above this split does not say" in text
         assert "the model has not seen states like this" not in text
-    assert report.overall().startswith("Warning: the forecasts are too optimistic")
+    assert report.overall().startswith("Warning: forecast check on other start states: the")
     fair = OutcomeCheck.from_outcomes(real.float().mean(1).clamp(0.05, 0.95), real)
     assert fair.passed
     checked = _starts_report([0.7, 0.2]).with_forecast_check(fair)
     assert checked.trustworthy and checked.summary(index=0).startswith("P(success within 30 s)")
-    assert checked.overall().endswith(f" Forecast check: {fair.describe()}.")
+    assert checked.overall().endswith(f" Forecast check on other start states: {fair.describe()}.")
     few = OutcomeCheck.from_outcomes(torch.full((4,), 0.3), real[:4])  # too few starts to tell
     assert "are unchecked: 4 start states" in hand_report().with_forecast_check(few).warning
     both = replace_warning(_starts_report([0.7]), "the world model has not learned b")
     assert both.with_forecast_check(optimistic).warning.startswith(
-        "the world model has not learned b; the forecasts are too optimistic"
+        "the world model has not learned b; forecast check on other start states: the forecasts"
     )
+    # against a reference per live step, the causeless bits are those bits too, named so
+    live = {"aleatoric": 4.0, "epistemic": 1.0, "total": 5.0}
+    compared = hand_report(live=live).with_reference(hand_report(live=live))
+    assert (
+        "Uncertainty: 4.00 bits per live step aleatoric and 1.00 epistemic of 5.00; with the "
+        "warning above"
+    ) in compared.with_forecast_check(optimistic).summary()
     with pytest.raises(TypeError, match="check: expected an OutcomeCheck"):
         hand_report().with_forecast_check(0.3)
 
