@@ -13,6 +13,7 @@ import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
+from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -60,6 +61,21 @@ class RealOutcomes:
     def from_dict(cls, values: dict[str, torch.Tensor]) -> RealOutcomes:
         """What :meth:`as_dict` gave."""
         return cls(values["success"], values["first_step"], values["steps"], values.get("trace"))
+
+    def __len__(self) -> int:
+        """``B``, the start states."""
+        return self.success.shape[0]
+
+    def __getitem__(self, index: Any) -> RealOutcomes:
+        """The outcomes of some start states (``index`` into ``B``: a slice, indices or a bool
+        mask), e.g. to score the forecasts of a subset."""
+        if isinstance(index, tuple) or (isinstance(index, int) and not isinstance(index, bool)):
+            raise IndexError(
+                f"index: expected a slice, indices or a bool mask of the {len(self)} start "
+                f"states (one start state: outcomes[i : i + 1]), got {index!r}"
+            )
+        pick = {k: v[index] for k, v in self.as_dict().items()}
+        return RealOutcomes.from_dict(pick)
 
 
 def real_outcomes(

@@ -156,6 +156,27 @@ class ModelChecks:
             )
         return "; ".join(sentences)
 
+    def describe(self) -> str:
+        """One sentence either way: :meth:`message` when the model did not pass, else what it
+        passed (and what the checks cannot see)."""
+        if not self.passed:
+            return self.message()
+        covered = self.covered[list(self.checked)] if self.checked else self.covered[:0]
+        inside = (
+            f"; {self.coverage_steps} steps into {self.episodes} held-out episodes the real "
+            f"state lay inside its {self.interval:.0%} interval in {int(covered.min())} to "
+            f"{int(covered.max())} of them, dimension by dimension, not too rarely for any"
+            if covered.numel()
+            else ""
+        )
+        return (
+            f"the world model passed its self-checks: each of the {len(self.checked)} "
+            f"dimensions checked it predicts one step ahead at least {self.min_gain:.0%} better "
+            f"than copying the previous state or guessing its mean{inside}. The checks do not "
+            "name a spread that is too wide: a model too unsure of its states passes them, and "
+            "only a check of its forecasts against real episodes finds it"
+        )
+
     def as_dict(self) -> dict[str, Any]:
         """Plain values (for checkpoints and JSON)."""
         out: dict[str, Any] = {

@@ -176,15 +176,20 @@ class TrainConfig:
 @dataclass
 class TrainResult:
     """What :func:`train_ensemble` returns: the best weights are loaded into ``ensemble``
-    (and its self-checks, when run, into ``ensemble.checks`` and ``checks``)."""
+    (and its self-checks, when run, into ``ensemble.checks`` and ``checks``).
+
+    Each member stops on its own (``patience`` validations without improvement):
+    ``member_steps`` says when each did, ``stopped_early`` only whether all of them stopped
+    before ``max_steps``.
+    """
 
     ensemble: RCVAEEnsemble
-    steps: int
-    best_val: torch.Tensor  # [E] best validation loss per member
-    stopped_early: bool
-    history: list[dict[str, Any]] = field(default_factory=list)
-    checks: ModelChecks | None = None
-    member_steps: torch.Tensor | None = None  # [E] the step at which each member stopped
+    steps: int  #: the steps run: the last member's stop, or ``max_steps``
+    best_val: torch.Tensor  #: ``[E]`` each member's best validation loss (its kept weights')
+    stopped_early: bool  #: every member stopped before ``max_steps``
+    history: list[dict[str, Any]] = field(default_factory=list)  #: one entry per validation
+    checks: ModelChecks | None = None  #: the self-checks, when run (``checks=``)
+    member_steps: torch.Tensor | None = None  #: ``[E]`` the step at which each member stopped
 
 
 @dataclass

@@ -120,3 +120,27 @@ def test_episodes_shorter_than_the_boundary_s_time_limit_are_refused():
         **args,
     )
     assert out.success.all()  # nothing fails: every episode survives its 20 steps
+
+
+def test_outcomes_of_some_start_states():
+    from rcvae_torchrl.agent import RealOutcomes
+
+    g = torch.Generator().manual_seed(0)
+    success = torch.rand(5, 3, generator=g) < 0.5
+    steps = torch.randint(1, 40, (5, 3), generator=g)
+    trace = torch.rand(5, 3, 40, generator=g)
+    out = RealOutcomes(success, torch.where(success, steps - 1, 40), steps, trace)
+    assert len(out) == 5
+    mask = torch.tensor([True, False, True, False, True])
+    for index in (slice(1, 4), [0, 4], mask):
+        part = out[index]
+        for name, value in out.as_dict().items():
+            assert torch.equal(part.as_dict()[name], value[index])
+    from rcvae_torchrl.agent import score_forecast
+    from rcvae_torchrl.competency import validate_forecasts
+
+    forecast = torch.rand(5, generator=g)  # the scores of a subset: its starts' outcomes
+    want = validate_forecasts(forecast[mask], success[mask])
+    assert score_forecast(forecast[mask], out[mask]) == want
+    with pytest.raises(IndexError, match=r"index: expected a slice, .* outcomes\[i : i \+ 1\]"):
+        out[2]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import pytest
@@ -129,6 +130,17 @@ def test_the_coverage_test_is_a_binomial_test():
     )  # fmt: skip
     assert checks.overconfident == (3,) and checks.unlearned == () and checks.flagged == (3,)
     assert "d (22 of 32)" in checks.message() and "not learned" not in checks.message()
+    assert checks.describe() == checks.message()  # a miss: the same sentence
+    passing = dataclasses.replace(checks, covered=torch.tensor([32.0, 29.0, 23.0, 30.0]))
+    assert passing.passed and passing.message() == ""
+    assert passing.describe() == (
+        "the world model passed its self-checks: each of the 4 dimensions checked it predicts "
+        "one step ahead at least 5% better than copying the previous state or guessing its "
+        "mean; 20 steps into 32 held-out episodes the real state lay inside its 90% interval "
+        "in 23 to 32 of them, dimension by dimension, not too rarely for any. The checks do "
+        "not name a spread that is too wide: a model too unsure of its states passes them, "
+        "and only a check of its forecasts against real episodes finds it"
+    )
 
 
 def test_checks_travel_with_the_checkpoint(trained, tmp_path):
