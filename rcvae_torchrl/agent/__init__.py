@@ -19,6 +19,7 @@ from .policy import (
 from .starts import (
     MODEL_FIELDS,
     draw_starts,
+    observe_starts,
     physics_of,
     reset_by_seed,
     reset_to_physics,
@@ -44,6 +45,7 @@ __all__ = [
     # start states in the real env
     "MODEL_FIELDS",
     "draw_starts",
+    "observe_starts",
     "physics_of",
     "reset_by_seed",
     "reset_to_physics",

@@ -50,7 +50,8 @@ def reset_to(reset_to_state: ResetToState, env: EnvBase, state: Any) -> TensorDi
                 f"to {float(gap.max()):.4g} ({int(off.sum())} of {off.numel()} entries): the "
                 "env did not start from the given state (does its reset take a state? e.g. "
                 "TorchRL's reset(td, set_state=True), or a batching transform whose reset "
-                "drops it)"
+                "drops it), or the start's observation is not its state's (a state edited by "
+                "hand: rcvae_torchrl.agent.observe_starts gives it the env's observation)"
             )
     return td
 

@@ -33,6 +33,7 @@ from .episodes import ResetToState, reset_to, seed_episodes
 __all__ = [
     "MODEL_FIELDS",
     "draw_starts",
+    "observe_starts",
     "physics_of",
     "reset_by_seed",
     "reset_to_physics",
@@ -105,6 +106,43 @@ def draw_starts(env: EnvBase, seeds: Sequence[int], *, physics: bool = False) ->
     if not rows:
         raise ValueError("seeds: expected at least one seed, got none")
     return torch.stack(rows)
+
+
+def observe_starts(
+    env: EnvBase, starts: TensorDictBase, reset_to_state: ResetToState | None = None
+) -> TensorDict:
+    """``starts`` with each ``"observation"`` the one the env gives when ``reset_to_state``
+    (default :func:`reset_to_physics`) puts it in that start.
+
+    For start states made by hand from drawn ones: a state no reset draws (a cartpole's pole
+    up or spinning, set in ``starts["physics", "qpos"]`` and ``"qvel"``) needs the observation
+    that goes with it, for the forecast made from it and for the real episodes, whose reset is
+    refused when its observation is not the start's.
+
+    Example::
+
+        starts = draw_starts(env, seeds=range(30), physics=True)
+        starts["physics", "qvel"][:, 1] = 20.0  # the pole spinning at 20 rad/s
+        starts = observe_starts(env, starts)
+    """
+    if env.batch_size:
+        raise ValueError(
+            f"env: expected one env (batch_size []), got batch_size {list(env.batch_size)}"
+        )
+    if not isinstance(starts, TensorDictBase) or starts.batch_dims != 1:
+        raise TypeError(
+            "starts: expected a TensorDict [B] of start states (from draw_starts), got "
+            f"{type(starts).__name__}"
+            + (f" of batch {list(starts.batch_size)}" if isinstance(starts, TensorDictBase) else "")
+        )
+    reset_to_state = reset_to_physics if reset_to_state is None else reset_to_state
+    observed = [
+        reset_to(reset_to_state, env, starts[i].exclude("observation"))["observation"].clone()
+        for i in range(starts.shape[0])
+    ]
+    out = starts.clone()
+    out.set("observation", torch.stack(observed).to(out.device))
+    return out
 
 
 def _check_start(start: object, key: str, made_by: str) -> None:

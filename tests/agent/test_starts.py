@@ -9,6 +9,7 @@ from torchrl.envs import DMControlEnv
 
 from rcvae_torchrl.agent import (
     draw_starts,
+    observe_starts,
     physics_of,
     real_outcomes,
     reset_by_seed,
@@ -57,6 +58,39 @@ def test_physics_resets_reach_states_no_reset_draws(reacher):
     start["physics", "qvel"] = torch.tensor([3.0, -2.0], dtype=torch.float64)
     td = reset_to_physics(reacher, start)
     torch.testing.assert_close(td["observation"][4:], torch.tensor([3.0, -2.0]))
+
+
+def test_starts_edited_by_hand_get_their_observation(reacher):
+    """A state no reset draws needs the observation that goes with it: with the drawn one,
+    the real episodes' reset is refused; observed, the episodes run from it."""
+    starts = draw_starts(reacher, [1, 2], physics=True)
+    starts["physics", "qvel"] = torch.tensor([[3.0, -2.0], [0.5, 4.0]], dtype=torch.float64)
+    policy = _still_policy()
+    args = dict(
+        runs_per_start=1,
+        reset_to_state=reset_to_physics,
+        max_steps=3,
+        success=lambda observation: observation[..., 0] > 100.0,
+        progress=False,
+    )
+    with pytest.raises(ValueError, match=r"differs from the start's .*agent.observe_starts gives it"):
+        real_outcomes(reacher, policy, starts, **args)
+    observed = observe_starts(reacher, starts)
+    torch.testing.assert_close(observed["observation"][:, 4:], starts["physics", "qvel"].float())
+    assert torch.equal(observed["observation"][:, :4], starts["observation"][:, :4])
+    assert torch.equal(observed["physics", "qvel"], starts["physics", "qvel"])
+    assert real_outcomes(reacher, policy, observed, **args).steps.tolist() == [[3], [3]]
+    with pytest.raises(TypeError, match=r"starts: expected a TensorDict \[B\] of start states"):
+        observe_starts(reacher, starts[0])
+
+
+def _still_policy():
+    """A reacher agent that does not move."""
+    from tensordict.nn import TensorDictModule
+
+    return TensorDictModule(
+        lambda obs: torch.zeros((*obs.shape[:-1], 2)), ["observation"], ["action"]
+    )
 
 
 def test_a_reset_that_is_not_a_function_of_the_seed_is_detected(reacher):
