@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -38,6 +39,11 @@ _ROSE = {
 _FEW_REFERENCE_STARTS = 10
 
 
+def _is_number(value: object) -> bool:
+    """A real number (numpy's too), not a bool."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
 @dataclass(frozen=True)
 class Reference:
     """What a report's uncertainty is compared with: mean bits of in-distribution starts, as
@@ -65,11 +71,11 @@ class Reference:
             value = getattr(self, field_name)
             if field_name.endswith("_high") and value is None:
                 continue
-            if not isinstance(value, int | float) or not np.isfinite(value) or value < 0:
+            if not _is_number(value) or not np.isfinite(value) or value < 0:
                 raise ValueError(f"reference.{field_name}: expected bits >= 0, got {value!r}")
         if not self.rise > 1:
             raise ValueError(f"rise: expected a factor > 1, got {self.rise!r}")
-        if not (isinstance(self.quantile, float) and 0.0 < self.quantile < 1.0):
+        if not (_is_number(self.quantile) and 0.0 < self.quantile < 1.0):
             raise ValueError(
                 f"quantile: expected a share of start states in (0, 1), got {self.quantile!r}"
             )
@@ -230,7 +236,7 @@ class CompetencyReport:
             highs: dict[str, float | None] = {"aleatoric_high": None, "epistemic_high": None}
             if starts < _FEW_REFERENCE_STARTS:  # its bits are noisy: say on how few
                 name = f"{name} (of only {starts} start state{'s' if starts > 1 else ''})"
-            elif isinstance(quantile, float) and 0.0 < quantile < 1.0:  # else refused below
+            elif _is_number(quantile) and 0.0 < quantile < 1.0:  # else refused below
                 part = _bits(reference.uncertainty, live)
                 highs = {
                     f"{k}_high": float(part.get(k).reshape(-1).double().quantile(quantile))
