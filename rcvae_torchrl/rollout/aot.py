@@ -21,15 +21,15 @@ What the package serves, and what it does not:
 Cache layout: ``<cache_dir>/<key digest>.pt2`` (written atomically) and ``<key digest>.json``
 (the key itself, the package's SHA-256, how long the build took and whether a new process
 loaded it). A package whose bytes do not match the recorded digest, or which fails to load, is
-reported with an :class:`AOTCacheWarning` and built again.
+reported with an :class:`AOTCacheWarning` and built again. The directory is ``cache_dir`` when
+given, else the environment variable ``RCVAE_TORCHRL_CACHE``, else
+``$XDG_CACHE_HOME/rcvae_torchrl/aot_scoring`` (``~/.cache/...``). Deleting it is always safe.
 
 A package is first loaded in a child process, once per package: some torch builds crash
 (a segmentation fault or an abort, which no ``except`` catches) rather than raise when loading
 one, and the crash then ends only the child. Such a torch gets an :class:`AOTLoadError`, in
 every later process too (the record keeps the verdict), and ``compile=True`` or eager scoring
-still serve. The directory is ``cache_dir`` when given, else the
-environment variable ``RCVAE_TORCHRL_CACHE``, else ``$XDG_CACHE_HOME/rcvae_torchrl/aot_scoring``
-(``~/.cache/...``). Deleting it is always safe.
+still serve.
 """
 
 from __future__ import annotations
