@@ -271,10 +271,13 @@ class CompetencyReport:
         p = float(self.competency.get("p_success").mean())
         live = self.reference is not None and self.reference.per_live_step
         aleatoric, epistemic = self.mean_bits(live)
-        total = float(self.uncertainty.get(("summary", "total")).mean())
+        total = float(_bits(self.uncertainty, live).get("total").mean())
         n = self.batch_size.numel()
         text = f"Over {n} start states: mean P({self._outcome()}) = {p:.2f}. "
-        if self.reference is None:
+        if self.warning:  # as in each start's paragraph: the split is no evidence
+            unit = "bits per live step" if live else "bits"
+            text += _unreliable_split_sentence(aleatoric, epistemic, total, unit)
+        elif self.reference is None:
             text += _doubt_sentence(aleatoric, epistemic, total)
         else:
             text += _change_sentence(aleatoric, epistemic, self.reference)
@@ -364,6 +367,7 @@ class CompetencyReport:
                 self.confidence,
                 self._outcome(),
             ),
+            self._per_start_caution(),
             self._uncertainty_sentence(uncertainty),
         ]
         if "peak_step" in uncertainty.keys():
@@ -379,6 +383,19 @@ class CompetencyReport:
         if self.warning:
             sentences.insert(0, f"Warning: {self.warning}.")
         return " ".join(s for s in sentences if s)
+
+    def _per_start_caution(self) -> str:
+        """A passed forecast check whose forecasts miss their own starts' rates beyond chance
+        (right on average, not per task): said beside each start's P, whose interval covers
+        only the imagined samples' chance."""
+        check = self.forecast_check
+        if check is None or not check.passed or not getattr(check, "scattered", False):
+            return ""
+        return (
+            f"Caution: on other start states the forecasts, right on average, missed their own "
+            f"start's real rate by about {check.excess_error:.2f} beyond chance; the interval "
+            "above covers only the imagined samples' chance."
+        )
 
     def _uncertainty_sentence(self, uncertainty: TensorDictBase) -> str:
         # the bits the reference compares (per live step where it does), in every sentence
@@ -444,10 +461,8 @@ def _change_sentence(
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
     unit = "bits per live step" if reference.per_live_step else "bits"
-    shown = {k: round(r, 1) for k, r in ratios.items()}  # "fell to 1.0x" would read wrong
     parts = [
-        f"{k} {'uncertainty ' if i == 0 else ''}"
-        f"{'rose ' if shown[k] >= 1 and i == 0 else 'fell to ' if shown[k] < 1 else ''}"
+        f"{k} {'uncertainty ' if i == 0 else ''}{_verb(ratios[k], i == 0)}"
         f"{ratios[k]:.1f}x ({refs[k]:.2f} -> {values[k]:.2f} {unit})"
         for i, k in enumerate(("epistemic", "aleatoric"))
     ]
@@ -468,7 +483,22 @@ def _change_sentence(
             text
             + f": neither part rose, the {' and '.join(fell)} doubt fell below the reference's."
         )
-    return text + ": neither part rose, the doubt is as in the reference."
+    return text + (
+        ": neither part rose, the doubt is as in the reference (no sign of states the model "
+        "has not seen, which does not rule them out: a check against real episodes can)."
+    )
+
+
+def _verb(ratio: float, first: bool) -> str:
+    """``rose`` / ``fell to`` / ``stayed at`` by the ratio as printed (one decimal): a ratio
+    shown as 1.0x neither rose nor fell. The second part of a sentence takes the first's verb
+    unless it fell."""
+    shown = round(ratio, 1)
+    if shown < 1:
+        return "fell to "
+    if not first:
+        return ""
+    return "rose " if shown > 1 else "stayed at "
 
 
 def _high(reference: Reference, part: str) -> float | None:

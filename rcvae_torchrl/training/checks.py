@@ -705,8 +705,9 @@ class OutcomeCheck:
                 + ("" if self.biased else ": trust them on average more than for one task")
             )
         return (
-            f"; per start they agree with their start's real rate{shift} within the chance of "
-            f"{self.runs} episodes (p = {self.per_start_p_value:.2g})"
+            f"; per start they miss their start's real rate{shift} by no more than the chance "
+            f"of {self.runs} episodes can hide (p = {self.per_start_p_value:.2g}: not shown to "
+            "miss, which few episodes per start cannot tell from agreeing)"
         )
 
     def as_dict(self) -> dict[str, Any]:

@@ -304,7 +304,16 @@ def test_summary_against_a_reference_names_what_rose():
     noisy = hand_report(aleatoric=1.0, epistemic=0.22, total=1.22).with_reference(reference)
     assert "the rise is aleatoric, the members agree that the states vary more" in str(noisy)
     same = hand_report(aleatoric=0.41, epistemic=0.21, total=0.62).with_reference(reference)
-    assert "neither part rose" in same.summary()
+    assert (
+        "epistemic uncertainty stayed at 1.0x (0.20 -> 0.21 bits) and aleatoric 1.0x (0.40 -> 0.41 "
+        "bits): neither part rose, the doubt is as in the reference (no sign of states the "
+        "model has not seen, which does not rule them out: a check against real episodes can)."
+    ) in same.summary()
+    # a ratio printed as 1.0x neither rose nor fell, whichever side of 1 it lies
+    below = hand_report(aleatoric=0.39, epistemic=0.193, total=0.583).with_reference(reference)
+    assert "epistemic uncertainty stayed at 1.0x (0.20 -> 0.19 bits) and aleatoric 1.0x" in (
+        below.summary()
+    )
     lower = hand_report(aleatoric=0.2, epistemic=0.06, total=0.26).with_reference(reference)
     assert (
         "epistemic uncertainty fell to 0.3x (0.20 -> 0.06 bits) and aleatoric fell to 0.5x "
@@ -325,6 +334,40 @@ def test_summary_against_a_reference_names_what_rose():
         hand_report().with_reference(0.5)
     with pytest.raises(ValueError, match="rise: expected a factor > 1"):
         Reference(1.0, 1.0, rise=0.9)
+
+
+def test_with_a_warning_the_overview_gives_no_cause_either():
+    """As each start's paragraph: a model that failed its checks may take missing knowledge
+    for chance, over all starts too."""
+    failed = replace_warning(_starts_report([0.9, 0.8]), "the world model has not learned b")
+    text = failed.with_reference(_starts_report([0.2] * 12)).overall()
+    assert text.startswith("Warning: the world model has not learned b. Over 2 start states")
+    assert "Uncertainty: 0.40 bits aleatoric and 0.85 epistemic of 1.25; with the warning" in text
+    assert "the rise is" not in text and "has not seen states" not in text
+
+
+def test_a_passed_check_whose_forecasts_miss_per_start_cautions_each_start():
+    """Right on average, wrong per task: each start's paragraph says so beside its P."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    g = torch.Generator().manual_seed(1)
+    chance = torch.rand(40, generator=g, dtype=torch.float64)
+    real = torch.rand(40, 20, generator=g, dtype=torch.float64) < chance[:, None]
+    mirrored = OutcomeCheck.from_outcomes(1 - chance, real)  # mean right, each start wrong
+    assert mirrored.passed and mirrored.scattered
+    report = _starts_report([0.3, 0.2]).with_forecast_check(mirrored)
+    assert report.trustworthy
+    caution = (
+        "Caution: on other start states the forecasts, right on average, missed their own "
+        f"start's real rate by about {mirrored.excess_error:.2f} beyond chance; the interval "
+        "above covers only the imagined samples' chance."
+    )
+    assert report.summary(index=1).startswith(
+        f"P(success within 30 s) = 0.84 (95% interval 0.78–0.89). {caution} Most of the doubt"
+    )
+    fair = OutcomeCheck.from_outcomes(chance.clamp(0.02, 0.98), real)
+    assert fair.passed and not fair.scattered
+    assert "Caution" not in _starts_report([0.3]).with_forecast_check(fair).summary(index=0)
 
 
 def _starts_report(epistemic: list[float], aleatoric: float = 0.4) -> CompetencyReport:
