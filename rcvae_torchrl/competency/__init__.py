@@ -33,7 +33,7 @@ from rcvae_torchrl.competency.decomposition import (
 )
 from rcvae_torchrl.competency.entropy import gaussian_entropy, histogram_entropy, knn_entropy
 from rcvae_torchrl.competency.intervals import binomial_interval
-from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
+from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric, bits_per_live_step
 from rcvae_torchrl.competency.mixture import (
     EntropyBounds,
     fit_gaussian_mixture_entropy_bounds,
@@ -142,6 +142,7 @@ __all__ = [
     "SuccessBoundary",
     "SuccessMetric",
     "UncertaintyMetric",
+    "bits_per_live_step",
     # one-call assessment from start states
     "CompetencyAssessor",
     "CompetencyReport",

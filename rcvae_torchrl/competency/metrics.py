@@ -35,9 +35,25 @@ from rcvae_torchrl.competency.outcome import (
     time_to_success,
 )
 
-__all__ = ["SuccessMetric", "UncertaintyMetric"]
+__all__ = ["SuccessMetric", "UncertaintyMetric", "bits_per_live_step"]
 
 _LAYOUT = "[E, N, *B, T, D]"
+
+
+def bits_per_live_step(time_mean: Tensor, live: Tensor) -> Tensor:
+    """Bits per step of the imagined episodes' life: ``time_mean`` ``[*B]`` (bits averaged
+    over the ``T`` steps of the horizon, ended episodes counted as certain) times ``T`` over
+    the steps an episode runs on average, ``live`` ``[*B, T]`` being the share of episodes
+    still running at each step. A time mean also measures how long the episodes last; this
+    takes that out.
+
+    Example:
+        >>> live = torch.tensor([1.0, 1.0, 0.0, 0.0])  # every episode ends after 2 of 4 steps
+        >>> float(bits_per_live_step(torch.tensor(0.5), live))  # 2 bits over 2 live steps
+        1.0
+    """
+    steps = live.sum(dim=-1).clamp_min(torch.finfo(live.dtype).tiny)
+    return time_mean * live.shape[-1] / steps
 
 
 def _observation(tensordict: TensorDictBase, key: NestedKey) -> Tensor:
@@ -198,10 +214,10 @@ class UncertaintyMetric(KeyedModule):
         out["summary"] = TensorDict({k: self._summary(v, per_dim) for k, v in parts.items()})
         if self.episode_end:
             live = (~args["ended"]).to(obs.dtype).mean(dim=(0, 1))  # [*B, T]
-            # time mean x T = the time sum, over the mean number of steps an episode runs
-            scale = live.shape[-1] / live.sum(dim=-1).clamp_min(torch.finfo(live.dtype).tiny)
             out["live"] = live
-            out["per_live_step"] = TensorDict({k: v * scale for k, v in out["summary"].items()})
+            out["per_live_step"] = TensorDict(
+                {k: bits_per_live_step(v, live) for k, v in out["summary"].items()}
+            )
         if per_dim and self.dim_names is not None:
             out["by_dim"] = TensorDict(
                 {

@@ -12,6 +12,7 @@ from torchrl.envs import EnvBase
 
 from rcvae_torchrl.competency import (
     PlattMap,
+    bits_per_live_step,
     brier_score,
     expected_calibration_error,
     reliability_diagram,
@@ -126,7 +127,7 @@ def pattern_by_window(
     if all("live" in f for f in forecasts.values()):
         out["per live step"] = _pattern_ratios(
             {
-                (c, k): (f[k].sum((-2, -1)) / f["live"].sum(-1).clamp_min(1e-12)).mean().item()
+                (c, k): bits_per_live_step(f[k].sum(-1).mean(-1), f["live"]).mean().item()
                 for c, f in forecasts.items()
                 for k in ("aleatoric", "epistemic")
             }
