@@ -86,11 +86,7 @@ def draw_starts(env: EnvBase, seeds: Sequence[int], *, physics: bool = False) ->
     :func:`reset_to_physics`. ``env`` is one env (``batch_size=[]``): a batched env's reset
     draws several starts per seed, which no seed can replay one by one.
     """
-    if env.batch_size:
-        raise ValueError(
-            f"env: expected one env (batch_size []), got batch_size {list(env.batch_size)}; "
-            "draw the starts from an env of the same kind unbatched"
-        )
+    _check_one_env(env)
     rows = []
     for seed in seeds:
         if isinstance(seed, (bool, float)) or not isinstance(seed, (int, np.integer, torch.Tensor)):
@@ -125,10 +121,7 @@ def observe_starts(
         starts["physics", "qvel"][:, 1] = 20.0  # the pole spinning at 20 rad/s
         starts = observe_starts(env, starts)
     """
-    if env.batch_size:
-        raise ValueError(
-            f"env: expected one env (batch_size []), got batch_size {list(env.batch_size)}"
-        )
+    _check_one_env(env)
     if not isinstance(starts, TensorDictBase) or starts.batch_dims != 1:
         raise TypeError(
             "starts: expected a TensorDict [B] of start states (from draw_starts), got "
@@ -143,6 +136,16 @@ def observe_starts(
     out = starts.clone()
     out.set("observation", torch.stack(observed).to(out.device))
     return out
+
+
+def _check_one_env(env: EnvBase) -> None:
+    """Start states are drawn and observed one at a time: a batched env's reset would draw
+    several per seed."""
+    if env.batch_size:
+        raise ValueError(
+            f"env: expected one env (batch_size []), got batch_size {list(env.batch_size)}; "
+            "draw the starts from an env of the same kind unbatched"
+        )
 
 
 def _check_start(start: object, key: str, made_by: str) -> None:

@@ -274,9 +274,9 @@ class CompetencyReport:
         total = float(_bits(self.uncertainty, live).get("total").mean())
         n = self.batch_size.numel()
         text = f"Over {n} start states: mean P({self._outcome()}) = {p:.2f}. "
-        if self.warning:  # as in each start's paragraph: the split is no evidence
-            unit = "bits per live step" if live else "bits"
-            text += _unreliable_split_sentence(aleatoric, epistemic, total, unit)
+        warning = self.warning
+        if warning:  # as in each start's paragraph: the split is no evidence
+            text += _unreliable_split_sentence(aleatoric, epistemic, total, _unit(live))
         elif self.reference is None:
             text += _doubt_sentence(aleatoric, epistemic, total)
         else:
@@ -284,7 +284,7 @@ class CompetencyReport:
             text += self._one_by_one_sentence()
         if self.forecast_check is not None and self.forecast_check.passed:
             text += f" Forecast check on other start states: {self.forecast_check.describe()}."
-        return (f"Warning: {self.warning}. " if self.warning else "") + text
+        return (f"Warning: {warning}. " if warning else "") + text
 
     def _one_by_one_sentence(self) -> str:
         """How many start states rose one by one (the rule of their own paragraphs): a mean
@@ -359,6 +359,7 @@ class CompetencyReport:
 
     def _paragraph(self, one: TensorDictBase) -> str:
         competency, uncertainty = one.get(self.competency_key), one.get(self.uncertainty_key)
+        warning = self.warning
         sentences = [
             _success_sentence(
                 float(competency.get("p_success")),
@@ -368,7 +369,7 @@ class CompetencyReport:
                 self._outcome(),
             ),
             self._per_start_caution(),
-            self._uncertainty_sentence(uncertainty),
+            self._uncertainty_sentence(uncertainty, bool(warning)),
         ]
         if "peak_step" in uncertainty.keys():
             sentences.append(
@@ -380,8 +381,8 @@ class CompetencyReport:
                     self.top_k,
                 )
             )
-        if self.warning:
-            sentences.insert(0, f"Warning: {self.warning}.")
+        if warning:
+            sentences.insert(0, f"Warning: {warning}.")
         return " ".join(s for s in sentences if s)
 
     def _per_start_caution(self) -> str:
@@ -397,16 +398,15 @@ class CompetencyReport:
             "above covers only the imagined samples' chance."
         )
 
-    def _uncertainty_sentence(self, uncertainty: TensorDictBase) -> str:
+    def _uncertainty_sentence(self, uncertainty: TensorDictBase, warned: bool) -> str:
         # the bits the reference compares (per live step where it does), in every sentence
         live = self.reference is not None and self.reference.per_live_step
         part = _bits(uncertainty, live)
         aleatoric, epistemic, total = (
             float(part.get(k)) for k in ("aleatoric", "epistemic", "total")
         )
-        if self.warning:  # a model that failed its checks: its split is not evidence
-            unit = "bits per live step" if live else "bits"
-            return _unreliable_split_sentence(aleatoric, epistemic, total, unit)
+        if warned:  # a model that failed its checks: its split is not evidence
+            return _unreliable_split_sentence(aleatoric, epistemic, total, _unit(live))
         if self.reference is None:
             return _doubt_sentence(aleatoric, epistemic, total)
         return _change_sentence(aleatoric, epistemic, self.reference, one_start=True)
@@ -438,6 +438,10 @@ def _unreliable_split_sentence(
     )
 
 
+def _unit(per_live_step: bool) -> str:
+    return "bits per live step" if per_live_step else "bits"
+
+
 def _ratio(value: float, reference: float) -> float:
     if reference > 0:
         return value / reference
@@ -460,7 +464,7 @@ def _change_sentence(
     ratios = _ratios(aleatoric, epistemic, reference)
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
-    unit = "bits per live step" if reference.per_live_step else "bits"
+    unit = _unit(reference.per_live_step)
     parts = [
         f"{k} {'uncertainty ' if i == 0 else ''}{_verb(ratios[k], i == 0)}"
         f"{ratios[k]:.1f}x ({refs[k]:.2f} -> {values[k]:.2f} {unit})"
