@@ -307,6 +307,7 @@ class CompetencyAssessor(KeyedModule):
             self.tensor_keys.observation,
             model_warning=self.model_warning,
             survival=self.boundary.is_survival,
+            novelty=self.novelty,
         )
 
     @property
@@ -355,9 +356,19 @@ class CompetencyAssessor(KeyedModule):
         out.set(self.tensor_keys.competency, self._competency(observed, starts.shape[0]))
         for name, fn in self.per_sample.items():
             out.set(("per_sample", name), _per_sample_value(name, fn, observed, starts.shape[0]))
+        novelty = self.novelty
+        if novelty is not None:
+            out.set("novelty", _novelty_entries(novelty, starts, rollout.get("observation")))
         if keep_rollouts:
             out.set("rollout", rollout.permute(2, 0, 1, 3))
         return out
+
+    @property
+    def novelty(self) -> Any:
+        """The world model's check of how unlike its training states a state is
+        (``ensemble.novelty``, a :class:`~rcvae_torchrl.training.StateNovelty` fitted by
+        training), or ``None``."""
+        return getattr(self.model_env.ensemble, "novelty", None)
 
     def _uncertainty(self, observed: TensorDictBase, b: int) -> TensorDictBase:
         """``UncertaintyMetric`` entries with batch ``[b]``, plus the peak time per dimension."""
@@ -460,6 +471,28 @@ class CompetencyAssessor(KeyedModule):
             )
         _checks.check_finite("actions", actions)
         return actions.reshape(-1, *actions.shape[-2:])
+
+
+#: imagined states per rollout that the novelty check looks at: steps spread over the horizon
+_NOVELTY_STEPS = 20
+#: and samples per member
+_NOVELTY_SAMPLES = 2
+
+
+def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor) -> TensorDict:
+    """``("novelty", ·)`` entries ``[b]``: ``"start"``, the start state's distance over the
+    check's level (above 1: unlike the training states), and ``"imagined"``, the share of
+    imagined states ``[E, N, b, T, S]`` beyond it (every member's first samples, at steps
+    spread over the horizon)."""
+    steps = imagined.shape[-2]
+    at = torch.linspace(0, steps - 1, min(steps, _NOVELTY_STEPS)).round().long().unique()
+    picked = imagined[:, :_NOVELTY_SAMPLES, :, at.to(imagined.device)].movedim(2, 0)
+    b = starts.shape[0]
+    share = (novelty.ratio(picked.reshape(b, -1, picked.shape[-1])) > 1).float().mean(-1)
+    return TensorDict(
+        {"start": novelty.ratio(starts).to(starts), "imagined": share.to(starts)},
+        batch_size=[b],
+    )
 
 
 def _check_seed(seed: int | None, generator: torch.Generator | None) -> None:

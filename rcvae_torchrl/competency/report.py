@@ -37,6 +37,9 @@ _ROSE = {
 
 #: A reference report of fewer start states is named with its count in every summary.
 _FEW_REFERENCE_STARTS = 10
+#: Imagined states unlike the training states are named when their share reaches this many
+#: times the share of in-distribution states the novelty check calls unlike (1 - its quantile).
+_IMAGINED_NOVEL_FACTOR = 10
 
 
 def _is_number(value: object) -> bool:
@@ -100,6 +103,11 @@ class CompetencyReport:
       ``"p_success_member"`` ``[*B, E]``, ``"success"`` / ``"failure"`` ``[*B, E, N]``,
       ``"outcome_uncertainty"`` ``[*B]``, ``"time_to_success"`` (``"first_step"``
       ``[*B, E, N]``, per-step entries ``[*B, T]``, statistics ``[*B]``);
+    - ``"novelty"`` (when the world model has a novelty check, ``ensemble.novelty``, which
+      training fits: :class:`~rcvae_torchrl.training.StateNovelty`): ``"start"`` ``[*B]``, the
+      start state's distance to the training states over the check's level (above 1: unlike
+      them), and ``"imagined"`` ``[*B]``, the share of its imagined states beyond the level
+      (every member's first two samples at 20 steps spread over the horizon);
     - ``"rollout"`` (only when asked for): the imagined rollouts ``[*B, E, N, T]``.
 
     **Summary rules** (:meth:`summary`), one paragraph per start state:
@@ -113,6 +121,15 @@ class CompetencyReport:
     2. ``P(success within L) = p (c% interval low–high).`` (``P(no failure for L)`` for a
        survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
+    2a. With a novelty check: a start state unlike the training states, or whose imagined
+       states are unlike them in ten times the share the check expects of in-distribution
+       states (10 % at its default 99 % level; :attr:`novel`), gets a caution naming how
+       far it lies and the dimensions outside the training states' range: ``Caution: the
+       start state is unlike the states the model was trained on (2.4x as far from the
+       training states as 99% of held-out states are: velocity_0 = 7.6 (training -4.2 to
+       4.3)): the forecast extrapolates, however much the members agree.`` The members'
+       disagreement is no sure sign of such states: members trained on the same data can
+       agree far from it. :meth:`overall` counts them.
     3. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
        what changed: each part's bits against the reference's, and which part rose
        (at least ``rise`` times the reference; the larger rise when both did): ``Against the
@@ -157,6 +174,8 @@ class CompetencyReport:
             (:meth:`~rcvae_torchrl.competency.SuccessBoundary.survival`).
         reference: the uncertainty the summary compares with (:meth:`with_reference`).
         forecast_check: the forecast checked against real episodes (:meth:`with_forecast_check`).
+        novelty: the world model's novelty check (a
+            :class:`~rcvae_torchrl.training.StateNovelty`), for rule 2a.
     """
 
     data: TensorDictBase
@@ -172,6 +191,22 @@ class CompetencyReport:
     reference: Reference | None = None
     survival: bool = False
     forecast_check: Any = None
+    novelty: Any = None
+
+    @property
+    def novel(self) -> Tensor | None:
+        """``[*B]`` bool: start states unlike the states the model was trained on, or whose
+        imagined states are unlike them in at least ten times the
+        share expected of in-distribution states (``None``: no novelty check, see
+        :class:`~rcvae_torchrl.training.StateNovelty`)."""
+        if self.novelty is None or "novelty" not in self.data.keys():
+            return None
+        entries = self.data.get("novelty")
+        return (entries.get("start") > 1) | (entries.get("imagined") >= self._imagined_share)
+
+    @property
+    def _imagined_share(self) -> float:
+        return _IMAGINED_NOVEL_FACTOR * (1.0 - self.novelty.quantile)
 
     @property
     def trustworthy(self) -> bool:
@@ -282,9 +317,25 @@ class CompetencyReport:
         else:
             text += _change_sentence(aleatoric, epistemic, self.reference)
             text += self._one_by_one_sentence()
+        text += self._novel_count_sentence()
         if self.forecast_check is not None and self.forecast_check.passed:
             text += f" Forecast check on other start states: {self.forecast_check.describe()}."
         return (f"Warning: {warning}. " if warning else "") + text
+
+    def _novel_count_sentence(self) -> str:
+        """How many start states are unlike the training states, and in how many others the
+        imagined states are (:attr:`novel`)."""
+        novel = self.novel
+        if novel is None:
+            return ""
+        entries = self.data.get("novelty")
+        starts = int((entries.get("start") > 1).sum())
+        imagined = int(novel.sum()) - starts
+        return (
+            f" Against the states the model was trained on: {starts} of {novel.numel()} start "
+            f"states are unlike them, and {imagined} more imagine at least "
+            f"{self._imagined_share:.0%} of their states unlike them."
+        )
 
     def _one_by_one_sentence(self) -> str:
         """How many start states rose one by one (the rule of their own paragraphs): a mean
@@ -369,6 +420,7 @@ class CompetencyReport:
                 self._outcome(),
             ),
             self._per_start_caution(),
+            self._novelty_sentence(one),
             self._uncertainty_sentence(uncertainty, bool(warning)),
         ]
         if "peak_step" in uncertainty.keys():
@@ -397,6 +449,30 @@ class CompetencyReport:
             f"start's real rate by about {check.excess_error:.2f} beyond chance; the interval "
             "above covers only the imagined samples' chance."
         )
+
+    def _novelty_sentence(self, one: TensorDictBase) -> str:
+        """A start state unlike the training states, and in which dimensions; or imagined
+        states unlike them in ten times the share expected."""
+        if self.novelty is None or "novelty" not in one.keys():
+            return ""
+        ratio = float(one.get(("novelty", "start")))
+        share = float(one.get(("novelty", "imagined")))
+        imagined = share >= self._imagined_share
+        if ratio > 1:
+            detail = self.novelty.describe(one.get(self.observation_key), self.dim_names)
+            also = f", and so are {share:.0%} of its imagined states" if imagined else ""
+            return (
+                f"Caution: the start state is unlike the states the model was trained on "
+                f"({detail}){also}: the forecast extrapolates, however much the members agree."
+            )
+        if imagined:
+            return (
+                f"Caution: {share:.0%} of the imagined states are unlike the states the model "
+                f"was trained on (beyond the level {self.novelty.quantile:.0%} of held-out "
+                "states stay within): the forecast extrapolates there, however much the "
+                "members agree."
+            )
+        return ""
 
     def _uncertainty_sentence(self, uncertainty: TensorDictBase, warned: bool) -> str:
         # the bits the reference compares (per live step where it does), in every sentence

@@ -136,6 +136,9 @@ class RCVAEEnsemble(nn.Module):
         #: the self-checks of the trained model (:func:`rcvae_torchrl.training.check_model`),
         #: set by training and kept in checkpoints; ``None`` until checked
         self.checks = None
+        #: how unlike its training states a state is (:class:`rcvae_torchrl.training.StateNovelty`),
+        #: set by training and kept in checkpoints; ``None`` until fitted
+        self.novelty = None
         self.register_buffer("predicted_idx", torch.tensor(config.predicted_dims), persistent=False)
         # D when the predicted dims are 0..D-1 (the passthrough ones a tail): slices suffice
         dims = config.predicted_dims

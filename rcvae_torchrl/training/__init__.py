@@ -2,6 +2,7 @@
 
 from .checkpoint import FORMAT_VERSION, CheckpointError, load_ensemble, save_ensemble
 from .checks import ModelChecks, ModelCheckWarning, OutcomeCheck, check_model
+from .novelty import StateNovelty
 from .trainer import TrainConfig, TrainResult, log_history, train_ensemble
 
 __all__ = [
@@ -15,6 +16,8 @@ __all__ = [
     "ModelChecks",
     "OutcomeCheck",
     "check_model",
+    # novelty of states
+    "StateNovelty",
     # checkpoints
     "FORMAT_VERSION",
     "CheckpointError",

@@ -19,6 +19,7 @@ from rcvae_torchrl.io import StoredFileError, atomic_write, load_torch
 from rcvae_torchrl.models import ModelFunctions, RCVAEConfig, RCVAEEnsemble
 
 from .checks import ModelChecks
+from .novelty import StateNovelty
 
 __all__ = ["FORMAT_VERSION", "CheckpointError", "load_ensemble", "save_ensemble"]
 
@@ -40,6 +41,9 @@ def ensemble_payload(ensemble: RCVAEEnsemble, extra: dict[str, Any] | None = Non
         "state_dict": {k: v.detach().cpu() for k, v in ensemble.state_dict().items()},
         "extra": extra or {},
         "checks": None if getattr(ensemble, "checks", None) is None else ensemble.checks.as_dict(),
+        "novelty": None
+        if getattr(ensemble, "novelty", None) is None
+        else ensemble.novelty.as_dict(),
     }
 
 
@@ -203,4 +207,20 @@ def ensemble_from_payload(
                 f"{type(err).__name__}: {err}",
                 source,
             ) from err
+    if payload.get("novelty") is not None:
+        try:
+            novelty = StateNovelty.from_dict(payload["novelty"])
+        except (KeyError, TypeError, ValueError) as err:
+            raise CheckpointError(
+                f"checkpoint {source!r}: its training states (novelty) are corrupt: "
+                f"{type(err).__name__}: {err}",
+                source,
+            ) from err
+        if novelty.dim != ensemble.config.obs_dim:
+            raise CheckpointError(
+                f"checkpoint {source!r}: its training states (novelty) have {novelty.dim} "
+                f"dimensions, the model's observations {ensemble.config.obs_dim}",
+                source,
+            )
+        ensemble.novelty = novelty
     return ensemble

@@ -34,6 +34,7 @@ from tqdm.auto import tqdm
 
 from rcvae_torchrl import distributed, fingerprint
 from rcvae_torchrl._checks import (
+    check_bool,
     check_dtype,
     check_finite,
     check_non_negative,
@@ -56,6 +57,7 @@ from rcvae_torchrl.objectives import RCVAELoss
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 from .checks import ModelChecks, ModelCheckWarning, check_model
+from .novelty import StateNovelty
 
 __all__ = [
     "TrainConfig",
@@ -218,6 +220,7 @@ def train_ensemble(
     log_prefix: str = "",
     progress: bool = True,
     checks: bool | Mapping[str, Any] = True,
+    novelty: bool = True,
 ) -> TrainResult:
     """Train ``ensemble`` on episodes (flat TensorDicts ``[frames]`` from ``collect_episodes``).
 
@@ -255,6 +258,10 @@ def train_ensemble(
             ``check_model`` (e.g. ``{"coverage_steps": 5}``: a system that an open-loop
             drive sends off its course within the default 20 steps, such as an inverted
             pendulum, is checked nearer).
+        novelty: fit the check of how unlike its training states a state is
+            (:class:`~rcvae_torchrl.training.StateNovelty`: ``train_data``'s states, the level
+            from ``val_data``'s) into ``ensemble.novelty``; the competency assessor then says
+            which start states, and how many imagined states, lie beyond it.
     """
     if not isinstance(ensemble, RCVAEEnsemble):
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
@@ -262,6 +269,7 @@ def train_ensemble(
     if resume and path is None:
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")
     check_args = _check_args(checks)
+    check_bool("novelty", novelty)
     if path is not None:
         _check_checkpoint_path(path, resume)
     if not isinstance(config, TrainConfig):
@@ -330,6 +338,11 @@ def train_ensemble(
                 message = found.message() + _stopped_early_hint(found, state.stop_step, config)
                 warnings.warn(message, ModelCheckWarning, stacklevel=2)
         result.checks = ensemble.checks = distributed.broadcast(found)
+    if novelty:
+        fitted = None
+        if distributed.is_main():
+            fitted = StateNovelty.from_episodes(train_data, val_data, seed=config.seed)
+        ensemble.novelty = distributed.broadcast(fitted)
     return result
 
 

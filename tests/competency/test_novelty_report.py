@@ -1,0 +1,83 @@
+"""The assessor's novelty entries and the report's words on start states unlike the training
+states (the world model's StateNovelty)."""
+
+import torch
+from test_assessor import E, S, T, make_assessor, make_ensemble, make_env, set_decoder
+
+from rcvae_torchrl.envs import OBSERVATION_NAMES
+from rcvae_torchrl.training import StateNovelty
+
+
+def _novelty() -> StateNovelty:
+    """Training states around 0 with spread 0.1 in every dimension (as make_ensemble's data)."""
+    g = torch.Generator().manual_seed(5)
+    return StateNovelty.fit(
+        torch.randn(3000, S, generator=g) * 0.1, torch.randn(1000, S, generator=g) * 0.1
+    )
+
+
+def _starts() -> torch.Tensor:
+    starts = torch.randn(3, S, generator=torch.Generator().manual_seed(1)) * 0.1
+    starts[2, OBSERVATION_NAMES.index("ball_vx")] = 2.0  # 20 spreads out
+    return starts
+
+
+def test_entries_are_the_starts_ratio_and_the_share_of_imagined_states_beyond_the_level():
+    model = make_ensemble()
+    model.novelty = _novelty()
+    plan = torch.zeros(T, 2)
+    report = make_assessor(make_env(model)).assess(
+        _starts(), actions=plan, seed=0, return_rollouts=True
+    )
+    entries = report.data["novelty"]
+    assert torch.allclose(entries["start"], model.novelty.ratio(_starts()))
+    imagined = report.data["rollout", "observation"]  # [B, E, N, T, S]
+    picked = imagined[:, :, :2].reshape(3, -1, S)  # T = 6 < 20 steps: every step
+    share = (model.novelty.ratio(picked) > 1).float().mean(-1)
+    assert torch.equal(entries["imagined"], share)
+    assert report.novel.tolist() == [bool(s >= 0.1) for s in share[:2]] + [True]
+    # no novelty check, no entries and no words
+    model.novelty = None
+    plain = make_assessor(make_env(model)).assess(_starts(), actions=plan, seed=0)
+    assert "novelty" not in plain.data.keys() and plain.novel is None
+    assert "unlike" not in plain.summary() + plain.overall()
+
+
+def test_a_start_unlike_the_training_states_is_cautioned_with_its_dimension():
+    model = make_ensemble()
+    model.novelty = _novelty()
+    set_decoder(model, torch.zeros(E, 1), -6.0)  # imagined states stay at their start
+    report = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
+    assert report.data["novelty", "imagined"][:2].tolist() == [0.0, 0.0]
+    far = report.summary(index=2)
+    ratio = float(model.novelty.ratio(_starts()[2]))
+    assert (
+        f"Caution: the start state is unlike the states the model was trained on "
+        f"({ratio:.1f}x as far from the training states as 99% of held-out states are: "
+        "ball_vx = 2 (training " in far
+    )
+    # its imagined states stay where it starts: unlike the training states too
+    assert report.data["novelty", "imagined"][2] == 1.0
+    assert "), and so are 100% of its imagined states: the forecast" in far
+    assert "the forecast extrapolates, however much the members agree." in far
+    assert "Caution" not in report.summary(index=0)
+    assert report.overall().endswith(
+        " Against the states the model was trained on: 1 of 3 start states are unlike them, "
+        "and 0 more imagine at least 10% of their states unlike them."
+    )
+
+
+def test_imagined_states_that_leave_the_training_states_are_named():
+    model = make_ensemble()
+    model.novelty = _novelty()
+    set_decoder(model, torch.full((E, 1), 40.0), -6.0)  # each step a large move
+    report = make_assessor(make_env(model)).assess(_starts()[:2], actions=torch.zeros(T, 2), seed=0)
+    share = report.data["novelty", "imagined"]
+    assert bool((share >= 0.5).all()) and bool((report.data["novelty", "start"] <= 1).all())
+    text = report.summary(index=0)
+    assert (
+        f"Caution: {float(share[0]):.0%} of the imagined states are unlike the states the model "
+        "was trained on (beyond the level 99% of held-out states stay within): the forecast "
+        "extrapolates there, however much the members agree." in text
+    )
+    assert "0 of 2 start states are unlike them, and 2 more" in report.overall()

@@ -1,0 +1,148 @@
+"""StateNovelty: distances against closed-form ones, the level's false-alarm rate, words,
+checkpoints, training and the assessor's report."""
+
+import math
+
+import pytest
+import torch
+from conftest import linear_episodes
+from scipy.stats import binom
+
+from rcvae_torchrl.training import (
+    CheckpointError,
+    StateNovelty,
+    TrainConfig,
+    load_ensemble,
+    save_ensemble,
+    train_ensemble,
+)
+
+
+def _gaussian(n: int, seed: int, dim: int = 3) -> torch.Tensor:
+    return torch.randn(n, dim, generator=torch.Generator().manual_seed(seed))
+
+
+def test_distance_is_the_kth_neighbour_in_spreads():
+    # two training states on a line, spread 1 in x and 2 in y (std with correction 0)
+    states = torch.tensor([[-1.0, -2.0], [1.0, 2.0], [-1.0, 2.0], [1.0, -2.0]])
+    novelty = StateNovelty.fit(states, states, k=1)
+    assert novelty.scale.tolist() == [1.0, 2.0]
+    # (3, 2) is 2 spreads from (1, 2) in x, 0 in y: RMS over 2 dims = 2 / sqrt(2)
+    assert float(novelty.distance(torch.tensor([3.0, 2.0]))) == pytest.approx(math.sqrt(2))
+    # the 2nd neighbour of (1, 2) is (-1, 2) or (1, -2): 2 spreads in one dimension either way
+    second = StateNovelty.fit(states, states, k=2)
+    assert float(second.distance(torch.tensor([1.0, 2.0]))) == pytest.approx(math.sqrt(2))
+    # batches keep their shape
+    assert novelty.distance(torch.zeros(2, 5, 2)).shape == (2, 5)
+
+
+def test_the_level_calls_about_one_minus_quantile_of_in_distribution_states_unlike():
+    novelty = StateNovelty.fit(_gaussian(4000, 0), _gaussian(2000, 1), quantile=0.95)
+    fresh = _gaussian(2000, 2)
+    flagged = int(novelty.unlike(fresh).sum())
+    # a conformal level: P(unlike) <= 5 %; two-sided 99.9 % binomial bounds around 5 %
+    low, high = binom.ppf([0.0005, 0.9995], 2000, 0.05)
+    assert low <= flagged <= high
+    # states 7 spreads out in one of three dimensions are all unlike
+    far = fresh.clone()
+    far[:, 1] = 7.0
+    assert bool(novelty.unlike(far).all())
+
+
+def test_too_few_held_out_states_keep_the_quantile_they_can_cover():
+    novelty = StateNovelty.fit(_gaussian(200, 0), _gaussian(9, 1), quantile=0.99)
+    assert novelty.held_out == 9 and novelty.quantile == pytest.approx(0.9)
+    assert novelty.level == pytest.approx(float(novelty.distance(_gaussian(9, 1)).max()))
+
+
+def test_the_draw_keeps_every_kept_state():
+    states = _gaussian(1000, 0)
+    keep = torch.zeros(1000, dtype=torch.bool)
+    keep[::100] = True
+    novelty = StateNovelty.fit(states, _gaussian(50, 1), max_states=20, keep=keep)
+    assert 20 <= novelty.states.shape[0] <= 30
+    kept = (novelty.states[:, None] == states[keep][None]).all(-1).any(0)
+    assert bool(kept.all())
+
+
+def test_describe_names_the_dimensions_outside_the_training_range():
+    novelty = StateNovelty.fit(_gaussian(2000, 0), _gaussian(500, 1))
+    text = novelty.describe(torch.tensor([0.0, 9.0, -0.2]), ["x", "speed", "z"])
+    assert text.startswith(f"{float(novelty.ratio(torch.tensor([0.0, 9.0, -0.2]))):.1f}x as far")
+    assert "speed = 9 (training " in text and "x =" not in text and "z =" not in text
+    both = novelty.describe(torch.tensor([-8.0, 9.0, 0.0]), ["x", "speed", "z"])
+    assert both.index("speed") < both.index("x =")  # the farther first
+    # a state inside every range whose combination is new
+    corner = StateNovelty.fit(
+        torch.tensor([[0.0, 0.0], [1.0, 1.0]]).repeat(50, 1) + 0.01 * _gaussian(100, 3, 2),
+        torch.tensor([[0.0, 0.0], [1.0, 1.0]]).repeat(10, 1) + 0.01 * _gaussian(20, 4, 2),
+    )
+    assert "the combination is new" in corner.describe(torch.tensor([0.0, 1.0]))
+
+
+def test_a_dimension_constant_in_training_makes_any_other_value_unlike():
+    states = torch.cat([_gaussian(300, 0, 2), torch.full((300, 1), 0.5)], -1)
+    held = torch.cat([_gaussian(100, 1, 2), torch.full((100, 1), 0.5)], -1)
+    novelty = StateNovelty.fit(states, held)
+    assert not bool(novelty.unlike(torch.tensor([0.0, 0.0, 0.5])))
+    assert bool(novelty.unlike(torch.tensor([0.0, 0.0, 0.51])))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"states": torch.zeros(10, 3, dtype=torch.long)}, TypeError, "states: expected a float"),
+        ({"states": torch.zeros(10)}, ValueError, r"states: expected shape \[N, D\]"),
+        ({"held_out": torch.zeros(10, 2)}, ValueError, "held_out: expected 3 state dim"),
+        ({"held_out": torch.full((4, 3), math.nan)}, ValueError, "held_out: expected finite"),
+        ({"k": 0}, ValueError, "k: expected"),
+        ({"k": 20}, ValueError, "states: expected more than k = 20"),
+        ({"quantile": 1.0}, ValueError, r"quantile: expected a share in \(0, 1\)"),
+        ({"keep": torch.ones(3, dtype=torch.bool)}, ValueError, r"keep: expected a bool"),
+    ],
+)
+def test_bad_input_is_named(kwargs, error, match):
+    args = {"states": _gaussian(20, 0), "held_out": _gaussian(5, 1), **kwargs}
+    with pytest.raises(error, match=match):
+        StateNovelty.fit(args.pop("states"), args.pop("held_out"), max_states=10, **args)
+
+
+def test_from_episodes_and_training_fit_one_kept_in_checkpoints(small_ensemble, tmp_path):
+    train, val = linear_episodes(12, 40, seed=0), linear_episodes(4, 40, seed=1)
+    val["collector", "traj_ids"] += 100
+    novelty = StateNovelty.from_episodes(train, val, seed=3)
+    # every state and next state of the training episodes (fewer than max_states: all kept)
+    assert novelty.states.shape == (2 * 12 * 40, 3) and novelty.held_out == 2 * 4 * 40
+    config = TrainConfig(max_steps=20, batch_windows=4, window=5, val_every=10, seed=3)
+    result = train_ensemble(small_ensemble(), train, val, config, progress=False, checks=False)
+    fitted = result.ensemble.novelty
+    assert torch.equal(fitted.states, novelty.states) and fitted.level == novelty.level
+    path = save_ensemble(result.ensemble, tmp_path / "m.pt")
+    loaded = load_ensemble(path).novelty
+    assert torch.equal(loaded.states, fitted.states) and loaded.as_dict().keys() == (
+        fitted.as_dict().keys()
+    )
+    probe = torch.tensor([[0.0, 0.0, 0.0], [0.0, 30.0, 0.0]])
+    assert loaded.unlike(probe).tolist() == [False, True]
+    off = train_ensemble(
+        small_ensemble(), train, val, config, progress=False, checks=False, novelty=False
+    )
+    assert off.ensemble.novelty is None
+    # a corrupt or mismatched record is a CheckpointError naming it
+    payload = torch.load(path, weights_only=True)
+    payload["novelty"]["level"] = -1.0
+    torch.save(payload, tmp_path / "bad.pt")
+    with pytest.raises(CheckpointError, match=r"novelty\) are corrupt.*novelty.level"):
+        load_ensemble(tmp_path / "bad.pt")
+    payload["novelty"] = StateNovelty.fit(_gaussian(20, 0, 2), _gaussian(5, 1, 2)).as_dict()
+    torch.save(payload, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="have 2 dimensions, the model's observations 3"):
+        load_ensemble(tmp_path / "other.pt")
+
+
+def test_from_episodes_names_missing_entries():
+    train = linear_episodes(3, 10)
+    with pytest.raises(KeyError, match=r"val_data: expected 'observation' and \('next'"):
+        StateNovelty.from_episodes(train, train.exclude(("next", "observation")))
+    with pytest.raises(TypeError, match="train_data: expected a TensorDict"):
+        StateNovelty.from_episodes(torch.zeros(3), train)
