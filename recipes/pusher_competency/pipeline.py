@@ -542,7 +542,11 @@ class Study:
             report = assessor.assess(start, policy=policy, seed=self.cfg.seed)
         if distributed.is_main():
             path = self.dir / "forecast" / f"{condition}.pt"
-            save_torch(path, {"starts": starts, **_forecast_record(report.data.cpu())})
+            record = _forecast_record(report.data.cpu())
+            if report.novel is not None:  # a model trained with its novelty check
+                record.update(novelty_start=report.data["novelty", "start"].cpu())
+                record.update(novel=report.novel.cpu())
+            save_torch(path, {"starts": starts, **record})
 
     def truth(self) -> dict[str, Any]:
         """The agent in the real env from each forecast's start states, many runs per start in

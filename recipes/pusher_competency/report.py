@@ -302,12 +302,15 @@ def write_report(
             for name, by_horizon in far_checks.items()
         },
         "forecast_checks": {c: found.as_dict() for c, found in forecast_checks.items()},
+        "novelty": novelty_rows(forecasts, truths),
     }
     write_json(run_dir / "summary.json", summary)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
     texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
     text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)
     text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
+    novelty = _novelty_text(summary["novelty"])
+    text = text.replace("## The agent", novelty + "## The agent", 1)
     if model_checks or far_checks or forecast_checks:
         section = (
             _model_checks_text(model_checks)
@@ -317,6 +320,57 @@ def write_report(
         text = text.replace("## The agent", section + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
+
+
+def novelty_rows(
+    forecasts: Mapping[str, Mapping[str, torch.Tensor]],
+    truths: Mapping[str, Mapping[str, torch.Tensor]],
+) -> dict[str, dict[str, Any]]:
+    """Per condition whose forecast holds the novelty check's verdicts (a world model trained
+    with it): the start states unlike the training states, those the report cautions (the
+    start, or a share of its imagined states: ``CompetencyReport.novel``), and the per-start
+    error of the forecast among them and among the others."""
+    rows = {}
+    for condition, forecast in forecasts.items():
+        if "novel" not in forecast:
+            continue
+        p = forecast["p_success"]
+        real = truths[condition]["success"].float().reshape(p.numel(), -1).mean(-1)
+        error, novel = (p - real).abs(), forecast["novel"]
+        rows[condition] = {
+            "starts": int(p.numel()),
+            "start_unlike": int((forecast["novelty_start"] > 1).sum()),
+            "cautioned": int(novel.sum()),
+            "mae_cautioned": float(error[novel].mean()) if bool(novel.any()) else None,
+            "mae_rest": float(error[~novel].mean()) if not bool(novel.all()) else None,
+        }
+    return rows
+
+
+def _novelty_text(rows: Mapping[str, Mapping[str, Any]]) -> str:
+    """The section on start states unlike the world model's training states."""
+    if not rows:
+        return ""
+    lines = [
+        "### Start states unlike the training states",
+        "",
+        "Apart from the members' disagreement, each start state and a sample of its imagined "
+        "states are compared with the states the world model was trained on (the distance to "
+        "the nearest of them, against the level 99 % of held-out states stay within). A "
+        "cautioned start is unlike them, or imagines at least 10 % of its states unlike them: "
+        "its forecast extrapolates. The per-start error is |forecast - real rate|.",
+        "",
+        "| condition | starts | start unlike | cautioned | per-start error, cautioned | "
+        "per-start error, the others |",
+        "|:---|---:|---:|---:|---:|---:|",
+    ]
+    for condition, row in rows.items():
+        cells = ["–" if row[k] is None else _number(row[k]) for k in ("mae_cautioned", "mae_rest")]
+        lines.append(
+            f"| {condition} | {row['starts']} | {row['start_unlike']} | {row['cautioned']} | "
+            f"{' | '.join(cells)} |"
+        )
+    return "\n".join(lines) + "\n\n"
 
 
 def _model_checks_text(model_checks: Mapping[str, ModelChecks]) -> str:

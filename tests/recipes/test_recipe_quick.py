@@ -217,6 +217,21 @@ def test_summary_json(runs):
         assert float(rows[condition]["brier"]) == pytest.approx(row["brier"])
 
 
+def test_start_states_unlike_the_training_states_are_counted_per_condition(runs):
+    rows = json.loads((runs["dir"] / "summary.json").read_text())["novelty"]
+    assert list(rows) == list(CONDITIONS)  # training fitted the novelty check of each model
+    for condition, row in rows.items():
+        saved = torch.load(runs["dir"] / "forecast" / f"{condition}.pt", weights_only=True)
+        assert row["starts"] == saved["p_success"].numel() == saved["novel"].numel()
+        assert row["start_unlike"] == int((saved["novelty_start"] > 1).sum())
+        assert row["cautioned"] == int(saved["novel"].sum()) >= row["start_unlike"]
+        assert saved["novel"][saved["novelty_start"] > 1].all()
+    report = (runs["dir"] / "report.md").read_text()
+    assert "### Start states unlike the training states" in report
+    for condition, row in rows.items():
+        assert f"| {condition} | {row['starts']} | {row['start_unlike']} | " in report
+
+
 def test_every_file_a_stage_wrote_is_in_its_marker_and_no_other(runs):
     """Every output of the run is in the marker of the stage that wrote it (so a damaged one
     is found and made again); a file of the user's beside them is in none, so no stage ever

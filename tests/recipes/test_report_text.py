@@ -1,9 +1,17 @@
-"""The report's agent section reads as text and tables, not as Python dicts."""
+"""The report's text sections read as text and tables, not as Python dicts."""
 
 from __future__ import annotations
 
+import pytest
+import torch
+
 from recipes.pusher_competency.config import AgentStudyConfig
-from recipes.pusher_competency.report import DAGGER_COLUMNS, agent_section
+from recipes.pusher_competency.report import (
+    DAGGER_COLUMNS,
+    _novelty_text,
+    agent_section,
+    novelty_rows,
+)
 
 AGENT = {
     "mpc_noisy_success_rate": 0.8666666666666667,
@@ -150,3 +158,26 @@ def test_the_gap_is_given_with_its_interval():
     assert "deterministic +0.113 (+0.041 to +0.185); stochastic -0.014 (-0.030 to +0.002)." in text
     assert "95% interval" in text and "overall" not in text
     assert _gap_text({"overall": {"gap": 0.02}}) == []
+
+
+def test_novelty_rows_split_the_per_start_error_by_the_caution():
+    forecast = {
+        "p_success": torch.tensor([0.9, 0.5, 0.2, 1.0]),
+        "novelty_start": torch.tensor([0.3, 1.4, 0.8, 0.2]),
+        "novel": torch.tensor([False, True, True, False]),
+    }
+    # two real episodes per start: rates 1.0, 0.0, 0.5, 1.0
+    success = torch.tensor([[1, 1], [0, 0], [1, 0], [1, 1]], dtype=torch.bool)
+    rows = novelty_rows(
+        {"a": forecast, "b": {"p_success": torch.ones(4)}}, {"a": {"success": success}}
+    )
+    assert list(rows) == ["a"]  # a forecast without the check has no row
+    row = rows["a"]
+    assert (row["starts"], row["start_unlike"], row["cautioned"]) == (4, 1, 2)
+    assert row["mae_cautioned"] == pytest.approx((0.5 + 0.3) / 2)
+    assert row["mae_rest"] == pytest.approx((0.1 + 0.0) / 2)
+    none = novelty_rows(
+        {"a": {**forecast, "novel": torch.zeros(4, dtype=torch.bool)}}, {"a": {"success": success}}
+    )
+    assert "| a | 4 | 1 | 0 | – | 0.225 |" in _novelty_text(none)
+    assert _novelty_text({}) == ""
