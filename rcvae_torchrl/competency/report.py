@@ -121,7 +121,7 @@ class CompetencyReport:
     2. ``P(success within L) = p (c% interval low–high).`` (``P(no failure for L)`` for a
        survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
-    2a. With a novelty check: a start state unlike the training states, or whose imagined
+    3. With a novelty check: a start state unlike the training states, or whose imagined
        states are unlike them in ten times the share the check expects of in-distribution
        states (10 % at its default 99 % level; :attr:`novel`), gets a caution naming how
        far it lies and the dimensions outside the training states' range: ``Caution: the
@@ -130,7 +130,7 @@ class CompetencyReport:
        4.3)): the forecast extrapolates, however much the members agree.`` The members'
        disagreement is no sure sign of such states: members trained on the same data can
        agree far from it. :meth:`overall` counts them.
-    3. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
+    4. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
        what changed: each part's bits against the reference's, and which part rose
        (at least ``rise`` times the reference; the larger rise when both did): ``Against the
        in-distribution reference, epistemic uncertainty rose 2.1x (0.29 -> 0.61 bits) and
@@ -152,7 +152,7 @@ class CompetencyReport:
        of 1.10 bits): the model has not seen states like this.`` When all three are 0 the
        sentence says so. With a warning (rule 1) neither: the bits are given without a cause
        (a model that failed its checks may take missing knowledge for chance, or hide it).
-    4. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
+    5. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
        each with its mean bits and the time of its peak. Left out for joint estimators.
 
     The words are only as good as the estimate: with the histogram estimator, a member's
@@ -175,7 +175,7 @@ class CompetencyReport:
         reference: the uncertainty the summary compares with (:meth:`with_reference`).
         forecast_check: the forecast checked against real episodes (:meth:`with_forecast_check`).
         novelty: the world model's novelty check (a
-            :class:`~rcvae_torchrl.training.StateNovelty`), for rule 2a.
+            :class:`~rcvae_torchrl.training.StateNovelty`), for rule 3.
     """
 
     data: TensorDictBase
