@@ -473,24 +473,22 @@ class CompetencyAssessor(KeyedModule):
         return actions.reshape(-1, *actions.shape[-2:])
 
 
-#: imagined states per rollout that the novelty check looks at: steps spread over the horizon
-_NOVELTY_STEPS = 20
-#: and samples per member
+#: imagined rollouts per member whose states the novelty check looks at (at the steps of its
+#: ``episode_steps``, as it looks at real episodes)
 _NOVELTY_SAMPLES = 2
 
 
 def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor) -> TensorDict:
     """``("novelty", ·)`` entries ``[b]``: ``"start"``, the start state's distance over the
-    check's level (above 1: unlike the training states), and ``"imagined"``, the share of
-    imagined states ``[E, N, b, T, S]`` beyond it (every member's first samples, at steps
-    spread over the horizon)."""
-    steps = imagined.shape[-2]
-    at = torch.linspace(0, steps - 1, min(steps, _NOVELTY_STEPS)).round().long().unique()
-    picked = imagined[:, :_NOVELTY_SAMPLES, :, at.to(imagined.device)].movedim(2, 0)
+    check's level of start states (above 1: unlike the training states), and ``"imagined"``,
+    the share of imagined states ``[E, N, b, T, S]`` beyond the states' level (every member's
+    first samples, at steps spread over the horizon)."""
+    at = novelty.episode_steps(imagined.shape[-2]).to(imagined.device)
+    picked = imagined[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)
     b = starts.shape[0]
     share = (novelty.ratio(picked.reshape(b, -1, picked.shape[-1])) > 1).float().mean(-1)
     return TensorDict(
-        {"start": novelty.ratio(starts).to(starts), "imagined": share.to(starts)},
+        {"start": novelty.ratio(starts, starts=True).to(starts), "imagined": share.to(starts)},
         batch_size=[b],
     )
 

@@ -37,9 +37,6 @@ _ROSE = {
 
 #: A reference report of fewer start states is named with its count in every summary.
 _FEW_REFERENCE_STARTS = 10
-#: Imagined states unlike the training states are named when their share reaches this many
-#: times the share of in-distribution states the novelty check calls unlike (1 - its quantile).
-_IMAGINED_NOVEL_FACTOR = 10
 
 
 def _is_number(value: object) -> bool:
@@ -106,8 +103,8 @@ class CompetencyReport:
     - ``"novelty"`` (when the world model has a novelty check, ``ensemble.novelty``, which
       training fits: :class:`~rcvae_torchrl.training.StateNovelty`): ``"start"`` ``[*B]``, the
       start state's distance to the training states over the check's level (above 1: unlike
-      them), and ``"imagined"`` ``[*B]``, the share of its imagined states beyond the level
-      (every member's first two samples at 20 steps spread over the horizon);
+      them), and ``"imagined"`` ``[*B]``, the share of its imagined states beyond the states'
+      level (every member's first two samples at 20 steps spread over the horizon);
     - ``"rollout"`` (only when asked for): the imagined rollouts ``[*B, E, N, T]``.
 
     **Summary rules** (:meth:`summary`), one paragraph per start state:
@@ -122,14 +119,14 @@ class CompetencyReport:
        survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
     3. With a novelty check: a start state unlike the training states, or whose imagined
-       states are unlike them in ten times the share the check expects of in-distribution
-       states (10 % at its default 99 % level; :attr:`novel`), gets a caution naming how
-       far it lies and the dimensions outside the training states' range: ``Caution: the
-       start state is unlike the states the model was trained on (2.4x as far from the
-       training states as 99% of held-out states are: velocity_0 = 7.6 (training -4.2 to
-       4.3)): the forecast extrapolates, however much the members agree.`` The members'
-       disagreement is no sure sign of such states: members trained on the same data can
-       agree far from it. :meth:`overall` counts them.
+       states are unlike them in a larger share than the check's in-distribution episodes'
+       states are (its ``episode_level``; :attr:`novel`), gets a caution naming how far it
+       lies and the dimensions outside the training states' range: ``Caution: the start
+       state is unlike the states the model was trained on (2.4x as far from the training
+       states as 99% of held-out episodes' first states are: velocity_0 = 7.6 (training
+       -4.2 to 4.3)): the forecast extrapolates, however much the members agree.`` The
+       members' disagreement is no sure sign of such states: members trained on the same data
+       can agree far from it. :meth:`overall` counts them.
     4. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
        what changed: each part's bits against the reference's, and which part rose
        (at least ``rise`` times the reference; the larger rise when both did): ``Against the
@@ -196,17 +193,13 @@ class CompetencyReport:
     @property
     def novel(self) -> Tensor | None:
         """``[*B]`` bool: start states unlike the states the model was trained on, or whose
-        imagined states are unlike them in at least ten times the
-        share expected of in-distribution states (``None``: no novelty check, see
+        imagined states are unlike them in a larger share than in-distribution episodes'
+        states are (the check's ``episode_level``; ``None``: no novelty check, see
         :class:`~rcvae_torchrl.training.StateNovelty`)."""
         if self.novelty is None or "novelty" not in self.data.keys():
             return None
         entries = self.data.get("novelty")
-        return (entries.get("start") > 1) | (entries.get("imagined") >= self._imagined_share)
-
-    @property
-    def _imagined_share(self) -> float:
-        return _IMAGINED_NOVEL_FACTOR * (1.0 - self.novelty.quantile)
+        return (entries.get("start") > 1) | (entries.get("imagined") > self.novelty.episode_level)
 
     @property
     def trustworthy(self) -> bool:
@@ -332,9 +325,9 @@ class CompetencyReport:
         starts = int((entries.get("start") > 1).sum())
         imagined = int(novel.sum()) - starts
         return (
-            f" Against the states the model was trained on: {starts} of {novel.numel()} start "
-            f"states are unlike them, and {imagined} more imagine at least "
-            f"{self._imagined_share:.0%} of their states unlike them."
+            f" Novelty: {starts} of {novel.numel()} start states are unlike the states the "
+            f"model was trained on, and {imagined} more imagine more of their states unlike "
+            f"them than in-distribution episodes do (over {self.novelty.episode_level:.0%})."
         )
 
     def _one_by_one_sentence(self) -> str:
@@ -452,24 +445,31 @@ class CompetencyReport:
 
     def _novelty_sentence(self, one: TensorDictBase) -> str:
         """A start state unlike the training states, and in which dimensions; or imagined
-        states unlike them in ten times the share expected."""
+        states unlike them in a larger share than in-distribution episodes' states are."""
         if self.novelty is None or "novelty" not in one.keys():
             return ""
         ratio = float(one.get(("novelty", "start")))
         share = float(one.get(("novelty", "imagined")))
-        imagined = share >= self._imagined_share
+        imagined = share > self.novelty.episode_level
         if ratio > 1:
-            detail = self.novelty.describe(one.get(self.observation_key), self.dim_names)
+            state = one.get(self.observation_key)
+            detail = self.novelty.describe(state, self.dim_names, start=True)
             also = f", and so are {share:.0%} of its imagined states" if imagined else ""
             return (
                 f"Caution: the start state is unlike the states the model was trained on "
                 f"({detail}){also}: the forecast extrapolates, however much the members agree."
             )
         if imagined:
+            level = self.novelty.episode_level
+            usual = (
+                f"where {self.novelty.episode_quantile:.0%} of in-distribution episodes have "
+                f"at most {level:.0%}"
+                if self.novelty.episodes_measured
+                else f"more than ten times the share of held-out states ({level:.0%})"
+            )
             return (
                 f"Caution: {share:.0%} of the imagined states are unlike the states the model "
-                f"was trained on (beyond the level {self.novelty.quantile:.0%} of held-out "
-                "states stay within): the forecast extrapolates there, however much the "
+                f"was trained on, {usual}: the forecast extrapolates there, however much the "
                 "members agree."
             )
         return ""

@@ -601,7 +601,9 @@ class RCVAEEnsemble(nn.Module):
         self.normalizer.fit(observations, actions, mask, next_observations, features)
 
     def select_members(self, indices: Sequence[int] | torch.Tensor) -> RCVAEEnsemble:
-        """A new ensemble holding copies of the chosen members (and the same normaliser).
+        """A new ensemble holding copies of the chosen members (and the same normaliser and
+        novelty check, which depend on the data alone; not the self-checks, which judged the
+        whole ensemble).
 
         ``select_members([i])`` is member i as a stand-alone RCVAE.
         """
@@ -618,4 +620,5 @@ class RCVAEEnsemble(nn.Module):
         params = {name for name, _ in self.named_parameters()}
         state = {k: (v[idx] if k in params else v) for k, v in self.state_dict().items()}
         out.load_state_dict(state)
+        out.novelty = self.novelty
         return out

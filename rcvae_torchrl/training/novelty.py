@@ -7,8 +7,10 @@ alike. :class:`StateNovelty` asks the data itself. A state's novelty is its dist
 (a root mean square over the dimensions, so 1.0 is one spread in every dimension). The level it
 is compared with is the one a share ``quantile`` of held-out states reach: states of held-out
 episodes, from the distribution the training episodes came from, so an in-distribution state is
-called novel in about ``1 - quantile`` of cases, whatever the env. A state beyond the level is
-*unlike the training states*: its forecast extrapolates, however much the members agree.
+called novel in about ``1 - quantile`` of cases, whatever the env (a conformal level). A state
+beyond the level is *unlike the training states*: its forecast extrapolates, however much the
+members agree. Start states and whole episodes have levels of their own, measured the same way
+on first states and on episodes that training did not see (:meth:`StateNovelty.fit`).
 
 :func:`train_ensemble <rcvae_torchrl.training.train_ensemble>` fits one on its training and
 validation episodes and keeps it with the model (``ensemble.novelty``, saved in checkpoints);
@@ -30,12 +32,20 @@ from torch import Tensor
 from rcvae_torchrl import _checks
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 
-__all__ = ["StateNovelty"]
+__all__ = ["EPISODE_STEPS", "StateNovelty", "spread_steps"]
 
 #: rows of queries per distance block (a block is ``rows x reference states`` floats)
 _BLOCK_ROWS = 256
 #: the training states' central share that :meth:`StateNovelty.describe` quotes per dimension
 _RANGE_SHARE = 0.99
+#: the steps of an episode (real or imagined) whose states the episode level looks at
+EPISODE_STEPS = 20
+
+
+def spread_steps(length: int, count: int = EPISODE_STEPS) -> Tensor:
+    """``min(length, count)`` step indices spread evenly over an episode of ``length`` steps
+    (its first and last among them)."""
+    return torch.linspace(0, length - 1, min(length, count)).round().long().unique()
 
 
 @dataclass(frozen=True)
@@ -55,6 +65,25 @@ class StateNovelty:
     k: int
     quantile: float
     held_out: int  #: the held-out states the level was measured on
+    #: the level of start states: the distance that ``start_quantile`` of the held-out
+    #: episodes' first states stay at or below (``level`` when none were given)
+    start_level: float = math.nan
+    start_quantile: float = math.nan
+    start_held_out: int = 0  #: the first states it was measured on
+    #: the share of an episode's states beyond ``level`` (at :data:`EPISODE_STEPS` steps spread
+    #: over it) that ``episode_quantile`` of the measured episodes stay at or below; without
+    #: episodes, ten times the share of states beyond the level, ``10 (1 - quantile)``
+    episode_level: float = math.nan
+    episode_quantile: float = math.nan
+    episodes_measured: int = 0  #: the episodes it was measured on
+
+    def __post_init__(self) -> None:
+        if math.isnan(self.start_level):  # no first states: starts are states like any other
+            object.__setattr__(self, "start_level", self.level)
+            object.__setattr__(self, "start_quantile", self.quantile)
+        if math.isnan(self.episode_level):
+            object.__setattr__(self, "episode_level", min(1.0, 10 * (1 - self.quantile)))
+            object.__setattr__(self, "episode_quantile", self.quantile)
 
     @classmethod
     def fit(
@@ -65,10 +94,20 @@ class StateNovelty:
         k: int = 5,
         quantile: float = 0.99,
         max_states: int = 20_000,
-        keep: Tensor | None = None,
+        firsts: Tensor | None = None,
+        episodes: Tensor | None = None,
+        held_out_starts: Tensor | None = None,
+        held_out_episodes: Tensor | None = None,
         seed: int = 0,
     ) -> StateNovelty:
         """Fit on training ``states`` ``[N, D]``, its level measured on ``held_out`` ``[H, D]``.
+
+        Start states get a level of their own (``start_level``): episodes start where few
+        other states lie (at rest, spread over a region the episodes soon leave), so a new
+        start is farther from the training states than most held-out states are, and the
+        states' level would call many in-distribution starts unlike them. It is measured on
+        the held-out episodes' first states and on every training episode's first state, each
+        against the training states of the other episodes (there are few held-out episodes).
 
         Args:
             states: the training states.
@@ -79,15 +118,30 @@ class StateNovelty:
                 ``1 - quantile`` of in-distribution states are called unlike the training
                 states. With fewer than ``q / (1 - q)`` held-out states the level is their
                 largest distance, and the quantile kept is ``H / (H + 1)``.
-            max_states: at most this many training states are kept (a seeded uniform draw; the
-                ``keep`` ones always), and the level is measured on at most this many held-out
+            max_states: at most this many training states are kept (a seeded uniform draw;
+                ``firsts`` always), and the level is measured on at most this many held-out
                 states.
-            keep: ``[N]`` bool, training states always kept (e.g. every episode's first state:
-                the start states assessments begin from).
+            firsts: ``[N]`` bool, the training states that are an episode's first state.
+            episodes: ``[N]`` int, each training state's episode (its states in time order):
+                with ``firsts``, every training episode's first state measures the start level,
+                against the other episodes' states; and every episode measures the episode
+                level (below).
+            held_out_starts: ``[H0, D]``, the held-out episodes' first states, for the start
+                level. Without these and ``episodes``, starts are judged by the states' level.
+            held_out_episodes: ``[H]`` int, each held-out state's episode (its states in time
+                order), for the episode level.
             seed: the seed of the draws.
+
+        The episode level judges an imagined episode: the share of an episode's states beyond
+        the states' level, at :data:`EPISODE_STEPS` steps spread over it, that ``quantile`` of
+        the held-out and training episodes (each against the other episodes' states) stay at
+        or below. Real episodes pass through sparse regions too (their starts, fast moves), so
+        some of their states lie beyond the level; an imagined episode is unlike the training
+        data when more of its states do than in in-distribution episodes.
         """
         states = _states("states", states)
-        held_out = _states("held_out", held_out, states.shape[-1])
+        dim = states.shape[-1]
+        held_out = _states("held_out", held_out, dim)
         check_positive_int("k", k)
         check_unit_interval("quantile", quantile, include_zero=False)
         if not quantile < 1:
@@ -97,9 +151,17 @@ class StateNovelty:
             raise ValueError(
                 f"states: expected more than k = {k} training states, got {states.shape[0]}"
             )
+        firsts = _row_flags("firsts", firsts, states.shape[0], torch.bool)
+        episodes = _row_flags("episodes", episodes, states.shape[0], torch.long)
+        held_out_episodes = _row_flags(
+            "held_out_episodes", held_out_episodes, held_out.shape[0], torch.long
+        )
+        every = states.float()  # before the draw: the episodes' own states, for their shares
         generator = torch.Generator().manual_seed(seed)
-        states = states[_draw(states.shape[0], max_states, keep, generator)].float()
-        held_out = held_out[_draw(held_out.shape[0], max_states, None, generator)].float()
+        drawn = _draw(states.shape[0], max_states, firsts, generator)
+        held_out_all = held_out.float()
+        held_out = held_out_all[_draw(held_out.shape[0], max_states, None, generator)]
+        states = states[drawn].float()
         center = states.mean(0)
         spread = states.std(0, correction=0)
         # a dimension constant in training: any other value is unseen, by a tiny unit
@@ -107,15 +169,56 @@ class StateNovelty:
         edges = torch.tensor([(1 - _RANGE_SHARE) / 2, (1 + _RANGE_SHARE) / 2])
         low, high = states.double().quantile(edges.double(), dim=0).float()
         fitted = cls(states, center, scale, low, high, math.inf, k, float(quantile), 0)
-        distances = fitted.distance(held_out).double().sort().values
-        # the conformal level: the ceil((H + 1) q)-th smallest of H held-out distances covers a
-        # new in-distribution state with probability >= q; with too few held-out states for
-        # that, the largest, which covers H / (H + 1), and that is the quantile kept
-        count = held_out.shape[0]
-        quantile = min(float(quantile), count / (count + 1))
-        rank = min(math.ceil((count + 1) * quantile - 1e-9), count)
-        level = max(float(distances[rank - 1]), 1e-12)
-        return cls(states, center, scale, low, high, level, k, quantile, count)
+        level, kept = _conformal_level(fitted.distance(held_out), quantile)
+        calibration = []
+        if held_out_starts is not None:
+            held_out_starts = _states("held_out_starts", held_out_starts, dim)
+            calibration.append(fitted.distance(held_out_starts))
+        if firsts is not None and episodes is not None:
+            ids = episodes[drawn]
+            own = firsts[drawn]
+            calibration.append(fitted._distance(states[own], ids[own], ids))
+        starts: dict[str, Any] = {}
+        if calibration and sum(c.numel() for c in calibration):
+            distances = torch.cat(calibration)
+            start_level, start_kept = _conformal_level(distances, quantile)
+            starts = {
+                "start_level": start_level,
+                "start_quantile": start_kept,
+                "start_held_out": distances.numel(),
+            }
+        shares = []
+        if held_out_episodes is not None:
+            shares.append(fitted._episode_shares(held_out_all, held_out_episodes, level))
+        if episodes is not None:
+            shares.append(fitted._episode_shares(every, episodes, level, episodes[drawn]))
+        if shares:
+            share_level, share_kept = _conformal_level(torch.cat(shares), quantile)
+            starts.update(
+                episode_level=min(1.0, share_level),
+                episode_quantile=share_kept,
+                episodes_measured=sum(x.numel() for x in shares),
+            )
+        return cls(states, center, scale, low, high, level, k, kept, held_out.shape[0], **starts)
+
+    def _episode_shares(
+        self, states: Tensor, episodes: Tensor, level: float, reference_ids: Tensor | None = None
+    ) -> Tensor:
+        """Per episode of ``states`` (rows of ``episodes`` in time order), the share of its
+        states beyond ``level`` at :data:`EPISODE_STEPS` steps spread over it; with
+        ``reference_ids``, each against the reference states of the other episodes."""
+        order = torch.argsort(episodes, stable=True)
+        counts = torch.unique_consecutive(episodes[order], return_counts=True)[1]
+        starts = torch.cumsum(counts, 0) - counts
+        picks = [
+            order[start + spread_steps(int(count), EPISODE_STEPS)]
+            for start, count in zip(starts.tolist(), counts.tolist(), strict=True)
+        ]
+        rows = torch.cat(picks)
+        owner = episodes[rows] if reference_ids is not None else None
+        beyond = (self._distance(states[rows], owner, reference_ids) > level).double()
+        sizes = [p.numel() for p in picks]
+        return torch.stack([part.mean() for part in beyond.split(sizes)])
 
     @classmethod
     def from_episodes(
@@ -127,10 +230,10 @@ class StateNovelty:
         **kwargs: Any,
     ) -> StateNovelty:
         """Fit on flat episodes ``[frames]`` (as :func:`~rcvae_torchrl.training.train_ensemble`
-        takes them): every state of ``train_data`` (``key`` and ``("next", key)``, every
-        episode's first state kept), the level from ``val_data``'s. ``kwargs`` go to
-        :meth:`fit`."""
-        from rcvae_torchrl.data import episode_spans
+        takes them): every state of ``train_data`` (``key`` and ``("next", key)``), the level
+        from ``val_data``'s states, and the start states' level from both data's episodes'
+        first states (see :meth:`fit`). ``kwargs`` go to :meth:`fit`."""
+        from rcvae_torchrl.data import TRAJ_KEY, episode_spans
 
         parts = {}
         for name, data in (("train_data", train_data), ("val_data", val_data)):
@@ -139,9 +242,28 @@ class StateNovelty:
             if key not in data.keys() or ("next", key) not in data.keys(True):
                 raise KeyError(f"{name}: expected {key!r} and ('next', {key!r}) entries")
             parts[name] = torch.cat([data.get(key), data.get(("next", key))])
-        keep = torch.zeros(parts["train_data"].shape[0], dtype=torch.bool)
-        keep[episode_spans(train_data)[0]] = True
-        return cls.fit(parts["train_data"], parts["val_data"], keep=keep, **kwargs)
+        frames = train_data.shape[0]
+        firsts = torch.zeros(2 * frames, dtype=torch.bool)
+        firsts[episode_spans(train_data)[0]] = True
+        episodes = train_data.get(TRAJ_KEY).reshape(-1).long()
+        held_out_episodes = val_data.get(TRAJ_KEY).reshape(-1).long()
+        # an episode's rows: its states in time order, then its next states in time order; the
+        # steps spread over them cover it twice over, as evenly
+        return cls.fit(
+            parts["train_data"],
+            parts["val_data"],
+            firsts=firsts,
+            episodes=episodes.repeat(2),
+            held_out_starts=val_data.get(key)[episode_spans(val_data)[0]],
+            held_out_episodes=held_out_episodes.repeat(2),
+            **kwargs,
+        )
+
+    @staticmethod
+    def episode_steps(length: int) -> Tensor:
+        """The steps of an episode of ``length`` steps (real or imagined) whose states the
+        episode level looks at (:func:`spread_steps`)."""
+        return spread_steps(length)
 
     @property
     def dim(self) -> int:
@@ -152,23 +274,36 @@ class StateNovelty:
         spreads (root mean square over the dimensions of the scaled differences)."""
         states = _states("states", states, self.dim, flat=False)
         flat = states.reshape(-1, self.dim).to(self.center.device, torch.float32)
-        flat = ((flat - self.center) / self.scale).contiguous()
+        return self._distance(flat).reshape(states.shape[:-1])
+
+    def _distance(
+        self, states: Tensor, ids: Tensor | None = None, reference_ids: Tensor | None = None
+    ) -> Tensor:
+        """``[Q, D] -> [Q]`` (see :meth:`distance`); with ``ids`` ``[Q]`` and
+        ``reference_ids`` ``[M]``, a state's own episode's reference states left out."""
+        flat = ((states - self.center) / self.scale).contiguous()
         reference = ((self.states - self.center) / self.scale).contiguous()
         k = min(self.k, reference.shape[0])
-        out = [
-            torch.cdist(block, reference).topk(k, largest=False).values[:, -1]
-            for block in flat.split(_BLOCK_ROWS)
-        ]
+        out = []
+        for i, block in zip(
+            range(0, flat.shape[0], _BLOCK_ROWS), flat.split(_BLOCK_ROWS), strict=True
+        ):
+            distances = torch.cdist(block, reference)
+            if ids is not None:
+                own = ids[i : i + _BLOCK_ROWS, None] == reference_ids[None]
+                distances = distances.masked_fill(own, math.inf)
+            out.append(distances.topk(k, largest=False).values[:, -1])
         distance = torch.cat(out) if out else flat.new_zeros(0)
-        return (distance / math.sqrt(self.dim)).reshape(states.shape[:-1])
+        return distance / math.sqrt(self.dim)
 
-    def ratio(self, states: Tensor) -> Tensor:
-        """``[*B]``: the distance over the level (above 1: unlike the training states)."""
-        return self.distance(states) / self.level
+    def ratio(self, states: Tensor, *, starts: bool = False) -> Tensor:
+        """``[*B]``: the distance over the level, or for ``starts`` (start states of episodes)
+        over ``start_level``; above 1: unlike the training states."""
+        return self.distance(states) / (self.start_level if starts else self.level)
 
-    def unlike(self, states: Tensor) -> Tensor:
-        """``[*B]`` bool: beyond the level."""
-        return self.ratio(states) > 1
+    def unlike(self, states: Tensor, *, starts: bool = False) -> Tensor:
+        """``[*B]`` bool: beyond the level (of ``starts``, see :meth:`ratio`)."""
+        return self.ratio(states, starts=starts) > 1
 
     def outside(self, state: Tensor) -> Tensor:
         """``[D]`` bool: the dimensions of one ``state`` outside the training states'
@@ -176,21 +311,30 @@ class StateNovelty:
         state = _states("state", state, self.dim, flat=False).float()
         return (state < self.low) | (state > self.high)
 
-    def describe(self, state: Tensor, names: Sequence[str] | None = None, top: int = 3) -> str:
-        """Why one ``state`` ``[D]`` is unlike the training states, in words: its distance
-        against the level, and the dimensions outside the training states' central 99 % (up
-        to ``top``, the farthest first) or, when none is, that the combination is new."""
+    def describe(
+        self,
+        state: Tensor,
+        names: Sequence[str] | None = None,
+        top: int = 3,
+        *,
+        start: bool = False,
+    ) -> str:
+        """Why one ``state`` ``[D]`` (a ``start`` state) is unlike the training states, in
+        words: its distance against the level, and the dimensions outside the training states'
+        central 99 % (up to ``top``, the farthest first) or, when none is, that the
+        combination is new."""
         state = _states("state", state, self.dim, flat=False)
         if state.dim() != 1:
             raise ValueError(f"state: expected one state [D], got shape {tuple(state.shape)}")
         names = tuple(names) if names is not None else tuple(f"dim {d}" for d in range(self.dim))
         if len(names) != self.dim:
             raise ValueError(f"names: expected {self.dim} names, got {len(names)}")
-        ratio = float(self.ratio(state))
-        text = (
-            f"{ratio:.1f}x as far from the training states as {self.quantile:.0%} of held-out "
-            "states are"
-        )
+        ratio = float(self.ratio(state, starts=start))
+        if start and self.start_held_out:
+            held = f"{self.start_quantile:.0%} of held-out episodes' first states"
+        else:
+            held = f"{self.quantile:.0%} of held-out states"
+        text = f"{ratio:.1f}x as far from the training states as {held} are"
         outside = self.outside(state)
         if not bool(outside.any()):
             return text + " (every dimension within its training range: the combination is new)"
@@ -217,6 +361,12 @@ class StateNovelty:
             "k": self.k,
             "quantile": self.quantile,
             "held_out": self.held_out,
+            "start_level": self.start_level,
+            "start_quantile": self.start_quantile,
+            "start_held_out": self.start_held_out,
+            "episode_level": self.episode_level,
+            "episode_quantile": self.episode_quantile,
+            "episodes_measured": self.episodes_measured,
         }
 
     @classmethod
@@ -232,20 +382,43 @@ class StateNovelty:
             vectors[name] = vector.float()
         if not bool((vectors["scale"] > 0).all()):
             raise ValueError("novelty.scale: expected spreads > 0")
-        level = values["level"]
-        if not (_checks._is_number(level) and math.isfinite(level) and level > 0):
-            raise ValueError(f"novelty.level: expected a distance > 0, got {level!r}")
+        for name in ("level", "start_level"):
+            level = values[name]
+            if not (_checks._is_number(level) and math.isfinite(level) and level > 0):
+                raise ValueError(f"novelty.{name}: expected a distance > 0, got {level!r}")
         check_positive_int("novelty.k", values["k"])
         check_positive_int("novelty.held_out", values["held_out"])
-        check_unit_interval("novelty.quantile", values["quantile"], include_zero=False)
+        _checks.check_non_negative_int("novelty.start_held_out", values["start_held_out"])
+        _checks.check_non_negative_int("novelty.episodes_measured", values["episodes_measured"])
+        for name in ("quantile", "start_quantile", "episode_quantile"):
+            check_unit_interval(f"novelty.{name}", values[name], include_zero=False)
+        check_unit_interval("novelty.episode_level", values["episode_level"])
         return cls(
             states.float(),
-            level=float(level),
+            level=float(values["level"]),
             k=int(values["k"]),
             quantile=float(values["quantile"]),
             held_out=int(values["held_out"]),
+            start_level=float(values["start_level"]),
+            start_quantile=float(values["start_quantile"]),
+            start_held_out=int(values["start_held_out"]),
+            episode_level=float(values["episode_level"]),
+            episode_quantile=float(values["episode_quantile"]),
+            episodes_measured=int(values["episodes_measured"]),
             **vectors,
         )
+
+
+def _conformal_level(distances: Tensor, quantile: float) -> tuple[float, float]:
+    """The level of ``H`` held-out distances and the quantile it keeps: the ceil((H + 1) q)-th
+    smallest covers a new in-distribution state with probability >= q; with too few held-out
+    states for that, the largest, which covers H / (H + 1), and that is the quantile kept."""
+    count = distances.numel()
+    if count == 0:
+        raise ValueError("held_out: expected at least one held-out state, got none")
+    kept = min(float(quantile), count / (count + 1))
+    rank = min(math.ceil((count + 1) * kept - 1e-9), count)
+    return max(float(distances.double().sort().values[rank - 1]), 1e-12), kept
 
 
 def _states(name: str, x: object, dim: int | None = None, *, flat: bool = True) -> Tensor:
@@ -262,15 +435,23 @@ def _states(name: str, x: object, dim: int | None = None, *, flat: bool = True) 
     return x
 
 
+def _row_flags(name: str, x: object, n: int, dtype: torch.dtype) -> Tensor | None:
+    """``None``, or a ``[n]`` tensor of ``dtype`` (int: any integer dtype, as int64)."""
+    if x is None:
+        return None
+    x = _checks.check_tensor(name, x)
+    integer = not x.is_floating_point() and not x.is_complex() and x.dtype != torch.bool
+    right = x.dtype == torch.bool if dtype == torch.bool else integer
+    if not right or x.shape != (n,):
+        kind = "a bool" if dtype == torch.bool else "an integer"
+        raise ValueError(
+            f"{name}: expected {kind} tensor of shape ({n},), got {x.dtype} {tuple(x.shape)}"
+        )
+    return x.to(dtype)
+
+
 def _draw(n: int, most: int, keep: Tensor | None, generator: torch.Generator) -> Tensor:
     """Indices of at most ``most`` of ``n`` rows (a uniform draw), and every ``keep`` row."""
-    if keep is not None:
-        keep = _checks.check_tensor("keep", keep)
-        if keep.dtype != torch.bool or keep.shape != (n,):
-            raise ValueError(
-                f"keep: expected a bool tensor of shape ({n},), got {keep.dtype} "
-                f"{tuple(keep.shape)}"
-            )
     if n <= most:
         return torch.arange(n)
     chosen = torch.zeros(n, dtype=torch.bool)

@@ -62,8 +62,9 @@ def test_a_start_unlike_the_training_states_is_cautioned_with_its_dimension():
     assert "the forecast extrapolates, however much the members agree." in far
     assert "Caution" not in report.summary(index=0)
     assert report.overall().endswith(
-        " Against the states the model was trained on: 1 of 3 start states are unlike them, "
-        "and 0 more imagine at least 10% of their states unlike them."
+        " Novelty: 1 of 3 start states are unlike the states the model was trained on, and 0 "
+        "more imagine more of their states unlike them than in-distribution episodes do (over "
+        "10%)."
     )
 
 
@@ -77,7 +78,10 @@ def test_imagined_states_that_leave_the_training_states_are_named():
     text = report.summary(index=0)
     assert (
         f"Caution: {float(share[0]):.0%} of the imagined states are unlike the states the model "
-        "was trained on (beyond the level 99% of held-out states stay within): the forecast "
+        "was trained on, more than ten times the share of held-out states (10%): the forecast "
         "extrapolates there, however much the members agree." in text
     )
-    assert "0 of 2 start states are unlike them, and 2 more" in report.overall()
+    assert (
+        "Novelty: 0 of 2 start states are unlike the states the model was trained on, and 2 more"
+        in (report.overall())
+    )

@@ -346,6 +346,40 @@ def test_held_out_checks_benchmark_judges_the_run_both_ways(runs):
     assert json.dumps(closed.as_dict()) == json.dumps(saved)  # the report's, made again (NaN too)
 
 
+def test_novelty_benchmark_fits_the_check_as_training_does(runs, monkeypatch):
+    """``benchmarks/novelty.py`` on a finished run: the models' own checks, or (for models
+    trained before the check existed) the same check fitted again; the report's counts."""
+    from rcvae_torchrl.io import read_json
+    from recipes.pusher_competency.pusher import WORLD_MODELS
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    from novelty import condition_rows, novelty_of
+
+    changes = {"assess": {"samples_per_member": 2, "bias_correction": "none"}}
+    study = pipeline.study_of_run(runs["dir"], changes=changes)
+    own = {name: novelty_of(study, name) for name in WORLD_MODELS}
+    assert all(found[2] and found[1] == 0.0 for found in own.values())  # training fitted them
+    load = study.load_model
+
+    def without_check(name):
+        model = load(name)
+        model.novelty = None
+        return model
+
+    monkeypatch.setattr(study, "load_model", without_check)
+    for name in WORLD_MODELS:
+        again, seconds, is_own = novelty_of(study, name)
+        assert not is_own and seconds > 0
+        assert torch.equal(again.states, own[name][0].states) and again.level == own[name][0].level
+    monkeypatch.setattr(study, "load_model", load)
+    rows = condition_rows(study, {name: found[0] for name, found in own.items()})
+    saved = read_json(runs["dir"] / "summary.json")["novelty"]
+    for condition in CONDITIONS:  # the starts' verdicts do not depend on the samples
+        assert rows[condition]["start_unlike"] == saved[condition]["start_unlike"]
+        assert rows[condition]["starts"] == saved[condition]["starts"]
+        assert 0.0 <= rows[condition]["imagined_share_mean"] <= 1.0
+
+
 def test_the_unscored_start_states_of_each_condition(runs):
     """The forecast check's start states: the held-out episodes' first states in the world
     models' own envs, then fresh draws of the condition's env's reset up to CHECK_EPISODES real

@@ -16,6 +16,7 @@ from rcvae_torchrl.training import (
     save_ensemble,
     train_ensemble,
 )
+from rcvae_torchrl.training.novelty import spread_steps
 
 
 def _gaussian(n: int, seed: int, dim: int = 3) -> torch.Tensor:
@@ -57,11 +58,11 @@ def test_too_few_held_out_states_keep_the_quantile_they_can_cover():
 
 def test_the_draw_keeps_every_kept_state():
     states = _gaussian(1000, 0)
-    keep = torch.zeros(1000, dtype=torch.bool)
-    keep[::100] = True
-    novelty = StateNovelty.fit(states, _gaussian(50, 1), max_states=20, keep=keep)
+    firsts = torch.zeros(1000, dtype=torch.bool)
+    firsts[::100] = True
+    novelty = StateNovelty.fit(states, _gaussian(50, 1), max_states=20, firsts=firsts)
     assert 20 <= novelty.states.shape[0] <= 30
-    kept = (novelty.states[:, None] == states[keep][None]).all(-1).any(0)
+    kept = (novelty.states[:, None] == states[firsts][None]).all(-1).any(0)
     assert bool(kept.all())
 
 
@@ -98,7 +99,8 @@ def test_a_dimension_constant_in_training_makes_any_other_value_unlike():
         ({"k": 0}, ValueError, "k: expected"),
         ({"k": 20}, ValueError, "states: expected more than k = 20"),
         ({"quantile": 1.0}, ValueError, r"quantile: expected a share in \(0, 1\)"),
-        ({"keep": torch.ones(3, dtype=torch.bool)}, ValueError, r"keep: expected a bool"),
+        ({"firsts": torch.ones(3, dtype=torch.bool)}, ValueError, r"firsts: expected a bool"),
+        ({"episodes": torch.ones(20)}, ValueError, r"episodes: expected an integer tensor"),
     ],
 )
 def test_bad_input_is_named(kwargs, error, match):
@@ -116,6 +118,7 @@ def test_from_episodes_and_training_fit_one_kept_in_checkpoints(small_ensemble, 
     config = TrainConfig(max_steps=20, batch_windows=4, window=5, val_every=10, seed=3)
     result = train_ensemble(small_ensemble(), train, val, config, progress=False, checks=False)
     fitted = result.ensemble.novelty
+    assert result.ensemble.select_members([1]).novelty is fitted  # the data's, any members
     assert torch.equal(fitted.states, novelty.states) and fitted.level == novelty.level
     path = save_ensemble(result.ensemble, tmp_path / "m.pt")
     loaded = load_ensemble(path).novelty
@@ -146,3 +149,59 @@ def test_from_episodes_names_missing_entries():
         StateNovelty.from_episodes(train, train.exclude(("next", "observation")))
     with pytest.raises(TypeError, match="train_data: expected a TensorDict"):
         StateNovelty.from_episodes(torch.zeros(3), train)
+
+
+def _decaying_episodes(n: int, seed: int, steps: int = 30) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat states [n * steps, 2] and episode ids: starts spread over a box at rest, every
+    episode decaying to the origin (dense there, sparse where the starts are)."""
+    g = torch.Generator().manual_seed(seed)
+    start = torch.rand(n, 2, generator=g) * 2 - 1
+    decay = 0.7 ** torch.arange(steps, dtype=torch.float32)
+    states = start[:, None] * decay[None, :, None] + 0.01 * torch.randn(n, steps, 2, generator=g)
+    ids = torch.arange(n)[:, None].expand(n, steps)
+    return states.reshape(-1, 2), (ids + 1000 * seed).reshape(-1)
+
+
+def test_start_states_and_episodes_are_judged_by_levels_of_their_own():
+    train, ids = _decaying_episodes(200, 0)
+    held, held_ids = _decaying_episodes(30, 1)
+    firsts = torch.zeros(ids.numel(), dtype=torch.bool)
+    firsts[::30] = True
+    novelty = StateNovelty.fit(
+        train,
+        held,
+        firsts=firsts,
+        episodes=ids,
+        held_out_starts=held[::30],
+        held_out_episodes=held_ids,
+    )
+    # the start level: 30 held-out first states and 200 training ones, each left out with
+    # its episode; 230 distances reach the 99 % quantile
+    assert novelty.start_held_out == 230 and novelty.start_quantile == pytest.approx(0.99)
+    assert novelty.start_level > novelty.level  # starts lie where the states are sparse
+    fresh, _ = _decaying_episodes(1000, 2)
+    starts = fresh[::30]
+    # new in-distribution starts: beyond the states' level often, beyond their own rarely
+    assert float(novelty.unlike(starts).float().mean()) > 0.2
+    flagged = int(novelty.unlike(starts, starts=True).sum())
+    assert flagged <= binom.ppf(0.999, 1000, 0.01)
+    assert "of held-out episodes' first states are" in novelty.describe(
+        torch.tensor([3.0, 0.0]), start=True
+    )
+    # the episode level: the share of an episode's 20 spread states beyond the states' level
+    assert novelty.episodes_measured == 230 and 0 < novelty.episode_level < 1
+    episodes = fresh.reshape(1000, 30, 2)[:, spread_steps(30)]  # as the check looks at them
+    shares = novelty.unlike(episodes).float().mean(-1)
+    assert int((shares > novelty.episode_level).sum()) <= binom.ppf(0.999, 1000, 0.01)
+    away = novelty.unlike(episodes[:10] + torch.tensor([0.0, 3.0])).float().mean(-1)
+    assert bool((away > novelty.episode_level).all())
+    # kept in its record
+    again = StateNovelty.from_dict(novelty.as_dict())
+    assert (again.start_level, again.episode_level, again.episodes_measured) == (
+        novelty.start_level,
+        novelty.episode_level,
+        novelty.episodes_measured,
+    )
+    bad = {**novelty.as_dict(), "episode_level": 1.5}
+    with pytest.raises(ValueError, match=r"novelty\.episode_level: expected a float in"):
+        StateNovelty.from_dict(bad)
