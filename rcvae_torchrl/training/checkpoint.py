@@ -199,23 +199,9 @@ def ensemble_from_payload(
                 source,
             )
     if payload.get("checks") is not None:
-        try:
-            ensemble.checks = ModelChecks.from_dict(payload["checks"])
-        except (KeyError, TypeError, ValueError) as err:
-            raise CheckpointError(
-                f"checkpoint {source!r}: its self-check results are corrupt: "
-                f"{type(err).__name__}: {err}",
-                source,
-            ) from err
+        ensemble.checks = _record(payload, "checks", ModelChecks, "self-check results", source)
     if payload.get("novelty") is not None:
-        try:
-            novelty = StateNovelty.from_dict(payload["novelty"])
-        except (KeyError, TypeError, ValueError) as err:
-            raise CheckpointError(
-                f"checkpoint {source!r}: its training states (novelty) are corrupt: "
-                f"{type(err).__name__}: {err}",
-                source,
-            ) from err
+        novelty = _record(payload, "novelty", StateNovelty, "training states (novelty)", source)
         if novelty.dim != ensemble.config.obs_dim:
             raise CheckpointError(
                 f"checkpoint {source!r}: its training states (novelty) have {novelty.dim} "
@@ -224,3 +210,14 @@ def ensemble_from_payload(
             )
         ensemble.novelty = novelty
     return ensemble
+
+
+def _record(payload: dict, key: str, kind: Any, what: str, source: str) -> Any:
+    """``kind.from_dict(payload[key])``, a corrupt record a :class:`CheckpointError`."""
+    try:
+        return kind.from_dict(payload[key])
+    except (KeyError, TypeError, ValueError) as err:
+        raise CheckpointError(
+            f"checkpoint {source!r}: its {what} are corrupt: {type(err).__name__}: {err}",
+            source,
+        ) from err

@@ -65,8 +65,9 @@ class StateNovelty:
     k: int
     quantile: float
     held_out: int  #: the held-out states the level was measured on
-    #: the level of start states: the distance that ``start_quantile`` of the held-out
-    #: episodes' first states stay at or below (``level`` when none were given)
+    #: the level of start states: the distance that ``start_quantile`` of the episodes' first
+    #: states (held-out ones, and training ones against the other episodes' states) stay at or
+    #: below (``level`` when none were measured)
     start_level: float = math.nan
     start_quantile: float = math.nan
     start_held_out: int = 0  #: the first states it was measured on
