@@ -125,7 +125,26 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
         "targets": TARGETS,
         "forecast_checks": _forecast_checks(summaries),
         "pattern_per_live_step": _pattern_per_live_step(summaries),
+        "novelty": _novelty(summaries),
     }
+
+
+def _novelty(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Per condition, the start states the report cautioned as unlike the world model's
+    training states, summed over the seeds whose run made the check (its models trained
+    with it), and each seed's count (None: no check)."""
+    conditions = dict.fromkeys(c for s in summaries.values() for c in s.get("novelty", {}))
+    out = {}
+    for c in conditions:
+        by_seed = [s.get("novelty", {}).get(c) for s in summaries.values()]
+        made = [row for row in by_seed if row is not None]
+        out[c] = {
+            "cautioned": sum(row["cautioned"] for row in made),
+            "starts": sum(row["starts"] for row in made),
+            "seeds": len(made),
+            "by_seed": [None if row is None else row["cautioned"] for row in by_seed],
+        }
+    return out
 
 
 #: The pattern's ratios, as the report names them, with their labels.
@@ -226,6 +245,20 @@ def markdown(result: dict[str, Any]) -> str:
                 for x in found["by_seed"]
             )
             lines.append(f"| {c} | {_cell(found)} | {found['biased']}/{found['seeds']} | {cells} |")
+    novelty = result.get("novelty") or {}
+    if novelty:
+        lines += _section(
+            "Start states unlike the training states",
+            "The start states each run's report cautioned as unlike the world model's training "
+            "states, or as imagining more of their states unlike them than real episodes do "
+            "(the report's section of that name); – marks a seed whose models have no such "
+            "check.",
+            ["condition", "cautioned, all seeds"],
+            result["seeds"],
+        )
+        for c, row in novelty.items():
+            cells = " | ".join("–" if x is None else str(x) for x in row["by_seed"])
+            lines.append(f"| {c} | {row['cautioned']} of {row['starts']} | {cells} |")
     live = result.get("pattern_per_live_step") or {}
     if live:
         lines += _section(

@@ -162,3 +162,25 @@ def test_the_pattern_per_live_step_over_the_seeds_that_kept_it():
     )
     assert aggregate({"seed0": third})["pattern_per_live_step"] == {}
     assert "per live step" not in markdown(aggregate({"seed0": third}))
+
+
+def test_the_novelty_cautions_are_summed_over_the_seeds_that_made_the_check():
+    def rows(cautioned: int) -> dict:
+        return {
+            "out-of-distribution": {
+                "starts": 100,
+                "start_unlike": cautioned,
+                "cautioned": cautioned,
+            }
+        }
+
+    first, second, third = _summary(0.02, True), _summary(0.04, True), _summary(0.03, True)
+    first["novelty"], third["novelty"] = rows(5), rows(21)  # the second run's models had none
+    result = aggregate({"seed0": first, "seed1": second, "seed2": third})
+    found = result["novelty"]["out-of-distribution"]
+    assert (found["cautioned"], found["starts"], found["seeds"]) == (26, 200, 2)
+    assert found["by_seed"] == [5, None, 21]
+    text = markdown(result)
+    assert "## Start states unlike the training states" in text
+    assert "| out-of-distribution | 26 of 200 | 5 | – | 21 |" in text
+    assert aggregate({"seed0": second})["novelty"] == {}
