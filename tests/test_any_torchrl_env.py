@@ -87,6 +87,11 @@ def test_the_pendulum_from_data_to_a_checked_forecast():
     report = assessor.assess(starts, policy=agent, seed=0)
     p = report.competency["p_success"]
     assert p.shape == (4,) and bool(((p >= 0) & (p <= 1)).all())
+    # training fitted the novelty check: a start spinning 5x faster than the env lets it (its
+    # max speed is 8 rad/s) is unlike every training state, and its paragraph says where
+    far = assessor.assess(torch.tensor([[0.2, 40.0]]), policy=agent, seed=0)
+    assert far.novel.tolist() == [True] and not bool(report.novel[0])
+    assert "thdot = 40 (training " in far.summary(index=0)
 
     assert torch.allclose(_reset_to(env, starts[1])["observation"], starts[1])
     args = dict(runs_per_start=2, reset_to_state=_reset_to, success=boundary.success_over_time)
