@@ -126,7 +126,8 @@ class CompetencyReport:
        states as 99% of held-out episodes' first states are: velocity_0 = 7.6 (training
        -4.2 to 4.3)): the forecast extrapolates, however much the members agree.`` The
        members' disagreement is no sure sign of such states: members trained on the same data
-       can agree far from it. :meth:`overall` counts them.
+       can agree far from it, and where such a start's doubt is as in the reference (rule 4)
+       the sentence says so despite the caution. :meth:`overall` counts them.
     4. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
        what changed: each part's bits against the reference's, and which part rose
        (at least ``rise`` times the reference; the larger rise when both did): ``Against the
@@ -198,8 +199,8 @@ class CompetencyReport:
         :class:`~rcvae_torchrl.training.StateNovelty`)."""
         if self.novelty is None or "novelty" not in self.data.keys():
             return None
-        entries = self.data.get("novelty")
-        return (entries.get("start") > 1) | (entries.get("imagined") > self.novelty.episode_level)
+        start, imagined = _novel_parts(self.data.get("novelty"), self.novelty)
+        return start | imagined
 
     @property
     def trustworthy(self) -> bool:
@@ -321,8 +322,7 @@ class CompetencyReport:
         novel = self.novel
         if novel is None:
             return ""
-        entries = self.data.get("novelty")
-        starts = int((entries.get("start") > 1).sum())
+        starts = int(_novel_parts(self.data.get("novelty"), self.novelty)[0].sum())
         imagined = int(novel.sum()) - starts
         return (
             f" Novelty: {starts} of {novel.numel()} start states are unlike the states the "
@@ -414,7 +414,7 @@ class CompetencyReport:
             ),
             self._per_start_caution(),
             self._novelty_sentence(one),
-            self._uncertainty_sentence(uncertainty, bool(warning)),
+            self._uncertainty_sentence(uncertainty, bool(warning), self._is_novel(one)),
         ]
         if "peak_step" in uncertainty.keys():
             sentences.append(
@@ -448,10 +448,9 @@ class CompetencyReport:
         states unlike them in a larger share than in-distribution episodes' states are."""
         if self.novelty is None or "novelty" not in one.keys():
             return ""
-        ratio = float(one.get(("novelty", "start")))
+        start, imagined = (bool(x) for x in _novel_parts(one.get("novelty"), self.novelty))
         share = float(one.get(("novelty", "imagined")))
-        imagined = share > self.novelty.episode_level
-        if ratio > 1:
+        if start:
             state = one.get(self.observation_key)
             detail = self.novelty.describe(state, self.dim_names, start=True)
             also = f", and so are {share:.0%} of its imagined states" if imagined else ""
@@ -474,7 +473,15 @@ class CompetencyReport:
             )
         return ""
 
-    def _uncertainty_sentence(self, uncertainty: TensorDictBase, warned: bool) -> str:
+    def _is_novel(self, one: TensorDictBase) -> bool:
+        """Whether one start state is cautioned by the novelty check (:attr:`novel`)."""
+        if self.novelty is None or "novelty" not in one.keys():
+            return False
+        return any(bool(part) for part in _novel_parts(one.get("novelty"), self.novelty))
+
+    def _uncertainty_sentence(
+        self, uncertainty: TensorDictBase, warned: bool, novel: bool = False
+    ) -> str:
         # the bits the reference compares (per live step where it does), in every sentence
         live = self.reference is not None and self.reference.per_live_step
         part = _bits(uncertainty, live)
@@ -485,7 +492,13 @@ class CompetencyReport:
             return _unreliable_split_sentence(aleatoric, epistemic, total, _unit(live))
         if self.reference is None:
             return _doubt_sentence(aleatoric, epistemic, total)
-        return _change_sentence(aleatoric, epistemic, self.reference, one_start=True)
+        return _change_sentence(aleatoric, epistemic, self.reference, one_start=True, novel=novel)
+
+
+def _novel_parts(entries: TensorDictBase, novelty: Any) -> tuple[Tensor, Tensor]:
+    """The two cautions of the novelty check (``"novelty"`` ``entries``): the start state
+    beyond the start level, and the imagined episode beyond the episode level."""
+    return entries.get("start") > 1, entries.get("imagined") > novelty.episode_level
 
 
 def _success_sentence(p: float, low: float, high: float, confidence: float, outcome: str) -> str:
@@ -533,10 +546,16 @@ def _ratios(aleatoric: float, epistemic: float, reference: Reference) -> dict[st
 
 
 def _change_sentence(
-    aleatoric: float, epistemic: float, reference: Reference, one_start: bool = False
+    aleatoric: float,
+    epistemic: float,
+    reference: Reference,
+    one_start: bool = False,
+    novel: bool = False,
 ) -> str:
     """What changed against the reference, and which part rose (the larger rise); for
-    ``one_start``, a part rose only above the reference's start states' spread."""
+    ``one_start``, a part rose only above the reference's start states' spread. A ``novel``
+    start (cautioned by the novelty check) whose doubt is as in the reference is said to be
+    so despite it, not to show no sign of unseen states."""
     ratios = _ratios(aleatoric, epistemic, reference)
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
@@ -562,6 +581,11 @@ def _change_sentence(
         return (
             text
             + f": neither part rose, the {' and '.join(fell)} doubt fell below the reference's."
+        )
+    if novel:
+        return text + (
+            ": neither part rose, the doubt is as in the reference although the start is "
+            "unlike the training states (above): the members agree where none has data."
         )
     return text + (
         ": neither part rose, the doubt is as in the reference (no sign of states the model "

@@ -4,6 +4,7 @@ states (the world model's StateNovelty)."""
 import torch
 from test_assessor import E, S, T, make_assessor, make_ensemble, make_env, set_decoder
 
+from rcvae_torchrl.competency import Reference
 from rcvae_torchrl.envs import OBSERVATION_NAMES
 from rcvae_torchrl.training import StateNovelty
 
@@ -84,4 +85,25 @@ def test_imagined_states_that_leave_the_training_states_are_named():
     assert (
         "Novelty: 0 of 2 start states are unlike the states the model was trained on, and 2 more"
         in (report.overall())
+    )
+
+
+def test_a_doubt_as_in_the_reference_is_not_called_a_sign_of_seen_states_for_a_novel_start():
+    model = make_ensemble()
+    model.novelty = _novelty()
+    set_decoder(model, torch.zeros(E, 1), -6.0)
+    report = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
+    bits = report.data["uncertainty", "summary"]
+    # a reference with the bits of start 2 itself: neither part rose for it
+    same = Reference(float(bits["aleatoric"][2]), float(bits["epistemic"][2]))
+    text = report.with_reference(same).summary(index=2)
+    assert (
+        ": neither part rose, the doubt is as in the reference although the start is unlike "
+        "the training states (above): the members agree where none has data." in text
+    )
+    assert "no sign of states the model has not seen" not in text
+    # a familiar start with the same doubt keeps the usual words
+    familiar = Reference(float(bits["aleatoric"][0]), float(bits["epistemic"][0]))
+    assert "no sign of states the model has not seen" in report.with_reference(familiar).summary(
+        index=0
     )
