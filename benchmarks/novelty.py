@@ -32,6 +32,7 @@ from rcvae_torchrl.io import load_torch
 from rcvae_torchrl.training import StateNovelty
 from recipes.pusher_competency.pipeline import Study, study_of_run
 from recipes.pusher_competency.pusher import CONDITIONS, WORLD_MODELS
+from recipes.pusher_competency.report import novelty_rows
 
 
 def novelty_of(study: Study, name: str) -> tuple[StateNovelty, float, bool]:
@@ -47,28 +48,26 @@ def novelty_of(study: Study, name: str) -> tuple[StateNovelty, float, bool]:
 
 
 def condition_rows(study: Study, checks: dict[str, StateNovelty]) -> dict[str, dict]:
-    """Per condition: the cautions and the per-start error among them and the others."""
-    out = {}
+    """Per condition: the cautions and the per-start error among them and the others (the
+    report's rows, ``novelty_rows``, of the run's own forecasts), and the mean share of
+    imagined states beyond the states' level."""
+    forecasts, truths, shares = {}, {}, {}
     for condition, (name, variant) in CONDITIONS.items():
         forecast = load_torch(study.dir / "forecast" / f"{condition}.pt", "forecast")
-        truth = load_torch(study.dir / "truth" / f"{condition}.pt", "real outcomes")
-        p = forecast["p_success"]
-        real = truth["success"].float().reshape(p.numel(), -1).mean(-1)
+        truths[condition] = load_torch(study.dir / "truth" / f"{condition}.pt", "real outcomes")
         assessor = study.assessor(name, variant)
         assessor.model_env.ensemble.novelty = checks[name]
         report = assessor.assess(
             forecast["starts"], policy=study.load_policy(), seed=study.cfg.seed
         )
-        novel, error = report.novel, (p - real).abs()
-        out[condition] = {
-            "starts": int(p.numel()),
-            "start_unlike": int((report.data["novelty", "start"] > 1).sum()),
-            "cautioned": int(novel.sum()),
-            "imagined_share_mean": float(report.data["novelty", "imagined"].mean()),
-            "error_cautioned": float(error[novel].mean()) if bool(novel.any()) else None,
-            "error_others": float(error[~novel].mean()) if not bool(novel.all()) else None,
+        forecasts[condition] = {
+            "p_success": forecast["p_success"],
+            "novelty_start": report.data["novelty", "start"],
+            "novel": report.novel,
         }
-    return out
+        shares[condition] = float(report.data["novelty", "imagined"].mean())
+    rows = novelty_rows(forecasts, truths)
+    return {c: {**row, "imagined_share_mean": shares[c]} for c, row in rows.items()}
 
 
 def assessment_cost(study: Study, check: StateNovelty) -> dict[str, dict[str, float]]:
@@ -125,8 +124,8 @@ def main() -> None:
                     row["start_unlike"],
                     row["cautioned"],
                     f"{row['imagined_share_mean']:.4f}",
-                    "–" if row["error_cautioned"] is None else f"{row['error_cautioned']:.3f}",
-                    "–" if row["error_others"] is None else f"{row['error_others']:.3f}",
+                    "–" if row["mae_cautioned"] is None else f"{row['mae_cautioned']:.3f}",
+                    "–" if row["mae_rest"] is None else f"{row['mae_rest']:.3f}",
                 ]
             )
     first = study_of_run(args.run_dirs[0], changes=changes)

@@ -356,8 +356,8 @@ def _novelty_text(rows: Mapping[str, Mapping[str, Any]]) -> str:
         "",
         "Apart from the members' disagreement, each start state and a sample of its imagined "
         "states are compared with the states the world model was trained on (the distance to "
-        "the nearest of them, against the level 99 % of the episodes' first states, or of "
-        "their states, stay within). A cautioned start is unlike them, or imagines more of "
+        "the 5th nearest of them, against the level 99 % of the episodes' first states, or "
+        "of their states, stay within). A cautioned start is unlike them, or imagines more of "
         "its states unlike them than 99 % of real episodes have: its forecast extrapolates. "
         "The per-start error is |forecast - real rate|.",
         "",
