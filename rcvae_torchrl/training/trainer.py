@@ -178,7 +178,8 @@ class TrainConfig:
 @dataclass
 class TrainResult:
     """What :func:`train_ensemble` returns: the best weights are loaded into ``ensemble``
-    (and its self-checks, when run, into ``ensemble.checks`` and ``checks``).
+    (and its self-checks, when run, into ``ensemble.checks`` and ``checks``; its check of
+    novelty, when fitted, into ``ensemble.novelty`` and ``novelty``).
 
     Each member stops on its own (``patience`` validations without improvement):
     ``member_steps`` says when each did, ``stopped_early`` only whether all of them stopped
@@ -192,6 +193,8 @@ class TrainResult:
     history: list[dict[str, Any]] = field(default_factory=list)  #: one entry per validation
     checks: ModelChecks | None = None  #: the self-checks, when run (``checks=``)
     member_steps: torch.Tensor | None = None  #: ``[E]`` the step at which each member stopped
+    #: the check of novelty against the training states, when fitted (``novelty=``)
+    novelty: StateNovelty | None = None
 
 
 @dataclass
@@ -342,7 +345,7 @@ def train_ensemble(
         fitted = None
         if distributed.is_main():
             fitted = StateNovelty.from_episodes(train_data, val_data, seed=config.seed)
-        ensemble.novelty = distributed.broadcast(fitted)
+        result.novelty = ensemble.novelty = distributed.broadcast(fitted)
     return result
 
 

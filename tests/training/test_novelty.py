@@ -118,6 +118,7 @@ def test_from_episodes_and_training_fit_one_kept_in_checkpoints(small_ensemble, 
     config = TrainConfig(max_steps=20, batch_windows=4, window=5, val_every=10, seed=3)
     result = train_ensemble(small_ensemble(), train, val, config, progress=False, checks=False)
     fitted = result.ensemble.novelty
+    assert result.novelty is fitted
     assert result.ensemble.select_members([1]).novelty is fitted  # the data's, any members
     assert torch.equal(fitted.states, novelty.states) and fitted.level == novelty.level
     path = save_ensemble(result.ensemble, tmp_path / "m.pt")
@@ -130,7 +131,7 @@ def test_from_episodes_and_training_fit_one_kept_in_checkpoints(small_ensemble, 
     off = train_ensemble(
         small_ensemble(), train, val, config, progress=False, checks=False, novelty=False
     )
-    assert off.ensemble.novelty is None
+    assert off.ensemble.novelty is None and off.novelty is None
     # a corrupt or mismatched record is a CheckpointError naming it
     payload = torch.load(path, weights_only=True)
     payload["novelty"]["level"] = -1.0
