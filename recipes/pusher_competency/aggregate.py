@@ -129,15 +129,23 @@ def aggregate(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
     }
 
 
+def _by_condition(summaries: dict[str, dict[str, Any]], section: str) -> list[tuple]:
+    """Per condition of a per-condition ``section`` of the summaries: the condition, each
+    seed's entry (None where its run made none), and the entries made."""
+    conditions = dict.fromkeys(c for s in summaries.values() for c in s.get(section, {}))
+    out = []
+    for c in conditions:
+        by_seed = [s.get(section, {}).get(c) for s in summaries.values()]
+        out.append((c, by_seed, [entry for entry in by_seed if entry is not None]))
+    return out
+
+
 def _novelty(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Per condition, the start states the report cautioned as unlike the world model's
     training states, summed over the seeds whose run made the check (its models trained
     with it), and each seed's count (None: no check)."""
-    conditions = dict.fromkeys(c for s in summaries.values() for c in s.get("novelty", {}))
     out = {}
-    for c in conditions:
-        by_seed = [s.get("novelty", {}).get(c) for s in summaries.values()]
-        made = [row for row in by_seed if row is not None]
+    for c, by_seed, made in _by_condition(summaries, "novelty"):
         out[c] = {
             "cautioned": sum(row["cautioned"] for row in made),
             "starts": sum(row["starts"] for row in made),
@@ -174,11 +182,8 @@ def _forecast_checks(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """Per condition, the forecast check from start states not scored, over seeds: its
     gap, and in how many seeds it found the forecasts biased (seeds whose run made none, e.g.
     runs from before the check, are left out)."""
-    conditions = dict.fromkeys(c for s in summaries.values() for c in s.get("forecast_checks", {}))
     out = {}
-    for c in conditions:
-        by_seed = [s.get("forecast_checks", {}).get(c) for s in summaries.values()]
-        made = [found for found in by_seed if found is not None]
+    for c, by_seed, made in _by_condition(summaries, "forecast_checks"):
         out[c] = {
             **_stats([found["gap"] for found in made]),
             "biased": sum(not found["passed"] for found in made),
