@@ -31,6 +31,7 @@ from torch import Tensor
 
 from rcvae_torchrl import _checks
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
+from rcvae_torchrl.data import TRAJ_KEY, episode_spans
 
 __all__ = ["EPISODE_STEPS", "StateNovelty", "spread_steps"]
 
@@ -179,11 +180,11 @@ class StateNovelty:
             ids = episodes[drawn]
             own = firsts[drawn]
             calibration.append(fitted._distance(states[own], ids[own], ids))
-        starts: dict[str, Any] = {}
+        levels: dict[str, Any] = {}
         if calibration and sum(c.numel() for c in calibration):
             distances = torch.cat(calibration)
             start_level, start_kept = _conformal_level(distances, quantile)
-            starts = {
+            levels = {
                 "start_level": start_level,
                 "start_quantile": start_kept,
                 "start_held_out": distances.numel(),
@@ -195,12 +196,12 @@ class StateNovelty:
             shares.append(fitted._episode_shares(every, episodes, level, episodes[drawn]))
         if shares:
             share_level, share_kept = _conformal_level(torch.cat(shares), quantile)
-            starts.update(
+            levels.update(
                 episode_level=min(1.0, share_level),
                 episode_quantile=share_kept,
                 episodes_measured=sum(x.numel() for x in shares),
             )
-        return cls(states, center, scale, low, high, level, k, kept, held_out.shape[0], **starts)
+        return cls(states, center, scale, low, high, level, k, kept, held_out.shape[0], **levels)
 
     def _episode_shares(
         self, states: Tensor, episodes: Tensor, level: float, reference_ids: Tensor | None = None
@@ -234,8 +235,6 @@ class StateNovelty:
         takes them): every state of ``train_data`` (``key`` and ``("next", key)``), the level
         from ``val_data``'s states, and the start states' level from both data's episodes'
         first states (see :meth:`fit`). ``kwargs`` go to :meth:`fit`."""
-        from rcvae_torchrl.data import TRAJ_KEY, episode_spans
-
         parts = {}
         for name, data in (("train_data", train_data), ("val_data", val_data)):
             if not isinstance(data, TensorDictBase):
