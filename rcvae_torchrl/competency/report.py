@@ -404,6 +404,7 @@ class CompetencyReport:
     def _paragraph(self, one: TensorDictBase) -> str:
         competency, uncertainty = one.get(self.competency_key), one.get(self.uncertainty_key)
         warning = self.warning
+        flags = self._novel_flags(one)
         sentences = [
             _success_sentence(
                 float(competency.get("p_success")),
@@ -413,8 +414,8 @@ class CompetencyReport:
                 self._outcome(),
             ),
             self._per_start_caution(),
-            self._novelty_sentence(one),
-            self._uncertainty_sentence(uncertainty, bool(warning), self._is_novel(one)),
+            self._novelty_sentence(one, flags),
+            self._uncertainty_sentence(uncertainty, bool(warning), any(flags)),
         ]
         if "peak_step" in uncertainty.keys():
             sentences.append(
@@ -443,12 +444,21 @@ class CompetencyReport:
             "above covers only the imagined samples' chance."
         )
 
-    def _novelty_sentence(self, one: TensorDictBase) -> str:
-        """A start state unlike the training states, and in which dimensions; or imagined
-        states unlike them in a larger share than in-distribution episodes' states are."""
+    def _novel_flags(self, one: TensorDictBase) -> tuple[bool, bool]:
+        """One start state's two novelty cautions (start, imagined episode; :attr:`novel`),
+        neither without a novelty check."""
         if self.novelty is None or "novelty" not in one.keys():
+            return False, False
+        start, imagined = _novel_parts(one.get("novelty"), self.novelty)
+        return bool(start), bool(imagined)
+
+    def _novelty_sentence(self, one: TensorDictBase, flags: tuple[bool, bool]) -> str:
+        """A start state unlike the training states, and in which dimensions; or imagined
+        states unlike them in a larger share than in-distribution episodes' states are
+        (``flags``: :meth:`_novel_flags`)."""
+        start, imagined = flags
+        if not (start or imagined):
             return ""
-        start, imagined = (bool(x) for x in _novel_parts(one.get("novelty"), self.novelty))
         share = float(one.get(("novelty", "imagined")))
         if start:
             state = one.get(self.observation_key)
@@ -472,12 +482,6 @@ class CompetencyReport:
                 "members agree."
             )
         return ""
-
-    def _is_novel(self, one: TensorDictBase) -> bool:
-        """Whether one start state is cautioned by the novelty check (:attr:`novel`)."""
-        if self.novelty is None or "novelty" not in one.keys():
-            return False
-        return any(bool(part) for part in _novel_parts(one.get("novelty"), self.novelty))
 
     def _uncertainty_sentence(
         self, uncertainty: TensorDictBase, warned: bool, novel: bool = False

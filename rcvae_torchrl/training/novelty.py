@@ -80,6 +80,9 @@ class StateNovelty:
     episodes_measured: int = 0  #: the episodes it was measured on
 
     def __post_init__(self) -> None:
+        # the reference in spreads, as every distance reads it (scaled once, not per call)
+        scaled = ((self.states - self.center) / self.scale).contiguous()
+        object.__setattr__(self, "_scaled", scaled)
         if math.isnan(self.start_level):  # no first states: starts are states like any other
             object.__setattr__(self, "start_level", self.level)
             object.__setattr__(self, "start_quantile", self.quantile)
@@ -282,7 +285,7 @@ class StateNovelty:
         """``[Q, D] -> [Q]`` (see :meth:`distance`); with ``ids`` ``[Q]`` and
         ``reference_ids`` ``[M]``, a state's own episode's reference states left out."""
         flat = ((states - self.center) / self.scale).contiguous()
-        reference = ((self.states - self.center) / self.scale).contiguous()
+        reference = self._scaled
         k = min(self.k, reference.shape[0])
         out = []
         for i, block in zip(
