@@ -480,15 +480,23 @@ _NOVELTY_SAMPLES = 2
 
 def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor) -> TensorDict:
     """``("novelty", ·)`` entries ``[b]``: ``"start"``, the start state's distance over the
-    check's level of start states (above 1: unlike the training states), and ``"imagined"``,
-    the share of imagined states ``[E, N, b, T, S]`` beyond the states' level (every member's
-    first samples, at steps spread over the horizon)."""
+    check's level of start states (above 1: unlike the training states); ``"imagined"``, the
+    share of imagined states ``[E, N, b, T, S]`` beyond the states' level (every member's
+    first samples, at steps spread over the horizon); and ``"leaves"`` (int64), the time index
+    of the first of those steps at which most of these samples are beyond it (-1: none)."""
     at = novelty.episode_steps(imagined.shape[-2]).to(imagined.device)
-    picked = imagined[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)
+    picked = imagined[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)  # [b, E, n, steps, S]
     b = starts.shape[0]
-    share = (novelty.ratio(picked.reshape(b, -1, picked.shape[-1])) > 1).float().mean(-1)
+    beyond = novelty.ratio(picked.reshape(b, -1, picked.shape[-1])) > 1
+    share = beyond.float().mean(-1)
+    most = beyond.reshape(b, -1, at.numel()).float().mean(-2) > 0.5  # [b, steps]
+    leaves = torch.where(most.any(-1), at[most.int().argmax(-1)], -1)
     return TensorDict(
-        {"start": novelty.ratio(starts, starts=True).to(starts), "imagined": share.to(starts)},
+        {
+            "start": novelty.ratio(starts, starts=True).to(starts),
+            "imagined": share.to(starts),
+            "leaves": leaves.to(starts.device),
+        },
         batch_size=[b],
     )
 

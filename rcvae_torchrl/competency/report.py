@@ -103,8 +103,10 @@ class CompetencyReport:
     - ``"novelty"`` (when the world model has a novelty check, ``ensemble.novelty``, which
       training fits: :class:`~rcvae_torchrl.training.StateNovelty`): ``"start"`` ``[*B]``, the
       start state's distance to the training states over the check's level (above 1: unlike
-      them), and ``"imagined"`` ``[*B]``, the share of its imagined states beyond the states'
-      level (every member's first two samples at 20 steps spread over the horizon);
+      them); ``"imagined"`` ``[*B]``, the share of its imagined states beyond the states'
+      level (every member's first two samples at 20 steps spread over the horizon); and
+      ``"leaves"`` int64 ``[*B]``, the time index of the first of those steps at which most
+      of these samples are beyond it (-1: none), when the forecast starts to extrapolate;
     - ``"rollout"`` (only when asked for): the imagined rollouts ``[*B, E, N, T]``.
 
     **Summary rules** (:meth:`summary`), one paragraph per start state:
@@ -124,7 +126,9 @@ class CompetencyReport:
        lies and the dimensions outside the training states' range: ``Caution: the start
        state is unlike the states the model was trained on (2.4x as far from the training
        states as 99% of held-out episodes' first states are: velocity_0 = 7.6 (training
-       -4.2 to 4.3)): the forecast extrapolates, however much the members agree.`` The
+       -4.2 to 4.3)): the forecast extrapolates, however much the members agree.`` For
+       imagined states, the caution also says by when most of them are unlike the training
+       states (``By t = 2.4 s most of them are``), where the forecast starts to extrapolate. The
        members' disagreement is no sure sign of such states: members trained on the same data
        can agree far from it, and where such a start's doubt is as in the reference (rule 4)
        the sentence says so despite the caution. :meth:`overall` counts them.
@@ -476,10 +480,17 @@ class CompetencyReport:
                 if self.novelty.episodes_measured
                 else f"more than ten times the share of held-out states ({level:.0%})"
             )
+            leaves = int(one.get(("novelty", "leaves"), -1))  # absent in older reports
+            if leaves < 0:
+                return (
+                    f"Caution: {share:.0%} of the imagined states are unlike the states the "
+                    f"model was trained on, {usual}: the forecast extrapolates there, however "
+                    "much the members agree."
+                )
             return (
                 f"Caution: {share:.0%} of the imagined states are unlike the states the model "
-                f"was trained on, {usual}: the forecast extrapolates there, however much the "
-                "members agree."
+                f"was trained on, {usual}. By {_when(leaves, self.dt)} most of them are: the "
+                "forecast extrapolates from there on, however much the members agree."
             )
         return ""
 

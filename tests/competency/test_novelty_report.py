@@ -1,8 +1,10 @@
 """The assessor's novelty entries and the report's words on start states unlike the training
 states (the world model's StateNovelty)."""
 
+import dataclasses
+
 import torch
-from test_assessor import E, S, T, make_assessor, make_ensemble, make_env, set_decoder
+from test_assessor import DT, E, S, T, make_assessor, make_ensemble, make_env, set_decoder
 
 from rcvae_torchrl.competency import Reference
 from rcvae_torchrl.envs import OBSERVATION_NAMES
@@ -36,6 +38,10 @@ def test_entries_are_the_starts_ratio_and_the_share_of_imagined_states_beyond_th
     picked = imagined[:, :, :2].reshape(3, -1, S)  # T = 6 < 20 steps: every step
     share = (model.novelty.ratio(picked) > 1).float().mean(-1)
     assert torch.equal(entries["imagined"], share)
+    # the first step at which most of those samples are beyond the level, -1 where none is
+    most = (model.novelty.ratio(imagined[:, :, :2]) > 1).float().mean((1, 2)) > 0.5  # [B, T]
+    first = [row.nonzero()[0, 0].item() if row.any() else -1 for row in most]
+    assert entries["leaves"].dtype == torch.int64 and entries["leaves"].tolist() == first
     assert report.novel.tolist() == [bool(s >= 0.1) for s in share[:2]] + [True]
     # no novelty check, no entries and no words
     model.novelty = None
@@ -72,15 +78,25 @@ def test_a_start_unlike_the_training_states_is_cautioned_with_its_dimension():
 def test_imagined_states_that_leave_the_training_states_are_named():
     model = make_ensemble()
     model.novelty = _novelty()
-    set_decoder(model, torch.full((E, 1), 40.0), -6.0)  # each step a large move
+    set_decoder(model, torch.full((E, 1), 8.0), -6.0)  # each step a move: they leave in steps
     report = make_assessor(make_env(model)).assess(_starts()[:2], actions=torch.zeros(T, 2), seed=0)
     share = report.data["novelty", "imagined"]
     assert bool((share >= 0.5).all()) and bool((report.data["novelty", "start"] <= 1).all())
+    leaves = report.data["novelty", "leaves"]
+    assert 0 < int(leaves[0]) < T - 1  # neither at the start nor at the horizon's end
     text = report.summary(index=0)
     assert (
         f"Caution: {float(share[0]):.0%} of the imagined states are unlike the states the model "
-        "was trained on, more than ten times the share of held-out states (10%): the forecast "
-        "extrapolates there, however much the members agree." in text
+        "was trained on, more than ten times the share of held-out states (10%). By "
+        f"t = {round((int(leaves[0]) + 1) * DT, 6):g} s most of them are: the forecast "
+        "extrapolates from there on, however much the members agree." in text
+    )
+    # a report without the onset (one made before it existed) keeps the words it had
+    older = report.data.clone()
+    del older["novelty", "leaves"]
+    assert (
+        "(10%): the forecast extrapolates there, however much the members agree."
+        in dataclasses.replace(report, data=older).summary(index=0)
     )
     assert (
         "Novelty: 0 of 2 start states are unlike the states the model was trained on, and 2 more"
