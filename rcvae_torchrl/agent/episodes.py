@@ -171,7 +171,11 @@ def _rollout(
     **kwargs: Any,
 ) -> TensorDictBase:
     """``env.rollout`` of ``policy`` from ``td``; a module that does not take the env's
-    TensorDict (a tensor policy ``observation -> action``) is named with how to wire it."""
+    TensorDict (a tensor policy ``observation -> action``) is named with how to wire it. The
+    actions of a TensorDict policy are checked before the env acts on them
+    (``_CheckedPolicy``)."""
+    if isinstance(policy, TensorDictModuleBase):
+        policy = _CheckedPolicy(policy, env)
     try:
         with torch.no_grad():
             return env.rollout(max_steps, policy, auto_reset=False, tensordict=td, **kwargs)
@@ -186,6 +190,48 @@ def _rollout(
             'observation -> action with TensorDictModule(policy, in_keys=["observation"], '
             'out_keys=["action"]) (rcvae_torchrl.agent.make_policy_module)'
         ) from err
+
+
+class _CheckedPolicy(TensorDictModuleBase):
+    """``policy``, its action checked at every call before ``env`` acts on it: the shape the
+    env's batch and action spec give, and finite values. A simulator handed another shape or
+    a NaN fails inside its own step (a broadcast error, a physics warning) without naming the
+    policy; bounds and dtype are checked on the whole episode afterwards
+    (:func:`~rcvae_torchrl.data.check_actions`)."""
+
+    def __init__(self, policy: TensorDictModuleBase, env: EnvBase) -> None:
+        super().__init__()
+        self.policy = policy
+        self.in_keys, self.out_keys = list(policy.in_keys), list(policy.out_keys)
+        self.action_key = env.action_key
+        self.batch = tuple(env.batch_size)
+        self.action_shape = tuple(env.action_spec_unbatched.shape)
+        self.calls = 0
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        out = self.policy(tensordict)
+        out = tensordict if out is None else out
+        action = out.get(self.action_key, None)
+        step, self.calls = self.calls, self.calls + 1
+        if not isinstance(action, torch.Tensor):
+            raise KeyError(
+                f"policy: expected it to write the env's action {self.action_key!r} at every "
+                f"step, got none at step {step}"
+            )
+        wanted = (*self.batch, *self.action_shape)
+        if tuple(action.shape) != wanted:
+            raise ValueError(
+                f"policy: expected actions of shape {wanted} (the env's batch {list(self.batch)} "
+                f"and its action_spec's {list(self.action_shape)}), got {tuple(action.shape)} at "
+                f"step {step}"
+            )
+        if action.is_floating_point() and not bool(torch.isfinite(action).all()):
+            bad = int((~torch.isfinite(action)).sum())
+            raise ValueError(
+                f"policy: expected finite actions, got {bad} of {action.numel()} NaN or inf at "
+                f"step {step}; the env cannot act on them"
+            )
+        return out
 
 
 def _success_flags(

@@ -313,7 +313,15 @@ class CompetencyReport:
         elif self.reference is None:
             text += _doubt_sentence(aleatoric, epistemic, total)
         else:
-            text += _change_sentence(aleatoric, epistemic, self.reference)
+            novel = self.novel
+            cautioned = 0 if novel is None else int(novel.sum())
+            clause = (
+                f"{cautioned} of the {n} start states, or their imagined states, are unlike the "
+                "training states (below)"
+                if cautioned
+                else ""
+            )
+            text += _change_sentence(aleatoric, epistemic, self.reference, novel=clause)
             text += self._one_by_one_sentence()
         text += self._novel_count_sentence()
         if self.forecast_check is not None and self.forecast_check.passed:
@@ -419,7 +427,7 @@ class CompetencyReport:
             ),
             self._per_start_caution(),
             self._novelty_sentence(one, flags),
-            self._uncertainty_sentence(uncertainty, bool(warning), any(flags)),
+            self._uncertainty_sentence(uncertainty, bool(warning), flags),
         ]
         if "peak_step" in uncertainty.keys():
             sentences.append(
@@ -495,7 +503,10 @@ class CompetencyReport:
         return ""
 
     def _uncertainty_sentence(
-        self, uncertainty: TensorDictBase, warned: bool, novel: bool = False
+        self,
+        uncertainty: TensorDictBase,
+        warned: bool,
+        flags: tuple[bool, bool] = (False, False),
     ) -> str:
         # the bits the reference compares (per live step where it does), in every sentence
         live = self.reference is not None and self.reference.per_live_step
@@ -507,7 +518,17 @@ class CompetencyReport:
             return _unreliable_split_sentence(aleatoric, epistemic, total, _unit(live))
         if self.reference is None:
             return _doubt_sentence(aleatoric, epistemic, total)
-        return _change_sentence(aleatoric, epistemic, self.reference, one_start=True, novel=novel)
+        start, imagined = flags  # the novelty cautions (:meth:`_novel_flags`)
+        novel_clause = (
+            "the start is unlike the training states (above)"
+            if start
+            else "its imagined states are unlike the training states (above)"
+            if imagined
+            else ""
+        )
+        return _change_sentence(
+            aleatoric, epistemic, self.reference, one_start=True, novel=novel_clause
+        )
 
 
 def _novel_parts(entries: TensorDictBase, novelty: Any) -> tuple[Tensor, Tensor]:
@@ -565,12 +586,13 @@ def _change_sentence(
     epistemic: float,
     reference: Reference,
     one_start: bool = False,
-    novel: bool = False,
+    novel: str = "",
 ) -> str:
     """What changed against the reference, and which part rose (the larger rise); for
-    ``one_start``, a part rose only above the reference's start states' spread. A ``novel``
-    start (cautioned by the novelty check) whose doubt is as in the reference is said to be
-    so despite it, not to show no sign of unseen states."""
+    ``one_start``, a part rose only above the reference's start states' spread. Where the
+    novelty check cautioned (``novel``: which starts, as a clause) and the doubt is as in the
+    reference, it is said to be so despite the caution, not to show no sign of unseen
+    states."""
     ratios = _ratios(aleatoric, epistemic, reference)
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
@@ -599,8 +621,8 @@ def _change_sentence(
         )
     if novel:
         return text + (
-            ": neither part rose, the doubt is as in the reference although the start is "
-            "unlike the training states (above): the members agree where none has data."
+            f": neither part rose, the doubt is as in the reference although {novel}: the "
+            "members agree where none has data."
         )
     return text + (
         ": neither part rose, the doubt is as in the reference (no sign of states the model "

@@ -140,6 +140,12 @@ def check_actions(env: EnvBase, data: TensorDictBase, name: str = "policy") -> N
     """
     spec = env.action_spec_unbatched
     action = data.get(env.action_key)
+    trailing = tuple(action.shape[action.dim() - len(spec.shape) :])
+    if action.dim() < len(spec.shape) or trailing != tuple(spec.shape):
+        raise ValueError(
+            f"{name}: expected actions [..., {', '.join(map(str, spec.shape))}] (the env's "
+            f"action_spec shape {list(spec.shape)}), got shape {tuple(action.shape)}"
+        )
     if action.dtype != spec.dtype:
         raise TypeError(
             f"{name}: expected actions of the env's action_spec dtype {spec.dtype}, got "

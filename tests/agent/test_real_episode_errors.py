@@ -3,6 +3,8 @@ with errors that say what to do."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -70,6 +72,69 @@ def test_a_tensor_policy_in_a_real_env_is_named_with_how_to_wire_it(batched):
     ):
         run_episodes(env, _TensorPolicy(), **args)
     assert run_episodes(env, make_policy_module(_TensorPolicy()), **args).steps.tolist() == [5, 5]
+
+
+class _Acts(torch.nn.Module):
+    """A tensor policy whose action is ``value`` of ``shape`` (after the batch), from step
+    ``after`` on (zeros before)."""
+
+    def __init__(self, shape, value=0.0, after=0):
+        super().__init__()
+        self.shape, self.value, self.after, self.calls = shape, value, after, 0
+
+    def forward(self, observation):
+        self.calls += 1
+        fill = self.value if self.calls > self.after else 0.0
+        return torch.full((*observation.shape[:-1], *self.shape), fill)
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_a_policy_s_wrong_shape_or_nan_action_is_named_before_the_env_acts_on_it(batched):
+    from rcvae_torchrl.agent import make_policy_module
+
+    env = make_batched_pusher_env(2) if batched else make_pusher_env()
+    batch = [2] if batched else []
+    args = dict(seeds=[0, 1], max_steps=5, success=_never, progress=False)
+    for shape in [(), (3,)]:  # the Pusher's action is [2]
+        wanted = re.escape(
+            f"policy: expected actions of shape {(*batch, 2)} (the env's batch {batch} and its "
+            f"action_spec's [2]), got {(*batch, *shape)} at step 0"
+        )
+        with pytest.raises(ValueError, match=f"^{wanted}$"):
+            run_episodes(env, make_policy_module(_Acts(shape)), **args)
+    # a NaN at the third step: named with its step, before the simulator steps on it
+    n = 2 if batched else 1
+    with pytest.raises(
+        ValueError,
+        match=f"^policy: expected finite actions, got {2 * n} of {2 * n} NaN or inf at step 2; ",
+    ):
+        run_episodes(env, make_policy_module(_Acts((2,), float("nan"), after=2)), **args)
+    # and real_outcomes, whose episodes run the same way
+    with pytest.raises(ValueError, match=r"^policy: expected actions of shape"):
+        real_outcomes(
+            env,
+            make_policy_module(_Acts((1,))),
+            pusher_starts(2),
+            runs_per_start=1,
+            reset_to_state=reset_to_state,
+            success=_never,
+            max_steps=5,
+            progress=False,
+        )
+
+
+def test_recorded_actions_of_another_shape_are_named_by_shape_not_by_bounds():
+    from tensordict import TensorDict
+
+    from rcvae_torchrl.data import check_actions
+
+    data = TensorDict({"action": torch.zeros(4, 3)}, batch_size=[4])
+    with pytest.raises(
+        ValueError,
+        match=r"^policy: expected actions \[\.\.\., 2\] \(the env's action_spec shape "
+        r"\[2\]\), got shape \(4, 3\)$",
+    ):
+        check_actions(make_pusher_env(), data)
 
 
 @pytest.mark.parametrize("batched", [False, True])

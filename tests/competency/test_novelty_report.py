@@ -123,3 +123,40 @@ def test_a_doubt_as_in_the_reference_is_not_called_a_sign_of_seen_states_for_a_n
     assert "no sign of states the model has not seen" in report.with_reference(familiar).summary(
         index=0
     )
+
+
+def test_the_overall_paragraph_does_not_call_a_doubt_as_in_the_reference_a_sign_of_seen_states():
+    model = make_ensemble()
+    model.novelty = _novelty()
+    set_decoder(model, torch.zeros(E, 1), -6.0)
+    report = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
+    aleatoric, epistemic = report.mean_bits()
+    same = Reference(aleatoric, epistemic)  # the mean bits themselves: neither part rose
+    text = report.with_reference(same).overall()
+    assert (
+        ": neither part rose, the doubt is as in the reference although 1 of the 3 start states, "
+        "or their imagined states, are unlike the training states (below): the members agree "
+        "where none has data." in text
+    )
+    assert "no sign of states the model has not seen" not in text
+    assert " Novelty: 1 of 3 start states are unlike" in text
+    # without a cautioned start, the usual words
+    familiar = make_assessor(make_env(model)).assess(
+        _starts()[:2], actions=torch.zeros(T, 2), seed=0
+    )
+    text = familiar.with_reference(Reference(*familiar.mean_bits())).overall()
+    assert "no sign of states the model has not seen" in text
+
+
+def test_a_start_whose_imagined_states_alone_are_unlike_is_named_as_such():
+    model = make_ensemble()
+    model.novelty = _novelty()
+    set_decoder(model, torch.full((E, 1), 8.0), -6.0)  # they leave the training states
+    report = make_assessor(make_env(model)).assess(_starts()[:1], actions=torch.zeros(T, 2), seed=0)
+    assert not bool(report.data["novelty", "start"][0] > 1) and bool(report.novel[0])
+    bits = report.data["uncertainty", "summary"]
+    same = Reference(float(bits["aleatoric"][0]), float(bits["epistemic"][0]))
+    assert (
+        "as in the reference although its imagined states are unlike the training states "
+        "(above): the members agree where none has data." in report.with_reference(same).summary()
+    )
