@@ -182,6 +182,7 @@ class CompetencyAssessor(KeyedModule):
                 f"expected a horizon of at least {boundary.time_limit}, got {self.horizon}"
             )
         self.dt = _dt(dt, boundary)
+        _check_dt_against_real_env(self.dt, model_env)
         self.policy = policy
         self.samples_per_member = samples_per_member
         self.top_k, self.start_chunk = top_k, start_chunk
@@ -585,6 +586,21 @@ def _dt(dt: float | None, boundary: SuccessBoundary) -> float | None:
     if boundary.dt is not None and not math.isclose(dt, boundary.dt):
         raise ValueError(f"dt: expected the boundary's dt = {boundary.dt}, got {dt!r}")
     return float(dt)
+
+
+def _check_dt_against_real_env(dt: float | None, model_env: Any) -> None:
+    """Seconds per step given (``dt``, the boundary's) must be the real env's, where the model
+    env knows them (``real_control_step``): a frame skip left out of ``dt`` would make every
+    time and time limit in seconds wrong by its factor, silently."""
+    step = getattr(model_env, "real_control_step", None)
+    if dt is None or step is None or math.isclose(dt, step[0], rel_tol=1e-6):
+        return
+    raise ValueError(
+        f"dt: expected the real env's seconds per step, {step[0]:g} s ({step[1]}), got "
+        f"{dt:g} s: every time in seconds, the time limit's included, would be off by "
+        f"{step[0] / dt:.3g}x; give SuccessBoundary(..., dt={step[0]:g}) (a frame skip "
+        "multiplies the simulator's control step)"
+    )
 
 
 def _per_sample(per_sample: Mapping[str, PerSample] | None) -> dict[str, PerSample]:

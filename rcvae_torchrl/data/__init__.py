@@ -7,7 +7,7 @@ from .exploration import (
     action_bounds,
     make_policy_module,
 )
-from .prepare import ActionNoise, ObservationLayout, prepare_env, seed_env
+from .prepare import ActionNoise, ObservationLayout, control_step, prepare_env, seed_env
 from .replay import (
     episode_spans,
     make_window_buffer,
@@ -32,6 +32,7 @@ __all__ = [
     # any env as the library expects it
     "ActionNoise",
     "ObservationLayout",
+    "control_step",
     "prepare_env",
     "seed_env",
     # replay

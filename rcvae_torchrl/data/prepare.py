@@ -20,6 +20,7 @@ from torchrl.envs import (
     DoubleToFloat,
     EnvBase,
     ExcludeTransform,
+    FrameSkipTransform,
     Transform,
     TransformedEnv,
     UnsqueezeTransform,
@@ -27,7 +28,7 @@ from torchrl.envs import (
 
 from rcvae_torchrl._checks import check_non_negative_int
 
-__all__ = ["ActionNoise", "ObservationLayout", "prepare_env", "seed_env"]
+__all__ = ["ActionNoise", "ObservationLayout", "control_step", "prepare_env", "seed_env"]
 
 OBSERVATION_KEY = "observation"
 
@@ -264,3 +265,38 @@ def seed_env(env: EnvBase, seed: int) -> None:
     for part in parts:
         if callable(getattr(part, "reseed", None)):
             part.reseed(seed)
+
+
+def control_step(env: EnvBase) -> tuple[float, str] | None:
+    """The seconds of simulated time one step of ``env`` takes, where it can be read, and how
+    it was read; ``None`` where it cannot.
+
+    Read from the base env's simulator (dm_control's ``control_timestep()``; gym and
+    gymnasium's ``unwrapped.dt``), times every ``FrameSkipTransform``'s ``frame_skip`` around
+    it. A batched env (its sub-envs are not reached) and other envs give ``None``.
+
+    Example:
+        >>> from torchrl.envs import DMControlEnv, FrameSkipTransform
+        >>> env = DMControlEnv("cartpole", "swingup").append_transform(FrameSkipTransform(5))
+        >>> control_step(env)
+        (0.05, "DMControlEnv's control timestep 0.01 s x FrameSkipTransform(5)")
+    """
+    skips = []
+    base = env
+    while isinstance(base, TransformedEnv):
+        transform = base.transform
+        parts = list(transform) if isinstance(transform, Compose) else [transform]
+        skips += [p.frame_skip for p in parts if isinstance(p, FrameSkipTransform)]
+        base = base.base_env
+    inner = getattr(base, "_env", None)
+    timestep = getattr(inner, "control_timestep", None)
+    if callable(timestep):
+        dt, what = float(timestep()), "control timestep"
+    elif isinstance(getattr(getattr(inner, "unwrapped", None), "dt", None), (int, float)):
+        dt, what = float(inner.unwrapped.dt), "dt"
+    else:
+        return None
+    text = f"{type(base).__name__}'s {what} {dt:g} s"
+    for skip in skips:
+        dt, text = dt * skip, text + f" x FrameSkipTransform({skip})"
+    return round(dt, 12), text

@@ -10,6 +10,7 @@ from torchrl.envs import EnvBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
 from rcvae_torchrl._checks import check_bool, check_bounds, make_generator
+from rcvae_torchrl.data import control_step
 from rcvae_torchrl.model_env import _checks
 from rcvae_torchrl.model_env.specs import (
     ACTION_KEY,
@@ -195,6 +196,13 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             self._apply_specs(model_env_specs(ensemble, trajectory_sampling, device))
         else:
             self.set_specs_from_env(real_env)
+
+    @property
+    def real_control_step(self) -> tuple[float, str] | None:
+        """Seconds per step of the real env whose specs this env copies, and how they were
+        read (:func:`~rcvae_torchrl.data.control_step`); ``None`` without a real env or where
+        they cannot be read. An imagined step stands for one such step."""
+        return None if self._real_env is None else control_step(self._real_env)
 
     @property
     def reward_fn(self) -> RewardFn:

@@ -164,3 +164,50 @@ def test_action_noise_is_clipped_to_the_spec():
     td = TensorDict({"action": torch.zeros(2)}, [])
     applied = noise.inv(td)["action"]
     assert (applied.abs() <= 1).all() and (applied.abs() == 1).any()
+
+
+def test_control_step_reads_the_simulator_s_step_times_every_frame_skip():
+    from torchrl.envs import FrameSkipTransform
+
+    from rcvae_torchrl.data import control_step
+
+    env, _ = prepare_env(DMControlEnv("reacher", "easy"))  # dm_control's reacher: 0.02 s
+    assert control_step(env) == (0.02, "DMControlEnv's control timestep 0.02 s")
+    env.append_transform(FrameSkipTransform(5))
+    assert control_step(env) == (
+        0.1,
+        "DMControlEnv's control timestep 0.02 s x FrameSkipTransform(5)",
+    )
+    assert control_step(PendulumEnv()) is None  # no simulator step to read
+
+
+def test_a_boundary_dt_that_is_not_the_real_env_s_step_is_named():
+    from torchrl.envs import FrameSkipTransform, StepCounter
+
+    from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary
+
+    env, layout = prepare_env(DMControlEnv("reacher", "easy"))
+    env.append_transform(FrameSkipTransform(5))  # 0.1 s per step
+    model = RCVAEEnsemble(RCVAEConfig(layout.dim, 2, hidden_dim=8, mlp_dim=8), 2)
+
+    def assess(model_env, boundary):
+        return CompetencyAssessor(model_env, boundary, bin_width=0.1)
+
+    for model_env in (
+        make_rcvae_env(model, env, _reward, _success, seed=0),
+        make_rcvae_env(model, env, _reward, _success, seed=0, transforms=StepCounter(10)),
+    ):
+        assert model_env.real_control_step[0] == 0.1
+        with pytest.raises(
+            ValueError,
+            match=r"^dt: expected the real env's seconds per step, 0.1 s \(DMControlEnv's control "
+            r"timestep 0.02 s x FrameSkipTransform\(5\)\), got 0.02 s: .* off by 5x; give "
+            r"SuccessBoundary\(\.\.\., dt=0.1\)",
+        ):
+            assess(model_env, SuccessBoundary(_success, time_limit_s=1.0, dt=0.02))
+        right = assess(model_env, SuccessBoundary(_success, time_limit_s=1.0, dt=0.1))
+        assert right.boundary.time_limit == 10
+        # times in steps (no dt) are not checked: nothing in them is in seconds
+        assess(model_env, SuccessBoundary(_success, time_limit=10))
+    # a model env without a real env has no step to check against
+    assert make_rcvae_env(model, None, _reward, _success).real_control_step is None
