@@ -272,8 +272,9 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
     it was read; ``None`` where it cannot.
 
     Read from the base env's simulator (dm_control's ``control_timestep()``; gym and
-    gymnasium's ``unwrapped.dt``), times every ``FrameSkipTransform``'s ``frame_skip`` around
-    it. A batched env (its sub-envs are not reached) and other envs give ``None``.
+    gymnasium's ``unwrapped.dt``), times the frame skip of a wrapper that skips frames itself
+    (``DMControlEnv(..., frame_skip=k)``) and every ``FrameSkipTransform``'s around it. A
+    batched env (its sub-envs are not reached) and other envs give ``None``.
 
     Example:
         >>> from torchrl.envs import DMControlEnv, FrameSkipTransform
@@ -288,7 +289,7 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
         parts = list(transform) if isinstance(transform, Compose) else [transform]
         skips += [p.frame_skip for p in parts if isinstance(p, FrameSkipTransform)]
         base = base.base_env
-    inner = getattr(base, "_env", None)
+    inner = base.__dict__.get("_env")  # not getattr: a batched env would ask its workers
     timestep = getattr(inner, "control_timestep", None)
     if callable(timestep):
         dt, what = float(timestep()), "control timestep"
@@ -297,6 +298,11 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
     else:
         return None
     text = f"{type(base).__name__}'s {what} {dt:g} s"
+    # a wrapper that skips frames itself (TorchRL's DMControlEnv(..., frame_skip=k), GymEnv);
+    # read from __dict__ as TorchRL does (a batched env would start its workers to answer)
+    native = base.__dict__.get("frame_skip", 1) if getattr(type(base), "_has_frame_skip", 0) else 1
+    if isinstance(native, int) and native > 1:
+        dt, text = dt * native, text + f" x frame_skip={native}"
     for skip in skips:
         dt, text = dt * skip, text + f" x FrameSkipTransform({skip})"
     return round(dt, 12), text

@@ -178,7 +178,18 @@ def test_control_step_reads_the_simulator_s_step_times_every_frame_skip():
         0.1,
         "DMControlEnv's control timestep 0.02 s x FrameSkipTransform(5)",
     )
+    # TorchRL's own frame skip, done by the wrapper, then a transform's on top
+    native = DMControlEnv("reacher", "easy", frame_skip=3).append_transform(FrameSkipTransform(2))
+    assert control_step(native) == (
+        0.12,
+        "DMControlEnv's control timestep 0.02 s x frame_skip=3 x FrameSkipTransform(2)",
+    )
     assert control_step(PendulumEnv()) is None  # no simulator step to read
+    # a batched env: its sub-envs are not reached, nor are its workers started to ask them
+    from torchrl.envs import ParallelEnv
+
+    batched = ParallelEnv(2, lambda: DMControlEnv("reacher", "easy"))
+    assert control_step(batched) is None and batched.is_closed
 
 
 def test_a_boundary_dt_that_is_not_the_real_env_s_step_is_named():
