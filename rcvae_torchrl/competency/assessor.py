@@ -216,7 +216,8 @@ class CompetencyAssessor(KeyedModule):
                 policy whose class has ``reset()`` (a planner's warm start) is reset before
                 each chunk: its imagined episodes are new ones.
             actions: open loop instead: ``[T, A]`` (the same for every start state) or
-                ``[*B, T, A]``.
+                ``[*B, T, A]``, inside the action spec's bounds (a closed-loop policy's
+                actions are clipped to them, as the real env clips them).
             generator: source of all sampling noise (default: the model env's), drawn chunk
                 after chunk.
             seed: instead of ``generator``: chunk ``k`` of ``start_chunk`` start states draws
@@ -471,6 +472,19 @@ class CompetencyAssessor(KeyedModule):
                 f"{actions.shape[-2]} (shape {tuple(actions.shape)})"
             )
         _checks.check_finite("actions", actions)
+        bounds = getattr(self.model_env, "action_bounds", None)
+        if bounds is not None:
+            low, high = (b.to(actions) for b in bounds)
+            excess = torch.maximum(low - actions, actions - high).clamp_min(0)
+            if bool((excess > 0).any()):
+                # the model env would clip them, as the real env does: a plan written for other
+                # bounds would be assessed as another plan, without a word
+                raise ValueError(
+                    f"actions: expected actions inside the env's action_spec bounds "
+                    f"[{low.tolist()}, {high.tolist()}], got {int((excess > 0).any(-1).sum())} of "
+                    f"{excess[..., 0].numel()} outside, by up to {float(excess.max()):.4g}; clip "
+                    "them (the env would act on the clipped ones)"
+                )
         return actions.reshape(-1, *actions.shape[-2:])
 
 

@@ -676,6 +676,14 @@ def test_assess_errors(env, starts, plan):
         assessor.assess(starts, actions=plan[:, :4])
     with pytest.raises(ValueError, match="actions: expected finite values"):
         assessor.assess(starts, actions=torch.full((T, A), float("nan")))
+    outside = torch.zeros(T, A)
+    outside[2, 1] = 7.0  # the env's bounds are [-1, 1]: the model env would clip it to 1
+    with pytest.raises(
+        ValueError,
+        match=r"^actions: expected actions inside the env's action_spec bounds \[\[-1.0, -1.0\], "
+        r"\[1.0, 1.0\]\], got 3 of 18 outside, by up to 6; clip them",
+    ):
+        assessor.assess(starts, actions=outside)
     bad = starts.clone()
     bad[1, 3] = float("nan")
     with pytest.raises(ValueError, match=r"start_states: expected finite values.*\[1\]"):
