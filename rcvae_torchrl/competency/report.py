@@ -17,6 +17,8 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from rcvae_torchrl._conformal import conformal_level
+
 __all__ = ["CompetencyReport", "Reference"]
 
 # Aleatoric bits are the spread the members agree on: the env's randomness, or an error of
@@ -37,6 +39,7 @@ _ROSE = {
 
 #: A reference report of fewer start states is named with its count in every summary.
 _FEW_REFERENCE_STARTS = 10
+_PARTS = ("aleatoric", "epistemic")
 
 
 def _is_number(value: object) -> bool:
@@ -49,8 +52,10 @@ class Reference:
     """What a report's uncertainty is compared with: mean bits of in-distribution starts, as
     time means or (``per_live_step``) per step of the imagined episodes' life.
 
-    ``aleatoric_high`` / ``epistemic_high``: the bits that a share ``quantile`` of the
-    reference's start states stay at or below (None: not known). One start state's part rose
+    ``aleatoric_high`` / ``epistemic_high``: the bits that an in-distribution start state
+    stays at or below with probability ``quantile`` (None: not known; from a report, the
+    conformal level of the reference's start states, see
+    :meth:`CompetencyReport.with_reference`). One start state's part rose
     only when it is both ``rise`` times the mean and above this level: in-distribution start
     states spread around their mean, and a start as uncertain as many of the reference's own
     is no sign of states the model has not seen. Means over many start states (``overall``,
@@ -259,8 +264,10 @@ class CompetencyReport:
         """This report, with summaries that compare against ``reference``: a report of
         in-distribution start states (e.g. the training starts), or its :class:`Reference`.
         From a report, the reference keeps its mean bits and, with at least 10 start states,
-        the level that ``quantile`` of them stay at or below (one start state's part rose only
-        above it)."""
+        the level that a new in-distribution start stays at or below with probability
+        ``quantile`` (one start state's part rose only above it): the conformal level of its
+        start states (:func:`~rcvae_torchrl._conformal.conformal_level`), which with too few
+        of them for ``quantile`` is their largest, and the probability it covers is kept."""
         if isinstance(reference, CompetencyReport):
             live = reference.has_live_steps and self.has_live_steps
             aleatoric, epistemic = reference.mean_bits(live)
@@ -271,10 +278,9 @@ class CompetencyReport:
                 name = f"{name} (of only {starts} start state{'s' if starts > 1 else ''})"
             elif _is_number(quantile) and 0.0 < quantile < 1.0:  # else refused below
                 part = _bits(reference.uncertainty, live)
-                highs = {
-                    f"{k}_high": float(part.get(k).reshape(-1).double().quantile(quantile))
-                    for k in ("aleatoric", "epistemic")
-                }
+                levels = {k: conformal_level(part.get(k), quantile) for k in _PARTS}
+                highs = {f"{k}_high": level for k, (level, _) in levels.items()}
+                quantile = levels["epistemic"][1]  # what the levels cover with these starts
             reference = Reference(
                 aleatoric, epistemic, rise, name, live, **highs, quantile=quantile
             )
@@ -610,8 +616,8 @@ def _change_sentence(
     if within:  # risen against the mean, not above the spread of the reference's starts
         levels = " and ".join(f"{_high(reference, k):.2f} {k} {unit}" for k in within)
         return (
-            text + f": neither part rose beyond the reference's own start states, "
-            f"{reference.quantile:.0%} of which reach {levels}."
+            text + f": neither part rose beyond the reference's own start states: "
+            f"{reference.quantile:.0%} of such starts stay at or below {levels}."
         )
     fell = [k for k in ("epistemic", "aleatoric") if ratios[k] * reference.rise <= 1]
     if fell:

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from rcvae_torchrl import _checks
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
+from rcvae_torchrl._conformal import conformal_level
 from rcvae_torchrl.data import TRAJ_KEY, episode_spans
 
 __all__ = ["EPISODE_STEPS", "StateNovelty", "spread_steps"]
@@ -413,15 +414,12 @@ class StateNovelty:
 
 
 def _conformal_level(distances: Tensor, quantile: float) -> tuple[float, float]:
-    """The level of ``H`` held-out distances and the quantile it keeps: the ceil((H + 1) q)-th
-    smallest covers a new in-distribution state with probability >= q; with too few held-out
-    states for that, the largest, which covers H / (H + 1), and that is the quantile kept."""
-    count = distances.numel()
-    if count == 0:
+    """The level of ``H`` held-out distances and the quantile it keeps
+    (:func:`~rcvae_torchrl._conformal.conformal_level`), above zero."""
+    if distances.numel() == 0:
         raise ValueError("held_out: expected at least one held-out state, got none")
-    kept = min(float(quantile), count / (count + 1))
-    rank = min(math.ceil((count + 1) * kept - 1e-9), count)
-    return max(float(distances.double().sort().values[rank - 1]), 1e-12), kept
+    level, kept = conformal_level(distances, quantile)
+    return max(level, 1e-12), kept
 
 
 def _states(name: str, x: object, dim: int | None = None, *, flat: bool = True) -> Tensor:
