@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import tempfile
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
@@ -122,6 +123,14 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
     try:
         return torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
     except Exception as err:  # torch raises several types for damaged archives
+        other = re.search(r"GLOBAL (\S+) was not an allowed global", str(err))
+        if other:  # a whole torch file, of objects no file of ours holds
+            raise StoredFileError(
+                f"{what} {str(path)!r} is another kind of file: a torch file holding "
+                f"{other.group(1)} objects, which are not loaded (unpickling them could run "
+                "code the file names); expected one saved by this library",
+                path,
+            ) from err
         raise StoredFileError(
             f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): "
             f"{_load_failure(err)}",

@@ -121,3 +121,22 @@ def test_a_folder_or_a_damaged_file_is_named_as_what_it_is(tmp_path):
     with pytest.raises(StoredFileError, match=r"is truncated or corrupt \(512 bytes\)") as err:
         load_torch(damaged)
     assert "weights_only" not in str(err.value)  # torch's advice to load it unsafely is dropped
+
+
+def test_a_torch_file_of_other_objects_is_named_another_kind_of_file(tmp_path):
+    from tensordict import TensorDict
+
+    from rcvae_torchrl.io import StoredFileError
+    from rcvae_torchrl.training import CheckpointError, load_ensemble
+
+    episodes = tmp_path / "episodes.pt"
+    torch.save(TensorDict({"observation": torch.zeros(3, 2)}, batch_size=[3]), episodes)
+    with pytest.raises(
+        CheckpointError,
+        match=r"^checkpoint '.*episodes\.pt' is another kind of file: a torch file holding "
+        r"tensordict\._reductions\._make_td objects, which are not loaded .*; expected one "
+        r"saved by this library$",
+    ) as err:
+        load_ensemble(episodes)
+    assert isinstance(err.value, StoredFileError)
+    assert "add_safe_globals" not in str(err.value)  # no advice to load it unsafely
