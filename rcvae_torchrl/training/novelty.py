@@ -40,6 +40,8 @@ __all__ = ["EPISODE_STEPS", "StateNovelty", "spread_steps"]
 _BLOCK_ROWS = 256
 #: the training states' central share that :meth:`StateNovelty.describe` quotes per dimension
 _RANGE_SHARE = 0.99
+#: how far past that range (in spreads) a dimension must lie to be named as outside it
+_RANGE_MARGIN = 0.05
 #: the steps of an episode (real or imagined) whose states the episode level looks at
 EPISODE_STEPS = 20
 
@@ -310,10 +312,16 @@ class StateNovelty:
         return self.ratio(states, starts=starts) > 1
 
     def outside(self, state: Tensor) -> Tensor:
-        """``[D]`` bool: the dimensions of one ``state`` outside the training states'
-        central 99 %."""
-        state = _states("state", state, self.dim, flat=False).float()
-        return (state < self.low) | (state > self.high)
+        """``[*B, D]`` bool: the dimensions of ``state`` outside the training states'
+        central 99 % by more than a twentieth of their spread (a value at the edge of a
+        dimension whose training states pile up there, a cosine of 1, sits a rounding past
+        it)."""
+        return self._beyond(_states("state", state, self.dim, flat=False)) > _RANGE_MARGIN
+
+    def _beyond(self, state: Tensor) -> Tensor:
+        """How far ``state`` lies past the training states' central 99 %, in spreads."""
+        state = state.float()
+        return torch.maximum(self.low - state, state - self.high).clamp_min(0) / self.scale
 
     def describe(
         self,
@@ -325,8 +333,9 @@ class StateNovelty:
     ) -> str:
         """Why one ``state`` ``[D]`` (a ``start`` state) is unlike the training states, in
         words: its distance against the level, and the dimensions outside the training states'
-        central 99 % (up to ``top``, the farthest first) or, when none is, that the
-        combination is new."""
+        central 99 % (:meth:`outside`; up to ``top``, the farthest first) or, when none is,
+        that the combination is new and the ``top`` dimensions in which it lies farthest from
+        its ``k`` nearest training states."""
         state = _states("state", state, self.dim, flat=False)
         if state.dim() != 1:
             raise ValueError(f"state: expected one state [D], got shape {tuple(state.shape)}")
@@ -339,11 +348,14 @@ class StateNovelty:
         else:
             held = f"{self.quantile:.0%} of held-out states"
         text = f"{ratio:.1f}x as far from the training states as {held} are"
-        outside = self.outside(state)
+        beyond = self._beyond(state)
+        outside = beyond > _RANGE_MARGIN  # as :meth:`outside`
         if not bool(outside.any()):
-            return text + " (every dimension within its training range: the combination is new)"
-        state = state.float()
-        beyond = torch.maximum(self.low - state, state - self.high).clamp_min(0) / self.scale
+            farthest = ", ".join(names[d] for d in self._farthest(state)[:top])
+            return text + (
+                " (every dimension within its training range: the combination is new, farthest "
+                f"from the nearest training states in {farthest})"
+            )
         order = [d for d in beyond.argsort(descending=True, stable=True).tolist() if outside[d]]
         parts = [
             f"{names[d]} = {float(state[d]):.3g} (training {float(self.low[d]):.3g} to "
@@ -352,6 +364,15 @@ class StateNovelty:
         ]
         more = len(order) - top
         return text + ": " + ", ".join(parts) + (f" and {more} more" if more > 0 else "")
+
+    def _farthest(self, state: Tensor) -> list[int]:
+        """The dimensions of one ``state`` ``[D]``, the farthest from its ``k`` nearest
+        reference states first (mean absolute difference, in spreads)."""
+        scaled = ((state.to(self.center) - self.center) / self.scale)[None]
+        k = min(self.k, self._scaled.shape[0])
+        nearest = torch.cdist(scaled, self._scaled).topk(k, largest=False).indices[0]
+        gap = (self._scaled[nearest] - scaled).abs().mean(0)
+        return gap.argsort(descending=True, stable=True).tolist()
 
     def as_dict(self) -> dict[str, Any]:
         """Tensors and plain values (for checkpoints)."""

@@ -81,6 +81,33 @@ def test_describe_names_the_dimensions_outside_the_training_range():
     assert "the combination is new" in corner.describe(torch.tensor([0.0, 1.0]))
 
 
+def test_a_hair_past_a_range_is_not_named_and_a_new_combination_names_its_farthest_dimensions():
+    """Training states pile up at the end of a dimension (a cosine of 1): a state there sits
+    a rounding past the central 99 %, which is no reason; the dimensions it differs in from
+    its nearest training states are."""
+    g = torch.Generator().manual_seed(7)
+    a = torch.rand(3000, generator=g)
+    pile = 1 - 1e-5 * torch.rand(3000, generator=g)  # just below 1
+    states = torch.stack(
+        [torch.where(a < 0.5, pile, a), a, -a, torch.rand(3000, generator=g)], -1
+    )  # dim 0 is about 1 in half the states; dims 1 and 2 move together
+    novelty = StateNovelty.fit(states[:2500], states[2500:])
+    assert float(novelty.high[0]) < 1.0  # the 99 % range ends a rounding below the pile
+    new = torch.tensor([1.0, 0.3, -0.6, 0.5])  # dim 2 = -0.6 never goes with dim 1 = 0.3
+    assert novelty.outside(new).tolist() == [False, False, False, False]
+    assert bool(novelty.unlike(new))
+    text = novelty.describe(new, ["cos", "a", "minus_a", "free"], top=2)
+    head = "(every dimension within its training range: the combination is new, farthest from "
+    assert text.endswith(head + "the nearest training states in a, minus_a)") or text.endswith(
+        head + "the nearest training states in minus_a, a)"
+    )  # the two that do not go together, not the cosine at its edge
+    # past the range by more than a twentieth of a spread: named
+    far = new.clone()
+    far[3] = 1.5
+    assert novelty.outside(far).tolist() == [False, False, False, True]
+    assert "free = 1.5 (training " in novelty.describe(far, ["cos", "a", "minus_a", "free"])
+
+
 def test_a_dimension_constant_in_training_makes_any_other_value_unlike():
     states = torch.cat([_gaussian(300, 0, 2), torch.full((300, 1), 0.5)], -1)
     held = torch.cat([_gaussian(100, 1, 2), torch.full((100, 1), 0.5)], -1)
