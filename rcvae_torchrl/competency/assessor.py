@@ -14,6 +14,8 @@ state, Figure 1 per dimension and time).
 from __future__ import annotations
 
 import contextlib
+import difflib
+import inspect
 import math
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -28,6 +30,7 @@ from rcvae_torchrl import distributed
 from rcvae_torchrl.competency import _checks
 from rcvae_torchrl.competency._keys import KeyedModule
 from rcvae_torchrl.competency.boundary import SuccessBoundary
+from rcvae_torchrl.competency.decomposition import estimator_arg_names
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
 from rcvae_torchrl.competency.report import CompetencyReport
@@ -168,6 +171,7 @@ class CompetencyAssessor(KeyedModule):
             _checks.check_positive_int(name, value)
         if bin_width is not None:
             _checks.bin_width_tensor(bin_width, obs_dim, torch.empty(0))
+        _check_keywords(estimator, estimator_args)
         self.model_env = model_env
         self.success_metric = SuccessMetric(boundary, confidence, interval)
         self.uncertainty_metric = UncertaintyMetric(
@@ -600,6 +604,31 @@ def _dt(dt: float | None, boundary: SuccessBoundary) -> float | None:
     if boundary.dt is not None and not math.isclose(dt, boundary.dt):
         raise ValueError(f"dt: expected the boundary's dt = {boundary.dt}, got {dt!r}")
     return float(dt)
+
+
+def _check_keywords(estimator: str, estimator_args: Mapping[str, Any]) -> None:
+    """Keywords neither the assessor nor its estimator takes (a misspelt
+    ``samples_per_member``), named with both lists and the nearest known one."""
+    names = estimator_arg_names(estimator)[0] - {"ended"}  # the assessor passes "ended"
+    unknown = sorted(set(estimator_args) - names)
+    if not unknown:
+        return
+    own = [
+        p for p in inspect.signature(CompetencyAssessor.__init__).parameters if p not in _NOT_OWN
+    ]
+    known = [*own, *sorted(names)]
+    near = [n for n in known if n.startswith(unknown[0])] or difflib.get_close_matches(
+        unknown[0], known, n=1, cutoff=0.5
+    )
+    raise TypeError(
+        f"CompetencyAssessor: got unknown keyword argument(s) {unknown}, neither the "
+        f"assessor's ({', '.join(own)}) nor the {estimator!r} estimator's "
+        f"({', '.join(sorted(names))})" + (f"; did you mean {near[0]!r}?" if near else "")
+    )
+
+
+#: the assessor's parameters a user does not pass by keyword
+_NOT_OWN = ("self", "model_env", "boundary", "estimator_args")
 
 
 def _check_dt_against_real_env(dt: float | None, model_env: Any) -> None:

@@ -288,9 +288,9 @@ _FORWARDED: dict[str, tuple[Callable[..., Any], ...]] = {
 }
 
 
-def check_estimator_args(estimator: str, args: Mapping[str, Any]) -> None:
-    """Refuse keyword arguments that ``estimator`` does not take (e.g. a misspelt
-    ``bin_widht``), naming them and the ones it takes, before any sample is drawn."""
+def estimator_arg_names(estimator: str) -> tuple[set[str], set[str]]:
+    """The keyword arguments ``estimator`` takes, and those of them that are switches (a
+    bool default)."""
     _checks.check_choice("estimator", estimator, tuple(ESTIMATORS))
     names: set[str] = set()
     flags: set[str] = set()  # the switches (a bool default): a truthy string is not one
@@ -299,7 +299,13 @@ def check_estimator_args(estimator: str, args: Mapping[str, Any]) -> None:
         taken = [p for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)]
         names |= {p.name for p in taken}
         flags |= {p.name for p in taken if isinstance(p.default, bool)}
-    names -= {"samples", "x"}
+    return names - {"samples", "x"}, flags
+
+
+def check_estimator_args(estimator: str, args: Mapping[str, Any]) -> None:
+    """Refuse keyword arguments that ``estimator`` does not take (e.g. a misspelt
+    ``bin_widht``), naming them and the ones it takes, before any sample is drawn."""
+    names, flags = estimator_arg_names(estimator)
     for name in sorted(flags & set(args)):
         _checks.check_bool(name, args[name])
     unknown = sorted(set(args) - names - {"ended"})

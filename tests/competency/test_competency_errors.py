@@ -165,6 +165,24 @@ def test_estimator_arguments_are_checked_when_the_metric_is_made():
         UncertaintyMetric(bin_width=0.1, episode_end="yes")
 
 
+def test_an_assessor_keyword_neither_it_nor_its_estimator_takes_is_named_with_the_nearest():
+    from test_assessor import boundary, make_ensemble, make_env
+
+    from rcvae_torchrl.competency import CompetencyAssessor
+
+    env = make_env(make_ensemble())
+    with pytest.raises(
+        TypeError,
+        match=r"^CompetencyAssessor: got unknown keyword argument\(s\) \['samples'\], neither the "
+        r"assessor's \(bin_width, .*samples_per_member.*\) nor the 'histogram' estimator's "
+        r"\(bias_correction, .*shuffles\); did you mean 'samples_per_member'\?$",
+    ):
+        CompetencyAssessor(env, boundary(), bin_width=0.1, samples=4)
+    with pytest.raises(TypeError, match=r"\['shufles'\].*; did you mean 'shuffles'\?$"):
+        CompetencyAssessor(env, boundary(), bin_width=0.1, shufles=2)
+    CompetencyAssessor(env, boundary(), bin_width=0.1, shuffles=2)  # an estimator's keyword
+
+
 @pytest.mark.parametrize(
     ("confidence", "error"), [(2, ValueError), (0.0, ValueError), ("95%", TypeError)]
 )
