@@ -185,6 +185,15 @@ def test_control_step_reads_the_simulator_s_step_times_every_frame_skip():
         "DMControlEnv's control timestep 0.02 s x frame_skip=3 x FrameSkipTransform(2)",
     )
     assert control_step(PendulumEnv()) is None  # no simulator step to read
+    # a gym or gymnasium env (TorchRL's GymEnv keeps it as _env): its unwrapped env's dt
+    from types import SimpleNamespace
+
+    gym_like = PendulumEnv()
+    gym_like._env = SimpleNamespace(unwrapped=SimpleNamespace(dt=0.05))
+    assert control_step(gym_like.append_transform(FrameSkipTransform(2))) == (
+        0.1,
+        "PendulumEnv's dt 0.05 s x FrameSkipTransform(2)",
+    )
     # a batched env: its sub-envs are not reached, nor are its workers started to ask them
     from torchrl.envs import ParallelEnv
 
