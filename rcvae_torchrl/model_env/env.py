@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal
 
 import torch
@@ -265,6 +266,9 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         batch = self.batch_size if tensordict is None else tensordict.batch_size
         given = None if tensordict is None else tensordict.get(OBSERVATION_KEY, None)
         if given is None:
+            partial = tensordict is not None and "_reset" in tensordict.keys()
+            if partial and self.start_states is None and self._real_env is not None:
+                self._warn_real_resets()
             observation = self._sample_start_states(batch)
         else:
             _checks.check_observation(self.ensemble, "tensordict['observation']", given)
@@ -353,6 +357,23 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             self.start_states.shape[0], batch, generator=self.generator, device=self.device
         )
         return self.start_states[index]
+
+    def _warn_real_resets(self) -> None:
+        """Once per env: an auto-reset of done particles that reached this env without their
+        last observations (TorchRL's reset through a transform passes only ``"_reset"``) draws
+        new start states by resetting ``real_env``, which ends the episode it is in."""
+        if getattr(self, "_warned_real_resets", False):
+            return
+        self._warned_real_resets = True
+        warnings.warn(
+            "RCVAEEnsembleEnv: an auto-reset of done particles (TorchRL's reset through a "
+            "transform, which passes only '_reset', not their last observations) resets real_env "
+            "to draw new start states; if an agent acts in that env instance, its episode was "
+            "just reset. Give the model env start_states=..., act in another instance of the "
+            "real env, or leave terminate_on_success off",
+            UserWarning,
+            stacklevel=2,
+        )
 
     def _real_start_states(self, batch: torch.Size) -> torch.Tensor:
         """One ``real_env.reset()`` per start state needed (its observations, checked)."""

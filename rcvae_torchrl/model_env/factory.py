@@ -5,9 +5,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from tensordict.utils import unravel_key
 from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
 
 from rcvae_torchrl.model_env.env import RCVAEEnsembleEnv
+from rcvae_torchrl.model_env.specs import OBSERVATION_KEY
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import RewardFn, SuccessFn
 
@@ -35,7 +37,9 @@ def make_rcvae_env(
         success_fn: ``success_fn(observation=s) -> [...]`` bool (e.g. a
             ``functools.partial`` of a function with a radius argument).
         transforms: optional transforms; the env is then wrapped in a ``TransformedEnv``, whose
-            class has no fast path, so planners score plans through ``step``.
+            class has no fast path, so planners score plans through ``step``. A transform that
+            writes ``"observation"`` (an ``ObservationNorm`` or ``CatFrames`` on it) is
+            refused: the model env reads its next state from that entry; write elsewhere.
         **kwargs: keyword arguments of :class:`RCVAEEnsembleEnv` (``trajectory_sampling``,
             ``start_states``, ``terminate_on_success``, ``seed``, ...).
 
@@ -53,6 +57,15 @@ def make_rcvae_env(
     env = RCVAEEnsembleEnv(ensemble, reward_fn, success_fn, real_env=real_env, **kwargs)
     if transforms is None:
         return env
-    if isinstance(transforms, Transform):
-        return TransformedEnv(env, transforms)
-    return TransformedEnv(env, Compose(*transforms))
+    compose = transforms if isinstance(transforms, Compose) else None
+    if compose is None:
+        compose = Compose(*([transforms] if isinstance(transforms, Transform) else transforms))
+    for transform in compose:
+        if OBSERVATION_KEY in map(unravel_key, getattr(transform, "out_keys", None) or []):
+            raise ValueError(
+                f"transforms: {type(transform).__name__} writes {OBSERVATION_KEY!r}, the model's "
+                "state: the model env reads its next state from it, so the transformed values "
+                "would be fed back into the model (a normalised state taken for a raw one); "
+                f"write to another key (out_keys=[...]), leaving {OBSERVATION_KEY!r} as it is"
+            )
+    return TransformedEnv(env, compose)

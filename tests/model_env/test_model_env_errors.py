@@ -173,3 +173,33 @@ def test_action_specs_with_crossed_bounds_are_refused(ensemble, starts):
         ValueError, match=r"^action_spec \(its low and high\): expected low <= high"
     ):
         RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, real_env=real)
+
+
+def test_a_transform_that_writes_the_observation_is_refused(ensemble, real_env, starts):
+    """The model env reads its next state from "observation": an ObservationNorm on it fed
+    the normalised state back into the model (x read 0.999, 9.99, 99.8 ... for 0.0999,
+    0.0998, 0.0997 ... untransformed)."""
+    from torchrl.envs import CatFrames, ObservationNorm, StepCounter
+
+    from rcvae_torchrl.envs import pusher_reward, pusher_success
+    from rcvae_torchrl.model_env import make_rcvae_env
+
+    args = (ensemble, real_env, pusher_reward, pusher_success)
+    for transform in (
+        ObservationNorm(loc=0.0, scale=10.0, in_keys=["observation"]),
+        [StepCounter(5), CatFrames(2, dim=-1, in_keys=["observation"])],
+    ):
+        with pytest.raises(
+            ValueError,
+            match=r"^transforms: (ObservationNorm|CatFrames) writes 'observation', the model's "
+            r"state: .* write to another key \(out_keys=\[\.\.\.\]\)",
+        ):
+            make_rcvae_env(*args, start_states=starts, transforms=transform)
+    # written to another key, the model's state is left as it is
+    norm = ObservationNorm(
+        loc=0.0, scale=10.0, in_keys=["observation"], out_keys=["observation_norm"]
+    )
+    env = make_rcvae_env(*args, start_states=starts, seed=0, transforms=norm)
+    td = env.reset(TensorDict({"observation": starts[:2]}, batch_size=[2]))
+    assert torch.equal(td["observation"], starts[:2])
+    assert torch.allclose(td["observation_norm"], starts[:2] * 10)

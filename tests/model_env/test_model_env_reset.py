@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 from model_env_utils import at_target
@@ -129,3 +131,34 @@ def test_reset_through_a_transformed_env_takes_the_observation(make_env, starts)
     td = env.reset(TensorDict({"observation": starts[:3]}, batch_size=[3]))
     assert torch.equal(td["observation"], starts[:3])
     assert (td["step_count"] == 0).all()
+
+
+def test_an_auto_reset_through_a_transform_that_resets_the_real_env_says_so_once(
+    ensemble, real_env, starts
+):
+    """TorchRL's reset through a transform hands the model env only '_reset', not the done
+    particles' last observations: with neither start states nor their observations, new ones
+    come from resetting the real env, which ends the episode an agent may be acting in."""
+    from torchrl.envs import RewardScaling
+
+    env = TransformedEnv(
+        make_rcvae_env(
+            ensemble, real_env, pusher_reward, pusher_success, seed=0, terminate_on_success=True
+        ),
+        RewardScaling(0.0, 1.0),
+    )
+    td = env.reset(TensorDict({"observation": starts[:3]}, batch_size=[3]))
+    td["done"] = torch.tensor([[False], [True], [False]])
+    with pytest.warns(UserWarning, match=r"resets real_env to draw new start states; if an agent"):
+        env.maybe_reset(td.clone())
+    with warnings.catch_warnings():  # said once per model env
+        warnings.simplefilter("error")
+        env.maybe_reset(td.clone())
+    # with start states the real env is not touched, and nothing is said
+    quiet = TransformedEnv(
+        make_rcvae_env(ensemble, real_env, pusher_reward, pusher_success, start_states=starts),
+        RewardScaling(0.0, 1.0),
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        quiet.maybe_reset(td.clone())
