@@ -92,13 +92,13 @@ def _model_state_spec(
 
 
 def _default_specs(ensemble: RCVAEEnsemble) -> tuple[TensorSpec, ...]:
-    cfg = ensemble.config
+    cfg, dtype = ensemble.config, ensemble.dtype  # the model's dtype (float64 where cast)
     flag = Categorical(2, shape=(1,), dtype=torch.bool)
     return (
-        Unbounded((cfg.obs_dim,), dtype=torch.float32),
+        Unbounded((cfg.obs_dim,), dtype=dtype),
         Unbounded((1,), dtype=torch.bool),
-        Bounded(low=-1.0, high=1.0, shape=(cfg.action_dim,), dtype=torch.float32),
-        Unbounded((1,), dtype=torch.float32),
+        Bounded(low=-1.0, high=1.0, shape=(cfg.action_dim,), dtype=dtype),
+        Unbounded((1,), dtype=dtype),
         Composite(done=flag, terminated=flag.clone(), truncated=flag.clone()),
     )
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 from model_env_utils import CONFIG, E
@@ -159,3 +161,18 @@ def test_episode_latent_rides_in_the_hidden_state(pusher_data, real_env, starts,
         assert torch.allclose(episode[:, 0], episode[:1, 0].expand_as(episode[:, 0]))
     else:
         assert not torch.allclose(episode[0, 0], episode[1, 0])
+
+
+def test_a_float64_model_without_a_real_env_gets_float64_specs(ensemble, starts):
+    """The default specs take the model's dtype: a float64 ensemble's env passes TorchRL's
+    spec check (its random actions were float32, refused by its own step)."""
+    from rcvae_torchrl.model_env import make_rcvae_env
+
+    model = copy.deepcopy(ensemble).double()
+    env = make_rcvae_env(
+        model, None, pusher_reward, pusher_success, start_states=starts.double(), seed=0
+    )
+    specs = (env.observation_spec["observation"], env.action_spec, env.reward_spec)
+    assert [s.dtype for s in specs] == [torch.float64] * 3
+    assert env.observation_spec["rcvae", "hidden"].dtype == torch.float64
+    check_env_specs(env)
