@@ -486,27 +486,24 @@ class CompetencyReport:
                 f"Caution: the start state is unlike the states the model was trained on "
                 f"({detail}){also}: the forecast extrapolates, however much the members agree."
             )
-        if imagined:
-            level = self.novelty.episode_level
-            usual = (
-                f"where {self.novelty.episode_quantile:.0%} of in-distribution episodes have "
-                f"at most {level:.0%}"
-                if self.novelty.episodes_measured
-                else f"more than ten times the share of held-out states ({level:.0%})"
-            )
-            leaves = int(one.get(("novelty", "leaves"), -1))  # absent in older reports
-            if leaves < 0:
-                return (
-                    f"Caution: {share:.0%} of the imagined states are unlike the states the "
-                    f"model was trained on, {usual}: the forecast extrapolates there, however "
-                    "much the members agree."
-                )
-            return (
-                f"Caution: {share:.0%} of the imagined states are unlike the states the model "
-                f"was trained on, {usual}. By {_when(leaves, self.dt)} most of them are: the "
-                "forecast extrapolates from there on, however much the members agree."
-            )
-        return ""
+        level = self.novelty.episode_level  # the imagined states alone are cautioned
+        usual = (
+            f"where {self.novelty.episode_quantile:.0%} of in-distribution episodes have "
+            f"at most {level:.0%}"
+            if self.novelty.episodes_measured
+            else f"more than ten times the share of held-out states ({level:.0%})"
+        )
+        leaves = int(one.get(("novelty", "leaves"), -1))  # absent in older reports
+        where = (
+            ": the forecast extrapolates there"
+            if leaves < 0
+            else f". By {_when(leaves, self.dt)} most of them are: the forecast extrapolates "
+            "from there on"
+        )
+        return (
+            f"Caution: {share:.0%} of the imagined states are unlike the states the model was "
+            f"trained on, {usual}{where}, however much the members agree."
+        )
 
     def _uncertainty_sentence(
         self,

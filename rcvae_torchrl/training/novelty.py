@@ -84,8 +84,7 @@ class StateNovelty:
 
     def __post_init__(self) -> None:
         # the reference in spreads, as every distance reads it (scaled once, not per call)
-        scaled = ((self.states - self.center) / self.scale).contiguous()
-        object.__setattr__(self, "_scaled", scaled)
+        object.__setattr__(self, "_scaled", self._in_spreads(self.states))
         if math.isnan(self.start_level):  # no first states: starts are states like any other
             object.__setattr__(self, "start_level", self.level)
             object.__setattr__(self, "start_quantile", self.quantile)
@@ -287,20 +286,28 @@ class StateNovelty:
     ) -> Tensor:
         """``[Q, D] -> [Q]`` (see :meth:`distance`); with ``ids`` ``[Q]`` and
         ``reference_ids`` ``[M]``, a state's own episode's reference states left out."""
-        flat = ((states - self.center) / self.scale).contiguous()
-        reference = self._scaled
-        k = min(self.k, reference.shape[0])
+        flat = self._in_spreads(states)
         out = []
         for i, block in zip(
             range(0, flat.shape[0], _BLOCK_ROWS), flat.split(_BLOCK_ROWS), strict=True
         ):
-            distances = torch.cdist(block, reference)
-            if ids is not None:
-                own = ids[i : i + _BLOCK_ROWS, None] == reference_ids[None]
-                distances = distances.masked_fill(own, math.inf)
-            out.append(distances.topk(k, largest=False).values[:, -1])
+            own = None if ids is None else ids[i : i + _BLOCK_ROWS, None] == reference_ids[None]
+            out.append(self._nearest(block, own).values[:, -1])
         distance = torch.cat(out) if out else flat.new_zeros(0)
         return distance / math.sqrt(self.dim)
+
+    def _in_spreads(self, states: Tensor) -> Tensor:
+        """``states`` ``[Q, D]`` centred and in units of the training spread, as the reference
+        states are held."""
+        return ((states - self.center) / self.scale).contiguous()
+
+    def _nearest(self, scaled: Tensor, own: Tensor | None = None) -> Any:
+        """The ``k`` nearest reference states of ``scaled`` states ``[Q, D]`` (``torch.topk``'s
+        values and indices, ``[Q, k]``); ``own`` ``[Q, M]`` marks reference states left out."""
+        distances = torch.cdist(scaled, self._scaled)
+        if own is not None:
+            distances = distances.masked_fill(own, math.inf)
+        return distances.topk(min(self.k, self._scaled.shape[0]), largest=False)
 
     def ratio(self, states: Tensor, *, starts: bool = False) -> Tensor:
         """``[*B]``: the distance over the level, or for ``starts`` (start states of episodes)
@@ -368,9 +375,8 @@ class StateNovelty:
     def _farthest(self, state: Tensor) -> list[int]:
         """The dimensions of one ``state`` ``[D]``, the farthest from its ``k`` nearest
         reference states first (mean absolute difference, in spreads)."""
-        scaled = ((state.to(self.center) - self.center) / self.scale)[None]
-        k = min(self.k, self._scaled.shape[0])
-        nearest = torch.cdist(scaled, self._scaled).topk(k, largest=False).indices[0]
+        scaled = self._in_spreads(state.to(self.center)[None])
+        nearest = self._nearest(scaled).indices[0]
         gap = (self._scaled[nearest] - scaled).abs().mean(0)
         return gap.argsort(descending=True, stable=True).tolist()
 
