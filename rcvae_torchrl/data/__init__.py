@@ -7,7 +7,14 @@ from .exploration import (
     action_bounds,
     make_policy_module,
 )
-from .prepare import ActionNoise, ObservationLayout, control_step, prepare_env, seed_env
+from .prepare import (
+    ActionNoise,
+    ObservationLayout,
+    control_step,
+    observation_layout,
+    prepare_env,
+    seed_env,
+)
 from .replay import (
     episode_spans,
     make_window_buffer,
@@ -33,6 +40,7 @@ __all__ = [
     "ActionNoise",
     "ObservationLayout",
     "control_step",
+    "observation_layout",
     "prepare_env",
     "seed_env",
     # replay

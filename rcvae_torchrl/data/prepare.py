@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.envs import (
     CatTensors,
@@ -28,9 +29,18 @@ from torchrl.envs import (
 
 from rcvae_torchrl._checks import check_non_negative_int
 
-__all__ = ["ActionNoise", "ObservationLayout", "control_step", "prepare_env", "seed_env"]
+__all__ = [
+    "ActionNoise",
+    "ObservationLayout",
+    "control_step",
+    "observation_layout",
+    "prepare_env",
+    "seed_env",
+]
 
 OBSERVATION_KEY = "observation"
+#: the suffix of the ``[1]`` copies of scalar entries that ``prepare_env`` concatenates
+_UNSQUEEZED = "_unsqueezed"
 
 
 @dataclass(frozen=True)
@@ -180,7 +190,7 @@ def _concatenation(
     """The transforms that concatenate ``keys`` into ``"observation"``: scalar entries are first
     copied as ``[1]`` vectors (``CatTensors`` cannot start from a scalar), the copies then
     dropped; with ``keep_keys`` the source entries stay as they were."""
-    vectors = {key: ("_" + _name(key) + "_unsqueezed" if key in scalars else key) for key in keys}
+    vectors = {key: ("_" + _name(key) + _UNSQUEEZED if key in scalars else key) for key in keys}
     transforms: list[Transform] = []
     if scalars:
         copies = [vectors[key] for key in scalars]
@@ -272,7 +282,8 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
     it was read; ``None`` where it cannot.
 
     Read from the base env's simulator (dm_control's ``control_timestep()``; gym and
-    gymnasium's ``unwrapped.dt``), times the frame skip of a wrapper that skips frames itself
+    gymnasium's ``unwrapped.dt``; an env that declares its parameters as TorchRL's
+    ``PendulumEnv`` does, the ``("params", "dt")`` of its ``gen_params()``), times the frame skip of a wrapper that skips frames itself
     (``DMControlEnv(..., frame_skip=k)``) and every ``FrameSkipTransform``'s around it. A
     batched env (its sub-envs are not reached) and other envs give ``None``.
 
@@ -282,19 +293,16 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
         >>> control_step(env)
         (0.05, "DMControlEnv's control timestep 0.01 s x FrameSkipTransform(5)")
     """
-    skips = []
-    base = env
-    while isinstance(base, TransformedEnv):
-        transform = base.transform
-        parts = list(transform) if isinstance(transform, Compose) else [transform]
-        skips += [p.frame_skip for p in parts if isinstance(p, FrameSkipTransform)]
-        base = base.base_env
+    transforms, base = _transforms(env)
+    skips = [p.frame_skip for p in transforms if isinstance(p, FrameSkipTransform)]
     inner = base.__dict__.get("_env")  # not getattr: a batched env would ask its workers
     timestep = getattr(inner, "control_timestep", None)
     if callable(timestep):
         dt, what = float(timestep()), "control timestep"
     elif isinstance(getattr(getattr(inner, "unwrapped", None), "dt", None), (int, float)):
         dt, what = float(inner.unwrapped.dt), "dt"
+    elif (declared := _declared_dt(base)) is not None:
+        dt, what = declared, "default params' dt"
     else:
         return None
     text = f"{type(base).__name__}'s {what} {dt:g} s"
@@ -306,3 +314,56 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
     for skip in skips:
         dt, text = dt * skip, text + f" x FrameSkipTransform({skip})"
     return round(dt, 12), text
+
+
+def _declared_dt(base: EnvBase) -> float | None:
+    """The ``("params", "dt")`` of ``gen_params()`` where the env's class declares its
+    parameters so (TorchRL's ``PendulumEnv``), else ``None``."""
+    params = getattr(type(base), "gen_params", None)
+    try:
+        found = params() if callable(params) else None
+    except TypeError:  # a gen_params of another kind, which needs arguments
+        return None
+    if isinstance(found, TensorDictBase) and ("params", "dt") in found.keys(True):
+        return float(f"{float(found['params', 'dt']):.7g}")  # float32's digits
+    return None
+
+
+def _transforms(env: EnvBase) -> tuple[list[Transform], EnvBase]:
+    """Every transform around ``env``'s base env, in the order they apply to an observation
+    (the innermost env's first), and the base env. Transforms inside a batched env's sub-envs
+    are not reached (their workers are not asked)."""
+    layers = []
+    base = env
+    while isinstance(base, TransformedEnv):
+        transform = base.transform
+        layers.append(list(transform) if isinstance(transform, Compose) else [transform])
+        base = base.base_env
+    return [t for layer in reversed(layers) for t in layer], base
+
+
+def observation_layout(env: EnvBase) -> ObservationLayout | None:
+    """The layout of ``env``'s ``"observation"`` as a :func:`prepare_env`'d env builds it: the
+    entries its last ``CatTensors`` into ``"observation"`` concatenates, in order, and their
+    sizes; ``None`` where no transform of ``env`` builds it (the env gives it itself, or a
+    batched env's sub-envs do)."""
+    transforms, _ = _transforms(env)
+    cats = [
+        t
+        for t in transforms
+        if isinstance(t, CatTensors) and list(t.out_keys) == [OBSERVATION_KEY]
+    ]
+    if not cats or cats[-1].parent is None:
+        return None
+    cat = cats[-1]
+    parent = cat.parent
+    spec = parent.full_observation_spec
+    keys, sizes = [], []
+    for key in cat.in_keys:
+        if key not in spec.keys(True, True):
+            return None
+        name = _name(key)
+        scalar = name.startswith("_") and name.endswith(_UNSQUEEZED)  # prepare_env's copies
+        keys.append(name[1 : -len(_UNSQUEEZED)] if scalar else name)
+        sizes.append(int(spec[key].shape[len(parent.batch_size) :].numel()))
+    return ObservationLayout(tuple(keys), tuple(sizes))

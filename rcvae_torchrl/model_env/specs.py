@@ -11,12 +11,14 @@ input tensordict, also through a ``TransformedEnv``).
 
 from __future__ import annotations
 
+import re
 from typing import NamedTuple
 
 import torch
 from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 
+from rcvae_torchrl.data import observation_layout
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import TrajectorySampling
 
@@ -142,6 +144,7 @@ def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]
         )
     reward = _unbatched(env.full_reward_spec, nb)[REWARD_KEY]
     _check_shape(f"real_env {OBSERVATION_KEY!r} spec", obs.shape, (cfg.obs_dim,))
+    _check_layout(ensemble, env)
     _check_shape(f"real_env {ACTION_KEY!r} spec", action.shape, (cfg.action_dim,))
     _check_shape(f"real_env {REWARD_KEY!r} spec", reward.shape, (1,))
     defaults = _default_specs(ensemble)
@@ -152,6 +155,34 @@ def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]
         reward,
         _unbatched(env.full_done_spec, nb),
     )
+
+
+def _check_layout(ensemble: RCVAEEnsemble, env: EnvBase) -> None:
+    """Refuse ``env`` where its ``"observation"`` puts a dimension the ensemble was trained on
+    (by the name the ensemble records) at another place than the ensemble's: entries named in
+    another order, or other entries of the same total size. Names the ensemble gave its
+    dimensions itself, none of the env's entries', are not compared."""
+    names = ensemble.config.observation_names
+    layout = observation_layout(env)
+    if names is None or layout is None or layout.dim != len(names):
+        return
+    ours = set(layout.names)
+    moved = [i for i, name in enumerate(names) if name in ours and name != layout.names[i]]
+    if moved:
+        i = moved[0]
+        raise ValueError(
+            f"real_env: its {OBSERVATION_KEY!r} has {layout.names[i]!r} as dimension {i}, "
+            f"where the ensemble was trained on {names[i]!r} ({len(moved)} of {len(names)} "
+            f"dimensions differ): the env concatenates {list(layout.keys)}, the ensemble's "
+            f"dimensions are {list(names)}; prepare the env with the entries in the ensemble's "
+            f"order (prepare_env(env, observation_keys={_entries(names)}))"
+        )
+
+
+def _entries(names: tuple[str, ...]) -> list[str]:
+    """The entries that dimension names ``key[i]`` / ``key`` (an ObservationLayout's) come
+    from, in order."""
+    return list(dict.fromkeys(re.sub(r"\[\d+\]$", "", name) for name in names))
 
 
 def _check_shape(name: str, got: torch.Size, want: tuple[int, ...]) -> None:

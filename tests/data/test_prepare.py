@@ -184,7 +184,15 @@ def test_control_step_reads_the_simulator_s_step_times_every_frame_skip():
         0.12,
         "DMControlEnv's control timestep 0.02 s x frame_skip=3 x FrameSkipTransform(2)",
     )
-    assert control_step(PendulumEnv()) is None  # no simulator step to read
+    # TorchRL's PendulumEnv declares its parameters (gen_params()), its dt among them
+    assert control_step(PendulumEnv()) == (0.05, "PendulumEnv's default params' dt 0.05 s")
+
+    class OtherParams(PendulumEnv):  # a gen_params of another kind: no step to read
+        @staticmethod
+        def gen_params(scale, batch_size=None, device=None):
+            raise AssertionError("not called without its arguments")
+
+    assert control_step(OtherParams(td_params=PendulumEnv.gen_params())) is None
     # a gym or gymnasium env (TorchRL's GymEnv keeps it as _env): its unwrapped env's dt
     from types import SimpleNamespace
 
@@ -199,6 +207,51 @@ def test_control_step_reads_the_simulator_s_step_times_every_frame_skip():
 
     batched = ParallelEnv(2, lambda: DMControlEnv("reacher", "easy"))
     assert control_step(batched) is None and batched.is_closed
+
+
+def test_observation_layout_reads_a_prepared_env_s_concatenation(reacher):
+    from torchrl.envs import FrameSkipTransform
+
+    from rcvae_torchrl.data import observation_layout
+
+    env, layout = prepare_env(reacher)
+    assert observation_layout(env) == layout
+    # named entries in another order, a scalar among them, the sources dropped, and a
+    # transform appended after: still the layout prepare_env returned
+    finger = DMControlEnv("finger", "turn_easy")
+    keys = ["velocity", "dist_to_target", "position"]
+    env, layout = prepare_env(finger, keys, keep_keys=False)
+    env.append_transform(FrameSkipTransform(2))
+    assert observation_layout(env) == layout == ObservationLayout(tuple(keys), (3, 1, 4))
+    # an env that gives "observation" itself: nothing to read
+    assert observation_layout(finger) is None
+    assert observation_layout(prepare_env(PendulumEnv(), ["th", "thdot"])[0]).names == (
+        "th",
+        "thdot",
+    )
+
+
+def test_a_model_env_refuses_a_real_env_whose_dimensions_are_in_another_order():
+    finger = DMControlEnv("finger", "turn_easy")
+    trained, layout = prepare_env(finger)  # position, velocity, touch, target, distance
+    config = RCVAEConfig(layout.dim, 2, hidden_dim=8, mlp_dim=8, observation_names=layout.names)
+    model = RCVAEEnsemble(config, 2)
+    make_rcvae_env(model, trained, _reward, _success)  # the layout it was trained on
+    order = ["velocity", "position", "touch", "dist_to_target", "target_position"]
+    moved, _ = prepare_env(finger, order)  # the same 12 dimensions, elsewhere
+    with pytest.raises(
+        ValueError,
+        match=r"^real_env: its 'observation' has 'velocity\[0\]' as dimension 0, where the "
+        r"ensemble was trained on 'position\[0\]' \(10 of 12 dimensions differ\): .*"
+        r"prepare_env\(env, observation_keys=\['position', 'velocity', 'touch', "
+        r"'target_position', 'dist_to_target'\]\)",
+    ):
+        make_rcvae_env(model, moved, _reward, _success)
+    # names of the user's own (none of the env's entries') are not compared
+    renamed = RCVAEConfig(
+        layout.dim, 2, hidden_dim=8, mlp_dim=8, observation_names=[f"d{i}" for i in range(12)]
+    )
+    make_rcvae_env(RCVAEEnsemble(renamed, 2), moved, _reward, _success)
 
 
 def test_a_boundary_dt_that_is_not_the_real_env_s_step_is_named():
