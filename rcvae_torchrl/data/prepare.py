@@ -283,9 +283,10 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
 
     Read from the base env's simulator (dm_control's ``control_timestep()``; gym and
     gymnasium's ``unwrapped.dt``; an env that declares its parameters as TorchRL's
-    ``PendulumEnv`` does, the ``("params", "dt")`` of its ``gen_params()``), times the frame skip of a wrapper that skips frames itself
-    (``DMControlEnv(..., frame_skip=k)``) and every ``FrameSkipTransform``'s around it. A
-    batched env (its sub-envs are not reached) and other envs give ``None``.
+    ``PendulumEnv`` does, the ``("params", "dt")`` of its ``gen_params()``), times the frame
+    skip of a wrapper that skips frames itself (``DMControlEnv(..., frame_skip=k)``) and every
+    ``FrameSkipTransform``'s around it. A batched env (its sub-envs are not reached) and other
+    envs give ``None``.
 
     Example:
         >>> from torchrl.envs import DMControlEnv, FrameSkipTransform
