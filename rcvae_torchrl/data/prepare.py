@@ -350,9 +350,7 @@ def observation_layout(env: EnvBase) -> ObservationLayout | None:
     batched env's sub-envs do)."""
     transforms, _ = _transforms(env)
     cats = [
-        t
-        for t in transforms
-        if isinstance(t, CatTensors) and list(t.out_keys) == [OBSERVATION_KEY]
+        t for t in transforms if isinstance(t, CatTensors) and list(t.out_keys) == [OBSERVATION_KEY]
     ]
     if not cats or cats[-1].parent is None:
         return None
