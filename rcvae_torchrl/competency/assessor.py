@@ -17,6 +17,7 @@ import contextlib
 import difflib
 import inspect
 import math
+import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol, runtime_checkable
@@ -187,6 +188,18 @@ class CompetencyAssessor(KeyedModule):
             )
         self.dt = _dt(dt, boundary)
         _check_dt_against_real_env(self.dt, model_env)
+        short = self.horizon is not None and self.horizon < boundary.time_limit < math.inf
+        if short and not boundary.is_survival:
+            # the report answers the shorter deadline, which only its wording would show
+            seconds = "" if self.dt is None else f" = {self.horizon * self.dt:g} s"
+            limit = "" if self.dt is None else f" = {boundary.time_limit * self.dt:g} s"
+            warnings.warn(
+                f"horizon: {self.horizon} steps{seconds}, shorter than the boundary's time limit "
+                f"of {boundary.time_limit} steps{limit}: the forecast answers P(success within "
+                f"{self.horizon} steps{seconds}); give a horizon of at least "
+                f"{boundary.time_limit} for the boundary's deadline",
+                stacklevel=2,
+            )
         self.policy = policy
         self.samples_per_member = samples_per_member
         self.top_k, self.start_chunk = top_k, start_chunk

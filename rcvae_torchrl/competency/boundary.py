@@ -267,7 +267,13 @@ def _time_limit_steps(steps: int | None, seconds: float | None, dt: float | None
     _checks.check_positive("time_limit_s", seconds)
     if dt is None:
         raise ValueError("dt: expected the step duration in seconds with time_limit_s, got None")
-    return max(1, math.floor(seconds / dt + 1e-9))
+    steps = math.floor(seconds / dt + 1e-9)
+    if steps < 1:
+        raise ValueError(
+            f"time_limit_s: expected at least one step of dt = {dt:g} s, got {seconds:g} s "
+            "(no step would end within it)"
+        )
+    return steps
 
 
 def _indices(name: str, indices: object, obs_dim: int | None) -> list[int]:

@@ -1,6 +1,7 @@
 """CompetencyAssessor and CompetencyReport: keys, shapes, loops, chunks, summary rules, errors."""
 
 import doctest
+import warnings
 
 import pytest
 import torch
@@ -812,3 +813,21 @@ def test_a_planner_agent_is_reset_per_chunk_and_seeded_with_the_assessment(env, 
     assert_same(first.data, again.data)
     other = assessor.assess(starts, seed=1).data["uncertainty", "total"]
     assert not torch.equal(first.data["uncertainty", "total"], other)
+
+
+def test_a_horizon_shorter_than_the_deadline_is_said(env, starts):
+    """A horizon short of the boundary's time limit answers an earlier deadline: the assessor
+    warns once, naming both, and the report's time limit is the horizon's."""
+    with pytest.warns(UserWarning, match=r"^horizon: 3 steps = .* shorter than the boundary's"):
+        short = make_assessor(env, horizon=3, boundary=boundary(time_limit=T))
+    assert short.assess(starts, actions=torch.zeros(3, A)).time_limit == 3
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        make_assessor(env, horizon=T + 2)  # longer: the deadline is the boundary's
+        make_assessor(env, horizon=3, boundary=boundary(time_limit=None, dt=DT))  # none
+
+
+def test_a_time_limit_short_of_one_step_is_refused():
+    with pytest.raises(ValueError, match=r"^time_limit_s: expected at least one step of dt = "):
+        boundary(time_limit=None, time_limit_s=DT / 2)
+    assert boundary(time_limit=None, time_limit_s=DT).time_limit == 1
