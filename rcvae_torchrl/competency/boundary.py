@@ -234,7 +234,15 @@ class SuccessBoundary:
         _checks.check_min_rank("observation", observation, 2, "[..., T, D]")
         _checks.check_floating("observation", observation)
         _checks.check_finite("observation", observation)
-        result = predicate(observation)  # type: ignore[misc]
+        try:
+            result = predicate(observation)  # type: ignore[misc]
+        except (IndexError, KeyError, TypeError, RuntimeError) as error:
+            raise ValueError(
+                f"{name}: the predicate failed on observations of shape "
+                f"{tuple(observation.shape)} ([..., T, D]: the model's state vector, its D = "
+                f"{observation.shape[-1]} dimensions read as observation[..., i], not the env's "
+                f"entries by name), with {type(error).__name__}: {error}"
+            ) from error
         if not isinstance(result, Tensor) or result.shape != observation.shape[:-1]:
             got = tuple(result.shape) if isinstance(result, Tensor) else type(result).__name__
             raise ValueError(

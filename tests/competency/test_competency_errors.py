@@ -140,6 +140,16 @@ def test_boundary_errors():
         SuccessBoundary.ball(position=[0, 1], target=[2], radius=0.1)
     with pytest.raises(TypeError, match="boundary: expected a SuccessBoundary"):
         SuccessMetric(lambda o: o)
+    for predicate, error in (
+        (lambda o: o["dist_to_target"] < 0, "IndexError: too many indices"),  # an env's entry
+        (lambda o: o[..., 3] < 0, "IndexError: index 3 is out of bounds"),
+    ):
+        with pytest.raises(
+            ValueError,
+            match=r"^success: the predicate failed on observations of shape \(2, 5, 3\) "
+            r"\(\[\.\.\., T, D\]: .* D = 3 dimensions .*\), with " + error,
+        ):
+            SuccessBoundary(predicate).success_over_time(torch.randn(2, 5, 3))
     bad = SuccessBoundary(lambda o: o.sum() > 0)
     with pytest.raises(ValueError, match="success: expected the predicate to map observations"):
         bad.success_over_time(torch.randn(2, 5, 3))
