@@ -275,9 +275,25 @@ class RCVAEEnsemble(nn.Module):
             norm = self.normalizer
             change = delta * norm.delta_std[:head] + norm.delta_mean[:head]
             state = torch.cat([obs_prev[..., :head] + change, obs_prev[..., head:]], dim=-1)
-        if self.state_constraint is not None:
-            state = self.state_constraint(obs_prev, state)
-        return state
+        if self.state_constraint is None:
+            return state
+        constrained = self.state_constraint(obs_prev, state)
+        if (
+            not isinstance(constrained, torch.Tensor)
+            or constrained.shape != state.shape
+            or constrained.dtype != state.dtype
+        ):
+            got = (
+                f"shape {tuple(constrained.shape)} and dtype {constrained.dtype}"
+                if isinstance(constrained, torch.Tensor)
+                else type(constrained).__name__
+            )
+            raise ValueError(
+                f"state_constraint {self.config.state_constraint!r}: expected the constrained "
+                f"state in the generated state's shape {tuple(state.shape)} and dtype "
+                f"{state.dtype} (every dimension, [..., S = {state.shape[-1]}]), got {got}"
+            )
+        return constrained
 
     def target_delta(self, obs_prev: torch.Tensor, obs: torch.Tensor) -> torch.Tensor:
         """Normalised state change Δ̂_t of the predicted dims: ``[..., S]`` × 2 → ``[..., D]``."""

@@ -84,6 +84,27 @@ def test_generated_states_obey_the_constraint():
     assert free_obs[..., 0].abs().sum() > 0
 
 
+@pytest.mark.parametrize("horizon", [1, 5])
+def test_a_constraint_returning_another_shape_or_dtype_is_named(horizon):
+    """A constraint that drops a dimension (or casts) is refused at the first step it runs,
+    naming it, where a one-step imagination would have returned the wrong shape."""
+    bad = ModelFunctions(
+        state_constraints={
+            "drops": lambda previous, state: state[..., :2],
+            "casts": lambda previous, state: state.double(),
+        }
+    )
+    for name, got in (("drops", r"shape \(2, 4, 2\)"), ("casts", "dtype torch.float64")):
+        config = _config(state_constraint=name)
+        model = RCVAEEnsemble(config, 2, functions=bad)
+        with pytest.raises(
+            ValueError,
+            match=rf"^state_constraint '{name}': expected the constrained state in the "
+            rf"generated state's shape \(2, 4, 3\) and dtype torch.float32 .*, got .*{got}",
+        ):
+            imagine(model, torch.ones(4, 3), torch.zeros(4, horizon, 1))
+
+
 def test_select_members_keeps_the_functions():
     config = RCVAEConfig(3, 1, hidden_dim=8, mlp_dim=8, state_constraint="zero_first")
     one = RCVAEEnsemble(config, 3, functions=FUNCTIONS).select_members([1])
