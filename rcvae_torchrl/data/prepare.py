@@ -255,6 +255,12 @@ class ActionNoise(Transform):
         return low, high
 
     def _inv_apply_transform(self, action: torch.Tensor) -> torch.Tensor:
+        if self.std.ndim > 1 or (self.std.ndim == 1 and self.std.shape[0] != action.shape[-1]):
+            raise ValueError(
+                f"std: expected a scalar or one standard deviation per action dimension, "
+                f"[A = {action.shape[-1]}] for this env's actions, got shape "
+                f"{tuple(self.std.shape)}"
+            )
         noise = torch.randn(action.shape, generator=self.generator).to(action)
         return torch.clamp(action + self.std.to(action) * noise, *self._bounds(action))
 

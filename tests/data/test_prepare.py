@@ -166,6 +166,17 @@ def test_action_noise_is_clipped_to_the_spec():
     assert (applied.abs() <= 1).all() and (applied.abs() == 1).any()
 
 
+def test_action_noise_of_another_size_than_the_actions_is_named():
+    env, _ = prepare_env(PendulumEnv(), ["th", "thdot"])  # one action dimension
+    env.append_transform(ActionNoise(torch.tensor([0.5, 0.5])))
+    with pytest.raises(
+        ValueError,
+        match=r"^std: expected a scalar or one standard deviation per action dimension, "
+        r"\[A = 1\] for this env's actions, got shape \(2,\)",
+    ):
+        env.rand_step()
+
+
 def test_control_step_reads_the_simulator_s_step_times_every_frame_skip():
     from torchrl.envs import FrameSkipTransform
 
