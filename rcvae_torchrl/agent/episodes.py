@@ -15,7 +15,7 @@ from torchrl.envs.batched_envs import BatchedEnvBase
 from tqdm.auto import tqdm
 
 from rcvae_torchrl._checks import check_positive_int
-from rcvae_torchrl.data import TRAJ_KEY, check_actions, seed_env
+from rcvae_torchrl.data import TRAJ_KEY, check_actions, seed_env, warn_narrow_bounds
 
 __all__ = ["EpisodeStats", "ResetToState", "run_episodes", "seed_episodes"]
 
@@ -142,6 +142,7 @@ def run_episodes(
             )
         if reset_to_state is None:
             raise ValueError("reset_to_state: expected a function to start from given states")
+    warn_narrow_bounds(env, policy)
     if env.batch_size:
         return _batched_episodes(
             env, policy, seeds, starts, reset_to_state, max_steps, success, first_id, progress, desc

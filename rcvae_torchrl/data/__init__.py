@@ -1,6 +1,13 @@
 """Data: exploration policies, episode collection, trajectory replay and windows."""
 
-from .collection import TRAJ_KEY, check_actions, check_episode_ids, collect_episodes, merge_episodes
+from .collection import (
+    TRAJ_KEY,
+    check_actions,
+    check_episode_ids,
+    collect_episodes,
+    merge_episodes,
+    warn_narrow_bounds,
+)
 from .exploration import (
     GaussianExploration,
     UniformRandomPolicy,
@@ -31,6 +38,7 @@ __all__ = [
     "check_episode_ids",
     "collect_episodes",
     "merge_episodes",
+    "warn_narrow_bounds",
     # exploration
     "GaussianExploration",
     "UniformRandomPolicy",

@@ -21,7 +21,14 @@ from rcvae_torchrl.threads import threads_kept
 
 from .exploration import action_bounds
 
-__all__ = ["TRAJ_KEY", "check_actions", "check_episode_ids", "collect_episodes", "merge_episodes"]
+__all__ = [
+    "TRAJ_KEY",
+    "check_actions",
+    "check_episode_ids",
+    "collect_episodes",
+    "merge_episodes",
+    "warn_narrow_bounds",
+]
 
 TRAJ_KEY = ("collector", "traj_ids")
 
@@ -81,7 +88,7 @@ def collect_episodes(
     env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
     rows = max(1, env.batch_size.numel())  # frames one step gives (a SerialEnv's, a batched env's)
     _check_policy_inputs(env, policy)
-    _warn_narrow_bounds(env, policy)
+    warn_narrow_bounds(env, policy)
     env.set_seed(seed % 2**32)  # numpy-based envs take seeds below 2**32
     collector = Collector(
         env,
@@ -202,12 +209,14 @@ def _what(value: object) -> str:
     return f"{'the env ' if isinstance(value, EnvBase) else ''}{type(value).__name__}"
 
 
-def _warn_narrow_bounds(env: EnvBase, policy: object) -> None:
+def warn_narrow_bounds(env: EnvBase, policy: object, stacklevel: int = 3) -> None:
     """Warn when an exploration policy (one that holds its action bounds ``low``, ``high``,
     as :class:`~rcvae_torchrl.data.GaussianExploration` and
     :class:`~rcvae_torchrl.data.UniformRandomPolicy` do) covers less than the env's action
     range: its default [-1, 1] is narrower than many envs' (a torque in [-2, 2]), and a world
-    model never shown the rest cannot forecast it."""
+    model never shown the rest cannot forecast it. ``stacklevel`` as ``warnings.warn``'s,
+    counted from this function's caller's caller (the user's call of a function that runs
+    ``policy`` in ``env``)."""
     module = getattr(policy, "module", policy)  # a TensorDictModule's wrapped module
     low, high = getattr(module, "low", None), getattr(module, "high", None)
     if not (isinstance(low, torch.Tensor) and isinstance(high, torch.Tensor)):
@@ -224,7 +233,7 @@ def _warn_narrow_bounds(env: EnvBase, policy: object) -> None:
             f"less than the env's action range [{_fmt(env_low)}, {_fmt(env_high)}]: the data "
             "will not show the world model the rest; pass low=, high= from "
             "rcvae_torchrl.data.action_bounds(env) if that is not meant",
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
 
 

@@ -269,6 +269,12 @@ def test_exploration_narrower_than_the_env_is_warned():
         base = make_policy_module(GaussianExploration(_Constant(0.0, dims=1), 1.0))
         with pytest.warns(UserWarning, match="GaussianExploration draws actions in"):
             collect_episodes(_pendulum, base, **args)
+    # the agent's own episodes warn as the collection does, pointing at the caller's line
+    from rcvae_torchrl.agent import run_episodes
+
+    with pytest.warns(UserWarning, match="GaussianExploration draws actions in") as caught:
+        run_episodes(_pendulum(), base, seeds=[0], max_steps=5, success=lambda o: o[:, 0] > 9)
+    assert caught[0].filename == __file__
 
 
 class _Constant(torch.nn.Module):
