@@ -132,8 +132,9 @@ class CompetencyReport:
        state is unlike the states the model was trained on (2.4x as far from the training
        states as 99% of held-out episodes' first states are: velocity_0 = 7.6 (training
        -4.2 to 4.3)): the forecast extrapolates, however much the members agree.`` For
-       imagined states, the caution also says by when most of them are unlike the training
-       states (``By t = 2.4 s most of them are``), where the forecast starts to extrapolate. The
+       imagined states, the caution also says at which step more than half of that step's
+       samples first are unlike the training states (``At t = 2.4 s more than half of a
+       step's samples first are``), where the forecast starts to extrapolate. The
        members' disagreement is no sure sign of such states: members trained on the same data
        can agree far from it, and where such a start's doubt is as in the reference (rule 4)
        the sentence says so despite the caution. :meth:`overall` counts them.
@@ -497,8 +498,8 @@ class CompetencyReport:
         where = (
             ": the forecast extrapolates there"
             if leaves < 0
-            else f". By {_when(leaves, self.dt)} most of them are: the forecast extrapolates "
-            "from there on"
+            else f". At {_when(leaves, self.dt)} more than half of a step's samples first are: "
+            "the forecast extrapolates from there"
         )
         return (
             f"Caution: {share:.0%} of the imagined states are unlike the states the model was "

@@ -691,8 +691,9 @@ class OutcomeCheck:
         """How far the forecasts miss each start's own rate (where R independent runs tell)."""
         if self.measured and self.runs >= 2 and not self._independent_runs:
             return (
-                f"; per start not tested: each start's {self.runs} episodes agree (one outcome "
-                "repeated, as in a deterministic env), so they tell no start's chance"
+                f"; per start not tested: each start's {self.runs} episodes agree, so they "
+                "are taken for one outcome repeated (a deterministic env's; in a stochastic "
+                "one, no start's outcome varied in these runs) and tell no start's chance"
             )
         if not self.per_start_measured:
             return ""

@@ -205,8 +205,9 @@ def test_the_per_start_test_needs_independent_runs():
     assert not repeated.per_start_measured and not repeated.scattered
     assert math.isnan(repeated.per_start_p_value) and math.isnan(repeated.excess_error)
     assert repeated.describe().endswith(
-        "; per start not tested: each start's 5 episodes agree (one outcome repeated, as in a "
-        "deterministic env), so they tell no start's chance"
+        "; per start not tested: each start's 5 episodes agree, so they are taken for one "
+        "outcome repeated (a deterministic env's; in a stochastic one, no start's outcome "
+        "varied in these runs) and tell no start's chance"
     )
     single = OutcomeCheck.from_outcomes(forecast, _drawn(forecast, 1, seed=0))
     assert not single.per_start_measured and "per start" not in single.describe()
