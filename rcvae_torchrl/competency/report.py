@@ -601,9 +601,10 @@ def _change_sentence(
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
     unit = _unit(reference.per_live_step)
+    shown = {k: _shown(ratios[k], reference.rise) for k in ratios}
     parts = [
-        f"{k} {'uncertainty ' if i == 0 else ''}{_verb(ratios[k], i == 0)}"
-        f"{ratios[k]:.1f}x ({refs[k]:.2f} -> {values[k]:.2f} {unit})"
+        f"{k} {'uncertainty ' if i == 0 else ''}{_verb(float(shown[k]), i == 0)}"
+        f"{shown[k]}x ({refs[k]:.2f} -> {values[k]:.2f} {unit})"
         for i, k in enumerate(("epistemic", "aleatoric"))
     ]
     text = f"Against the {reference.name}, {parts[0]} and {parts[1]}"
@@ -632,6 +633,15 @@ def _change_sentence(
         ": neither part rose, the doubt is as in the reference (no sign of states the model "
         "has not seen, which does not rule them out: a check against real episodes can)."
     )
+
+
+def _shown(ratio: float, rise: float) -> str:
+    """``ratio`` with one decimal, or two where one would put it on the other side of a
+    threshold the sentence judges it by (``rise``, and ``1 / rise`` for a fall): 1.26 is
+    not shown as 1.3x beside "neither part rose"."""
+    one = round(ratio, 1)
+    misleads = (one >= rise) != (ratio >= rise) or (one * rise <= 1) != (ratio * rise <= 1)
+    return f"{ratio:.2f}" if misleads else f"{one:.1f}"
 
 
 def _verb(ratio: float, first: bool) -> str:

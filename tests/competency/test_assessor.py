@@ -321,6 +321,13 @@ def test_summary_against_a_reference_names_what_rose():
         "(0.40 -> 0.20 bits): neither part rose, the epistemic and aleatoric doubt fell below "
         "the reference's."
     ) in lower.summary()
+    # a ratio just below the rise is not printed as the rise (1.26 as 1.3x), nor one just
+    # past a fall as no fall (0.76 as 0.8x)
+    near = hand_report(aleatoric=0.504, epistemic=0.152, total=0.656).with_reference(reference)
+    assert (
+        "epistemic uncertainty fell to 0.76x (0.20 -> 0.15 bits) and aleatoric 1.26x (0.40 -> "
+        "0.50 bits): neither part rose, the epistemic doubt fell below the reference's."
+    ) in near.summary()
     mixed = hand_report(aleatoric=0.48, epistemic=0.1, total=0.58).with_reference(reference)
     assert "neither part rose, the epistemic doubt fell below the reference's." in str(mixed)
     from_report = hand_report(aleatoric=0.4, epistemic=0.8).with_reference(
