@@ -10,6 +10,8 @@ losses do). They are thin wrappers over
 
 from __future__ import annotations
 
+import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -19,6 +21,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from rcvae_torchrl._spread import spread_steps
 from rcvae_torchrl.competency import _checks
 from rcvae_torchrl.competency._keys import KeyedModule
 from rcvae_torchrl.competency.boundary import SuccessBoundary
@@ -38,6 +41,8 @@ from rcvae_torchrl.competency.outcome import (
 __all__ = ["SuccessMetric", "UncertaintyMetric", "bits_per_live_step"]
 
 _LAYOUT = "[E, N, *B, T, D]"
+#: start states (and steps spread over the horizon) in which bins of their own are looked for
+_SATURATION_ROWS = 16
 
 
 def bits_per_live_step(time_mean: Tensor, live: Tensor) -> Tensor:
@@ -208,6 +213,8 @@ class UncertaintyMetric(KeyedModule):
             args["ended"] = tensordict.get(key)
         parts = decompose_uncertainty(obs, self.estimator, **args).as_dict()
         per_dim = parts["total"].ndim == obs.ndim - 2
+        if self.estimator == "histogram":
+            self._warn_saturated(obs, args.get("ended"))
         out = TensorDict(parts)
         time_axis = -2 if per_dim else -1
         out["time_mean"] = TensorDict({k: v.mean(dim=time_axis) for k, v in parts.items()})
@@ -228,6 +235,46 @@ class UncertaintyMetric(KeyedModule):
         result = TensorDict()
         result.set(self.tensor_keys.uncertainty, out)
         return result
+
+    def _warn_saturated(self, obs: Tensor, ended: Tensor | None) -> None:
+        """Warn when a dimension's bins are so narrow that each member's samples fall in bins
+        of their own at most steps (where no sample has ended; looked at in up to
+        :data:`_SATURATION_ROWS` start states and as many steps spread over the horizon): its
+        bits are then ``log2 N``, a count of the samples, not a measure of their spread (a
+        width far below the samples' spread, or too few samples per member for it)."""
+        samples, dims = obs.shape[1], obs.shape[-1]
+        if samples < 2:
+            return
+        flat = obs.reshape(*obs.shape[:2], -1, *obs.shape[-2:])  # [E, N, B', T, D]
+        rows = spread_steps(flat.shape[2], _SATURATION_ROWS)
+        steps = spread_steps(flat.shape[3], _SATURATION_ROWS)
+        picked = flat[:, :, rows][:, :, :, steps]
+        bins = torch.floor(picked / self.bin_width.to(picked).expand(dims))
+        own = (bins.sort(dim=1).values.diff(dim=1) != 0).all(dim=1).all(dim=0)  # [B', T', D]
+        running = torch.ones(own.shape[:-1], dtype=torch.bool, device=own.device)
+        if ended is not None:
+            running = ~ended.reshape(*ended.shape[:2], -1, ended.shape[-1])[:, :, rows][
+                :, :, :, steps
+            ].any(dim=1).any(dim=0)
+        if not bool(running.any()):
+            return
+        share = (own & running[..., None]).flatten(0, 1).float().sum(0) / running.sum()
+        saturated = (share > 0.5).nonzero().flatten().tolist()
+        if not saturated:
+            return
+        names = self.dim_names or tuple(f"obs[{d}]" for d in range(dims))
+        width = self.bin_width.expand(dims)
+        which = ", ".join(
+            f"{names[d]} (width {float(width[d]):.3g}, at {float(share[d]):.0%} of the steps)"
+            for d in saturated
+        )
+        warnings.warn(
+            f"bin_width: in {which}, each member's {samples} samples fall in bins of their own: "
+            f"the bits there are log2 {samples} = {math.log2(samples):.2f}, the number of "
+            "samples, not their spread; give a width nearer the resolution that matters for "
+            "the dimension, or more samples per member",
+            stacklevel=2,
+        )
 
     def _summary(self, value: Tensor, per_dim: bool) -> Tensor:
         if not per_dim:

@@ -29,7 +29,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from rcvae_torchrl import _checks
+from rcvae_torchrl import _checks, _spread
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl._conformal import conformal_level
 from rcvae_torchrl.data import TRAJ_KEY, episode_spans
@@ -49,7 +49,7 @@ EPISODE_STEPS = 20
 def spread_steps(length: int, count: int = EPISODE_STEPS) -> Tensor:
     """``min(length, count)`` step indices spread evenly over an episode of ``length`` steps
     (its first and last among them)."""
-    return torch.linspace(0, length - 1, min(length, count)).round().long().unique()
+    return _spread.spread_steps(length, count)
 
 
 @dataclass(frozen=True)

@@ -63,6 +63,38 @@ def test_uncertainty_metric_set_keys(rollout):
         metric.set_keys(reward="r")
 
 
+def test_bins_too_narrow_for_the_samples_are_named(rollout):
+    """A width far below the samples' spread gives each member's samples bins of their own:
+    the bits are log2 N, a count; the metric names the dimension (only the dimensions where
+    that holds at most running steps)."""
+    import math
+    import warnings
+
+    widths = torch.tensor([1e-9, 0.5, 0.5, 1e-9])
+    with pytest.warns(UserWarning) as caught:
+        out = UncertaintyMetric(bin_width=widths, dim_names=["a", "b", "c", "d"])(rollout)
+    (warning,) = caught
+    assert str(warning.message).startswith(
+        "bin_width: in a (width 1e-09, at 100% of the steps), d (width 1e-09, at 100% of the "
+        "steps), each member's 16 samples fall in bins of their own: the bits there are "
+        "log2 16 = 4.00"
+    )
+    assert torch.allclose(out["uncertainty", "aleatoric"][..., 0], torch.tensor(math.log2(N)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        UncertaintyMetric(bin_width=0.5)(rollout)  # samples share bins: no word
+        # only the steps where every sample still runs count: here the first, where the
+        # samples start together (ended samples share a bin of their own)
+        ended = torch.zeros(E, N, B, T, dtype=torch.bool)
+        ended[:, : N // 2, :, 1:] = True
+        rollout["observation"][..., 0, :] = 0.0
+        metric = UncertaintyMetric(bin_width=widths, episode_end=True)
+        metric(rollout.set("ended", ended))
+    ended[:, : N // 2, :, 4:] = False  # steps 0, 4 and 5 run with every sample
+    with pytest.warns(UserWarning, match=r"in obs\[0\] \(width 1e-09, at 67% of the steps\)"):
+        metric(rollout.set("ended", ended))
+
+
 def test_uncertainty_metric_bin_width_is_a_buffer():
     metric = UncertaintyMetric(bin_width=[0.1, 0.2])
     assert "bin_width" in dict(metric.named_buffers())
