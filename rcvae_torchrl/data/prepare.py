@@ -9,6 +9,7 @@ the :class:`ObservationLayout`: which dimensions came from which entry, with a n
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -77,6 +78,31 @@ class ObservationLayout:
             for key, size in zip(self.keys, self.sizes)
             for i in range(size)
         )
+
+    @classmethod
+    def from_names(cls, names: Sequence[str]) -> ObservationLayout:
+        """The layout whose :attr:`names` are ``names``, read back: consecutive ``key[0]``,
+        ``key[1]``, ... form an entry ``key``; any other name is an entry of one dimension.
+
+        Example:
+            >>> ObservationLayout.from_names(("x[0]", "x[1]", "speed")).sizes
+            (2, 1)
+        """
+        keys: list[str] = []
+        sizes: list[int] = []
+        indexed: list[bool] = []
+        for name in names:
+            match = re.fullmatch(r"(.+)\[(\d+)\]", name)
+            key, index = (match.group(1), int(match.group(2))) if match else (name, None)
+            if keys and indexed[-1] and keys[-1] == key and index == sizes[-1]:
+                sizes[-1] += 1  # the entry's next dimension
+                continue
+            keys.append(key if index == 0 else name)
+            sizes.append(1)
+            indexed.append(index == 0)
+        # a lone "key[0]" is an entry of one dimension named so (a size-1 entry's name is its key)
+        keys = [f"{k}[0]" if i and n == 1 else k for k, n, i in zip(keys, sizes, indexed)]
+        return cls(tuple(keys), tuple(sizes))
 
     def indices(self, key: str) -> list[int]:
         """The dimensions that came from entry ``key``."""

@@ -11,14 +11,13 @@ input tensordict, also through a ``TransformedEnv``).
 
 from __future__ import annotations
 
-import re
 from typing import NamedTuple
 
 import torch
 from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl.data import observation_layout
+from rcvae_torchrl.data import ObservationLayout, observation_layout
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import TrajectorySampling
 
@@ -182,7 +181,7 @@ def _check_layout(ensemble: RCVAEEnsemble, env: EnvBase) -> None:
 def _entries(names: tuple[str, ...]) -> list[str]:
     """The entries that dimension names ``key[i]`` / ``key`` (an ObservationLayout's) come
     from, in order."""
-    return list(dict.fromkeys(re.sub(r"\[\d+\]$", "", name) for name in names))
+    return list(ObservationLayout.from_names(names).keys)
 
 
 def _check_shape(name: str, got: torch.Size, want: tuple[int, ...]) -> None:

@@ -2,7 +2,7 @@
 
 from .checkpoint import FORMAT_VERSION, CheckpointError, load_ensemble, save_ensemble
 from .checks import ModelChecks, ModelCheckWarning, OutcomeCheck, check_model
-from .novelty import StateNovelty
+from .novelty import StateNovelty, entry_groups
 from .trainer import TrainConfig, TrainResult, log_history, train_ensemble
 
 __all__ = [
@@ -18,6 +18,7 @@ __all__ = [
     "check_model",
     # novelty of states
     "StateNovelty",
+    "entry_groups",
     # checkpoints
     "FORMAT_VERSION",
     "CheckpointError",

@@ -20,6 +20,7 @@ states and in which dimensions.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,9 +33,9 @@ from torch import Tensor
 from rcvae_torchrl import _checks, _spread
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl._conformal import conformal_level
-from rcvae_torchrl.data import TRAJ_KEY, episode_spans
+from rcvae_torchrl.data import TRAJ_KEY, ObservationLayout, episode_spans
 
-__all__ = ["EPISODE_STEPS", "StateNovelty", "spread_steps"]
+__all__ = ["EPISODE_STEPS", "StateNovelty", "entry_groups", "spread_steps"]
 
 #: rows of queries per distance block (a block is ``rows x reference states`` floats)
 _BLOCK_ROWS = 256
@@ -50,6 +51,23 @@ def spread_steps(length: int, count: int = EPISODE_STEPS) -> Tensor:
     """``min(length, count)`` step indices spread evenly over an episode of ``length`` steps
     (its first and last among them)."""
     return _spread.spread_steps(length, count)
+
+
+def entry_groups(names: Sequence[str] | None) -> tuple[tuple[int, ...], ...]:
+    """The dimensions of each entry of two or more dimensions, fewer than all, that names
+    ``key[0]``, ``key[1]``, ... form (an :class:`~rcvae_torchrl.data.ObservationLayout`'s, as
+    :func:`~rcvae_torchrl.data.prepare_env` gives them): the groups that
+    :func:`~rcvae_torchrl.training.train_ensemble` has its novelty check judge on their own.
+    None without names, or where every name is its own entry."""
+    if names is None:
+        return ()
+    layout = ObservationLayout.from_names(tuple(names))
+    starts = [sum(layout.sizes[:i]) for i in range(len(layout.sizes))]
+    return tuple(
+        tuple(range(start, start + size))
+        for start, size in zip(starts, layout.sizes, strict=True)
+        if 1 < size < layout.dim
+    )
 
 
 @dataclass(frozen=True)
@@ -81,8 +99,29 @@ class StateNovelty:
     episode_level: float = math.nan
     episode_quantile: float = math.nan
     episodes_measured: int = 0  #: the episodes it was measured on
+    #: groups of dimensions in which start states are also judged on their own (e.g. the
+    #: entries of two or more dimensions of an :class:`~rcvae_torchrl.data.ObservationLayout`):
+    #: a start whose values in a group are each within their range, and together unlike any
+    #: training state's (a target placed where no training target was), lies far from the
+    #: training states in the group's dimensions while near them in all dimensions together.
+    #: Imagined states are judged in all dimensions together: a model generates them a little
+    #: off values the real states repeat exactly (a touch sensor's 0), which one group's
+    #: dimensions alone would call new
+    groups: tuple[tuple[int, ...], ...] = ()
+    #: per group, the joint distance's level over the group's own: a group's distance times
+    #: it is on the joint distance's scale (a state's distance is the largest of them)
+    group_scales: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
+        groups = _groups(self.groups, self.states.shape[-1])
+        object.__setattr__(self, "groups", groups)
+        scales = tuple(float(x) for x in self.group_scales) or (1.0,) * len(groups)
+        if len(scales) != len(groups) or not all(math.isfinite(x) and x > 0 for x in scales):
+            raise ValueError(
+                f"group_scales: expected one positive scale per group ({len(groups)}), got "
+                f"{self.group_scales!r}"
+            )
+        object.__setattr__(self, "group_scales", scales)
         # the reference in spreads, as every distance reads it (scaled once, not per call)
         object.__setattr__(self, "_scaled", self._in_spreads(self.states))
         if math.isnan(self.start_level):  # no first states: starts are states like any other
@@ -105,6 +144,7 @@ class StateNovelty:
         episodes: Tensor | None = None,
         held_out_starts: Tensor | None = None,
         held_out_episodes: Tensor | None = None,
+        groups: Sequence[Sequence[int]] = (),
         seed: int = 0,
     ) -> StateNovelty:
         """Fit on training ``states`` ``[N, D]``, its level measured on ``held_out`` ``[H, D]``.
@@ -137,6 +177,12 @@ class StateNovelty:
                 level. Without these and ``episodes``, starts are judged by the states' level.
             held_out_episodes: ``[H]`` int, each held-out state's episode (its states in time
                 order), for the episode level.
+            groups: groups of dimensions (each a sequence of distinct indices) in which start
+                states are also judged on their own, as :attr:`groups`. Each group's distance
+                is scaled so that its level, measured on the held-out states, is the joint
+                distance's; a start's distance is then the largest, and the start level is
+                measured on it, so the share of in-distribution starts called unlike the
+                training states stays about ``1 - quantile`` however many groups there are.
             seed: the seed of the draws.
 
         The episode level judges an imagined episode: the share of an episode's states beyond
@@ -175,18 +221,32 @@ class StateNovelty:
         scale = torch.where(spread > 0, spread, 1e-6 * center.abs().clamp_min(1.0))
         edges = torch.tensor([(1 - _RANGE_SHARE) / 2, (1 + _RANGE_SHARE) / 2])
         low, high = states.double().quantile(edges.double(), dim=0).float()
-        fitted = cls(states, center, scale, low, high, math.inf, k, float(quantile), 0)
+        groups = _groups(groups, dim)
+        fitted = cls(
+            states, center, scale, low, high, math.inf, k, float(quantile), 0, groups=groups
+        )
+        if groups:  # each group's distance on the joint one's scale (their levels made equal)
+            views = fitted._views(held_out)
+            joint = _conformal_level(views[:, 0], quantile)[0]
+            scales = tuple(joint / _conformal_level(v, quantile)[0] for v in views[:, 1:].T)
+            fitted = dataclasses.replace(fitted, group_scales=scales)
         level, kept = _conformal_level(fitted.distance(held_out), quantile)
         calibration = []
         if held_out_starts is not None:
             held_out_starts = _states("held_out_starts", held_out_starts, dim)
-            calibration.append(fitted.distance(held_out_starts))
+            calibration.append(fitted.distance(held_out_starts, starts=True))
         if firsts is not None and episodes is not None:
             ids = episodes[drawn]
             own = firsts[drawn]
-            calibration.append(fitted._distance(states[own], ids[own], ids))
+            calibration.append(fitted._distance(states[own], ids[own], ids, starts=True))
         levels: dict[str, Any] = {}
-        if calibration and sum(c.numel() for c in calibration):
+        if groups and not sum(c.numel() for c in calibration):
+            # no first states: starts are states like any other, judged with the groups too
+            start_level, start_kept = _conformal_level(
+                fitted.distance(held_out, starts=True), quantile
+            )
+            levels = {"start_level": start_level, "start_quantile": start_kept}
+        elif calibration and sum(c.numel() for c in calibration):
             distances = torch.cat(calibration)
             start_level, start_kept = _conformal_level(distances, quantile)
             levels = {
@@ -206,6 +266,7 @@ class StateNovelty:
                 episode_quantile=share_kept,
                 episodes_measured=sum(x.numel() for x in shares),
             )
+        levels.update(groups=groups, group_scales=fitted.group_scales)
         return cls(states, center, scale, low, high, level, k, kept, held_out.shape[0], **levels)
 
     def _episode_shares(
@@ -274,37 +335,69 @@ class StateNovelty:
     def dim(self) -> int:
         return self.states.shape[-1]
 
-    def distance(self, states: Tensor) -> Tensor:
+    def distance(self, states: Tensor, *, starts: bool = False) -> Tensor:
         """``[*B, D] -> [*B]``: the distance to the ``k``-th nearest reference state, in
-        spreads (root mean square over the dimensions of the scaled differences)."""
+        spreads (root mean square over the dimensions of the scaled differences); for
+        ``starts`` (start states of episodes), the largest of that and each of the
+        :attr:`groups`' distances on its scale."""
         states = _states("states", states, self.dim, flat=False)
         flat = states.reshape(-1, self.dim).to(self.center.device, torch.float32)
-        return self._distance(flat).reshape(states.shape[:-1])
+        return self._distance(flat, starts=starts).reshape(states.shape[:-1])
 
     def _distance(
-        self, states: Tensor, ids: Tensor | None = None, reference_ids: Tensor | None = None
+        self,
+        states: Tensor,
+        ids: Tensor | None = None,
+        reference_ids: Tensor | None = None,
+        *,
+        starts: bool = False,
     ) -> Tensor:
         """``[Q, D] -> [Q]`` (see :meth:`distance`); with ``ids`` ``[Q]`` and
         ``reference_ids`` ``[M]``, a state's own episode's reference states left out."""
+        views = self._views(states, ids, reference_ids, groups=starts)
+        if views.shape[-1] == 1:
+            return views[:, 0]
+        scales = views.new_tensor((1.0, *self.group_scales))
+        return (views * scales).max(dim=-1).values
+
+    def _views(
+        self,
+        states: Tensor,
+        ids: Tensor | None = None,
+        reference_ids: Tensor | None = None,
+        *,
+        groups: bool = True,
+    ) -> Tensor:
+        """``[Q, D] -> [Q, 1 + G]``: the distance in all dimensions, then (with ``groups``) in
+        each group's dimensions alone (root mean square over the group's dimensions; not
+        scaled)."""
         flat = self._in_spreads(states)
         out = []
         for i, block in zip(
             range(0, flat.shape[0], _BLOCK_ROWS), flat.split(_BLOCK_ROWS), strict=True
         ):
             own = None if ids is None else ids[i : i + _BLOCK_ROWS, None] == reference_ids[None]
-            out.append(self._nearest(block, own).values[:, -1])
-        distance = torch.cat(out) if out else flat.new_zeros(0)
-        return distance / math.sqrt(self.dim)
+            views = [self._nearest(block, own).values[:, -1] / math.sqrt(self.dim)]
+            for group in self.groups if groups else ():
+                index = list(group)
+                near = self._nearest(block[:, index], own, self._scaled[:, index])
+                views.append(near.values[:, -1] / math.sqrt(len(group)))
+            out.append(torch.stack(views, dim=-1))
+        return torch.cat(out) if out else flat.new_zeros(0, 1 + len(self.groups) * groups)
 
     def _in_spreads(self, states: Tensor) -> Tensor:
         """``states`` ``[Q, D]`` centred and in units of the training spread, as the reference
         states are held."""
         return ((states - self.center) / self.scale).contiguous()
 
-    def _nearest(self, scaled: Tensor, own: Tensor | None = None) -> Any:
+    def _nearest(
+        self, scaled: Tensor, own: Tensor | None = None, reference: Tensor | None = None
+    ) -> Any:
         """The ``k`` nearest reference states of ``scaled`` states ``[Q, D]`` (``torch.topk``'s
-        values and indices, ``[Q, k]``); ``own`` ``[Q, M]`` marks reference states left out."""
-        distances = torch.cdist(scaled, self._scaled)
+        values and indices, ``[Q, k]``); ``own`` ``[Q, M]`` marks reference states left out;
+        ``reference``: the scaled reference states in the dimensions of ``scaled`` (default
+        all of them)."""
+        distances = torch.cdist(scaled, self._scaled if reference is None else reference)
         if own is not None:
             distances = distances.masked_fill(own, math.inf)
         return distances.topk(min(self.k, self._scaled.shape[0]), largest=False)
@@ -312,7 +405,9 @@ class StateNovelty:
     def ratio(self, states: Tensor, *, starts: bool = False) -> Tensor:
         """``[*B]``: the distance over the level, or for ``starts`` (start states of episodes)
         over ``start_level``; above 1: unlike the training states."""
-        return self.distance(states) / (self.start_level if starts else self.level)
+        if starts:
+            return self.distance(states, starts=True) / self.start_level
+        return self.distance(states) / self.level
 
     def unlike(self, states: Tensor, *, starts: bool = False) -> Tensor:
         """``[*B]`` bool: beyond the level (of ``starts``, see :meth:`ratio`)."""
@@ -357,7 +452,13 @@ class StateNovelty:
         text = f"{ratio:.1f}x as far from the training states as {held} are"
         beyond = self._beyond(state)
         outside = beyond > _RANGE_MARGIN  # as :meth:`outside`
+        group = self._farthest_group(state) if start else None  # groups judge starts
         if not bool(outside.any()):
+            if group is not None:  # new in one group's dimensions, not in all together
+                return text + (
+                    " (every dimension within its training range: the combination of "
+                    f"{', '.join(names[d] for d in group)} is new)"
+                )
             farthest = ", ".join(names[d] for d in self._farthest(state)[:top])
             return text + (
                 " (every dimension within its training range: the combination is new, farthest "
@@ -370,7 +471,20 @@ class StateNovelty:
             for d in order[:top]
         ]
         more = len(order) - top
-        return text + ": " + ", ".join(parts) + (f" and {more} more" if more > 0 else "")
+        text += ": " + ", ".join(parts) + (f" and {more} more" if more > 0 else "")
+        if group is not None and not bool(outside[list(group)].all()):
+            # farthest in a group whose values are not all outside their ranges
+            text += f"; the combination of {', '.join(names[d] for d in group)} is new"
+        return text
+
+    def _farthest_group(self, state: Tensor) -> tuple[int, ...] | None:
+        """The group whose scaled distance makes one ``state``'s, where a group's does."""
+        if not self.groups:
+            return None
+        views = self._views(state.to(self.center)[None])[0]
+        scaled = views * views.new_tensor((1.0, *self.group_scales))
+        which = int(scaled.argmax())
+        return None if which == 0 else self.groups[which - 1]
 
     def _farthest(self, state: Tensor) -> list[int]:
         """The dimensions of one ``state`` ``[D]``, the farthest from its ``k`` nearest
@@ -398,6 +512,8 @@ class StateNovelty:
             "episode_level": self.episode_level,
             "episode_quantile": self.episode_quantile,
             "episodes_measured": self.episodes_measured,
+            "groups": [list(group) for group in self.groups],
+            "group_scales": list(self.group_scales),
         }
 
     @classmethod
@@ -436,8 +552,42 @@ class StateNovelty:
             episode_level=float(values["episode_level"]),
             episode_quantile=float(values["episode_quantile"]),
             episodes_measured=int(values["episodes_measured"]),
+            # checkpoints from before groups were judged have none
+            groups=_groups(values.get("groups", ()), dim, "novelty.groups"),
+            group_scales=_scales(values.get("group_scales", ())),
             **vectors,
         )
+
+
+def _groups(groups: object, dim: int, name: str = "groups") -> tuple[tuple[int, ...], ...]:
+    """Groups of state dimensions: each a non-empty sequence of distinct ints in [0, dim)."""
+    if isinstance(groups, (str, bytes, Tensor)) or not isinstance(groups, Sequence):
+        raise TypeError(f"{name}: expected a sequence of dimension groups, got {groups!r}")
+    out = []
+    for group in groups:
+        if isinstance(group, (str, bytes)) or not isinstance(group, Sequence):
+            raise TypeError(f"{name}: expected each group as a sequence of ints, got {group!r}")
+        values = tuple(group)
+        if (
+            not values
+            or not all(isinstance(d, int) and not isinstance(d, bool) for d in values)
+            or len(set(values)) != len(values)
+            or min(values) < 0
+            or max(values) >= dim
+        ):
+            raise ValueError(
+                f"{name}: expected each group as distinct dimensions in [0, {dim}), got "
+                f"{list(values)}"
+            )
+        out.append(values)
+    return tuple(out)
+
+
+def _scales(scales: object) -> tuple[float, ...]:
+    """``novelty.group_scales`` from a checkpoint: a sequence of numbers."""
+    if not isinstance(scales, Sequence) or not all(_checks._is_number(x) for x in scales):
+        raise ValueError(f"novelty.group_scales: expected a list of numbers, got {scales!r}")
+    return tuple(float(x) for x in scales)
 
 
 def _conformal_level(distances: Tensor, quantile: float) -> tuple[float, float]:

@@ -57,7 +57,7 @@ from rcvae_torchrl.objectives import RCVAELoss
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 from .checks import ModelChecks, ModelCheckWarning, check_model
-from .novelty import StateNovelty
+from .novelty import StateNovelty, entry_groups
 
 __all__ = [
     "TrainConfig",
@@ -263,8 +263,11 @@ def train_ensemble(
             pendulum, is checked nearer).
         novelty: fit the check of how unlike its training states a state is
             (:class:`~rcvae_torchrl.training.StateNovelty`: ``train_data``'s states, the level
-            from ``val_data``'s) into ``ensemble.novelty``; the competency assessor then says
-            which start states, and how many imagined states, lie beyond it.
+            from ``val_data``'s; each entry of two or more dimensions that the config's
+            ``observation_names`` name, ``key[0]``, ``key[1]``, ..., also judged on its own,
+            :func:`~rcvae_torchrl.training.entry_groups`) into ``ensemble.novelty``; the
+            competency assessor then says which start states, and how many imagined states,
+            lie beyond it.
     """
     if not isinstance(ensemble, RCVAEEnsemble):
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
@@ -344,7 +347,10 @@ def train_ensemble(
     if novelty:
         fitted = None
         if distributed.is_main():
-            fitted = StateNovelty.from_episodes(train_data, val_data, seed=config.seed)
+            groups = entry_groups(ensemble.config.observation_names)
+            fitted = StateNovelty.from_episodes(
+                train_data, val_data, seed=config.seed, groups=groups
+            )
         result.novelty = ensemble.novelty = distributed.broadcast(fitted)
     return result
 

@@ -1,6 +1,7 @@
 """StateNovelty: distances against closed-form ones, the level's false-alarm rate, words,
 checkpoints, training and the assessor's report."""
 
+import dataclasses
 import math
 
 import pytest
@@ -48,6 +49,62 @@ def test_the_level_calls_about_one_minus_quantile_of_in_distribution_states_unli
     far = fresh.clone()
     far[:, 1] = 7.0
     assert bool(novelty.unlike(far).all())
+
+
+def _on_circle(n: int, seed: int, radius: float = 1.0) -> torch.Tensor:
+    """10 Gaussian dimensions, then a target on a circle (each coordinate within [-1, 1])."""
+    g = torch.Generator().manual_seed(seed)
+    angle = torch.rand(n, generator=g) * 2 * math.pi
+    target = radius * torch.stack([angle.cos(), angle.sin()], dim=-1)
+    return torch.cat([torch.randn(n, 10, generator=g), target], dim=-1)
+
+
+def test_a_group_judged_on_its_own_finds_a_combination_new_only_in_its_dimensions():
+    """A start whose target lies inside the circle every training target lies on: each
+    coordinate within its range, and near the training states in all 12 dimensions together,
+    but far from them in the target's own two. The group finds it; in-distribution starts are
+    still called unlike at about the nominal rate, and other states (imagined ones) are judged
+    in all dimensions together."""
+    train, held_out, fresh = _on_circle(4000, 0), _on_circle(2000, 1), _on_circle(2000, 2)
+    inside = _on_circle(200, 3, radius=0.4)
+    joint = StateNovelty.fit(train, held_out, quantile=0.95)
+    grouped = StateNovelty.fit(train, held_out, quantile=0.95, groups=[(10, 11)])
+    assert grouped.groups == ((10, 11),) and grouped.group_scales[0] > 1
+    assert float(joint.unlike(inside, starts=True).float().mean()) < 0.2  # diluted
+    assert bool(grouped.unlike(inside, starts=True).all())
+    torch.testing.assert_close(grouped.ratio(inside), joint.ratio(inside))  # not a start
+    low, high = binom.ppf([0.0005, 0.9995], 2000, 0.05)
+    for novelty in (joint, grouped):
+        assert low <= int(novelty.unlike(fresh, starts=True).sum()) <= high
+    # the group's distance, scaled to the joint one's level, where it is the larger
+    views = grouped._views(inside)
+    scaled = torch.maximum(views[:, 0], views[:, 1] * grouped.group_scales[0])
+    torch.testing.assert_close(grouped.distance(inside, starts=True), scaled)
+    names = [f"x{i}" for i in range(10)] + ["target[0]", "target[1]"]
+    assert grouped.describe(inside[0], names, start=True).endswith(
+        "(every dimension within its training range: the combination of target[0], target[1] "
+        "is new)"
+    )
+    # kept in checkpoints; an old record without groups reads as none
+    record = grouped.as_dict()
+    read = StateNovelty.from_dict(record)
+    assert read.groups == grouped.groups and read.group_scales == grouped.group_scales
+    assert torch.equal(read.distance(inside, starts=True), grouped.distance(inside, starts=True))
+    old = {k: v for k, v in joint.as_dict().items() if not k.startswith("group")}
+    assert StateNovelty.from_dict(old).groups == ()
+    with pytest.raises(ValueError, match=r"^groups: expected each group as distinct dimensions"):
+        StateNovelty.fit(train, held_out, groups=[(10, 12)])
+    with pytest.raises(ValueError, match=r"^group_scales: expected one positive scale per"):
+        dataclasses.replace(grouped, group_scales=(1.0, 2.0))
+
+
+def test_entry_groups_are_the_entries_of_several_dimensions():
+    from rcvae_torchrl.training import entry_groups
+
+    names = ("position[0]", "position[1]", "speed", "target[0]", "target[1]", "target[2]")
+    assert entry_groups(names) == ((0, 1), (3, 4, 5))
+    assert entry_groups(("a", "b", "c")) == () and entry_groups(None) == ()
+    assert entry_groups(("v[0]", "v[1]")) == ()  # one entry: the joint distance is its own
 
 
 def test_too_few_held_out_states_keep_the_quantile_they_can_cover():
