@@ -22,7 +22,7 @@ from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_finite, check_non_negative_int, check_positive_int
-from rcvae_torchrl.competency import SuccessBoundary, validate_forecasts
+from rcvae_torchrl.competency import CompetencyReport, SuccessBoundary, validate_forecasts
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.threads import threads_kept
 
@@ -314,12 +314,31 @@ def _check_steps_cover_the_boundary(success: object, max_steps: int) -> None:
 
 
 def score_forecast(
-    forecast: torch.Tensor, outcomes: RealOutcomes, *, base_rate: float | None = None
+    forecast: torch.Tensor | CompetencyReport,
+    outcomes: RealOutcomes,
+    *,
+    base_rate: float | None = None,
 ) -> dict[str, float]:
     """:func:`~rcvae_torchrl.competency.validate_forecasts` of forecasts ``[B]`` against the
     real outcomes (per-start error and rank correlation, AUROC, Brier over episodes and its
     skill against ``base_rate``, ECE). Its ``"gap"`` is unsigned, ``|mean forecast - real
-    rate|``; :class:`~rcvae_torchrl.training.OutcomeCheck`'s is signed (forecast minus real)."""
+    rate|``; :class:`~rcvae_torchrl.training.OutcomeCheck`'s is signed (forecast minus real).
+
+    Given the :class:`~rcvae_torchrl.competency.CompetencyReport` itself, its P(success) is
+    scored against the real episodes that succeeded within its deadline (its ``time_limit``
+    steps): a real success later, in episodes run for more steps than the forecast looked
+    ahead, is a failure of the task the forecast answers."""
+    if isinstance(forecast, CompetencyReport):
+        deadline = forecast.time_limit
+        forecast = forecast.competency["p_success"]
+        if not isinstance(outcomes, RealOutcomes):
+            raise TypeError(
+                f"outcomes: expected the RealOutcomes of real_outcomes, got "
+                f"{type(outcomes).__name__}"
+            )
+        outcomes = dataclasses.replace(
+            outcomes, success=outcomes.success & (outcomes.first_step < deadline)
+        )
     if not isinstance(outcomes, RealOutcomes):
         raise TypeError(
             f"outcomes: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"

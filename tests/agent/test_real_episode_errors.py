@@ -209,3 +209,28 @@ def test_outcomes_of_some_start_states():
     assert score_forecast(forecast[mask], out[mask]) == want
     with pytest.raises(IndexError, match=r"index: expected a slice, .* outcomes\[i : i \+ 1\]"):
         out[2]
+
+
+def test_a_report_is_scored_against_successes_within_its_own_deadline():
+    """Real episodes run past the forecast's deadline: a success after it is a failure of the
+    task the forecast answers, when the report itself is scored."""
+    from rcvae_torchrl.agent import RealOutcomes, score_forecast
+    from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary, validate_forecasts
+    from rcvae_torchrl.model_env import make_rcvae_env
+    from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+
+    torch.manual_seed(0)
+    model = RCVAEEnsemble(RCVAEConfig(2, 1, hidden_dim=8, mlp_dim=8), 2)
+    boundary = SuccessBoundary(lambda observation: observation[..., 0] > 0, time_limit=5)
+    model_env = make_rcvae_env(
+        model, None, lambda observation, action: observation[..., :1], boundary.success
+    )
+    assessor = CompetencyAssessor(model_env, boundary, bin_width=0.1, samples_per_member=4)
+    report = assessor.assess(torch.zeros(3, 2), actions=torch.zeros(5, 1), seed=0)
+    first = torch.tensor([[2, 7], [4, 9], [9, 12]])  # 12: never, in 12-step episodes
+    success = first < 12
+    outcomes = RealOutcomes(success, first, torch.where(success, first + 1, 12))
+    p = report.competency["p_success"]
+    assert score_forecast(report, outcomes) == validate_forecasts(p, first < 5)
+    assert score_forecast(p, outcomes) == validate_forecasts(p, success)  # no deadline known
+    assert score_forecast(p, outcomes) != score_forecast(report, outcomes)
