@@ -16,6 +16,7 @@ from .exploration import (
 )
 from .prepare import (
     ActionNoise,
+    AngleAsCosSin,
     ObservationLayout,
     control_step,
     observation_layout,
@@ -46,6 +47,7 @@ __all__ = [
     "make_policy_module",
     # any env as the library expects it
     "ActionNoise",
+    "AngleAsCosSin",
     "ObservationLayout",
     "control_step",
     "observation_layout",

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
+from torchrl.data import Bounded, Composite
 from torchrl.envs import (
     CatTensors,
     Compose,
@@ -32,6 +33,7 @@ from rcvae_torchrl._checks import check_non_negative_int
 
 __all__ = [
     "ActionNoise",
+    "AngleAsCosSin",
     "ObservationLayout",
     "control_step",
     "observation_layout",
@@ -234,6 +236,58 @@ def _concatenation(
 def _has_double(env: EnvBase) -> bool:
     specs = (env.observation_spec, env.full_action_spec, env.full_reward_spec)
     return any(s[key].dtype == torch.float64 for s in specs for key in s.keys(True, True))
+
+
+class AngleAsCosSin(Transform):
+    """Writes each angle entry's cosine and sine beside it (``"th"`` -> ``"th_cos"``,
+    ``"th_sin"``), for :func:`prepare_env` to model instead of the angle.
+
+    A wrapped angle jumps at ±π, which a smooth model blurs into states between the two ends;
+    its cosine and sine move smoothly (keep them on the unit circle in imagination with a
+    state constraint). The angle stays, for envs that read their state back from it.
+
+    Example:
+        >>> from torchrl.envs import PendulumEnv, TransformedEnv
+        >>> env = TransformedEnv(PendulumEnv(), AngleAsCosSin(["th"]))
+        >>> env, layout = prepare_env(env, ["th_cos", "th_sin", "thdot"])
+        >>> layout.names
+        ('th_cos', 'th_sin', 'thdot')
+    """
+
+    def __init__(self, in_keys: Sequence[NestedKey]) -> None:
+        if isinstance(in_keys, str) or not in_keys:
+            raise TypeError(f"in_keys: expected a non-empty list of angle keys, got {in_keys!r}")
+        names = [_name(key) for key in in_keys]
+        out_keys = [f"{name}_{part}" for name in names for part in ("cos", "sin")]
+        super().__init__(in_keys=list(in_keys), out_keys=out_keys)
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        for key, cos, sin in zip(self.in_keys, self.out_keys[::2], self.out_keys[1::2]):
+            angle = next_tensordict.get(key)
+            next_tensordict.set(cos, angle.cos())
+            next_tensordict.set(sin, angle.sin())
+        return next_tensordict
+
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+    def transform_observation_spec(self, observation_spec: Composite) -> Composite:
+        for key, cos, sin in zip(self.in_keys, self.out_keys[::2], self.out_keys[1::2]):
+            if key not in observation_spec.keys(True, True):
+                raise KeyError(
+                    f"in_keys: the env has no observation {key!r} (it has "
+                    f"{sorted(map(_name, observation_spec.keys(True, True)))})"
+                )
+            angle = observation_spec[key]
+            if not _is_floating(angle):
+                raise TypeError(f"in_keys: {key!r} must be a floating angle, got {angle.dtype}")
+            for out in (cos, sin):
+                observation_spec[out] = Bounded(
+                    -1.0, 1.0, angle.shape, dtype=angle.dtype, device=angle.device
+                )
+        return observation_spec
 
 
 class ActionNoise(Transform):

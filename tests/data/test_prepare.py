@@ -177,6 +177,26 @@ def test_action_noise_of_another_size_than_the_actions_is_named():
         env.rand_step()
 
 
+def test_an_angle_is_modelled_as_its_cosine_and_sine():
+    from torchrl.envs import TransformedEnv
+
+    from rcvae_torchrl.data import AngleAsCosSin
+
+    angles = TransformedEnv(PendulumEnv(), AngleAsCosSin(["th"]))
+    env, layout = prepare_env(angles, ["th_cos", "th_sin", "thdot"])
+    assert layout.names == ("th_cos", "th_sin", "thdot")
+    check_env_specs(env)
+    rollout = env.rollout(4)
+    for td in (rollout, rollout["next"]):
+        torch.testing.assert_close(td["observation"][..., 0], td["th"].cos())
+        torch.testing.assert_close(td["observation"][..., 1], td["th"].sin())
+    assert env.observation_spec["th_cos"].space.low == -1
+    with pytest.raises(KeyError, match=r"^\"in_keys: the env has no observation 'angle'"):
+        _ = TransformedEnv(PendulumEnv(), AngleAsCosSin(["angle"])).observation_spec
+    with pytest.raises(TypeError, match=r"^in_keys: expected a non-empty list of angle keys"):
+        AngleAsCosSin("th")
+
+
 def test_control_step_reads_the_simulator_s_step_times_every_frame_skip():
     from torchrl.envs import FrameSkipTransform
 
