@@ -328,21 +328,14 @@ def score_forecast(
     scored against the real episodes that succeeded within its deadline (its ``time_limit``
     steps): a real success later, in episodes run for more steps than the forecast looked
     ahead, is a failure of the task the forecast answers."""
-    if isinstance(forecast, CompetencyReport):
-        deadline = forecast.time_limit
-        forecast = forecast.competency["p_success"]
-        if not isinstance(outcomes, RealOutcomes):
-            raise TypeError(
-                f"outcomes: expected the RealOutcomes of real_outcomes, got "
-                f"{type(outcomes).__name__}"
-            )
-        outcomes = dataclasses.replace(
-            outcomes, success=outcomes.success & (outcomes.first_step < deadline)
-        )
     if not isinstance(outcomes, RealOutcomes):
         raise TypeError(
             f"outcomes: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"
             "; for a bool [B, R] tensor of outcomes use rcvae_torchrl.competency."
             "validate_forecasts"
         )
+    if isinstance(forecast, CompetencyReport):
+        within = outcomes.first_step < forecast.time_limit
+        outcomes = dataclasses.replace(outcomes, success=outcomes.success & within)
+        forecast = forecast.competency["p_success"]
     return validate_forecasts(forecast.cpu(), outcomes.success, base_rate=base_rate)

@@ -214,9 +214,8 @@ def warn_narrow_bounds(env: EnvBase, policy: object, stacklevel: int = 3) -> Non
     as :class:`~rcvae_torchrl.data.GaussianExploration` and
     :class:`~rcvae_torchrl.data.UniformRandomPolicy` do) covers less than the env's action
     range: its default [-1, 1] is narrower than many envs' (a torque in [-2, 2]), and a world
-    model never shown the rest cannot forecast it. ``stacklevel`` as ``warnings.warn``'s,
-    counted from this function's caller's caller (the user's call of a function that runs
-    ``policy`` in ``env``)."""
+    model never shown the rest cannot forecast it. ``stacklevel``: ``warnings.warn``'s, counted
+    from this function (3: the line that called the function calling it)."""
     module = getattr(policy, "module", policy)  # a TensorDictModule's wrapped module
     low, high = getattr(module, "low", None), getattr(module, "high", None)
     if not (isinstance(low, torch.Tensor) and isinstance(high, torch.Tensor)):

@@ -354,11 +354,10 @@ def seed_env(env: EnvBase, seed: int) -> None:
     """
     check_non_negative_int("seed", seed)
     env.set_seed(seed % 2**32)
-    # only a TransformedEnv's own transforms: a ParallelEnv would send the lookup to its
-    # workers (and fail there); transforms inside a batched env's sub-envs are not reached
-    transform = env.transform if isinstance(env, TransformedEnv) else None
-    parts = list(transform) if isinstance(transform, Compose) else [transform]
-    for part in parts:
+    # the transforms of every TransformedEnv layer (an ActionNoise wrapped before prepare_env
+    # is inside its layer); a ParallelEnv would send the lookup to its workers (and fail
+    # there): transforms inside a batched env's sub-envs are not reached
+    for part in _transforms(env)[0]:
         if callable(getattr(part, "reseed", None)):
             part.reseed(seed)
 

@@ -10,7 +10,10 @@ episodes, from the distribution the training episodes came from, so an in-distri
 called novel in about ``1 - quantile`` of cases, whatever the env (a conformal level). A state
 beyond the level is *unlike the training states*: its forecast extrapolates, however much the
 members agree. Start states and whole episodes have levels of their own, measured the same way
-on first states and on episodes that training did not see (:meth:`StateNovelty.fit`).
+on first states and on episodes that training did not see (:meth:`StateNovelty.fit`). A start
+state is also judged in groups of its dimensions alone (:attr:`StateNovelty.groups`: the
+entries of several dimensions, such as a target's position), where a combination new in one
+entry would be diluted by all the others.
 
 :func:`train_ensemble <rcvae_torchrl.training.train_ensemble>` fits one on its training and
 validation episodes and keeps it with the model (``ensemble.novelty``, saved in checkpoints);
@@ -109,7 +112,7 @@ class StateNovelty:
     #: dimensions alone would call new
     groups: tuple[tuple[int, ...], ...] = ()
     #: per group, the joint distance's level over the group's own: a group's distance times
-    #: it is on the joint distance's scale (a state's distance is the largest of them)
+    #: it is on the joint distance's scale (a start's distance is the largest of them)
     group_scales: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:

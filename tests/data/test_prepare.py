@@ -166,6 +166,21 @@ def test_action_noise_is_clipped_to_the_spec():
     assert (applied.abs() <= 1).all() and (applied.abs() == 1).any()
 
 
+def test_seed_env_restarts_noise_in_every_layer_of_transforms():
+    """ActionNoise wrapped around the raw env before prepare_env sits in an inner layer of
+    transforms: seeding the prepared env restarts it too, so seeded episodes repeat."""
+    from torchrl.envs import StepCounter, TransformedEnv
+
+    raw = TransformedEnv(DMControlEnv("point_mass", "easy"), ActionNoise(1.0))
+    env, _ = prepare_env(raw)
+    env.append_transform(StepCounter(10))
+    runs = []
+    for _ in range(2):
+        seed_env(env, 3)
+        runs.append(env.rollout(5, lambda td: td.set("action", torch.zeros(2)))["observation"])
+    assert torch.equal(*runs) and runs[0].std(0).max() > 0
+
+
 def test_action_noise_of_another_size_than_the_actions_is_named():
     env, _ = prepare_env(PendulumEnv(), ["th", "thdot"])  # one action dimension
     env.append_transform(ActionNoise(torch.tensor([0.5, 0.5])))
