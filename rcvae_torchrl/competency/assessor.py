@@ -175,10 +175,12 @@ class CompetencyAssessor(KeyedModule):
         _check_keywords(estimator, estimator_args)
         self.model_env = model_env
         self.success_metric = SuccessMetric(boundary, confidence, interval)
-        self.uncertainty_metric = UncertaintyMetric(
-            bin_width, estimator, dim_names, episode_end=episode_end, **estimator_args
-        )
         self.dim_names = _dim_names(dim_names, model_env.ensemble.config)
+        # the model's names when none are given: the metric's per-dimension entries and its
+        # warnings name the dimensions as the report does
+        self.uncertainty_metric = UncertaintyMetric(
+            bin_width, estimator, self.dim_names, episode_end=episode_end, **estimator_args
+        )
         self.horizon = _horizon(horizon, boundary)
         if boundary.is_survival and self.horizon < boundary.time_limit:
             raise ValueError(

@@ -838,3 +838,18 @@ def test_a_time_limit_short_of_one_step_is_refused():
     with pytest.raises(ValueError, match=r"^time_limit_s: expected at least one step of dt = "):
         boundary(time_limit=None, time_limit_s=DT / 2)
     assert boundary(time_limit=None, time_limit_s=DT).time_limit == 1
+
+
+def test_too_narrow_bins_are_named_as_the_report_names_the_dimensions(starts, plan):
+    """Without dim_names the assessor names dimensions by the model's names, in its report and
+    in the uncertainty metric's warning of bins so narrow each sample has its own."""
+    import dataclasses
+
+    names = tuple(f"s{i}" for i in range(S))
+    model = make_ensemble()
+    model.config = dataclasses.replace(CONFIG, observation_names=names)
+    assessor = make_assessor(make_env(model), dim_names=None, bin_width=1e-9)
+    assert assessor.dim_names == names
+    with pytest.warns(UserWarning, match=r"^bin_width: in s0 \(width 1e-09, at 100% of the steps"):
+        report = assessor.assess(starts, actions=plan, seed=0)
+    assert set(report.data["uncertainty", "by_dim"].keys()) == set(names)
