@@ -228,35 +228,30 @@ class StateNovelty:
         fitted = cls(
             states, center, scale, low, high, math.inf, k, float(quantile), 0, groups=groups
         )
-        if groups:  # each group's distance on the joint one's scale (their levels made equal)
-            views = fitted._views(held_out)
-            joint = _conformal_level(views[:, 0], quantile)[0]
-            scales = tuple(joint / _conformal_level(v, quantile)[0] for v in views[:, 1:].T)
-            fitted = dataclasses.replace(fitted, group_scales=scales)
         level, kept = _conformal_level(fitted.distance(held_out), quantile)
+        # the first states' distances in each view (all dimensions, then each group's)
         calibration = []
         if held_out_starts is not None:
             held_out_starts = _states("held_out_starts", held_out_starts, dim)
-            calibration.append(fitted.distance(held_out_starts, starts=True))
+            calibration.append(fitted._views(held_out_starts.float(), groups=bool(groups)))
         if firsts is not None and episodes is not None:
             ids = episodes[drawn]
             own = firsts[drawn]
-            calibration.append(fitted._distance(states[own], ids[own], ids, starts=True))
+            calibration.append(fitted._views(states[own], ids[own], ids, groups=bool(groups)))
+        views = torch.cat(calibration) if calibration else held_out.new_zeros(0, 1)
+        measured = views.shape[0]
+        if groups and not measured:  # no first states: starts are states like any other
+            views = fitted._views(held_out)
+        if groups:  # each group's distance on the joint one's scale: their start levels equal
+            joint = _conformal_level(views[:, 0], quantile)[0]
+            scales = tuple(joint / _conformal_level(v, quantile)[0] for v in views[:, 1:].T)
+            fitted = dataclasses.replace(fitted, group_scales=scales)
         levels: dict[str, Any] = {}
-        if groups and not sum(c.numel() for c in calibration):
-            # no first states: starts are states like any other, judged with the groups too
-            start_level, start_kept = _conformal_level(
-                fitted.distance(held_out, starts=True), quantile
-            )
+        if groups or measured:
+            start_level, start_kept = _conformal_level(fitted._combined(views), quantile)
             levels = {"start_level": start_level, "start_quantile": start_kept}
-        elif calibration and sum(c.numel() for c in calibration):
-            distances = torch.cat(calibration)
-            start_level, start_kept = _conformal_level(distances, quantile)
-            levels = {
-                "start_level": start_level,
-                "start_quantile": start_kept,
-                "start_held_out": distances.numel(),
-            }
+            if measured:
+                levels["start_held_out"] = measured
         shares = []
         if held_out_episodes is not None:
             shares.append(fitted._episode_shares(held_out_all, held_out_episodes, level))
@@ -357,11 +352,14 @@ class StateNovelty:
     ) -> Tensor:
         """``[Q, D] -> [Q]`` (see :meth:`distance`); with ``ids`` ``[Q]`` and
         ``reference_ids`` ``[M]``, a state's own episode's reference states left out."""
-        views = self._views(states, ids, reference_ids, groups=starts)
+        return self._combined(self._views(states, ids, reference_ids, groups=starts))
+
+    def _combined(self, views: Tensor) -> Tensor:
+        """``[Q, 1 + G] -> [Q]``: the largest of the distance in all dimensions and each
+        group's on its scale (the first column alone where there are no groups' columns)."""
         if views.shape[-1] == 1:
             return views[:, 0]
-        scales = views.new_tensor((1.0, *self.group_scales))
-        return (views * scales).max(dim=-1).values
+        return (views * views.new_tensor((1.0, *self.group_scales))).max(dim=-1).values
 
     def _views(
         self,
@@ -437,10 +435,12 @@ class StateNovelty:
         start: bool = False,
     ) -> str:
         """Why one ``state`` ``[D]`` (a ``start`` state) is unlike the training states, in
-        words: its distance against the level, and the dimensions outside the training states'
-        central 99 % (:meth:`outside`; up to ``top``, the farthest first) or, when none is,
-        that the combination is new and the ``top`` dimensions in which it lies farthest from
-        its ``k`` nearest training states."""
+        words: its distance against the level, the dimensions outside the training states'
+        central 99 % (:meth:`outside`; up to ``top``, the farthest first), and, for a state
+        beyond the level, the group whose combination alone crosses it or, where no dimension
+        lies outside its range, that the combination is new and the ``top`` dimensions in which
+        it lies farthest from its ``k`` nearest training states. A state within the level is
+        said to be so."""
         state = _states("state", state, self.dim, flat=False)
         if state.dim() != 1:
             raise ValueError(f"state: expected one state [D], got shape {tuple(state.shape)}")
@@ -455,8 +455,11 @@ class StateNovelty:
         text = f"{ratio:.1f}x as far from the training states as {held} are"
         beyond = self._beyond(state)
         outside = beyond > _RANGE_MARGIN  # as :meth:`outside`
-        group = self._farthest_group(state) if start else None  # groups judge starts
+        # a group whose combination alone crosses the level (groups judge starts)
+        group = self._crossing_group(state) if start and ratio > 1 else None
         if not bool(outside.any()):
+            if ratio <= 1:
+                return text + " (within the level: like the training states)"
             if group is not None:  # new in one group's dimensions, not in all together
                 return text + (
                     " (every dimension within its training range: the combination of "
@@ -480,14 +483,15 @@ class StateNovelty:
             text += f"; the combination of {', '.join(names[d] for d in group)} is new"
         return text
 
-    def _farthest_group(self, state: Tensor) -> tuple[int, ...] | None:
-        """The group whose scaled distance makes one ``state``'s, where a group's does."""
+    def _crossing_group(self, state: Tensor) -> tuple[int, ...] | None:
+        """The group farthest beyond the start level on its scale for one start ``state``,
+        where one is beyond it."""
         if not self.groups:
             return None
-        views = self._views(state.to(self.center)[None])[0]
-        scaled = views * views.new_tensor((1.0, *self.group_scales))
+        views = self._views(state.to(self.center)[None])[0, 1:]
+        scaled = views * views.new_tensor(self.group_scales) / self.start_level
         which = int(scaled.argmax())
-        return None if which == 0 else self.groups[which - 1]
+        return self.groups[which] if float(scaled[which]) > 1 else None
 
     def _farthest(self, state: Tensor) -> list[int]:
         """The dimensions of one ``state`` ``[D]``, the farthest from its ``k`` nearest

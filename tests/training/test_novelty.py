@@ -98,6 +98,38 @@ def test_a_group_judged_on_its_own_finds_a_combination_new_only_in_its_dimension
         dataclasses.replace(grouped, group_scales=(1.0, 2.0))
 
 
+def test_groups_are_scaled_on_the_start_states_they_judge():
+    """Starts differ from the states in general (a target far at the start, reached soon
+    after): each group is put on the joint distance's scale over the first states, so the
+    start level stays near the joint one's and fresh starts are called unlike at about the
+    nominal rate. Scaled over all states, the target's small spread there set the start level
+    several times higher."""
+    g = torch.Generator().manual_seed(0)
+
+    def states(n: int, target_spread: float) -> torch.Tensor:
+        return torch.cat(
+            [torch.randn(n, 10, generator=g), torch.randn(n, 2, generator=g) * target_spread], -1
+        )
+
+    train = torch.cat([states(3900, 0.1), states(100, 1.0)])
+    firsts = torch.zeros(4000, dtype=torch.bool)
+    firsts[3900:] = True
+    episodes = torch.cat([torch.arange(3900) % 100, torch.arange(100)])
+    args = dict(firsts=firsts, episodes=episodes, held_out_starts=states(300, 1.0), quantile=0.95)
+    joint = StateNovelty.fit(train, states(2000, 0.1), **args)
+    grouped = StateNovelty.fit(train, states(2000, 0.1), groups=[(10, 11)], **args)
+    assert grouped.start_level / joint.start_level < 1.3
+    fresh = states(2000, 1.0)
+    low, high = binom.ppf([0.0005, 0.9995], 2000, 0.05)
+    assert low <= int(grouped.unlike(fresh, starts=True).sum()) <= high
+    # a start within the level, every dimension in its range: said to be so, no combination
+    calm = fresh[~grouped.unlike(fresh, starts=True) & ~grouped.outside(fresh).any(-1)][0]
+    names = [f"x{i}" for i in range(10)] + ["target[0]", "target[1]"]
+    assert grouped.describe(calm, names, start=True).endswith(
+        "are (within the level: like the training states)"
+    )
+
+
 def test_entry_groups_are_the_entries_of_several_dimensions():
     from rcvae_torchrl.training import entry_groups
 
