@@ -240,11 +240,18 @@ class StateNovelty:
             calibration.append(fitted._views(states[own], ids[own], ids, groups=bool(groups)))
         views = torch.cat(calibration) if calibration else held_out.new_zeros(0, 1)
         measured = views.shape[0]
-        if groups and not measured:  # no first states: starts are states like any other
-            views = fitted._views(held_out)
-        if groups:  # each group's distance on the joint one's scale: their start levels equal
+        if groups:
+            # each group's distance on the joint one's scale, their levels over the first
+            # states made equal; a group's level there no lower than over the states in
+            # general (first states at rest, all velocities 0, would make it 0 and any motion
+            # at the start a million times the level)
+            general = fitted._views(held_out)
+            if not measured:  # no first states: starts are states like any other
+                views = general
             joint = _conformal_level(views[:, 0], quantile)[0]
-            scales = tuple(joint / _conformal_level(v, quantile)[0] for v in views[:, 1:].T)
+            first = [_conformal_level(v, quantile)[0] for v in views[:, 1:].T]
+            usual = [_conformal_level(v, quantile)[0] for v in general[:, 1:].T]
+            scales = tuple(joint / max(f, u) for f, u in zip(first, usual, strict=True))
             fitted = dataclasses.replace(fitted, group_scales=scales)
         levels: dict[str, Any] = {}
         if groups or measured:
