@@ -228,8 +228,10 @@ class StateNovelty:
         fitted = cls(
             states, center, scale, low, high, math.inf, k, float(quantile), 0, groups=groups
         )
-        level, kept = _conformal_level(fitted.distance(held_out), quantile)
-        # the first states' distances in each view (all dimensions, then each group's)
+        # the distances in each view (all dimensions, then each group's): held-out states'
+        general = fitted._views(held_out, groups=bool(groups))
+        level, kept = _conformal_level(general[:, 0], quantile)
+        # and first states
         calibration = []
         if held_out_starts is not None:
             held_out_starts = _states("held_out_starts", held_out_starts, dim)
@@ -245,7 +247,6 @@ class StateNovelty:
             # states made equal; a group's level there no lower than over the states in
             # general (first states at rest, all velocities 0, would make it 0 and any motion
             # at the start a million times the level)
-            general = fitted._views(held_out)
             if not measured:  # no first states: starts are states like any other
                 views = general
             joint = _conformal_level(views[:, 0], quantile)[0]
