@@ -46,6 +46,8 @@ _BLOCK_ROWS = 256
 _RANGE_SHARE = 0.99
 #: how far past that range (in spreads) a dimension must lie to be named as outside it
 _RANGE_MARGIN = 0.05
+#: candidates beyond the k nearest by cdist's fast distances that are measured again exactly
+_RECHECKED = 8
 #: the steps of an episode (real or imagined) whose states the episode level looks at
 EPISODE_STEPS = 20
 
@@ -406,10 +408,21 @@ class StateNovelty:
         values and indices, ``[Q, k]``); ``own`` ``[Q, M]`` marks reference states left out;
         ``reference``: the scaled reference states in the dimensions of ``scaled`` (default
         all of them)."""
-        distances = torch.cdist(scaled, self._scaled if reference is None else reference)
+        reference = self._scaled if reference is None else reference
+        # cdist's fast path (a matrix product) loses the small distances to rounding (about
+        # 1e-4 where states repeat a value exactly, which a group's scale can blow up): the
+        # candidates it finds are measured again exactly
+        distances = torch.cdist(scaled, reference)
         if own is not None:
             distances = distances.masked_fill(own, math.inf)
-        return distances.topk(min(self.k, self._scaled.shape[0]), largest=False)
+        k = min(self.k, reference.shape[0])
+        candidates = distances.topk(min(k + _RECHECKED, reference.shape[0]), largest=False)
+        exact = (scaled[:, None, :] - reference[candidates.indices]).norm(dim=-1)
+        exact = exact.masked_fill(candidates.values == math.inf, math.inf)
+        nearest = exact.topk(k, largest=False)
+        return torch.return_types.topk(
+            (nearest.values, candidates.indices.gather(1, nearest.indices))
+        )
 
     def ratio(self, states: Tensor, *, starts: bool = False) -> Tensor:
         """``[*B]``: the distance over the level, or for ``starts`` (start states of episodes)

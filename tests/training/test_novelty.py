@@ -130,6 +130,19 @@ def test_groups_are_scaled_on_the_start_states_they_judge():
     )
 
 
+def test_distances_do_not_depend_on_the_batch_they_come_in():
+    """cdist's fast path rounds small distances (about 1e-4 where states repeat a value
+    exactly): the nearest are measured again exactly, so a state's distance is the same alone
+    or among others, and a training state's own distance is 0."""
+    g = torch.Generator().manual_seed(0)
+    train = torch.cat([torch.randn(3000, 10, generator=g) * 30, torch.ones(3000, 2)], dim=-1)
+    novelty = StateNovelty.fit(train, train[:500] + 0.1, k=1)
+    states = train[:40].clone()
+    alone = torch.stack([novelty.distance(state[None])[0] for state in states])
+    torch.testing.assert_close(novelty.distance(states), alone, rtol=0, atol=1e-6)
+    assert float(alone.abs().max()) < 1e-6
+
+
 def test_entry_groups_are_the_entries_of_several_dimensions():
     from rcvae_torchrl.training import entry_groups
 
