@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 
 import pytest
@@ -225,3 +226,42 @@ def test_a_warning_of_members_that_stopped_early_says_so():
         f"{int(early.max())} of max_steps=400 steps (patience=1 validations" in message
     )
     assert "a larger patience, more steps or more data" in message
+
+
+def test_a_dimension_the_model_gets_exactly_is_covered():
+    """A clock the model advances exactly (a state constraint rotating the previous phase) has
+    an interval of width 0 that the real phase, computed in another order, misses by float
+    rounding: that counts as inside, not as overconfident."""
+    from tensordict import TensorDict
+
+    from rcvae_torchrl.models import ModelFunctions
+
+    step = 0.37
+
+    def rotate(previous, state):
+        cos, sin = previous[..., 0], previous[..., 1]
+        c, s = math.cos(step), math.sin(step)
+        turned = torch.stack([cos * c - sin * s, sin * c + cos * s], dim=-1)
+        return torch.cat([turned, state[..., 2:]], dim=-1)
+
+    episodes, steps = 12, 30
+    g = torch.Generator().manual_seed(0)
+    phase0 = torch.rand(episodes, 1, generator=g, dtype=torch.float64) * 6.28
+    angle = phase0 + step * torch.arange(steps + 1, dtype=torch.float64)  # float64, then cast
+    clock = torch.stack([angle.cos(), angle.sin()], -1).float()
+    other = torch.randn(episodes, steps + 1, 1, generator=g)
+    states = torch.cat([clock, other], -1)
+    data = TensorDict(
+        {
+            "observation": states[:, :-1],
+            "action": torch.zeros(episodes, steps, 1),
+            ("next", "observation"): states[:, 1:],
+            TRAJ_KEY: torch.arange(episodes)[:, None].expand(episodes, steps),
+        },
+        batch_size=[episodes, steps],
+    ).reshape(-1)
+    config = RCVAEConfig(3, 1, hidden_dim=8, mlp_dim=8, state_constraint="clock")
+    model = RCVAEEnsemble(config, 2, functions=ModelFunctions(state_constraints={"clock": rotate}))
+    checks = check_model(model, data, samples_per_member=20, min_episodes=10, warn=False)
+    assert checks.covered[:2].tolist() == [episodes, episodes]
+    assert not {0, 1} & set(checks.overconfident)
