@@ -329,7 +329,23 @@ class CompetencyAssessor(KeyedModule):
             model_warning=self.model_warning,
             survival=self.boundary.is_survival,
             novelty=self.novelty,
+            measure=self.measure,
         )
+
+    @property
+    def measure(self) -> dict[str, Any]:
+        """How this assessor measures bits: its estimator, the estimator's settings (bin
+        widths, bias correction, ...) and the samples per member; a report keeps it, and a
+        reference measured otherwise is refused (:meth:`CompetencyReport.with_reference`)."""
+        metric = self.uncertainty_metric
+        width = metric.bin_width
+        return {
+            "estimator": metric.estimator,
+            "bin_width": None if width is None else tuple(width.reshape(-1).tolist()),
+            **{k: v for k, v in sorted(metric.estimator_args.items()) if k != "generator"},
+            "episode_end": metric.episode_end,
+            "samples_per_member": self.samples_per_member,
+        }
 
     @property
     def model_warning(self) -> str:

@@ -7,7 +7,7 @@
 from __future__ import annotations
 
 import numbers
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -200,6 +200,9 @@ class CompetencyReport:
     survival: bool = False
     forecast_check: Any = None
     novelty: Any = None
+    #: how the bits were measured (the assessor's estimator, its settings and the samples per
+    #: member, :attr:`CompetencyAssessor.measure`); ``None`` where not known
+    measure: Mapping[str, Any] | None = None
 
     @property
     def novel(self) -> Tensor | None:
@@ -270,6 +273,7 @@ class CompetencyReport:
         start states (:func:`~rcvae_torchrl._conformal.conformal_level`), which with too few
         of them for ``quantile`` is their largest, and the probability it covers is kept."""
         if isinstance(reference, CompetencyReport):
+            self._check_measured_alike(reference)
             live = reference.has_live_steps and self.has_live_steps
             aleatoric, epistemic = reference.mean_bits(live)
             starts = reference.data.numel()
@@ -296,6 +300,34 @@ class CompetencyReport:
                 "episode_end=True, or give time-mean bits)"
             )
         return replace(self, reference=reference)
+
+    def _check_measured_alike(self, reference: CompetencyReport) -> None:
+        """Refuse a reference report whose bits were measured otherwise (other bins, bias
+        correction, samples per member, or imagined steps): its bits are on another scale, and
+        every ratio against them would read as a rise or a fall."""
+        pairs = {"imagined steps": (reference._imagined_steps(), self._imagined_steps())}
+        if None in pairs["imagined steps"]:  # a report without bits per step
+            del pairs["imagined steps"]
+        if reference.measure is not None and self.measure is not None:
+            keys = sorted(set(reference.measure) | set(self.measure))
+            pairs.update({k: (reference.measure.get(k), self.measure.get(k)) for k in keys})
+        differ = {k: pair for k, pair in pairs.items() if pair[0] != pair[1]}
+        if differ:
+            said = "; ".join(
+                f"{k}: the reference's {theirs!r}, this report's {ours!r}"
+                for k, (theirs, ours) in differ.items()
+            )
+            raise ValueError(
+                f"reference: its bits were measured otherwise than this report's ({said}), so "
+                "every ratio against them would read as a rise or a fall; assess both with one "
+                "assessor (or give a Reference of bits measured as these are)"
+            )
+
+    def _imagined_steps(self) -> int | None:
+        """T, the steps the bits were measured over (None where the report has no bits per
+        step)."""
+        total = self.uncertainty.get("total", None)
+        return None if total is None else int(total.shape[self.data.batch_dims])
 
     def cause(self) -> str | None:
         """Over all start states, against the reference: the part that rose (``"epistemic"``

@@ -853,3 +853,32 @@ def test_too_narrow_bins_are_named_as_the_report_names_the_dimensions(starts, pl
     with pytest.warns(UserWarning, match=r"^bin_width: in s0 \(width 1e-09, at 100% of the steps"):
         report = assessor.assess(starts, actions=plan, seed=0)
     assert set(report.data["uncertainty", "by_dim"].keys()) == set(names)
+
+
+def test_a_reference_measured_otherwise_is_refused(env, starts, plan):
+    """Bits from other bins, another bias correction, other samples per member or another
+    horizon are on another scale: a reference report measured so is refused, naming what
+    differs; one measured alike is taken."""
+    report = make_assessor(env).assess(starts, actions=plan, seed=0)
+    alike = make_assessor(env).assess(starts[:2], actions=plan[:2], seed=1)
+    assert report.with_reference(alike).reference is not None
+    assert report.measure["samples_per_member"] == N and report.measure["estimator"] == "histogram"
+    for kwargs, said in (
+        ({"bin_width": resolution_tensor() * 4}, "bin_width"),
+        (
+            {"bias_correction": "shuffle"},
+            "bias_correction: the reference's 'shuffle', this report's None",
+        ),
+        (
+            {"samples_per_member": 2 * N},
+            f"samples_per_member: the reference's {2 * N}, this report's {N}",
+        ),
+    ):
+        other = make_assessor(env, **kwargs).assess(starts, actions=plan, seed=0)
+        with pytest.raises(ValueError, match=r"^reference: its bits were measured otherwise"):
+            other.with_reference(report)
+        with pytest.raises(ValueError, match=said.replace("*", r"\*")):
+            report.with_reference(other)
+    longer = make_assessor(env, horizon=T + 2, boundary=boundary(time_limit=T + 2))
+    with pytest.raises(ValueError, match=rf"imagined steps: the reference's {T + 2}, this"):
+        report.with_reference(longer.assess(starts, actions=torch.zeros(T + 2, A), seed=0))
