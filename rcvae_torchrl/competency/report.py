@@ -133,8 +133,8 @@ class CompetencyReport:
        states as 99% of held-out episodes' first states are: velocity_0 = 7.6 (training
        -4.2 to 4.3)): the forecast extrapolates, however much the members agree.`` For
        imagined states, the caution also says at which step more than half of that step's
-       samples first are unlike the training states (``At t = 2.4 s more than half of a
-       step's samples first are``), where the forecast starts to extrapolate. The
+       samples are first unlike the training states (``The first step at which more than half
+       of the samples are is t = 2.4 s``), where the forecast starts to extrapolate. The
        members' disagreement is no sure sign of such states: members trained on the same data
        can agree far from it, and where such a start's doubt is as in the reference (rule 4)
        the sentence says so despite the caution. :meth:`overall` counts them.
@@ -530,8 +530,8 @@ class CompetencyReport:
         where = (
             ": the forecast extrapolates there"
             if leaves < 0
-            else f". At {_when(leaves, self.dt)} more than half of a step's samples first are: "
-            "the forecast extrapolates from there"
+            else f". The first step at which more than half of the samples are is "
+            f"{_when(leaves, self.dt)}: the forecast extrapolates from there"
         )
         return (
             f"Caution: {share:.0%} of the imagined states are unlike the states the model was "

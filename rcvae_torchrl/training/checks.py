@@ -228,6 +228,8 @@ def _longest_episode(data: TensorDictBase) -> int:
     return int(episode_spans(data)[1].max())
 
 
+#: draws of the real outcomes from the forecasts, for the outcome check's exact p-values
+_DRAWS = 4000
 #: the relative difference below which a real state counts as on its imagined interval's edge
 _ROUNDING = 1e-5
 
@@ -521,7 +523,7 @@ class OutcomeCheck:
         if self.starts == 0:
             return float("nan")
         runs = self.runs if self._independent_runs else 1
-        draws = 4000
+        draws = _DRAWS
         generator = torch.Generator().manual_seed(1)
         f = self.forecast.clamp(_RESOLUTION, 1 - _RESOLUTION)
         counts = torch.binomial(
@@ -599,7 +601,7 @@ class OutcomeCheck:
 
         observed_counts = (self.real * runs).round()
         g = _shifted(self._logit, observed_counts.mean() / runs).clamp(_RESOLUTION, 1 - _RESOLUTION)
-        draws = 4000
+        draws = _DRAWS
         generator = torch.Generator().manual_seed(0)
         simulated = torch.binomial(
             torch.full((draws, g.numel()), runs, dtype=g.dtype), g.expand(draws, -1), generator
@@ -691,8 +693,8 @@ class OutcomeCheck:
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
             f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {100 * (1 - self.alpha):g} % "
             f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g} by a t-test over the "
-            f"starts, {self.exact_p_value:.2g} by the outcomes' exact chance)"
-            + self._per_start_sentence()
+            f"starts, {_drawn_p(self.exact_p_value)} by the outcomes' exact chance, "
+            f"{_DRAWS:,} draws)" + self._per_start_sentence()
         )
 
     def _per_start_sentence(self) -> str:
@@ -748,3 +750,10 @@ class OutcomeCheck:
             min_starts=int(values["min_starts"]),
             what=str(values.get("what", "the forecasts")),
         )
+
+
+def _drawn_p(p_value: float) -> str:
+    """A p-value from :data:`_DRAWS` draws, said as below the smallest they can give where it
+    is that (2 / (draws + 1), not a measured value)."""
+    floor = 2 / (_DRAWS + 1)
+    return f"< {floor:.2g}" if p_value <= floor * (1 + 1e-9) else f"{p_value:.2g}"

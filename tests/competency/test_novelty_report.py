@@ -87,9 +87,10 @@ def test_imagined_states_that_leave_the_training_states_are_named():
     text = report.summary(index=0)
     assert (
         f"Caution: {float(share[0]):.0%} of the imagined states are unlike the states the model "
-        "was trained on, more than ten times the share of held-out states (10%). At "
-        f"t = {round((int(leaves[0]) + 1) * DT, 6):g} s more than half of a step's samples "
-        "first are: the forecast extrapolates from there, however much the members agree." in text
+        "was trained on, more than ten times the share of held-out states (10%). The first "
+        "step at which more than half of the samples are is "
+        f"t = {round((int(leaves[0]) + 1) * DT, 6):g} s: the forecast extrapolates from there, "
+        "however much the members agree." in text
     )
     # a report without the onset (one made before it existed) keeps the words it had
     older = report.data.clone()

@@ -257,3 +257,19 @@ def test_a_check_built_by_hand_names_what_does_not_fit():
         OutcomeCheck(forecast, forecast, runs=0)
     with pytest.raises(TypeError, match=r"^forecast: expected a torch.Tensor, got list"):
         OutcomeCheck([0.5], forecast[:1], runs=1)
+
+
+def test_an_exact_p_value_at_the_draws_floor_is_said_to_be_below_it():
+    """With 4,000 draws the smallest exact p-value is 2 / 4,001: a gap beyond every draw is
+    said to be below it, not to be it."""
+    far = OutcomeCheck.from_outcomes(
+        torch.full((30,), 0.9, dtype=torch.float64), torch.zeros(30, 10, dtype=torch.bool)
+    )
+    assert far.exact_p_value == pytest.approx(2 / 4001)
+    assert ", < 0.0005 by the outcomes' exact chance, 4,000 draws)" in far.describe()
+    outcomes = torch.rand(30, 10, generator=torch.Generator().manual_seed(0)) < 0.5
+    near = OutcomeCheck.from_outcomes(torch.full((30,), 0.5, dtype=torch.float64), outcomes)
+    assert near.exact_p_value > 0.01
+    assert f", {near.exact_p_value:.2g} by the outcomes' exact chance, 4,000 draws)" in (
+        near.describe()
+    )
