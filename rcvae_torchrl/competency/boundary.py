@@ -19,7 +19,9 @@ from rcvae_torchrl.competency import _checks
 
 __all__ = ["Predicate", "SuccessBoundary"]
 
-#: ``obs [..., D] -> bool [...]``.
+#: ``obs [..., D] -> bool [...]``, a function of each state alone: a forecast calls it on
+#: whole trajectories ``[..., T, D]`` and the model env on one step's states ``[..., D]``, so
+#: it must not combine states along an axis (a sum over time would sum over the batch there).
 Predicate = Callable[[Tensor], Tensor]
 
 
