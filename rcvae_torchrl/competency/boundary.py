@@ -238,7 +238,7 @@ class SuccessBoundary:
         _checks.check_finite("observation", observation)
         try:
             result = predicate(observation)  # type: ignore[misc]
-        except (IndexError, KeyError, TypeError, RuntimeError) as error:
+        except (AttributeError, IndexError, KeyError, TypeError, RuntimeError) as error:
             raise ValueError(
                 f"{name}: the predicate failed on observations of shape "
                 f"{tuple(observation.shape)} ([..., T, D]: the model's state vector, its D = "
