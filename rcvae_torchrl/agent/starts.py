@@ -164,8 +164,10 @@ def _check_start(start: object, key: str, made_by: str) -> None:
 def reset_by_seed(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     """Reset ``env`` to ``start`` by replaying the seeded reset that drew it.
 
-    The env's random stream then continues from its state after that reset; transforms with
-    their own stream (e.g. action noise) keep theirs, so seed those per episode first. Raises
+    The env's random stream then continues from its state after that reset, the same in
+    every run from this start: an env that draws its noise from that stream repeats one
+    episode in every run (``real_outcomes`` warns of such copies); transforms with their own
+    stream (e.g. action noise) keep theirs, so seed those per episode first. Raises
     ``ValueError`` when the reset does not give ``start["observation"]`` (an env whose reset
     is not a function of its seed).
     """

@@ -10,6 +10,7 @@ start by start (:func:`~rcvae_torchrl.competency.validate_forecasts`).
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -35,7 +36,7 @@ from .episodes import (
     run_episodes,
 )
 from .policy import FixedRowsPolicy
-from .starts import start_episodes
+from .starts import reset_by_seed, start_episodes
 from .workers import episode_workers, start_worker_episodes
 
 __all__ = ["RealOutcomes", "real_outcomes", "score_forecast"]
@@ -170,8 +171,34 @@ def real_outcomes(
     part = (
         _my_outcomes(env, workers, policy, reset_to_state, episodes, show, desc) if mine else None
     )
-    flat = _gathered(part)
+    *flat, fingerprints = _gathered(part)
+    if r > 1:
+        _warn_copies(fingerprints.reshape(b, r), reset_to_state)
     return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
+
+
+def _warn_copies(fingerprints: torch.Tensor, reset_to_state: ResetToState) -> None:
+    """Warn when every start's runs repeat one episode step for step (``fingerprints``
+    ``[B, R]``, each episode's observations summed): its R runs are then R copies, not R draws
+    of its chance."""
+    if not bool((fingerprints == fingerprints[:, :1]).all()):
+        return
+    b, r = fingerprints.shape
+    replay = (
+        " (as reset_by_seed does, replaying the start's seeded reset)"
+        if reset_to_state is reset_by_seed
+        else ""
+    )
+    warnings.warn(
+        f"runs_per_start: each of the {b} starts' {r} runs repeated one episode, step for step: "
+        f"they are {r} copies of one outcome, not {r} draws of the start's chance. A "
+        "deterministic env does this (one run per start then says as much); an env whose "
+        "noise comes from its own random stream does it when the reset restarts that stream"
+        f"{replay}: reset to the state instead (reset_to_physics, or a function of your own), "
+        "or draw the noise in a transform (ActionNoise), which each run's seed restarts",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 @threads_kept()  # a ParallelEnv of workers changes torch's thread count at start and close
@@ -184,7 +211,8 @@ def _my_outcomes(
     show: bool,
     desc: str,
 ) -> tuple:
-    """``(success, first_step, steps, trace or None)`` of this process's ``episodes``:
+    """``(success, first_step, steps, trace or None, fingerprints)`` of this process's
+    ``episodes`` (a fingerprint: the sum of an episode's observations, for telling copies):
     in ``workers`` processes, in a batched env, or one at a time."""
     if workers > 1:
         pool = episode_workers(env, workers, reset_to_state)
@@ -226,6 +254,10 @@ def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
     episode's first step."""
     first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, horizon))
     values = None if trace is None else torch.full((episodes, horizon), float("nan"))
+    observed = stats.data["next", "observation"].double().flatten(1).sum(-1)
+    fingerprints = torch.zeros(episodes, dtype=torch.float64).index_add_(
+        0, stats.data[TRAJ_KEY].reshape(-1).long(), observed
+    )
     if callable(success) or trace is not None:  # the episodes lie one after the other
         lengths = torch.bincount(stats.data[TRAJ_KEY], minlength=episodes).tolist()
         for i, episode in enumerate(stats.data["next", "observation"].split(lengths)):
@@ -235,7 +267,7 @@ def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
             if values is not None:
                 row = trace(episode).reshape(-1)
                 values[i, : row.numel()] = row
-    return stats.success, first, stats.steps, values
+    return stats.success, first, stats.steps, values, fingerprints
 
 
 def _gathered(part: tuple | None) -> tuple:
@@ -276,7 +308,11 @@ def _batched_outcomes(
     )
     for _, keep, episode in groups:  # rows past keep pad the last group: not episodes asked for
         out = _chunk_outcomes(episode[:keep], success, trace, max_steps)
-        parts.append(list(dataclasses.astuple(out)))
+        done = episode["next", "done"][:keep].reshape(episode[:keep].shape)
+        ended = done.cumsum(1) - done.long() > 0  # steps after the episode's last one
+        observed = episode["next", "observation"][:keep].double().flatten(2).sum(-1)
+        fingerprints = observed.masked_fill(ended, 0.0).sum(1)
+        parts.append([*dataclasses.astuple(out), fingerprints])
     return tuple(None if t[0] is None else torch.cat(t) for t in zip(*parts))
 
 

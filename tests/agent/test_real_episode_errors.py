@@ -234,3 +234,35 @@ def test_a_report_is_scored_against_successes_within_its_own_deadline():
     assert score_forecast(report, outcomes) == validate_forecasts(p, first < 5)
     assert score_forecast(p, outcomes) == validate_forecasts(p, success)  # no deadline known
     assert score_forecast(p, outcomes) != score_forecast(report, outcomes)
+
+
+def test_runs_that_repeat_one_episode_are_said_to_be_copies():
+    """reset_by_seed replays a start's seeded reset: an env without noise of its own beyond
+    the reset (here a deterministic one) repeats one episode in every run, and the runs are
+    said to be copies, not draws of the start's chance; with actuator noise in a transform,
+    which each run's seed restarts, the runs differ and nothing is said."""
+    import warnings
+
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import DMControlEnv
+
+    from rcvae_torchrl.agent import draw_starts, reset_by_seed
+    from rcvae_torchrl.data import ActionNoise, prepare_env
+
+    def make(noise: float = 0.0):
+        env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+        return env.append_transform(ActionNoise(noise)) if noise else env
+
+    agent = TensorDictModule(lambda o: -o[..., :2], in_keys=["observation"], out_keys=["action"])
+    starts = draw_starts(make(), seeds=[3, 4])
+    args = dict(runs_per_start=3, reset_to_state=reset_by_seed, max_steps=8, progress=False)
+    near = lambda o: o[..., :2].norm(dim=-1) < 0.01  # noqa: E731
+    with pytest.warns(
+        UserWarning,
+        match=r"^runs_per_start: each of the 2 starts' 3 runs repeated one episode, step for "
+        r"step: .* \(as reset_by_seed does, replaying the start's seeded reset\)",
+    ):
+        real_outcomes(make(), agent, starts, success=near, **args)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        real_outcomes(make(0.5), agent, starts, success=near, **args)
