@@ -9,6 +9,7 @@ the :class:`ObservationLayout`: which dimensions came from which entry, with a n
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ from torchrl.envs import (
     EnvBase,
     ExcludeTransform,
     FrameSkipTransform,
+    PendulumEnv,
     Transform,
     TransformedEnv,
     UnsqueezeTransform,
@@ -367,8 +369,9 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
     it was read; ``None`` where it cannot.
 
     Read from the base env's simulator (dm_control's ``control_timestep()``; gym and
-    gymnasium's ``unwrapped.dt``; an env that declares its parameters as TorchRL's
-    ``PendulumEnv`` does, the ``("params", "dt")`` of its ``gen_params()``), times the frame
+    gymnasium's ``unwrapped.dt``; an env of one's own with a number ``dt`` among its
+    attributes; TorchRL's ``PendulumEnv``, the ``("params", "dt")`` of its ``gen_params()``,
+    which its resets use), times the frame
     skip of a wrapper that skips frames itself (``DMControlEnv(..., frame_skip=k)``) and every
     ``FrameSkipTransform``'s around it. A batched env (its sub-envs are not reached) and other
     envs give ``None``.
@@ -387,6 +390,8 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
         dt, what = float(timestep()), "control timestep"
     elif isinstance(getattr(getattr(inner, "unwrapped", None), "dt", None), (int, float)):
         dt, what = float(inner.unwrapped.dt), "dt"
+    elif _is_seconds(own := base.__dict__.get("dt")):  # an env of one's own keeping its dt
+        dt, what = float(own), "dt"
     elif (declared := _declared_dt(base)) is not None:
         dt, what = declared, "default params' dt"
     else:
@@ -402,9 +407,22 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
     return round(dt, 12), text
 
 
+def _is_seconds(value: object) -> bool:
+    """A positive finite number (not a bool)."""
+    return (
+        isinstance(value, (int, float))
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and value > 0
+    )
+
+
 def _declared_dt(base: EnvBase) -> float | None:
-    """The ``("params", "dt")`` of ``gen_params()`` where the env's class declares its
-    parameters so (TorchRL's ``PendulumEnv``), else ``None``."""
+    """The ``("params", "dt")`` of ``gen_params()`` for TorchRL's ``PendulumEnv`` (and its
+    subclasses), whose resets take their parameters from it; else ``None`` (another env's
+    ``gen_params`` defaults need not be the instance's)."""
+    if not isinstance(base, PendulumEnv):
+        return None
     params = getattr(type(base), "gen_params", None)
     try:
         found = params() if callable(params) else None

@@ -239,6 +239,31 @@ def test_control_step_reads_the_simulator_s_step_times_every_frame_skip():
             raise AssertionError("not called without its arguments")
 
     assert control_step(OtherParams(td_params=PendulumEnv.gen_params())) is None
+
+    class OwnEnv(EnvBase):  # an env of one's own: its dt attribute, not gen_params' default
+        def __init__(self, dt=None):
+            super().__init__()
+            if dt is not None:
+                self.dt = dt
+            self.observation_spec = Composite(observation=Unbounded((1,)))
+            self.action_spec = Unbounded((1,))
+            self.reward_spec = Unbounded((1,))
+
+        @staticmethod
+        def gen_params(dt=0.05):
+            return TensorDict({"params": {"dt": torch.tensor(dt)}})
+
+        def _reset(self, tensordict):
+            return TensorDict({"observation": torch.zeros(1)})
+
+        def _step(self, tensordict):
+            raise AssertionError("not stepped")
+
+        def _set_seed(self, seed):
+            pass
+
+    assert control_step(OwnEnv(dt=0.1)) == (0.1, "OwnEnv's dt 0.1 s")
+    assert control_step(OwnEnv()) is None  # gen_params' default need not be the env's
     # a gym or gymnasium env (TorchRL's GymEnv keeps it as _env): its unwrapped env's dt
     from types import SimpleNamespace
 
