@@ -26,8 +26,9 @@ ResetToState = Callable[[EnvBase, Any], TensorDictBase]
 
 def reset_to(reset_to_state: ResetToState, env: EnvBase, state: Any) -> TensorDictBase:
     """``reset_to_state(env, state)``, checked: it must give the env's reset tensordict, and
-    where ``state`` is a TensorDict with an ``"observation"``, the reset's must be that one
-    (to 1e-4, relative above 1): a reset that did not take the state starts elsewhere."""
+    where ``state`` is a TensorDict with an ``"observation"``, or a tensor of the reset
+    observation's shape (a start given as its observation), the reset's must be that one (to
+    1e-4, relative above 1): a reset that did not take the state starts elsewhere."""
     td = reset_to_state(env, state)
     if not isinstance(td, TensorDictBase):
         raise TypeError(
@@ -36,6 +37,10 @@ def reset_to(reset_to_state: ResetToState, env: EnvBase, state: Any) -> TensorDi
         )
     wanted = state.get("observation", None) if isinstance(state, TensorDictBase) else None
     got = td.get("observation", None)
+    if isinstance(state, torch.Tensor) and isinstance(got, torch.Tensor):
+        # a start given as its observation; a tensor of another shape (a simulator state of
+        # the user's own) is not compared
+        wanted = state if state.shape == got.shape and state.is_floating_point() else None
     if isinstance(wanted, torch.Tensor) and isinstance(got, torch.Tensor):
         if wanted.shape != got.shape:
             raise ValueError(

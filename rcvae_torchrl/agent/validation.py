@@ -114,8 +114,8 @@ def real_outcomes(
     chunk's first seed and warned about: for those, pass a function that makes one env and
     ``workers=K``) and runs ``max_steps`` steps (a sub-env that is done stays done). The last
     chunk is padded with repeats of its last episode, whose results are dropped. Where the
-    starts are a TensorDict with an ``"observation"``, the reset must give that observation
-    (a reset that did not take the state is refused).
+    starts are a TensorDict with an ``"observation"``, or a tensor of observations, the reset
+    must give that observation (a reset that did not take the state is refused).
 
     With ``workers=K > 1``, ``env`` must be a picklable function that makes the env: the
     episodes run in ``K`` worker processes of a TorchRL ``ParallelEnv``

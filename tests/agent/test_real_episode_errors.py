@@ -266,3 +266,27 @@ def test_runs_that_repeat_one_episode_are_said_to_be_copies():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         real_outcomes(make(0.5), agent, starts, success=near, **args)
+
+
+def test_a_reset_that_ignores_a_start_given_as_its_observation_is_refused():
+    """Starts given as a tensor of observations [B, S] are held against the reset's
+    observation too: a reset that ignores them starts elsewhere."""
+    from torchrl.envs import DMControlEnv
+
+    from rcvae_torchrl.agent import draw_starts
+    from rcvae_torchrl.data import prepare_env
+
+    env, _ = prepare_env(DMControlEnv("point_mass", "easy"))
+    starts = draw_starts(env, seeds=[3, 4])["observation"]
+    agent = lambda td: td.set("action", torch.zeros(2))  # noqa: E731
+    with pytest.raises(ValueError, match=r"^reset_to_state: the env's reset observation differs"):
+        real_outcomes(
+            env,
+            agent,
+            starts,
+            runs_per_start=1,
+            reset_to_state=lambda env, start: env.reset(),
+            max_steps=3,
+            success=lambda o: o[..., 0] > 9,
+            progress=False,
+        )
