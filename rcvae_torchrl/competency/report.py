@@ -634,11 +634,17 @@ def _change_sentence(
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
     unit = _unit(reference.per_live_step)
     shown = {k: _shown(ratios[k], reference.rise) for k in ratios}
+    verbs = {k: _verb(float(shown[k])) for k in shown}
+    # the second part takes the first's verb unless its own differs ("stayed at" after
+    # "rose"); a fall is always said
+    if verbs["aleatoric"] == verbs["epistemic"] != "fell to ":
+        verbs["aleatoric"] = ""
     parts = [
-        f"{k} {'uncertainty ' if i == 0 else ''}{_verb(float(shown[k]), i == 0)}"
+        f"{k} {'uncertainty ' if i == 0 else ''}{verbs[k]}"
         f"{shown[k]}x ({refs[k]:.2f} -> {values[k]:.2f} {unit})"
         for i, k in enumerate(("epistemic", "aleatoric"))
     ]
+    neither = f"neither part rose {reference.rise:g}x or more"
     text = f"Against the {reference.name}, {parts[0]} and {parts[1]}"
     cause = _cause(aleatoric, epistemic, reference, one_start)
     if cause is not None:
@@ -652,18 +658,15 @@ def _change_sentence(
         )
     fell = [k for k in ("epistemic", "aleatoric") if ratios[k] * reference.rise <= 1]
     if fell:
-        return (
-            text
-            + f": neither part rose, the {' and '.join(fell)} doubt fell below the reference's."
-        )
+        return text + f": {neither}, the {' and '.join(fell)} doubt fell below the reference's."
     if novel:
         return text + (
-            f": neither part rose, the doubt is as in the reference although {novel}: the "
+            f": {neither}, the doubt is as in the reference although {novel}: the "
             "members agree where none has data."
         )
     return text + (
-        ": neither part rose, the doubt is as in the reference (no sign of states the model "
-        "has not seen, which does not rule them out: a check against real episodes can)."
+        f": {neither}, the doubt is as in the reference (no sign of states the model has not "
+        "seen, which does not rule them out: a check against real episodes can)."
     )
 
 
@@ -676,16 +679,12 @@ def _shown(ratio: float, rise: float) -> str:
     return f"{ratio:.2f}" if misleads else f"{one:.1f}"
 
 
-def _verb(ratio: float, first: bool) -> str:
-    """``rose`` / ``fell to`` / ``stayed at`` by the ratio as printed (one decimal): a ratio
-    shown as 1.0x neither rose nor fell. The second part of a sentence takes the first's verb
-    unless it fell."""
-    shown = round(ratio, 1)
-    if shown < 1:
+def _verb(ratio: float) -> str:
+    """``rose`` / ``fell to`` / ``stayed at`` by the ratio as printed: a ratio shown as 1.0x
+    neither rose nor fell."""
+    if ratio < 1:
         return "fell to "
-    if not first:
-        return ""
-    return "rose " if shown > 1 else "stayed at "
+    return "rose " if ratio > 1 else "stayed at "
 
 
 def _high(reference: Reference, part: str) -> float | None:

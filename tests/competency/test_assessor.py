@@ -306,9 +306,10 @@ def test_summary_against_a_reference_names_what_rose():
     assert "the rise is aleatoric, the members agree that the states vary more" in str(noisy)
     same = hand_report(aleatoric=0.41, epistemic=0.21, total=0.62).with_reference(reference)
     assert (
-        "epistemic uncertainty stayed at 1.0x (0.20 -> 0.21 bits) and aleatoric 1.0x (0.40 -> 0.41 "
-        "bits): neither part rose, the doubt is as in the reference (no sign of states the "
-        "model has not seen, which does not rule them out: a check against real episodes can)."
+        "epistemic uncertainty stayed at 1.0x (0.20 -> 0.21 bits) and aleatoric 1.0x (0.40 -> "
+        "0.41 bits): neither part rose 1.3x or more, the doubt is as in the reference (no sign "
+        "of states the model has not seen, which does not rule them out: a check against real "
+        "episodes can)."
     ) in same.summary()
     # a ratio printed as 1.0x neither rose nor fell, whichever side of 1 it lies
     below = hand_report(aleatoric=0.39, epistemic=0.193, total=0.583).with_reference(reference)
@@ -318,18 +319,21 @@ def test_summary_against_a_reference_names_what_rose():
     lower = hand_report(aleatoric=0.2, epistemic=0.06, total=0.26).with_reference(reference)
     assert (
         "epistemic uncertainty fell to 0.3x (0.20 -> 0.06 bits) and aleatoric fell to 0.5x "
-        "(0.40 -> 0.20 bits): neither part rose, the epistemic and aleatoric doubt fell below "
-        "the reference's."
+        "(0.40 -> 0.20 bits): neither part rose 1.3x or more, the epistemic and aleatoric doubt "
+        "fell below the reference's."
     ) in lower.summary()
     # a ratio just below the rise is not printed as the rise (1.26 as 1.3x), nor one just
     # past a fall as no fall (0.76 as 0.8x)
     near = hand_report(aleatoric=0.504, epistemic=0.152, total=0.656).with_reference(reference)
     assert (
-        "epistemic uncertainty fell to 0.76x (0.20 -> 0.15 bits) and aleatoric 1.26x (0.40 -> "
-        "0.50 bits): neither part rose, the epistemic doubt fell below the reference's."
+        "epistemic uncertainty fell to 0.76x (0.20 -> 0.15 bits) and aleatoric rose 1.26x (0.40 "
+        "-> 0.50 bits): neither part rose 1.3x or more, the epistemic doubt fell below the "
+        "reference's."
     ) in near.summary()
     mixed = hand_report(aleatoric=0.48, epistemic=0.1, total=0.58).with_reference(reference)
-    assert "neither part rose, the epistemic doubt fell below the reference's." in str(mixed)
+    assert "neither part rose 1.3x or more, the epistemic doubt fell below the reference's." in str(
+        mixed
+    )
     from_report = hand_report(aleatoric=0.4, epistemic=0.8).with_reference(
         hand_report(aleatoric=0.4, epistemic=0.2), name="training starts"
     )
@@ -400,9 +404,9 @@ def test_one_start_rose_only_beyond_the_spread_of_the_references_own_starts():
     assert inside.reference.epistemic_high == pytest.approx(0.48)
     assert inside.reference.aleatoric_high == pytest.approx(0.4)
     assert (
-        "epistemic uncertainty rose 1.6x (0.29 -> 0.45 bits) and aleatoric 1.0x (0.40 -> 0.40 "
-        "bits): neither part rose beyond the reference's own start states: 95% of such starts "
-        "stay at or below 0.48 epistemic bits."
+        "epistemic uncertainty rose 1.6x (0.29 -> 0.45 bits) and aleatoric stayed at 1.0x (0.40 "
+        "-> 0.40 bits): neither part rose beyond the reference's own start states: 95% of such "
+        "starts stay at or below 0.48 epistemic bits."
     ) in inside.summary()
     beyond = hand_report(aleatoric=0.4, epistemic=0.6, total=1.0).with_reference(reference)
     assert "the rise is epistemic, the model has not seen states like this" in beyond.summary()
@@ -512,7 +516,8 @@ def test_episodes_that_end_sooner_are_compared_per_live_step():
     assert compared.reference.per_live_step and compared.cause() == "epistemic"
     assert (
         "(of only 1 start state), epistemic uncertainty rose 2.0x (1.00 -> 2.00 bits per live "
-        "step) and aleatoric 1.0x (4.00 -> 4.20 bits per live step): the rise is epistemic"
+        "step) and aleatoric stayed at 1.0x (4.00 -> 4.20 bits per live step): the rise is "
+        "epistemic"
     ) in compared.summary()
     assert "mean P(success within 30 s) = 0.84. Against" in compared.overall()
     # without bits per live step on both sides, the time means (which fell) are compared

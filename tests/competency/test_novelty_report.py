@@ -115,8 +115,8 @@ def test_a_doubt_as_in_the_reference_is_not_called_a_sign_of_seen_states_for_a_n
     same = Reference(float(bits["aleatoric"][2]), float(bits["epistemic"][2]))
     text = report.with_reference(same).summary(index=2)
     assert (
-        ": neither part rose, the doubt is as in the reference although the start is unlike "
-        "the training states (above): the members agree where none has data." in text
+        ": neither part rose 1.3x or more, the doubt is as in the reference although the start "
+        "is unlike the training states (above): the members agree where none has data." in text
     )
     assert "no sign of states the model has not seen" not in text
     # a familiar start with the same doubt keeps the usual words
@@ -135,9 +135,9 @@ def test_the_overall_paragraph_does_not_call_a_doubt_as_in_the_reference_a_sign_
     same = Reference(aleatoric, epistemic)  # the mean bits themselves: neither part rose
     text = report.with_reference(same).overall()
     assert (
-        ": neither part rose, the doubt is as in the reference although 1 of the 3 start states, "
-        "or their imagined states, are unlike the training states (below): the members agree "
-        "where none has data." in text
+        ": neither part rose 1.3x or more, the doubt is as in the reference although 1 of the 3 "
+        "start states, or their imagined states, are unlike the training states (below): the "
+        "members agree where none has data." in text
     )
     assert "no sign of states the model has not seen" not in text
     assert " Novelty: 1 of 3 start states are unlike" in text
