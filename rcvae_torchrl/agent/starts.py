@@ -155,9 +155,17 @@ def _check_start(start: object, key: str, made_by: str) -> None:
         if isinstance(start, TensorDictBase):
             keys = sorted(map(str, start.keys()))
             got = f"a tensordict of batch {tuple(start.batch_size)} and keys {keys}"
+        batch = isinstance(start, TensorDictBase) and start.batch_dims
         raise ValueError(
             f"start: expected one start of {made_by} (a tensordict [] with a {key!r} entry), "
             f"got {got}"
+            + (
+                "; this reset serves one env (batch_size []): for a batched env, pass a "
+                "reset_to_state of your own that takes a batch of starts, or a function that "
+                "makes one env with workers=K"
+                if batch
+                else ""
+            )
         )
 
 

@@ -178,7 +178,11 @@ def test_bad_starts_seeds_and_success_flags_are_named(reacher):
         reset_to_physics(reacher, start)
     with pytest.raises(ValueError, match=r"start: expected one start of draw_starts\(env, seeds"):
         reset_to_physics(reacher, draw_starts(reacher, [1])[0])
-    with pytest.raises(ValueError, match=r"got a tensordict of batch \(2,\)"):
+    with pytest.raises(
+        ValueError,
+        match=r"got a tensordict of batch \(2,\) .*; this reset serves one env \(batch_size "
+        r"\[\]\): for a batched env, pass a reset_to_state of your own",
+    ):
         reset_by_seed(reacher, draw_starts(reacher, [1, 2]))  # all starts, not one
     with pytest.raises(ValueError, match="with a 'seed' entry"):
         reset_by_seed(reacher, TensorDict({"observation": torch.zeros(6)}, []))
