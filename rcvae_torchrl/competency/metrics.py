@@ -185,6 +185,7 @@ class UncertaintyMetric(KeyedModule):
         self.dim_names = None if dim_names is None else tuple(dim_names)
         self.dim_reduction = dim_reduction
         self.episode_end = bool(episode_end)
+        self._warned_saturated = False  # bins too narrow for the samples: said once
         self._sync_keys()
 
     def _sync_keys(self) -> None:
@@ -213,7 +214,7 @@ class UncertaintyMetric(KeyedModule):
             args["ended"] = tensordict.get(key)
         parts = decompose_uncertainty(obs, self.estimator, **args).as_dict()
         per_dim = parts["total"].ndim == obs.ndim - 2
-        if self.estimator == "histogram":
+        if self.estimator == "histogram" and not self._warned_saturated:
             self._warn_saturated(obs, args.get("ended"))
         out = TensorDict(parts)
         time_axis = -2 if per_dim else -1
@@ -237,9 +238,10 @@ class UncertaintyMetric(KeyedModule):
         return result
 
     def _warn_saturated(self, obs: Tensor, ended: Tensor | None) -> None:
-        """Warn when a dimension's bins are so narrow that each member's samples fall in bins
-        of their own at most steps (where no sample has ended; looked at in up to
-        :data:`_SATURATION_ROWS` start states and as many steps spread over the horizon): its
+        """Warn (once per metric) when a dimension's bins are so narrow that each member's
+        samples fall in bins of their own at most steps (where no sample has ended; looked at
+        in up to :data:`_SATURATION_ROWS` start states and as many steps spread over the
+        horizon): its
         bits are then ``log2 N``, a count of the samples, not a measure of their spread (a
         width far below the samples' spread, or too few samples per member for it)."""
         samples, dims = obs.shape[1], obs.shape[-1]
@@ -268,6 +270,7 @@ class UncertaintyMetric(KeyedModule):
             f"{names[d]} (width {float(width[d]):.3g}, at {float(share[d]):.0%} of the steps)"
             for d in saturated
         )
+        self._warned_saturated = True  # once per metric: every call of an assessor would repeat it
         warnings.warn(
             f"bin_width: in {which}, each member's {samples} samples fall in bins of their own: "
             f"the bits there are log2 {samples} = {math.log2(samples):.2f}, the number of "
