@@ -307,17 +307,14 @@ def _batched_outcomes(
         desc=desc,
     )
     for _, keep, episode in groups:  # rows past keep pad the last group: not episodes asked for
-        out = _chunk_outcomes(episode[:keep], success, trace, max_steps)
-        done = episode["next", "done"][:keep].reshape(episode[:keep].shape)
-        ended = done.cumsum(1) - done.long() > 0  # steps after the episode's last one
-        observed = episode["next", "observation"][:keep].double().flatten(2).sum(-1)
-        fingerprints = observed.masked_fill(ended, 0.0).sum(1)
+        out, fingerprints = _chunk_outcomes(episode[:keep], success, trace, max_steps)
         parts.append([*dataclasses.astuple(out), fingerprints])
     return tuple(None if t[0] is None else torch.cat(t) for t in zip(*parts))
 
 
-def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
-    """Outcomes of a batched rollout ``[N, T]``: a sub-env's episode ends at its first done."""
+def _chunk_outcomes(episode, success, trace, max_steps: int) -> tuple[RealOutcomes, torch.Tensor]:
+    """Outcomes of a batched rollout ``[N, T]`` (a sub-env's episode ends at its first done),
+    and each episode's fingerprint (its observations summed, for telling copies)."""
     done = episode["next", "done"].reshape(episode.shape)
     ended = done.cumsum(1) - done.long() > 0  # steps after the episode's last one
     won = _success_flags(episode, success) & ~ended
@@ -332,7 +329,8 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> RealOutcomes:
         per_step = trace(episode["next", "observation"]).reshape(episode.shape).float()
         values = torch.full((episode.shape[0], max_steps), float("nan"))
         values[:, :steps_run] = per_step.masked_fill(ended, float("nan"))
-    return RealOutcomes(hit, first, steps, values)
+    observed = episode["next", "observation"].double().flatten(2).sum(-1)
+    return RealOutcomes(hit, first, steps, values), observed.masked_fill(ended, 0.0).sum(1)
 
 
 def _check_steps_cover_the_boundary(success: object, max_steps: int) -> None:

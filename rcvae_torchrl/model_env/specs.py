@@ -169,19 +169,14 @@ def _check_layout(ensemble: RCVAEEnsemble, env: EnvBase) -> None:
     moved = [i for i, name in enumerate(names) if name in ours and name != layout.names[i]]
     if moved:
         i = moved[0]
+        trained = ObservationLayout.from_names(names)  # the entries the ensemble's names form
         raise ValueError(
             f"real_env: its {OBSERVATION_KEY!r} has {layout.names[i]!r} as dimension {i}, "
             f"where the ensemble was trained on {names[i]!r} ({len(moved)} of {len(names)} "
             f"dimensions differ): the env concatenates {list(layout.keys)}, the ensemble's "
             f"dimensions are {list(names)}; prepare the env with the entries in the ensemble's "
-            f"order (prepare_env(env, observation_keys={_entries(names)}))"
+            f"order (prepare_env(env, observation_keys={list(trained.keys)}))"
         )
-
-
-def _entries(names: tuple[str, ...]) -> list[str]:
-    """The entries that dimension names ``key[i]`` / ``key`` (an ObservationLayout's) come
-    from, in order."""
-    return list(ObservationLayout.from_names(names).keys)
 
 
 def _check_shape(name: str, got: torch.Size, want: tuple[int, ...]) -> None:
