@@ -10,6 +10,7 @@ start by start (:func:`~rcvae_torchrl.competency.validate_forecasts`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -103,7 +104,12 @@ def real_outcomes(
     :func:`~rcvae_torchrl.agent.run_episodes` (a flag the env writes, or a function of the
     observations); ``trace`` maps observations ``[..., T, S] -> [..., T]``. The env's own
     time limit must not end an episode before ``max_steps`` (as there, an episode it cuts
-    short without a success is refused: its outcome is unknown).
+    short without a success is refused: its outcome is unknown). An episode the env ends itself
+    (``terminated``) counts as a failure; where ``success`` is a
+    :class:`~rcvae_torchrl.competency.SuccessBoundary`'s ``success_over_time`` and such an end
+    came before its time limit, neither in its success region nor in its failure region, a
+    warning says so: imagined episodes do not end there, so the forecast judges another event
+    (give the boundary the env's termination condition as its failure).
 
     ``env`` is a TorchRL env, or a function that makes one (called here when ``workers=1``).
     A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator) runs the episodes
@@ -171,10 +177,57 @@ def real_outcomes(
     part = (
         _my_outcomes(env, workers, policy, reset_to_state, episodes, show, desc) if mine else None
     )
-    *flat, fingerprints = _gathered(part)
+    *flat, fingerprints, undecided = _gathered(part)
     if r > 1:
         _warn_copies(fingerprints.reshape(b, r), reset_to_state)
+    if undecided is not None and bool(undecided.any()):
+        _warn_undecided_ends(undecided, _boundary_of(success))
     return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
+
+
+def _boundary_of(success: object) -> SuccessBoundary | None:
+    """The :class:`~rcvae_torchrl.competency.SuccessBoundary` whose method ``success`` is."""
+    boundary = getattr(success, "__self__", None)
+    return boundary if isinstance(boundary, SuccessBoundary) else None
+
+
+def _undecided_ends(
+    success: object,
+    observation: torch.Tensor,
+    hit: torch.Tensor,
+    length: torch.Tensor,
+    max_steps: int,
+) -> torch.Tensor | None:
+    """``[...]`` bool: episodes (observations ``[..., T, S]``, ``length`` steps each) that the
+    env ended before ``max_steps`` and the boundary's time limit with neither its success
+    (``hit``) nor its failure; ``None`` where ``success`` is not a boundary's."""
+    boundary = _boundary_of(success)
+    if boundary is None:
+        return None
+    early = ~hit & (length < min(max_steps, boundary.time_limit))
+    if boundary.failure is None or not bool(early.any()):
+        return early
+    failed = boundary._failed_by_step(observation)
+    last = (length - 1).clamp_min(0).unsqueeze(-1)
+    return early & ~failed.gather(-1, last).squeeze(-1)
+
+
+def _warn_undecided_ends(undecided: torch.Tensor, boundary: SuccessBoundary) -> None:
+    """Warn that real episodes ended (the env's own termination) where the boundary decided
+    nothing: they count as failures, and imagined episodes go on there."""
+    region = "its failure" if boundary.failure is not None else "a failure region"
+    warnings.warn(
+        f"success: {int(undecided.sum())} of the {undecided.numel()} real episodes ended by the "
+        f"env itself (terminated) before the boundary's time limit of {boundary.time_limit} "
+        "steps, neither in its success region nor in its failure region. They count as "
+        "failures (an ended episode cannot succeed), but a forecast's imagined episodes end "
+        "only at the boundary's success or failure and go on there, counting what would "
+        "follow: the forecast and these outcomes judge different events. Give the boundary the "
+        f"env's termination condition as {region} (SuccessBoundary(..., failure=...), "
+        "SuccessBoundary.survival(...)), so that both end at it",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _warn_copies(fingerprints: torch.Tensor, reset_to_state: ResetToState) -> None:
@@ -211,8 +264,10 @@ def _my_outcomes(
     show: bool,
     desc: str,
 ) -> tuple:
-    """``(success, first_step, steps, trace or None, fingerprints)`` of this process's
-    ``episodes`` (a fingerprint: the sum of an episode's observations, for telling copies):
+    """``(success, first_step, steps, trace or None, fingerprints, undecided or None)`` of this
+    process's ``episodes`` (a fingerprint: the sum of an episode's observations, for telling
+    copies; undecided: ended by the env where the boundary decided nothing, see
+    :func:`_undecided_ends`):
     in ``workers`` processes, in a batched env, or one at a time."""
     if workers > 1:
         pool = episode_workers(env, workers, reset_to_state)
@@ -258,16 +313,22 @@ def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
     fingerprints = torch.zeros(episodes, dtype=torch.float64).index_add_(
         0, stats.data[TRAJ_KEY].reshape(-1).long(), observed
     )
+    boundary = _boundary_of(success) is not None
+    undecided = torch.zeros(episodes, dtype=torch.bool) if boundary else None
     if callable(success) or trace is not None:  # the episodes lie one after the other
         lengths = torch.bincount(stats.data[TRAJ_KEY], minlength=episodes).tolist()
         for i, episode in enumerate(stats.data["next", "observation"].split(lengths)):
             if callable(success):  # the first success may lie before the episode's end
                 hits = success(episode).reshape(-1).nonzero()
                 first[i] = int(hits[0, 0]) if hits.numel() else horizon
+            if undecided is not None:
+                length = torch.tensor(lengths[i])
+                hit = stats.success[i]
+                undecided[i] = bool(_undecided_ends(success, episode, hit, length, horizon))
             if values is not None:
                 row = trace(episode).reshape(-1)
                 values[i, : row.numel()] = row
-    return stats.success, first, stats.steps, values, fingerprints
+    return stats.success, first, stats.steps, values, fingerprints, undecided
 
 
 def _gathered(part: tuple | None) -> tuple:
@@ -308,7 +369,9 @@ def _batched_outcomes(
     )
     for _, keep, episode in groups:  # rows past keep pad the last group: not episodes asked for
         out, fingerprints = _chunk_outcomes(episode[:keep], success, trace, max_steps)
-        parts.append([*dataclasses.astuple(out), fingerprints])
+        observation = episode[:keep]["next", "observation"]
+        undecided = _undecided_ends(success, observation, out.success, out.steps, max_steps)
+        parts.append([*dataclasses.astuple(out), fingerprints, undecided])
     return tuple(None if t[0] is None else torch.cat(t) for t in zip(*parts))
 
 
@@ -336,8 +399,8 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> tuple[RealOutcom
 def _check_steps_cover_the_boundary(success: object, max_steps: int) -> None:
     """Where ``success`` is a :class:`~rcvae_torchrl.competency.SuccessBoundary`'s method, the
     episodes must run to its time limit: a survival judged on fewer steps is never one."""
-    boundary = getattr(success, "__self__", None)
-    if not isinstance(boundary, SuccessBoundary) or boundary.time_limit is None:
+    boundary = _boundary_of(success)
+    if boundary is None or math.isinf(boundary.time_limit):  # none: the episodes' max_steps
         return
     if max_steps < boundary.time_limit:
         raise ValueError(

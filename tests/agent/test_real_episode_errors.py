@@ -4,12 +4,15 @@ with errors that say what to do."""
 from __future__ import annotations
 
 import re
+import warnings
 
 import pytest
 import torch
 
 from rcvae_torchrl.agent import real_outcomes, run_episodes
+from rcvae_torchrl.competency import SuccessBoundary
 from rcvae_torchrl.envs import make_batched_pusher_env, make_pusher_env, reset_to_state
+from tests.agent.worker_envs import plain_reset, terminating_point_mass
 from tests.pusher_fixtures import pusher_starts
 
 CUT = r"cut short by the env itself .* max_steps=45 .* after 20 steps.*DMControlEnv"
@@ -290,3 +293,62 @@ def test_a_reset_that_ignores_a_start_given_as_its_observation_is_refused():
             success=lambda o: o[..., 0] > 9,
             progress=False,
         )
+
+
+def _to_origin(td):  # reaches the origin, where the terminating point mass ends its episode
+    o = td["observation"]
+    return td.set("action", (-1.0 * o[..., :2] - 1.5 * o[..., 2:4]).clamp(-1, 1))
+
+
+def _at_origin(observation):  # the env's own termination condition
+    return observation[..., :2].norm(dim=-1) < 0.1
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_episodes_the_env_ends_where_the_boundary_decides_nothing_are_named(workers):
+    env = terminating_point_mass
+    starts = env().reset()["observation"][None].repeat(2, 1)
+    args = dict(runs_per_start=1, reset_to_state=plain_reset, max_steps=35, workers=workers)
+
+    def outcomes(boundary):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            success = boundary.success_over_time
+            out = real_outcomes(env, _to_origin, starts, success=success, progress=False, **args)
+        return out, [str(w.message) for w in caught if "ended by the env" in str(w.message)]
+
+    # a reach the env's end cuts off (the episodes end at step 14), and a survival whose
+    # failure is looser than the env's end: real failures the forecast cannot see coming
+    far = SuccessBoundary(lambda o: o[..., 0] < -5.0, time_limit=30)
+    loose = SuccessBoundary.survival(lambda o: o[..., 0].abs() > 5.0, time_limit=30)
+    cases = ((far, "a failure region"), (loose, "its failure"))
+    # worker processes start slowly: one case there (a failure region, read at each end)
+    for boundary, region in cases if workers == 1 else cases[1:]:
+        out, said = outcomes(boundary)
+        assert not out.success.any() and out.steps.tolist() == [[14], [14]]
+        assert len(said) == 1 and said[0].startswith(
+            "success: 2 of the 2 real episodes ended by the env itself (terminated) before the "
+            "boundary's time limit of 30 steps, neither in its success region nor in its "
+            "failure region. They count as failures"
+        )
+        assert f"termination condition as {region} (SuccessBoundary(..., failure=...)" in said[0]
+    # the env's end as the boundary's failure or its success: both judge the same event
+    for boundary in (
+        SuccessBoundary(lambda o: o[..., 0] < -5.0, failure=_at_origin, time_limit=30),
+        SuccessBoundary(_at_origin, time_limit=30),
+        SuccessBoundary(lambda o: o[..., 0] < -5.0, time_limit=10),  # ended after its limit
+    )[: 3 if workers == 1 else 0]:
+        out, said = outcomes(boundary)
+        assert said == [] and out.steps.tolist() == [[14], [14]]
+
+
+def test_a_boundary_without_a_time_limit_is_judged_over_the_episodes_steps():
+    env = terminating_point_mass()
+    starts = env.reset()["observation"][None]
+    args = dict(runs_per_start=1, reset_to_state=plain_reset, progress=False)
+    anytime = SuccessBoundary(_at_origin)  # was refused: "at least ... (inf steps)"
+    for max_steps, won in ((35, True), (10, False)):
+        out = real_outcomes(
+            env, _to_origin, starts, max_steps=max_steps, success=anytime.success_over_time, **args
+        )
+        assert out.success.tolist() == [[won]] and out.first_step.tolist() == [[13 if won else 10]]
