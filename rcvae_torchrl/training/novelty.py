@@ -94,10 +94,11 @@ class StateNovelty:
     held_out: int  #: the held-out states the level was measured on
     #: the level of start states: the distance that ``start_quantile`` of the episodes' first
     #: states (held-out ones, and training ones against the other episodes' states) stay at or
-    #: below (``level`` when none were measured)
+    #: below, or the held-out states' where theirs is higher (``level`` when none were
+    #: measured)
     start_level: float = math.nan
     start_quantile: float = math.nan
-    start_held_out: int = 0  #: the first states it was measured on
+    start_held_out: int = 0  #: the first states it was measured on (0: the states' level)
     #: the share of an episode's states beyond ``level`` (at :data:`EPISODE_STEPS` steps spread
     #: over it) that ``episode_quantile`` of the measured episodes stay at or below; without
     #: episodes, ten times the share of states beyond the level, ``10 (1 - quantile)``
@@ -160,6 +161,10 @@ class StateNovelty:
         states' level would call many in-distribution starts unlike them. It is measured on
         the held-out episodes' first states and on every training episode's first state, each
         against the training states of the other episodes (there are few held-out episodes).
+        It is never below the level of held-out states in general (then ``start_held_out`` is
+        0): a start may lie anywhere along the training episodes' course (training begins its
+        windows all along it), and first states that all repeat one state (a reset with
+        little noise) would otherwise call every other state new.
 
         Args:
             states: the training states.
@@ -259,6 +264,13 @@ class StateNovelty:
         levels: dict[str, Any] = {}
         if groups or measured:
             start_level, start_kept = _conformal_level(fitted._combined(views), quantile)
+            # a start no farther than the held-out states in general is like the training
+            # states, whose every state a window of training began at: first states that
+            # repeat one state (a reset with little noise) would set a level that calls any
+            # state of an episode's course new
+            usual, usual_kept = _conformal_level(fitted._combined(general), quantile)
+            if usual > start_level:
+                start_level, start_kept, measured = usual, usual_kept, 0
             levels = {"start_level": start_level, "start_quantile": start_kept}
             if measured:
                 levels["start_held_out"] = measured

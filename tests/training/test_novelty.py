@@ -292,6 +292,34 @@ def _decaying_episodes(n: int, seed: int, steps: int = 30) -> tuple[torch.Tensor
     return states.reshape(-1, 2), (ids + 1000 * seed).reshape(-1)
 
 
+def _spreading_episodes(n: int, seed: int, steps: int = 30) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat states [n * steps, 2] and episode ids: every episode starts at (1, 1) but for a
+    reset's noise of 1e-3, then wanders off (a random walk of steps 0.1)."""
+    g = torch.Generator().manual_seed(seed)
+    start = 1.0 + 1e-3 * torch.randn(n, 1, 2, generator=g)
+    walk = torch.cat([torch.zeros(n, 1, 2), 0.1 * torch.randn(n, steps - 1, 2, generator=g)], 1)
+    ids = torch.arange(n)[:, None].expand(n, steps)
+    return (start + walk.cumsum(1)).reshape(-1, 2), (ids + 1000 * seed).reshape(-1)
+
+
+def test_a_start_along_the_training_episodes_course_is_like_the_training_states():
+    """Resets that all give one state but for a little noise: their first states' level is
+    tiny, and it called every state of an episode's course a new start (a trial's hopper:
+    43 of 43 training states taken mid-episode). A start's level is now never below the
+    states' in general; a start far from every training state is still new."""
+    train, ids = _spreading_episodes(200, 0)
+    held, _ = _spreading_episodes(40, 1)
+    firsts = torch.zeros(ids.numel(), dtype=torch.bool)
+    firsts[::30] = True
+    novelty = StateNovelty.fit(train, held, firsts=firsts, episodes=ids, held_out_starts=held[::30])
+    assert novelty.start_level == pytest.approx(novelty.level) and novelty.start_held_out == 0
+    fresh, _ = _spreading_episodes(1000, 2)
+    course = fresh.reshape(1000, 30, 2)[:, 10]  # new episodes' states at step 10, as starts
+    assert int(novelty.unlike(course, starts=True).sum()) <= binom.ppf(0.999, 1000, 0.01)
+    assert bool(novelty.unlike(torch.tensor([[4.0, -2.0]]), starts=True).all())
+    assert "as 99% of held-out states are" in novelty.describe(course[0], start=True)
+
+
 def test_start_states_and_episodes_are_judged_by_levels_of_their_own():
     train, ids = _decaying_episodes(200, 0)
     held, held_ids = _decaying_episodes(30, 1)
