@@ -663,14 +663,16 @@ _NOT_OWN = ("self", "model_env", "boundary", "estimator_args")
 
 
 def _check_dt_against_real_env(dt: float | None, model_env: Any) -> None:
-    """Seconds per step given (``dt``, the boundary's) must be the real env's, where the model
-    env knows them (``real_control_step``): a frame skip left out of ``dt`` would make every
-    time and time limit in seconds wrong by its factor, silently."""
+    """Seconds per step given (``dt``, the boundary's) must be the real env's, or the
+    ensemble's training episodes', where the model env knows them (``real_control_step``): a
+    frame skip left out of ``dt`` would make every time and time limit in seconds wrong by its
+    factor, silently."""
     step = getattr(model_env, "real_control_step", None)
     if dt is None or step is None or math.isclose(dt, step[0], rel_tol=1e-6):
         return
     raise ValueError(
-        f"dt: expected the real env's seconds per step, {step[0]:g} s ({step[1]}), got "
+        f"dt: expected the seconds one step of the model env stands for, {step[0]:g} s "
+        f"({step[1]}), got "
         f"{dt:g} s: every time in seconds, the time limit's included, would be off by "
         f"{step[0] / dt:.3g}x; give SuccessBoundary(..., dt={step[0]:g}) (a frame skip "
         "multiplies the simulator's control step)"

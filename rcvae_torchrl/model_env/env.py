@@ -201,9 +201,15 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     @property
     def real_control_step(self) -> tuple[float, str] | None:
         """Seconds per step of the real env whose specs this env copies, and how they were
-        read (:func:`~rcvae_torchrl.data.control_step`); ``None`` without a real env or where
-        they cannot be read. An imagined step stands for one such step."""
-        return None if self._real_env is None else control_step(self._real_env)
+        read (:func:`~rcvae_torchrl.data.control_step`); where they cannot be read or there is
+        no real env, the ensemble's own (``RCVAEConfig.control_step``, the step of the episodes
+        it was trained on); ``None`` where neither is known. An imagined step stands for one
+        such step."""
+        step = None if self._real_env is None else control_step(self._real_env)
+        trained = self.ensemble.config.control_step
+        if step is None and trained is not None:
+            return trained, "the ensemble's control_step, the step of its training episodes"
+        return step
 
     @property
     def reward_fn(self) -> RewardFn:

@@ -11,13 +11,14 @@ input tensordict, also through a ``TransformedEnv``).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
 from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl.data import ObservationLayout, observation_layout
+from rcvae_torchrl.data import ObservationLayout, control_step, observation_layout
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import TrajectorySampling
 
@@ -144,6 +145,7 @@ def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]
     reward = _unbatched(env.full_reward_spec, nb)[REWARD_KEY]
     _check_shape(f"real_env {OBSERVATION_KEY!r} spec", obs.shape, (cfg.obs_dim,))
     _check_layout(ensemble, env)
+    _check_control_step(ensemble, env)
     _check_shape(f"real_env {ACTION_KEY!r} spec", action.shape, (cfg.action_dim,))
     _check_shape(f"real_env {REWARD_KEY!r} spec", reward.shape, (1,))
     defaults = _default_specs(ensemble)
@@ -153,6 +155,23 @@ def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]
         action,
         reward,
         _unbatched(env.full_done_spec, nb),
+    )
+
+
+def _check_control_step(ensemble: RCVAEEnsemble, env: EnvBase) -> None:
+    """Refuse ``env`` where one of its steps takes another time than a step of the episodes
+    the ensemble was trained on (both where known): each imagined step would stand for a real
+    step of another length, and every forecast in time would be off by their ratio."""
+    trained = ensemble.config.control_step
+    step = control_step(env) if trained is not None else None
+    if step is None or math.isclose(step[0], trained, rel_tol=1e-6):
+        return
+    raise ValueError(
+        f"real_env: one of its steps takes {step[0]:g} s ({step[1]}), where the ensemble was "
+        f"trained on steps of {trained:g} s (its config's control_step): each imagined step "
+        f"would stand for a real step {trained / step[0]:.3g}x its length; give the env the "
+        "training episodes' step (a frame skip multiplies the simulator's: TorchRL's "
+        "FrameSkipTransform), or train on episodes of its step"
     )
 
 

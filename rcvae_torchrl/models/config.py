@@ -47,6 +47,11 @@ class RCVAEConfig:
             imagined episode does not have. A rollout draws e from its prior and keeps it: fed
             a real history first (a rollout started mid-episode), only h_t reads it, e is not
             inferred from it.
+        control_step: the seconds one step of the training episodes takes (the env's control
+            step, frame skips included: :func:`~rcvae_torchrl.data.control_step` reads it), or
+            ``None`` (unknown). Recorded with the model: a model env refuses a real env whose
+            step differs (an imagined step would stand for a step of another length), and a
+            boundary's ``dt`` is checked against it even without a real env.
     """
 
     obs_dim: int
@@ -62,8 +67,22 @@ class RCVAEConfig:
     input_features: str | None = None
     observation_names: tuple[str, ...] | None = None
     episode_latent_dim: int = 0
+    control_step: float | None = None
 
     def __post_init__(self) -> None:
+        step = self.control_step
+        if step is not None:
+            if isinstance(step, bool) or not isinstance(step, (int, float)):
+                raise TypeError(
+                    "RCVAEConfig.control_step must be the seconds per step (a number) or None, "
+                    f"got {step!r}."
+                )
+            if not (math.isfinite(step) and step > 0):
+                raise ValueError(
+                    "RCVAEConfig.control_step must be a finite number of seconds > 0, got "
+                    f"{step!r}."
+                )
+            object.__setattr__(self, "control_step", float(step))
         ze = self.episode_latent_dim
         if isinstance(ze, bool) or not isinstance(ze, int) or ze < 0:
             raise ValueError(f"RCVAEConfig.episode_latent_dim must be an int >= 0, got {ze!r}.")

@@ -133,7 +133,8 @@ def scoring_key(fn: ScoringFn, ensemble: RCVAEEnsemble, task: Task, horizon: int
     """Everything the compiled graph depends on (a JSON-able description; its digest names the
     package). The weights' values are not in it: they are inputs of the graph."""
     config = dataclasses.asdict(ensemble.config)
-    config.pop("observation_names")  # names only: no part of the graph
+    for key in ("observation_names", "control_step"):  # records only: no part of the graph
+        config.pop(key)
     state = _weights(ensemble)
     return {
         "format": _FORMAT,

@@ -142,6 +142,7 @@ class Study:
             mlp_dim=m.hidden_dim,
             latent_dim=m.latent_dim,
             observation_names=layout.names,
+            control_step=CONTROL_TIMESTEP,
         )
         for name in WORLD_MODELS:
             path = self.dir / "models" / f"{name}.pt"

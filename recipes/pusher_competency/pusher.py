@@ -73,8 +73,8 @@ FIGURE_PANELS = {
 
 
 def rcvae_config(model: ModelConfig) -> RCVAEConfig:
-    """One member's config: the Pusher's sizes and dimension names, the target passed
-    through."""
+    """One member's config: the Pusher's sizes, dimension names and control step, the target
+    passed through."""
     return RCVAEConfig(
         OBSERVATION_DIM,
         2,
@@ -86,6 +86,7 @@ def rcvae_config(model: ModelConfig) -> RCVAEConfig:
         input_features=model.input_features,
         episode_latent_dim=model.episode_latent_dim,
         observation_names=OBSERVATION_NAMES,
+        control_step=CONTROL_TIMESTEP,
     )
 
 

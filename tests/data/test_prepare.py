@@ -344,7 +344,8 @@ def test_a_boundary_dt_that_is_not_the_real_env_s_step_is_named():
         assert model_env.real_control_step[0] == 0.1
         with pytest.raises(
             ValueError,
-            match=r"^dt: expected the real env's seconds per step, 0.1 s \(DMControlEnv's control "
+            match=r"^dt: expected the seconds one step of the model env stands for, 0.1 s "
+            r"\(DMControlEnv's control "
             r"timestep 0.02 s x FrameSkipTransform\(5\)\), got 0.02 s: .* off by 5x; give "
             r"SuccessBoundary\(\.\.\., dt=0.1\)",
         ):
@@ -355,3 +356,47 @@ def test_a_boundary_dt_that_is_not_the_real_env_s_step_is_named():
         assess(model_env, SuccessBoundary(_success, time_limit=10))
     # a model env without a real env has no step to check against
     assert make_rcvae_env(model, None, _reward, _success).real_control_step is None
+
+
+def test_a_model_that_records_its_training_step_refuses_an_env_of_another_step(tmp_path):
+    from torchrl.envs import FrameSkipTransform
+
+    from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary
+    from rcvae_torchrl.data import control_step
+    from rcvae_torchrl.training import load_ensemble, save_ensemble
+
+    skipped, layout = prepare_env(DMControlEnv("reacher", "easy"))
+    skipped.append_transform(FrameSkipTransform(5))  # 0.1 s per step, as trained
+    config = RCVAEConfig(
+        layout.dim, 2, hidden_dim=8, mlp_dim=8, control_step=control_step(skipped)[0]
+    )
+    save_ensemble(RCVAEEnsemble(config, 2), tmp_path / "model.pt")
+    model = load_ensemble(tmp_path / "model.pt")  # the step is kept with the model
+    assert model.config.control_step == 0.1
+    assert make_rcvae_env(model, skipped, _reward, _success).real_control_step[0] == 0.1
+    plain, _ = prepare_env(DMControlEnv("reacher", "easy"))  # the frame skip forgotten
+    with pytest.raises(
+        ValueError,
+        match=r"^real_env: one of its steps takes 0.02 s \(DMControlEnv's control timestep "
+        r"0.02 s\), where the ensemble was trained on steps of 0.1 s \(its config's "
+        r"control_step\): each imagined step would stand for a real step 5x its length; .*"
+        r"FrameSkipTransform",
+    ):
+        make_rcvae_env(model, plain, _reward, _success)
+    # without a real env, a boundary's dt is checked against the training step
+    alone = make_rcvae_env(model, None, _reward, _success)
+    assert alone.real_control_step == (
+        0.1,
+        "the ensemble's control_step, the step of its training episodes",
+    )
+    with pytest.raises(
+        ValueError, match=r"^dt: .* 0.1 s \(the ensemble's control_step, .*off by 5x"
+    ):
+        CompetencyAssessor(
+            alone, SuccessBoundary(_success, time_limit_s=1.0, dt=0.02), bin_width=0.1
+        )
+    CompetencyAssessor(alone, SuccessBoundary(_success, time_limit_s=1.0, dt=0.1), bin_width=0.1)
+    # a step of no length, or not a number, is refused where the config is made
+    for bad, error in ((0.0, ValueError), (float("nan"), ValueError), ("0.1", TypeError)):
+        with pytest.raises(error, match=r"^RCVAEConfig.control_step must be"):
+            RCVAEConfig(layout.dim, 2, control_step=bad)
