@@ -260,6 +260,13 @@ def _success_flags(
                 "SuccessBoundary's success_over_time)"
             )
         won = flags.get(success)
+        if won.dtype != torch.bool:  # a reward of 1e-40 would count as a success
+            raise TypeError(
+                f"success: expected the env's {success!r} entry to be a bool flag, got dtype "
+                f"{won.dtype}; pass success= a function of an episode's observations [T, S] -> "
+                "[T] bool (e.g. a SuccessBoundary's success_over_time), or the name of a bool "
+                "flag the env writes"
+            )
     if won.numel() != episode.numel():
         raise ValueError(
             f"success: expected one flag per step of the episode ({episode.numel()}), got "

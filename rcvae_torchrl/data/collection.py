@@ -195,6 +195,9 @@ def _check_policy_inputs(env: EnvBase, policy: object) -> None:
         return
     specs = (env.full_observation_spec, env.full_state_spec, env.full_done_spec)
     available = {key for spec in specs for key in spec.keys(True, True)}
+    # a planner's model env makes its own state from the observation (the model state)
+    made = getattr(getattr(policy, "env", None), "made_from_observation", ())
+    available |= {unravel_key(key) for key in made}
     missing = [key for key in keys if key not in available and (key,) not in available]
     if missing:
         raise KeyError(

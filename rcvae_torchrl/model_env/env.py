@@ -6,7 +6,7 @@ import warnings
 from typing import Literal
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.model_based import ModelBasedEnvBase
 
@@ -210,6 +210,13 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         if step is None and trained is not None:
             return trained, "the ensemble's control_step, the step of its training episodes"
         return step
+
+    @property
+    def made_from_observation(self) -> tuple[NestedKey, ...]:
+        """The entries of its specs this env makes itself where a step's input has only the
+        ``"observation"`` and the action (a real env's state): the model state and the success
+        flag. A planner planning in it needs no more of the real env."""
+        return (SUCCESS_KEY, HIDDEN_KEY, LATENT_KEY, MEMBER_KEY)
 
     @property
     def reward_fn(self) -> RewardFn:

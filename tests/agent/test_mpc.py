@@ -63,3 +63,16 @@ def test_aot_plans_equal_eager_plans(real_env):
 def test_planner_settings_of_another_type_or_unbounded_are_named(kwargs, match):
     with pytest.raises(ValueError, match=match):
         PlannerConfig(**kwargs)
+
+
+def test_collect_episodes_takes_the_planner_which_needs_only_the_real_env_s_observation():
+    # its in_keys name the model env's own state, which the real env does not write; the
+    # model env makes that state from the observation
+    from rcvae_torchrl.data import collect_episodes
+
+    policy = _policy(make_pusher_env(time_limit=1.0), False)
+    assert ("rcvae", "hidden") in policy.in_keys
+    data = collect_episodes(
+        lambda: make_pusher_env(time_limit=1.0), policy, num_episodes=2, seed=0, progress=False
+    )
+    assert data.shape == (40,) and bool((data["action"].abs() <= 1).all())

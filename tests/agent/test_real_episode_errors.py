@@ -352,3 +352,35 @@ def test_a_boundary_without_a_time_limit_is_judged_over_the_episodes_steps():
             env, _to_origin, starts, max_steps=max_steps, success=anytime.success_over_time, **args
         )
         assert out.success.tolist() == [[won]] and out.first_step.tolist() == [[13 if won else 10]]
+
+
+def test_a_success_flag_that_is_no_bool_is_refused():
+    # the env's reward as the flag: tiny rewards (1e-40) counted as successes
+    env = terminating_point_mass()
+    starts = env.reset()["observation"][None]
+    with pytest.raises(
+        TypeError,
+        match=r"^success: expected the env's 'reward' entry to be a bool flag, got dtype "
+        r"torch.float32; pass success= a function",
+    ):
+        real_outcomes(
+            env,
+            _to_origin,
+            starts,
+            runs_per_start=1,
+            reset_to_state=plain_reset,
+            max_steps=5,
+            success="reward",
+            progress=False,
+        )
+    flagged = real_outcomes(
+        env,
+        _to_origin,
+        starts,
+        runs_per_start=1,
+        reset_to_state=plain_reset,
+        max_steps=20,
+        success="success",
+        progress=False,
+    )
+    assert flagged.success.tolist() == [[True]] and flagged.first_step.tolist() == [[13]]
