@@ -424,6 +424,12 @@ class OutcomeCheck:
     pessimistic: over seconds its open-loop errors carry an object past a small target, errors
     that an agent reacting to the imagined states corrects.
 
+    A check that finds no bias has passed only where it could have found one that matters:
+    its interval of the gap must be no wider than ``± tolerance`` (:attr:`precise`). From a
+    dozen starts with one episode each, forecasts of 0.5 against a real rate of 0.17 are no
+    bias the tests can name (interval -0.02 to +0.68), and no sign of forecasts to trust
+    either: such a check is unchecked, as one with too few starts is.
+
     Build it with :meth:`from_outcomes`. Its fields are not changed after it is made, so each
     Monte-Carlo p-value is drawn once and kept.
     """
@@ -435,6 +441,9 @@ class OutcomeCheck:
     min_starts: int = 10
     #: what was forecast, for the message (e.g. "the agent from held-out episodes' starts")
     what: str = "the forecasts"
+    #: the largest half-width of the gap's interval (at the test's level) with which a check
+    #: that finds no bias passes: a wider one would hide a bias of that size
+    tolerance: float = 0.2
 
     def __post_init__(self) -> None:
         for name in ("forecast", "real"):
@@ -446,6 +455,7 @@ class OutcomeCheck:
                 f"{self.real.shape[0]}"
             )
         check_positive_int("runs", self.runs)
+        check_unit_interval("tolerance", self.tolerance, include_zero=False)
 
     @classmethod
     def from_outcomes(
@@ -456,6 +466,7 @@ class OutcomeCheck:
         alpha: float = 0.01,
         min_starts: int = 10,
         what: str = "the forecasts",
+        tolerance: float = 0.2,
     ) -> OutcomeCheck:
         """From forecasts ``[n]`` (probabilities) and real outcomes, bool ``[n, R]``."""
         _checks.check_tensor("forecast", forecast)
@@ -480,6 +491,7 @@ class OutcomeCheck:
             alpha=float(alpha),
             min_starts=int(min_starts),
             what=str(what),
+            tolerance=float(tolerance),
         )
 
     @property
@@ -649,17 +661,26 @@ class OutcomeCheck:
         return self.measured and max(self.p_value, self.exact_p_value) < self.alpha
 
     @property
+    def precise(self) -> bool:
+        """Measured, and the gap's interval (:meth:`interval`) no wider than ``± tolerance``:
+        a bias of that size would have been found."""
+        low, high = self.interval()
+        return self.measured and (high - low) / 2 <= self.tolerance
+
+    @property
     def passed(self) -> bool:
-        return self.measured and not self.biased
+        """Measured and precise, and no bias found."""
+        return self.precise and not self.biased
 
     @property
     def verdict(self) -> str:
-        """``"passed"``, ``"too optimistic"``, ``"too pessimistic"`` or ``"not measured"``."""
+        """``"passed"``, ``"too optimistic"``, ``"too pessimistic"``, ``"too imprecise"`` (no
+        bias found, with an interval wider than ``± tolerance``) or ``"not measured"``."""
         if not self.measured:
             return "not measured"
-        if not self.biased:
-            return "passed"
-        return "too optimistic" if self.gap > 0 else "too pessimistic"
+        if self.biased:
+            return "too optimistic" if self.gap > 0 else "too pessimistic"
+        return "passed" if self.precise else "too imprecise"
 
     def message(self) -> str:
         """One sentence when the check did not pass ('' when it did; :meth:`describe` says
@@ -677,15 +698,24 @@ class OutcomeCheck:
             )
         low, high = self.interval()
         verdict = "unbiased as far as the tests can tell" if self.passed else self.verdict
-        if self.passed and self.p_value < self.alpha:  # the interval below excludes 0
+        if not self.biased and self.p_value < self.alpha:  # the interval below excludes 0
             verdict = (
                 "not named biased: the t-test alone would name them, but the outcomes' exact "
                 "chance allows the gap"
             )
-        elif self.passed and self.exact_p_value < self.alpha:
+        elif not self.biased and self.exact_p_value < self.alpha:
             verdict = (
                 "not named biased: the outcomes' exact chance alone would name them, but the "
                 "t-test allows the gap (its interval holds 0)"
+            )
+        elif not self.biased and not self.precise:
+            verdict = "unchecked"
+        wide = ""
+        if not self.biased and not self.precise:
+            runs = " (or more real episodes per start)" if self._independent_runs else ""
+            wide = (
+                f": no bias is named, but an interval wider than ±{self.tolerance:g} would hide "
+                f"one that large, so the check has not passed; check more start states{runs}"
             )
         return (
             f"{self.what} are {verdict}: from {self.starts} start states they forecast "
@@ -694,7 +724,7 @@ class OutcomeCheck:
             f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {100 * (1 - self.alpha):g} % "
             f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g} by a t-test over the "
             f"starts, {_drawn_p(self.exact_p_value)} by the outcomes' exact chance, "
-            f"{_DRAWS:,} draws)" + self._per_start_sentence()
+            f"{_DRAWS:,} draws){wide}" + self._per_start_sentence()
         )
 
     def _per_start_sentence(self) -> str:
@@ -730,6 +760,7 @@ class OutcomeCheck:
             "alpha": self.alpha,
             "min_starts": self.min_starts,
             "what": self.what,
+            "tolerance": self.tolerance,
             "starts": self.starts,
             "gap": self.gap,
             "p_value": self.p_value,
@@ -749,6 +780,7 @@ class OutcomeCheck:
             alpha=float(values["alpha"]),
             min_starts=int(values["min_starts"]),
             what=str(values.get("what", "the forecasts")),
+            tolerance=float(values.get("tolerance", 0.2)),
         )
 
 

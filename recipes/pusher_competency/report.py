@@ -492,7 +492,7 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
             verdicts.append(f"- **{condition}**: {found.message()}.")
             continue
         low, high = found.interval()
-        if found.biased:
+        if not found.passed:  # biased, or too imprecise to tell
             verdicts.append(f"- **{condition}**: {found.message()}.")
         lines.append(
             f"| {condition} | {found.starts} | {found.runs} | "

@@ -359,12 +359,14 @@ def test_with_a_warning_the_overview_gives_no_cause_either():
 
 
 def test_a_passed_check_whose_forecasts_miss_per_start_cautions_each_start():
-    """Right on average, wrong per task: each start's paragraph says so beside its P."""
+    """Right on average, wrong per task: each start's paragraph says so beside its P. (80
+    starts: forecasts this scattered need that many for an interval of the mean gap within the
+    check's tolerance, ±0.2.)"""
     from rcvae_torchrl.training import OutcomeCheck
 
     g = torch.Generator().manual_seed(1)
-    chance = torch.rand(40, generator=g, dtype=torch.float64)
-    real = torch.rand(40, 20, generator=g, dtype=torch.float64) < chance[:, None]
+    chance = torch.rand(80, generator=g, dtype=torch.float64)
+    real = torch.rand(80, 20, generator=g, dtype=torch.float64) < chance[:, None]
     mirrored = OutcomeCheck.from_outcomes(1 - chance, real)  # mean right, each start wrong
     assert mirrored.passed and mirrored.scattered
     report = _starts_report([0.3, 0.2]).with_forecast_check(mirrored)

@@ -273,3 +273,32 @@ def test_an_exact_p_value_at_the_draws_floor_is_said_to_be_below_it():
     assert f", {near.exact_p_value:.2g} by the outcomes' exact chance, 4,000 draws)" in (
         near.describe()
     )
+
+
+def test_a_check_too_wide_to_see_a_bias_that_matters_has_not_passed():
+    """A trial's useless forecast: 0.5 for every one of 12 starts, whose single real episodes
+    succeeded 2 times in 12. No test names the gap of +0.33 at level 0.01, but its interval
+    (about -0.02 to +0.68) hides a bias that large: unchecked, not passed."""
+    real = torch.zeros(12, 1, dtype=torch.bool)
+    real[:2] = True
+    useless = OutcomeCheck.from_outcomes(torch.full((12,), 0.5, dtype=torch.float64), real)
+    low, high = useless.interval()
+    assert not useless.biased and (high - low) / 2 > 0.2
+    assert not useless.precise and not useless.passed and useless.verdict == "too imprecise"
+    assert useless.message().startswith("the forecasts are unchecked: from 12 start states")
+    assert useless.message().endswith(
+        "(gap +0.333, 99 % interval -0.016 to +0.682; p = 0.013 by a t-test over the starts, "
+        "0.042 by the outcomes' exact chance, 4,000 draws): no bias is named, but an interval "
+        "wider than ±0.2 would hide one that large, so the check has not passed; check more "
+        "start states"
+    )
+    # the same forecasts against 200 starts: the interval is narrow, and now the bias shows
+    many = torch.zeros(200, 1, dtype=torch.bool)
+    many[::6] = True
+    wide = OutcomeCheck.from_outcomes(torch.full((200,), 0.5, dtype=torch.float64), many)
+    assert wide.precise and wide.biased and wide.verdict == "too optimistic"
+    # a tolerance of one's own, kept in the record
+    loose = OutcomeCheck.from_outcomes(useless.forecast, real, tolerance=0.4)
+    assert loose.passed and OutcomeCheck.from_dict(loose.as_dict()).tolerance == 0.4
+    with pytest.raises(ValueError, match=r"^tolerance: expected"):
+        OutcomeCheck.from_outcomes(useless.forecast, real, tolerance=0.0)
