@@ -235,8 +235,8 @@ class CompetencyAssessor(KeyedModule):
                 policy whose class has ``reset()`` (a planner's warm start) is reset before
                 each chunk: its imagined episodes are new ones.
             actions: open loop instead: ``[T, A]`` (the same for every start state) or
-                ``[*B, T, A]``, inside the action spec's bounds (a closed-loop policy's
-                actions are clipped to them, as the real env clips them).
+                ``[*B, T, A]``, inside the action spec's bounds (as a closed-loop policy's
+                must be: the real episodes refuse actions outside them).
             generator: source of all sampling noise (default: the model env's), drawn chunk
                 after chunk.
             seed: instead of ``generator``: chunk ``k`` of ``start_chunk`` start states draws
@@ -371,31 +371,35 @@ class CompetencyAssessor(KeyedModule):
         keep_rollouts: bool,
     ) -> TensorDictBase:
         """Report entries ``[b]`` for start states ``[b, S]``."""
+        bounds = getattr(self.model_env, "action_bounds", None)
+        checked = None if policy is None or bounds is None else _InBounds(policy, *bounds)
         rollout = self.model_env.imagine(
             starts,
             plan,
-            policy=policy,
+            policy=policy if checked is None else checked,
             horizon=self.horizon if plan is None else None,
             samples_per_member=self.samples_per_member,
             generator=generator,
         )
-        observed = TensorDict(
-            {"observation": rollout.get("observation")}, batch_size=rollout.batch_size
+        if checked is not None:
+            checked.check()
+        imagined = rollout.get("observation")
+        observed = TensorDict({"observation": imagined}, batch_size=rollout.batch_size)
+        novelty = self.novelty
+        episode_end = self.uncertainty_metric.episode_end
+        ended = (
+            self.boundary.ended_over_time(imagined) if episode_end or novelty is not None else None
         )
-        if self.uncertainty_metric.episode_end:
-            observed.set(
-                self.uncertainty_metric.tensor_keys.ended,
-                self.boundary.ended_over_time(observed.get("observation")),
-            )
+        if episode_end:
+            observed.set(self.uncertainty_metric.tensor_keys.ended, ended)
         out = TensorDict(batch_size=starts.shape[:1])
         out.set(self.tensor_keys.observation, starts)
         out.set(self.tensor_keys.uncertainty, self._uncertainty(observed, starts.shape[0]))
         out.set(self.tensor_keys.competency, self._competency(observed, starts.shape[0]))
         for name, fn in self.per_sample.items():
             out.set(("per_sample", name), _per_sample_value(name, fn, observed, starts.shape[0]))
-        novelty = self.novelty
         if novelty is not None:
-            out.set("novelty", _novelty_entries(novelty, starts, rollout.get("observation")))
+            out.set("novelty", _novelty_entries(novelty, starts, imagined, ended))
         if keep_rollouts:
             out.set("rollout", rollout.permute(2, 0, 1, 3))
         return out
@@ -528,18 +532,23 @@ class CompetencyAssessor(KeyedModule):
 _NOVELTY_SAMPLES = 2
 
 
-def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor) -> TensorDict:
+def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor, ended: Tensor) -> TensorDict:
     """``("novelty", ·)`` entries ``[b]``: ``"start"``, the start state's distance over the
     check's level of start states (above 1: unlike the training states); ``"imagined"``, the
     share of imagined states ``[E, N, b, T, S]`` beyond the states' level (every member's
-    first samples, at steps spread over the horizon); and ``"leaves"`` (int64), the time index
-    of the first of those steps at which most of these samples are beyond it (-1: none)."""
+    first samples, at steps spread over the horizon), among those before their episode ended
+    (``ended`` ``[E, N, b, T]``, the boundary's: states past a success, a failure or the time
+    limit decide nothing, and real episodes that end there have no states past it); and
+    ``"leaves"`` (int64), the time index of the first of those steps at which most of the
+    samples still in their episode are beyond it (-1: none)."""
     at = novelty.episode_steps(imagined.shape[-2]).to(imagined.device)
     picked = imagined[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)  # [b, E, n, steps, S]
+    live = ~ended[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)  # [b, E, n, steps]
     b = starts.shape[0]
-    beyond = novelty.ratio(picked.reshape(b, -1, picked.shape[-1])) > 1
-    share = beyond.float().mean(-1)
-    most = beyond.reshape(b, -1, at.numel()).float().mean(-2) > 0.5  # [b, steps]
+    beyond = (novelty.ratio(picked.reshape(b, -1, picked.shape[-1])) > 1) & live.reshape(b, -1)
+    share = beyond.float().sum(-1) / live.reshape(b, -1).float().sum(-1).clamp_min(1)
+    per_step = beyond.reshape(b, -1, at.numel()).float().sum(-2)  # [b, steps]
+    most = per_step > 0.5 * live.reshape(b, -1, at.numel()).float().sum(-2)
     leaves = torch.where(most.any(-1), at[most.int().argmax(-1)], -1)
     return TensorDict(
         {
@@ -660,6 +669,45 @@ def _check_keywords(estimator: str, estimator_args: Mapping[str, Any]) -> None:
 
 #: the assessor's parameters a user does not pass by keyword
 _NOT_OWN = ("self", "model_env", "boundary", "estimator_args")
+
+
+class _InBounds:
+    """A closed-loop policy (as a tensor callable) whose actions are checked against the
+    env's action bounds, once, after the rollout (a check at every step would make an
+    accelerator wait for the host at every step): a policy acting outside them is refused by
+    the real episodes (``run_episodes``, ``real_outcomes``), so a forecast of its clipped
+    actions would be one of another agent."""
+
+    def __init__(self, policy: Policy, low: Tensor, high: Tensor) -> None:
+        from rcvae_torchrl.rollout import as_tensor_policy
+
+        self.policy = as_tensor_policy(policy)
+        self.low, self.high = low, high
+        self.excess: list[Tensor] = []  # per step: the largest excess over the bounds
+
+    def __call__(self, observation: Tensor) -> Tensor:
+        action = self.policy(observation)
+        if isinstance(action, Tensor) and action.shape[-1:] == self.low.shape:
+            low, high = self.low.to(action), self.high.to(action)
+            self.excess.append(torch.maximum(low - action, action - high).amax(-1))
+        return action
+
+    def check(self) -> None:
+        if not self.excess:
+            return
+        worst = torch.stack([x.amax() for x in self.excess])
+        if not bool((worst > 0).any()):  # NaN actions are named by the rollout itself
+            return
+        t = int((worst > 0).nonzero()[0, 0])
+        outside = self.excess[t] > 0
+        raise ValueError(
+            f"policy: expected actions inside the env's action_spec bounds "
+            f"[{self.low.tolist()}, {self.high.tolist()}], got {int(outside.sum())} of "
+            f"{outside.numel()} outside at step {t} of the imagined episodes, by up to "
+            f"{float(self.excess[t].max()):.4g}; clip them in the policy: the real env's "
+            "episodes (run_episodes, real_outcomes) refuse them, and a forecast of the clipped "
+            "actions would be one of another agent"
+        )
 
 
 def _check_dt_against_real_env(dt: float | None, model_env: Any) -> None:

@@ -707,6 +707,16 @@ def test_assess_errors(env, starts, plan):
         r"\[1.0, 1.0\]\], got 3 of 18 outside, by up to 6; clip them",
     ):
         assessor.assess(starts, actions=outside)
+    # a closed-loop policy acting outside them too: the real episodes refuse it
+    with pytest.raises(
+        ValueError,
+        match=r"^policy: expected actions inside the env's action_spec bounds \[\[-1.0, -1.0\], "
+        r"\[1.0, 1.0\]\], got \d+ of \d+ outside at step 0 of the imagined episodes, by up to "
+        r"[\d.]+; clip them in the policy: the real env's episodes \(run_episodes, "
+        r"real_outcomes\) refuse them",
+    ):
+        assessor.assess(starts, policy=lambda obs: 10 * obs[..., :A])
+    assessor.assess(starts, policy=lambda obs: (10 * obs[..., :A]).clamp(-1, 1))  # clipped: fine
     bad = starts.clone()
     bad[1, 3] = float("nan")
     with pytest.raises(ValueError, match=r"start_states: expected finite values.*\[1\]"):
