@@ -129,10 +129,20 @@ def observe_starts(
             + (f" of batch {list(starts.batch_size)}" if isinstance(starts, TensorDictBase) else "")
         )
     reset_to_state = reset_to_physics if reset_to_state is None else reset_to_state
-    observed = [
-        reset_to(reset_to_state, env, starts[i].exclude("observation"))["observation"].clone()
-        for i in range(starts.shape[0])
-    ]
+    try:
+        observed = [
+            reset_to(reset_to_state, env, starts[i].exclude("observation"))["observation"].clone()
+            for i in range(starts.shape[0])
+        ]
+    except KeyError as error:
+        if "observation" not in str(error):
+            raise
+        raise KeyError(
+            "reset_to_state: it reads the start's 'observation', which observe_starts leaves "
+            "out: it makes each start's observation from the rest of the start (its physics "
+            "state, a seed); a start set by its observation has one already and needs no "
+            "observe_starts (pass it to real_outcomes as it is)"
+        ) from error
     out = starts.clone()
     out.set("observation", torch.stack(observed).to(out.device))
     return out

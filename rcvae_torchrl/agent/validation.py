@@ -64,6 +64,12 @@ class RealOutcomes:
         """What :meth:`as_dict` gave."""
         return cls(values["success"], values["first_step"], values["steps"], values.get("trace"))
 
+    def within(self, steps: int) -> RealOutcomes:
+        """These outcomes with a success counted only within its first ``steps`` steps (a
+        forecast's deadline): a later one is a failure of the task the forecast answers."""
+        check_positive_int("steps", steps)
+        return dataclasses.replace(self, success=self.success & (self.first_step < steps))
+
     def __len__(self) -> int:
         """``B``, the start states."""
         return self.success.shape[0]
@@ -432,7 +438,6 @@ def score_forecast(
             "validate_forecasts"
         )
     if isinstance(forecast, CompetencyReport):
-        within = outcomes.first_step < forecast.time_limit
-        outcomes = dataclasses.replace(outcomes, success=outcomes.success & within)
+        outcomes = outcomes.within(forecast.time_limit)
         forecast = forecast.competency["p_success"]
     return validate_forecasts(forecast.cpu(), outcomes.success, base_rate=base_rate)

@@ -460,15 +460,29 @@ class OutcomeCheck:
     @classmethod
     def from_outcomes(
         cls,
-        forecast: torch.Tensor,
-        real_success: torch.Tensor,
+        forecast: torch.Tensor | Any,
+        real_success: torch.Tensor | Any,
         *,
         alpha: float = 0.01,
         min_starts: int = 10,
         what: str = "the forecasts",
         tolerance: float = 0.2,
     ) -> OutcomeCheck:
-        """From forecasts ``[n]`` (probabilities) and real outcomes, bool ``[n, R]``."""
+        """From forecasts ``[n]`` (probabilities) and real outcomes, bool ``[n, R]``.
+
+        ``forecast`` may be the :class:`~rcvae_torchrl.competency.CompetencyReport` itself and
+        ``real_success`` the :class:`~rcvae_torchrl.agent.RealOutcomes` of
+        :func:`~rcvae_torchrl.agent.real_outcomes`: a real success then counts only within the
+        report's deadline (its ``time_limit`` steps), as in
+        :func:`~rcvae_torchrl.agent.score_forecast`; real episodes run for more steps than the
+        forecast looked ahead would otherwise judge another task."""
+        deadline = getattr(forecast, "time_limit", None)
+        if hasattr(forecast, "competency") and deadline is not None:  # a CompetencyReport
+            forecast = forecast.competency["p_success"]
+        if callable(getattr(real_success, "within", None)):  # a RealOutcomes
+            if deadline is not None:
+                real_success = real_success.within(deadline)
+            real_success = real_success.success
         _checks.check_tensor("forecast", forecast)
         _checks.check_rank("forecast", forecast, 1, "[n]")
         _checks.check_floating("forecast", forecast)

@@ -83,6 +83,14 @@ def test_starts_edited_by_hand_get_their_observation(reacher):
     with pytest.raises(TypeError, match=r"starts: expected a TensorDict \[B\] of start states"):
         observe_starts(reacher, starts[0])
 
+    def by_observation(env, start):  # a reset of one's own, from the start's observation
+        return env.reset().set("observation", start["observation"])
+
+    with pytest.raises(
+        KeyError, match=r"reset_to_state: it reads the start's 'observation', which observe_st"
+    ):
+        observe_starts(reacher, starts, reset_to_state=by_observation)
+
 
 def _still_policy():
     """A reacher agent that does not move."""

@@ -302,3 +302,22 @@ def test_a_check_too_wide_to_see_a_bias_that_matters_has_not_passed():
     assert loose.passed and OutcomeCheck.from_dict(loose.as_dict()).tolerance == 0.4
     with pytest.raises(ValueError, match=r"^tolerance: expected"):
         OutcomeCheck.from_outcomes(useless.forecast, real, tolerance=0.0)
+
+
+def test_a_report_and_its_real_outcomes_count_successes_within_its_deadline():
+    """Real episodes run past the forecast's deadline: a success after it is a failure of the
+    task the forecast answers (a trial's mountain car: 1.0 real within 400 steps, 0.68 within
+    the forecast's 200)."""
+    from types import SimpleNamespace
+
+    from rcvae_torchrl.agent import RealOutcomes
+
+    first = torch.tensor([[3, 30], [12, 40], [5, 8]] * 4)  # [12, 2]
+    outcomes = RealOutcomes(torch.ones(12, 2, dtype=torch.bool), first, first + 1)
+    forecast = torch.full((12,), 0.5, dtype=torch.float64)
+    report = SimpleNamespace(competency={"p_success": forecast}, time_limit=10)
+    check = OutcomeCheck.from_outcomes(report, outcomes)
+    assert torch.equal(check.real, (first < 10).double().mean(1))
+    assert torch.equal(outcomes.within(10).success, first < 10)
+    # the tensors alone know no deadline: every success counts
+    assert bool((OutcomeCheck.from_outcomes(forecast, outcomes).real == 1.0).all())
