@@ -514,8 +514,20 @@ class OutcomeCheck:
 
     @property
     def measured(self) -> bool:
-        """Whether there were enough start states (``min_starts``)."""
-        return self.starts >= self.min_starts
+        """Whether there were enough start states whose outcome was in doubt (``min_starts``
+        that are not :attr:`settled`)."""
+        return self.starts - self.settled >= self.min_starts
+
+    @property
+    def settled(self) -> int:
+        """Start states whose forecast and real runs all agree on the outcome from the start:
+        a forecast within 0.001 of 0 where every real run failed, or of 1 where every one
+        succeeded (a walker already lying, a ball already past the line). Right there, any
+        model is: they show nothing of the forecasts in doubt, and a check of them alone
+        would pass with an interval of zero width."""
+        f, r = self.forecast, self.real
+        settled = ((f <= _RESOLUTION) & (r == 0)) | ((f >= 1 - _RESOLUTION) & (r == 1))
+        return int(settled.sum())
 
     @property
     def gap(self) -> float:
@@ -705,6 +717,14 @@ class OutcomeCheck:
         """One sentence: the verdict, the mean forecast and real rate, the gap with its
         interval at the test's level, the two p-values (:attr:`biased`) and, where it applies,
         the per-start test's verdict."""
+        if not self.measured and self.settled:
+            return (
+                f"{self.what} are unchecked: {self.settled} of the {self.starts} start states "
+                "were settled from the start (forecast 0 where every real run failed, or 1 where "
+                "every one succeeded), which shows nothing of the forecasts in doubt, and the "
+                f"outcome check needs {self.min_starts} others; check start states whose outcome "
+                "is in doubt"
+            )
         if not self.measured:
             return (
                 f"{self.what} are unchecked: {self.starts} start states, the outcome check "

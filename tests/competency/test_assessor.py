@@ -549,7 +549,20 @@ def test_a_model_that_failed_its_checks_is_flagged_in_every_summary(env, starts,
         assert "this split does not say whether more data would help" in text
         assert "Most of the doubt" not in text and "by an error they all make" not in text
     env.ensemble.checks = Passed()
-    assert make_assessor(env).assess(starts, actions=plan, generator=seeded()).trustworthy
+    passed = make_assessor(env).assess(starts, actions=plan, generator=seeded())
+    # self-checks passed, and no forecast check yet: nothing has shown the forecasts right
+    assert passed.warning == "" and not passed.trustworthy
+    assert passed.with_forecast_check(_passed_check()).trustworthy
+
+
+def _passed_check():
+    """A forecast check that passed: forecasts of 0.5 against 60 starts' 40 runs drawn at 0.5."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    real = torch.rand(60, 40, generator=seeded(3)) < 0.5
+    check = OutcomeCheck.from_outcomes(torch.full((60,), 0.5, dtype=torch.float64), real)
+    assert check.passed
+    return check
 
 
 def test_a_model_without_self_checks_is_never_presented_as_trustworthy(env, starts, plan):

@@ -187,12 +187,13 @@ def test_a_shift_all_starts_share_is_a_bias_not_a_scatter():
 
 
 def test_a_forecast_of_zero_that_successes_contradict_is_a_miss():
-    forecast = torch.cat([torch.zeros(6), torch.full((6,), 0.5)]).double()
+    # (10 forecasts of 0: those whose runs all failed are settled, and show nothing)
+    forecast = torch.cat([torch.zeros(10), torch.full((10,), 0.5)]).double()
     real = _drawn(forecast, 20, seed=3)
     real[0, :4] = True  # 4 of 20 where 0 was forecast
     check = OutcomeCheck.from_outcomes(forecast, real)
     assert check.scattered and check.per_start_p_value < 0.001
-    # one success in 120 episodes forecast at 0: a forecast made from finitely many imagined
+    # one success in 200 episodes forecast at 0: a forecast made from finitely many imagined
     # episodes does not tell a chance of 1/1000 from 0, so that alone is no miss
     real[0, 1:4] = False
     assert not OutcomeCheck.from_outcomes(forecast, real).scattered
@@ -321,3 +322,28 @@ def test_a_report_and_its_real_outcomes_count_successes_within_its_deadline():
     assert torch.equal(outcomes.within(10).success, first < 10)
     # the tensors alone know no deadline: every success counts
     assert bool((OutcomeCheck.from_outcomes(forecast, outcomes).real == 1.0).all())
+
+
+def test_start_states_settled_from_the_start_show_nothing():
+    """A trial's walker: check starts already lying (forecast 0, every real run failed) passed
+    with an interval of zero width, and made a report 0.18 off 'trustworthy'."""
+    lying = OutcomeCheck.from_outcomes(
+        torch.zeros(40, dtype=torch.float64), torch.zeros(40, 8, dtype=torch.bool)
+    )
+    assert lying.settled == 40 and not lying.measured and not lying.passed
+    assert lying.verdict == "not measured"
+    assert lying.describe() == (
+        "the forecasts are unchecked: 40 of the 40 start states were settled from the start "
+        "(forecast 0 where every real run failed, or 1 where every one succeeded), which shows "
+        "nothing of the forecasts in doubt, and the outcome check needs 10 others; check start "
+        "states whose outcome is in doubt"
+    )
+    # a forecast of 0.0005 is 0 at the tests' resolution; one of 0.01, or one success, is not
+    # settled, and ten such starts beside the settled ones make the check
+    forecast = torch.cat([torch.full((30,), 5e-4), torch.full((10,), 0.5)]).double()
+    real = torch.zeros(40, 8, dtype=torch.bool)
+    real[30:, :4] = True
+    mixed = OutcomeCheck.from_outcomes(forecast, real)
+    assert mixed.settled == 30 and mixed.measured and mixed.passed
+    real[0, 0] = True
+    assert OutcomeCheck.from_outcomes(forecast, real).settled == 29
