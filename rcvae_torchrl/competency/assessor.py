@@ -536,19 +536,18 @@ def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor, ended: Tens
     """``("novelty", ·)`` entries ``[b]``: ``"start"``, the start state's distance over the
     check's level of start states (above 1: unlike the training states); ``"imagined"``, the
     share of imagined states ``[E, N, b, T, S]`` beyond the states' level (every member's
-    first samples, at steps spread over the horizon), among those before their episode ended
-    (``ended`` ``[E, N, b, T]``, the boundary's: states past a success, a failure or the time
-    limit decide nothing, and real episodes that end there have no states past it); and
-    ``"leaves"`` (int64), the time index of the first of those steps at which most of the
-    samples still in their episode are beyond it (-1: none)."""
+    first samples, at steps spread over the horizon), a state after its episode ended
+    (``ended`` ``[E, N, b, T]``, the boundary's success, failure or time limit) never beyond:
+    such states decide nothing, and real episodes that an env ends there have none past it;
+    and ``"leaves"`` (int64), the time index of the first of those steps at which most of the
+    samples are beyond it (-1: none)."""
     at = novelty.episode_steps(imagined.shape[-2]).to(imagined.device)
     picked = imagined[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)  # [b, E, n, steps, S]
     live = ~ended[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)  # [b, E, n, steps]
     b = starts.shape[0]
     beyond = (novelty.ratio(picked.reshape(b, -1, picked.shape[-1])) > 1) & live.reshape(b, -1)
-    share = beyond.float().sum(-1) / live.reshape(b, -1).float().sum(-1).clamp_min(1)
-    per_step = beyond.reshape(b, -1, at.numel()).float().sum(-2)  # [b, steps]
-    most = per_step > 0.5 * live.reshape(b, -1, at.numel()).float().sum(-2)
+    share = beyond.float().mean(-1)
+    most = beyond.reshape(b, -1, at.numel()).float().mean(-2) > 0.5  # [b, steps]
     leaves = torch.where(most.any(-1), at[most.int().argmax(-1)], -1)
     return TensorDict(
         {

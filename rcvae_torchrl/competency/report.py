@@ -109,10 +109,10 @@ class CompetencyReport:
       training fits: :class:`~rcvae_torchrl.training.StateNovelty`): ``"start"`` ``[*B]``, the
       start state's distance to the training states over the check's level (above 1: unlike
       them); ``"imagined"`` ``[*B]``, the share of its imagined states beyond the states'
-      level (every member's first two samples at 20 steps spread over the horizon, those
-      before their imagined episode ended at the boundary's success, failure or time limit);
-      and ``"leaves"`` int64 ``[*B]``, the time index of the first of those steps at which
-      most of the samples still in their episode are beyond it (-1: none), when the forecast
+      level (every member's first two samples at 20 steps spread over the horizon; a state
+      after its imagined episode ended at the boundary's success, failure or time limit is
+      never counted beyond it); and ``"leaves"`` int64 ``[*B]``, the time index of the first of
+      those steps at which most of these samples are beyond it (-1: none), when the forecast
       starts to extrapolate;
     - ``"rollout"`` (only when asked for): the imagined rollouts ``[*B, E, N, T]``.
 

@@ -13,7 +13,9 @@ members agree. Start states and whole episodes have levels of their own, measure
 on first states and on episodes that training did not see (:meth:`StateNovelty.fit`). A start
 state is also judged in groups of its dimensions alone (:attr:`StateNovelty.groups`: the
 entries of several dimensions, such as a target's position), where a combination new in one
-entry would be diluted by all the others.
+entry would be diluted by all the others, and by how far its farthest dimension lies past the
+training states' range (:attr:`StateNovelty.range_scale`), where one dimension far out would
+be too.
 
 :func:`train_ensemble <rcvae_torchrl.training.train_ensemble>` fits one on its training and
 validation episodes and keeps it with the model (``ensemble.novelty``, saved in checkpoints);
@@ -117,6 +119,12 @@ class StateNovelty:
     #: per group, the joint distance's level over the group's own: a group's distance times
     #: it is on the joint distance's scale (a start's distance is the largest of them)
     group_scales: tuple[float, ...] = ()
+    #: the scale of a start's range view: how far its farthest dimension lies past the
+    #: training states' central 99 % (in spreads), times it, is on the joint distance's scale;
+    #: 0: not judged (checkpoints from before it). One dimension far out of its range is
+    #: diluted in the distance over all dimensions together (a walker's torso at 2 m, every
+    #: other dimension as in training, lay within the joint level)
+    range_scale: float = 0.0
 
     def __post_init__(self) -> None:
         groups = _groups(self.groups, self.states.shape[-1])
@@ -128,6 +136,8 @@ class StateNovelty:
                 f"{self.group_scales!r}"
             )
         object.__setattr__(self, "group_scales", scales)
+        if not (math.isfinite(self.range_scale) and self.range_scale >= 0):
+            raise ValueError(f"range_scale: expected a scale >= 0, got {self.range_scale!r}")
         # the reference in spreads, as every distance reads it (scaled once, not per call)
         object.__setattr__(self, "_scaled", self._in_spreads(self.states))
         if math.isnan(self.start_level):  # no first states: starts are states like any other
@@ -235,45 +245,44 @@ class StateNovelty:
         fitted = cls(
             states, center, scale, low, high, math.inf, k, float(quantile), 0, groups=groups
         )
-        # the distances in each view (all dimensions, then each group's): held-out states'
-        general = fitted._views(held_out, groups=bool(groups))
+        # the distances in each view (all dimensions, each group's, the range's): held-out
+        # states'
+        general = fitted._views(held_out)
         level, kept = _conformal_level(general[:, 0], quantile)
         # and first states
         calibration = []
         if held_out_starts is not None:
             held_out_starts = _states("held_out_starts", held_out_starts, dim)
-            calibration.append(fitted._views(held_out_starts.float(), groups=bool(groups)))
+            calibration.append(fitted._views(held_out_starts.float()))
         if firsts is not None and episodes is not None:
             ids = episodes[drawn]
             own = firsts[drawn]
-            calibration.append(fitted._views(states[own], ids[own], ids, groups=bool(groups)))
-        views = torch.cat(calibration) if calibration else held_out.new_zeros(0, 1)
+            calibration.append(fitted._views(states[own], ids[own], ids))
+        views = torch.cat(calibration) if calibration else general[:0]
         measured = views.shape[0]
-        if groups:
-            # each group's distance on the joint one's scale, their levels over the first
-            # states made equal; a group's level there no lower than over the states in
-            # general (first states at rest, all velocities 0, would make it 0 and any motion
-            # at the start a million times the level)
-            if not measured:  # no first states: starts are states like any other
-                views = general
-            joint = _conformal_level(views[:, 0], quantile)[0]
-            first = [_conformal_level(v, quantile)[0] for v in views[:, 1:].T]
-            usual = [_conformal_level(v, quantile)[0] for v in general[:, 1:].T]
-            scales = tuple(joint / max(f, u) for f, u in zip(first, usual, strict=True))
-            fitted = dataclasses.replace(fitted, group_scales=scales)
-        levels: dict[str, Any] = {}
-        if groups or measured:
-            start_level, start_kept = _conformal_level(fitted._combined(views), quantile)
-            # a start no farther than the held-out states in general is like the training
-            # states, whose every state a window of training began at: first states that
-            # repeat one state (a reset with little noise) would set a level that calls any
-            # state of an episode's course new
-            usual, usual_kept = _conformal_level(fitted._combined(general), quantile)
-            if usual > start_level:
-                start_level, start_kept, measured = usual, usual_kept, 0
-            levels = {"start_level": start_level, "start_quantile": start_kept}
-            if measured:
-                levels["start_held_out"] = measured
+        # each group's distance, and the range's, on the joint one's scale, their levels over
+        # the first states made equal; a view's level there no lower than over the states in
+        # general (first states at rest, all velocities 0, would make it 0 and any motion at
+        # the start a million times the level), nor the range's below a twentieth of a spread
+        if not measured:  # no first states: starts are states like any other
+            views = general
+        joint = _conformal_level(views[:, 0], quantile)[0]
+        first = [_conformal_level(v, quantile)[0] for v in views[:, 1:].T]
+        usual = [_conformal_level(v, quantile)[0] for v in general[:, 1:].T]
+        usual[-1] = max(usual[-1], _RANGE_MARGIN)
+        scales = tuple(joint / max(f, u) for f, u in zip(first, usual, strict=True))
+        fitted = dataclasses.replace(fitted, group_scales=scales[:-1], range_scale=scales[-1])
+        start_level, start_kept = _conformal_level(fitted._combined(views), quantile)
+        # a start no farther than the held-out states in general is like the training states,
+        # whose every state a window of training began at: first states that repeat one state
+        # (a reset with little noise) would set a level that calls any state of an episode's
+        # course new
+        floor, floor_kept = _conformal_level(fitted._combined(general), quantile)
+        if floor > start_level:
+            start_level, start_kept, measured = floor, floor_kept, 0
+        levels: dict[str, Any] = {"start_level": start_level, "start_quantile": start_kept}
+        if measured:
+            levels["start_held_out"] = measured
         shares = []
         if held_out_episodes is not None:
             shares.append(fitted._episode_shares(held_out_all, held_out_episodes, level))
@@ -286,7 +295,9 @@ class StateNovelty:
                 episode_quantile=share_kept,
                 episodes_measured=sum(x.numel() for x in shares),
             )
-        levels.update(groups=groups, group_scales=fitted.group_scales)
+        levels.update(
+            groups=groups, group_scales=fitted.group_scales, range_scale=fitted.range_scale
+        )
         return cls(states, center, scale, low, high, level, k, kept, held_out.shape[0], **levels)
 
     def _episode_shares(
@@ -374,14 +385,16 @@ class StateNovelty:
     ) -> Tensor:
         """``[Q, D] -> [Q]`` (see :meth:`distance`); with ``ids`` ``[Q]`` and
         ``reference_ids`` ``[M]``, a state's own episode's reference states left out."""
-        return self._combined(self._views(states, ids, reference_ids, groups=starts))
+        return self._combined(self._views(states, ids, reference_ids, starts=starts))
 
     def _combined(self, views: Tensor) -> Tensor:
-        """``[Q, 1 + G] -> [Q]``: the largest of the distance in all dimensions and each
-        group's on its scale (the first column alone where there are no groups' columns)."""
+        """``[Q, 1 + G + 1] -> [Q]``: the largest of the distance in all dimensions, each
+        group's and the range's on its scale (the first column alone where there are no
+        others)."""
         if views.shape[-1] == 1:
             return views[:, 0]
-        return (views * views.new_tensor((1.0, *self.group_scales))).max(dim=-1).values
+        scales = views.new_tensor((1.0, *self.group_scales, self.range_scale))
+        return (views * scales).max(dim=-1).values
 
     def _views(
         self,
@@ -389,11 +402,12 @@ class StateNovelty:
         ids: Tensor | None = None,
         reference_ids: Tensor | None = None,
         *,
-        groups: bool = True,
+        starts: bool = True,
     ) -> Tensor:
-        """``[Q, D] -> [Q, 1 + G]``: the distance in all dimensions, then (with ``groups``) in
-        each group's dimensions alone (root mean square over the group's dimensions; not
-        scaled)."""
+        """``[Q, D] -> [Q, 1 + G + 1]``: the distance in all dimensions, then (for ``starts``)
+        in each group's dimensions alone (root mean square over the group's dimensions) and
+        the range's, how far the farthest dimension lies past the training states' central
+        99 % in spreads (none scaled); ``[Q, 1]`` without ``starts``."""
         flat = self._in_spreads(states)
         out = []
         for i, block in zip(
@@ -401,12 +415,15 @@ class StateNovelty:
         ):
             own = None if ids is None else ids[i : i + _BLOCK_ROWS, None] == reference_ids[None]
             views = [self._nearest(block, own).values[:, -1] / math.sqrt(self.dim)]
-            for group in self.groups if groups else ():
+            for group in self.groups if starts else ():
                 index = list(group)
                 near = self._nearest(block[:, index], own, self._scaled[:, index])
                 views.append(near.values[:, -1] / math.sqrt(len(group)))
+            if starts:
+                views.append(self._beyond(states[i : i + _BLOCK_ROWS]).amax(-1))
             out.append(torch.stack(views, dim=-1))
-        return torch.cat(out) if out else flat.new_zeros(0, 1 + len(self.groups) * groups)
+        columns = 2 + len(self.groups) if starts else 1
+        return torch.cat(out) if out else flat.new_zeros(0, columns)
 
     def _in_spreads(self, states: Tensor) -> Tensor:
         """``states`` ``[Q, D]`` centred and in units of the training spread, as the reference
@@ -521,7 +538,7 @@ class StateNovelty:
         where one is beyond it."""
         if not self.groups:
             return None
-        views = self._views(state.to(self.center)[None])[0, 1:]
+        views = self._views(state.to(self.center)[None])[0, 1:-1]
         scaled = views * views.new_tensor(self.group_scales) / self.start_level
         which = int(scaled.argmax())
         return self.groups[which] if float(scaled[which]) > 1 else None
@@ -554,6 +571,7 @@ class StateNovelty:
             "episodes_measured": self.episodes_measured,
             "groups": [list(group) for group in self.groups],
             "group_scales": list(self.group_scales),
+            "range_scale": self.range_scale,
         }
 
     @classmethod
@@ -595,6 +613,7 @@ class StateNovelty:
             # checkpoints from before groups were judged have none
             groups=_groups(values.get("groups", ()), dim, "novelty.groups"),
             group_scales=_scales(values.get("group_scales", ())),
+            range_scale=float(values.get("range_scale", 0.0)),  # 0: not judged before it
             **vectors,
         )
 

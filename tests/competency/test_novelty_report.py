@@ -33,7 +33,7 @@ def test_entries_are_the_starts_ratio_and_the_share_of_imagined_states_beyond_th
         _starts(), actions=plan, seed=0, return_rollouts=True
     )
     entries = report.data["novelty"]
-    assert torch.allclose(entries["start"], model.novelty.ratio(_starts()))
+    assert torch.allclose(entries["start"], model.novelty.ratio(_starts(), starts=True))
     imagined = report.data["rollout", "observation"]  # [B, E, N, T, S]
     picked = imagined[:, :, :2].reshape(3, -1, S)  # T = 6 < 20 steps: every step
     share = (model.novelty.ratio(picked) > 1).float().mean(-1)
@@ -57,7 +57,7 @@ def test_a_start_unlike_the_training_states_is_cautioned_with_its_dimension():
     report = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
     assert report.data["novelty", "imagined"][:2].tolist() == [0.0, 0.0]
     far = report.summary(index=2)
-    ratio = float(model.novelty.ratio(_starts()[2]))
+    ratio = float(model.novelty.ratio(_starts()[2], starts=True))
     assert (
         f"Caution: the start state is unlike the states the model was trained on "
         f"({ratio:.1f}x as far from the training states as 99% of held-out states are: "

@@ -320,6 +320,30 @@ def test_a_start_along_the_training_episodes_course_is_like_the_training_states(
     assert "as 99% of held-out states are" in novelty.describe(course[0], start=True)
 
 
+def test_one_dimension_far_out_of_its_range_makes_a_start_new_however_many_others():
+    """In 24 dimensions together one dimension a spread past its training range was diluted
+    below the level (a trial's walker: its torso at 2 m, within the level); the range view
+    calls it new, and fresh in-distribution starts are still called new at about the nominal
+    rate (the start level is measured on the largest view)."""
+    g = torch.Generator().manual_seed(3)
+    train, held = torch.randn(6000, 24, generator=g), torch.randn(2000, 24, generator=g)
+    novelty = StateNovelty.fit(train, held, quantile=0.95)
+    assert novelty.range_scale > 0
+    far = torch.randn(200, 24, generator=g)
+    far[:, 7] = 3.5  # the training range ends near 2.5 spreads
+    alone = StateNovelty.fit(train, held, quantile=0.95)._views(far, starts=False)[:, 0]
+    assert float((alone / novelty.level > 1).float().mean()) < 0.5  # diluted, all together
+    assert bool(novelty.unlike(far, starts=True).all())
+    fresh = torch.randn(2000, 24, generator=g)
+    low, high = binom.ppf([0.0005, 0.9995], 2000, 0.05)
+    assert low <= int(novelty.unlike(fresh, starts=True).sum()) <= high
+    assert "dim 7 = 3.5 (training " in novelty.describe(far[0], start=True)
+    # kept in its record; a record from before it judges no range
+    assert StateNovelty.from_dict(novelty.as_dict()).range_scale == novelty.range_scale
+    older = {k: v for k, v in novelty.as_dict().items() if k != "range_scale"}
+    assert StateNovelty.from_dict(older).range_scale == 0.0
+
+
 def test_start_states_and_episodes_are_judged_by_levels_of_their_own():
     train, ids = _decaying_episodes(200, 0)
     held, held_ids = _decaying_episodes(30, 1)
