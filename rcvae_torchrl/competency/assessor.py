@@ -35,6 +35,7 @@ from rcvae_torchrl.competency.decomposition import estimator_arg_names
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
 from rcvae_torchrl.competency.report import CompetencyReport
+from rcvae_torchrl.rollout import as_tensor_policy
 
 __all__ = ["CompetencyAssessor", "ImaginesRollouts", "PerSample", "Policy"]
 
@@ -678,8 +679,6 @@ class _InBounds:
     actions would be one of another agent."""
 
     def __init__(self, policy: Policy, low: Tensor, high: Tensor) -> None:
-        from rcvae_torchrl.rollout import as_tensor_policy
-
         self.policy = as_tensor_policy(policy)
         self.low, self.high = low, high
         self.excess: list[Tensor] = []  # per step: the largest excess over the bounds
