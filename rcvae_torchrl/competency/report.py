@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import math
 import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -482,6 +483,7 @@ class CompetencyReport:
                     self.dim_names,
                     self.dt,
                     self.top_k,
+                    _imagined_samples(competency),
                 )
             )
         if warning:
@@ -725,16 +727,45 @@ def _bits(uncertainty: TensorDictBase, per_live_step: bool) -> TensorDictBase:
     return uncertainty.get("per_live_step")
 
 
+def _imagined_samples(competency: TensorDictBase) -> int | None:
+    """``E·N``, the imagined samples of one start (its ``"success"`` ``[E, N]``)."""
+    success = competency.get("success", None)
+    return None if success is None else int(success.shape[-2:].numel())
+
+
+#: a dimension's time-mean bits at this share of log2 of the samples or more is named as at
+#: the samples' ceiling
+_CEILING_SHARE = 0.95
+
+
 def _dims_sentence(
-    time_mean: Tensor, peak_step: Tensor, names: Sequence[str], dt: float | None, top_k: int
+    time_mean: Tensor,
+    peak_step: Tensor,
+    names: Sequence[str],
+    dt: float | None,
+    top_k: int,
+    samples: int | None = None,
 ) -> str:
-    """The ``top_k`` dimensions by time-mean bits ``[D]`` (above 0) with their peak ``[D]``."""
+    """The ``top_k`` dimensions by time-mean bits ``[D]`` (above 0) with their peak ``[D]``;
+    one whose bits reach the ceiling of the ``samples`` imagined (log2 of their number, where
+    every sample has a bin of its own) is said to be there: its bits count the samples, not
+    their spread."""
     order = torch.argsort(time_mean, descending=True, stable=True)[:top_k].tolist()
-    parts = [
-        f"{names[d]} (mean {float(time_mean[d]):.2f} bits, peak at {_when(int(peak_step[d]), dt)})"
-        for d in order
-        if float(time_mean[d]) > 0
-    ]
+    ceiling = math.log2(samples) if samples and samples > 1 else math.inf
+    parts = []
+    for d in order:
+        bits = float(time_mean[d])
+        if bits <= 0:
+            continue
+        at = (
+            f"; at the ceiling of its {samples} samples, log2 {samples} = {ceiling:.2f} bits: "
+            "each sample in a bin of its own, the bins too narrow to measure its spread"
+            if bits >= _CEILING_SHARE * ceiling
+            else ""
+        )
+        parts.append(
+            f"{names[d]} (mean {bits:.2f} bits, peak at {_when(int(peak_step[d]), dt)}{at})"
+        )
     return f"Most uncertain: {', '.join(parts)}." if parts else ""
 
 

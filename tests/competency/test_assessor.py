@@ -1,6 +1,7 @@
 """CompetencyAssessor and CompetencyReport: keys, shapes, loops, chunks, summary rules, errors."""
 
 import doctest
+import math
 import warnings
 
 import pytest
@@ -883,6 +884,12 @@ def test_too_narrow_bins_are_named_as_the_report_names_the_dimensions(starts, pl
     with pytest.warns(UserWarning, match=r"^bin_width: in s0 \(width 1e-09, at 100% of the steps"):
         report = assessor.assess(starts, actions=plan, seed=0)
     assert set(report.data["uncertainty", "by_dim"].keys()) == set(names)
+    # the summary names such a dimension as at the ceiling of its samples, not as uncertain
+    # (a trial's walker: "Most uncertain: orientations[10] (mean 5.91 bits)", log2 60)
+    ceiling = f"log2 {E * N} = {math.log2(E * N):.2f} bits: each sample in a bin of its own"
+    assert f"; at the ceiling of its {E * N} samples, {ceiling}" in report.summary(index=0)
+    fine = make_assessor(make_env(model), dim_names=None).assess(starts, actions=plan, seed=0)
+    assert "Most uncertain" in fine.summary(index=0) and "ceiling" not in fine.summary(index=0)
 
 
 def test_a_reference_measured_otherwise_is_refused(env, starts, plan):
