@@ -27,7 +27,9 @@ def test_micro_run_writes_every_row(tmp_path, monkeypatch):
     ]
     for row in rows:
         assert 0.0 <= row["forecast"] <= 1.0 and 0.0 <= row["real"] <= 1.0
-        assert row["held_out_check"] in ("passed", "too optimistic", "too pessimistic")
+        # micro budgets: few starts, some of them settled; any of the check's verdicts
+        verdicts = ("passed", "too optimistic", "too pessimistic", "too imprecise")
+        assert row["held_out_check"] in (*verdicts, "not measured")
         assert row["ood_cause"] in (None, "aleatoric", "epistemic")
     # the real episodes do not depend on the model: the same rate for both budgets
     assert rows[0]["real"] == rows[1]["real"] and rows[2]["real"] == rows[3]["real"]
