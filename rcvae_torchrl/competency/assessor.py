@@ -203,6 +203,9 @@ class CompetencyAssessor(KeyedModule):
                 f"{boundary.time_limit} for the boundary's deadline",
                 stacklevel=2,
             )
+        _warn_success_unseen(
+            boundary, getattr(getattr(model_env, "ensemble", None), "novelty", None)
+        )
         self.policy = policy
         self.samples_per_member = samples_per_member
         self.top_k, self.start_chunk = top_k, start_chunk
@@ -706,6 +709,25 @@ class _InBounds:
             "episodes (run_episodes, real_outcomes) refuse them, and a forecast of the clipped "
             "actions would be one of another agent"
         )
+
+
+def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
+    """Warn when none of the training states the world model's novelty check keeps lies in
+    the boundary's success region: the model never saw a success, and every forecast of one
+    extrapolates (data of a random policy on a task of a distant goal, say)."""
+    states = getattr(novelty, "states", None)
+    if boundary.is_survival or not isinstance(states, Tensor) or not states.shape[0]:
+        return
+    if bool(boundary._evaluate(boundary.success, "success", states).any()):
+        return
+    warnings.warn(
+        f"boundary: none of the {states.shape[0]:,} training states the world model keeps "
+        "(ensemble.novelty.states, drawn from its training episodes) lies in the success "
+        "region: the model never saw a success, and every forecast of one extrapolates, however "
+        "much the members agree; train on episodes that reach it",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _check_dt_against_real_env(dt: float | None, model_env: Any) -> None:

@@ -2,7 +2,9 @@
 states (the world model's StateNovelty)."""
 
 import dataclasses
+import warnings
 
+import pytest
 import torch
 from test_assessor import DT, E, S, T, make_assessor, make_ensemble, make_env, set_decoder
 
@@ -191,3 +193,26 @@ def test_a_start_whose_imagined_states_alone_are_unlike_is_named_as_such():
         "as in the reference although its imagined states are unlike the training states "
         "(above): the members agree where none has data." in report.with_reference(same).summary()
     )
+
+
+def test_a_success_region_no_training_state_lies_in_is_named():
+    """Data that never reached the goal (a trial's mountain car, random episodes): the model
+    never saw a success, and every forecast of one extrapolates."""
+    model = make_ensemble()
+    model.novelty = _novelty()  # training states around 0, spread 0.1
+    far = SuccessBoundary(lambda o: o[..., 0] > 5.0, time_limit=T)
+    with pytest.warns(
+        UserWarning,
+        match=r"^boundary: none of the 3,000 training states the world model keeps "
+        r"\(ensemble.novelty.states, drawn from its training episodes\) lies in the success "
+        r"region: the model never saw a success",
+    ):
+        make_assessor(make_env(model), boundary=far)
+    near = SuccessBoundary(lambda o: o[..., 0] > 0.1, time_limit=T)
+    stay = SuccessBoundary.survival(lambda o: o[..., 0] > 5.0, time_limit=T)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        make_assessor(make_env(model), boundary=near)  # some training states lie there
+        make_assessor(make_env(model), boundary=stay)  # survival: no success region
+        model.novelty = None
+        make_assessor(make_env(model), boundary=far)  # no states kept: nothing to tell
