@@ -149,13 +149,12 @@ def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]
     _check_shape(f"real_env {ACTION_KEY!r} spec", action.shape, (cfg.action_dim,))
     _check_shape(f"real_env {REWARD_KEY!r} spec", reward.shape, (1,))
     defaults = _default_specs(ensemble)
-    return (
-        obs,
-        defaults[1] if success is None else success,
-        action,
-        reward,
-        _unbatched(env.full_done_spec, nb),
-    )
+    done = _unbatched(env.full_done_spec, nb).clone()
+    if "truncated" not in done.keys() and "done" in done.keys():
+        # the model env marks an imagined horizon's last step truncated, whether or not the
+        # real env ever truncates (TorchRL's PendulumEnv has done and terminated alone)
+        done["truncated"] = done["done"].clone()
+    return (obs, defaults[1] if success is None else success, action, reward, done)
 
 
 def _check_control_step(ensemble: RCVAEEnsemble, env: EnvBase) -> None:

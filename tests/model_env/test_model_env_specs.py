@@ -176,3 +176,26 @@ def test_a_float64_model_without_a_real_env_gets_float64_specs(ensemble, starts)
     assert [s.dtype for s in specs] == [torch.float64] * 3
     assert env.observation_spec["rcvae", "hidden"].dtype == torch.float64
     check_env_specs(env)
+
+
+def test_check_env_specs_with_a_real_env_that_never_truncates():
+    # TorchRL's PendulumEnv declares done and terminated alone; the model env marks an imagined
+    # horizon's last step truncated all the same, so its spec must declare it
+    from torchrl.envs import PendulumEnv
+
+    from rcvae_torchrl.data import prepare_env
+    from rcvae_torchrl.model_env import make_rcvae_env
+    from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+
+    real, _ = prepare_env(PendulumEnv(), ["th", "thdot"])
+    assert "truncated" not in real.full_done_spec.keys()
+    ensemble = RCVAEEnsemble(RCVAEConfig(2, 1, hidden_dim=8, mlp_dim=8), ensemble_size=2)
+    env = make_rcvae_env(
+        ensemble,
+        real,
+        lambda observation, action: observation[..., :1],
+        lambda observation: observation[..., 0] > 3.0,
+    )
+    check_env_specs(env, seed=0)
+    assert env.full_done_spec["truncated"] == env.full_done_spec["done"]
+    assert env.full_done_spec["done"] == real.full_done_spec["done"]
