@@ -525,9 +525,13 @@ class OutcomeCheck:
         succeeded (a walker already lying, a ball already past the line). Right there, any
         model is: they show nothing of the forecasts in doubt, and a check of them alone
         would pass with an interval of zero width."""
+        return int(self._settled.sum())
+
+    @cached_property
+    def _settled(self) -> torch.Tensor:
+        """Which starts are :attr:`settled`, bool ``[n]``."""
         f, r = self.forecast, self.real
-        settled = ((f <= _RESOLUTION) & (r == 0)) | ((f >= 1 - _RESOLUTION) & (r == 1))
-        return int(settled.sum())
+        return ((f <= _RESOLUTION) & (r == 0)) | ((f >= 1 - _RESOLUTION) & (r == 1))
 
     @property
     def gap(self) -> float:
@@ -679,12 +683,16 @@ class OutcomeCheck:
 
     @property
     def biased(self) -> bool:
-        """Measured, and the forecasts differ from the real rates by more than chance allows
-        (level ``alpha``): by the t-test over the starts (:attr:`p_value`: a bias that the
-        forecasts of other starts from the same distribution share) and by the outcomes'
-        exact chance were the forecasts the starts' chances (:attr:`exact_p_value`), which
-        keeps a few rare successes from reading as a bias."""
-        return self.measured and max(self.p_value, self.exact_p_value) < self.alpha
+        """The forecasts differ from the real rates by more than chance allows (level
+        ``alpha``): by the t-test over the starts (:attr:`p_value`: a bias that the forecasts
+        of other starts from the same distribution share) and by the outcomes' exact chance
+        were the forecasts the starts' chances (:attr:`exact_p_value`), which keeps a few rare
+        successes from reading as a bias. Both tests hold their level with any number of
+        starts, so a bias is named with fewer than ``min_starts`` in doubt too (six starts
+        forecast 0.95-1.0 whose 60 real runs all failed): the count decides only whether a
+        check that names none has :attr:`passed`."""
+        p_value, exact = self.p_value, self.exact_p_value
+        return p_value < self.alpha and exact < self.alpha  # False where NaN (< 2 starts)
 
     @property
     def precise(self) -> bool:
@@ -702,10 +710,10 @@ class OutcomeCheck:
     def verdict(self) -> str:
         """``"passed"``, ``"too optimistic"``, ``"too pessimistic"``, ``"too imprecise"`` (no
         bias found, with an interval wider than ``± tolerance``) or ``"not measured"``."""
-        if not self.measured:
-            return "not measured"
         if self.biased:
             return "too optimistic" if self.gap > 0 else "too pessimistic"
+        if not self.measured:
+            return "not measured"
         return "passed" if self.precise else "too imprecise"
 
     def message(self) -> str:
@@ -717,15 +725,15 @@ class OutcomeCheck:
         """One sentence: the verdict, the mean forecast and real rate, the gap with its
         interval at the test's level, the two p-values (:attr:`biased`) and, where it applies,
         the per-start test's verdict."""
-        if not self.measured and self.settled:
+        if not self.measured and self.settled and not self.biased:
             return (
                 f"{self.what} are unchecked: {self.settled} of the {self.starts} start states "
                 "were settled from the start (forecast 0 where every real run failed, or 1 where "
                 "every one succeeded), which shows nothing of the forecasts in doubt, and the "
                 f"outcome check needs {self.min_starts} others; check start states whose outcome "
-                "is in doubt"
+                f"is in doubt{self._lean()}"
             )
-        if not self.measured:
+        if not self.measured and not self.biased:
             return (
                 f"{self.what} are unchecked: {self.starts} start states, the outcome check "
                 f"needs {self.min_starts}"
@@ -759,6 +767,22 @@ class OutcomeCheck:
             f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g} by a t-test over the "
             f"starts, {_drawn_p(self.exact_p_value)} by the outcomes' exact chance, "
             f"{_DRAWS:,} draws){wide}" + self._per_start_sentence()
+        )
+
+    def _lean(self) -> str:
+        """Where a check too small to measure already finds its starts in doubt off by more
+        than their outcomes' exact chance allows, though not by the t-test too (so not
+        :attr:`biased`), what they show ('' otherwise)."""
+        if self.measured or self.biased or not self.exact_p_value < self.alpha:
+            return ""
+        doubt = ~self._settled
+        forecast, real = float(self.forecast[doubt].mean()), float(self.real[doubt].mean())
+        lean = "optimistic" if forecast > real else "pessimistic"
+        return (
+            f"; the {int(doubt.sum())} in doubt already lean {lean}: they forecast "
+            f"{forecast:.2f} on average where their real episodes succeeded {real:.2f} "
+            f"({_drawn_p(self.exact_p_value)} by the outcomes' exact chance; the t-test over "
+            f"all {self.starts} starts, p = {self.p_value:.3g}, does not name it)"
         )
 
     def _per_start_sentence(self) -> str:

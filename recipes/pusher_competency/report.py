@@ -487,7 +487,7 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
     ]
     verdicts = []
     for condition, found in forecast_checks.items():
-        if not found.measured:
+        if not found.measured and not found.biased:  # a bias is named from fewer starts
             lines.append(f"| {condition} | {found.starts} | {found.runs} | | | | | not measured |")
             verdicts.append(f"- **{condition}**: {found.message()}.")
             continue

@@ -347,3 +347,40 @@ def test_start_states_settled_from_the_start_show_nothing():
     assert mixed.settled == 30 and mixed.measured and mixed.passed
     real[0, 0] = True
     assert OutcomeCheck.from_outcomes(forecast, real).settled == 29
+
+
+def test_a_bias_is_named_with_fewer_starts_in_doubt_than_a_pass_needs():
+    """A pendulum trial: starts forecast 0.95-1.0 whose real runs all failed read 'not
+    measured', as if nothing were known. Too few starts keep a check from passing, not from
+    naming a bias both tests find."""
+    forecast = torch.tensor([0.99, 0.98, 0.95, 0.99, 1.0, 1.0, 0.97, 0.96], dtype=torch.float64)
+    wrong = OutcomeCheck.from_outcomes(forecast, torch.zeros(8, 10, dtype=torch.bool))
+    assert not wrong.measured and wrong.biased and not wrong.passed
+    assert wrong.verdict == "too optimistic"
+    assert wrong.describe().startswith(
+        "the forecasts are too optimistic: from 8 start states they forecast success 0.98"
+    )
+    # right forecasts of as few starts name no bias, and stay unchecked
+    chance = torch.tensor([0.3, 0.7, 0.5, 0.2, 0.8, 0.6, 0.4, 0.5], dtype=torch.float64)
+    real = torch.rand(8, 10, generator=torch.Generator().manual_seed(0)) < chance[:, None]
+    right = OutcomeCheck.from_outcomes(chance, real)
+    assert not right.biased and right.verdict == "not measured"
+    # one start alone names nothing (no t-test), however far off
+    assert OutcomeCheck.from_outcomes(
+        forecast[:1], torch.zeros(1, 10, dtype=torch.bool)
+    ).verdict == ("not measured")
+
+
+def test_a_check_too_small_to_measure_says_where_its_starts_in_doubt_lean():
+    """Among settled starts, the few in doubt that the outcomes' exact chance already finds
+    off (the t-test over all starts, diluted by the settled ones, does not)."""
+    forecast = torch.tensor([1.0] * 14 + [0.99, 0.98, 0.95, 0.99, 1.0, 1.0], dtype=torch.float64)
+    real = torch.cat([torch.ones(14, 10, dtype=torch.bool), torch.zeros(6, 10, dtype=torch.bool)])
+    check = OutcomeCheck.from_outcomes(forecast, real)
+    assert check.p_value > check.alpha > check.exact_p_value
+    assert check.verdict == "not measured" and not check.passed
+    assert check.describe().endswith(
+        "check start states whose outcome is in doubt; the 6 in doubt already lean optimistic: "
+        "they forecast 0.98 on average where their real episodes succeeded 0.00 (< 0.0005 by "
+        "the outcomes' exact chance; the t-test over all 20 starts, p = 0.0102, does not name it)"
+    )
