@@ -27,7 +27,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from rcvae_torchrl import distributed
+from rcvae_torchrl import distributed, fingerprint
 from rcvae_torchrl.competency import _checks
 from rcvae_torchrl.competency._keys import KeyedModule
 from rcvae_torchrl.competency.boundary import SuccessBoundary
@@ -334,6 +334,26 @@ class CompetencyAssessor(KeyedModule):
             survival=self.boundary.is_survival,
             novelty=self.novelty,
             measure=self.measure,
+            task=self.task(int(limit)),
+        )
+
+    def task(self, time_limit: int | None = None) -> str:
+        """What this assessor's forecasts answer, as a digest (a report keeps it as its
+        ``task``, and a forecast check made from that report too): the boundary's predicates
+        (their code and the values they read, as :func:`rcvae_torchrl.fingerprint.digest`
+        describes a function), the deadline judged (``time_limit`` steps, default the
+        boundary's), dt, and the world model's weights. Two reports share it only where both
+        judge the same task with the same model; the agent is not in it."""
+        boundary = self.boundary
+        limit = boundary.time_limit if time_limit is None else time_limit
+        ensemble = getattr(self.model_env, "ensemble", None)
+        weights = {} if ensemble is None else dict(ensemble.state_dict())
+        try:
+            predicates = fingerprint.digest([boundary.success, boundary.failure])
+        except Exception:  # an object describe() cannot walk: this process's own objects
+            predicates = f"objects {id(boundary.success)} {id(boundary.failure)}"
+        return fingerprint.digest(
+            {"predicates": predicates, "time_limit": limit, "dt": self.dt, "model": weights}
         )
 
     @property

@@ -206,6 +206,11 @@ class CompetencyReport:
     #: how the bits were measured (the assessor's estimator, its settings and the samples per
     #: member, :attr:`CompetencyAssessor.measure`); ``None`` where not known
     measure: Mapping[str, Any] | None = None
+    #: what the forecasts answer, as a digest of the boundary (its predicates' code and values,
+    #: the deadline the report judges, dt) and the world model's weights
+    #: (:attr:`CompetencyAssessor.task`); '' where not known (a report built by hand). A
+    #: forecast check must be of the same task (:meth:`with_forecast_check`)
+    task: str = ""
 
     @property
     def novel(self) -> Tensor | None:
@@ -224,7 +229,9 @@ class CompetencyReport:
         check against real episodes from other start states (:meth:`with_forecast_check`).
         Without such a check nothing has shown the forecasts right: the self-checks look a few
         steps ahead, and models that passed them have forecast far from reality (a walker's
-        survival 0.18-0.35 too low). Start by start, see :attr:`novel` too."""
+        survival 0.18-0.35 too low). The check must be of this report's task (a check built
+        from bare forecasts ties to none; see :meth:`with_forecast_check`). Start by start, see
+        :attr:`novel` too."""
         checked = self.forecast_check is not None and self.forecast_check.passed
         return checked and not self.warning
 
@@ -233,8 +240,16 @@ class CompetencyReport:
         """Why this forecast is not trustworthy ('' when nothing says so): ``model_warning``,
         and the sentence of a forecast check that did not pass."""
         parts = [self.model_warning] if self.model_warning else []
-        if self.forecast_check is not None and not self.forecast_check.passed:
-            parts.append(f"forecast check on other start states: {self.forecast_check.describe()}")
+        check = self.forecast_check
+        if check is not None and not check.passed:
+            parts.append(f"forecast check on other start states: {check.describe()}")
+        elif check is not None and self.task and not getattr(check, "task", None):
+            parts.append(
+                "the forecast check attached was built from bare forecasts, which ties it to no "
+                "task: it may be another boundary's, deadline's or model's, and vouches for none "
+                "of these forecasts; build it from the report of its start states "
+                "(OutcomeCheck.from_outcomes(report, outcomes)), or pass task=report.task"
+            )
         return "; ".join(parts)
 
     def with_forecast_check(self, check: Any) -> CompetencyReport:
@@ -243,11 +258,24 @@ class CompetencyReport:
         :class:`~rcvae_torchrl.training.OutcomeCheck`, e.g. from held-out episodes' first
         states). A check that did not pass (a bias, or too few start states to tell) opens
         every summary as a warning, the bits then given without a cause, and the report is not
-        :attr:`trustworthy`; one that passed closes :meth:`overall`."""
+        :attr:`trustworthy`; one that passed closes :meth:`overall`.
+
+        The check must be of this report's :attr:`task`: a check of another boundary, deadline
+        or world model is refused, and one built from bare forecasts (which know no task) makes
+        a report that knows its task untrustworthy, with a warning saying why. The agent is
+        not part of the task: check with the agent the report's forecasts follow."""
         if not (hasattr(check, "passed") and callable(getattr(check, "describe", None))):
             raise TypeError(
                 "check: expected an OutcomeCheck (rcvae_torchrl.training.OutcomeCheck."
                 f"from_outcomes), got {type(check).__name__}"
+            )
+        task = getattr(check, "task", None)
+        if self.task and task and task != self.task:
+            raise ValueError(
+                f"check: made for another task than this report's (task {task[:12]}, this "
+                f"report's {self.task[:12]}): another boundary (its predicates' code or values), "
+                "deadline or world model; check this report's own task, from the report of its "
+                "start states: OutcomeCheck.from_outcomes(report, outcomes)"
             )
         return replace(self, forecast_check=check)
 

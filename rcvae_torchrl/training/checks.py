@@ -444,6 +444,10 @@ class OutcomeCheck:
     #: the largest half-width of the gap's interval (at the test's level) with which a check
     #: that finds no bias passes: a wider one would hide a bias of that size
     tolerance: float = 0.2
+    #: what the forecasts answered (a report's :attr:`~rcvae_torchrl.competency.CompetencyReport
+    #: .task`: its boundary, deadline and world model); ``None`` where not known (bare
+    #: forecasts), and then the check vouches for no report
+    task: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("forecast", "real"):
@@ -467,6 +471,7 @@ class OutcomeCheck:
         min_starts: int = 10,
         what: str = "the forecasts",
         tolerance: float = 0.2,
+        task: str | None = None,
     ) -> OutcomeCheck:
         """From forecasts ``[n]`` (probabilities) and real outcomes, bool ``[n, R]``.
 
@@ -475,10 +480,22 @@ class OutcomeCheck:
         :func:`~rcvae_torchrl.agent.real_outcomes`: a real success then counts only within the
         report's deadline (its ``time_limit`` steps), as in
         :func:`~rcvae_torchrl.agent.score_forecast`; real episodes run for more steps than the
-        forecast looked ahead would otherwise judge another task."""
+        forecast looked ahead would otherwise judge another task. The check then keeps the
+        report's ``task`` and vouches only for reports of the same task
+        (:meth:`~rcvae_torchrl.competency.CompetencyReport.with_forecast_check`); from bare
+        forecasts, pass ``task=report.task`` of the report they come from."""
         deadline = getattr(forecast, "time_limit", None)
         if hasattr(forecast, "competency") and deadline is not None:  # a CompetencyReport
+            known = getattr(forecast, "task", "") or None
+            if task is not None and known is not None and task != known:
+                raise ValueError(
+                    f"task: the forecasts' report answers task {known[:12]}, got {task[:12]}; "
+                    "leave task out with a report (it is the report's)"
+                )
+            task = known if task is None else task
             forecast = forecast.competency["p_success"]
+        if task is not None and not isinstance(task, str):
+            raise TypeError(f"task: expected a report's task (a str), got {type(task).__name__}")
         if callable(getattr(real_success, "within", None)):  # a RealOutcomes
             if deadline is not None:
                 real_success = real_success.within(deadline)
@@ -506,6 +523,7 @@ class OutcomeCheck:
             min_starts=int(min_starts),
             what=str(what),
             tolerance=float(tolerance),
+            task=task,
         )
 
     @property
@@ -819,6 +837,7 @@ class OutcomeCheck:
             "min_starts": self.min_starts,
             "what": self.what,
             "tolerance": self.tolerance,
+            "task": self.task,
             "starts": self.starts,
             "gap": self.gap,
             "p_value": self.p_value,
@@ -839,6 +858,7 @@ class OutcomeCheck:
             min_starts=int(values["min_starts"]),
             what=str(values.get("what", "the forecasts")),
             tolerance=float(values.get("tolerance", 0.2)),
+            task=values.get("task"),
         )
 
 

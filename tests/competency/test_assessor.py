@@ -553,17 +553,66 @@ def test_a_model_that_failed_its_checks_is_flagged_in_every_summary(env, starts,
     passed = make_assessor(env).assess(starts, actions=plan, generator=seeded())
     # self-checks passed, and no forecast check yet: nothing has shown the forecasts right
     assert passed.warning == "" and not passed.trustworthy
-    assert passed.with_forecast_check(_passed_check()).trustworthy
+    assert passed.with_forecast_check(_passed_check(task=passed.task)).trustworthy
 
 
-def _passed_check():
+def _passed_check(task=None):
     """A forecast check that passed: forecasts of 0.5 against 60 starts' 40 runs drawn at 0.5."""
     from rcvae_torchrl.training import OutcomeCheck
 
     real = torch.rand(60, 40, generator=seeded(3)) < 0.5
-    check = OutcomeCheck.from_outcomes(torch.full((60,), 0.5, dtype=torch.float64), real)
+    check = OutcomeCheck.from_outcomes(torch.full((60,), 0.5, dtype=torch.float64), real, task=task)
     assert check.passed
     return check
+
+
+def test_a_forecast_check_vouches_only_for_reports_of_its_task(env, starts, plan):
+    """A pendulum trial: a check that passed on a balance task made a swing-up report of the
+    same model 'trustworthy' (0.686 forecast against 0.520 real). A report knows its task (the
+    boundary's predicates, the deadline, the world model's weights) and so does a check made
+    from one; a check of another task is refused, and one of bare numbers ties to none."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    report = make_assessor(env).assess(starts, actions=plan, generator=seeded())
+    again = make_assessor(env).assess(starts[:2], actions=plan[:2], generator=seeded(5))
+    assert report.task and again.task == report.task  # other starts, the same task
+    real = torch.rand(60, 40, generator=seeded(3)) < 0.5
+    forecast = torch.full((60,), 0.5, dtype=torch.float64)
+    same = OutcomeCheck.from_outcomes(forecast, real, task=report.task)
+    assert report.with_forecast_check(same).trustworthy
+    assert OutcomeCheck.from_dict(same.as_dict()).task == report.task
+
+    def refused(tasked):
+        with pytest.raises(ValueError, match=r"check: made for another task than this report"):
+            report.with_forecast_check(OutcomeCheck.from_outcomes(forecast, real, task=tasked.task))
+
+    wider = make_assessor(
+        env,
+        boundary=SuccessBoundary.ball(
+            obs_indices("ball"), 0.05, target=obs_indices("target"), time_limit=T, dt=DT
+        ),
+    ).assess(starts, actions=plan, generator=seeded())
+    sooner = make_assessor(env, boundary=boundary(time_limit=T - 1), horizon=T).assess(
+        starts, actions=plan, generator=seeded()
+    )
+    other_model = make_assessor(make_env(make_ensemble(seed=1))).assess(
+        starts, actions=plan, generator=seeded()
+    )
+    for name, tasked in [("radius", wider), ("deadline", sooner), ("model", other_model)]:
+        assert tasked.task != report.task, name
+        refused(tasked)
+    bare = report.with_forecast_check(OutcomeCheck.from_outcomes(forecast, real))
+    assert not bare.trustworthy
+    assert bare.warning.startswith(
+        "the forecast check attached was built from bare forecasts, which ties it to no task"
+    )
+    assert bare.summary(index=0).startswith("Warning: the forecast check attached was built")
+    # a report built by hand knows no task, and takes any check
+    assert _starts_report([0.3]).with_forecast_check(_passed_check()).trustworthy
+    with pytest.raises(ValueError, match=r"task: the forecasts' report answers task"):
+        OutcomeCheck.from_outcomes(report, torch.ones(3, 2, dtype=torch.bool), task=wider.task)
+    with pytest.raises(TypeError, match=r"task: expected a report's task \(a str\), got int"):
+        OutcomeCheck.from_outcomes(forecast, real, task=3)
 
 
 def test_a_model_without_self_checks_is_never_presented_as_trustworthy(env, starts, plan):
