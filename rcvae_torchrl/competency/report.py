@@ -374,7 +374,8 @@ class CompetencyReport:
     def overall(self) -> str:
         """One paragraph over all start states: the mean forecast, and what changed against the
         reference (without one, the dominant part of the doubt), with how many start states
-        rose one by one (a mean can rise by a few outliers); a passed forecast check last."""
+        rose one by one (a mean can rise by a few outliers); a passed forecast check last, or,
+        with none attached, that the forecasts are unchecked."""
         p = float(self.competency.get("p_success").mean())
         live = self.reference is not None and self.reference.per_live_step
         aleatoric, epistemic = self.mean_bits(live)
@@ -400,6 +401,11 @@ class CompetencyReport:
         text += self._novel_count_sentence()
         if self.forecast_check is not None and self.forecast_check.passed:
             text += f" Forecast check on other start states: {self.forecast_check.describe()}."
+        elif self.forecast_check is None:
+            text += (
+                " Unchecked: no check of these forecasts against real episodes is attached "
+                "(with_forecast_check), so nothing has shown them right."
+            )
         return (f"Warning: {warning}. " if warning else "") + text
 
     def _novel_count_sentence(self) -> str:
