@@ -733,18 +733,30 @@ class _InBounds:
 
 def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
     """Warn when none of the training states the world model's novelty check keeps lies in
-    the boundary's success region: the model never saw a success, and every forecast of one
-    extrapolates (data of a random policy on a task of a distant goal, say)."""
+    the boundary's success region (for a survival boundary: outside its failure region): the
+    model never saw a success (a state the task survives in), and every forecast of one
+    extrapolates (data of a random policy on a task of a distant goal, or of a pendulum that
+    never stood up on a task of balancing it)."""
     states = getattr(novelty, "states", None)
-    if boundary.is_survival or not isinstance(states, Tensor) or not states.shape[0]:
+    if not isinstance(states, Tensor) or not states.shape[0]:
         return
-    if bool(boundary._evaluate(boundary.success, "success", states).any()):
-        return
+    if boundary.is_survival:
+        if not bool(boundary._evaluate(boundary.failure, "failure", states).all()):
+            return
+        region, seen, reach = (
+            "outside the failure region",
+            "a state it survives in",
+            "stay out of it",
+        )
+    else:
+        if bool(boundary._evaluate(boundary.success, "success", states).any()):
+            return
+        region, seen, reach = "in the success region", "a success", "reach it"
     warnings.warn(
         f"boundary: none of the {states.shape[0]:,} training states the world model keeps "
-        "(ensemble.novelty.states, drawn from its training episodes) lies in the success "
-        "region: the model never saw a success, and every forecast of one extrapolates, however "
-        "much the members agree; train on episodes that reach it",
+        f"(ensemble.novelty.states, drawn from its training episodes) lies {region}: the "
+        f"model never saw {seen}, and every forecast of one extrapolates, however much the "
+        f"members agree; train on episodes that {reach}",
         UserWarning,
         stacklevel=3,
     )

@@ -214,6 +214,22 @@ def test_a_success_region_no_training_state_lies_in_is_named():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         make_assessor(make_env(model), boundary=near)  # some training states lie there
-        make_assessor(make_env(model), boundary=stay)  # survival: no success region
+        make_assessor(make_env(model), boundary=stay)  # survival: states outside failure
         model.novelty = None
         make_assessor(make_env(model), boundary=far)  # no states kept: nothing to tell
+
+
+def test_a_survival_whose_failure_region_holds_every_training_state_is_named():
+    """A pendulum trial: a model of episodes that never stood up, on a task of balancing it
+    upright; every training state lies in the failure region, and nothing said so."""
+    model = make_ensemble()
+    model.novelty = _novelty()  # training states around 0, spread 0.1
+    fallen = SuccessBoundary.survival(lambda o: o[..., 0] < 5.0, time_limit=T)
+    with pytest.warns(
+        UserWarning,
+        match=r"^boundary: none of the 3,000 training states the world model keeps "
+        r"\(ensemble.novelty.states, drawn from its training episodes\) lies outside the "
+        r"failure region: the model never saw a state it survives in, and every forecast of one "
+        r"extrapolates, however much the members agree; train on episodes that stay out of it$",
+    ):
+        make_assessor(make_env(model), boundary=fallen)
