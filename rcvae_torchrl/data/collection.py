@@ -252,8 +252,9 @@ def _whole_episodes(data: TensorDict, num_episodes: int, first_id: int) -> Tenso
     if finished.numel() < num_episodes:
         raise ValueError(
             f"max_frames: {data.numel()} frames were collected and only {finished.numel()} of "
-            f"the {num_episodes} episodes asked for ended; raise max_frames (or check that the "
-            "env's episodes end)"
+            f"the {num_episodes} episodes asked for ended; raise max_frames, or, where the env's "
+            "episodes never end by themselves (TorchRL's PendulumEnv), cut them with a time "
+            "limit: env.append_transform(torchrl.envs.StepCounter(max_steps))"
         )
     data = data[torch.isin(ids, finished)]
     order = torch.sort(data[TRAJ_KEY], stable=True).indices
