@@ -28,7 +28,13 @@ def test_micro_run_writes_every_row(tmp_path, monkeypatch):
     for row in rows:
         assert 0.0 <= row["forecast"] <= 1.0 and 0.0 <= row["real"] <= 1.0
         # micro budgets: few starts, some of them settled; any of the check's verdicts
-        verdicts = ("passed", "too optimistic", "too pessimistic", "too imprecise")
+        verdicts = (
+            "passed",
+            "too optimistic",
+            "too pessimistic",
+            "too imprecise",
+            "no better than a constant",
+        )
         assert row["held_out_check"] in (*verdicts, "not measured")
         assert row["ood_cause"] in (None, "aleatoric", "epistemic")
     # the real episodes do not depend on the model: the same rate for both budgets

@@ -700,6 +700,29 @@ class OutcomeCheck:
         return self.per_start_measured and self.per_start_p_value < self.alpha
 
     @property
+    def brier_skill(self) -> float:
+        """The forecasts' Brier skill over every real episode against one forecast for all
+        starts, the check's own success rate: ``1 - B / B_0``, each start's R runs scored at
+        its forecast (B) and at the mean real rate (B_0). Above 0 where the forecasts tell
+        the starts apart better than one number does; NaN where the real rates leave nothing
+        to tell (every run of every start alike)."""
+        f, r = self.forecast, self.real
+        noise = r * (1 - r)  # each start's runs about their own rate, the same for both
+        constant = float(((r.mean() - r).square() + noise).mean())
+        if constant <= _NO_SPREAD:
+            return float("nan")
+        return 1.0 - float(((f - r).square() + noise).mean()) / constant
+
+    @property
+    def no_better_than_constant(self) -> bool:
+        """The forecasts miss their starts' real rates by more than R episodes' chance allows
+        (:attr:`scattered`) and score no better than one forecast for every start
+        (:attr:`brier_skill` <= 0): right on average perhaps, but they do not tell one task
+        from another (a cart-pole model after 150 training steps forecast 0.04-0.16 for
+        starts whose real rates ran from 0 to 0.88)."""
+        return self.scattered and not self.brier_skill > 0
+
+    @property
     def biased(self) -> bool:
         """The forecasts differ from the real rates by more than chance allows (level
         ``alpha``): by the t-test over the starts (:attr:`p_value`: a bias that the forecasts
@@ -721,18 +744,22 @@ class OutcomeCheck:
 
     @property
     def passed(self) -> bool:
-        """Measured and precise, and no bias found."""
-        return self.precise and not self.biased
+        """Measured and precise, no bias found, and, where R runs per start tell each start's
+        rate, forecasts that tell the starts apart (not :attr:`no_better_than_constant`)."""
+        return self.precise and not self.biased and not self.no_better_than_constant
 
     @property
     def verdict(self) -> str:
         """``"passed"``, ``"too optimistic"``, ``"too pessimistic"``, ``"too imprecise"`` (no
-        bias found, with an interval wider than ``± tolerance``) or ``"not measured"``."""
+        bias found, with an interval wider than ``± tolerance``), ``"no better than a
+        constant"`` (:attr:`no_better_than_constant`) or ``"not measured"``."""
         if self.biased:
             return "too optimistic" if self.gap > 0 else "too pessimistic"
         if not self.measured:
             return "not measured"
-        return "passed" if self.precise else "too imprecise"
+        if not self.precise:
+            return "too imprecise"
+        return "no better than a constant" if self.no_better_than_constant else "passed"
 
     def message(self) -> str:
         """One sentence when the check did not pass ('' when it did; :meth:`describe` says
@@ -814,6 +841,15 @@ class OutcomeCheck:
         if not self.per_start_measured:
             return ""
         shift = " beyond the shift they share" if self.biased else ""
+        if self.no_better_than_constant:
+            return (
+                f"; per start they miss their start's real rate{shift} by more than the chance "
+                f"of {self.runs} episodes allows, by about {self.excess_error:.2f} (root mean "
+                f"square; p = {self.per_start_p_value:.2g}), and score no better than one "
+                f"forecast of {float(self.real.mean()):.2f} for every start (Brier skill "
+                f"{self.brier_skill:+.3f} over the real episodes): they do not tell one start "
+                "state's task from another, so the check has not passed"
+            )
         if self.scattered:
             return (
                 f"; per start they miss their start's real rate{shift} by more than the chance "
@@ -846,6 +882,8 @@ class OutcomeCheck:
             "per_start_p_value": self.per_start_p_value,
             "excess_error": self.excess_error,
             "scattered": self.scattered,
+            "brier_skill": self.brier_skill,
+            "no_better_than_constant": self.no_better_than_constant,
         }
 
     @classmethod

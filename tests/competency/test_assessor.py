@@ -368,13 +368,15 @@ def test_a_passed_check_whose_forecasts_miss_per_start_cautions_each_start():
     g = torch.Generator().manual_seed(1)
     chance = torch.rand(80, generator=g, dtype=torch.float64)
     real = torch.rand(80, 20, generator=g, dtype=torch.float64) < chance[:, None]
-    mirrored = OutcomeCheck.from_outcomes(1 - chance, real)  # mean right, each start wrong
-    assert mirrored.passed and mirrored.scattered
-    report = _starts_report([0.3, 0.2]).with_forecast_check(mirrored)
+    # each start off by 0.2 or so, the ranking kept: better than one number for all
+    noisy = (chance + 0.2 * torch.randn(80, generator=g, dtype=torch.float64)).clamp(0.02, 0.98)
+    scattered = OutcomeCheck.from_outcomes(noisy, real)
+    assert scattered.passed and scattered.scattered and scattered.brier_skill > 0.1
+    report = _starts_report([0.3, 0.2]).with_forecast_check(scattered)
     assert report.trustworthy
     caution = (
         "Caution: on other start states the forecasts, right on average, missed their own "
-        f"start's real rate by about {mirrored.excess_error:.2f} beyond chance; the interval "
+        f"start's real rate by about {scattered.excess_error:.2f} beyond chance; the interval "
         "above covers only the imagined samples' chance."
     )
     assert report.summary(index=1).startswith(
@@ -383,6 +385,18 @@ def test_a_passed_check_whose_forecasts_miss_per_start_cautions_each_start():
     fair = OutcomeCheck.from_outcomes(chance.clamp(0.02, 0.98), real)
     assert fair.passed and not fair.scattered
     assert "Caution" not in _starts_report([0.3]).with_forecast_check(fair).summary(index=0)
+    # mean right, each start wrong the other way: worse than one number for all, no pass
+    mirrored = OutcomeCheck.from_outcomes(1 - chance, real)
+    assert mirrored.precise and not mirrored.biased and mirrored.scattered
+    assert mirrored.brier_skill < 0 and mirrored.no_better_than_constant
+    assert not mirrored.passed and mirrored.verdict == "no better than a constant"
+    mirrored_report = _starts_report([0.3]).with_forecast_check(mirrored)
+    assert not mirrored_report.trustworthy
+    assert mirrored_report.warning.endswith(
+        "for every start (Brier skill "
+        f"{mirrored.brier_skill:+.3f} over the real episodes): they do not tell one start "
+        "state's task from another, so the check has not passed"
+    )
 
 
 def _starts_report(epistemic: list[float], aleatoric: float = 0.4) -> CompetencyReport:

@@ -384,3 +384,38 @@ def test_a_check_too_small_to_measure_says_where_its_starts_in_doubt_lean():
         "they forecast 0.98 on average where their real episodes succeeded 0.00 (< 0.0005 by "
         "the outcomes' exact chance; the t-test over all 20 starts, p = 0.0102, does not name it)"
     )
+
+
+def test_brier_skill_against_one_forecast_for_every_start_on_known_numbers():
+    both = torch.tensor([[False] * 4, [True] * 4])
+    sharp = OutcomeCheck.from_outcomes(torch.tensor([0.2, 0.8], dtype=torch.float64), both)
+    assert sharp.brier_skill == pytest.approx(1 - 0.04 / 0.25)  # B = 0.04, B_0 = 0.25
+    flat = OutcomeCheck.from_outcomes(torch.tensor([0.5, 0.5], dtype=torch.float64), both)
+    assert flat.brier_skill == pytest.approx(0.0)
+    # runs that vary within a start: each run scored, their own spread in both
+    half = torch.tensor([[True, False, True, False], [True] * 4])
+    rates = OutcomeCheck.from_outcomes(torch.tensor([0.5, 1.0], dtype=torch.float64), half)
+    noise = (0.5 * 0.5 + 0.0) / 2
+    assert rates.brier_skill == pytest.approx(1 - noise / ((0.25**2 * 2) / 2 + noise))
+    alike = OutcomeCheck.from_outcomes(torch.tensor([0.3, 0.6]), torch.ones(2, 4, dtype=torch.bool))
+    assert math.isnan(alike.brier_skill)  # every run alike: nothing to tell apart
+
+
+def test_forecasts_that_do_not_tell_the_starts_apart_do_not_pass():
+    """A cart-pole trial: a model after 150 training steps forecast 0.04-0.16 for starts whose
+    real rates ran from 0 to 0.88; right on average, the check passed and the report read
+    trustworthy. Per start it missed by 0.33 beyond chance, and one number would have done
+    better."""
+    g = torch.Generator().manual_seed(0)
+    chance = torch.cat([torch.zeros(30), torch.full((10,), 0.85)]).double()
+    real = torch.rand(40, 8, generator=g, dtype=torch.float64) < chance[:, None]
+    flat = (0.21 + 0.04 * torch.randn(40, generator=g, dtype=torch.float64)).clamp(0.02, 0.98)
+    check = OutcomeCheck.from_outcomes(flat, real)
+    assert check.precise and not check.biased and check.scattered
+    assert check.brier_skill <= 0 and check.no_better_than_constant
+    assert check.verdict == "no better than a constant" and not check.passed
+    assert "they do not tell one start state's task from another" in check.describe()
+    assert check.as_dict()["no_better_than_constant"] is True
+    # the same starts forecast at their chances pass
+    right = OutcomeCheck.from_outcomes(chance.clamp(0.02, 0.98), real)
+    assert right.passed and right.brier_skill > 0.5 and not right.no_better_than_constant
