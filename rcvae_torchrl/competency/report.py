@@ -798,7 +798,7 @@ def _dims_sentence(
             else ""
         )
         parts.append(
-            f"{names[d]} (mean {bits:.2f} bits, peak at {_when(int(peak_step[d]), dt)}{at})"
+            f"{names[d]} (time mean {bits:.2f} bits, peak at {_when(int(peak_step[d]), dt)}{at})"
         )
     return f"Most uncertain: {', '.join(parts)}." if parts else ""
 

@@ -527,7 +527,13 @@ class StateNovelty:
             for d in order[:top]
         ]
         more = len(order) - top
-        text += ": " + ", ".join(parts) + (f" and {more} more" if more > 0 else "")
+        listed = ", ".join(parts) + (f" and {more} more" if more > 0 else "")
+        if ratio <= 1:  # not called unlike: say so before the dimensions past the 99 %
+            return text + (
+                " (within the level: like the training states as a whole, though past the "
+                f"central 99 % of their values in {listed})"
+            )
+        text += ": " + listed
         if group is not None and not bool(outside[list(group)].all()):
             # farthest in a group whose values are not all outside their ranges
             text += f"; the combination of {', '.join(names[d] for d in group)} is new"

@@ -276,13 +276,13 @@ def test_summary_text_rules_on_known_numbers():
     assert hand_report().summary() == (
         "P(success within 30 s) = 0.84 (95% interval 0.78–0.89). "
         "Most of the doubt is epistemic (0.70 of 1.10 bits): the model has not seen states "
-        "like this. Most uncertain: b (mean 0.90 bits, peak at t = 4.5 s), "
-        "d (mean 0.50 bits, peak at t = 1 s)."
+        "like this. Most uncertain: b (time mean 0.90 bits, peak at t = 4.5 s), "
+        "d (time mean 0.50 bits, peak at t = 1 s)."
     )
     steps = str(replace_top_k(hand_report(dt=None, aleatoric=0.7, epistemic=0.4), 5))
     assert steps.startswith("P(success within 600 steps)")
     assert "Most of the doubt is aleatoric (0.70 of 1.10 bits)" in steps
-    assert "b (mean 0.90 bits, peak at step 90)" in steps
+    assert "b (time mean 0.90 bits, peak at step 90)" in steps
     assert "c (mean" not in steps  # zero bits: never named
     tie = hand_report(aleatoric=0.5, epistemic=0.5, total=1.0).summary()
     assert "Most of the doubt is aleatoric (0.50 of 1.00 bits)" in tie
@@ -663,7 +663,7 @@ def check_summary_numbers(report: CompetencyReport, index: int) -> str:
     assert f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits)" in text
     top = torch.argsort(u["time_mean", "total"], descending=True, stable=True)[:2].tolist()
     named = ", ".join(
-        f"{OBSERVATION_NAMES[d]} (mean {float(u['time_mean', 'total'][d]):.2f} bits, peak at "
+        f"{OBSERVATION_NAMES[d]} (time mean {float(u['time_mean', 'total'][d]):.2f} bits, peak at "
         f"t = {round((int(u['peak_step'][d]) + 1) * DT, 6):g} s)"
         for d in top
     )

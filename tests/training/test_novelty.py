@@ -181,6 +181,15 @@ def test_describe_names_the_dimensions_outside_the_training_range():
         torch.tensor([[0.0, 0.0], [1.0, 1.0]]).repeat(10, 1) + 0.01 * _gaussian(20, 4, 2),
     )
     assert "the combination is new" in corner.describe(torch.tensor([0.0, 1.0]))
+    # past one dimension's central 99 %, within the level: a cart-pole trial read "0.9x as
+    # far from the training states as 99% of held-out states are: x = 3 (training ...)"
+    past = torch.tensor([2.9, 0.0, 0.0])
+    assert bool(novelty.outside(past)[0]) and float(novelty.ratio(past)) <= 1
+    assert novelty.describe(past, ["x", "speed", "z"]).endswith(
+        "are (within the level: like the training states as a whole, though past the central "
+        f"99 % of their values in x = 2.9 (training {float(novelty.low[0]):.3g} to "
+        f"{float(novelty.high[0]):.3g}))"
+    )
 
 
 def test_a_hair_past_a_range_is_not_named_and_a_new_combination_names_its_farthest_dimensions():
