@@ -224,14 +224,46 @@ class CompetencyReport:
         return start | imagined
 
     @property
+    def uncovered(self) -> Tensor | None:
+        """``[*B]`` bool: start states unlike those the forecast check was made on
+        (:meth:`~rcvae_torchrl.training.OutcomeCheck.covers`), for whose forecasts the check
+        does not vouch; ``None`` without a check, or with one that keeps no start states."""
+        check = self.forecast_check
+        covers = getattr(check, "covers", None)
+        if covers is None or getattr(check, "start_states", None) is None:
+            return None
+        starts = self.data.get(self.observation_key)
+        covered = covers(starts.reshape(-1, starts.shape[-1]))
+        return None if covered is None else ~covered.reshape(self.batch_size)
+
+    def _uncovered_sentence(self) -> str:
+        """Where more of these start states lie outside the check's own than chance allows
+        (at the check's level), why the check does not vouch for them ('' otherwise)."""
+        uncovered, check = self.uncovered, self.forecast_check
+        if uncovered is None or not bool(uncovered.any()):
+            return ""
+        starts = self.data.get(self.observation_key)
+        p_value = check.coverage_p_value(starts.reshape(-1, starts.shape[-1]))
+        if not p_value < check.alpha:
+            return ""
+        return (
+            f"the forecast check vouches for start states like its own, and {int(uncovered.sum())} "
+            f"of these {uncovered.numel()} lie farther from all of them than its own lie from "
+            f"one another, more than chance allows (p = {p_value:.2g}): it does not vouch for "
+            "these forecasts; check them on start states like these"
+        )
+
+    @property
     def trustworthy(self) -> bool:
         """True only when the world model passed its self-checks and the forecast passed a
         check against real episodes from other start states (:meth:`with_forecast_check`).
         Without such a check nothing has shown the forecasts right: the self-checks look a few
         steps ahead, and models that passed them have forecast far from reality (a walker's
         survival 0.18-0.35 too low). The check must be of this report's task (a check built
-        from bare forecasts ties to none; see :meth:`with_forecast_check`). Start by start, see
-        :attr:`novel` too."""
+        from bare forecasts ties to none; see :meth:`with_forecast_check`), and made on start
+        states like these (more of them outside the check's own than chance allows, see
+        :attr:`uncovered`, and it does not vouch for them). Start by start, see :attr:`novel`
+        too."""
         checked = self.forecast_check is not None and self.forecast_check.passed
         return checked and not self.warning
 
@@ -243,6 +275,8 @@ class CompetencyReport:
         check = self.forecast_check
         if check is not None and not check.passed:
             parts.append(f"forecast check on other start states: {check.describe()}")
+        elif check is not None and (uncovered := self._uncovered_sentence()):
+            parts.append(uncovered)
         elif check is not None and self.task and not getattr(check, "task", None):
             parts.append(
                 "the forecast check attached was built from bare forecasts, which ties it to no "
@@ -399,6 +433,12 @@ class CompetencyReport:
             text += _change_sentence(aleatoric, epistemic, self.reference, novel=clause)
             text += self._one_by_one_sentence()
         text += self._novel_count_sentence()
+        uncovered = self.uncovered
+        if uncovered is not None and bool(uncovered.any()) and self.forecast_check.passed:
+            text += (
+                f" {int(uncovered.sum())} of the {n} start states are unlike those the forecast "
+                "check was made on, which does not vouch for their forecasts."
+            )
         if self.forecast_check is not None and self.forecast_check.passed:
             text += f" Forecast check on other start states: {self.forecast_check.describe()}."
         elif self.forecast_check is None:
@@ -506,6 +546,7 @@ class CompetencyReport:
                 self._outcome(),
             ),
             self._per_start_caution(),
+            self._uncovered_caution(one),
             self._novelty_sentence(one, flags),
             self._uncertainty_sentence(uncertainty, bool(warning), flags),
         ]
@@ -535,6 +576,19 @@ class CompetencyReport:
             f"Caution: on other start states the forecasts, right on average, missed their own "
             f"start's real rate by about {check.excess_error:.2f} beyond chance; the interval "
             "above covers only the imagined samples' chance."
+        )
+
+    def _uncovered_caution(self, one: TensorDictBase) -> str:
+        """One start state outside the start states a passed forecast check was made on."""
+        check = self.forecast_check
+        if check is None or not check.passed or getattr(check, "start_states", None) is None:
+            return ""
+        covered = check.covers(one.get(self.observation_key).reshape(1, -1))
+        if covered is None or bool(covered.all()):
+            return ""
+        return (
+            "Caution: this start state is unlike those the forecast check was made on, which "
+            "does not vouch for its forecast."
         )
 
     def _novel_flags(self, one: TensorDictBase) -> tuple[bool, bool]:

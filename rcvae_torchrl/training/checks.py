@@ -230,6 +230,8 @@ def _longest_episode(data: TensorDictBase) -> int:
 
 #: draws of the real outcomes from the forecasts, for the outcome check's exact p-values
 _DRAWS = 4000
+#: the share of a new start drawn like a forecast check's own that its cover keeps
+_COVER_QUANTILE = 0.99
 #: the relative difference below which a real state counts as on its imagined interval's edge
 _ROUNDING = 1e-5
 
@@ -448,6 +450,9 @@ class OutcomeCheck:
     #: .task`: its boundary, deadline and world model); ``None`` where not known (bare
     #: forecasts), and then the check vouches for no report
     task: str | None = None
+    #: the start states the forecasts were made from, ``[n, D]`` (a report's observations);
+    #: ``None`` where not known, and then the check cannot tell which starts it vouches for
+    start_states: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         for name in ("forecast", "real"):
@@ -460,6 +465,14 @@ class OutcomeCheck:
             )
         check_positive_int("runs", self.runs)
         check_unit_interval("tolerance", self.tolerance, include_zero=False)
+        if self.start_states is not None:
+            _checks.check_tensor("start_states", self.start_states)
+            _checks.check_rank("start_states", self.start_states, 2, "[n, D]")
+            if self.start_states.shape[0] != self.forecast.shape[0]:
+                raise ValueError(
+                    "start_states: expected one start state per forecast "
+                    f"({self.forecast.shape[0]}), got {self.start_states.shape[0]}"
+                )
 
     @classmethod
     def from_outcomes(
@@ -472,6 +485,7 @@ class OutcomeCheck:
         what: str = "the forecasts",
         tolerance: float = 0.2,
         task: str | None = None,
+        start_states: torch.Tensor | None = None,
     ) -> OutcomeCheck:
         """From forecasts ``[n]`` (probabilities) and real outcomes, bool ``[n, R]``.
 
@@ -483,7 +497,9 @@ class OutcomeCheck:
         forecast looked ahead would otherwise judge another task. The check then keeps the
         report's ``task`` and vouches only for reports of the same task
         (:meth:`~rcvae_torchrl.competency.CompetencyReport.with_forecast_check`); from bare
-        forecasts, pass ``task=report.task`` of the report they come from."""
+        forecasts, pass ``task=report.task`` of the report they come from. It keeps the
+        report's start states too (or ``start_states`` ``[n, D]`` given with bare forecasts), and
+        vouches for forecasts of start states like them alone (:meth:`covers`)."""
         deadline = getattr(forecast, "time_limit", None)
         if hasattr(forecast, "competency") and deadline is not None:  # a CompetencyReport
             known = getattr(forecast, "task", "") or None
@@ -493,6 +509,10 @@ class OutcomeCheck:
                     "leave task out with a report (it is the report's)"
                 )
             task = known if task is None else task
+            data, key = getattr(forecast, "data", None), getattr(forecast, "observation_key", None)
+            if start_states is None and data is not None and key in data.keys(True):
+                observed = data.get(key)
+                start_states = observed.reshape(-1, observed.shape[-1])
             forecast = forecast.competency["p_success"]
         if task is not None and not isinstance(task, str):
             raise TypeError(f"task: expected a report's task (a str), got {type(task).__name__}")
@@ -524,6 +544,9 @@ class OutcomeCheck:
             what=str(what),
             tolerance=float(tolerance),
             task=task,
+            start_states=None
+            if start_states is None
+            else torch.as_tensor(start_states).detach().cpu().double(),
         )
 
     @property
@@ -698,6 +721,61 @@ class OutcomeCheck:
         the chance of R episodes allows (level ``alpha``), whether or not they are biased on
         average."""
         return self.per_start_measured and self.per_start_p_value < self.alpha
+
+    @cached_property
+    def _cover(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, float] | None:
+        """The check's start states scaled (each dimension by its spread among them, one
+        that does not vary by a millionth of its size), their centre and scale, the level of
+        :meth:`covers` and the share of new starts like them it keeps; ``None`` without
+        start states, or with fewer than 2."""
+        if self.start_states is None or self.start_states.shape[0] < 2:
+            return None
+        from rcvae_torchrl._conformal import conformal_level
+
+        states = self.start_states
+        center = states.mean(0)
+        spread = states.std(0, correction=0)
+        scale = torch.where(spread > 0, spread, 1e-6 * center.abs().clamp_min(1.0))
+        scaled = (states - center) / scale
+        apart = torch.cdist(scaled, scaled).fill_diagonal_(torch.inf).amin(1)
+        level, kept = conformal_level(apart, _COVER_QUANTILE)
+        return scaled, center, scale, level, kept
+
+    def covers(self, states: torch.Tensor) -> torch.Tensor | None:
+        """``[m]`` bool: whether each of ``states`` ``[m, D]`` lies among the check's own
+        start states: no farther from the nearest of them (each dimension in units of their
+        spread) than 99 % of them lie from their own nearest other (a conformal level: a new
+        start drawn like them stays within it with probability 0.99, or n / (n + 1) with
+        fewer than 99 of them). A check vouches for forecasts of start states like its own:
+        one made on a cart-pole's hanging starts said nothing of starts with the cart moving
+        4 m/s, where the forecasts were 0.3 off. ``None`` where the check keeps fewer than 2
+        start states."""
+        cover = self._cover
+        if cover is None:
+            return None
+        scaled, center, scale, level, _ = cover
+        states = torch.as_tensor(states)
+        _checks.check_tensor("states", states)
+        if states.dim() != 2 or states.shape[-1] != scaled.shape[-1]:
+            raise ValueError(
+                f"states: expected start states [m, D={scaled.shape[-1]}] like the check's, "
+                f"got shape {tuple(states.shape)}"
+            )
+        query = (states.detach().cpu().double() - center) / scale
+        return torch.cdist(query, scaled).amin(1) <= level * (1 + 1e-9)
+
+    def coverage_p_value(self, states: torch.Tensor) -> float:
+        """p-value of "``states`` ``[m, D]`` are drawn like the check's start states": the
+        chance of at least as many of them outside :meth:`covers`' level, each outside with
+        probability at most one minus the share it keeps (binomial; conservative). NaN where
+        the check keeps no start states."""
+        covered = self.covers(states)
+        if covered is None:
+            return float("nan")
+        from scipy.stats import binom
+
+        outside, keep = int((~covered).sum()), self._cover[-1]
+        return float(binom.sf(outside - 1, covered.numel(), 1.0 - keep)) if outside else 1.0
 
     @property
     def brier_skill(self) -> float:
@@ -874,6 +952,7 @@ class OutcomeCheck:
             "what": self.what,
             "tolerance": self.tolerance,
             "task": self.task,
+            "start_states": None if self.start_states is None else self.start_states.tolist(),
             "starts": self.starts,
             "gap": self.gap,
             "p_value": self.p_value,
@@ -897,6 +976,9 @@ class OutcomeCheck:
             what=str(values.get("what", "the forecasts")),
             tolerance=float(values.get("tolerance", 0.2)),
             task=values.get("task"),
+            start_states=None
+            if values.get("start_states") is None
+            else torch.tensor(values["start_states"], dtype=torch.float64),
         )
 
 

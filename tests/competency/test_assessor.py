@@ -983,3 +983,46 @@ def test_a_reference_measured_otherwise_is_refused(env, starts, plan):
     longer = make_assessor(env, horizon=T + 2, boundary=boundary(time_limit=T + 2))
     with pytest.raises(ValueError, match=rf"imagined steps: the reference's {T + 2}, this"):
         report.with_reference(longer.assess(starts, actions=torch.zeros(T + 2, A), seed=0))
+
+
+def test_a_forecast_check_does_not_vouch_for_start_states_unlike_its_own(env, plan):
+    """A cart-pole trial: a check that passed on hanging starts made a report of starts with
+    the cart moving fast 'trustworthy' (0.14 forecast against 0.44 real). The check keeps its
+    start states; a report whose starts lie outside them, more than chance allows, is not
+    trustworthy, and each such start is cautioned."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    g = seeded(11)
+    own = torch.randn(60, S, generator=g) * 0.1  # the check's starts
+    alike = torch.randn(3, S, generator=g) * 0.1
+    report = make_assessor(env).assess(alike, actions=plan, generator=seeded())
+    real = torch.rand(60, 40, generator=seeded(3)) < 0.5
+    forecast = torch.full((60,), 0.5, dtype=torch.float64)
+    check = OutcomeCheck.from_outcomes(forecast, real, task=report.task, start_states=own)
+    checked = report.with_forecast_check(check)
+    assert checked.trustworthy and not bool(checked.uncovered.any())
+    assert "unlike those the forecast check" not in checked.summary()
+    far = make_assessor(env).assess(alike + 1.0, actions=plan, generator=seeded())
+    moved = far.with_forecast_check(check)
+    assert bool(moved.uncovered.all()) and not moved.trustworthy
+    assert moved.warning.startswith(
+        "the forecast check vouches for start states like its own, and 3 of these 3 lie "
+        "farther from all of them than its own lie from one another, more than chance allows"
+    )
+    assert (
+        "Caution: this start state is unlike those the forecast check was made on, which does "
+        "not vouch for its forecast."
+    ) in moved.summary(index=0)
+    assert " 3 of the 3 start states are unlike those the forecast check was made on" in (
+        moved.overall()
+    )
+    # one start outside of three is within chance: cautioned, still trustworthy
+    one_off = torch.cat([alike[:2], alike[2:] + 1.0])
+    mixed = make_assessor(env).assess(one_off, actions=plan, generator=seeded())
+    mixed = mixed.with_forecast_check(check)
+    assert mixed.uncovered.tolist() == [False, False, True] and mixed.trustworthy
+    assert "Caution: this start state is unlike" in mixed.summary(index=2)
+    assert "Caution: this start state is unlike" not in mixed.summary(index=0)
+    # a check made from a report keeps that report's start states
+    from_report = OutcomeCheck.from_outcomes(report, torch.ones(3, 2, dtype=torch.bool))
+    assert torch.equal(from_report.start_states, alike.double())

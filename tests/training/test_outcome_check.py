@@ -419,3 +419,37 @@ def test_forecasts_that_do_not_tell_the_starts_apart_do_not_pass():
     # the same starts forecast at their chances pass
     right = OutcomeCheck.from_outcomes(chance.clamp(0.02, 0.98), real)
     assert right.passed and right.brier_skill > 0.5 and not right.no_better_than_constant
+
+
+def test_a_check_covers_start_states_drawn_like_its_own_and_not_others():
+    """A cart-pole trial: a check made on hanging starts made the report of starts with the
+    cart moving 4 m/s 'trustworthy', forecasts 0.3 off. A check vouches for starts like its
+    own: within the distance 99 % of its starts keep to their nearest other (each dimension in
+    their spread), which a start drawn like them exceeds with chance 1 / (n + 1) here."""
+    g = torch.Generator().manual_seed(0)
+    own = torch.randn(60, 3, generator=g, dtype=torch.float64)
+    forecast = torch.full((60,), 0.5, dtype=torch.float64)
+    real = torch.rand(60, 10, generator=g) < 0.5
+    check = OutcomeCheck.from_outcomes(forecast, real, start_states=own)
+    alike = torch.randn(2000, 3, generator=g, dtype=torch.float64)
+    share = 1 - float(check.covers(alike).double().mean())
+    assert 0.0 < share < 0.05  # at most 1 / 61 in expectation over the check's draws
+    assert bool(check.covers(own).all())  # its own starts lie within
+    assert check.coverage_p_value(alike[:100]) > 0.01
+    moved = alike[:100] + torch.tensor([0.0, 0.0, 4.0], dtype=torch.float64)  # 4 spreads off
+    assert float(check.covers(moved).double().mean()) < 0.5  # the largest distance: loose
+    assert check.coverage_p_value(moved) < 1e-6
+    # a dimension the check's starts never varied: any other value lies outside
+    fixed = own.clone()
+    fixed[:, 2] = 1.0
+    flat = OutcomeCheck.from_outcomes(forecast, real, start_states=fixed)
+    assert bool(flat.covers(fixed[:5]).all()) and not bool(flat.covers(fixed[:1] + 0.01).any())
+    # kept through as_dict / from_dict; none without start states, or with one
+    again = OutcomeCheck.from_dict(check.as_dict())
+    assert torch.equal(again.covers(moved), check.covers(moved))
+    assert OutcomeCheck.from_outcomes(forecast, real).covers(own) is None
+    assert math.isnan(OutcomeCheck.from_outcomes(forecast, real).coverage_p_value(own))
+    with pytest.raises(ValueError, match=r"states: expected start states \[m, D=3\] like the"):
+        check.covers(own[:, :2])
+    with pytest.raises(ValueError, match=r"start_states: expected one start state per forecast"):
+        OutcomeCheck.from_outcomes(forecast, real, start_states=own[:5])
