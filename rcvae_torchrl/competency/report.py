@@ -208,7 +208,7 @@ class CompetencyReport:
     measure: Mapping[str, Any] | None = None
     #: what the forecasts answer, as a digest of the boundary (its predicates' code and values,
     #: the deadline the report judges, dt) and the world model's weights
-    #: (:attr:`CompetencyAssessor.task`); '' where not known (a report built by hand). A
+    #: (:meth:`CompetencyAssessor.task`); '' where not known (a report built by hand). A
     #: forecast check must be of the same task (:meth:`with_forecast_check`)
     task: str = ""
 
@@ -270,7 +270,8 @@ class CompetencyReport:
     @property
     def warning(self) -> str:
         """Why this forecast is not trustworthy ('' when nothing says so): ``model_warning``,
-        and the sentence of a forecast check that did not pass."""
+        and the sentence of a forecast check that did not pass, of one that passed on start
+        states these lie outside (:attr:`uncovered`), or of one tied to no task."""
         parts = [self.model_warning] if self.model_warning else []
         check = self.forecast_check
         if check is not None and not check.passed:
