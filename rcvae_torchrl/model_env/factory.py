@@ -60,7 +60,8 @@ def make_rcvae_env(
     compose = transforms if isinstance(transforms, Compose) else None
     if compose is None:
         compose = Compose(*([transforms] if isinstance(transforms, Transform) else transforms))
-    for transform in compose:
+    transformed = TransformedEnv(env, compose)
+    for transform in transformed.transform:  # with their parent: some (InitTracker) need one
         if OBSERVATION_KEY in map(unravel_key, getattr(transform, "out_keys", None) or []):
             raise ValueError(
                 f"transforms: {type(transform).__name__} writes {OBSERVATION_KEY!r}, the model's "
@@ -68,4 +69,4 @@ def make_rcvae_env(
                 "would be fed back into the model (a normalised state taken for a raw one); "
                 f"write to another key (out_keys=[...]), leaving {OBSERVATION_KEY!r} as it is"
             )
-    return TransformedEnv(env, compose)
+    return transformed

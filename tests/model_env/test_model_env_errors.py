@@ -203,3 +203,9 @@ def test_a_transform_that_writes_the_observation_is_refused(ensemble, real_env, 
     td = env.reset(TensorDict({"observation": starts[:2]}, batch_size=[2]))
     assert torch.equal(td["observation"], starts[:2])
     assert torch.allclose(td["observation_norm"], starts[:2] * 10)
+    # a transform that knows its keys only from its parent env (an acrobot trial's
+    # InitTracker, which a planner's warm start reads): built there, then checked
+    from torchrl.envs import InitTracker
+
+    tracked = make_rcvae_env(*args, start_states=starts, seed=0, transforms=[InitTracker()])
+    assert bool(tracked.reset()["is_init"].all())
