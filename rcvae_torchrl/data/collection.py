@@ -309,7 +309,11 @@ def merge_episodes(*datasets: TensorDictBase) -> TensorDict:
             what = " and ".join(
                 [f"lacks {missing}"] * bool(missing) + [f"has {extra} besides"] * bool(extra)
             )
-            raise ValueError(f"datasets[{i}]: expected the entries of datasets[0], but it {what}")
+            raise ValueError(
+                f"datasets[{i}]: expected the entries of datasets[0], but it {what}; keep the "
+                "entries all share with data.select(*keys) (a transform of one collection's env, "
+                "an InitTracker's 'is_init', adds its own)"
+            )
         ids = data.get(TRAJ_KEY)
         runs = torch.unique_consecutive(ids, return_inverse=True)[1]
         renumbered = data.clone()

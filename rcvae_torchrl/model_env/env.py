@@ -383,7 +383,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             "transform, which passes only '_reset', not their last observations) resets real_env "
             "to draw new start states; if an agent acts in that env instance, its episode was "
             "just reset. Give the model env start_states=..., act in another instance of the "
-            "real env, or leave terminate_on_success off",
+            "real env, or keep imagined episodes from ending within a rollout "
+            "(terminate_on_success off, no time limit such as a StepCounter's shorter than it)",
             UserWarning,
             stacklevel=2,
         )

@@ -57,7 +57,8 @@ class CEMPlanner(MPCPlannerBase):
     and starts the next call from it. The kept plan is dropped, per batch element, where the
     input's ``init_key`` entry (``"is_init"``, written by TorchRL's ``InitTracker`` transform) is
     True; wholly when the batch shape changes, or when :meth:`reset` is called. Without an
-    ``InitTracker`` on the acting env, call :meth:`reset` between episodes.
+    ``InitTracker`` on the acting env, call :meth:`reset` between episodes (inside a TorchRL
+    collector, which resets the env by itself, append an ``InitTracker`` to the env it steps).
 
     **Devices.** Planning runs on ``env``'s device. An input on another device (a CPU simulator
     acting with a world model on a GPU) is copied there for the plan, and the action is written

@@ -205,7 +205,7 @@ def test_collections_get_unique_ids_and_duplicates_are_refused(episodes):
     with pytest.raises(
         ValueError,
         match=r"datasets\[1\]: expected the entries of datasets\[0\], but it lacks "
-        r"\['action'\]$",
+        r"\['action'\]; keep the entries all share with data.select\(\*keys\)",
     ):
         merge_episodes(episodes, fewer)
     with pytest.raises(TypeError, match=r"datasets\[1\]: expected a TensorDict of episodes"):
