@@ -76,7 +76,9 @@ def bin_ids(samples: Tensor, width: Tensor) -> Tensor:
                 f"bin_width: expected samples within 2**61 bin widths of 0 to be binned, got "
                 f"|sample / bin_width| up to {largest.item():.3g} (samples up to "
                 f"{samples.abs().amax().item():.3g}, bin width down to "
-                f"{width.amin().item():.3g}); use a wider bin_width or check the samples"
+                f"{width.amin().item():.3g}): samples this far out usually mean the imagined "
+                "states diverged (a horizon far beyond the training episodes' length, a model "
+                "unstable there); check the samples, or use a wider bin_width"
             )
     return torch.floor(scaled).to(torch.int64)
 

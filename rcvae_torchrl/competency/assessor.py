@@ -31,7 +31,7 @@ from rcvae_torchrl import distributed, fingerprint
 from rcvae_torchrl.competency import _checks
 from rcvae_torchrl.competency._keys import KeyedModule
 from rcvae_torchrl.competency.boundary import SuccessBoundary
-from rcvae_torchrl.competency.decomposition import estimator_arg_names
+from rcvae_torchrl.competency.decomposition import check_shuffle_samples, estimator_arg_names
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
 from rcvae_torchrl.competency.report import CompetencyReport
@@ -207,6 +207,7 @@ class CompetencyAssessor(KeyedModule):
             boundary, getattr(getattr(model_env, "ensemble", None), "novelty", None)
         )
         self.policy = policy
+        check_shuffle_samples(estimator_args.get("bias_correction", "none"), samples_per_member)
         self.samples_per_member = samples_per_member
         self.top_k, self.start_chunk = top_k, start_chunk
         self.per_sample = _per_sample(per_sample)

@@ -189,6 +189,17 @@ def _check_ended(ended: Tensor, samples: Tensor) -> None:
 BiasCorrection = Literal["none", "shuffle"]
 
 
+def check_shuffle_samples(bias_correction: str, samples_per_member: int) -> None:
+    """Refuse the shuffle correction with one sample per member: each member's one sample is
+    then its own shuffle, the corrected divergence is 0, and so is every epistemic part."""
+    if bias_correction == "shuffle" and samples_per_member < 2:
+        raise ValueError(
+            f"samples_per_member: the shuffle correction (bias_correction='shuffle') needs at "
+            f"least 2 samples per member, got {samples_per_member}: with one, the epistemic part "
+            "is 0 by construction; draw more, or use bias_correction='none'"
+        )
+
+
 def _histogram(
     samples: Tensor,
     *,
@@ -209,6 +220,7 @@ def _histogram(
     _checks.check_positive_int("shuffles", shuffles)
     width = _checks.bin_width_tensor(bin_width, samples.shape[-1], samples)
     members, n, dim = samples.shape[0], samples.shape[1], samples.shape[-1]
+    check_shuffle_samples(bias_correction, n)
     flat = samples.reshape(members, n, -1, dim)
     flat_ended = None if ended is None else ended.reshape(members, n, -1, 1)
     relabels = None

@@ -21,6 +21,7 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from rcvae_torchrl.io import atomic_write, read_json, write_json
+from rcvae_torchrl.training import OutcomeCheck
 from recipes.pusher_competency.trust import TARGETS, THROUGH_MAP
 
 __all__ = ["aggregate", "main"]
@@ -184,16 +185,50 @@ def _forecast_checks(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
     runs from before the check, are left out)."""
     out = {}
     for c, by_seed, made in _by_condition(summaries, "forecast_checks"):
+        verdicts = [None if found is None else _verdict(found) for found in by_seed]
+        # a check that measured nothing has no gap to show (its run's report leaves it blank)
+        shown = [
+            found["gap"]
+            for found, verdict in zip(by_seed, verdicts, strict=True)
+            if verdict not in (None, "not measured")
+        ]
         out[c] = {
-            **_stats([found["gap"] for found in made]),
-            "biased": sum(not found["passed"] for found in made),
+            **_stats(shown),
+            "biased": sum(v in ("too optimistic", "too pessimistic") for v in verdicts),
+            "not_passed": sum(v not in (None, "passed") for v in verdicts),
             "seeds": len(made),
             "by_seed": [
-                None if found is None else {"gap": found["gap"], "passed": found["passed"]}
-                for found in by_seed
+                None
+                if found is None
+                else {"gap": found["gap"], "passed": found["passed"], "verdict": verdict}
+                for found, verdict in zip(by_seed, verdicts, strict=True)
             ],
         }
     return out
+
+
+def _verdict(found: dict[str, Any]) -> str:
+    """A forecast check's verdict from its record (as its run judged it); a record without
+    its forecasts (a gap and a pass alone) is biased where it did not pass."""
+    if "forecast" not in found:
+        if found["passed"]:
+            return "passed"
+        return "too optimistic" if found["gap"] > 0 else "too pessimistic"
+    return OutcomeCheck.from_dict(found).verdict
+
+
+def _check_cell(found: dict[str, Any] | None) -> str:
+    """One seed's forecast check: its gap and mark, its verdict where it measured nothing."""
+    if found is None:
+        return "–"
+    verdict = found.get("verdict")
+    if verdict == "not measured":
+        return "not measured ?"
+    if verdict in ("too optimistic", "too pessimistic") or (
+        verdict is None and not found["passed"]
+    ):
+        return f"{found['gap']:+.3f} ✗"
+    return f"{found['gap']:+.3f}" + ("" if found["passed"] else f" ? ({verdict})")
 
 
 def _cell(stats: dict[str, Any]) -> str:
@@ -240,16 +275,18 @@ def markdown(result: dict[str, Any]) -> str:
             "The forecasts from start states they are not scored on",
             "Each run's self-check of its forecasts on start states it is not scored on (the "
             "report's section of that name): the gap, forecast minus real; ✗ marks a seed "
-            "where the check found the forecasts biased, – one whose run made no such check.",
-            ["condition", "gap, mean ± sd", "seeds flagged"],
+            "where the check found the forecasts biased, ? one where it did not pass otherwise "
+            "(too few start states in doubt to measure, too imprecise, no better than a "
+            "constant), – one whose run made no such check.",
+            ["condition", "gap, mean ± sd", "seeds biased", "seeds not passed"],
             result["seeds"],
         )
         for c, found in held_out.items():
-            cells = " | ".join(
-                "–" if x is None else f"{x['gap']:+.3f}" + ("" if x["passed"] else " ✗")
-                for x in found["by_seed"]
+            cells = " | ".join(map(_check_cell, found["by_seed"]))
+            lines.append(
+                f"| {c} | {_cell(found)} | {found['biased']}/{found['seeds']} | "
+                f"{found.get('not_passed', found['biased'])}/{found['seeds']} | {cells} |"
             )
-            lines.append(f"| {c} | {_cell(found)} | {found['biased']}/{found['seeds']} | {cells} |")
     novelty = result.get("novelty") or {}
     if novelty:
         lines += _section(

@@ -16,6 +16,7 @@ from typing import Any
 from omegaconf import DictConfig
 
 from rcvae_torchrl.agent import DistillConfig, PlannerConfig
+from rcvae_torchrl.competency.decomposition import check_shuffle_samples
 from rcvae_torchrl.envs import CONTROL_TIMESTEP, check_strength
 from rcvae_torchrl.loggers import check_logger_backend
 from rcvae_torchrl.processes import check_workers
@@ -227,6 +228,7 @@ class AssessConfig:
             raise ValueError(
                 f"bias_correction: expected 'none' or 'shuffle', got {self.bias_correction!r}"
             )
+        check_shuffle_samples(self.bias_correction, self.samples_per_member)
 
 
 def _study_train() -> TrainConfig:

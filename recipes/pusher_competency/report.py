@@ -148,7 +148,12 @@ def _pattern_ratios(bits: Mapping[tuple[str, str], float]) -> dict[str, float]:
 
 
 def _ratio(a: float, b: float) -> float:
-    return a / b if b > 0 else float("inf")
+    """``a / b``; a rise from nothing is infinite, and nothing over nothing is no ratio (NaN,
+    a check it decides is not met: with one sample per member and the shuffle correction,
+    every epistemic part was 0 and 0 / 0 read as a rise of inf)."""
+    if b > 0:
+        return a / b
+    return float("inf") if a > 0 else float("nan")
 
 
 def pattern_checks(

@@ -1026,3 +1026,9 @@ def test_a_forecast_check_does_not_vouch_for_start_states_unlike_its_own(env, pl
     # a check made from a report keeps that report's start states
     from_report = OutcomeCheck.from_outcomes(report, torch.ones(3, 2, dtype=torch.bool))
     assert torch.equal(from_report.start_states, alike.double())
+
+
+def test_one_sample_per_member_with_the_shuffle_correction_is_refused_when_built(env):
+    with pytest.raises(ValueError, match=r"^samples_per_member: the shuffle correction"):
+        make_assessor(env, samples_per_member=1, bias_correction="shuffle")
+    make_assessor(env, samples_per_member=1)  # no correction: accepted

@@ -102,3 +102,17 @@ def test_variance_decomposition_adds_up_and_matches_construction():
     assert torch.allclose(v.total, v.aleatoric + v.epistemic, atol=1e-5)
     assert torch.allclose(v.aleatoric, torch.full((2, 1), (0.25 + 1 + 2.25) / 3), atol=0.03)
     assert torch.allclose(v.epistemic, torch.full((2, 1), 8 / 3), atol=0.02)
+
+
+def test_the_shuffle_correction_with_one_sample_per_member_is_refused():
+    """A trial's study with one sample per member: the shuffle correction made every epistemic
+    part 0 by construction, and nothing said so."""
+    from rcvae_torchrl.competency.decomposition import check_shuffle_samples
+
+    samples = torch.randn(3, 1, 4, 2, generator=torch.Generator().manual_seed(0))
+    message = r"samples_per_member: the shuffle correction \(bias_correction='shuffle'\) needs"
+    with pytest.raises(ValueError, match=message + r" at least 2 samples per member, got 1"):
+        decompose_uncertainty(samples, "histogram", bin_width=0.1, bias_correction="shuffle")
+    decompose_uncertainty(samples, "histogram", bin_width=0.1)  # no correction: as it is
+    check_shuffle_samples("shuffle", 2)
+    check_shuffle_samples("none", 1)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import pytest
+import torch
 
 from recipes.pusher_competency.aggregate import aggregate, main, markdown
 
@@ -126,14 +127,36 @@ def test_the_held_out_forecast_checks_are_counted_over_the_seeds_that_made_them(
     assert found["biased"] == 1 and found["seeds"] == 2
     assert found["mean"] == pytest.approx(-0.07)
     assert found["by_seed"] == [
-        {"gap": -0.12, "passed": False},
-        {"gap": -0.02, "passed": True},
+        {"gap": -0.12, "passed": False, "verdict": "too pessimistic"},
+        {"gap": -0.02, "passed": True, "verdict": "passed"},
         None,
     ]
     text = markdown(result)
     assert "## The forecasts from start states they are not scored on" in text
-    assert "| stochastic | -0.070 ± 0.071 | 1/2 | -0.120 ✗ | -0.020 | – |" in text
+    assert "| stochastic | -0.070 ± 0.071 | 1/2 | 1/2 | -0.120 ✗ | -0.020 | – |" in text
     assert aggregate({"seed0": third})["forecast_checks"] == {}
+
+
+def test_a_forecast_check_that_measured_nothing_is_not_counted_biased():
+    """A trial's 2-seed quick study: seed 0's out-of-distribution check was 'not measured'
+    (94 of 100 starts settled, its gap left blank in its report), and the aggregate showed
+    its gap with a ✗ and counted it biased."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    settled = torch.ones(20, 1, dtype=torch.bool)
+    unmeasured = OutcomeCheck.from_outcomes(torch.full((20,), 0.9995), settled).as_dict()
+    g = torch.Generator().manual_seed(0)
+    real = torch.rand(30, 5, generator=g) < 0.3
+    biased = OutcomeCheck.from_outcomes(torch.full((30,), 0.8), real).as_dict()
+    runs = {f"seed{i}": _summary(0.02, True) for i in range(2)}
+    runs["seed0"]["forecast_checks"] = {"out-of-distribution": unmeasured}
+    runs["seed1"]["forecast_checks"] = {"out-of-distribution": biased}
+    found = aggregate(runs)["forecast_checks"]["out-of-distribution"]
+    assert [x["verdict"] for x in found["by_seed"]] == ["not measured", "too optimistic"]
+    assert found["biased"] == 1 and found["not_passed"] == 2 and found["seeds"] == 2
+    assert found["mean"] == pytest.approx(biased["gap"])  # the unmeasured gap left out
+    text = markdown(aggregate(runs))
+    assert f"| 1/2 | 2/2 | not measured ? | {biased['gap']:+.3f} ✗ |" in text
 
 
 def test_the_pattern_per_live_step_over_the_seeds_that_kept_it():

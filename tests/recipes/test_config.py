@@ -212,6 +212,10 @@ def test_the_schema_is_the_base_of_every_profile():
         ("train.nll_beta=2", r"^train\.nll_beta: expected a float in \[0, 1\]"),
         ("assess.horizon_s=-5", r"^assess\.horizon_s: expected a positive whole number"),
         ("assess.real_workers=0", r"^assess\.real_workers: expected an integer >= 1, got 0"),
+        (
+            "assess.samples_per_member=1",
+            r"^assess\.samples_per_member: the shuffle correction \(bias_correction='shuffle'\)",
+        ),
         ("data.time_limit=inf", r"^data\.time_limit: expected a positive whole number"),
         ("model.input_features=bogus", r"^model\.input_features: expected 'pusher' or None"),
         ("threads=0", r"^threads: expected a positive integer, 'auto' or null, got 0"),

@@ -1,5 +1,7 @@
 """The pattern diagnostic over the first seconds of the forecasts."""
 
+import math
+
 import pytest
 import torch
 
@@ -73,3 +75,21 @@ def test_per_live_step_needs_every_forecast_to_hold_live():
         "out-of-distribution": _ended(2.0, 1.5, life=20),
     }
     assert "per live step" not in pattern_by_window(forecasts, dt=0.1, windows_s=(1.0,))
+
+
+def test_nothing_over_nothing_is_no_ratio_and_meets_no_check():
+    """A trial with one sample per member: every epistemic part was 0, and the check
+    'epistemic out-of-distribution / deterministic >= 1.3' read inf and passed."""
+    forecasts = {
+        "deterministic": _forecast(1.0, 1.0, 0.0, 0.0),
+        "stochastic": _forecast(3.0, 3.0, 0.0, 0.0),
+        "out-of-distribution": _forecast(1.0, 1.0, 0.0, 0.0),
+    }
+    ratios = pattern_by_window(forecasts, dt=0.1, windows_s=())["4s"]
+    assert math.isnan(ratios["epistemic_ood_over_deterministic"])
+    assert not ratios["epistemic_ood_over_deterministic"] >= 1.3
+    assert ratios["aleatoric_stochastic_over_deterministic"] == pytest.approx(3.0)
+    # a rise from nothing stays infinite
+    forecasts["out-of-distribution"] = _forecast(1.0, 1.0, 0.5, 0.5)
+    rose = pattern_by_window(forecasts, dt=0.1, windows_s=())["4s"]
+    assert rose["epistemic_ood_over_deterministic"] == math.inf
