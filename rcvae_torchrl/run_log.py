@@ -83,6 +83,24 @@ def run_log(
     logging.captureWarnings(True)
     try:
         yield log
+    except BaseException as error:  # the file keeps why the run stopped (the console has it)
+        if isinstance(error, (SystemExit, GeneratorExit)) and not getattr(error, "code", None):
+            raise  # a clean exit
+        interrupted = isinstance(error, KeyboardInterrupt)
+        to_file.handle(
+            log.makeRecord(
+                log.name,
+                logging.WARNING if interrupted else logging.ERROR,
+                __file__,
+                0,
+                "interrupted (KeyboardInterrupt): the run stopped here"
+                if interrupted
+                else f"failed: {type(error).__name__}: {error}",
+                None,
+                None if interrupted else (type(error), error, error.__traceback__),
+            )
+        )
+        raise
     finally:
         logging.captureWarnings(False)
         for logger, handler in (

@@ -108,6 +108,29 @@ def test_a_terminal_keeps_its_colours(tmp_path):
     assert (tmp_path / "run.log").read_text().endswith(" green\n")
 
 
+def test_the_log_keeps_why_a_run_stopped(tmp_path):
+    """A trial: after a crash and after Ctrl-C, run.log ended at '[forecast] running', with no
+    traceback and no word of the interruption."""
+    path = tmp_path / "run.log"
+    with pytest.raises(ValueError, match="no bins"):
+        with run_log(path, stream=io.StringIO()) as log:
+            log.info("[forecast] running")
+            raise ValueError("no bins")
+    text = path.read_text()
+    assert "[rcvae_torchrl.run][ERROR] failed: ValueError: no bins\nTraceback" in text
+    assert text.rstrip().endswith("ValueError: no bins")
+    with pytest.raises(KeyboardInterrupt):
+        with run_log(path, stream=io.StringIO()):
+            raise KeyboardInterrupt
+    assert path.read_text().rstrip().endswith(
+        "[WARNING] interrupted (KeyboardInterrupt): the run stopped here"
+    )
+    with pytest.raises(SystemExit):  # a clean exit is no failure
+        with run_log(path, stream=io.StringIO()):
+            raise SystemExit(0)
+    assert path.read_text().rstrip().endswith("the run stopped here")
+
+
 def test_a_folder_or_a_damaged_file_is_named_as_what_it_is(tmp_path):
     from rcvae_torchrl.io import StoredFileError, load_torch
 
