@@ -122,8 +122,10 @@ def test_the_log_keeps_why_a_run_stopped(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         with run_log(path, stream=io.StringIO()):
             raise KeyboardInterrupt
-    assert path.read_text().rstrip().endswith(
-        "[WARNING] interrupted (KeyboardInterrupt): the run stopped here"
+    assert (
+        path.read_text()
+        .rstrip()
+        .endswith("[WARNING] interrupted (KeyboardInterrupt): the run stopped here")
     )
     with pytest.raises(SystemExit):  # a clean exit is no failure
         with run_log(path, stream=io.StringIO()):

@@ -410,7 +410,7 @@ class CompetencyReport:
         """One paragraph over all start states: the mean forecast, and what changed against the
         reference (without one, the dominant part of the doubt), with how many start states
         rose one by one (a mean can rise by a few outliers); a passed forecast check last, or,
-        with none attached, that the forecasts are unchecked."""
+        with none attached, that none is."""
         p = float(self.competency.get("p_success").mean())
         live = self.reference is not None and self.reference.per_live_step
         aleatoric, epistemic = self.mean_bits(live)
@@ -444,8 +444,8 @@ class CompetencyReport:
             text += f" Forecast check on other start states: {self.forecast_check.describe()}."
         elif self.forecast_check is None:
             text += (
-                " Unchecked: no check of these forecasts against real episodes is attached "
-                "(with_forecast_check), so nothing has shown them right."
+                " No check of these forecasts against real episodes is attached to this "
+                "report (with_forecast_check)."
             )
         return (f"Warning: {warning}. " if warning else "") + text
 

@@ -133,6 +133,12 @@ def _markdown(run_dir: Path, checks: dict, overall: dict, config: StudyConfig) -
         "",
         f"## Summaries (against the {REFERENCE} condition)",
         "",
+        "The library's own words for each condition. Its ratios are of bits per step of the "
+        "imagined episodes' life, which the episodes' lengths do not change; the checks above "
+        "are of time-mean bits, in which an episode that ended adds none: the two differ where "
+        "the conditions' episodes last differently long. The table above holds these forecasts "
+        "against real episodes; the library's report has no forecast check of its own attached.",
+        "",
         *[f"- **{c}**: {text}" for c, text in overall.items()],
         "",
         "![uncertainty over time](uncertainty_over_time.png)",

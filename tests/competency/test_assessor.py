@@ -445,8 +445,8 @@ def test_one_start_rose_only_beyond_the_spread_of_the_references_own_starts():
     assert outliers.overall().endswith(
         "the rise is epistemic, the model has not seen states like this: more data here would "
         "reduce it. Start state by start state, the rise is epistemic in 2 of 12 and aleatoric "
-        "in 0. Unchecked: no check of these forecasts against real episodes is attached "
-        "(with_forecast_check), so nothing has shown them right."
+        "in 0. No check of these forecasts against real episodes is attached to this "
+        "report (with_forecast_check)."
     )
     # a stricter level: fewer of the reference's own starts above it
     assert own.reference.quantile == 0.95

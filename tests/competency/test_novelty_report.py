@@ -73,8 +73,8 @@ def test_a_start_unlike_the_training_states_is_cautioned_with_its_dimension():
     assert report.overall().endswith(
         " Novelty: 1 of 3 start states are unlike the states the model was trained on, and 0 "
         "more imagine more of their states unlike them than in-distribution episodes do (over "
-        "10%). Unchecked: no check of these forecasts against real episodes is attached "
-        "(with_forecast_check), so nothing has shown them right."
+        "10%). No check of these forecasts against real episodes is attached to this "
+        "report (with_forecast_check)."
     )
 
 
