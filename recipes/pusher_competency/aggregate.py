@@ -61,7 +61,7 @@ def _stats(values: list[float]) -> dict[str, Any]:
     n = len(finite)
     mean = sum(finite) / n if n else math.nan
     sd = math.sqrt(sum((v - mean) ** 2 for v in finite) / (n - 1)) if n > 1 else math.nan
-    return {"mean": mean, "sd": sd, "values": values}
+    return {"mean": mean, "sd": sd, "values": values, "of": n}
 
 
 def _get(scores: dict[str, Any], key: str) -> Any:
@@ -232,11 +232,15 @@ def _check_cell(found: dict[str, Any] | None) -> str:
 
 
 def _cell(stats: dict[str, Any]) -> str:
+    """Mean ± sd, and over how many seeds where some had no finite value (a trial's CRPS skill
+    read as two seeds' mean was one seed's, the other's NaN left out unsaid)."""
     if not math.isfinite(stats["mean"]):
         return "n/a"
+    of = stats.get("of", len(stats["values"]))
+    some = f" (of {of} seed{'' if of == 1 else 's'})" if of < len(stats["values"]) else ""
     if not math.isfinite(stats["sd"]):
-        return f"{stats['mean']:.3f}"
-    return f"{stats['mean']:.3f} ± {stats['sd']:.3f}"
+        return f"{stats['mean']:.3f}{some}"
+    return f"{stats['mean']:.3f} ± {stats['sd']:.3f}{some}"
 
 
 def markdown(result: dict[str, Any]) -> str:

@@ -207,3 +207,12 @@ def test_the_novelty_cautions_are_summed_over_the_seeds_that_made_the_check():
     assert "## Start states unlike the training states" in text
     assert "| out-of-distribution | 26 of 200 | 5 | – | 21 |" in text
     assert aggregate({"seed0": second})["novelty"] == {}
+
+
+def test_a_mean_over_fewer_seeds_than_the_study_says_over_how_many():
+    from recipes.pusher_competency.aggregate import _cell, _stats
+
+    assert _cell(_stats([float("nan"), -1.263])) == "-1.263 (of 1 seed)"
+    assert _cell(_stats([0.1, 0.3, None])) == "0.200 ± 0.141 (of 2 seeds)"
+    assert _cell(_stats([0.1, 0.3])) == "0.200 ± 0.141"
+    assert _cell(_stats([float("nan")])) == "n/a"
