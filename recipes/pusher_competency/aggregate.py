@@ -46,9 +46,9 @@ COLUMNS = (
     ("validation", "oracle_spearman", "oracle Spearman"),
     ("validation", "bss_tasks", "BSS (tasks alike)"),
     ("validation", "tts_skill", "TTS CRPS skill"),
-    ("validation", "recalibrated.gap", "gap, recalibrated"),
-    ("validation", "recalibrated.brier_skill", "BSS (own rate), recalibrated"),
-    ("validation", "recalibrated_held_out.gap", "gap, recalibrated on held-out starts"),
+    ("validation", "recalibrated.gap", "gap, cross-fitted map"),
+    ("validation", "recalibrated.brier_skill", "BSS (own rate), cross-fitted map"),
+    ("validation", "recalibrated_held_out.gap", "gap, held-out map"),
     ("validation", "recalibrated_held_out.brier_skill", "BSS (own rate), held-out map"),
     ("validation", "recalibrated_held_out.auroc", "AUROC, held-out map"),
 )

@@ -620,13 +620,14 @@ def _recalibration_text(scores) -> list[str]:
         for c, s in rows
     ]
     lines = [
-        "### Recalibrated on held-out start states",
+        "### Recalibrated: cross-fitted on the scored start states, and by the held-out map",
         "",
-        f"Not the forecast above, but what a Platt map fitted on real episodes would make of it: "
-        f"each condition's start states are split into {RECALIBRATION_FOLDS} folds and each "
-        "fold's forecasts are recalibrated with the map fitted on the other folds' episodes, so "
-        "no start is recalibrated with its own outcomes. The checks score the forecast itself "
-        "(those marked through the held-out map: through the map below).",
+        f"Not the forecast above, but what a Platt map fitted on real episodes would make of it. "
+        f"The cross-fitted map (this table): each condition's scored start states are split "
+        f"into {RECALIBRATION_FOLDS} folds and each fold's forecasts are recalibrated with the "
+        "map fitted on the other folds' episodes, so no start is recalibrated with its own "
+        "outcomes. The checks score the forecast itself, and those marked through the held-out "
+        "map score it through the second map below, not this one.",
         "",
         head,
         "|:---|" + "---:|" * (2 * len(keys)),
@@ -636,9 +637,10 @@ def _recalibration_text(scores) -> list[str]:
     held = [(c, s) for c, s in scores.items() if s.get("recalibrated_held_out")]
     if held:
         lines += [
-            "Recalibrated instead by the Platt map fitted on the real episodes of the forecast "
-            "check above, from start states none of them scored: what a user who ran the agent "
-            "from some start states can make of its forecasts for new ones. slope, intercept: "
+            "The held-out map (this table): the Platt map fitted on the real episodes of the "
+            "forecast check above, from start states none of them scored: what a user who ran "
+            "the agent from some start states can make of its forecasts for new ones. slope, "
+            "intercept: "
             "the map, σ(slope·logit(f) + intercept) (overall: each condition's forecasts "
             "through its own map, pooled).",
             "",
