@@ -332,6 +332,7 @@ class CompetencyAssessor(KeyedModule):
             self.tensor_keys.competency,
             self.tensor_keys.observation,
             model_warning=self.model_warning,
+            model_caution=self.model_caution,
             survival=self.boundary.is_survival,
             novelty=self.novelty,
             measure=self.measure,
@@ -385,6 +386,15 @@ class CompetencyAssessor(KeyedModule):
                 "rcvae_torchrl.training.check_model(ensemble, held_out_episodes)"
             )
         return "" if checks.passed else checks.message()
+
+    @property
+    def model_caution(self) -> str:
+        """What the world model's self-checks found that does not fail them: a spread wider
+        than its errors (:attr:`~rcvae_torchrl.training.ModelChecks.underconfident`), whose
+        aleatoric bits overstate the env's noise; '' where they found none."""
+        checks = getattr(self.model_env.ensemble, "checks", None)
+        wide = getattr(checks, "wide_sentence", None)
+        return wide() if callable(wide) else ""
 
     # ----------------------------------------------------------------- one chunk
     def _assess_chunk(

@@ -181,6 +181,8 @@ class CompetencyReport:
         uncertainty_key, competency_key, observation_key: where ``data`` holds each part.
         model_warning: why the world model is not trustworthy ('' when it passed its
             self-checks or has none).
+        model_caution: what its self-checks found that does not fail them (a spread too
+            wide: its aleatoric bits overstate the noise), said beside the split of the doubt.
         survival: whether success is lasting the time limit without a failure
             (:meth:`~rcvae_torchrl.competency.SuccessBoundary.survival`).
         reference: the uncertainty the summary compares with (:meth:`with_reference`).
@@ -200,6 +202,9 @@ class CompetencyReport:
     observation_key: NestedKey = "observation"
     model_warning: str = ""
     reference: Reference | None = None
+    #: what the world model's self-checks found that does not fail them (a spread too wide,
+    #: :attr:`CompetencyAssessor.model_caution`): said beside the split of the doubt
+    model_caution: str = ""
     survival: bool = False
     forecast_check: Any = None
     novelty: Any = None
@@ -433,6 +438,8 @@ class CompetencyReport:
             )
             text += _change_sentence(aleatoric, epistemic, self.reference, novel=clause)
             text += self._one_by_one_sentence()
+        if self.model_caution and not warning:
+            text += f" Caution: {self.model_caution}."
         text += self._novel_count_sentence()
         uncovered = self.uncovered
         if uncovered is not None and bool(uncovered.any()) and self.forecast_check.passed:
@@ -649,8 +656,9 @@ class CompetencyReport:
         )
         if warned:  # a model that failed its checks: its split is not evidence
             return _unreliable_split_sentence(aleatoric, epistemic, total, _unit(live))
+        caution = f" Caution: {self.model_caution}." if self.model_caution else ""
         if self.reference is None:
-            return _doubt_sentence(aleatoric, epistemic, total)
+            return _doubt_sentence(aleatoric, epistemic, total) + caution
         start, imagined = flags  # the novelty cautions (:meth:`_novel_flags`)
         novel_clause = (
             "the start is unlike the training states (above)"
@@ -659,8 +667,11 @@ class CompetencyReport:
             if imagined
             else ""
         )
-        return _change_sentence(
-            aleatoric, epistemic, self.reference, one_start=True, novel=novel_clause
+        return (
+            _change_sentence(
+                aleatoric, epistemic, self.reference, one_start=True, novel=novel_clause
+            )
+            + caution
         )
 
 

@@ -20,7 +20,13 @@ A predicted dimension whose one-step error is not at least ``min_gain`` below th
 two baselines is flagged: the model has not learned it. A dimension whose coverage is below the
 interval's, by more than chance allows (a one-sided binomial test at level ``alpha``, Bonferroni
 over the dimensions checked), is flagged too: the model is overconfident there (its spread too
-narrow, or off centre), which a model whose randomness per episode was not learned shows.
+narrow, or off centre), which a model whose randomness per episode was not learned shows. A
+dimension whose real state lies strictly inside the samples' central half more often than half
+the time, by more than chance allows (the same test, the other tail), is named underconfident
+(:attr:`ModelChecks.underconfident`): its spread is wider than its errors, so the aleatoric bits
+there overstate the env's noise (an acrobot model trained on noise-free episodes forecast 19-22
+bits of "aleatoric" doubt). It does not fail the checks: the outcome forecasts of such a model
+can still be right, but its split of the doubt is not.
 :func:`train_ensemble <rcvae_torchrl.training.train_ensemble>` runs the checks after training,
 warns naming the flagged dimensions, and stores them with the model; the competency assessor
 flags a forecast made with a model that failed them.
@@ -78,6 +84,10 @@ class ModelChecks:
     interval: float = 0.0  #: the exact coverage of the interval for a draw of the samples' law
     alpha: float = 0.01
     min_episodes: int = 10
+    #: per dimension, the held-out episodes whose real state lay strictly inside the samples'
+    #: central half (``[S]``; ``None``: not measured)
+    covered_half: torch.Tensor | None = None
+    half_interval: float = 0.0  #: that interval's exact coverage for a draw of the samples' law
 
     @property
     def unlearned(self) -> tuple[int, ...]:
@@ -102,6 +112,38 @@ class ModelChecks:
         level = self.alpha / len(self.checked)
         p = binom.cdf(self.covered.to(torch.float64).numpy(), self.episodes, self.interval)
         return tuple(d for d in self.checked if p[d] < level)
+
+    @property
+    def underconfident(self) -> tuple[int, ...]:
+        """Checked dimensions whose real state lay strictly inside the samples' central half
+        more often than :attr:`half_interval` by more than chance allows (one-sided binomial
+        test at level ``alpha`` / the number of dimensions checked): the spread there is wider
+        than the model's errors, and its aleatoric bits overstate the noise. A dimension the
+        model gets exactly (an interval of width 0) is never inside it."""
+        if self.covered_half is None or not self.checked or not self.half_interval:
+            return ()
+        from scipy.stats import binom
+
+        level = self.alpha / len(self.checked)
+        counts = self.covered_half.to(torch.float64).numpy()
+        p = binom.sf(counts - 1, self.episodes, self.half_interval)
+        return tuple(d for d in self.checked if p[d] < level)
+
+    def wide_sentence(self) -> str:
+        """Where the spread is too wide (:attr:`underconfident`), one sentence saying so
+        ('' otherwise)."""
+        if not self.underconfident:
+            return ""
+        parts = [
+            f"{self.names[d]} ({int(self.covered_half[d])} of {self.episodes})"
+            for d in self.underconfident
+        ]
+        return (
+            f"the world model's spread is too wide for {', '.join(parts)}: "
+            f"{self.coverage_steps} steps into held-out episodes the real state lay inside its "
+            f"central {self.half_interval:.0%} too often, so its aleatoric bits there overstate "
+            "the env's noise"
+        )
 
     @property
     def flagged(self) -> tuple[int, ...]:
@@ -169,12 +211,23 @@ class ModelChecks:
             if covered.numel()
             else ""
         )
+        wide = self.wide_sentence()
+        if wide:
+            wide = f". But {wide}"
+        elif self.covered_half is not None:
+            wide = (
+                f", nor too often inside its central {self.half_interval:.0%} (a spread too wide)"
+            )
+        else:
+            wide = (
+                ". The checks do not name a spread that is too wide: a model too unsure of its "
+                "states passes them, and only a check of its forecasts against real episodes "
+                "finds it"
+            )
         return (
             f"the world model passed its self-checks: each of the {len(self.checked)} "
             f"dimensions checked it predicts one step ahead at least {self.min_gain:.0%} better "
-            f"than copying the previous state or guessing its mean{inside}. The checks do not "
-            "name a spread that is too wide: a model too unsure of its states passes them, and "
-            "only a check of its forecasts against real episodes finds it"
+            f"than copying the previous state or guessing its mean{inside}{wide}"
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -192,6 +245,9 @@ class ModelChecks:
             "alpha": self.alpha,
             "min_episodes": self.min_episodes,
             "covered": None if self.covered is None else self.covered.tolist(),
+            "covered_half": None if self.covered_half is None else self.covered_half.tolist(),
+            "half_interval": self.half_interval,
+            "underconfident": [self.names[d] for d in self.underconfident],
         }
         for key in ("one_step", "copy_one_step", "spread", "k_step", "copy_k_step"):
             out[key] = getattr(self, key).tolist()
@@ -215,6 +271,10 @@ class ModelChecks:
             interval=float(values.get("interval", 0.0)),
             alpha=float(values.get("alpha", 0.01)),
             min_episodes=int(values.get("min_episodes", 10)),
+            covered_half=None
+            if values.get("covered_half") is None
+            else torch.tensor(values["covered_half"], dtype=torch.float64),
+            half_interval=float(values.get("half_interval", 0.0)),
             **tensors,
         )
 
@@ -243,15 +303,17 @@ def _coverage(
     samples_per_member: int,
     interval: float,
     generator: torch.Generator,
-) -> tuple[torch.Tensor, int, float]:
+) -> tuple[torch.Tensor, int, float, torch.Tensor, float]:
     """From the start of every held-out episode longer than ``steps``: per dimension, how many
     real states after ``steps`` steps lie between the order statistics i and n + 1 − i of the
     n imagined ones (``[S]``), the episode count, and the interval's exact coverage
-    (n + 1 − 2i) / (n + 1) for a draw of the samples' own law."""
+    (n + 1 − 2i) / (n + 1) for a draw of the samples' own law; then the same count and coverage
+    for the samples' central half, strictly inside (an interval of width 0 holds nothing)."""
     first, lengths = episode_spans(data)
     first = first[lengths > steps]
     if first.numel() == 0:
-        return torch.zeros(ensemble.config.obs_dim, dtype=torch.float64), 0, 0.0
+        none = torch.zeros(ensemble.config.obs_dim, dtype=torch.float64)
+        return none, 0, 0.0, none.clone(), 0.0
     device = ensemble.device
     frames = first[:, None] + torch.arange(steps)
     starts = data.get("observation")[first].to(device)
@@ -271,7 +333,17 @@ def _coverage(
     rounding = _ROUNDING * (1 + truth.abs())
     inside = (truth >= low - rounding) & (truth <= high + rounding)
     exact = (n + 1 - 2 * rank) / (n + 1)
-    return inside.sum(0).to(torch.float64).cpu(), int(first.numel()), exact
+    half = max(1, int(0.25 * (n + 1)))
+    low_half, high_half = ordered[half - 1], ordered[n - half]
+    # strictly inside, beyond rounding: a real state on a width-0 interval is not in it
+    inside_half = (truth > low_half + rounding) & (truth < high_half - rounding)
+    return (
+        inside.sum(0).to(torch.float64).cpu(),
+        int(first.numel()),
+        exact,
+        inside_half.sum(0).to(torch.float64).cpu(),
+        (n + 1 - 2 * half) / (n + 1),
+    )
 
 
 def _windows(data: TensorDictBase, length: int, count: int, seed: int) -> TensorDictBase:
@@ -355,9 +427,9 @@ def check_model(
     checked = tuple(d for d in cfg.predicted_dims if bool(changing[d]))
     steps = min(coverage_steps, longest - 1)
     coverage = _coverage(ensemble, data, steps, samples_per_member, interval, generator)
-    covered, episodes, exact = coverage
+    covered, episodes, exact, covered_half, half_exact = coverage
     if episodes < min_episodes:
-        covered, exact = None, 0.0
+        covered, exact, covered_half, half_exact = None, 0.0, None, 0.0
     checks = ModelChecks(
         cfg.names,
         one_step.cpu(),
@@ -374,6 +446,8 @@ def check_model(
         interval=exact,
         alpha=float(alpha),
         min_episodes=min_episodes,
+        covered_half=covered_half,
+        half_interval=half_exact,
     )
     if warn and not checks.passed:
         warnings.warn(checks.message(), ModelCheckWarning, stacklevel=2)

@@ -1032,3 +1032,28 @@ def test_one_sample_per_member_with_the_shuffle_correction_is_refused_when_built
     with pytest.raises(ValueError, match=r"^samples_per_member: the shuffle correction"):
         make_assessor(env, samples_per_member=1, bias_correction="shuffle")
     make_assessor(env, samples_per_member=1)  # no correction: accepted
+
+
+def test_a_spread_too_wide_is_said_beside_the_split_of_the_doubt(env, starts, plan):
+    """Self-checks that found the model's spread wider than its errors do not fail it, but
+    its aleatoric bits there overstate the noise: every paragraph and the overview say so."""
+    import dataclasses
+
+    from rcvae_torchrl.training import ModelChecks
+
+    zeros = torch.zeros(S, dtype=torch.float64)
+    checks = ModelChecks(
+        OBSERVATION_NAMES, zeros, zeros + 1, zeros + 1, zeros, zeros + 1, 5, (0, 1), 0.05,
+        covered=torch.full((S,), 30.0), episodes=32, coverage_steps=20, interval=0.9,
+        covered_half=torch.tensor([30.0] + [16.0] * (S - 1)), half_interval=0.5,
+    )  # fmt: skip
+    env.ensemble.checks = checks
+    assert checks.passed and checks.underconfident == (0,)
+    report = make_assessor(env).assess(starts, actions=plan, generator=seeded())
+    caution = f"Caution: {checks.wide_sentence()}."
+    assert report.warning == "" and report.model_caution == checks.wide_sentence()
+    assert caution in report.summary(index=0) and caution in report.overall()
+    referenced = report.with_reference(report)
+    assert caution in referenced.summary(index=1)
+    env.ensemble.checks = dataclasses.replace(checks, covered_half=None)
+    assert make_assessor(env).assess(starts, actions=plan, generator=seeded()).model_caution == ""

@@ -228,6 +228,51 @@ def test_a_warning_of_members_that_stopped_early_says_so():
     assert "a larger patience, more steps or more data" in message
 
 
+def test_the_spread_too_wide_is_the_other_tail_of_a_binomial_test():
+    """32 episodes, a central half of exact coverage 0.5, 4 dimensions (level 0.01 / 4):
+    27 of 32 strictly inside is beyond chance (P(X >= 27) = 0.00011), 23 is not (0.010)."""
+    zeros = torch.zeros(4, dtype=torch.float64)
+    checks = ModelChecks(
+        ("a", "b", "c", "d"), zeros, zeros + 1, zeros + 1, zeros, zeros + 1, 5, (0, 1, 2, 3),
+        0.05, covered=torch.tensor([30.0, 29.0, 31.0, 30.0]), episodes=32, coverage_steps=20,
+        interval=0.9, alpha=0.01, covered_half=torch.tensor([16.0, 27.0, 23.0, 0.0]),
+        half_interval=0.5,
+    )  # fmt: skip
+    assert checks.underconfident == (1,) and checks.passed  # it does not fail the checks
+    assert checks.wide_sentence() == (
+        "the world model's spread is too wide for b (27 of 32): 20 steps into held-out "
+        "episodes the real state lay inside its central 50% too often, so its aleatoric bits "
+        "there overstate the env's noise"
+    )
+    assert checks.describe().endswith(
+        "not too rarely for any. But the world model's spread is too wide for b (27 of 32): "
+        "20 steps into held-out episodes the real state lay inside its central 50% too often, "
+        "so its aleatoric bits there overstate the env's noise"
+    )
+    restored = ModelChecks.from_dict(checks.as_dict())
+    assert restored.underconfident == (1,) and checks.as_dict()["underconfident"] == ["b"]
+    fine = dataclasses.replace(checks, covered_half=torch.tensor([16.0, 23.0, 20.0, 0.0]))
+    assert fine.underconfident == () and fine.wide_sentence() == ""
+    assert fine.describe().endswith(
+        "not too rarely for any, nor too often inside its central 50% (a spread too wide)"
+    )
+
+
+def test_a_model_whose_spread_is_wider_than_reality_is_named_underconfident(trained):
+    """The model learned a system's noise; in one with a fifth of it the real state lies in
+    the middle of its samples far too often: its aleatoric bits overstate that system's noise
+    (an acrobot trial: 19-22 'aleatoric' bits from a model of noise-free episodes)."""
+    result, _, _ = trained
+    same = _with_noise_dim(linear_episodes(60, 40, seed=2), 2)
+    calm = _with_noise_dim(linear_episodes(60, 40, seed=2, sigma=0.01), 2)
+    assert (
+        check_model(result.ensemble, same, samples_per_member=20, warn=False).underconfident == ()
+    )
+    wide = check_model(result.ensemble, calm, samples_per_member=20, warn=False)
+    assert set(wide.underconfident) >= {0, 1, 2} and 3 not in wide.underconfident
+    assert "x (" in wide.wide_sentence() and "noise (" not in wide.wide_sentence()
+
+
 def test_a_dimension_the_model_gets_exactly_is_covered():
     """A clock the model advances exactly (a state constraint rotating the previous phase) has
     an interval of width 0 that the real phase, computed in another order, misses by float
@@ -265,3 +310,5 @@ def test_a_dimension_the_model_gets_exactly_is_covered():
     checks = check_model(model, data, samples_per_member=20, min_episodes=10, warn=False)
     assert checks.covered[:2].tolist() == [episodes, episodes]
     assert not {0, 1} & set(checks.overconfident)
+    # nor is its interval of width 0 a spread too wide: nothing lies strictly inside it
+    assert checks.covered_half[:2].tolist() == [0, 0] and not {0, 1} & set(checks.underconfident)
