@@ -93,3 +93,30 @@ def test_nothing_over_nothing_is_no_ratio_and_meets_no_check():
     forecasts["out-of-distribution"] = _forecast(1.0, 1.0, 0.5, 0.5)
     rose = pattern_by_window(forecasts, dt=0.1, windows_s=())["4s"]
     assert rose["epistemic_ood_over_deterministic"] == math.inf
+
+
+def test_the_pattern_checks_on_known_numbers():
+    from recipes.pusher_competency.report import pattern_checks
+
+    def row(aleatoric, epistemic, forecast, real):
+        return {
+            "aleatoric_bits": aleatoric,
+            "epistemic_bits": epistemic,
+            "forecast_p_success": forecast,
+            "empirical_p_success": real,
+        }
+
+    rows = {
+        "deterministic": row(1.0, 0.0, 1.0, 1.0),
+        "stochastic": row(2.0, 0.0, 0.5, 0.5),
+        "out-of-distribution": row(1.0, 0.0, 1.0, 1.0),
+    }
+    checks = pattern_checks(rows, {"brier": 0.0, "constant_brier": 0.0})
+    # one sample per member left every epistemic part 0: no ratio, no check met
+    assert not checks["epistemic out-of-distribution / deterministic >= 1.3"]["met"]
+    assert checks["aleatoric stochastic / deterministic >= 1.5"]["met"]
+    # a perfect forecast where every start is alike (a trial's single start state)
+    assert checks["Brier < constant forecast (all start states)"]["met"]
+    assert not pattern_checks(rows, {"brier": 0.1, "constant_brier": 0.1})[
+        "Brier < constant forecast (all start states)"
+    ]["met"]
