@@ -36,7 +36,10 @@ register_configs()
 
 @hydra.main(config_path="conf", config_name="point_mass_competency", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    config = study_config(cfg)
+    try:
+        config = study_config(cfg)
+    except (TypeError, ValueError) as error:  # a setting out of range: its message, no trace
+        raise SystemExit(f"error: {error}") from None
     set_threads(config.threads)
     run_dir = Path(config.run_dir)
     # a run directory of other settings is refused before anything is made in it

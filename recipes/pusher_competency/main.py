@@ -48,7 +48,10 @@ register_configs()
 
 @hydra.main(config_path="conf", config_name="pusher_competency", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    config = study_config(cfg)
+    try:
+        config = study_config(cfg)
+    except (TypeError, ValueError) as error:  # a setting out of range: its message, no trace
+        raise SystemExit(f"error: {error}") from None
     device = resolve_device(config.device)
     set_threads(config.threads, training_op_flop(config))
     with distributed.session():  # a process group under torchrun, nothing otherwise
