@@ -207,7 +207,7 @@ def test_summary_json(runs):
         assert (after is not None) == (condition in held_out)
         if after is not None:
             assert math.isfinite(after["slope"]) and 0 <= after["forecast"] <= 1
-    assert "Recalibrated instead by the Platt map fitted on the real episodes" in report
+    assert "The held-out map (this table): the Platt map fitted on the real episodes" in report
     # every condition had its map: the pooled forecasts through them, scored over all episodes
     pooled = summary["validation"]["overall"]["recalibrated_held_out"]
     assert 0 <= pooled["forecast"] <= 1 and "slope" not in pooled
