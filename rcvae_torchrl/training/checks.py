@@ -798,8 +798,8 @@ class OutcomeCheck:
 
     @cached_property
     def _cover(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, float] | None:
-        """The check's start states scaled (each dimension by its spread among them, one
-        that does not vary by a millionth of its size), their centre and scale, the level of
+        """The check's start states scaled (each dimension by its spread among them; one
+        that does not vary, by a millionth of its size), their centre and scale, the level of
         :meth:`covers` and the share of new starts like them it keeps; ``None`` without
         start states, or with fewer than 2."""
         if self.start_states is None or self.start_states.shape[0] < 2:
