@@ -393,7 +393,8 @@ def _model_checks_text(model_checks: Mapping[str, ModelChecks]) -> str:
     ]
     for name, found in model_checks.items():
         verdict = "passed" if found.passed else found.message()
-        lines.append(f"- **{name}**: {verdict}.")
+        wide = found.wide_sentence()  # does not fail the checks: said beside the verdict
+        lines.append(f"- **{name}**: {verdict}" + (f"; but {wide}." if wide else "."))
     coverage = {k: v for k, v in model_checks.items() if v.coverage is not None}
     if coverage:
         first = next(iter(coverage.values()))

@@ -83,6 +83,14 @@ def test_model_checks_section_names_each_verdict_and_the_coverage():
     assert "| model | x | y |" in text  # the checked dimensions only
     assert "| good | 0.94 | 0.91 |" in text and "| bad | 0.94 | 0.38 |" in text
     assert "90% interval after 20 steps (32 held-out episodes)" in text
+    # a spread too wide does not fail the checks, and is said beside the verdict
+    import dataclasses
+
+    wide = dataclasses.replace(
+        checks([30, 29, 0]), covered_half=torch.tensor([30.0, 16.0, 0.0]), half_interval=0.5
+    )
+    assert f"- **wide**: passed; but {wide.wide_sentence()}." in _model_checks_text({"wide": wide})
+    assert "x (30 of 32)" in wide.wide_sentence()
 
 
 def test_far_checks_section_names_overconfident_dimensions_and_unmeasured_models():
