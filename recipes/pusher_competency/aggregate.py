@@ -208,8 +208,8 @@ def _forecast_checks(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 
 def _verdict(found: dict[str, Any]) -> str:
-    """A forecast check's verdict from its record (as its run judged it); a record without
-    its forecasts (a gap and a pass alone) is biased where it did not pass."""
+    """A forecast check's verdict, judged from its record by the current rules; a record
+    without its forecasts (a gap and a pass alone) is biased where it did not pass."""
     if "forecast" not in found:
         if found["passed"]:
             return "passed"
