@@ -10,6 +10,7 @@ import math
 import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -228,7 +229,7 @@ class CompetencyReport:
         start, imagined = _novel_parts(self.data.get("novelty"), self.novelty)
         return start | imagined
 
-    @property
+    @cached_property  # the report is frozen: each paragraph's warning reads it again
     def uncovered(self) -> Tensor | None:
         """``[*B]`` bool: start states unlike those the forecast check was made on
         (:meth:`~rcvae_torchrl.training.OutcomeCheck.covers`), for whose forecasts the check
@@ -241,6 +242,7 @@ class CompetencyReport:
         covered = covers(starts.reshape(-1, starts.shape[-1]))
         return None if covered is None else ~covered.reshape(self.batch_size)
 
+    @cached_property
     def _uncovered_sentence(self) -> str:
         """Where more of these start states lie outside the check's own than chance allows
         (at the check's level), why the check does not vouch for them ('' otherwise)."""
@@ -281,7 +283,7 @@ class CompetencyReport:
         check = self.forecast_check
         if check is not None and not check.passed:
             parts.append(f"forecast check on other start states: {check.describe()}")
-        elif check is not None and (uncovered := self._uncovered_sentence()):
+        elif check is not None and (uncovered := self._uncovered_sentence):
             parts.append(uncovered)
         elif check is not None and self.task and not getattr(check, "task", None):
             parts.append(

@@ -105,13 +105,7 @@ class ModelChecks:
     def overconfident(self) -> tuple[int, ...]:
         """Checked dimensions covered less often than ``interval`` by more than chance allows
         (one-sided binomial test at level ``alpha`` / the number of dimensions checked)."""
-        if self.covered is None or not self.checked:
-            return ()
-        from scipy.stats import binom
-
-        level = self.alpha / len(self.checked)
-        p = binom.cdf(self.covered.to(torch.float64).numpy(), self.episodes, self.interval)
-        return tuple(d for d in self.checked if p[d] < level)
+        return self._beyond_chance(self.covered, self.interval, fewer=True)
 
     @property
     def underconfident(self) -> tuple[int, ...]:
@@ -120,13 +114,25 @@ class ModelChecks:
         test at level ``alpha`` / the number of dimensions checked): the spread there is wider
         than the model's errors, and its aleatoric bits overstate the noise. A dimension the
         model gets exactly (an interval of width 0) is never inside it."""
-        if self.covered_half is None or not self.checked or not self.half_interval:
+        return self._beyond_chance(self.covered_half, self.half_interval, fewer=False)
+
+    def _beyond_chance(
+        self, counts: torch.Tensor | None, probability: float, *, fewer: bool
+    ) -> tuple[int, ...]:
+        """Checked dimensions whose count of episodes inside an interval of exact coverage
+        ``probability`` is ``fewer`` (else more) than chance allows: a one-sided binomial
+        test at level ``alpha`` / the number of dimensions checked."""
+        if counts is None or not self.checked or not probability:
             return ()
         from scipy.stats import binom
 
         level = self.alpha / len(self.checked)
-        counts = self.covered_half.to(torch.float64).numpy()
-        p = binom.sf(counts - 1, self.episodes, self.half_interval)
+        k = counts.to(torch.float64).numpy()
+        p = (
+            binom.cdf(k, self.episodes, probability)
+            if fewer
+            else binom.sf(k - 1, self.episodes, probability)
+        )
         return tuple(d for d in self.checked if p[d] < level)
 
     def wide_sentence(self) -> str:
