@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorStorage
 from torchrl.data.replay_buffers.samplers import SliceSampler
 
 from rcvae_torchrl._checks import check_positive_int
@@ -53,10 +53,13 @@ def make_window_buffer(
         truncated_key=None,
         cache_values=True,
     )
-    buffer = TensorDictReplayBuffer(
-        storage=LazyTensorStorage(max_size or data.shape[0]), sampler=sampler
-    )
-    buffer.extend(data)
+    if max_size is None or max_size == data.shape[0]:
+        # a storage made of a copy of the frames: the same buffer as a lazy storage extended
+        # with them, without TorchRL's INFO line for every storage it initialises
+        buffer = TensorDictReplayBuffer(storage=TensorStorage(data.clone()), sampler=sampler)
+    else:
+        buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(max_size), sampler=sampler)
+        buffer.extend(data)
     # the first frame of every episode long enough for a window (``sample_windows``' starts)
     buffer.episode_starts = first[lengths >= window]
     return buffer

@@ -71,6 +71,35 @@ def test_windows_never_cross_episodes(episodes):
     assert not torch.equal(windows["observation"][0], windows["observation"][1])
 
 
+def test_a_window_buffer_draws_as_a_lazily_filled_one_and_logs_nothing(episodes):
+    import logging
+
+    from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+    from torchrl.data.replay_buffers.samplers import SliceSampler
+
+    records = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    torchrl_log = logging.getLogger("torchrl")
+    torchrl_log.addHandler(handler)
+    try:
+        buffer = make_window_buffer(episodes, window=16)
+    finally:
+        torchrl_log.removeHandler(handler)
+    assert [r.getMessage() for r in records] == []
+    sampler = SliceSampler(
+        slice_len=16, traj_key=TRAJ_KEY, strict_length=True, truncated_key=None, cache_values=True
+    )
+    lazy = TensorDictReplayBuffer(storage=LazyTensorStorage(episodes.shape[0]), sampler=sampler)
+    lazy.extend(episodes)
+    lazy.episode_starts = buffer.episode_starts
+    a = sample_windows(buffer, 8, 16, 2, [torch.Generator().manual_seed(s) for s in (1, 2)])
+    b = sample_windows(lazy, 8, 16, 2, [torch.Generator().manual_seed(s) for s in (1, 2)])
+    assert (a == b.exclude("index")).all()  # extend writes the frames' indices beside them
+    episodes["observation"].zero_()  # the buffer holds its own copy of the frames
+    assert buffer.storage[0]["observation"].abs().sum() > 0
+
+
 def test_windows_of_another_length_than_the_buffers_are_refused(episodes):
     """The sampler keeps windows inside an episode for its own length only: a longer window
     would run into the next episode."""
