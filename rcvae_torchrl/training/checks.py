@@ -17,12 +17,18 @@ dimension, on held-out episodes:
   whose coverage for a draw of the same distribution is known exactly).
 
 A predicted dimension whose one-step error is not at least ``min_gain`` below the better of the
-two baselines is flagged: the model has not learned it. A dimension whose coverage is below the
-interval's, by more than chance allows (a one-sided binomial test at level ``alpha``, Bonferroni
-over the dimensions checked), is flagged too: the model is overconfident there (its spread too
-narrow, or off centre), which a model whose randomness per episode was not learned shows. A
-dimension whose real state lies strictly inside the samples' central half more often than half
-the time, by more than chance allows (the same test, the other tail), is named underconfident
+two baselines is flagged: the model has not learned it. So is one whose mean open-loop forecast
+after ``k`` steps is further from the real state than the better of its two baselines, by more
+than chance allows (:attr:`ModelChecks.drifting`): the mean of a right model's samples is the
+best guess of the state given the start and the actions, which no baseline beats but by the
+noise of its finitely many samples, so a model further off drifts, however well it predicts one
+step (an acrobot model whose mean forecast 10 steps ahead was 1.2-1.46 times the data's spread
+off passed every other check). A dimension whose coverage is below the interval's, by more than
+chance allows (a one-sided binomial test at level ``alpha``, Bonferroni over the dimensions
+checked), is flagged too: the model is overconfident there (its spread too narrow, or off
+centre), which a model whose randomness per episode was not learned shows. A dimension whose
+real state lies strictly inside the samples' central half more often than half the time, by
+more than chance allows (the same test, the other tail), is named underconfident
 (:attr:`ModelChecks.underconfident`): its spread is wider than its errors, so the aleatoric bits
 there overstate the env's noise (an acrobot model trained on noise-free episodes forecast 19-22
 bits of "aleatoric" doubt). It does not fail the checks: the outcome forecasts of such a model
@@ -50,7 +56,7 @@ from tensordict import TensorDictBase
 from rcvae_torchrl import _checks
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl.competency._checks import check_probability
-from rcvae_torchrl.data import episode_spans, make_window_buffer, sample_windows
+from rcvae_torchrl.data import TRAJ_KEY, episode_spans, make_window_buffer, sample_windows
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import imagine
 
@@ -88,6 +94,12 @@ class ModelChecks:
     #: central half (``[S]``; ``None``: not measured)
     covered_half: torch.Tensor | None = None
     half_interval: float = 0.0  #: that interval's exact coverage for a draw of the samples' law
+    #: per dimension, the one-sided p-value of "the mean open-loop forecast after ``k`` steps is
+    #: further off than the better baseline" (``[S]``; ``None``: not measured, too few
+    #: held-out episodes)
+    k_step_p: torch.Tensor | None = None
+    #: the imagined samples each open-loop mean averages (E times the samples per member)
+    k_samples: int = 0
 
     @property
     def unlearned(self) -> tuple[int, ...]:
@@ -152,9 +164,23 @@ class ModelChecks:
         )
 
     @property
+    def drifting(self) -> tuple[int, ...]:
+        """Checked dimensions whose mean open-loop forecast after ``k`` steps is further from
+        the real state than the better of copying the start state and guessing the mean, by
+        more than chance allows: a one-sided t-test over the held-out episodes (each episode's
+        windows one unit) of the squared errors' excess over ``1 + 1/k_samples`` times the
+        baseline's (what a right model's mean of that many samples may lose to noise), at
+        level ``alpha`` / the number of dimensions checked."""
+        if self.k_step_p is None or not self.checked:
+            return ()
+        level = self.alpha / len(self.checked)
+        return tuple(d for d in self.checked if float(self.k_step_p[d]) < level)
+
+    @property
     def flagged(self) -> tuple[int, ...]:
-        """Checked dimensions the model has not learned or is overconfident about."""
-        bad = set(self.unlearned) | set(self.overconfident)
+        """Checked dimensions the model has not learned, drifts on, or is overconfident
+        about."""
+        bad = set(self.unlearned) | set(self.drifting) | set(self.overconfident)
         return tuple(d for d in self.checked if d in bad)
 
     @property
@@ -183,6 +209,18 @@ class ModelChecks:
                 + ", ".join(parts)
                 + ": it predicts these dimensions no better than copying the previous state or "
                 "guessing their mean, so forecasts that depend on them are not trustworthy"
+            )
+        if self.drifting:
+            parts = [
+                f"{self.names[d]} (error {float(self.k_step[d]):.3g} vs "
+                f"{float(torch.minimum(self.copy_k_step[d], self.spread[d])):.3g})"
+                for d in self.drifting
+            ]
+            sentences.append(
+                f"the world model drifts: {self.k} steps into held-out episodes, driven by their "
+                "own actions, its mean forecast is further from the real state than copying the "
+                "start state or guessing the mean, for " + ", ".join(parts) + ": forecasts "
+                "further ahead than a step that depend on them are not trustworthy"
             )
         if self.overconfident:
             parts = [
@@ -217,6 +255,11 @@ class ModelChecks:
             if covered.numel()
             else ""
         )
+        drift = (
+            f", and {self.k} steps ahead, open loop, no further off than those baselines"
+            if self.k_step_p is not None
+            else ""
+        )
         wide = self.wide_sentence()
         if wide:
             wide = f". But {wide}"
@@ -233,7 +276,7 @@ class ModelChecks:
         return (
             f"the world model passed its self-checks: each of the {len(self.checked)} "
             f"dimensions checked it predicts one step ahead at least {self.min_gain:.0%} better "
-            f"than copying the previous state or guessing its mean{inside}{wide}"
+            f"than copying the previous state or guessing its mean{drift}{inside}{wide}"
         )
 
     def as_dict(self) -> dict[str, Any]:
@@ -254,6 +297,9 @@ class ModelChecks:
             "covered_half": None if self.covered_half is None else self.covered_half.tolist(),
             "half_interval": self.half_interval,
             "underconfident": [self.names[d] for d in self.underconfident],
+            "drifting": [self.names[d] for d in self.drifting],
+            "k_step_p": None if self.k_step_p is None else self.k_step_p.tolist(),
+            "k_samples": self.k_samples,
         }
         for key in ("one_step", "copy_one_step", "spread", "k_step", "copy_k_step"):
             out[key] = getattr(self, key).tolist()
@@ -281,6 +327,10 @@ class ModelChecks:
             if values.get("covered_half") is None
             else torch.tensor(values["covered_half"], dtype=torch.float64),
             half_interval=float(values.get("half_interval", 0.0)),
+            k_step_p=None
+            if values.get("k_step_p") is None
+            else torch.tensor(values["k_step_p"], dtype=torch.float64),
+            k_samples=int(values.get("k_samples", 0)),
             **tensors,
         )
 
@@ -352,6 +402,44 @@ def _coverage(
     )
 
 
+#: the fewest held-out episodes whose windows the open-loop drift test takes as its units
+_DRIFT_EPISODES = 3
+
+
+def _drift_p_values(
+    forecast: torch.Tensor,
+    truth: torch.Tensor,
+    baseline: torch.Tensor,
+    samples: int,
+    episodes: torch.Tensor,
+) -> torch.Tensor | None:
+    """Per dimension (``[S]``, CPU), the one-sided p-value of "the mean forecast's squared error
+    exceeds ``1 + 1/samples`` times the baseline's" over windows ``[W, S]``: a right model's
+    mean of ``samples`` draws errs by its law's variance plus a ``1/samples`` share of it, and
+    that variance is no more than any baseline's squared error. Windows of one episode are not
+    independent, so each episode's mean excess is one unit of a t-test (``None``: fewer than
+    :data:`_DRIFT_EPISODES` episodes; 1 where every episode's excess is the same and not
+    above 0, 0 where it is above)."""
+    from scipy.stats import t as student_t
+
+    excess = (forecast.to(torch.float64) - truth).square() - (1 + 1 / samples) * (
+        truth.to(torch.float64) - baseline
+    ).square()
+    excess = excess.cpu()
+    ids, unit = torch.unique(episodes.cpu(), return_inverse=True)
+    n = len(ids)
+    if n < _DRIFT_EPISODES:
+        return None
+    counts = torch.bincount(unit, minlength=n).to(torch.float64)
+    per_episode = torch.zeros(n, excess.shape[-1], dtype=torch.float64).index_add_(0, unit, excess)
+    per_episode /= counts[:, None]
+    mean, sd = per_episode.mean(0), per_episode.std(0, correction=1)
+    stat = (mean / (sd / n**0.5)).numpy()
+    p = torch.from_numpy(student_t.sf(stat, n - 1)).to(torch.float64)
+    flat = sd <= 1e-12 * (1 + per_episode.abs().max(0).values)
+    return torch.where(flat, (mean <= 0).to(torch.float64), p)
+
+
 def _windows(data: TensorDictBase, length: int, count: int, seed: int) -> TensorDictBase:
     with torch.random.fork_rng():
         torch.manual_seed(seed)
@@ -380,7 +468,10 @@ def check_model(
     Args:
         ensemble: the trained model (its config's ``names`` name the dimensions).
         data: held-out whole episodes (``split_episodes``' validation part).
-        k: open-loop steps (windows of ``k + 1`` frames).
+        k: open-loop steps (windows of ``k + 1`` frames) of the drift check. Like the
+            coverage check far ahead, it wants episodes whose actions did not answer the noise
+            met on the way: a closed-loop controller's corrections in a noisy env can keep the
+            real state nearer its start than a right model driven by the same actions.
         window: length of the one-step windows.
         windows: windows drawn for each check.
         samples_per_member: imagined samples per member for the open-loop mean.
@@ -429,6 +520,11 @@ def check_model(
     )
     forecast = rollouts.get("observation")[..., k - 1, :].mean((0, 1))
     k_step, copy_k_step = _rmse(forecast - truth_k), _rmse(truth_k - starts)
+    mean = data.get("observation").to(device, torch.float64).mean(0)
+    baseline = torch.where(copy_k_step <= spread, starts.to(torch.float64), mean)
+    k_step_p = _drift_p_values(
+        forecast, truth_k, baseline, e * samples_per_member, many.get(TRAJ_KEY)[:, 0]
+    )
     changing = (copy_one_step > 0) | (spread > 0)
     checked = tuple(d for d in cfg.predicted_dims if bool(changing[d]))
     steps = min(coverage_steps, longest - 1)
@@ -454,6 +550,8 @@ def check_model(
         min_episodes=min_episodes,
         covered_half=covered_half,
         half_interval=half_exact,
+        k_step_p=k_step_p,
+        k_samples=e * samples_per_member,
     )
     if warn and not checks.passed:
         warnings.warn(checks.message(), ModelCheckWarning, stacklevel=2)

@@ -312,3 +312,79 @@ def test_a_dimension_the_model_gets_exactly_is_covered():
     assert not {0, 1} & set(checks.overconfident)
     # nor is its interval of width 0 a spread too wide: nothing lies strictly inside it
     assert checks.covered_half[:2].tolist() == [0, 0] and not {0, 1} & set(checks.underconfident)
+
+
+def _right_and_biased_p(offset: float, seed: int) -> torch.Tensor:
+    """p-values of the drift test for windows of 16 episodes (4 each) of an unpredictable
+    dimension: the truth is N(0, 1), the baseline its mean, the forecast the mean of 8 draws
+    of the truth's law, shifted by ``offset``."""
+    from rcvae_torchrl.training.checks import _drift_p_values
+
+    g = torch.Generator().manual_seed(seed)
+    truth = torch.randn(64, 1, generator=g, dtype=torch.float64)
+    forecast = torch.randn(64, 8, generator=g, dtype=torch.float64).mean(1, keepdim=True)
+    episodes = torch.arange(16).repeat_interleave(4)
+    return _drift_p_values(forecast + offset, truth, torch.zeros_like(truth), 8, episodes)
+
+
+def test_the_drift_test_holds_its_level_where_a_right_model_only_ties_the_baseline():
+    """Where nothing is predictable, a right model's mean of 8 samples errs by (1 + 1/8) times
+    the baseline's square: the test's boundary, rejected about as often as its level; a mean
+    off by a whole spread is found almost every time."""
+    right = torch.cat([_right_and_biased_p(0.0, s) for s in range(400)])
+    biased = torch.cat([_right_and_biased_p(1.0, s) for s in range(100)])
+    assert float((right < 0.05).double().mean()) <= 0.085
+    assert float((right < 0.05).double().mean()) >= 0.02  # not a test that never rejects
+    assert float((biased < 0.05).double().mean()) >= 0.9
+
+
+def test_the_drift_test_takes_episodes_as_its_units():
+    """The same excess in every window of an episode counts once per episode: 2 episodes are
+    too few to test, and copies of each window do not make it more sure."""
+    from rcvae_torchrl.training.checks import _drift_p_values
+
+    truth = torch.tensor([[0.0], [0.1], [0.3], [-0.2], [0.2], [0.05]], dtype=torch.float64)
+    forecast, base = truth + 1.0, torch.zeros_like(truth)
+    two = _drift_p_values(forecast, truth, base, 8, torch.tensor([0, 0, 0, 1, 1, 1]))
+    assert two is None
+    six = _drift_p_values(forecast, truth, base, 8, torch.arange(6))
+    doubled = _drift_p_values(
+        forecast.repeat_interleave(2, 0),
+        truth.repeat_interleave(2, 0),
+        base.repeat_interleave(2, 0),
+        8,
+        torch.arange(6).repeat_interleave(2),
+    )
+    assert float(six[0]) < 0.01 and torch.allclose(six, doubled)
+
+
+def test_a_model_off_course_after_k_steps_is_named_drifting(trained):
+    """The model checked on the system it learned drifts on no dimension; on the same system
+    with the third dimension's decay (0.8) gone, its mean forecast 10 steps ahead is further
+    off than copying the start, and it is named, with both errors."""
+    result, _, _ = trained
+    assert result.checks.drifting == () and result.checks.k_samples == 3 * 8
+    assert result.checks.k_step_p is not None and (result.checks.k_step_p > 0.01).all()
+    g = torch.Generator().manual_seed(3)
+    a_mat = torch.tensor([[0.9, 0.1, 0.0], [0.0, 0.9, 0.1], [0.0, 0.0, 1.0]])
+    s, obs, act, nxt = torch.randn(60, 3, generator=g), [], [], []
+    for _ in range(40):
+        a = torch.rand(60, 1, generator=g) * 2 - 1
+        s_next = s @ a_mat.T + a * torch.tensor([0.0, 0.0, 0.5])
+        s_next = s_next + 0.05 * torch.randn(60, 3, generator=g)
+        obs.append(s), act.append(a), nxt.append(s_next)
+        s = s_next
+    episodes = linear_episodes(60, 40, seed=3).reshape(60, 40).clone()
+    episodes["observation"], episodes["action"] = torch.stack(obs, 1), torch.stack(act, 1)
+    episodes["next", "observation"] = torch.stack(nxt, 1)
+    changed = _with_noise_dim(episodes.reshape(-1), 3)
+    with pytest.warns(ModelCheckWarning, match="the world model drifts: 10 steps into") as caught:
+        checks = check_model(result.ensemble, changed, samples_per_member=20)
+    assert 2 in checks.drifting and 2 in checks.flagged and not checks.passed
+    assert float(checks.k_step[2]) > float(checks.copy_k_step[2])
+    assert f"z (error {float(checks.k_step[2]):.3g} vs " in str(caught[0].message)
+    restored = ModelChecks.from_dict(checks.as_dict())
+    assert restored.drifting == checks.drifting and checks.as_dict()["drifting"][0] == "z"
+    # checks saved before the drift test carry no p-values: nothing is named drifting
+    old = {k: v for k, v in checks.as_dict().items() if k not in ("k_step_p", "k_samples")}
+    assert ModelChecks.from_dict(old).drifting == ()
