@@ -90,6 +90,23 @@ def test_a_constant_forecast_has_no_skill_and_fails_the_checks():
     assert not checks["Brier skill vs the condition's base rate > 0 (stochastic)"]["met"]
 
 
+def test_a_condition_no_real_episode_succeeded_in_has_no_times_to_score():
+    """No real success in a condition: its time-to-success CRPS has no real times and no
+    climatology, so the check is left out (as the Brier skill against a rate of 0 is), not
+    counted a miss; the other conditions keep theirs."""
+    forecasts, truths = _case(perfect=True)
+    c = "out-of-distribution"
+    truths[c]["success"][:] = False
+    truths[c]["first_step"][:] = 20
+    truths[c]["trace"][:] = 1.0
+    scores = validation(forecasts, truths, radius=0.03)
+    assert math.isnan(scores[c]["tts_skill"])
+    checks = trust_checks(scores, competency_surfaces(forecasts, truths, [0.03], [20]))
+    assert f"time-to-success CRPS skill > 0 ({c})" not in checks
+    assert f"Brier skill vs the condition's base rate > 0 ({c})" not in checks
+    assert checks["time-to-success CRPS skill > 0 (stochastic)"]["met"]
+
+
 def test_the_members_limit_removes_their_disagreement_not_their_shared_error():
     forecasts, truths = _case(perfect=True)
     scores = validation(forecasts, truths, radius=0.03)  # no members' forecasts: no limit
