@@ -16,6 +16,7 @@ import math
 import os
 import re
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -29,6 +30,7 @@ __all__ = [
     "at_least",
     "build_config",
     "check_device_name",
+    "check_override_keys",
     "check_run_dir",
     "check_run_dir_name",
     "check_reuse_from",
@@ -227,6 +229,31 @@ def _check_known_keys(schema: DictConfig, cfg: Any, prefix: str = "") -> None:
         if isinstance(child, DictConfig) and not child._is_missing() and not child._is_none():
             value = cfg[key] if isinstance(cfg, dict) else cfg._get_node(key)
             _check_known_keys(child, value, f"{prefix}{key}.")
+
+
+def check_override_keys(cls: type, argv: Sequence[str]) -> None:
+    """Before Hydra composes anything: a command-line override of a key that the recipe's
+    settings ``cls`` do not have ends the run with the recipe's own message, the keys it knows
+    (``SystemExit``). Hydra's own message for it suggests adding the key with ``+``, which the
+    recipe then refuses (:func:`build_config`). Flags, ``+``/``~`` overrides, config groups
+    (``hydra/launcher=...``) and Hydra's own settings are left to Hydra."""
+    schema = _schema(cls)
+    for arg in argv:
+        if arg.startswith(("-", "+", "~")) or "=" not in arg:
+            continue
+        key = arg.split("=", 1)[0]
+        if key.split(".")[0] == "hydra" or "/" in key or "@" in key:
+            continue
+        override: dict[str, Any] = {}
+        node = override
+        *parents, leaf = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = None
+        try:
+            _check_known_keys(schema, override)
+        except ValueError as err:
+            raise SystemExit(f"error: {err}") from None
 
 
 def _schema(cls: type) -> DictConfig:

@@ -27,8 +27,8 @@ from torchrl.record.loggers import generate_exp_name
 from rcvae_torchrl.io import check_run_config
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
-from recipes._settings import set_threads
-from recipes.point_mass_competency.config import register_configs, study_config
+from recipes._settings import check_override_keys, set_threads
+from recipes.point_mass_competency.config import RecipeConfig, register_configs, study_config
 from recipes.point_mass_competency.pipeline import run_study, study_settings
 
 register_configs()
@@ -68,4 +68,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    check_override_keys(RecipeConfig, sys.argv[1:])
     main()

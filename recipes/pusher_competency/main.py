@@ -39,7 +39,7 @@ from rcvae_torchrl import distributed
 from rcvae_torchrl.io import check_run_config
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
-from recipes._settings import resolve_device, set_threads
+from recipes._settings import check_override_keys, resolve_device, set_threads
 from recipes.pusher_competency.config import RecipeConfig, register_configs, study_config
 from recipes.pusher_competency.pipeline import run_study, study_settings, training_op_flop
 
@@ -97,4 +97,5 @@ def _run(config: RecipeConfig, device: str, say: Callable[[str], None] | None) -
 
 
 if __name__ == "__main__":
+    check_override_keys(RecipeConfig, sys.argv[1:])
     main()

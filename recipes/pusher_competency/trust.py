@@ -260,9 +260,7 @@ def trust_checks(scores, surfaces) -> dict[str, dict[str, Any]]:
                 s["brier_skill"], s["brier_skill"] > 0
             )
         if math.isfinite(s["tts_skill"]):  # else no real episode succeeded: no times to score
-            out[f"time-to-success CRPS skill > 0 ({c})"] = _met(
-                s["tts_skill"], s["tts_skill"] > 0
-            )
+            out[f"time-to-success CRPS skill > 0 ({c})"] = _met(s["tts_skill"], s["tts_skill"] > 0)
     overall = scores["overall"]
     out[f"AUROC >= {TARGETS['auroc']} (all episodes)"] = _met(
         overall["auroc"], overall["auroc"] >= TARGETS["auroc"]

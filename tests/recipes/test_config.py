@@ -13,7 +13,7 @@ from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
 from rcvae_torchrl.io import StoredFileError, write_json
-from recipes._settings import SEED_MAX, resolve_device, set_threads
+from recipes._settings import SEED_MAX, check_override_keys, resolve_device, set_threads
 from recipes.pusher_competency.config import (
     RecipeConfig,
     StudyConfig,
@@ -353,6 +353,23 @@ def test_keys_added_with_plus_are_checked_too(override, expected):
     """Hydra lets ``+key=value`` past its own check: the schema refuses it by name."""
     with pytest.raises(ValueError, match=expected):
         study_config(override)
+
+
+def test_a_mistyped_key_on_the_command_line_is_named_before_hydra_runs():
+    """Hydra's own message for an unknown key suggests ``+key=...``, which the schema then
+    refuses: the command line is checked first, with the recipe's message; what is Hydra's
+    (flags, groups, its own settings, ``+``/``~`` overrides) is left to it."""
+    from recipes.pusher_competency.config import RecipeConfig
+
+    fine = ["-m", "seed=0,1", "profile=quick", "assess.horizon_s=5", "hydra/launcher=local"]
+    check_override_keys(RecipeConfig, [*fine, "hydra.job.chdir=false", "+x=1", "~seed"])
+    check_override_keys(RecipeConfig, ["run_dir=a=b", "agent.distill.epochs=2", "--help"])
+    with pytest.raises(SystemExit, match=r"^error: assess\.horizn_s: not a setting of assess \("):
+        check_override_keys(RecipeConfig, [*fine, "assess.horizn_s=5"])
+    with pytest.raises(SystemExit, match=r"^error: trian: not a setting of the recipe"):
+        check_override_keys(RecipeConfig, ["trian.max_steps=3"])
+    with pytest.raises(SystemExit, match=r"^error: agent\.distill\.epoch: not a setting of"):
+        check_override_keys(RecipeConfig, ["agent.distill.epoch=3"])
 
 
 def test_a_run_dir_under_home_is_the_folder_that_was_checked(monkeypatch, tmp_path):
