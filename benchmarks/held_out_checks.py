@@ -23,7 +23,6 @@ from the run's ``summary.json``). Printed and written to ``benchmarks/results/<o
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -31,6 +30,7 @@ import torch
 from _report import conditions, print_table, write_json
 
 from rcvae_torchrl.data import episode_spans
+from rcvae_torchrl.io import read_json
 from rcvae_torchrl.rollout import imagine
 from rcvae_torchrl.training import OutcomeCheck
 from recipes.pusher_competency.data import replay_episodes
@@ -84,7 +84,7 @@ def main() -> None:
     torch.set_num_threads(1)
     study = study_of_run(args.run_dir)
     config = study.cfg
-    scored = json.loads((args.run_dir / "summary.json").read_text())["validation"]
+    scored = read_json(args.run_dir / "summary.json", "study summary")["validation"]
     rows, results = [], {}
     for condition in CHECKED_CONDITIONS:
         started = time.perf_counter()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import re
 import tempfile
@@ -79,9 +80,40 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
     return path
 
 
+#: How :func:`write_json` writes the floats JSON has no number for (as protobuf's JSON does),
+#: and :func:`read_json` reads them back.
+_NON_FINITE = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}
+
+
+def _strict(obj: Any) -> Any:
+    """``obj`` with every non-finite float as its string (``"NaN"``, ``"Infinity"``,
+    ``"-Infinity"``): the bare ``NaN`` Python writes is not JSON, and strict parsers (jq,
+    browsers, most languages' libraries) refuse the whole file for it."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else ("NaN" if math.isnan(obj) else json.dumps(obj))
+    if isinstance(obj, Mapping):
+        return {key: _strict(value) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_strict(value) for value in obj]
+    return obj
+
+
+def _numbers(obj: Any) -> Any:
+    """:func:`_strict` undone: the strings of non-finite floats read back as floats."""
+    if isinstance(obj, str):
+        return _NON_FINITE.get(obj, obj)
+    if isinstance(obj, dict):
+        return {key: _numbers(value) for key, value in obj.items()}
+    if isinstance(obj, list):
+        return [_numbers(value) for value in obj]
+    return obj
+
+
 def write_json(path: str | Path, obj: Any) -> Path:
-    """Write ``obj`` as indented JSON, atomically (non-JSON values are written as strings)."""
-    text = json.dumps(obj, indent=2, default=str).encode()
+    """Write ``obj`` as indented, strict JSON, atomically: a non-finite float as the string
+    ``"NaN"``, ``"Infinity"`` or ``"-Infinity"`` (which :func:`read_json` reads back as the
+    float), other non-JSON values as strings."""
+    text = json.dumps(_strict(obj), indent=2, default=str, allow_nan=False).encode()
     return atomic_write(path, lambda f: f.write(text))
 
 
@@ -99,11 +131,12 @@ def _existing_file(path: object, what: str) -> Path:
 
 
 def read_json(path: str | Path, what: str = "a JSON file") -> Any:
-    """The JSON content of ``path``; :class:`StoredFileError` naming the file when it is
-    missing or not valid JSON (e.g. truncated)."""
+    """The JSON content of ``path`` (the strings :func:`write_json` writes for non-finite
+    floats as those floats); :class:`StoredFileError` naming the file when it is missing or
+    not valid JSON (e.g. truncated)."""
     path = _existing_file(path, what)
     try:
-        return json.loads(path.read_bytes())
+        return _numbers(json.loads(path.read_bytes()))
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise StoredFileError(
             f"{what} {str(path)!r} is truncated or corrupt (not valid JSON: {err})", path

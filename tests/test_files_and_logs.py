@@ -10,7 +10,7 @@ import warnings
 import pytest
 import torch
 
-from rcvae_torchrl.io import atomic_write, save_torch, write_json
+from rcvae_torchrl.io import atomic_write, read_json, save_torch, write_json
 from rcvae_torchrl.run_log import ANSI_CODE, run_log
 
 
@@ -165,3 +165,21 @@ def test_a_torch_file_of_other_objects_is_named_another_kind_of_file(tmp_path):
         load_ensemble(episodes)
     assert isinstance(err.value, StoredFileError)
     assert "add_safe_globals" not in str(err.value)  # no advice to load it unsafely
+
+
+def test_json_files_are_strict_and_read_back_their_non_finite_floats(tmp_path):
+    """A NaN or an infinity is written as a string (Python's bare NaN is no JSON: strict
+    parsers refuse the whole file) and read back as the float."""
+    import json
+    import math
+
+    record = {"gap": math.nan, "ratios": [1.5, math.inf, -math.inf], "name": "x", "none": None}
+    path = write_json(tmp_path / "summary.json", record)
+    text = path.read_text()
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"bare {c} in the file"))
+    assert json.loads(text)["ratios"] == [1.5, "Infinity", "-Infinity"]
+    back = read_json(path)
+    assert math.isnan(back["gap"]) and back["ratios"] == [1.5, math.inf, -math.inf]
+    assert back["name"] == "x" and back["none"] is None
+    (tmp_path / "old.json").write_text('{"gap": NaN}')  # files written before: read as they were
+    assert math.isnan(read_json(tmp_path / "old.json")["gap"])

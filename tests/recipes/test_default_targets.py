@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pytest
 
+from rcvae_torchrl.io import read_json
+
 ROOT = Path(__file__).resolve().parents[2]
 PROFILE = os.environ.get("RCVAE_TARGETS_PROFILE", "default")
 
@@ -38,7 +40,7 @@ def test_default_profile_meets_the_targets():
         timeout=3600,
     )
     assert done.returncode == 0, done.stderr[-3000:]
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = read_json(run_dir / "summary.json")
     failed = {name: c for name, c in summary["checks"].items() if not c["met"]}
     assert not failed, f"targets missed: {json.dumps(failed, indent=1)}"
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from micro import POINT_MASS_MICRO
 
+from rcvae_torchrl.io import read_json
 from recipes.point_mass_competency.report import COLUMNS
 from recipes.point_mass_competency.task import CONDITIONS
 
@@ -59,7 +60,7 @@ def test_every_output_and_a_row_per_condition(run_dir):
 
 
 def test_summary_checks_and_plain_words(run_dir):
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = read_json(run_dir / "summary.json")
     assert len(summary["checks"]) == 3 + 2 + 2
     for check in summary["checks"].values():
         assert isinstance(check["met"], bool)

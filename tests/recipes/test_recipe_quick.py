@@ -22,6 +22,7 @@ from doc_blocks import rst_python_blocks, run_blocks
 from micro import MICRO, START_STATES
 from PIL import Image
 
+from rcvae_torchrl.io import read_json
 from recipes.pusher_competency import pipeline
 from recipes.pusher_competency.pusher import CONDITIONS
 from recipes.pusher_competency.report import COLUMNS
@@ -143,7 +144,7 @@ def test_figures_and_gif_are_valid_images(runs):
     with Image.open(d / "uncertainty_over_time.png") as image:
         width, height = image.size
         assert width > 2 * height  # three panels side by side
-    summary = json.loads((d / "summary.json").read_text())
+    summary = read_json(d / "summary.json")
     if summary["gif"] == "episode.gif":
         with Image.open(d / "episode.gif") as gif:
             assert gif.format == "GIF" and gif.n_frames > 1
@@ -156,7 +157,7 @@ def test_report_references_the_outputs(runs):
     report = (d / "report.md").read_text()
     for name in FIGURES:
         assert f"]({name})" in report
-    summary = json.loads((d / "summary.json").read_text())
+    summary = read_json(d / "summary.json")
     gif = "![episode](episode.gif)" if summary["gif"] == "episode.gif" else summary["gif"]
     assert gif in report
     assert (d / "table.md").read_text() in report
@@ -165,7 +166,7 @@ def test_report_references_the_outputs(runs):
 
 
 def test_summary_json(runs):
-    summary = json.loads((runs["dir"] / "summary.json").read_text())
+    summary = read_json(runs["dir"] / "summary.json")
     assert {"rows", "overall", "checks", "validation", "surfaces", "pattern_by_window"} <= set(
         summary
     )
@@ -218,7 +219,7 @@ def test_summary_json(runs):
 
 
 def test_start_states_unlike_the_training_states_are_counted_per_condition(runs):
-    rows = json.loads((runs["dir"] / "summary.json").read_text())["novelty"]
+    rows = read_json(runs["dir"] / "summary.json")["novelty"]
     assert list(rows) == list(CONDITIONS)  # training fitted the novelty check of each model
     for condition, row in rows.items():
         saved = torch.load(runs["dir"] / "forecast" / f"{condition}.pt", weights_only=True)
@@ -327,7 +328,6 @@ def test_held_out_checks_benchmark_judges_the_run_both_ways(runs):
     """``benchmarks/held_out_checks.py`` on a finished run: the open-loop replays of the
     held-out episodes' actions and the report's own closed-loop check."""
     from rcvae_torchrl.data import episode_spans
-    from rcvae_torchrl.io import read_json
     from recipes.pusher_competency.config import study_config
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
@@ -349,7 +349,6 @@ def test_held_out_checks_benchmark_judges_the_run_both_ways(runs):
 def test_novelty_benchmark_fits_the_check_as_training_does(runs, monkeypatch):
     """``benchmarks/novelty.py`` on a finished run: the models' own checks, or (for models
     trained before the check existed) the same check fitted again; the report's counts."""
-    from rcvae_torchrl.io import read_json
     from recipes.pusher_competency.pusher import WORLD_MODELS
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
@@ -385,7 +384,6 @@ def test_the_unscored_start_states_of_each_condition(runs):
     models' own envs, then fresh draws of the condition's env's reset up to CHECK_EPISODES real
     episodes; none of them a scored start, the same in every call."""
     from rcvae_torchrl.data import episode_spans
-    from rcvae_torchrl.io import read_json
     from recipes.pusher_competency.config import study_config
 
     config = study_config({**read_json(runs["dir"] / "study_config.json"), "run_dir": runs["dir"]})
@@ -407,7 +405,6 @@ def test_the_unscored_start_states_of_each_condition(runs):
 def test_demonstrations_side_by_side(runs):
     """agent.demo_envs: the MPC episodes in one batched env, one plan of all states per step;
     every episode recorded (a padded last group dropped), the same under the same seed."""
-    from rcvae_torchrl.io import read_json
     from recipes.pusher_competency.config import study_config
 
     saved = read_json(runs["dir"] / "study_config.json")
