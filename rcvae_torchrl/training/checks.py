@@ -631,6 +631,11 @@ class OutcomeCheck:
     #: the start states the forecasts were made from, ``[n, D]`` (a report's observations);
     #: ``None`` where not known, and then the check cannot tell which starts it vouches for
     start_states: torch.Tensor | None = None
+    #: ``[D]``, the unit of each dimension in :meth:`covers`: the spread of the world model's
+    #: training states (a report's novelty check,
+    #: :attr:`~rcvae_torchrl.training.StateNovelty.scale`); ``None``: the start states' own
+    #: spread
+    state_scale: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         for name in ("forecast", "real"):
@@ -651,6 +656,16 @@ class OutcomeCheck:
                     "start_states: expected one start state per forecast "
                     f"({self.forecast.shape[0]}), got {self.start_states.shape[0]}"
                 )
+        if self.state_scale is not None:
+            _checks.check_tensor("state_scale", self.state_scale)
+            dim = None if self.start_states is None else self.start_states.shape[-1]
+            if self.state_scale.dim() != 1 or (dim is not None and self.state_scale.numel() != dim):
+                raise ValueError(
+                    f"state_scale: expected one positive unit per dimension [D={dim}], got shape "
+                    f"{tuple(self.state_scale.shape)}"
+                )
+            if not bool((self.state_scale > 0).all()):
+                raise ValueError("state_scale: expected positive units, got one <= 0")
 
     @classmethod
     def from_outcomes(
@@ -664,6 +679,7 @@ class OutcomeCheck:
         tolerance: float = 0.2,
         task: str | None = None,
         start_states: torch.Tensor | None = None,
+        state_scale: torch.Tensor | None = None,
     ) -> OutcomeCheck:
         """From forecasts ``[n]`` (probabilities) and real outcomes, bool ``[n, R]``.
 
@@ -677,7 +693,9 @@ class OutcomeCheck:
         (:meth:`~rcvae_torchrl.competency.CompetencyReport.with_forecast_check`); from bare
         forecasts, pass ``task=report.task`` of the report they come from. It keeps the
         report's start states too (or ``start_states`` ``[n, D]`` given with bare forecasts), and
-        vouches for forecasts of start states like them alone (:meth:`covers`)."""
+        vouches for forecasts of start states like them alone (:meth:`covers`), each dimension
+        in units of its spread in the world model's training states where the report has a
+        novelty check (or ``state_scale`` ``[D]`` given)."""
         deadline = getattr(forecast, "time_limit", None)
         if hasattr(forecast, "competency") and deadline is not None:  # a CompetencyReport
             known = getattr(forecast, "task", "") or None
@@ -691,6 +709,11 @@ class OutcomeCheck:
             if start_states is None and data is not None and key in data.keys(True):
                 observed = data.get(key)
                 start_states = observed.reshape(-1, observed.shape[-1])
+            novelty = getattr(forecast, "novelty", None)
+            scale = getattr(novelty, "scale", None)
+            dims = None if start_states is None else start_states.shape[-1]
+            if state_scale is None and scale is not None and scale.numel() == dims:
+                state_scale = scale
             forecast = forecast.competency["p_success"]
         if task is not None and not isinstance(task, str):
             raise TypeError(f"task: expected a report's task (a str), got {type(task).__name__}")
@@ -725,6 +748,9 @@ class OutcomeCheck:
             start_states=None
             if start_states is None
             else torch.as_tensor(start_states).detach().cpu().double(),
+            state_scale=None
+            if state_scale is None
+            else torch.as_tensor(state_scale).detach().cpu().double(),
         )
 
     @property
@@ -902,10 +928,10 @@ class OutcomeCheck:
 
     @cached_property
     def _cover(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, float, float] | None:
-        """The check's start states scaled (each dimension by its spread among them; one
-        that does not vary, by a millionth of its size), their centre and scale, the level of
-        :meth:`covers` and the share of new starts like them it keeps; ``None`` without
-        start states, or with fewer than 2."""
+        """The check's start states scaled (each dimension by :attr:`state_scale`, else by
+        its spread among them; one that does not vary, by a millionth of its size), their
+        centre and scale, the level of :meth:`covers` and the share of new starts like them it
+        keeps; ``None`` without start states, or with fewer than 2."""
         if self.start_states is None or self.start_states.shape[0] < 2:
             return None
         from rcvae_torchrl._conformal import conformal_level
@@ -914,6 +940,8 @@ class OutcomeCheck:
         center = states.mean(0)
         spread = states.std(0, correction=0)
         scale = torch.where(spread > 0, spread, 1e-6 * center.abs().clamp_min(1.0))
+        if self.state_scale is not None:
+            scale = self.state_scale
         scaled = (states - center) / scale
         apart = torch.cdist(scaled, scaled).fill_diagonal_(torch.inf).amin(1)
         level, kept = conformal_level(apart, _COVER_QUANTILE)
@@ -921,13 +949,16 @@ class OutcomeCheck:
 
     def covers(self, states: torch.Tensor) -> torch.Tensor | None:
         """``[m]`` bool: whether each of ``states`` ``[m, D]`` lies among the check's own
-        start states: no farther from the nearest of them (each dimension in units of their
-        spread) than 99 % of them lie from their own nearest other (a conformal level: a new
+        start states: no farther from the nearest of them (each dimension in units of
+        :attr:`state_scale`, the training states' spread, else of their own spread) than 99 %
+        of them lie from their own nearest other (a conformal level: a new
         start drawn like them stays within it with probability 0.99, or n / (n + 1) with
         fewer than 99 of them). A check vouches for forecasts of start states like its own:
         one made on a cart-pole's hanging starts said nothing of starts with the cart moving
-        4 m/s, where the forecasts were 0.3 off. ``None`` where the check keeps fewer than 2
-        start states."""
+        4 m/s, where the forecasts were 0.3 off. In their own spread, a dimension that varies
+        among them by float noise alone (a quadruped's force sensors at rest) counts as much
+        as one that matters, and hides a start far off in it; in the training states' it
+        counts as the noise it is. ``None`` where the check keeps fewer than 2 start states."""
         cover = self._cover
         if cover is None:
             return None
@@ -1134,6 +1165,7 @@ class OutcomeCheck:
             "tolerance": self.tolerance,
             "task": self.task,
             "start_states": None if self.start_states is None else self.start_states.tolist(),
+            "state_scale": None if self.state_scale is None else self.state_scale.tolist(),
             "starts": self.starts,
             "gap": self.gap,
             "p_value": self.p_value,
@@ -1160,6 +1192,9 @@ class OutcomeCheck:
             start_states=None
             if values.get("start_states") is None
             else torch.tensor(values["start_states"], dtype=torch.float64),
+            state_scale=None
+            if values.get("state_scale") is None
+            else torch.tensor(values["state_scale"], dtype=torch.float64),
         )
 
 

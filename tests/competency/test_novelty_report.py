@@ -233,3 +233,18 @@ def test_a_survival_whose_failure_region_holds_every_training_state_is_named():
         r"extrapolates, however much the members agree; train on episodes that stay out of it$",
     ):
         make_assessor(make_env(model), boundary=fallen)
+
+
+def test_a_forecast_check_made_from_a_report_measures_starts_in_the_training_spread():
+    """A check made from a report takes the unit of each dimension from the report's novelty
+    check (the training states' spread), not from its own starts' spread."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    model = make_ensemble()
+    model.novelty = _novelty()
+    report = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
+    check = OutcomeCheck.from_outcomes(report, torch.ones(3, 2, dtype=torch.bool))
+    assert torch.equal(check.state_scale, model.novelty.scale.double())
+    model.novelty = None
+    plain = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
+    assert OutcomeCheck.from_outcomes(plain, torch.ones(3, 2, dtype=torch.bool)).state_scale is None

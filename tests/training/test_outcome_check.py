@@ -431,6 +431,35 @@ def test_forecasts_that_do_not_tell_the_starts_apart_do_not_pass():
     assert right.passed and right.brier_skill > 0.5 and not right.no_better_than_constant
 
 
+def test_a_check_covers_starts_in_the_training_states_units():
+    """A quadruped trial: 27 of 78 dimensions of its starts varied by float noise alone
+    (1e-15). In their own spread they counted as much as the one that mattered, and starts
+    far off in it were called covered; in the training states' spread (the report's novelty
+    check) they count as the noise they are. A start moved by 1e-5 in a dimension the check's
+    starts never varied is then no longer 'unlike' them either."""
+    g = torch.Generator().manual_seed(1)
+    own = torch.zeros(60, 28, dtype=torch.float64)
+    own[:, 0] = torch.randn(60, generator=g, dtype=torch.float64)  # the dimension that matters
+    own[:, 1:] = 1e-15 * torch.randn(60, 27, generator=g, dtype=torch.float64)
+    forecast = torch.full((60,), 0.5, dtype=torch.float64)
+    real = torch.rand(60, 4, generator=g) < 0.5
+    far = own[:15].clone()
+    far[:, 0] += 6.0  # six spreads off, where it matters
+    unit = torch.ones(28, dtype=torch.float64)  # every dimension spread over 1 in training
+    own_units = OutcomeCheck.from_outcomes(forecast, real, start_states=own)
+    trained = OutcomeCheck.from_outcomes(forecast, real, start_states=own, state_scale=unit)
+    assert float(own_units.covers(far).double().mean()) > 0.5  # diluted: the old failure
+    assert not bool(trained.covers(far).any()) and trained.coverage_p_value(far) < 1e-6
+    nudged = own[:15].clone()
+    nudged[:, 5] += 1e-5
+    assert bool(trained.covers(nudged).all())
+    assert torch.equal(OutcomeCheck.from_dict(trained.as_dict()).covers(far), trained.covers(far))
+    with pytest.raises(ValueError, match=r"state_scale: expected one positive unit per dim"):
+        OutcomeCheck.from_outcomes(forecast, real, start_states=own, state_scale=unit[:3])
+    with pytest.raises(ValueError, match=r"state_scale: expected positive units, got one <= 0"):
+        OutcomeCheck.from_outcomes(forecast, real, start_states=own, state_scale=unit * 0)
+
+
 def test_a_check_covers_start_states_drawn_like_its_own_and_not_others():
     """A cart-pole trial: a check made on hanging starts made the report of starts with the
     cart moving 4 m/s 'trustworthy', forecasts 0.3 off. A check vouches for starts like its
