@@ -125,6 +125,14 @@ class StateNovelty:
     #: diluted in the distance over all dimensions together (a walker's torso at 2 m, every
     #: other dimension as in training, lay within the joint level)
     range_scale: float = 0.0
+    #: ``[D]``, per dimension, how far past its range (in spreads) ``1 - (1 - quantile) / D``
+    #: of the training states, and of their episodes' first states, stay (the larger; at least
+    #: a twentieth of a spread): the range view reads each dimension's
+    #: excess in these units, so that dimensions whose values run far past their range by
+    #: nature (a contact force's spikes) do not set the level for one that never does (a
+    #: quadruped thrown sideways at 2 m/s was like the training states while its force
+    #: sensors set the range's level); ``None``: one unit for all (checkpoints from before)
+    range_levels: Tensor | None = None
 
     def __post_init__(self) -> None:
         groups = _groups(self.groups, self.states.shape[-1])
@@ -245,6 +253,24 @@ class StateNovelty:
         fitted = cls(
             states, center, scale, low, high, math.inf, k, float(quantile), 0, groups=groups
         )
+        if held_out_starts is not None:
+            held_out_starts = _states("held_out_starts", held_out_starts, dim).float()
+        ids = own = None
+        if firsts is not None and episodes is not None:
+            ids, own = episodes[drawn], firsts[drawn]
+        # each dimension's range level, over the training states and over their first states
+        # (which may sit past a dimension's range by nature: a reset at rest, where the
+        # episodes' course moves): the larger. Not over the held-out states: the levels of
+        # the views are measured there, and levels fitted to them would be too low elsewhere
+        measured_by = [states] + ([] if own is None else [states[own]])
+        # at the quantile 1 - (1 - quantile) / D: the farthest dimension is the largest of D,
+        # so that many dimensions' rare excesses do not make every state's largest one rare
+        beyond = [fitted._beyond(x) for x in measured_by if x.shape[0]]  # [., D] in spreads
+        each = 1 - (1 - quantile) / dim
+        range_levels = torch.tensor(
+            [max(_conformal_level(b[:, d], each)[0] for b in beyond) for d in range(dim)]
+        ).clamp_min(_RANGE_MARGIN)
+        fitted = dataclasses.replace(fitted, range_levels=range_levels)
         # the distances in each view (all dimensions, each group's, the range's): held-out
         # states'
         general = fitted._views(held_out)
@@ -252,11 +278,8 @@ class StateNovelty:
         # and first states
         calibration = []
         if held_out_starts is not None:
-            held_out_starts = _states("held_out_starts", held_out_starts, dim)
-            calibration.append(fitted._views(held_out_starts.float()))
-        if firsts is not None and episodes is not None:
-            ids = episodes[drawn]
-            own = firsts[drawn]
+            calibration.append(fitted._views(held_out_starts))
+        if own is not None:
             calibration.append(fitted._views(states[own], ids[own], ids))
         views = torch.cat(calibration) if calibration else general[:0]
         measured = views.shape[0]
@@ -266,10 +289,16 @@ class StateNovelty:
         # the start a million times the level), nor the range's below a twentieth of a spread
         if not measured:  # no first states: starts are states like any other
             views = general
-        joint = _conformal_level(views[:, 0], quantile)[0]
+        # the joint distance's level over the first states, or over the held-out states in
+        # general where that is higher (first states that repeat one state, a reset with
+        # little noise, lie nearer the training states than any state of their course): each
+        # view is scaled to it from its own level over the same states
+        joint = max(
+            _conformal_level(views[:, 0], quantile)[0], _conformal_level(general[:, 0], quantile)[0]
+        )
         first = [_conformal_level(v, quantile)[0] for v in views[:, 1:].T]
         usual = [_conformal_level(v, quantile)[0] for v in general[:, 1:].T]
-        usual[-1] = max(usual[-1], _RANGE_MARGIN)
+        usual[-1] = max(usual[-1], 1.0)  # no lower than each dimension's own level
         scales = tuple(joint / max(f, u) for f, u in zip(first, usual, strict=True))
         fitted = dataclasses.replace(fitted, group_scales=scales[:-1], range_scale=scales[-1])
         start_level, start_kept = _conformal_level(fitted._combined(views), quantile)
@@ -296,7 +325,10 @@ class StateNovelty:
                 episodes_measured=sum(x.numel() for x in shares),
             )
         levels.update(
-            groups=groups, group_scales=fitted.group_scales, range_scale=fitted.range_scale
+            groups=groups,
+            group_scales=fitted.group_scales,
+            range_scale=fitted.range_scale,
+            range_levels=range_levels,
         )
         return cls(states, center, scale, low, high, level, k, kept, held_out.shape[0], **levels)
 
@@ -407,7 +439,8 @@ class StateNovelty:
         """``[Q, D] -> [Q, 1 + G + 1]``: the distance in all dimensions, then (for ``starts``)
         in each group's dimensions alone (root mean square over the group's dimensions) and
         the range's, how far the farthest dimension lies past the training states' central
-        99 % in spreads (none scaled); ``[Q, 1]`` without ``starts``."""
+        99 %, each in units of its :attr:`range_levels` (none scaled); ``[Q, 1]`` without
+        ``starts``."""
         flat = self._in_spreads(states)
         out = []
         for i, block in zip(
@@ -420,7 +453,10 @@ class StateNovelty:
                 near = self._nearest(block[:, index], own, self._scaled[:, index])
                 views.append(near.values[:, -1] / math.sqrt(len(group)))
             if starts:
-                views.append(self._beyond(states[i : i + _BLOCK_ROWS]).amax(-1))
+                beyond = self._beyond(states[i : i + _BLOCK_ROWS])
+                if self.range_levels is not None:
+                    beyond = beyond / self.range_levels.to(beyond.device)
+                views.append(beyond.amax(-1))
             out.append(torch.stack(views, dim=-1))
         columns = 2 + len(self.groups) if starts else 1
         return torch.cat(out) if out else flat.new_zeros(0, columns)
@@ -578,6 +614,7 @@ class StateNovelty:
             "groups": [list(group) for group in self.groups],
             "group_scales": list(self.group_scales),
             "range_scale": self.range_scale,
+            "range_levels": None if self.range_levels is None else self.range_levels.clone(),
         }
 
     @classmethod
@@ -620,8 +657,22 @@ class StateNovelty:
             groups=_groups(values.get("groups", ()), dim, "novelty.groups"),
             group_scales=_scales(values.get("group_scales", ())),
             range_scale=float(values.get("range_scale", 0.0)),  # 0: not judged before it
+            range_levels=_range_levels(values.get("range_levels"), dim),
             **vectors,
         )
+
+
+def _range_levels(values: object, dim: int) -> Tensor | None:
+    """A checkpoint's per-dimension range levels ``[D]`` (positive), or ``None`` (saved
+    before them)."""
+    if values is None:
+        return None
+    levels = _checks.check_tensor("novelty.range_levels", values)
+    _checks.check_shape("novelty.range_levels", levels, (dim,), "[D]")
+    _checks.check_finite("novelty.range_levels", levels)
+    if not bool((levels > 0).all()):
+        raise ValueError("novelty.range_levels: expected levels > 0")
+    return levels.float()
 
 
 def _groups(groups: object, dim: int, name: str = "groups") -> tuple[tuple[int, ...], ...]:

@@ -315,13 +315,15 @@ def test_a_start_along_the_training_episodes_course_is_like_the_training_states(
     """Resets that all give one state but for a little noise: their first states' level is
     tiny, and it called every state of an episode's course a new start (a trial's hopper:
     43 of 43 training states taken mid-episode). A start's level is now never below the
-    states' in general; a start far from every training state is still new."""
+    states' in general (measured over them, with every view of a start: its range's too);
+    a start far from every training state is still new."""
     train, ids = _spreading_episodes(200, 0)
     held, _ = _spreading_episodes(40, 1)
     firsts = torch.zeros(ids.numel(), dtype=torch.bool)
     firsts[::30] = True
     novelty = StateNovelty.fit(train, held, firsts=firsts, episodes=ids, held_out_starts=held[::30])
-    assert novelty.start_level == pytest.approx(novelty.level) and novelty.start_held_out == 0
+    assert novelty.start_level >= novelty.level and novelty.start_held_out == 0
+    assert novelty.range_scale > 0.5  # its range view scaled to that level, not to the tiny one
     fresh, _ = _spreading_episodes(1000, 2)
     course = fresh.reshape(1000, 30, 2)[:, 10]  # new episodes' states at step 10, as starts
     assert int(novelty.unlike(course, starts=True).sum()) <= binom.ppf(0.999, 1000, 0.01)
@@ -396,3 +398,48 @@ def test_start_states_and_episodes_are_judged_by_levels_of_their_own():
     bad = {**novelty.as_dict(), "episode_level": 1.5}
     with pytest.raises(ValueError, match=r"novelty\.episode_level: expected a float in"):
         StateNovelty.from_dict(bad)
+
+
+def _spiking_episodes(n: int, seed: int, steps: int = 30) -> tuple[torch.Tensor, torch.Tensor]:
+    """Flat states [n * steps, 21] and episode ids: every episode starts at rest, all zeros but
+    for a reset's noise of 1e-3; dimension 0 then wanders off (a random walk of steps 0.1),
+    and dimensions 1-20 (a contact's forces) are 0 but for spikes of about 30 (exponential) in
+    0.2 % of the steps, past the central 99 % of their values."""
+    g = torch.Generator().manual_seed(seed)
+    states = torch.zeros(n, steps, 21)
+    states[:, 1:, 0] = (0.1 * torch.randn(n, steps - 1, generator=g)).cumsum(1)
+    spikes = torch.rand(n, steps - 1, 20, generator=g) < 0.002
+    sizes = -30.0 * torch.rand(n, steps - 1, 20, generator=g).log()
+    states[:, 1:, 1:] = sizes * spikes
+    states += 1e-3 * torch.randn(n, 1, 21, generator=g)
+    ids = torch.arange(n)[:, None].expand(n, steps)
+    return states.reshape(-1, 21), (ids + 1000 * seed).reshape(-1)
+
+
+def test_a_start_past_its_range_is_new_where_resets_repeat_and_other_dimensions_spike():
+    """A quadruped trial: starts thrown at 2 m/s were like the training states. Its resets
+    repeat one state (every view scaled to their tiny level left the range view unheard) and
+    its force sensors spike far past their range by nature (which set the range's level). Each
+    dimension's excess is read in units of its own largest, and every view is scaled to the
+    level the starts are judged by: a start past dimension 0's range is new, starts along the
+    course are new about as rarely as the level says."""
+    train, ids = _spiking_episodes(400, 0)
+    held, held_ids = _spiking_episodes(80, 1)
+    firsts = torch.zeros(ids.numel(), dtype=torch.bool)
+    firsts[::30] = True
+    novelty = StateNovelty.fit(
+        train, held, firsts=firsts, episodes=ids, held_out_starts=held[::30],
+        held_out_episodes=held_ids,
+    )  # fmt: skip
+    levels = novelty.range_levels  # the spiking dimensions run far past their range
+    assert levels is not None and float(levels[1:].min()) > 2 * float(levels[0])
+    thrown = torch.zeros(20, 21)
+    thrown[:, 0] = 1.5 * float(train[:, 0].abs().max())  # past everything training saw
+    assert bool(novelty.unlike(thrown, starts=True).all())
+    fresh, _ = _spiking_episodes(1000, 2)
+    course = fresh.reshape(1000, 30, 21)[:, 10]
+    assert int(novelty.unlike(course, starts=True).sum()) <= binom.ppf(0.999, 1000, 0.01)
+    back = StateNovelty.from_dict(novelty.as_dict())
+    assert torch.equal(back.range_levels, novelty.range_levels)
+    older = {k: v for k, v in novelty.as_dict().items() if k != "range_levels"}
+    assert StateNovelty.from_dict(older).range_levels is None
