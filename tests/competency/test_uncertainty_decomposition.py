@@ -116,3 +116,17 @@ def test_the_shuffle_correction_with_one_sample_per_member_is_refused():
     decompose_uncertainty(samples, "histogram", bin_width=0.1)  # no correction: as it is
     check_shuffle_samples("shuffle", 2)
     check_shuffle_samples("none", 1)
+
+
+def test_knn_epistemic_stays_within_the_mutual_informations_bounds_in_many_dimensions():
+    """A quadruped trial (78 dimensions): the knn estimator's bias differs between the E·N
+    pooled samples and a member's N, and identical members read -14.7 epistemic bits. The
+    split is clamped to [0, log2 E]: no negative doubt, no more than E members can hold."""
+    g = torch.Generator().manual_seed(0)
+    identical = torch.randn(E, 100, 2, 40, generator=g)
+    raw = decompose_uncertainty(identical, "knn", k=3)
+    assert (raw.total - raw.aleatoric).max() < -0.5  # the bias, as the trial met it
+    assert torch.equal(raw.epistemic, torch.zeros(2))
+    apart = identical + 50.0 * torch.arange(E, dtype=torch.float32).view(E, 1, 1, 1)
+    far = decompose_uncertainty(apart, "knn", k=3)
+    assert torch.allclose(far.epistemic, torch.full((2,), math.log2(E)), atol=0.05)
