@@ -259,7 +259,8 @@ def trust_checks(scores, surfaces) -> dict[str, dict[str, Any]]:
             out[f"Brier skill vs the condition's base rate > 0 ({c})"] = _met(
                 s["brier_skill"], s["brier_skill"] > 0
             )
-        if math.isfinite(s["tts_skill"]):  # else no real episode succeeded: no times to score
+        # else every real time agrees (no real success, say): a perfect climatology, no skill
+        if math.isfinite(s["tts_skill"]):
             out[f"time-to-success CRPS skill > 0 ({c})"] = _met(s["tts_skill"], s["tts_skill"] > 0)
     overall = scores["overall"]
     out[f"AUROC >= {TARGETS['auroc']} (all episodes)"] = _met(

@@ -96,8 +96,10 @@ def test_a_window_buffer_draws_as_a_lazily_filled_one_and_logs_nothing(episodes)
     a = sample_windows(buffer, 8, 16, 2, [torch.Generator().manual_seed(s) for s in (1, 2)])
     b = sample_windows(lazy, 8, 16, 2, [torch.Generator().manual_seed(s) for s in (1, 2)])
     assert (a == b.exclude("index")).all()  # extend writes the frames' indices beside them
-    episodes["observation"].zero_()  # the buffer holds its own copy of the frames
-    assert buffer.storage[0]["observation"].abs().sum() > 0
+    mine = episodes.clone()
+    kept = make_window_buffer(mine, window=16)
+    mine["observation"].zero_()  # the buffer holds its own copy of the frames
+    assert kept.storage[0]["observation"].abs().sum() > 0
 
 
 def test_windows_of_another_length_than_the_buffers_are_refused(episodes):
