@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable
 
@@ -17,9 +18,11 @@ from rcvae_torchrl._checks import (
     check_positive_int,
     check_positive_int_or_none,
 )
+from rcvae_torchrl.distributed import work_generator
 from rcvae_torchrl.threads import threads_kept
 
 from .exploration import action_bounds
+from .prepare import seed_env
 
 __all__ = [
     "TRAJ_KEY",
@@ -59,9 +62,12 @@ def collect_episodes(
             constructor).
         policy: a TorchRL policy (TensorDictModule or callable on tensordicts).
         num_episodes: episodes to collect (>= 1).
-        seed: seeds the env(s) (start states and noise), not the policy: an exploration
-            policy with its own generator (``GaussianExploration``, ``UniformRandomPolicy``)
-            is seeded where it is made, so the same data needs a new one.
+        seed: seeds the env(s) (start states and noise: :func:`seed_env`, which restarts a
+            transform's own random stream such as :class:`ActionNoise`'s; with ``num_envs``
+            envs, each from a seed drawn from ``seed`` and its index), not the policy: an
+            exploration policy with its own generator (``GaussianExploration``,
+            ``UniformRandomPolicy``) is seeded where it is made, so the same data needs a new
+            one.
         num_envs: envs stepped together in a ``SerialEnv``: the policy runs once per step for
             all of them, which pays off when a policy call costs more than an env step.
         frames_per_batch: collector batch size (rounded up to a multiple of the frames one step
@@ -85,11 +91,17 @@ def collect_episodes(
     check_positive_int_or_none("max_frames", max_frames)
     check_non_negative_int("first_id", first_id)
     max_frames = max_frames or 1000 * (num_episodes + num_envs - 1)
-    env = make_env() if num_envs == 1 else SerialEnv(num_envs, make_env)
+    if num_envs == 1:
+        env = make_env()
+    else:  # each env's own random streams (an ActionNoise) from a seed of its own
+        env = SerialEnv(
+            num_envs,
+            [functools.partial(_seeded, make_env, seed, i) for i in range(num_envs)],
+        )
     rows = max(1, env.batch_size.numel())  # frames one step gives (a SerialEnv's, a batched env's)
     _check_policy_inputs(env, policy)
     warn_narrow_bounds(env, policy)
-    env.set_seed(seed % 2**32)  # numpy-based envs take seeds below 2**32
+    seed_env(env, seed)  # the env(s), and one env's transforms with random streams
     collector = Collector(
         env,
         policy,
@@ -116,6 +128,15 @@ def collect_episodes(
     check_actions(env, data)
     _check_finite_observations(env, data)
     return data
+
+
+def _seeded(make_env: Callable[[], EnvBase], seed: int, index: int) -> EnvBase:
+    """Env ``index`` of a collection's ``SerialEnv``: made, and its random streams (the base
+    env's, an :class:`ActionNoise`'s) seeded from ``(seed, index)``: the same seed in every
+    env would give each one the same noise."""
+    env = make_env()
+    seed_env(env, work_generator(seed % 2**63, index, 4).initial_seed())
+    return env
 
 
 def _check_finite_observations(env: EnvBase, data: TensorDictBase) -> None:

@@ -398,3 +398,54 @@ def test_an_env_that_gives_nan_observations_is_named_at_collection():
         r"10 frames, first in episode 0 at step 2; a world model cannot learn from them",
     ):
         collect_episodes(_NanAtStep, policy, 2, frames_per_batch=10, progress=False)
+
+
+class _Integrator(EnvBase):
+    """A 2-D point that always resets to 0 and moves by its action, 5 steps an episode."""
+
+    def __init__(self):
+        super().__init__()
+        self.observation_spec = Composite(observation=Unbounded((2,)))
+        self.action_spec = Bounded(-1.0, 1.0, (2,))
+        self.reward_spec = Unbounded((1,))
+
+    def _reset(self, tensordict):
+        self.t, self.p = 0, torch.zeros(2)
+        return TensorDict({"observation": self.p.clone()})
+
+    def _step(self, tensordict):
+        self.t += 1
+        self.p = self.p + tensordict["action"]
+        done = torch.tensor([self.t >= 5])
+        return TensorDict(
+            {"observation": self.p.clone(), "reward": torch.zeros(1), "done": done,
+             "terminated": done}
+        )  # fmt: skip
+
+    def _set_seed(self, seed):
+        pass
+
+
+def test_collection_seeds_each_envs_action_noise():
+    """A trial's pendulum, always reset hanging down with ``ActionNoise``: ``seed=0`` and
+    ``seed=123`` gave the same episodes (the noise's own stream was never restarted), and two
+    envs stepped together gave pairs of copies (each env's noise from one seed)."""
+    from torchrl.envs import TransformedEnv
+
+    from rcvae_torchrl.data import ActionNoise
+
+    def make_env():
+        return TransformedEnv(_Integrator(), ActionNoise(0.5))
+
+    policy = make_policy_module(_Constant(0.0))  # all the motion is the noise
+
+    def run(seed, envs=1):
+        args = dict(seed=seed, num_envs=envs, frames_per_batch=10, progress=False)
+        return collect_episodes(make_env, policy, 2, **args)["next", "observation"]
+
+    a, b, c = run(0), run(0), run(123)
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    assert not torch.equal(a[:5], a[5:])  # one env's episodes: the noise runs on
+    two = run(0, envs=2)
+    assert not torch.equal(two[:5], two[5:])  # the two envs' noise differs
+    assert torch.equal(two, run(0, envs=2))
