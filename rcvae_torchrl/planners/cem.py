@@ -52,9 +52,12 @@ class CEMPlanner(MPCPlannerBase):
     return, a lower quantile, CVaR, or P(success) with ties broken by expected return. Candidates
     with NaN or infinite returns are never elites.
 
-    **Warm start and episode resets.** After a call the planner keeps the final mean and std
-    shifted by one step (the new last step is the prior), keyed by the shape ``[*B, H, *A]``,
-    and starts the next call from it. The kept plan is dropped, per batch element, where the
+    **Warm start and episode resets.** After a call the planner keeps the final mean shifted
+    by one step (the new last step is the prior's), keyed by the shape ``[*B, H, *A]``, and
+    the next call searches around it with the prior std, as PETS does: a kept std shrinks at
+    every call's iterations, and a pendulum's planner that kept it searched within 0.005 of its
+    plan after 5-10 calls, never finding the swing-up again (upright 0-17 % of the time against
+    10-74 % without). The kept plan is dropped, per batch element, where the
     input's ``init_key`` entry (``"is_init"``, written by TorchRL's ``InitTracker`` transform) is
     True; wholly when the batch shape changes, or when :meth:`reset` is called. Without an
     ``InitTracker`` on the acting env, call :meth:`reset` between episodes (inside a TorchRL
@@ -76,7 +79,8 @@ class CEMPlanner(MPCPlannerBase):
         objective: ``"mean"``, ``"quantile"``, ``"cvar"`` or ``"success"``.
         risk_level: the quantile level, or the CVaR fraction of worst particles.
         init_std: prior std (scalar or ``[*A]``); default ``(high − low) / 4`` (1 if unbounded).
-        warm_start: keep the shifted plan between calls (False: start every call from the prior).
+        warm_start: keep the shifted mean between calls (False: start every call from the
+            prior).
         discount: γ for the rollout path (the fast path defines its own returns).
         evaluation: ``"auto"`` (fast path if the env's class has it), ``"env"`` or ``"rollout"``.
         action_key: default ``env.action_key`` (nested keys work).
@@ -180,7 +184,8 @@ class CEMPlanner(MPCPlannerBase):
 
     @property
     def plan(self) -> tuple[Tensor, Tensor] | None:
-        """The kept warm-start plan ``(mean, std)``, each ``[*B, H, *A]`` (copies), or ``None``."""
+        """The kept warm-start plan ``(mean, std)``, each ``[*B, H, *A]`` (copies; the std is
+        the prior's), or ``None``."""
         if self._plan is None:
             return None
         return self._plan[0].clone(), self._plan[1].clone()
@@ -276,7 +281,7 @@ class CEMPlanner(MPCPlannerBase):
                 time_dim = tensordict.batch_dims
                 self._plan = (
                     shift_plan(mean, self.prior_mean, time_dim),
-                    shift_plan(std, self.prior_std, time_dim),
+                    self.prior_std.expand_as(std).clone(),
                 )
         return mean.select(tensordict.batch_dims, 0)
 

@@ -38,7 +38,10 @@ def test_drives_the_point_mass_to_the_goal(env_cls):
 @pytest.mark.parametrize(("shape", "low", "high"), [((3,), LOW3, HIGH3), ((2, 2), LOW22, HIGH22)])
 def test_any_action_shape_stays_in_bounds_and_reaches_the_goal(shape, low, high):
     env = PointMassEnv(shape, low, high, double=False, start=torch.full(shape, 0.3))
-    planner = CEMPlanner(env, horizon=5, seed=0, **SMALL)
+    # each call searches with the prior std (a warm start keeps the mean alone): to come
+    # within 5 cm the search needs the budget to narrow it within a call
+    budget = {**SMALL, "num_candidates": 256, "top_k": 16, "iterations": 5}
+    planner = CEMPlanner(env, horizon=5, seed=0, **budget)
     rollout = env.rollout(20, planner)
     actions = rollout["action"]
     assert actions.shape == (20, *shape)
@@ -84,19 +87,23 @@ def test_warm_start_keeps_the_shifted_plan():
     td = env.reset()
     assert planner.plan is None
     state = planner.generator.get_state()
-    mean, std = planner.optimize(td, *planner.initial_plan(td))
+    mean, _ = planner.optimize(td, *planner.initial_plan(td))
     planner.generator.set_state(state)
     action = planner(td.clone())["action"]
     torch.testing.assert_close(action, mean[0])
     kept_mean, kept_std = planner.plan
     torch.testing.assert_close(kept_mean[:-1], mean[1:])
-    torch.testing.assert_close(kept_std[:-1], std[1:])
     torch.testing.assert_close(kept_mean[-1], planner.prior_mean)
-    torch.testing.assert_close(kept_std[-1], planner.prior_std)
+    # the std is the prior's again: a kept one shrinks at every call (a pendulum's search fell
+    # to 0.005 wide within 10 calls, and never found the swing-up again)
+    torch.testing.assert_close(kept_std, planner.prior_std.expand(6, 2))
     # the next call starts from the kept plan, unless the state is an episode start
     torch.testing.assert_close(planner.initial_plan(td)[0], kept_mean)
     fresh = planner.initial_plan(td.clone().set("is_init", torch.tensor([True])))
     torch.testing.assert_close(fresh[0], planner.prior_mean.expand(6, 2))
+    for _ in range(10):
+        planner(td.clone())
+    torch.testing.assert_close(planner.initial_plan(td)[1], planner.prior_std.expand(6, 2))
     planner.reset()
     assert planner.plan is None
 
