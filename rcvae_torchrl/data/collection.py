@@ -295,11 +295,31 @@ def check_episode_ids(data: TensorDictBase, name: str = "data") -> None:
     if runs.numel() != torch.unique(runs).numel():
         values, counts = torch.unique(runs, return_counts=True)
         repeated = values[counts > 1][:5].tolist()
+        if _joins_in_time(data, ids):
+            raise ValueError(
+                f"{name}: expected one contiguous block of frames per episode id, but the frames "
+                f"of ids {repeated} lie in several blocks, which join up step by step once sorted "
+                "by id (a TorchRL collector's batches over several envs interleave their "
+                f"episodes): sort the frames by episode id, stably: "
+                f"data[torch.argsort(data[{TRAJ_KEY!r}], stable=True)] (collect_episodes does)"
+            )
         raise ValueError(
             f"{name}: expected one contiguous block of frames per episode id, but ids "
             f"{repeated} tag several episodes; join collections with merge_episodes or collect "
             "with first_id past the ids you have"
         )
+
+
+def _joins_in_time(data: TensorDictBase, ids: torch.Tensor) -> bool:
+    """Whether, sorted stably by id, each frame's next observation is the following frame's
+    observation within every episode id: one episode's frames cut into blocks, not several
+    episodes under one id."""
+    obs, nxt = data.get("observation", None), data.get(("next", "observation"), None)
+    if obs is None or nxt is None:
+        return False
+    order = torch.argsort(ids, stable=True)
+    same = ids[order][1:] == ids[order][:-1]
+    return bool(torch.equal(nxt[order][:-1][same], obs[order][1:][same]))
 
 
 def merge_episodes(*datasets: TensorDictBase) -> TensorDict:

@@ -45,6 +45,7 @@ from rcvae_torchrl._checks import (
 )
 from rcvae_torchrl.data import (
     TRAJ_KEY,
+    check_episode_ids,
     episode_spans,
     make_window_buffer,
     resample_episodes,
@@ -482,6 +483,7 @@ def _check_episodes(
             f"{name}: expected episode ids under {TRAJ_KEY} (collect_episodes writes them), got "
             f"the entries {sorted(map(str, data.keys(True, True)))}"
         )
+    check_episode_ids(data, name)
     spans = episode_spans(data)
     longest = int(spans[1].max())
     if longest < window:

@@ -13,6 +13,7 @@ from rcvae_torchrl.data import (
     TRAJ_KEY,
     GaussianExploration,
     UniformRandomPolicy,
+    check_episode_ids,
     collect_episodes,
     episode_spans,
     make_policy_module,
@@ -449,3 +450,20 @@ def test_collection_seeds_each_envs_action_noise():
     two = run(0, envs=2)
     assert not torch.equal(two[:5], two[5:])  # the two envs' noise differs
     assert torch.equal(two, run(0, envs=2))
+
+
+def test_frames_of_one_episode_in_several_blocks_are_told_to_be_sorted(episodes):
+    """A TorchRL collector over 4 envs gives its batches' frames env by env: an episode that
+    runs across two batches lies in two blocks. The message says so, and how to sort them; ids
+    reused by several episodes keep the message about joining collections."""
+    order = torch.arange(episodes.shape[0])
+    cut = torch.cat([order[:20], order[40:60], order[20:40], order[60:]])  # two episodes cut
+    with pytest.raises(ValueError, match=r"join up step by step once sorted by id") as caught:
+        check_episode_ids(episodes[cut], "train_data")
+    assert str(caught.value).startswith("train_data: expected one contiguous block")
+    fixed = episodes[cut][torch.argsort(episodes[cut][TRAJ_KEY], stable=True)]
+    check_episode_ids(fixed)
+    reused = episodes.clone()
+    reused[TRAJ_KEY] = reused[TRAJ_KEY] % 3  # episodes 0 and 3 share an id, apart in time
+    with pytest.raises(ValueError, match=r"tag several episodes; join collections with merge"):
+        check_episode_ids(reused)
