@@ -134,7 +134,11 @@ def real_outcomes(
     (:func:`~rcvae_torchrl.agent.episode_workers`), ``K·N`` at a time for envs of
     ``batch_size`` ``[N]`` (``N = 1`` for ``[]``), each worker seeding and resetting its own
     env to its episodes' starts; ``reset_to_state`` must then be picklable too. The outcomes
-    are the one-env run's, episode by episode.
+    are the one-env run's, episode by episode, for a policy whose actions depend on its input
+    alone (see ``policy_rows``). A policy that draws random numbers of its own (a planner's
+    candidates) draws them in another order when episodes run side by side, and for other
+    episodes: its outcomes are then other draws of the same chances, not the same draws (a
+    pendulum's planner agent: 3 of 12 episodes against 1 of 12 in one env, 2 of 12 flipped).
 
     ``policy_rows``: call a stateless ``policy`` on blocks of exactly that many rows
     (:class:`~rcvae_torchrl.agent.FixedRowsPolicy`), so that an episode's float32 arithmetic,
