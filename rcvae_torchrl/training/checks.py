@@ -207,7 +207,7 @@ class ModelChecks:
             ]
             sentences.append(
                 "the world model has not learned "
-                + ", ".join(parts)
+                + _listed(parts)
                 + ": it predicts these dimensions no better than copying the previous state or "
                 "guessing their mean, so forecasts that depend on them are not trustworthy"
             )
@@ -220,7 +220,7 @@ class ModelChecks:
             sentences.append(
                 f"the world model drifts: {self.k} steps into held-out episodes, driven by their "
                 "own actions, its mean forecast is further from the real state than copying the "
-                "start state or guessing the mean, for " + ", ".join(parts) + ": forecasts "
+                "start state or guessing the mean, for " + _listed(parts) + ": forecasts "
                 "further ahead than a step that depend on them are not trustworthy"
             )
         if self.overconfident:
@@ -231,7 +231,7 @@ class ModelChecks:
             sentences.append(
                 f"the world model is overconfident: {self.coverage_steps} steps into held-out "
                 f"episodes, the real state lay inside its {self.interval:.0%} interval too "
-                "rarely for " + ", ".join(parts) + ": its spread there is too narrow or off "
+                "rarely for " + _listed(parts) + ": its spread there is too narrow or off "
                 "centre, so forecasts that depend on them are not trustworthy"
             )
         if not self.coverage_measured:
@@ -334,6 +334,19 @@ class ModelChecks:
             k_samples=int(values.get("k_samples", 0)),
             **tensors,
         )
+
+
+#: dimensions a message names one by one; the rest are counted (all are in the checks' fields)
+_NAMED = 8
+
+
+def _listed(parts: list[str]) -> str:
+    """``parts`` joined, the first :data:`_NAMED` of them and a count of the others: a
+    78-dimensional model's warning named 30 dimensions in 2,500 characters, opening every
+    summary of its forecasts."""
+    shown = ", ".join(parts[:_NAMED])
+    more = len(parts) - _NAMED
+    return shown if more <= 0 else f"{shown} and {more} more"
 
 
 def _rmse(error: torch.Tensor) -> torch.Tensor:

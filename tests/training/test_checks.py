@@ -412,3 +412,17 @@ def test_the_dimensions_a_forecast_hangs_on_can_be_checked_alone(trained):
     ]:
         with pytest.raises((ValueError, TypeError), match=match):
             check_model(result.ensemble, val, dims=dims, warn=False)
+
+
+def test_a_message_names_eight_dimensions_and_counts_the_rest():
+    """A 78-dimensional model's warning named 30 dimensions in 2,500 characters."""
+    n = 20
+    zeros = torch.zeros(n, dtype=torch.float64)
+    names = tuple(f"d{i}" for i in range(n))
+    checks = ModelChecks(names, zeros + 1, zeros + 1, zeros + 1, zeros, zeros + 1, 5,
+                         tuple(range(n)), 0.05, covered=zeros + 32, episodes=32,
+                         coverage_steps=20, interval=0.9)  # fmt: skip
+    assert len(checks.unlearned) == n
+    message = checks.message()
+    assert "d7 (one-step error" in message and "d8 (" not in message
+    assert "d7 (one-step error 1 vs 1 for a trivial baseline) and 12 more:" in message
