@@ -359,8 +359,11 @@ def test_collection_refuses_actions_out_of_the_spec_and_too_few_frames(num_envs)
         collect_episodes(make_env, make_policy_module(_Constant(0.0)), 1, max_frames=10, **args)
 
 
-class _NanAtStep(EnvBase):
-    """A 2-D point whose observation turns NaN at step 3 of every episode (5 steps long)."""
+class _Integrator(EnvBase):
+    """A 2-D point that always resets to 0 and moves by ``gain`` times its action, 5 steps an
+    episode; its observation turns NaN at step ``nan_at`` (never: ``None``)."""
+
+    gain, nan_at = 1.0, None
 
     def __init__(self):
         super().__init__()
@@ -374,8 +377,8 @@ class _NanAtStep(EnvBase):
 
     def _step(self, tensordict):
         self.t += 1
-        self.p = self.p + 0.1 * tensordict["action"]
-        if self.t == 3:
+        self.p = self.p + self.gain * tensordict["action"]
+        if self.t == self.nan_at:
             self.p = torch.full((2,), float("nan"))
         done = torch.tensor([self.t >= 5])
         return TensorDict(
@@ -391,6 +394,12 @@ class _NanAtStep(EnvBase):
         pass
 
 
+class _NanAtStep(_Integrator):
+    """Its observation turns NaN at step 3 of every episode."""
+
+    gain, nan_at = 0.1, 3
+
+
 def test_an_env_that_gives_nan_observations_is_named_at_collection():
     policy = make_policy_module(UniformRandomPolicy(2, seed=0))
     with pytest.raises(
@@ -399,32 +408,6 @@ def test_an_env_that_gives_nan_observations_is_named_at_collection():
         r"10 frames, first in episode 0 at step 2; a world model cannot learn from them",
     ):
         collect_episodes(_NanAtStep, policy, 2, frames_per_batch=10, progress=False)
-
-
-class _Integrator(EnvBase):
-    """A 2-D point that always resets to 0 and moves by its action, 5 steps an episode."""
-
-    def __init__(self):
-        super().__init__()
-        self.observation_spec = Composite(observation=Unbounded((2,)))
-        self.action_spec = Bounded(-1.0, 1.0, (2,))
-        self.reward_spec = Unbounded((1,))
-
-    def _reset(self, tensordict):
-        self.t, self.p = 0, torch.zeros(2)
-        return TensorDict({"observation": self.p.clone()})
-
-    def _step(self, tensordict):
-        self.t += 1
-        self.p = self.p + tensordict["action"]
-        done = torch.tensor([self.t >= 5])
-        return TensorDict(
-            {"observation": self.p.clone(), "reward": torch.zeros(1), "done": done,
-             "terminated": done}
-        )  # fmt: skip
-
-    def _set_seed(self, seed):
-        pass
 
 
 def test_collection_seeds_each_envs_action_noise():
