@@ -127,11 +127,11 @@ class StateNovelty:
     range_scale: float = 0.0
     #: ``[D]``, per dimension, how far past its range (in spreads) ``1 - (1 - quantile) / D``
     #: of the training states, and of their episodes' first states, stay (the larger; at least
-    #: a twentieth of a spread): the range view reads each dimension's
-    #: excess in these units, so that dimensions whose values run far past their range by
-    #: nature (a contact force's spikes) do not set the level for one that never does (a
-    #: quadruped thrown sideways at 2 m/s was like the training states while its force
-    #: sensors set the range's level); ``None``: one unit for all (checkpoints from before)
+    #: a twentieth of a spread): the range view reads each dimension's excess in these units,
+    #: so that dimensions whose values run far past their range by nature (a contact force's
+    #: spikes) do not set the level for one that never does (a quadruped thrown sideways at
+    #: 2 m/s was like the training states while its force sensors set the range's level);
+    #: ``None``: one unit for all (checkpoints from before)
     range_levels: Tensor | None = None
 
     def __post_init__(self) -> None:
@@ -286,7 +286,8 @@ class StateNovelty:
         # each group's distance, and the range's, on the joint one's scale, their levels over
         # the first states made equal; a view's level there no lower than over the states in
         # general (first states at rest, all velocities 0, would make it 0 and any motion at
-        # the start a million times the level), nor the range's below a twentieth of a spread
+        # the start a million times the level), nor the range's below 1 (each dimension's own
+        # range level)
         if not measured:  # no first states: starts are states like any other
             views = general
         # the joint distance's level over the first states, or over the held-out states in
