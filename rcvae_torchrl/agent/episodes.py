@@ -113,6 +113,7 @@ def run_episodes(
     first_id: int = 0,
     progress: bool = True,
     desc: str = "episodes",
+    decided_by: int | None = None,
 ) -> EpisodeStats:
     """One episode per seed: seed ``env`` (:func:`~rcvae_torchrl.data.seed_env`, which also
     restarts transforms with their own noise) then reset, drawing the start state and the noise,
@@ -125,7 +126,9 @@ def run_episodes(
     env writes under ``"next"`` (default ``"success"``), or is a function of the observations
     ``[T, S] -> [T]`` bool (for envs without a success flag). An episode the env itself
     truncates (its own time limit) before ``max_steps`` without a success is refused with a
-    ``ValueError`` (:func:`check_not_cut_short`): whether it would have succeeded is unknown.
+    ``ValueError`` (:func:`check_not_cut_short`): whether it would have succeeded is unknown;
+    unless it ran ``decided_by`` steps (a boundary's time limit, after which a success no
+    longer counts): its outcome is then known.
 
     A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator with ``set_seeds``)
     runs the episodes ``N`` at a time, side by side, with one policy call per step for all of
@@ -148,10 +151,14 @@ def run_episodes(
         if reset_to_state is None:
             raise ValueError("reset_to_state: expected a function to start from given states")
     warn_narrow_bounds(env, policy)
+    if decided_by is not None:
+        check_positive_int("decided_by", decided_by)
+    limit = max_steps if decided_by is None else min(max_steps, decided_by)
     if env.batch_size:
         return _batched_episodes(
-            env, policy, seeds, starts, reset_to_state, max_steps, success, first_id, progress, desc
-        )
+            env, policy, seeds, starts, reset_to_state, (max_steps, limit), success, first_id,
+            progress, desc,
+        )  # fmt: skip
     wins, steps, parts = [], [], []
     for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
         seed_env(env, int(seed))
@@ -161,7 +168,7 @@ def run_episodes(
         episode = _rollout(env, policy, max_steps, td, break_when_any_done=True)
         check_actions(env, episode)
         won = _success_flags(episode, success)
-        check_not_cut_short(episode, won.any(), torch.tensor(episode.shape[0]), max_steps)
+        check_not_cut_short(episode, won.any(), torch.tensor(episode.shape[0]), limit)
         wins.append(bool(won.any()))
         steps.append(int(won.float().argmax()) + 1 if won.any() else episode.shape[0])
         episode[TRAJ_KEY] = torch.full(episode.shape, first_id + i, dtype=torch.int64)
@@ -363,13 +370,15 @@ def _batched_episodes(
     seeds: Sequence[int],
     starts: torch.Tensor | TensorDictBase | None,
     reset_to_state: ResetToState | None,
-    max_steps: int,
+    steps: tuple[int, int],
     success: str | Callable[[torch.Tensor], torch.Tensor],
     first_id: int,
     progress: bool,
     desc: str,
 ) -> EpisodeStats:
-    """:func:`run_episodes` in a batched env ``[N]``: ``N`` episodes side by side at a time."""
+    """:func:`run_episodes` in a batched env ``[N]``: ``N`` episodes side by side at a time;
+    ``steps``: ``(max_steps, the step by which the outcome is decided)``."""
+    max_steps, limit = steps
     if len(env.batch_size) != 1:
         raise ValueError(f"env: expected batch_size [] or [N], got {list(env.batch_size)}")
 
@@ -387,7 +396,7 @@ def _batched_episodes(
         length = episode_lengths(episode["next", "done"].reshape(episode.shape))
         before_end = torch.arange(episode.shape[1]) < length.unsqueeze(1)
         hit = (won & before_end).any(1)  # rows past keep pad the last group: not asked for
-        check_not_cut_short(episode[:keep], hit[:keep], length[:keep], max_steps)
+        check_not_cut_short(episode[:keep], hit[:keep], length[:keep], limit)
         for j in range(keep):
             end = int(length[j])
             flags, kept = won[j, :end], episode[j, :end]

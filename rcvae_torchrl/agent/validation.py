@@ -195,6 +195,17 @@ def real_outcomes(
     return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
 
 
+def _decided_by(success: object) -> int | None:
+    """The step by which a :class:`~rcvae_torchrl.competency.SuccessBoundary`'s outcome is
+    decided (its time limit), where ``success`` is its method: an episode the env cuts short
+    after it has a known outcome (a pendulum's ``StepCounter(50)`` with a 40-step deadline was
+    refused). ``None`` otherwise."""
+    boundary = _boundary_of(success)
+    if boundary is None or math.isinf(boundary.time_limit):
+        return None
+    return int(boundary.time_limit)
+
+
 def _boundary_of(success: object) -> SuccessBoundary | None:
     """The :class:`~rcvae_torchrl.competency.SuccessBoundary` whose method ``success`` is."""
     boundary = getattr(success, "__self__", None)
@@ -302,6 +313,7 @@ def _my_outcomes(
         success=success,
         progress=show,
         desc=desc,
+        decided_by=_decided_by(success),
     )
     return _outcomes(stats, len(seeds), success, trace, max_steps)
 
@@ -394,7 +406,10 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> tuple[RealOutcom
     steps_run = episode.shape[1]
     length = episode_lengths(done)
     hit = won.any(1)
-    check_not_cut_short(episode, hit, length, max_steps)
+    decided = _decided_by(success)
+    check_not_cut_short(
+        episode, hit, length, max_steps if decided is None else min(max_steps, decided)
+    )
     first = torch.where(hit, won.float().argmax(1), torch.full_like(length, max_steps))
     steps = torch.where(hit, first + 1, length)
     values = None

@@ -55,6 +55,26 @@ def test_real_outcomes_refuse_episodes_the_env_cut_short(batched):
     assert not out.success.any() and (out.steps == 20).all()
 
 
+@pytest.mark.parametrize("batched", [False, True])
+def test_an_episode_cut_after_the_boundary_decided_it_is_known(batched):
+    """A pendulum trial: ``StepCounter(50)``, ``max_steps=60`` and a 40-step deadline were
+    refused, though every outcome was known at step 40. With the boundary's
+    ``success_over_time`` as ``success``, an episode the env cuts after the boundary's time
+    limit is not refused."""
+    env = make_batched_pusher_env(3, time_limit=1.0) if batched else make_pusher_env(time_limit=1.0)
+    args = dict(runs_per_start=2, reset_to_state=reset_to_state, progress=False)
+    decided = SuccessBoundary(_never, time_limit=15)  # the env cuts at 20, max_steps is 45
+    out = real_outcomes(
+        env, _still, pusher_starts(2), max_steps=45, success=decided.success_over_time, **args
+    )
+    assert not out.success.any() and (out.steps == 20).all()
+    late = SuccessBoundary(_never, time_limit=30)  # decided after the cut: unknown
+    with pytest.raises(ValueError, match=r"cut short by the env itself .* max_steps=30 "):
+        real_outcomes(
+            env, _still, pusher_starts(2), max_steps=45, success=late.success_over_time, **args
+        )
+
+
 class _TensorPolicy(torch.nn.Module):
     """A tensor policy ``observation -> action``, not wired to TensorDict keys."""
 
