@@ -99,6 +99,11 @@ def test_the_pendulum_from_data_to_a_checked_forecast():
     assert real.success.shape == (4, 2)
     assert real.success[0].all() and real.success[3].all()  # near the top: caught at once
     assert set(score_forecast(p, real)) >= {"auroc", "brier"}
-    # the env's own StepCounter would cut a longer episode short: refused, not a failure
+    # the env's own StepCounter cuts a longer episode at the boundary's time limit, which has
+    # decided it by then: known, and taken; judged by a bare predicate, which decides nothing
+    # by a time, it is refused, not counted a failure
+    longer = real_outcomes(env, agent, starts[2:3], max_steps=STEPS + 10, progress=False, **args)
+    assert longer.success.shape == (1, 2)
+    bare = {**args, "success": lambda observation: boundary.success_over_time(observation)}
     with pytest.raises(ValueError, match="cut short by the env itself"):
-        real_outcomes(env, agent, starts[2:3], max_steps=STEPS + 10, progress=False, **args)
+        real_outcomes(env, agent, starts[2:3], max_steps=STEPS + 10, progress=False, **bare)
