@@ -424,14 +424,14 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> tuple[RealOutcom
 def _check_steps_cover_the_boundary(success: object, max_steps: int) -> None:
     """Where ``success`` is a :class:`~rcvae_torchrl.competency.SuccessBoundary`'s method, the
     episodes must run to its time limit: a survival judged on fewer steps is never one."""
-    boundary = _boundary_of(success)
-    if boundary is None or math.isinf(boundary.time_limit):  # none: the episodes' max_steps
+    limit = _decided_by(success)
+    if limit is None:  # no boundary, or none with a time limit: the episodes' max_steps
         return
-    if max_steps < boundary.time_limit:
+    if max_steps < limit:
         raise ValueError(
-            f"max_steps: expected at least the boundary's time_limit ({boundary.time_limit} "
-            f"steps), got {max_steps}: the episodes would stop before the boundary can judge "
-            "them (a survival would never be one)"
+            f"max_steps: expected at least the boundary's time_limit ({limit} steps), got "
+            f"{max_steps}: the episodes would stop before the boundary can judge them (a "
+            "survival would never be one)"
         )
 
 

@@ -551,7 +551,8 @@ def check_model(
     truth = obs[..., 1:, :]
     one_step = _rmse(predicted.mean(0) - truth)
     copy_one_step = _rmse(truth - obs[..., :-1, :])
-    spread = data.get("observation").to(device, torch.float64).std(0, correction=0)
+    observed = data.get("observation").to(device, torch.float64)
+    spread = observed.std(0, correction=0)
     many = _windows(data, k + 1, windows, seed + 1).to(device)
     starts, truth_k = many.get("observation")[:, 0], many.get(("next", "observation"))[:, k - 1]
     generator = torch.Generator(device=device).manual_seed(seed)
@@ -564,8 +565,7 @@ def check_model(
     )
     forecast = rollouts.get("observation")[..., k - 1, :].mean((0, 1))
     k_step, copy_k_step = _rmse(forecast - truth_k), _rmse(truth_k - starts)
-    mean = data.get("observation").to(device, torch.float64).mean(0)
-    baseline = torch.where(copy_k_step <= spread, starts.to(torch.float64), mean)
+    baseline = torch.where(copy_k_step <= spread, starts.to(torch.float64), observed.mean(0))
     k_step_p = _drift_p_values(
         forecast, truth_k, baseline, e * samples_per_member, many.get(TRAJ_KEY)[:, 0]
     )
@@ -983,10 +983,10 @@ class OutcomeCheck:
 
         states = self.start_states
         center = states.mean(0)
-        spread = states.std(0, correction=0)
-        scale = torch.where(spread > 0, spread, 1e-6 * center.abs().clamp_min(1.0))
-        if self.state_scale is not None:
-            scale = self.state_scale
+        scale = self.state_scale
+        if scale is None:
+            spread = states.std(0, correction=0)
+            scale = torch.where(spread > 0, spread, 1e-6 * center.abs().clamp_min(1.0))
         scaled = (states - center) / scale
         apart = torch.cdist(scaled, scaled).fill_diagonal_(torch.inf).amin(1)
         level, kept = conformal_level(apart, _COVER_QUANTILE)
