@@ -126,6 +126,12 @@ def check_dtype(name: str, x: Tensor, dtype: torch.dtype, owner: str = "the mode
                 f"; convert the inputs (x.to({dtype})), or for a TorchRL env append a "
                 "DoubleToFloat transform"
             )
+        elif "action" in name and not x.is_floating_point() and dtype.is_floating_point:
+            hint = (
+                "; integer or bool actions are discrete ones (a OneHot or Categorical action "
+                "spec), which the world model does not take: relax them to a continuous action "
+                "in [-1, 1] that a transform on the real env turns into the discrete one"
+            )
         raise TypeError(f"{name}: expected dtype {dtype} ({owner}), got {x.dtype}{hint}")
 
 

@@ -12,10 +12,18 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
+from torchrl.envs.utils import ExplorationType
 from tqdm.auto import tqdm
 
 from rcvae_torchrl._checks import check_positive_int
-from rcvae_torchrl.data import TRAJ_KEY, check_actions, seed_env, warn_narrow_bounds
+from rcvae_torchrl.data import (
+    TRAJ_KEY,
+    acting,
+    check_actions,
+    exploration_mode,
+    seed_env,
+    warn_narrow_bounds,
+)
 
 __all__ = ["EpisodeStats", "ResetToState", "run_episodes", "seed_episodes"]
 
@@ -114,6 +122,7 @@ def run_episodes(
     progress: bool = True,
     desc: str = "episodes",
     decided_by: int | None = None,
+    exploration_type: ExplorationType | str | None = None,
 ) -> EpisodeStats:
     """One episode per seed: seed ``env`` (:func:`~rcvae_torchrl.data.seed_env`, which also
     restarts transforms with their own noise) then reset, drawing the start state and the noise,
@@ -129,6 +138,12 @@ def run_episodes(
     ``ValueError`` (:func:`check_not_cut_short`): whether it would have succeeded is unknown;
     unless it ran ``decided_by`` steps (a boundary's time limit, after which a success no
     longer counts): its outcome is then known.
+
+    A stochastic policy (a TorchRL ``ProbabilisticActor``) acts in ``exploration_type``
+    (:func:`~rcvae_torchrl.data.exploration_mode`: by default the caller's
+    ``set_exploration_type``, else sampled, as TorchRL's collectors run it), its samples drawn
+    from torch's global random stream seeded by each episode's seed (and restored afterwards):
+    the same seeds give the same episodes.
 
     A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator with ``set_seeds``)
     runs the episodes ``N`` at a time, side by side, with one policy call per step for all of
@@ -154,10 +169,11 @@ def run_episodes(
     if decided_by is not None:
         check_positive_int("decided_by", decided_by)
     limit = max_steps if decided_by is None else min(max_steps, decided_by)
+    mode = exploration_mode(exploration_type)
     if env.batch_size:
         return _batched_episodes(
             env, policy, seeds, starts, reset_to_state, (max_steps, limit), success, first_id,
-            progress, desc,
+            progress, desc, mode,
         )  # fmt: skip
     wins, steps, parts = [], [], []
     for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
@@ -165,7 +181,8 @@ def run_episodes(
         td = env.reset() if starts is None else reset_to(reset_to_state, env, starts[i])
         if hasattr(type(policy), "reset"):  # a planner's warm start (not an env's reset)
             policy.reset()
-        episode = _rollout(env, policy, max_steps, td, break_when_any_done=True)
+        with acting(mode, seed=int(seed)):
+            episode = _rollout(env, policy, max_steps, td, break_when_any_done=True)
         check_actions(env, episode)
         won = _success_flags(episode, success)
         check_not_cut_short(episode, won.any(), torch.tensor(episode.shape[0]), limit)
@@ -333,27 +350,31 @@ def episode_groups(
     until_all_done: bool | None = None,
     progress: bool = True,
     desc: str = "episodes",
+    exploration_type: ExplorationType | str | None = None,
 ) -> Iterator[tuple[int, int, TensorDictBase]]:
     """The episodes ``seeds`` in a batched env, ``N = env.batch_size.numel()`` at a time: each
     group begun by ``start(env, its seeds, its episode indices)`` (the last group padded with
     repeats of its last episode), the policy reset (``policy.reset()`` where its class has
     one), then rolled out for ``max_steps`` (a sub-env that is done stays done; with
-    ``until_all_done`` the rollout stops once all are). Yields ``(first episode index, episodes
-    kept, rollout [N, T])``."""
+    ``until_all_done`` the rollout stops once all are), the policy acting as in
+    :func:`run_episodes` (torch's global random stream seeded by the group's first seed).
+    Yields ``(first episode index, episodes kept, rollout [N, T])``."""
     n, total = env.batch_size.numel(), len(seeds)
+    mode = exploration_mode(exploration_type)
     for low in tqdm(range(0, total, n), desc=desc, disable=not progress, leave=False):
         rows = torch.arange(low, low + n).clamp_max(total - 1)  # pad with the last episode
         td = start(env, [int(seeds[i]) for i in rows], rows)
         if hasattr(type(policy), "reset"):
             policy.reset()
-        episode = _rollout(
-            env,
-            policy,
-            max_steps,
-            td,
-            break_when_any_done=False,
-            break_when_all_done=until_all_done,
-        )
+        with acting(mode, seed=int(seeds[low])):
+            episode = _rollout(
+                env,
+                policy,
+                max_steps,
+                td,
+                break_when_any_done=False,
+                break_when_all_done=until_all_done,
+            )
         yield low, min(n, total - low), episode.reshape(n, episode.shape[-1])
 
 
@@ -375,6 +396,7 @@ def _batched_episodes(
     first_id: int,
     progress: bool,
     desc: str,
+    mode: ExplorationType,
 ) -> EpisodeStats:
     """:func:`run_episodes` in a batched env ``[N]``: ``N`` episodes side by side at a time;
     ``steps``: ``(max_steps, the step by which the outcome is decided)``."""
@@ -388,7 +410,15 @@ def _batched_episodes(
 
     wins, steps, parts = [], [], []
     groups = episode_groups(
-        env, policy, seeds, start, max_steps, until_all_done=True, progress=progress, desc=desc
+        env,
+        policy,
+        seeds,
+        start,
+        max_steps,
+        until_all_done=True,
+        progress=progress,
+        desc=desc,
+        exploration_type=mode,
     )
     for low, keep, episode in groups:
         check_actions(env, episode)

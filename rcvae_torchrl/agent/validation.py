@@ -20,12 +20,13 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
 from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_finite, check_non_negative_int, check_positive_int
 from rcvae_torchrl.competency import CompetencyReport, SuccessBoundary, validate_forecasts
-from rcvae_torchrl.data import TRAJ_KEY
+from rcvae_torchrl.data import TRAJ_KEY, check_same_acting, exploration_mode
 from rcvae_torchrl.threads import threads_kept
 
 from .episodes import (
@@ -51,6 +52,10 @@ class RealOutcomes:
     first_step: torch.Tensor  #: int64 ``[B, R]``: index of the first success, ``T`` when none
     steps: torch.Tensor  #: int64 ``[B, R]``: the episode's length
     trace: torch.Tensor | None = None  #: ``[B, R, T]`` per-step values, NaN after the episode
+    #: how the policy acted (its exploration type's name, e.g. ``"random"``: see
+    #: :func:`~rcvae_torchrl.data.exploration_mode`); ``None`` where not known (outcomes read
+    #: back from plain tensors)
+    acting: str | None = None
 
     def as_dict(self) -> dict[str, torch.Tensor]:
         """Plain tensors (for ``torch.save``)."""
@@ -61,7 +66,7 @@ class RealOutcomes:
 
     @classmethod
     def from_dict(cls, values: dict[str, torch.Tensor]) -> RealOutcomes:
-        """What :meth:`as_dict` gave."""
+        """What :meth:`as_dict` gave (plain tensors: how the policy acted is not among them)."""
         return cls(values["success"], values["first_step"], values["steps"], values.get("trace"))
 
     def within(self, steps: int) -> RealOutcomes:
@@ -83,7 +88,7 @@ class RealOutcomes:
                 f"states (one start state: outcomes[i : i + 1]), got {index!r}"
             )
         pick = {k: v[index] for k, v in self.as_dict().items()}
-        return RealOutcomes.from_dict(pick)
+        return dataclasses.replace(RealOutcomes.from_dict(pick), acting=self.acting)
 
 
 def real_outcomes(
@@ -101,6 +106,7 @@ def real_outcomes(
     policy_rows: int | None = None,
     progress: bool = True,
     desc: str = "real episodes",
+    exploration_type: ExplorationType | str | None = None,
 ) -> RealOutcomes:
     """Run ``policy`` ``runs_per_start`` times from each start ``[B, ...]``.
 
@@ -149,6 +155,13 @@ def real_outcomes(
     shared out over the ranks in blocks, each rank with its own ``env`` (and ``workers``
     processes) and ``policy``, and the outcomes gathered on every rank: the same as one
     process's.
+
+    ``exploration_type``: how a stochastic policy (a TorchRL ``ProbabilisticActor``) acts,
+    as in :func:`~rcvae_torchrl.agent.run_episodes` (by default the caller's
+    ``set_exploration_type``, else sampled); its samples are drawn from torch's global random
+    stream seeded by each episode's seed (each group's first, side by side). The outcomes keep
+    it (:attr:`RealOutcomes.acting`), and a forecast made with the policy acting otherwise is
+    not scored against them (:func:`score_forecast`, ``OutcomeCheck.from_outcomes``).
     """
     check_positive_int("runs_per_start", runs_per_start)
     check_positive_int("workers", workers)
@@ -178,6 +191,7 @@ def real_outcomes(
                 f"from one block of {policy_rows} rows to the next), got {policy_rows}"
             )
         policy = FixedRowsPolicy(policy, policy_rows)
+    mode = exploration_mode(exploration_type)
     b, r = len(starts), runs_per_start
     mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))
     index = torch.arange(b).repeat_interleave(r)[mine]
@@ -185,14 +199,17 @@ def real_outcomes(
     episodes = (starts, index, seeds, max_steps, success, trace)
     show = progress and distributed.is_main()
     part = (
-        _my_outcomes(env, workers, policy, reset_to_state, episodes, show, desc) if mine else None
+        _my_outcomes(env, workers, policy, reset_to_state, episodes, show, desc, mode)
+        if mine
+        else None
     )
     *flat, fingerprints, undecided = _gathered(part)
     if r > 1:
-        _warn_copies(fingerprints.reshape(b, r), reset_to_state)
+        _warn_copies(fingerprints.reshape(b, r), reset_to_state, mode)
     if undecided is not None and bool(undecided.any()):
         _warn_undecided_ends(undecided, _boundary_of(success))
-    return RealOutcomes(*(None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat))
+    shaped = (None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat)
+    return RealOutcomes(*shaped, acting=mode.value)
 
 
 def _decided_by(success: object) -> int | None:
@@ -251,12 +268,20 @@ def _warn_undecided_ends(undecided: torch.Tensor, boundary: SuccessBoundary) -> 
     )
 
 
-def _warn_copies(fingerprints: torch.Tensor, reset_to_state: ResetToState) -> None:
+def _warn_copies(
+    fingerprints: torch.Tensor, reset_to_state: ResetToState, mode: ExplorationType
+) -> None:
     """Warn when every start's runs repeat one episode step for step (``fingerprints``
     ``[B, R]``, each episode's observations summed): its R runs are then R copies, not R draws
     of its chance."""
     if not bool((fingerprints == fingerprints[:, :1]).all()):
         return
+    drawless = (
+        ""
+        if mode is ExplorationType.RANDOM
+        else f"; a stochastic policy (a ProbabilisticActor) acting {mode.value!r}, as here "
+        "(exploration_type, or the caller's set_exploration_type), draws no samples either"
+    )
     b, r = fingerprints.shape
     replay = (
         " (as reset_by_seed does, replaying the start's seeded reset)"
@@ -269,7 +294,7 @@ def _warn_copies(fingerprints: torch.Tensor, reset_to_state: ResetToState) -> No
         "deterministic env does this (one run per start then says as much); an env whose "
         "noise comes from its own random stream does it when the reset restarts that stream"
         f"{replay}: reset to the state instead (reset_to_physics, or a function of your own), "
-        "or draw the noise in a transform (ActionNoise), which each run's seed restarts",
+        f"or draw the noise in a transform (ActionNoise), which each run's seed restarts{drawless}",
         UserWarning,
         stacklevel=3,
     )
@@ -284,6 +309,7 @@ def _my_outcomes(
     episodes: tuple,
     show: bool,
     desc: str,
+    mode: ExplorationType,
 ) -> tuple:
     """``(success, first_step, steps, trace or None, fingerprints, undecided or None)`` of this
     process's ``episodes`` (a fingerprint: the sum of an episode's observations, for telling
@@ -294,14 +320,16 @@ def _my_outcomes(
         pool = episode_workers(env, workers, reset_to_state)
         try:
             _check_batch(pool.batch_size[1:])
-            return _batched_outcomes(pool, start_worker_episodes, policy, *episodes, show, desc)
+            return _batched_outcomes(
+                pool, start_worker_episodes, policy, *episodes, show, desc, mode
+            )
         finally:
             pool.close()
     env = env() if callable(env) and not isinstance(env, EnvBase) else env
     _check_batch(env.batch_size)
     if env.batch_size:
         start = partial(start_episodes, reset_to_state=reset_to_state)
-        return _batched_outcomes(env, start, policy, *episodes, show, desc)
+        return _batched_outcomes(env, start, policy, *episodes, show, desc, mode)
     starts, index, seeds, max_steps, success, trace = episodes
     stats = run_episodes(
         env,
@@ -314,6 +342,7 @@ def _my_outcomes(
         progress=show,
         desc=desc,
         decided_by=_decided_by(success),
+        exploration_type=mode,
     )
     return _outcomes(stats, len(seeds), success, trace, max_steps)
 
@@ -376,6 +405,7 @@ def _batched_outcomes(
     trace: Callable[[torch.Tensor], torch.Tensor] | None,
     progress: bool,
     desc: str,
+    mode: ExplorationType,
 ) -> tuple:
     """Episodes ``index`` (start rows) with ``seeds``, ``n = env.batch_size.numel()`` at a
     time, each chunk begun with ``start(env, seeds[n], starts[n])``: outcomes ``[len]``."""
@@ -388,12 +418,13 @@ def _batched_outcomes(
         max_steps,
         progress=progress,
         desc=desc,
+        exploration_type=mode,
     )
     for _, keep, episode in groups:  # rows past keep pad the last group: not episodes asked for
         out, fingerprints = _chunk_outcomes(episode[:keep], success, trace, max_steps)
         observation = episode[:keep]["next", "observation"]
         undecided = _undecided_ends(success, observation, out.success, out.steps, max_steps)
-        parts.append([*dataclasses.astuple(out), fingerprints, undecided])
+        parts.append([out.success, out.first_step, out.steps, out.trace, fingerprints, undecided])
     return tuple(None if t[0] is None else torch.cat(t) for t in zip(*parts))
 
 
@@ -457,6 +488,7 @@ def score_forecast(
             "validate_forecasts"
         )
     if isinstance(forecast, CompetencyReport):
+        check_same_acting(forecast.acting, outcomes.acting)
         outcomes = outcomes.within(forecast.time_limit)
         forecast = forecast.competency["p_success"]
     return validate_forecasts(forecast.cpu(), outcomes.success, base_rate=base_rate)

@@ -14,6 +14,7 @@ state, Figure 1 per dimension and time).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import difflib
 import inspect
 import math
@@ -26,6 +27,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
+from torchrl.envs import TransformedEnv
+from torchrl.envs.utils import ExplorationType
 
 from rcvae_torchrl import distributed, fingerprint
 from rcvae_torchrl.competency import _checks
@@ -35,6 +38,7 @@ from rcvae_torchrl.competency.decomposition import check_shuffle_samples, estima
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
 from rcvae_torchrl.competency.report import CompetencyReport
+from rcvae_torchrl.data import acting, exploration_mode
 from rcvae_torchrl.rollout import as_tensor_policy
 
 __all__ = ["CompetencyAssessor", "ImaginesRollouts", "PerSample", "Policy"]
@@ -239,6 +243,7 @@ class CompetencyAssessor(KeyedModule):
         generator: torch.Generator | None = None,
         seed: int | None = None,
         return_rollouts: bool = False,
+        exploration_type: ExplorationType | str | None = None,
     ) -> CompetencyReport:
         """Imagine, measure and report; see :class:`CompetencyReport` for what it holds.
 
@@ -264,10 +269,20 @@ class CompetencyAssessor(KeyedModule):
                 needs a seed.
             return_rollouts: also keep the rollouts, ``data["rollout"]`` ``[*B, E, N, T]``
                 (``E·N·T`` states per start state: memory).
+            exploration_type: how a stochastic closed-loop policy (a TorchRL
+                ``ProbabilisticActor``) acts in the imagined episodes
+                (:func:`~rcvae_torchrl.data.exploration_mode`: by default the caller's
+                ``set_exploration_type``, else sampled, as TorchRL's collectors and
+                :func:`~rcvae_torchrl.data.collect_episodes` run it). The report keeps it
+                (:attr:`CompetencyReport.acting`): real episodes of the policy acting
+                otherwise do not check it. With a ``seed``, the samples it draws from torch's
+                global random stream are seeded by ``(seed, k)`` too (the stream restored
+                afterwards): the same seed gives the same report.
         """
         observation = self._start_states(start)
         batch = observation.shape[:-1]
         policy, plan = self._controls(policy, actions, batch)
+        mode = exploration_mode(exploration_type)
         _check_seed(seed, generator)
         _checks.check_bool("return_rollouts", return_rollouts)
         flat = observation.reshape(-1, observation.shape[-1])
@@ -278,7 +293,11 @@ class CompetencyAssessor(KeyedModule):
             i = chunks[k]
             if policy is not None and hasattr(type(policy), "reset"):
                 policy.reset()  # e.g. a planner's warm start: each chunk's episodes are new
-            with self._chunk_noise(seed, k, generator, policy) as noise:
+            draws = None if seed is None else distributed.work_generator(seed, k, 5)
+            with (
+                self._chunk_noise(seed, k, generator, policy) as noise,
+                acting(mode, None if draws is None else draws.initial_seed()),
+            ):
                 parts.append(
                     self._assess_chunk(
                         flat[i : i + self.start_chunk],
@@ -289,7 +308,8 @@ class CompetencyAssessor(KeyedModule):
                     )
                 )
         steps = self.horizon if plan is None else plan.shape[-2]
-        return self.report(_gathered(parts, flat.device).reshape(batch), steps)
+        report = self.report(_gathered(parts, flat.device).reshape(batch), steps)
+        return report if plan is not None else dataclasses.replace(report, acting=mode.value)
 
     @contextlib.contextmanager
     def _chunk_noise(
@@ -657,7 +677,46 @@ def _check_model_env(model_env: object) -> int:
             "model_env: expected an ensemble of E >= 2 members (the aleatoric / epistemic split "
             f"needs them), got E = {model_env.ensemble.ensemble_size}"
         )
+    _check_action_transforms(model_env)
     return model_env.ensemble.config.obs_dim
+
+
+def _check_action_transforms(model_env: object) -> None:
+    """Refuse a ``TransformedEnv`` one of whose transforms changes the action on its way to
+    the model env: the assessor imagines with ``model_env.imagine``, which a
+    ``TransformedEnv`` hands to its base env, past the transforms (a transform rounding a
+    cart-pole's action to ±1: imagined with 0.3 as given, 4.3 off the rounded episode). Each
+    transform's inverse is tried on actions drawn from the action spec; one that raises is
+    passed over (it cannot be told here)."""
+    if not isinstance(model_env, TransformedEnv):
+        return
+    changing = []
+    for transform in model_env.transform:
+        try:
+            probe = model_env.full_action_spec.rand(torch.Size([8, *model_env.batch_size]))
+            given = probe.clone()
+            out = transform.inv(probe)
+            changed = any(
+                not isinstance(out.get(key, None), torch.Tensor)
+                or out.get(key).shape != value.shape
+                or out.get(key).dtype != value.dtype
+                or not torch.equal(out.get(key), value)
+                for key, value in given.items(True, True)
+            )
+        except Exception:  # an inverse that needs more than actions: not told here
+            continue
+        if changed:
+            changing.append(type(transform).__name__)
+    if changing:
+        many = len(changing) > 1
+        raise ValueError(
+            f"model_env: its transform{'s' if many else ''} {', '.join(changing)} "
+            f"change{'' if many else 's'} the action on its way to the world model, and the "
+            "assessor imagines with model_env.imagine, which a TransformedEnv hands to its base "
+            "env past the transforms: the forecast would judge the actions as the policy gives "
+            "them. Do the change in the policy (e.g. tensordict.nn.TensorDictSequential(policy, "
+            "rounding_module)), and pass the model env without it"
+        )
 
 
 def _dim_names(names: Sequence[str] | None, config: Any) -> tuple[str, ...]:

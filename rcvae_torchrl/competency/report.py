@@ -20,6 +20,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 
 from rcvae_torchrl._conformal import conformal_level
+from rcvae_torchrl.data.exploration import check_same_acting
 
 __all__ = ["CompetencyReport", "Reference"]
 
@@ -217,6 +218,11 @@ class CompetencyReport:
     #: (:meth:`CompetencyAssessor.task`); '' where not known (a report built by hand). A
     #: forecast check must be of the same task (:meth:`with_forecast_check`)
     task: str = ""
+    #: how the agent chose its actions in the imagined episodes: its exploration type's name
+    #: (e.g. ``"random"``, a stochastic policy's samples; :func:`~rcvae_torchrl.data
+    #: .exploration_mode`); ``None`` where not known or open loop. Real episodes of the policy
+    #: acting otherwise do not check it (:meth:`with_forecast_check`)
+    acting: str | None = None
 
     @property
     def novel(self) -> Tensor | None:
@@ -305,7 +311,9 @@ class CompetencyReport:
         The check must be of this report's :attr:`task`: a check of another boundary, deadline
         or world model is refused, and one built from bare forecasts (which know no task) makes
         a report that knows its task untrustworthy, with a warning saying why. The agent is
-        not part of the task: check with the agent the report's forecasts follow."""
+        not part of the task: check with the agent the report's forecasts follow (a check of
+        its real episodes with a stochastic policy acting in another exploration mode than in
+        the report's imagined ones is refused)."""
         if not (hasattr(check, "passed") and callable(getattr(check, "describe", None))):
             raise TypeError(
                 "check: expected an OutcomeCheck (rcvae_torchrl.training.OutcomeCheck."
@@ -319,6 +327,7 @@ class CompetencyReport:
                 "deadline or world model; check this report's own task, from the report of its "
                 "start states: OutcomeCheck.from_outcomes(report, outcomes)"
             )
+        check_same_acting(self.acting, getattr(check, "acting", None), name="check")
         return replace(self, forecast_check=check)
 
     def mean_bits(self, per_live_step: bool = False) -> tuple[float, float]:

@@ -11,7 +11,10 @@ from .collection import (
 from .exploration import (
     GaussianExploration,
     UniformRandomPolicy,
+    acting,
     action_bounds,
+    check_same_acting,
+    exploration_mode,
     make_policy_module,
 )
 from .prepare import (
@@ -43,7 +46,10 @@ __all__ = [
     # exploration
     "GaussianExploration",
     "UniformRandomPolicy",
+    "acting",
     "action_bounds",
+    "check_same_acting",
+    "exploration_mode",
     "make_policy_module",
     # any env as the library expects it
     "ActionNoise",

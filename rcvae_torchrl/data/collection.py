@@ -11,6 +11,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import unravel_key
 from torchrl.collectors import Collector
 from torchrl.envs import EnvBase, SerialEnv
+from torchrl.envs.utils import ExplorationType
 from tqdm.auto import tqdm
 
 from rcvae_torchrl._checks import (
@@ -21,7 +22,7 @@ from rcvae_torchrl._checks import (
 from rcvae_torchrl.distributed import work_generator
 from rcvae_torchrl.threads import threads_kept
 
-from .exploration import action_bounds
+from .exploration import acting, action_bounds, exploration_mode
 from .prepare import seed_env
 
 __all__ = [
@@ -49,6 +50,7 @@ def collect_episodes(
     first_id: int = 0,
     progress: bool = True,
     desc: str = "collect",
+    exploration_type: ExplorationType | str | None = None,
 ) -> TensorDict:
     """Run ``policy`` in envs from ``make_env`` until ``num_episodes`` episodes have ended.
 
@@ -76,6 +78,11 @@ def collect_episodes(
             − 1), room for episodes of up to 1,000 steps in every env). Reaching it before
             ``num_episodes`` episodes have ended is a ``ValueError``.
         first_id: the id of the first episode.
+        exploration_type: how a stochastic policy (a TorchRL ``ProbabilisticActor``) acts:
+            :func:`~rcvae_torchrl.data.exploration_mode` (by default the caller's
+            ``set_exploration_type``, else sampled, as TorchRL's collectors run it). Its samples
+            come from torch's global random stream, seeded by ``seed`` for the collection and
+            restored afterwards: the same seed gives the same episodes.
     """
     if isinstance(make_env, EnvBase) or not callable(make_env):
         raise TypeError(
@@ -102,6 +109,7 @@ def collect_episodes(
     _check_policy_inputs(env, policy)
     warn_narrow_bounds(env, policy)
     seed_env(env, seed)  # the env(s), and one env's transforms with random streams
+    mode = exploration_mode(exploration_type)
     collector = Collector(
         env,
         policy,
@@ -109,11 +117,12 @@ def collect_episodes(
         total_frames=-1,
         split_trajs=False,
         auto_register_policy_transforms=False,
+        exploration_type=mode,
     )
     parts, ended, frames = [], 0, 0
     bar = tqdm(total=num_episodes, desc=desc, disable=not progress, leave=False)
     try:
-        with torch.no_grad():
+        with torch.no_grad(), acting(mode, seed=seed):
             for batch in collector:
                 parts.append(batch.reshape(-1).clone())
                 finished = int(batch["next", "done"].sum())

@@ -1,4 +1,5 @@
-"""Exploration policies for data collection: a base policy plus Gaussian noise, or uniform noise.
+"""Exploration policies for data collection: a base policy plus Gaussian noise, or uniform noise;
+and how a stochastic TorchRL policy acts in the library's runs (:func:`acting`).
 
 Actions stay inside the action bounds ``[low, high]`` (scalars or ``[A]``); take them from
 your env's action spec with :func:`action_bounds`.
@@ -6,18 +7,72 @@ your env's action spec with :func:`action_bounds`.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
+from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 
 from rcvae_torchrl._checks import check_bounds, check_positive_int
 
 __all__ = [
     "GaussianExploration",
     "UniformRandomPolicy",
+    "acting",
     "action_bounds",
+    "check_same_acting",
+    "exploration_mode",
     "make_policy_module",
 ]
+
+
+def exploration_mode(mode: ExplorationType | str | None = None) -> ExplorationType:
+    """How a stochastic TorchRL policy (a ``ProbabilisticActor``) chooses its actions in the
+    library's runs: ``mode`` where given (an ``ExplorationType`` or its name: ``"random"``,
+    ``"deterministic"``, ``"mode"``, ``"mean"``, ``"median"``); else the caller's own, inside
+    TorchRL's ``set_exploration_type(...)``; else ``RANDOM``, its samples, as TorchRL's
+    collectors run it (and so as :func:`~rcvae_torchrl.data.collect_episodes` records the
+    episodes a world model learns from). Outside any such setting a ``ProbabilisticActor``
+    would act by its mean (a cheetah's gait: real success 0.85 by its mean, 0.39 sampled), so
+    the library sets the mode wherever it runs a policy: collecting, imagining, real episodes.
+    A policy that draws nothing (a planner, a deterministic network) acts the same in every
+    mode."""
+    if mode is None:
+        mode = exploration_type() or ExplorationType.RANDOM
+    if isinstance(mode, str) and not isinstance(mode, ExplorationType):
+        names = [m.value for m in ExplorationType]
+        if mode.lower() not in names:
+            raise ValueError(f"exploration_type: expected one of {names}, got {mode!r}")
+        mode = ExplorationType(mode.lower())
+    if not isinstance(mode, ExplorationType):
+        raise TypeError(
+            "exploration_type: expected a torchrl ExplorationType, its name or None, got "
+            f"{type(mode).__name__}"
+        )
+    return mode
+
+
+@contextlib.contextmanager
+def acting(mode: ExplorationType | str | None = None, seed: int | None = None) -> Iterator[str]:
+    """Run a policy in :func:`exploration_mode` ``mode`` (yields its name, e.g. ``"random"``,
+    for a record of how the agent acted). With a ``seed``, torch's global random stream, from
+    which a ``ProbabilisticActor`` samples its actions, is seeded by it for the block and
+    restored afterwards (those of CUDA devices already in use too), so that the same seed gives
+    the same draws."""
+    resolved = exploration_mode(mode)
+    with set_exploration_type(resolved):
+        if seed is None:
+            yield resolved.value
+            return
+        in_use = torch.cuda.device_count() if torch.cuda.is_initialized() else 0
+        with torch.random.fork_rng(devices=list(range(in_use))):
+            torch.default_generator.manual_seed(seed)
+            if in_use:  # not torch.manual_seed: it would also seed CUDA when first used
+                torch.cuda.manual_seed_all(seed)
+            yield resolved.value
+
 
 Bound = float | torch.Tensor
 
@@ -32,6 +87,23 @@ def action_bounds(env) -> tuple[torch.Tensor, torch.Tensor]:
         )
     shape = env.action_spec.shape[len(env.batch_size) :]
     return low.reshape(-1, *shape)[0].float(), high.reshape(-1, *shape)[0].float()
+
+
+def check_same_acting(forecast: str | None, real: str | None, name: str = "outcomes") -> None:
+    """Refuse to judge a forecast against real episodes whose policy acted otherwise: its
+    imagined episodes with the policy in exploration mode ``forecast`` (a report's
+    ``acting``), the real ones in ``real`` (the outcomes', or a forecast check's: ``name``
+    says which argument). ``None`` on either side (not known, or an open-loop forecast) is not
+    compared."""
+    if forecast is None or real is None or forecast == real:
+        return
+    raise ValueError(
+        f"{name}: the real episodes' policy acted {real!r} (its exploration type), the "
+        f"forecast's imagined one {forecast!r}: a stochastic policy is another agent in each "
+        "mode, and one is judged against the other; give CompetencyAssessor.assess and "
+        f"real_outcomes the same exploration_type (e.g. exploration_type={forecast!r}), or "
+        "run both inside one torchrl set_exploration_type(...)"
+    )
 
 
 def _bounds(low: Bound, high: Bound) -> tuple[torch.Tensor, torch.Tensor]:

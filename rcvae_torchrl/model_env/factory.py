@@ -6,7 +6,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from tensordict.utils import unravel_key
-from torchrl.envs import Compose, EnvBase, Transform, TransformedEnv
+from torchrl.envs import Compose, EnvBase, FrameSkipTransform, Transform, TransformedEnv
 
 from rcvae_torchrl.model_env.env import RCVAEEnsembleEnv
 from rcvae_torchrl.model_env.specs import OBSERVATION_KEY
@@ -39,7 +39,11 @@ def make_rcvae_env(
         transforms: optional transforms; the env is then wrapped in a ``TransformedEnv``, whose
             class has no fast path, so planners score plans through ``step``. A transform that
             writes ``"observation"`` (an ``ObservationNorm`` or ``CatFrames`` on it) is
-            refused: the model env reads its next state from that entry; write elsewhere.
+            refused: the model env reads its next state from that entry; write elsewhere. A
+            ``FrameSkipTransform`` is refused too (skip frames in the real env instead). A
+            :class:`~rcvae_torchrl.competency.CompetencyAssessor` imagines past the transforms
+            (with the base env's ``imagine``), so it refuses a transform that changes the
+            action: change the action in the policy.
         **kwargs: keyword arguments of :class:`RCVAEEnsembleEnv` (``trajectory_sampling``,
             ``start_states``, ``terminate_on_success``, ``seed``, ...).
 
@@ -62,6 +66,14 @@ def make_rcvae_env(
         compose = Compose(*([transforms] if isinstance(transforms, Transform) else transforms))
     transformed = TransformedEnv(env, compose)
     for transform in transformed.transform:  # with their parent: some (InitTracker) need one
+        if isinstance(transform, FrameSkipTransform):
+            raise ValueError(
+                f"transforms: FrameSkipTransform({transform.frame_skip}) on the model env would "
+                "step the world model's transition again from the same input (the model env "
+                "keeps no simulator state to advance), summing the reward of the repeats while "
+                "the state moves one step; skip frames in the real env before collecting the "
+                "episodes (its step is then the model's step), not here"
+            )
         if OBSERVATION_KEY in map(unravel_key, getattr(transform, "out_keys", None) or []):
             raise ValueError(
                 f"transforms: {type(transform).__name__} writes {OBSERVATION_KEY!r}, the model's "

@@ -57,7 +57,13 @@ from tensordict import TensorDictBase
 from rcvae_torchrl import _checks
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl.competency._checks import check_probability
-from rcvae_torchrl.data import TRAJ_KEY, episode_spans, make_window_buffer, sample_windows
+from rcvae_torchrl.data import (
+    TRAJ_KEY,
+    check_same_acting,
+    episode_spans,
+    make_window_buffer,
+    sample_windows,
+)
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import imagine
 
@@ -454,12 +460,16 @@ def _drift_p_values(
     that variance is no more than any baseline's squared error. Windows of one episode are not
     independent, so each episode's mean excess is one unit of a t-test (``None``: fewer than
     :data:`_DRIFT_EPISODES` episodes; 1 where every episode's excess is the same and not
-    above 0, 0 where it is above)."""
+    above 0, 0 where it is above). An error within float rounding of the truth
+    (:data:`_ROUNDING`, relative above 1) is none: a dimension the model gets exactly (a clock
+    advanced by a state constraint, whose period may equal ``k`` so that the copy is exact too)
+    does not drift by 1e-7."""
     from scipy.stats import t as student_t
 
-    excess = (forecast.to(torch.float64) - truth).square() - (1 + 1 / samples) * (
-        truth.to(torch.float64) - baseline
-    ).square()
+    truth = truth.to(torch.float64)
+    error = forecast.to(torch.float64) - truth
+    error = torch.where(error.abs() <= _ROUNDING * (1 + truth.abs()), 0.0, error)
+    excess = error.square() - (1 + 1 / samples) * (truth - baseline).square()
     excess = excess.cpu()
     ids, unit = torch.unique(episodes.cpu(), return_inverse=True)
     n = len(ids)
@@ -681,6 +691,10 @@ class OutcomeCheck:
     #: :attr:`~rcvae_torchrl.training.StateNovelty.scale`); ``None``: the start states' own
     #: spread
     state_scale: torch.Tensor | None = None
+    #: how the agent's policy acted in the real episodes (their
+    #: :attr:`~rcvae_torchrl.agent.RealOutcomes.acting`, else the report's); ``None`` where not
+    #: known. A report whose imagined policy acted otherwise is not vouched for
+    acting: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("forecast", "real"):
@@ -740,8 +754,11 @@ class OutcomeCheck:
         report's start states too (or ``start_states`` ``[n, D]`` given with bare forecasts), and
         vouches for forecasts of start states like them alone (:meth:`covers`), each dimension
         in units of its spread in the world model's training states where the report has a
-        novelty check (or ``state_scale`` ``[D]`` given)."""
+        novelty check (or ``state_scale`` ``[D]`` given). A report whose policy acted in
+        another exploration mode than the real episodes' (``acting``) is refused."""
         deadline = getattr(forecast, "time_limit", None)
+        acted = getattr(forecast, "acting", None), getattr(real_success, "acting", None)
+        check_same_acting(*acted)
         if hasattr(forecast, "competency") and deadline is not None:  # a CompetencyReport
             known = getattr(forecast, "task", "") or None
             if task is not None and known is not None and task != known:
@@ -796,6 +813,7 @@ class OutcomeCheck:
             state_scale=None
             if state_scale is None
             else torch.as_tensor(state_scale).detach().cpu().double(),
+            acting=acted[1] if acted[1] is not None else acted[0],
         )
 
     @property

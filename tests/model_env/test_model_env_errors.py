@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.envs import Transform
 
 from rcvae_torchrl.envs import make_pusher_env, pusher_reward, pusher_success
 from rcvae_torchrl.model_env import RCVAEEnsembleEnv
@@ -62,7 +63,9 @@ def test_step_inputs(make_env, starts, mode):
         td = _state(env, starts)
         td["action"] = torch.ones(4, 2, dtype=dtype)
         with pytest.raises(
-            TypeError, match=rf"action: expected dtype torch.float32 .*, got {dtype}"
+            TypeError,
+            match=rf"action: expected dtype torch.float32 .*, got {dtype}; integer or bool "
+            r"actions are discrete ones .* relax them to a continuous action",
         ):
             env.step(td)
     td = _state(env, starts)
@@ -209,3 +212,56 @@ def test_a_transform_that_writes_the_observation_is_refused(ensemble, real_env, 
 
     tracked = make_rcvae_env(*args, start_states=starts, seed=0, transforms=[InitTracker()])
     assert bool(tracked.reset()["is_init"].all())
+
+
+class SignAction(Transform):
+    """Rounds the action to ±1 on its way to the env (a cart-pole's two pushes)."""
+
+    def __init__(self):
+        super().__init__(in_keys_inv=["action"], out_keys_inv=["action"])
+
+    def _inv_apply_transform(self, action):
+        return torch.where(action > 0, 1.0, -1.0).to(action.dtype)
+
+
+def test_a_frame_skip_on_the_model_env_is_refused(ensemble, real_env, starts):
+    """A cheetah trial: a FrameSkipTransform(4) on the model env stepped the stateless model
+    four times from the same input, the state one step on and the reward four draws summed
+    (0.450 against the state's own 0.086)."""
+    from torchrl.envs import FrameSkipTransform
+
+    from rcvae_torchrl.model_env import make_rcvae_env
+
+    with pytest.raises(
+        ValueError,
+        match=r"^transforms: FrameSkipTransform\(4\) on the model env .* in the real env",
+    ):
+        make_rcvae_env(
+            ensemble, real_env, pusher_reward, pusher_success, transforms=FrameSkipTransform(4)
+        )
+
+
+def test_the_assessor_refuses_a_transform_that_changes_the_action(ensemble, real_env, starts):
+    """A cart-pole trial: a transform rounding the action on the model env was passed over by
+    the assessor's imagination (``imagine`` is the base env's), so 0.3 was imagined as 0.3, not
+    as the +1 the env acts on. Transforms of other entries stay welcome."""
+    from torchrl.envs import InitTracker, RewardSum, StepCounter
+
+    from rcvae_torchrl.competency import CompetencyAssessor, SuccessBoundary
+    from rcvae_torchrl.model_env import make_rcvae_env
+
+    args = (ensemble, real_env, pusher_reward, pusher_success)
+    boundary = SuccessBoundary(lambda s: s[..., 0] > 10.0, time_limit=5)
+    rounded = make_rcvae_env(*args, start_states=starts, seed=0, transforms=[SignAction()])
+    # the env's own step rounds (its transforms apply there), imagine does not
+    td = rounded.reset(TensorDict({"observation": starts[:2]}, batch_size=[2]))
+    assert rounded.transform.inv(td.set("action", torch.full((2, 2), 0.3)))["action"].eq(1).all()
+    with pytest.raises(
+        ValueError,
+        match=r"^model_env: its transform SignAction changes the action .* past the transforms.*"
+        r"TensorDictSequential\(policy, rounding_module\)",
+    ):
+        CompetencyAssessor(rounded, boundary, bin_width=0.1)
+    others = [StepCounter(5), RewardSum(), InitTracker()]
+    kept = make_rcvae_env(*args, start_states=starts, seed=0, transforms=others)
+    assert CompetencyAssessor(kept, boundary, bin_width=0.1).model_env is kept

@@ -426,3 +426,19 @@ def test_a_message_names_eight_dimensions_and_counts_the_rest():
     message = checks.message()
     assert "d7 (one-step error" in message and "d8 (" not in message
     assert "d7 (one-step error 1 vs 1 for a trivial baseline) and 12 more:" in message
+
+
+def test_a_dimension_forecast_to_float_rounding_does_not_drift():
+    """A cheetah trial: a gait clock set by a state constraint, its period exactly k steps, so
+    that copying the start state was exact (error 4.5e-14) and the model's float32 forecast off
+    by 2.4e-7: named drifting, and the model failed its checks."""
+    from rcvae_torchrl.training.checks import _drift_p_values
+
+    g = torch.Generator().manual_seed(0)
+    phase = torch.rand(24, 1, generator=g, dtype=torch.float64) * 2 - 1
+    forecast = phase.float().double() + 2.4e-7 * torch.randn(24, 1, generator=g).double()
+    episodes = torch.arange(6).repeat_interleave(4)
+    assert float(_drift_p_values(forecast, phase, phase.clone(), 8, episodes)[0]) == 1.0
+    # beyond rounding it is still an error: off by 1e-3 where the copy is exact
+    off = _drift_p_values(phase + 1e-3, phase, phase.clone(), 8, episodes)
+    assert float(off[0]) == 0.0
