@@ -476,7 +476,8 @@ class CompetencyAssessor(KeyedModule):
         for name, fn in self.per_sample.items():
             out.set(("per_sample", name), _per_sample_value(name, fn, observed, starts.shape[0]))
         if novelty is not None:
-            out.set("novelty", _novelty_entries(novelty, starts, imagined, ended))
+            actions = rollout.get("action", None)
+            out.set("novelty", _novelty_entries(novelty, starts, imagined, ended, actions))
         if keep_rollouts:
             out.set("rollout", rollout.permute(2, 0, 1, 3))
         return out
@@ -609,7 +610,9 @@ class CompetencyAssessor(KeyedModule):
 _NOVELTY_SAMPLES = 2
 
 
-def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor, ended: Tensor) -> TensorDict:
+def _novelty_entries(
+    novelty: Any, starts: Tensor, imagined: Tensor, ended: Tensor, actions: Tensor | None = None
+) -> TensorDict:
     """``("novelty", ·)`` entries ``[b]``: ``"start"``, the start state's distance over the
     check's level of start states (above 1: unlike the training states); ``"imagined"``, the
     share of imagined states ``[E, N, b, T, S]`` beyond the states' level (every member's
@@ -617,7 +620,9 @@ def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor, ended: Tens
     (``ended`` ``[E, N, b, T]``, the boundary's success, failure or time limit) never beyond:
     such states decide nothing, and real episodes that an env ends there have none past it;
     and ``"leaves"`` (int64), the time index of the first of those steps at which most of the
-    samples are beyond it (-1: none)."""
+    samples are beyond it (-1: none); where the check judges actions and the rollouts hold
+    them (``[E, N, b, T, A]``), ``"actions"``, the share of the imagined steps (every sample's,
+    while its episode runs) whose action lies outside the training actions' support."""
     at = novelty.episode_steps(imagined.shape[-2]).to(imagined.device)
     picked = imagined[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)  # [b, E, n, steps, S]
     live = ~ended[:, :_NOVELTY_SAMPLES, :, at].movedim(2, 0)  # [b, E, n, steps]
@@ -626,14 +631,18 @@ def _novelty_entries(novelty: Any, starts: Tensor, imagined: Tensor, ended: Tens
     share = beyond.float().mean(-1)
     most = beyond.reshape(b, -1, at.numel()).float().mean(-2) > 0.5  # [b, steps]
     leaves = torch.where(most.any(-1), at[most.int().argmax(-1)], -1)
-    return TensorDict(
-        {
-            "start": novelty.ratio(starts, starts=True).to(starts),
-            "imagined": share.to(starts),
-            "leaves": leaves.to(starts.device),
-        },
-        batch_size=[b],
-    )
+    entries = {
+        "start": novelty.ratio(starts, starts=True).to(starts),
+        "imagined": share.to(starts),
+        "leaves": leaves.to(starts.device),
+    }
+    if actions is not None and getattr(novelty, "judges_actions", False):
+        # the action of step t is taken in the state of step t - 1: live while that one is
+        acted = torch.cat([torch.zeros_like(ended[..., :1]), ended[..., :-1]], dim=-1)
+        live = ~acted.movedim(2, 0).reshape(b, -1)  # [b, E·N·T]
+        unseen = novelty.unseen_actions(actions).movedim(2, 0).reshape(b, -1) & live
+        entries["actions"] = (unseen.sum(-1) / live.sum(-1).clamp_min(1)).to(starts)
+    return TensorDict(entries, batch_size=[b])
 
 
 def _check_seed(seed: int | None, generator: torch.Generator | None) -> None:

@@ -116,7 +116,9 @@ class CompetencyReport:
       after its imagined episode ended at the boundary's success, failure or time limit is
       never counted beyond it); and ``"leaves"`` int64 ``[*B]``, the time index of the first of
       those steps at which most of these samples are beyond it (-1: none), when the forecast
-      starts to extrapolate;
+      starts to extrapolate; where the check knows the training actions' support
+      (:meth:`~rcvae_torchrl.training.StateNovelty.with_actions`), ``"actions"`` ``[*B]``,
+      the share of the imagined steps whose action lies outside it;
     - ``"rollout"`` (only when asked for): the imagined rollouts ``[*B, E, N, T]``.
 
     **Summary rules** (:meth:`summary`), one paragraph per start state:
@@ -139,10 +141,13 @@ class CompetencyReport:
        -4.2 to 4.3)): the forecast extrapolates, however much the members agree.`` For
        imagined states, the caution also says at which step more than half of that step's
        samples are first unlike the training states (``The first step at which more than half
-       of the samples are is t = 2.4 s``), where the forecast starts to extrapolate. The
-       members' disagreement is no sure sign of such states: members trained on the same data
-       can agree far from it, and where such a start's doubt is as in the reference (rule 4)
-       the sentence says so despite the caution. :meth:`overall` counts them.
+       of the samples are is t = 2.4 s``), where the forecast starts to extrapolate. An
+       imagined episode whose policy takes actions outside the training actions' support in
+       more of its steps than the check's ``action_level`` gets a caution too (the model has
+       not seen their effect). The members' disagreement is no sure sign of such states:
+       members trained on the same data can agree far from it, and where such a start's doubt
+       is as in the reference (rule 4) the sentence says so despite the caution.
+       :meth:`overall` counts them.
     4. With a :class:`Reference` (in-distribution start states, see :meth:`with_reference`),
        what changed: each part's bits against the reference's, and which part rose
        (at least ``rise`` times the reference; the larger rise when both did): ``Against the
@@ -478,7 +483,12 @@ class CompetencyReport:
         return (
             f" Novelty: {starts} of {novel.numel()} start states are unlike the states the "
             f"model was trained on, and {imagined} more imagine more of their states unlike "
-            f"them than in-distribution episodes do (over {self.novelty.episode_level:.0%})."
+            f"them than in-distribution episodes do (over {self.novelty.episode_level:.0%})"
+            + (
+                " or act outside the training actions."
+                if getattr(self.novelty, "judges_actions", False)
+                else "."
+            )
         )
 
     def _one_by_one_sentence(self) -> str:
@@ -625,15 +635,28 @@ class CompetencyReport:
         start, imagined = flags
         if not (start or imagined):
             return ""
+        acting = ""
+        if bool(_unseen_acting(one.get("novelty"), self.novelty)):
+            acting = (
+                f" Caution: {float(one.get(('novelty', 'actions'))):.0%} of the imagined steps "
+                "take actions outside those the model was trained on (past the range its "
+                "training actions took, or between the values they took), where in-distribution "
+                f"episodes have at most {self.novelty.action_level:.0%}: the model has not seen "
+                "their effect, and the forecast extrapolates, however much the members agree."
+            )
         share = float(one.get(("novelty", "imagined")))
+        states = share > self.novelty.episode_level
         if start:
             state = one.get(self.observation_key)
             detail = self.novelty.describe(state, self.dim_names, start=True)
-            also = f", and so are {share:.0%} of its imagined states" if imagined else ""
+            also = f", and so are {share:.0%} of its imagined states" if states else ""
             return (
                 f"Caution: the start state is unlike the states the model was trained on "
                 f"({detail}){also}: the forecast extrapolates, however much the members agree."
+                + acting
             )
+        if not states:
+            return acting.lstrip()
         level = self.novelty.episode_level  # the imagined states alone are cautioned
         usual = (
             f"where {self.novelty.episode_quantile:.0%} of in-distribution episodes have "
@@ -650,7 +673,7 @@ class CompetencyReport:
         )
         return (
             f"Caution: {share:.0%} of the imagined states are unlike the states the model was "
-            f"trained on, {usual}{where}, however much the members agree."
+            f"trained on, {usual}{where}, however much the members agree." + acting
         )
 
     def _uncertainty_sentence(
@@ -688,8 +711,21 @@ class CompetencyReport:
 
 def _novel_parts(entries: TensorDictBase, novelty: Any) -> tuple[Tensor, Tensor]:
     """The two cautions of the novelty check (``"novelty"`` ``entries``): the start state
-    beyond the start level, and the imagined episode beyond the episode level."""
-    return entries.get("start") > 1, entries.get("imagined") > novelty.episode_level
+    beyond the start level, and the imagined episode beyond the episode level, or its
+    actions outside the training actions' support beyond the action level."""
+    start, imagined = entries.get("start") > 1, entries.get("imagined") > novelty.episode_level
+    return start, imagined | _unseen_acting(entries, novelty)
+
+
+def _unseen_acting(entries: TensorDictBase, novelty: Any) -> Tensor:
+    """``[*B]`` bool: imagined episodes whose share of steps with actions outside the training
+    actions' support (``"actions"``) is above the check's ``action_level``; all ``False``
+    where either is not known (a check of states alone, an older report)."""
+    shares = entries.get("actions", None)
+    level = getattr(novelty, "action_level", math.nan)
+    if shares is None or not math.isfinite(level):
+        return torch.zeros_like(entries.get("start"), dtype=torch.bool)
+    return shares > level
 
 
 def _success_sentence(p: float, low: float, high: float, confidence: float, outcome: str) -> str:

@@ -40,7 +40,14 @@ from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl._conformal import conformal_level
 from rcvae_torchrl.data import TRAJ_KEY, ObservationLayout, episode_spans
 
-__all__ = ["EPISODE_STEPS", "StateNovelty", "entry_groups", "spread_steps"]
+__all__ = [
+    "ACTION_BINS",
+    "ACTION_FLOOR",
+    "EPISODE_STEPS",
+    "StateNovelty",
+    "entry_groups",
+    "spread_steps",
+]
 
 #: rows of queries per distance block (a block is ``rows x reference states`` floats)
 _BLOCK_ROWS = 256
@@ -52,6 +59,13 @@ _RANGE_MARGIN = 0.05
 _RECHECKED = 8
 #: the steps of an episode (real or imagined) whose states the episode level looks at
 EPISODE_STEPS = 20
+#: equal bins per action dimension between the training actions' extremes whose emptiness
+#: marks values the model never saw an action take (a relaxed discrete action's ±1 leaves
+#: every bin between them empty)
+ACTION_BINS = 20
+#: the least share of an episode's steps with unseen actions that cautions it: a policy that
+#: leaves the training actions' support now and then does not make its forecast extrapolate
+ACTION_FLOOR = 0.05
 
 
 def spread_steps(length: int, count: int = EPISODE_STEPS) -> Tensor:
@@ -133,6 +147,17 @@ class StateNovelty:
     #: 2 m/s was like the training states while its force sensors set the range's level);
     #: ``None``: one unit for all (checkpoints from before)
     range_levels: Tensor | None = None
+    #: ``[A]``, the training actions' lowest and highest value per dimension, and ``[A, K]``
+    #: which of ``K`` equal bins between them hold training actions: the support of the
+    #: actions the model learned from (:meth:`unseen_actions`). ``None``: fitted on states
+    #: alone (or a checkpoint from before)
+    action_low: Tensor | None = None
+    action_high: Tensor | None = None
+    action_bins: Tensor | None = None
+    #: the share of an episode's steps whose action is unseen that ``episode_quantile`` of the
+    #: held-out episodes stay at or below, and no less than :data:`ACTION_FLOOR`: an imagined
+    #: episode whose policy acts unseen more often is unlike the training data in its actions
+    action_level: float = math.nan
 
     def __post_init__(self) -> None:
         groups = _groups(self.groups, self.states.shape[-1])
@@ -379,7 +404,7 @@ class StateNovelty:
         held_out_episodes = val_data.get(TRAJ_KEY).reshape(-1).long()
         # an episode's rows: its states in time order, then its next states in time order; the
         # steps spread over them cover it twice over, as evenly
-        return cls.fit(
+        fitted = cls.fit(
             parts["train_data"],
             parts["val_data"],
             firsts=firsts,
@@ -388,6 +413,61 @@ class StateNovelty:
             held_out_episodes=held_out_episodes.repeat(2),
             **kwargs,
         )
+        if "action" not in train_data.keys() or "action" not in val_data.keys():
+            return fitted
+        return fitted.with_actions(
+            train_data.get("action"), val_data.get("action"), held_out_episodes
+        )
+
+    def with_actions(
+        self, actions: Tensor, held_out: Tensor, held_out_episodes: Tensor
+    ) -> StateNovelty:
+        """This check, also judging actions: the support of the training ``actions``
+        ``[N, A]`` (their extremes per dimension and which of :data:`ACTION_BINS` bins between
+        them they fill), and the level of the share of an episode's steps with actions outside
+        it, measured on the held-out ``held_out`` actions ``[H, A]`` of episodes
+        ``held_out_episodes`` ``[H]`` (conformal at :attr:`quantile`, at least
+        :data:`ACTION_FLOOR`). A world model has not seen the effect of an action outside the
+        support (beyond the range the data's actions took, or between the values they took:
+        a relaxed discrete action's ±1), however like the training states its imagined states
+        look."""
+        actions = _states("actions", actions).float()
+        held_out = _states("held_out", held_out, actions.shape[-1]).float()
+        ids = _row_flags("held_out_episodes", held_out_episodes, held_out.shape[0], torch.long)
+        low, high = actions.min(0).values, actions.max(0).values
+        width = (high - low).clamp_min(1e-6)
+        index = ((actions - low) / width * ACTION_BINS).long().clamp(0, ACTION_BINS - 1)
+        bins = torch.zeros(actions.shape[-1], ACTION_BINS, dtype=torch.bool)
+        bins.scatter_(1, index.T, True)
+        fitted = dataclasses.replace(self, action_low=low, action_high=high, action_bins=bins)
+        unseen = fitted.unseen_actions(held_out).double()
+        counts = torch.unique(ids, return_counts=True)[1]
+        order = torch.argsort(ids, stable=True)
+        shares = torch.stack([part.mean() for part in unseen[order].split(counts.tolist())])
+        level = _conformal_level(shares, self.quantile)[0]
+        return dataclasses.replace(fitted, action_level=max(ACTION_FLOOR, min(1.0, level)))
+
+    @property
+    def judges_actions(self) -> bool:
+        """Whether the check knows the training actions' support (:meth:`with_actions`)."""
+        return self.action_bins is not None
+
+    def unseen_actions(self, actions: Tensor) -> Tensor:
+        """``[*B, A] -> [*B]`` bool: actions outside the training actions' support in some
+        dimension (past their extremes by more than a bin, or in a bin no training action
+        fell in); all ``False`` where the check does not judge actions."""
+        actions = _checks.check_tensor("actions", actions)
+        if self.action_bins is None:
+            return torch.zeros(actions.shape[:-1], dtype=torch.bool, device=actions.device)
+        bins = self.action_bins.to(actions.device)
+        _checks.check_shape("actions", actions, (*actions.shape[:-1], bins.shape[0]), "[*B, A]")
+        low, high = self.action_low.to(actions.device), self.action_high.to(actions.device)
+        width = (high - low).clamp_min(1e-6)
+        position = (actions.float() - low) / width * ACTION_BINS
+        far = (position < -1) | (position > ACTION_BINS + 1)  # a bin's width past the extremes
+        index = position.long().clamp(0, ACTION_BINS - 1)
+        empty = ~bins.gather(1, index.reshape(-1, bins.shape[0]).T).T.reshape(index.shape)
+        return (far | empty).any(-1)
 
     @staticmethod
     def episode_steps(length: int) -> Tensor:
@@ -616,6 +696,10 @@ class StateNovelty:
             "group_scales": list(self.group_scales),
             "range_scale": self.range_scale,
             "range_levels": None if self.range_levels is None else self.range_levels.clone(),
+            "action_low": None if self.action_low is None else self.action_low.clone(),
+            "action_high": None if self.action_high is None else self.action_high.clone(),
+            "action_bins": None if self.action_bins is None else self.action_bins.clone(),
+            "action_level": self.action_level,
         }
 
     @classmethod
@@ -659,8 +743,32 @@ class StateNovelty:
             group_scales=_scales(values.get("group_scales", ())),
             range_scale=float(values.get("range_scale", 0.0)),  # 0: not judged before it
             range_levels=_range_levels(values.get("range_levels"), dim),
+            **_action_support(values),
             **vectors,
         )
+
+
+def _action_support(values: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's action support (:meth:`StateNovelty.with_actions`), checked; none where
+    it was saved without one (fitted on states alone, or before actions were judged)."""
+    bins = values.get("action_bins")
+    if bins is None:
+        return {}
+    bins = _checks.check_tensor("novelty.action_bins", bins)
+    if bins.dtype != torch.bool or bins.dim() != 2:
+        raise ValueError(
+            f"novelty.action_bins: expected a bool tensor [A, K], got {bins.dtype} "
+            f"{tuple(bins.shape)}"
+        )
+    out = {"action_bins": bins}
+    for name in ("action_low", "action_high"):
+        vector = _checks.check_tensor(f"novelty.{name}", values[name])
+        _checks.check_shape(f"novelty.{name}", vector, (bins.shape[0],), "[A]")
+        _checks.check_finite(f"novelty.{name}", vector)
+        out[name] = vector.float()
+    check_unit_interval("novelty.action_level", values["action_level"], include_zero=False)
+    out["action_level"] = float(values["action_level"])
+    return out
 
 
 def _range_levels(values: object, dim: int) -> Tensor | None:

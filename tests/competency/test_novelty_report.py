@@ -248,3 +248,69 @@ def test_a_forecast_check_made_from_a_report_measures_starts_in_the_training_spr
     model.novelty = None
     plain = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
     assert OutcomeCheck.from_outcomes(plain, torch.ones(3, 2, dtype=torch.bool)).state_scale is None
+
+
+def _novelty_with_actions(actions: torch.Tensor, held_out: torch.Tensor) -> StateNovelty:
+    """The states' check of ``_novelty``, judging actions from training ``actions`` ``[N, 2]``
+    and ``held_out`` ones (episodes of 10 steps)."""
+    ids = torch.arange(held_out.shape[0]) // 10
+    return _novelty().with_actions(actions, held_out, ids)
+
+
+def test_imagined_actions_the_model_never_saw_are_cautioned():
+    """A cart-pole trial: the model learned from a relaxed discrete action that took only ±1;
+    a planner then chose values between at every step, and the forecast was 0.47 against
+    0.75 real with nothing said. The states looked like the training states throughout."""
+    g = torch.Generator().manual_seed(3)
+    pushes = (torch.randint(0, 2, (400, 2), generator=g) * 2 - 1).float()  # ±1 only
+    held_out = (torch.randint(0, 2, (200, 2), generator=g) * 2 - 1).float()
+    model = make_ensemble()
+    model.novelty = _novelty_with_actions(pushes, held_out)
+    assert model.novelty.judges_actions and model.novelty.action_level == 0.05  # the floor
+    set_decoder(model, torch.zeros(E, 1), -6.0)  # imagined states stay at their start
+    starts = _starts()[:2]  # like the training states
+    assessor = make_assessor(make_env(model))
+    between = assessor.assess(starts, actions=torch.full((T, 2), 0.3), seed=0)
+    assert between.data["novelty", "actions"].tolist() == [1.0, 1.0]
+    assert between.data["novelty", "start"].lt(1).all() and between.novel.all()
+    text = between.summary(index=0)
+    assert (
+        "Caution: 100% of the imagined steps take actions outside those the model was trained "
+        "on (past the range its training actions took, or between the values they took), "
+        "where in-distribution episodes have at most 5%: the model has not seen their effect"
+    ) in text
+    assert between.overall().endswith(
+        "than in-distribution episodes do (over 10%) or act outside the training actions. No "
+        "check of these forecasts against real episodes is attached to this report "
+        "(with_forecast_check)."
+    )
+    seen = assessor.assess(starts, actions=torch.ones(T, 2), seed=0)
+    assert seen.data["novelty", "actions"].tolist() == [0.0, 0.0] and not seen.novel.any()
+    assert "actions outside" not in seen.summary()
+    # a closed-loop policy's actions are judged alike: one at 0.3 in one step of six
+    mostly = torch.ones(T, 2)
+    mostly[3] = 0.3
+    once = assessor.assess(starts, actions=mostly, seed=0)
+    assert torch.allclose(once.data["novelty", "actions"], torch.full((2,), 1 / T))
+    assert once.novel.all()  # 17% of its steps, over the 5% level
+
+
+def test_the_action_support_is_its_range_and_the_values_it_took():
+    g = torch.Generator().manual_seed(4)
+    soft = torch.rand(2000, 2, generator=g) - 0.5  # a soft policy's actions in [-0.5, 0.5]
+    held = torch.rand(400, 2, generator=g) - 0.5
+    check = _novelty_with_actions(soft, held)
+    probe = torch.tensor([[0.0, 0.0], [0.45, -0.45], [1.0, 0.0], [0.0, -0.9], [0.52, 0.0]])
+    # beyond the range by more than a bin (0.05) is unseen; within a bin of the edge is not
+    assert check.unseen_actions(probe).tolist() == [False, False, True, True, False]
+    assert check.action_level == 0.05  # held-out actions of the same policy: none unseen
+    restored = StateNovelty.from_dict(check.as_dict())
+    assert torch.equal(restored.unseen_actions(probe), check.unseen_actions(probe))
+    assert restored.action_level == check.action_level
+    # a check saved before actions were judged, or fitted on states alone, judges none
+    old = {k: v for k, v in check.as_dict().items() if not k.startswith("action")}
+    assert not StateNovelty.from_dict(old).judges_actions
+    assert not StateNovelty.from_dict(old).unseen_actions(probe).any()
+    bad = dict(check.as_dict(), action_bins=torch.ones(2, 20))
+    with pytest.raises(ValueError, match=r"^novelty.action_bins: expected a bool tensor"):
+        StateNovelty.from_dict(bad)
