@@ -25,7 +25,12 @@ from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_finite, check_non_negative_int, check_positive_int
-from rcvae_torchrl.competency import CompetencyReport, SuccessBoundary, validate_forecasts
+from rcvae_torchrl.competency import (
+    CompetencyReport,
+    SuccessBoundary,
+    time_to_success_scores,
+    validate_forecasts,
+)
 from rcvae_torchrl.data import TRAJ_KEY, check_same_acting, exploration_mode
 from rcvae_torchrl.threads import threads_kept
 
@@ -71,9 +76,13 @@ class RealOutcomes:
 
     def within(self, steps: int) -> RealOutcomes:
         """These outcomes with a success counted only within its first ``steps`` steps (a
-        forecast's deadline): a later one is a failure of the task the forecast answers."""
+        forecast's deadline): a later one is a failure of the task the forecast answers, and
+        its ``first_step`` is ``steps`` ("not within", as a forecast's imagined times say it:
+        a time-to-success score of real times past the deadline would judge another task)."""
         check_positive_int("steps", steps)
-        return dataclasses.replace(self, success=self.success & (self.first_step < steps))
+        hit = self.success & (self.first_step < steps)
+        first = torch.where(hit, self.first_step, torch.full_like(self.first_step, steps))
+        return dataclasses.replace(self, success=hit, first_step=first)
 
     def __len__(self) -> int:
         """``B``, the start states."""
@@ -480,15 +489,30 @@ def score_forecast(
     Given the :class:`~rcvae_torchrl.competency.CompetencyReport` itself, its P(success) is
     scored against the real episodes that succeeded within its deadline (its ``time_limit``
     steps): a real success later, in episodes run for more steps than the forecast looked
-    ahead, is a failure of the task the forecast answers."""
+    ahead, is a failure of the task the forecast answers. A report whose policy acted in
+    another exploration mode than the real episodes' (:attr:`RealOutcomes.acting`) is
+    refused: it forecast another agent. A report's imagined times to success are scored
+    against the real ones too (:func:`~rcvae_torchrl.competency.time_to_success_scores`, both
+    censored at its deadline): ``time_to_success_crps``, ``..._crps_climatology`` and
+    ``..._skill``."""
     if not isinstance(outcomes, RealOutcomes):
         raise TypeError(
             f"outcomes: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"
             "; for a bool [B, R] tensor of outcomes use rcvae_torchrl.competency."
             "validate_forecasts"
         )
+    times = None
     if isinstance(forecast, CompetencyReport):
         check_same_acting(forecast.acting, outcomes.acting)
-        outcomes = outcomes.within(forecast.time_limit)
+        limit = forecast.time_limit
+        outcomes = outcomes.within(limit)
+        imagined = forecast.competency.get(("time_to_success", "first_step"), None)
+        if imagined is not None and imagined.dim() >= 2:  # [B, E, N]: censored at the deadline
+            times = (imagined.flatten(1).clamp_max(limit).cpu(), outcomes.first_step, limit)
         forecast = forecast.competency["p_success"]
-    return validate_forecasts(forecast.cpu(), outcomes.success, base_rate=base_rate)
+    scores = validate_forecasts(forecast.cpu(), outcomes.success, base_rate=base_rate)
+    if times is not None:
+        imagined, real, limit = times
+        tts = time_to_success_scores(imagined.double(), real.double(), horizon=limit)
+        scores.update({f"time_to_success_{k}": v for k, v in tts.items()})
+    return scores

@@ -440,7 +440,11 @@ def validate_forecasts(
 
 
 def time_to_success_scores(
-    forecast_steps: Tensor, real_steps: Tensor, mask: Tensor | None = None
+    forecast_steps: Tensor,
+    real_steps: Tensor,
+    mask: Tensor | None = None,
+    *,
+    horizon: int | None = None,
 ) -> dict[str, float]:
     """The forecast distribution of the time to success against the real times, by CRPS.
 
@@ -454,6 +458,12 @@ def time_to_success_scores(
         forecast_steps: ``[B, K]`` imagined first-success steps (e.g. all ``E·N`` samples).
         real_steps: ``[B, R]`` real first-success steps.
         mask: bool ``[B, R]``, the real runs that exist.
+        horizon: ``T``; where given, a time beyond it is refused: real episodes run longer
+            than the forecast looked ahead must be censored at ``T`` first
+            (:meth:`~rcvae_torchrl.agent.RealOutcomes.within`), else their later successes
+            score as misses of times the forecast never judged (a cart-pole's 2-s forecast
+            scored against times of up to 8 s: skill -2.34 where the censored times gave
+            +0.03).
 
     Returns:
         ``{"crps", "crps_climatology", "skill"}``, mean over real episodes (in steps).
@@ -472,6 +482,16 @@ def time_to_success_scores(
                 f"{name}: expected at least one time per start, got {tuple(steps.shape)}"
             )
     mask = _runs_mask(mask, real_steps, "real_steps'")
+    if horizon is not None:
+        _checks.check_positive_int("horizon", horizon)
+        for name, steps in (("forecast_steps", forecast_steps), ("real_steps", real_steps[mask])):
+            if bool((steps > horizon).any()):
+                raise ValueError(
+                    f"{name}: expected first-success steps of at most the horizon {horizon} "
+                    f"(T: not within it), got {int((steps > horizon).sum())} beyond it, up to "
+                    f"{float(steps.max()):g}; censor them at T (RealOutcomes.within(T) for real "
+                    "episodes run longer than the forecast looked ahead)"
+                )
     climatology = real_steps[mask]
     ours, reference = [], []
     for b in range(real_steps.shape[0]):

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from rcvae_torchrl.agent import real_outcomes, run_episodes
-from rcvae_torchrl.competency import SuccessBoundary
+from rcvae_torchrl.competency import SuccessBoundary, time_to_success_scores
 from rcvae_torchrl.envs import make_batched_pusher_env, make_pusher_env, reset_to_state
 from tests.agent.worker_envs import plain_reset, terminating_point_mass
 from tests.pusher_fixtures import pusher_starts
@@ -254,9 +254,34 @@ def test_a_report_is_scored_against_successes_within_its_own_deadline():
     success = first < 12
     outcomes = RealOutcomes(success, first, torch.where(success, first + 1, 12))
     p = report.competency["p_success"]
-    assert score_forecast(report, outcomes) == validate_forecasts(p, first < 5)
+    scored = score_forecast(report, outcomes)
+    assert {k: v for k, v in scored.items() if not k.startswith("time_")} == validate_forecasts(
+        p, first < 5
+    )
     assert score_forecast(p, outcomes) == validate_forecasts(p, success)  # no deadline known
     assert score_forecast(p, outcomes) != score_forecast(report, outcomes)
+    # the times to success too, both censored at the deadline: a real success at step 7 or
+    # later is "not within 5", as the imagined times say it
+    within = outcomes.within(5)
+    assert within.first_step.tolist() == [[2, 5], [4, 5], [5, 5]]
+    imagined = report.competency["time_to_success", "first_step"].flatten(1).clamp_max(5)
+    times = time_to_success_scores(imagined.double(), within.first_step.double(), horizon=5)
+    assert {k: scored[f"time_to_success_{k}"] for k in times} == times
+
+
+def test_real_times_past_the_forecast_s_horizon_are_refused():
+    """A cart-pole trial scored a 2-s forecast (50 steps) against real times of up to 8 s:
+    CRPS skill -2.34, where the times censored at 50 steps gave +0.03, with nothing said."""
+    forecast = torch.tensor([[10.0, 50.0], [20.0, 30.0]])
+    real = torch.tensor([[12.0, 120.0], [50.0, 25.0]])
+    with pytest.raises(
+        ValueError, match=r"^real_steps: expected first-success steps of at most the horizon 50 "
+    ):
+        time_to_success_scores(forecast, real, horizon=50)
+    censored = time_to_success_scores(forecast, real.clamp_max(50), horizon=50)
+    assert censored == time_to_success_scores(forecast, real.clamp_max(50))
+    with pytest.raises(ValueError, match=r"^forecast_steps: expected first-success steps"):
+        time_to_success_scores(forecast + 45, real.clamp_max(50), horizon=50)
 
 
 def test_runs_that_repeat_one_episode_are_said_to_be_copies():
