@@ -697,7 +697,7 @@ class CompetencyReport:
         novel_clause = (
             "the start is unlike the training states (above)"
             if start
-            else "its imagined states are unlike the training states (above)"
+            else "its imagined states or actions are unlike the training data (above)"
             if imagined
             else ""
         )
