@@ -577,7 +577,9 @@ class CompetencyReport:
             self._per_start_caution(),
             self._uncovered_caution(one),
             self._novelty_sentence(one, flags),
-            self._uncertainty_sentence(uncertainty, bool(warning), flags),
+            self._uncertainty_sentence(
+                uncertainty, bool(warning), flags, self._actions_only(one, flags)
+            ),
         ]
         if "peak_step" in uncertainty.keys():
             sentences.append(
@@ -619,6 +621,13 @@ class CompetencyReport:
             "Caution: this start state is unlike those the forecast check was made on, which "
             "does not vouch for its forecast."
         )
+
+    def _actions_only(self, one: TensorDictBase, flags: tuple[bool, bool]) -> bool:
+        """Whether the imagined episode's caution (``flags[1]``) is for its actions alone, its
+        states no more unlike the training states than in-distribution episodes' are."""
+        if not flags[1]:
+            return False
+        return not bool(one.get(("novelty", "imagined")) > self.novelty.episode_level)
 
     def _novel_flags(self, one: TensorDictBase) -> tuple[bool, bool]:
         """One start state's two novelty cautions (start, imagined episode; :attr:`novel`),
@@ -681,6 +690,7 @@ class CompetencyReport:
         uncertainty: TensorDictBase,
         warned: bool,
         flags: tuple[bool, bool] = (False, False),
+        actions_only: bool = False,
     ) -> str:
         # the bits the reference compares (per live step where it does), in every sentence
         live = self.reference is not None and self.reference.per_live_step
@@ -697,7 +707,9 @@ class CompetencyReport:
         novel_clause = (
             "the start is unlike the training states (above)"
             if start
-            else "its imagined states or actions are unlike the training data (above)"
+            else "its imagined actions are unlike the training actions (above)"
+            if imagined and actions_only
+            else "its imagined states are unlike the training states (above)"
             if imagined
             else ""
         )

@@ -284,6 +284,13 @@ def test_imagined_actions_the_model_never_saw_are_cautioned():
         "check of these forecasts against real episodes is attached to this report "
         "(with_forecast_check)."
     )
+    # against a reference with the same doubt, the sentence names the actions as the reason
+    bits = between.data["uncertainty", "summary"]
+    same = Reference(float(bits["aleatoric"][0]), float(bits["epistemic"][0]))
+    assert (
+        "as in the reference although its imagined actions are unlike the training actions "
+        "(above)" in between.with_reference(same).summary(index=0)
+    )
     seen = assessor.assess(starts, actions=torch.ones(T, 2), seed=0)
     assert seen.data["novelty", "actions"].tolist() == [0.0, 0.0] and not seen.novel.any()
     assert "actions outside" not in seen.summary()
