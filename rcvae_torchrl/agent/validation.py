@@ -501,18 +501,17 @@ def score_forecast(
             "; for a bool [B, R] tensor of outcomes use rcvae_torchrl.competency."
             "validate_forecasts"
         )
-    times = None
+    times = {}
     if isinstance(forecast, CompetencyReport):
         check_same_acting(forecast.acting, outcomes.acting)
         limit = forecast.time_limit
         outcomes = outcomes.within(limit)
         imagined = forecast.competency.get(("time_to_success", "first_step"), None)
         if imagined is not None and imagined.dim() >= 2:  # [B, E, N]: censored at the deadline
-            times = (imagined.flatten(1).clamp_max(limit).cpu(), outcomes.first_step, limit)
+            imagined = imagined.flatten(1).clamp_max(limit).cpu().double()
+            real = outcomes.first_step.double()
+            tts = time_to_success_scores(imagined, real, horizon=limit)
+            times = {f"time_to_success_{k}": v for k, v in tts.items()}
         forecast = forecast.competency["p_success"]
     scores = validate_forecasts(forecast.cpu(), outcomes.success, base_rate=base_rate)
-    if times is not None:
-        imagined, real, limit = times
-        tts = time_to_success_scores(imagined.double(), real.double(), horizon=limit)
-        scores.update({f"time_to_success_{k}": v for k, v in tts.items()})
-    return scores
+    return {**scores, **times}

@@ -700,11 +700,10 @@ def _check_action_transforms(model_env: object) -> None:
     if not isinstance(model_env, TransformedEnv):
         return
     changing = []
+    given = model_env.full_action_spec.rand(torch.Size([8, *model_env.batch_size]))
     for transform in model_env.transform:
         try:
-            probe = model_env.full_action_spec.rand(torch.Size([8, *model_env.batch_size]))
-            given = probe.clone()
-            out = transform.inv(probe)
+            out = transform.inv(given.clone())
             changed = any(
                 not isinstance(out.get(key, None), torch.Tensor)
                 or out.get(key).shape != value.shape

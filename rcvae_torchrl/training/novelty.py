@@ -435,16 +435,14 @@ class StateNovelty:
         held_out = _states("held_out", held_out, actions.shape[-1]).float()
         ids = _row_flags("held_out_episodes", held_out_episodes, held_out.shape[0], torch.long)
         low, high = actions.min(0).values, actions.max(0).values
-        width = (high - low).clamp_min(1e-6)
-        index = ((actions - low) / width * ACTION_BINS).long().clamp(0, ACTION_BINS - 1)
+        index = _action_position(actions, low, high).long().clamp(0, ACTION_BINS - 1)
         bins = torch.zeros(actions.shape[-1], ACTION_BINS, dtype=torch.bool)
         bins.scatter_(1, index.T, True)
         fitted = dataclasses.replace(self, action_low=low, action_high=high, action_bins=bins)
         unseen = fitted.unseen_actions(held_out).double()
-        counts = torch.unique(ids, return_counts=True)[1]
-        order = torch.argsort(ids, stable=True)
-        shares = torch.stack([part.mean() for part in unseen[order].split(counts.tolist())])
-        level = _conformal_level(shares, self.quantile)[0]
+        _, episode, counts = torch.unique(ids, return_inverse=True, return_counts=True)
+        shares = torch.zeros(counts.numel(), dtype=torch.float64).index_add_(0, episode, unseen)
+        level = _conformal_level(shares / counts, self.quantile)[0]
         return dataclasses.replace(fitted, action_level=max(ACTION_FLOOR, min(1.0, level)))
 
     @property
@@ -461,12 +459,10 @@ class StateNovelty:
             return torch.zeros(actions.shape[:-1], dtype=torch.bool, device=actions.device)
         bins = self.action_bins.to(actions.device)
         _checks.check_shape("actions", actions, (*actions.shape[:-1], bins.shape[0]), "[*B, A]")
-        low, high = self.action_low.to(actions.device), self.action_high.to(actions.device)
-        width = (high - low).clamp_min(1e-6)
-        position = (actions.float() - low) / width * ACTION_BINS
+        position = _action_position(actions, self.action_low, self.action_high)
         far = (position < -1) | (position > ACTION_BINS + 1)  # a bin's width past the extremes
         index = position.long().clamp(0, ACTION_BINS - 1)
-        empty = ~bins.gather(1, index.reshape(-1, bins.shape[0]).T).T.reshape(index.shape)
+        empty = ~bins[torch.arange(bins.shape[0], device=bins.device), index]
         return (far | empty).any(-1)
 
     @staticmethod
@@ -746,6 +742,14 @@ class StateNovelty:
             **_action_support(values),
             **vectors,
         )
+
+
+def _action_position(actions: Tensor, low: Tensor, high: Tensor) -> Tensor:
+    """``[*B, A]``: each action's place between the training actions' extremes ``low`` and
+    ``high`` ``[A]``, in bins of :data:`ACTION_BINS` (0 at ``low``, ``ACTION_BINS`` at
+    ``high``)."""
+    low, high = low.to(actions.device), high.to(actions.device)
+    return (actions.float() - low) / (high - low).clamp_min(1e-6) * ACTION_BINS
 
 
 def _action_support(values: dict[str, Any]) -> dict[str, Any]:
