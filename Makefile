@@ -10,6 +10,9 @@ EXTRAS ?= recipes,test,dev,docs,loggers
 export MUJOCO_GL ?= egl
 export PYTHONUNBUFFERED := 1
 
+# test processes for the suite (pytest-xdist; each test file runs whole in one of them)
+TEST_WORKERS ?= auto
+
 SEEDS  ?= 0,1,2,3,4
 PROFILE ?= default
 SEEDS_DIR ?= outputs/pusher_competency/seeds$(if $(filter-out default,$(PROFILE)),_$(PROFILE))
@@ -34,13 +37,13 @@ demo: setup
 	$(PY) recipes/pusher_demo.py
 
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 test-slow: setup
-	$(PY) -m pytest -q -m slow
+	$(PY) -m pytest -q -m slow -n $(TEST_WORKERS) --dist loadfile
 
 test-all: setup
-	$(PY) -m pytest -q -m "slow or not slow"
+	$(PY) -m pytest -q -m "slow or not slow" -n $(TEST_WORKERS) --dist loadfile
 
 lint: setup
 	$(VENV)/bin/ruff check .
