@@ -5,13 +5,14 @@ with the torch threads, the machine and the load, then rewrites the durations ta
 ``README.md`` (between the ``durations`` markers) from the JSON; a test checks that the README and
 the docs quote nothing else.
 
-    python benchmarks/durations.py tests [--threads 1]   # times `pytest -q` (the default suite)
+    python benchmarks/durations.py tests [--threads 1]   # times the default suite as `make test`
     python benchmarks/durations.py run outputs/pusher_competency/quick   # a finished recipe run
     python benchmarks/durations.py record default_profile 684 --threads 2 --source "..."
     python benchmarks/durations.py readme                # only rewrite the README's table
 
-``tests`` runs the suite with ``OMP_NUM_THREADS`` set to ``--threads`` (1 by default; the tests
-set torch to 1 thread themselves), leaving out the one test that checks this benchmark's own
+``tests`` runs the suite as ``make test`` does (its files spread over the cores: pytest-xdist's
+``-n auto --dist loadfile``) with ``OMP_NUM_THREADS`` set to ``--threads`` (1 by default; the
+tests set torch to 1 thread themselves), leaving out the one test that checks this benchmark's own
 test-suite entry (it cannot hold before the suite has been timed once). ``run`` reads a run
 directory: the profile and threads from the first line of its ``run.log``, the time from its
 stage markers (the stages' own seconds, summed: a run resumed in several goes counts its stages
@@ -128,7 +129,7 @@ def _save(key: str, entry: dict[str, Any]) -> None:
 
 
 def time_tests(threads: int, paths: tuple[str, ...] = ()) -> dict[str, Any]:
-    """Wall and CPU seconds of ``pytest -q`` (the default suite, or ``paths``)."""
+    """Wall and CPU seconds of the default suite (or ``paths``), run as ``make test`` runs it."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     load_before = os.getloadavg()[0]
     cpu_before = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -139,6 +140,10 @@ def time_tests(threads: int, paths: tuple[str, ...] = ()) -> dict[str, Any]:
             "-m",
             "pytest",
             "-q",
+            "-n",
+            "auto",
+            "--dist",
+            "loadfile",
             "-p",
             "no:cacheprovider",
             "--deselect",

@@ -8,7 +8,7 @@ live beside it (e.g. ``model_env/_checks.py``) and are built from these.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -19,6 +19,7 @@ __all__ = [
     "check_bool",
     "check_choice",
     "check_dtype",
+    "check_entries",
     "check_finite",
     "check_floating",
     "check_member",
@@ -35,6 +36,20 @@ __all__ = [
     "check_unit_interval",
     "make_generator",
 ]
+
+
+# ----------------------------------------------------------------------------- records
+def check_entries(name: str, values: object, required: Sequence[str], what: str) -> None:
+    """Require a mapping holding every entry of ``required`` (a record read back, e.g. from
+    JSON, for ``from_dict``), naming the missing ones and what the record should be."""
+    if not isinstance(values, Mapping):
+        raise TypeError(f"{name}: expected a mapping ({what}), got {type(values).__name__}")
+    missing = [key for key in required if key not in values]
+    if missing:
+        raise ValueError(
+            f"{name}: expected the entries {list(required)} ({what}), missing {missing}; "
+            f"got {sorted(map(str, values))}"
+        )
 
 
 # ----------------------------------------------------------------------------- scalars

@@ -4,7 +4,9 @@
   never half of one; the new file gets the permissions the user's umask gives a new file.
 - :func:`write_json` / :func:`read_json`, :func:`save_torch` / :func:`load_torch`: the one way
   to store and read back small records and tensors; a missing, truncated or corrupt file is a
-  :class:`StoredFileError` that names the file and what it should hold.
+  :class:`StoredFileError` that names the file and what it should hold. A dict saved by
+  :func:`save_torch` carries the SHA-256 of its content (``fingerprint.digest``), checked on
+  load: a file damaged on disk or in a copy is refused, not read as other numbers.
 - :func:`record_run_config`: the settings a run directory was made with, so that a rerun with
   other settings cannot silently reuse its results.
 """
@@ -22,6 +24,8 @@ from pathlib import Path
 from typing import IO, Any
 
 import torch
+
+from rcvae_torchrl import fingerprint
 
 __all__ = [
     "StoredFileError",
@@ -143,18 +147,30 @@ def read_json(path: str | Path, what: str = "a JSON file") -> Any:
         ) from err
 
 
+#: the entry of a saved dict that holds the SHA-256 of the rest (``fingerprint.digest``: every
+#: tensor's dtype, shape and bytes, every number and string, and the layout holding them)
+CHECKSUM_KEY = "content_sha256"
+
+
 def save_torch(path: str | Path, obj: Any) -> Path:
-    """``torch.save(obj)`` to ``path``, atomically."""
+    """``torch.save(obj)`` to ``path``, atomically; a dict gets one more entry,
+    ``CHECKSUM_KEY``, the digest of the rest, which :func:`load_torch` checks."""
+    if isinstance(obj, dict):
+        if CHECKSUM_KEY in obj:
+            raise ValueError(f"obj: {CHECKSUM_KEY!r} is the entry save_torch writes; rename it")
+        obj = {**obj, CHECKSUM_KEY: fingerprint.digest(obj)}
     return atomic_write(path, lambda f: torch.save(obj, f))
 
 
 def load_torch(path: str | Path, what: str = "a torch file", map_location: Any = "cpu") -> Any:
     """``torch.load(path, weights_only=True)``; :class:`StoredFileError` naming the file when it
-    is missing, truncated or corrupt."""
+    is missing, truncated or corrupt, or when a dict's content does not match the checksum
+    :func:`save_torch` wrote with it (returned without that entry; a dict written before
+    checksums, or by ``torch.save``, loads unchecked)."""
     path = _existing_file(path, what)
     data = path.read_bytes()
     try:
-        return torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
+        obj = torch.load(io.BytesIO(data), map_location=map_location, weights_only=True)
     except Exception as err:  # torch raises several types for damaged archives
         other = re.search(r"GLOBAL (\S+) was not an allowed global", str(err))
         if other:  # a whole torch file, of objects no file of ours holds
@@ -169,6 +185,16 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
             f"{_load_failure(err)}",
             path,
         ) from err
+    if isinstance(obj, dict) and CHECKSUM_KEY in obj:
+        written = obj.pop(CHECKSUM_KEY)
+        if written != fingerprint.digest(obj):
+            raise StoredFileError(
+                f"{what} {str(path)!r} is corrupt: its content does not match the checksum "
+                "written with it (SHA-256), so some of its numbers changed after it was saved "
+                "(a damaged disk or copy); remake it or restore a good copy",
+                path,
+            )
+    return obj
 
 
 def _load_failure(err: Exception) -> str:

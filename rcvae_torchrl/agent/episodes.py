@@ -21,6 +21,7 @@ from rcvae_torchrl.data import (
     acting,
     check_actions,
     exploration_mode,
+    planner_generators,
     seed_env,
     warn_narrow_bounds,
 )
@@ -142,8 +143,10 @@ def run_episodes(
     A stochastic policy (a TorchRL ``ProbabilisticActor``) acts in ``exploration_type``
     (:func:`~rcvae_torchrl.data.exploration_mode`: by default the caller's
     ``set_exploration_type``, else sampled, as TorchRL's collectors run it), its samples drawn
-    from torch's global random stream seeded by each episode's seed (and restored afterwards):
-    the same seeds give the same episodes.
+    from torch's global random stream seeded by each episode's seed (and restored afterwards);
+    so are a planner's generators (:func:`~rcvae_torchrl.data.planner_generators`: its
+    ``generator`` and that of the model env it plans in, a TorchRL planner's ``env``): the same
+    seeds give the same episodes, whatever was drawn before.
 
     A batched env (``env.batch_size == [N]``, e.g. a vectorised simulator with ``set_seeds``)
     runs the episodes ``N`` at a time, side by side, with one policy call per step for all of
@@ -181,7 +184,7 @@ def run_episodes(
         td = env.reset() if starts is None else reset_to(reset_to_state, env, starts[i])
         if hasattr(type(policy), "reset"):  # a planner's warm start (not an env's reset)
             policy.reset()
-        with acting(mode, seed=int(seed)):
+        with acting(mode, seed=int(seed), generators=planner_generators(policy)):
             episode = _rollout(env, policy, max_steps, td, break_when_any_done=True)
         check_actions(env, episode)
         won = _success_flags(episode, success)
@@ -357,7 +360,8 @@ def episode_groups(
     repeats of its last episode), the policy reset (``policy.reset()`` where its class has
     one), then rolled out for ``max_steps`` (a sub-env that is done stays done; with
     ``until_all_done`` the rollout stops once all are), the policy acting as in
-    :func:`run_episodes` (torch's global random stream seeded by the group's first seed).
+    :func:`run_episodes` (torch's global random stream and a planner's generators seeded by
+    the group's first seed).
     Yields ``(first episode index, episodes kept, rollout [N, T])``."""
     n, total = env.batch_size.numel(), len(seeds)
     mode = exploration_mode(exploration_type)
@@ -366,7 +370,7 @@ def episode_groups(
         td = start(env, [int(seeds[i]) for i in rows], rows)
         if hasattr(type(policy), "reset"):
             policy.reset()
-        with acting(mode, seed=int(seeds[low])):
+        with acting(mode, seed=int(seeds[low]), generators=planner_generators(policy)):
             episode = _rollout(
                 env,
                 policy,

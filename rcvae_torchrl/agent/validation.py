@@ -24,7 +24,12 @@ from torchrl.envs.utils import ExplorationType
 from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
-from rcvae_torchrl._checks import check_finite, check_non_negative_int, check_positive_int
+from rcvae_torchrl._checks import (
+    check_entries,
+    check_finite,
+    check_non_negative_int,
+    check_positive_int,
+)
 from rcvae_torchrl.competency import (
     CompetencyReport,
     SuccessBoundary,
@@ -72,6 +77,9 @@ class RealOutcomes:
     @classmethod
     def from_dict(cls, values: dict[str, torch.Tensor]) -> RealOutcomes:
         """What :meth:`as_dict` gave (plain tensors: how the policy acted is not among them)."""
+        check_entries(
+            "values", values, ("success", "first_step", "steps"), "a RealOutcomes.as_dict()"
+        )
         return cls(values["success"], values["first_step"], values["steps"], values.get("trace"))
 
     def within(self, steps: int) -> RealOutcomes:
@@ -168,7 +176,8 @@ def real_outcomes(
     ``exploration_type``: how a stochastic policy (a TorchRL ``ProbabilisticActor``) acts,
     as in :func:`~rcvae_torchrl.agent.run_episodes` (by default the caller's
     ``set_exploration_type``, else sampled); its samples are drawn from torch's global random
-    stream seeded by each episode's seed (each group's first, side by side). The outcomes keep
+    stream seeded by each episode's seed (each group's first, side by side), and so are a
+    planner's (its own generator and its model env's). The outcomes keep
     it (:attr:`RealOutcomes.acting`), and a forecast made with the policy acting otherwise is
     not scored against them (:func:`score_forecast`, ``OutcomeCheck.from_outcomes``).
     """

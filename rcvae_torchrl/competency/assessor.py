@@ -38,7 +38,7 @@ from rcvae_torchrl.competency.decomposition import check_shuffle_samples, estima
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
 from rcvae_torchrl.competency.report import CompetencyReport
-from rcvae_torchrl.data import acting, exploration_mode
+from rcvae_torchrl.data import acting, exploration_mode, held_generators
 from rcvae_torchrl.rollout import as_tensor_policy
 
 __all__ = ["CompetencyAssessor", "ImaginesRollouts", "PerSample", "Policy"]
@@ -344,7 +344,7 @@ class CompetencyAssessor(KeyedModule):
         saved = dict(args)
         if args.get("bias_correction") == "shuffle":
             args["generator"] = distributed.work_generator(seed, chunk, 1)
-        held = _generators_of(self.model_env, policy) if policy is not None else []
+        held = held_generators(self.model_env, policy) if policy is not None else []
         states = [g.get_state() for g in held]
         for stream, g in enumerate(held, start=2):
             g.manual_seed(distributed.work_generator(seed, chunk, stream).initial_seed())
@@ -749,16 +749,6 @@ def _derived_generator(source: torch.Generator) -> torch.Generator:
     return torch.Generator().manual_seed(int.from_bytes(digest[:8], "little") >> 1)
 
 
-def _generators_of(*owners: object) -> list[torch.Generator]:
-    """The distinct torch generators held as ``owner.generator``."""
-    found: list[torch.Generator] = []
-    for owner in owners:
-        g = getattr(owner, "generator", None)
-        if isinstance(g, torch.Generator) and all(g is not h for h in found):
-            found.append(g)
-    return found
-
-
 def _horizon(horizon: int | None, boundary: SuccessBoundary) -> int | None:
     """``horizon``, else the boundary's time limit when finite, else ``None``."""
     if horizon is not None:
@@ -845,7 +835,8 @@ def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
     the boundary's success region (for a survival boundary: outside its failure region): the
     model never saw a success (a state the task survives in), and every forecast of one
     extrapolates (data of a random policy on a task of a distant goal, or of a pendulum that
-    never stood up on a task of balancing it)."""
+    never stood up on a task of balancing it); and when all of them lie in the success region
+    (a predicate that holds everywhere: the forecast is 1 whatever the agent does)."""
     states = getattr(novelty, "states", None)
     if not isinstance(states, Tensor) or not states.shape[0]:
         return
@@ -858,7 +849,20 @@ def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
             "stay out of it",
         )
     else:
-        if bool(boundary._evaluate(boundary.success, "success", states).any()):
+        inside = boundary._evaluate(boundary.success, "success", states)
+        if bool(inside.all()):
+            warnings.warn(
+                f"boundary: all {states.shape[0]:,} training states the world model keeps "
+                "(ensemble.novelty.states, drawn from its training episodes) lie in the success "
+                "region: a task met wherever the model was trained is forecast as met from "
+                "every start, whatever the agent does; check that the success predicate reads "
+                "the dimensions it means (a slice past the state's end, a target's position in "
+                "place of the distance to it)",
+                UserWarning,
+                stacklevel=3,
+            )
+            return
+        if bool(inside.any()):
             return
         region, seen, reach = "in the success region", "a success", "reach it"
     warnings.warn(

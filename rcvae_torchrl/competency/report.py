@@ -45,6 +45,15 @@ _FEW_REFERENCE_STARTS = 10
 _PARTS = ("aleatoric", "epistemic")
 
 
+def _listed(value: Any) -> Any:
+    """``value`` with its tuples as lists, at any depth (as JSON reads them back)."""
+    if isinstance(value, list | tuple):
+        return [_listed(v) for v in value]
+    if isinstance(value, Mapping):
+        return {k: _listed(v) for k, v in value.items()}
+    return value
+
+
 def _is_number(value: object) -> bool:
     """A real number (numpy's too), not a bool."""
     return isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -73,6 +82,11 @@ class Reference:
     aleatoric_high: float | None = None
     epistemic_high: float | None = None
     quantile: float = 0.95
+    #: how its bits were measured (a report's :attr:`CompetencyReport.measure`: estimator, bin
+    #: widths, samples per member, ...); None: not known, not compared
+    measure: Mapping[str, Any] | None = None
+    #: the imagined steps its bits were measured over; None: not known, not compared
+    steps: int | None = None
 
     def __post_init__(self) -> None:
         for field_name in ("aleatoric", "epistemic", "aleatoric_high", "epistemic_high"):
@@ -364,7 +378,7 @@ class CompetencyReport:
         start states (:func:`~rcvae_torchrl._conformal.conformal_level`), which with too few
         of them for ``quantile`` is their largest, and the probability it covers is kept."""
         if isinstance(reference, CompetencyReport):
-            self._check_measured_alike(reference)
+            self._check_measured_alike(reference.measure, reference._imagined_steps())
             live = reference.has_live_steps and self.has_live_steps
             aleatoric, epistemic = reference.mean_bits(live)
             starts = reference.data.numel()
@@ -378,31 +392,43 @@ class CompetencyReport:
                 highs = {f"{k}_high": level for k, (level, _) in levels.items()}
                 quantile = levels["epistemic"][1]  # what the levels cover with these starts
             reference = Reference(
-                aleatoric, epistemic, rise, name, live, **highs, quantile=quantile
+                aleatoric,
+                epistemic,
+                rise,
+                name,
+                live,
+                **highs,
+                quantile=quantile,
+                measure=reference.measure,
+                steps=reference._imagined_steps(),
             )
         elif not isinstance(reference, Reference):
             raise TypeError(
                 "reference: expected a CompetencyReport or a Reference, got "
                 f"{type(reference).__name__}"
             )
-        elif reference.per_live_step and not self.has_live_steps:
+        else:
+            self._check_measured_alike(reference.measure, reference.steps)
+        if reference.per_live_step and not self.has_live_steps:
             raise ValueError(
                 "reference: its bits are per live step, but this report has none (assess with "
                 "episode_end=True, or give time-mean bits)"
             )
         return replace(self, reference=reference)
 
-    def _check_measured_alike(self, reference: CompetencyReport) -> None:
-        """Refuse a reference report whose bits were measured otherwise (other bins, bias
-        correction, samples per member, or imagined steps): its bits are on another scale, and
-        every ratio against them would read as a rise or a fall."""
-        pairs = {"imagined steps": (reference._imagined_steps(), self._imagined_steps())}
+    def _check_measured_alike(self, measure: Mapping[str, Any] | None, steps: int | None) -> None:
+        """Refuse a reference (a report, or a :class:`Reference` that keeps how it was
+        measured) whose bits were measured otherwise (other bins, bias correction, samples per
+        member, or imagined steps): its bits are on another scale, and every ratio against them
+        would read as a rise or a fall. What either side does not know is not compared; tuples
+        and lists compare alike (a reference read back from JSON)."""
+        pairs = {"imagined steps": (steps, self._imagined_steps())}
         if None in pairs["imagined steps"]:  # a report without bits per step
             del pairs["imagined steps"]
-        if reference.measure is not None and self.measure is not None:
-            keys = sorted(set(reference.measure) | set(self.measure))
-            pairs.update({k: (reference.measure.get(k), self.measure.get(k)) for k in keys})
-        differ = {k: pair for k, pair in pairs.items() if pair[0] != pair[1]}
+        if measure is not None and self.measure is not None:
+            keys = sorted(set(measure) | set(self.measure))
+            pairs.update({k: (measure.get(k), self.measure.get(k)) for k in keys})
+        differ = {k: pair for k, pair in pairs.items() if _listed(pair[0]) != _listed(pair[1])}
         if differ:
             said = "; ".join(
                 f"{k}: the reference's {theirs!r}, this report's {ours!r}"
@@ -477,7 +503,7 @@ class CompetencyReport:
         imagined states are (:attr:`novel`)."""
         novel = self.novel
         if novel is None:
-            return ""
+            return f" {_NOT_JUDGED}" if self.novelty is None else ""
         starts = int(_novel_parts(self.data.get("novelty"), self.novelty)[0].sum())
         imagined = int(novel.sum()) - starts
         return (
@@ -642,6 +668,8 @@ class CompetencyReport:
         states unlike them in a larger share than in-distribution episodes' states are
         (``flags``: :meth:`_novel_flags`)."""
         start, imagined = flags
+        if self.novelty is None:
+            return _NOT_JUDGED
         if not (start or imagined):
             return ""
         acting = ""
@@ -719,6 +747,14 @@ class CompetencyReport:
             )
             + caution
         )
+
+
+#: what a report says where its world model has no novelty check
+_NOT_JUDGED = (
+    "Novelty not judged: the world model has no novelty check (ensemble.novelty, which "
+    "train_ensemble fits; or StateNovelty.from_episodes), so nothing here says whether the "
+    "start states and imagined states are like those it was trained on."
+)
 
 
 def _novel_parts(entries: TensorDictBase, novelty: Any) -> tuple[Tensor, Tensor]:

@@ -4,6 +4,7 @@ from .collection import (
     TRAJ_KEY,
     check_actions,
     check_episode_ids,
+    check_frames_type,
     collect_episodes,
     merge_episodes,
     warn_narrow_bounds,
@@ -15,7 +16,9 @@ from .exploration import (
     action_bounds,
     check_same_acting,
     exploration_mode,
+    held_generators,
     make_policy_module,
+    planner_generators,
 )
 from .prepare import (
     ActionNoise,
@@ -40,6 +43,7 @@ __all__ = [
     "TRAJ_KEY",
     "check_actions",
     "check_episode_ids",
+    "check_frames_type",
     "collect_episodes",
     "merge_episodes",
     "warn_narrow_bounds",
@@ -50,6 +54,8 @@ __all__ = [
     "action_bounds",
     "check_same_acting",
     "exploration_mode",
+    "held_generators",
+    "planner_generators",
     "make_policy_module",
     # any env as the library expects it
     "ActionNoise",

@@ -10,6 +10,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import unravel_key
 from torchrl.collectors import Collector
+from torchrl.data import ReplayBuffer
 from torchrl.envs import EnvBase, SerialEnv
 from torchrl.envs.utils import ExplorationType
 from tqdm.auto import tqdm
@@ -29,6 +30,7 @@ __all__ = [
     "TRAJ_KEY",
     "check_actions",
     "check_episode_ids",
+    "check_frames_type",
     "collect_episodes",
     "merge_episodes",
     "warn_narrow_bounds",
@@ -293,11 +295,30 @@ def _whole_episodes(data: TensorDict, num_episodes: int, first_id: int) -> Tenso
     return data
 
 
+def check_frames_type(data: object, name: str = "data") -> None:
+    """Refuse anything but a TensorDict of frames, naming a replay buffer's way to its frames."""
+    if isinstance(data, TensorDictBase):
+        return
+    hint = (
+        "; a TorchRL ReplayBuffer keeps its frames in its storage: pass them as collected, "
+        "rb[:] (not rb.sample(), whose frames are not episodes)"
+        if isinstance(data, ReplayBuffer)
+        else ""
+    )
+    raise TypeError(
+        f"{name}: expected a flat TensorDict of episodes [frames], got {type(data).__name__}{hint}"
+    )
+
+
 def check_episode_ids(data: TensorDictBase, name: str = "data") -> None:
-    """Every episode id must tag one contiguous block of frames (one episode).
+    """Every episode id must tag one contiguous block of frames (one episode), in time order.
 
     Two collections concatenated without renumbering reuse ids; a window sampler would then
-    stitch different episodes together. Raises ``ValueError`` naming the repeated ids.
+    stitch different episodes together. Raises ``ValueError`` naming the repeated ids. Where
+    the data has ``"observation"`` and ``("next", "observation")``, each frame's next
+    observation must be the observation of the frame after it under the same id (up to float
+    rounding): frames drawn from a replay buffer by ``sample()`` and sorted by id pass the
+    first check and are not episodes; the error names the first pair that does not join.
     """
     ids = data.get(TRAJ_KEY)
     runs = torch.unique_consecutive(ids)
@@ -317,18 +338,47 @@ def check_episode_ids(data: TensorDictBase, name: str = "data") -> None:
             f"{repeated} tag several episodes; join collections with merge_episodes or collect "
             "with first_id past the ids you have"
         )
+    pairs = _pairs_apart(data, ids)
+    if pairs is not None and bool(pairs[1].any()):
+        same, apart = pairs
+        first = int(same.nonzero()[apart.nonzero()[0, 0], 0])
+        raise ValueError(
+            f"{name}: expected each episode's frames in time order (a frame's ('next', "
+            "'observation') is the 'observation' of the frame after it under the same id), but "
+            f"{int(apart.sum())} of {int(same.sum())} such pairs do not join (the first: frames "
+            f"{first} and {first + 1}, id {int(ids[first])}): frames drawn from a replay buffer "
+            "by sample(), or shuffled, are not episodes; pass the frames as collected (a TorchRL "
+            "ReplayBuffer's stored frames: rb[:])"
+        )
+
+
+_ROUNDING = 1e-5  # an observation copied through float32 arithmetic joins within this
+
+
+def _pairs_apart(
+    data: TensorDictBase, ids: torch.Tensor, order: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Neighbouring frames (in ``order``, default as stored) under one episode id: ``same``
+    (per neighbouring pair, one id) and, per such pair, whether the first frame's next
+    observation differs from the second's observation beyond float rounding; None without
+    both observations."""
+    obs, nxt = data.get("observation", None), data.get(("next", "observation"), None)
+    if obs is None or nxt is None:
+        return None
+    if order is not None:
+        ids, obs, nxt = ids[order], obs[order], nxt[order]
+    same = ids[1:] == ids[:-1]
+    later, earlier = obs[1:][same], nxt[:-1][same]
+    close = torch.isclose(later, earlier, rtol=_ROUNDING, atol=_ROUNDING, equal_nan=True)
+    return same, ~close.reshape(close.shape[0], -1).all(-1)
 
 
 def _joins_in_time(data: TensorDictBase, ids: torch.Tensor) -> bool:
     """Whether, sorted stably by id, each frame's next observation is the following frame's
     observation within every episode id: one episode's frames cut into blocks, not several
     episodes under one id."""
-    obs, nxt = data.get("observation", None), data.get(("next", "observation"), None)
-    if obs is None or nxt is None:
-        return False
-    order = torch.argsort(ids, stable=True)
-    same = ids[order][1:] == ids[order][:-1]
-    return bool(torch.equal(nxt[order][:-1][same], obs[order][1:][same]))
+    pairs = _pairs_apart(data, ids, torch.argsort(ids, stable=True))
+    return pairs is not None and not bool(pairs[1].any())
 
 
 def merge_episodes(*datasets: TensorDictBase) -> TensorDict:

@@ -8,13 +8,15 @@ your env's action spec with :func:`action_bounds`.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
+from torchrl.modules.planners.common import MPCPlannerBase
 
+from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_bounds, check_positive_int
 
 __all__ = [
@@ -24,6 +26,8 @@ __all__ = [
     "action_bounds",
     "check_same_acting",
     "exploration_mode",
+    "held_generators",
+    "planner_generators",
     "make_policy_module",
 ]
 
@@ -55,23 +59,59 @@ def exploration_mode(mode: ExplorationType | str | None = None) -> ExplorationTy
 
 
 @contextlib.contextmanager
-def acting(mode: ExplorationType | str | None = None, seed: int | None = None) -> Iterator[str]:
+def acting(
+    mode: ExplorationType | str | None = None,
+    seed: int | None = None,
+    generators: Sequence[torch.Generator] = (),
+) -> Iterator[str]:
     """Run a policy in :func:`exploration_mode` ``mode`` (yields its name, e.g. ``"random"``,
     for a record of how the agent acted). With a ``seed``, torch's global random stream, from
     which a ``ProbabilisticActor`` samples its actions, is seeded by it for the block and
     restored afterwards (those of CUDA devices already in use too), so that the same seed gives
-    the same draws."""
+    the same draws; and so are ``generators`` (e.g. a planner's, :func:`planner_generators`),
+    each on a stream of its own."""
     resolved = exploration_mode(mode)
     with set_exploration_type(resolved):
         if seed is None:
             yield resolved.value
             return
+        held = list(generators)
+        states = [g.get_state() for g in held]
         in_use = torch.cuda.device_count() if torch.cuda.is_initialized() else 0
         with torch.random.fork_rng(devices=list(range(in_use))):
             torch.default_generator.manual_seed(seed)
             if in_use:  # not torch.manual_seed: it would also seed CUDA when first used
                 torch.cuda.manual_seed_all(seed)
-            yield resolved.value
+            for stream, g in enumerate(held, start=1):
+                g.manual_seed(distributed.work_generator(abs(seed), stream).initial_seed())
+            try:
+                yield resolved.value
+            finally:
+                for g, state in zip(held, states, strict=True):
+                    g.set_state(state)
+
+
+def planner_generators(policy: object) -> list[torch.Generator]:
+    """The generators a planner draws from (:func:`held_generators`) where ``policy`` is one
+    (a TorchRL ``MPCPlannerBase``: the library's ``CEMPlanner``, TorchRL's ``CEMPlanner`` and
+    ``MPPIPlanner``), else none: an exploration policy's own generator
+    (``GaussianExploration``, ``UniformRandomPolicy``) runs on from where it was seeded, as in
+    :func:`collect_episodes`."""
+    return held_generators(policy) if isinstance(policy, MPCPlannerBase) else []
+
+
+def held_generators(*owners: object) -> list[torch.Generator]:
+    """The distinct torch generators a policy draws from: each owner's ``generator``
+    attribute (the library's planners hold their candidates' there) and, for a planner that
+    holds the env it plans in as ``env`` (TorchRL's ``MPCPlannerBase``), that env's (the
+    library's model env draws its imagined steps from it)."""
+    found: list[torch.Generator] = []
+    for owner in owners:
+        for holder in (owner, getattr(owner, "env", None)):
+            g = getattr(holder, "generator", None) if holder is not None else None
+            if isinstance(g, torch.Generator) and all(g is not h for h in found):
+                found.append(g)
+    return found
 
 
 Bound = float | torch.Tensor

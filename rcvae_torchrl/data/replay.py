@@ -11,7 +11,7 @@ from torchrl.data.replay_buffers.samplers import SliceSampler
 
 from rcvae_torchrl._checks import check_positive_int
 
-from .collection import TRAJ_KEY, check_episode_ids
+from .collection import TRAJ_KEY, check_episode_ids, check_frames_type
 
 __all__ = [
     "episode_spans",
@@ -190,7 +190,8 @@ def split_episodes(
     return data[~is_val], data[is_val]
 
 
-def _check_flat(data: TensorDictBase) -> None:
+def _check_flat(data: object) -> None:
+    check_frames_type(data)
     if data.ndim != 1 or TRAJ_KEY not in data.keys(True):
         raise ValueError(
             f"data: expected a flat TensorDict [frames] with {TRAJ_KEY} episode ids, "

@@ -60,13 +60,25 @@ def _policy_action(policy: Policy, state: torch.Tensor, t: int, action_dim: int)
     return action
 
 
-def _check_policy_actions(finite: list[torch.Tensor], actions: list[torch.Tensor]) -> None:
+def _check_policy_actions(
+    finite: list[torch.Tensor], actions: list[torch.Tensor], states: list[torch.Tensor]
+) -> None:
     """Raise, naming the first step, if a policy action was NaN or inf: ``finite`` holds each
     step's "all finite" flag, read here once for the whole rollout (a read at every step would
-    make an accelerator wait for the host at every step)."""
+    make an accelerator wait for the host at every step). Where the state the policy saw at
+    that step was itself not finite, the model made it, and the error says so."""
     ok = torch.stack(finite)
     if not bool(ok.all()):
         t = int((~ok).nonzero()[0, 0])
+        try:
+            check_finite(f"the imagined states at step {t}", states[t])
+        except ValueError as err:
+            raise ValueError(
+                f"{err}: the world model made them from finite states and actions, and the "
+                "policy's actions from them were not finite either (damaged weights, e.g. a "
+                "checkpoint changed on disk, a training that diverged, or inputs far outside "
+                "the model's training data)"
+            ) from None
         check_finite(f"policy output at step {t}", actions[t])
 
 
@@ -96,7 +108,8 @@ def rollout(
         actions: open loop: ``[H, *P, A]`` (index t gives a_t for every particle; a view of an
             expanded tensor is fine).
         policy: closed loop instead: called on s_t ``[*P, S]``, must return finite ``[*P, A]``
-            (checked once, after the last step: an error names the first bad step).
+            (checked once, after the last step or when the policy raises: an error names the
+            first bad step, and the model where the states it acted on were not finite).
         bounds: clip every action to these bounds (the real env's action spec).
         generator: source of the sampling noise.
         noise: pre-drawn ``(ε_z [H, ...], ε_s [H, ...])`` instead of ``generator``.
@@ -107,13 +120,20 @@ def rollout(
     action_dim = ensemble.config.action_dim
     finite: list[torch.Tensor] = []  # closed loop: each step's policy actions all finite
     taken: list[torch.Tensor] = []
+    seen: list[torch.Tensor] = []  # closed loop: the states the policy acted on
     for t in range(horizon):
         if actions is not None:
             action = actions[t]
         else:
-            action = _policy_action(policy, observation, t, action_dim)
+            try:
+                action = _policy_action(policy, observation, t, action_dim)
+            except Exception:
+                if finite:  # a NaN action of an earlier step (read only now) can be why
+                    _check_policy_actions(finite, taken, seen)
+                raise
             finite.append(torch.isfinite(action).all())
             taken.append(action)
+            seen.append(observation)
         if bounds is not None:
             action = torch.clamp(action, bounds.low, bounds.high)
         out = propagate(
@@ -128,5 +148,5 @@ def rollout(
         hook(StepRecord(t, observation, action, out))
         observation, hidden = out.observation, out.hidden
     if finite:
-        _check_policy_actions(finite, taken)
+        _check_policy_actions(finite, taken, seen)
     return observation, hidden

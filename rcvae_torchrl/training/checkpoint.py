@@ -1,8 +1,8 @@
 """One-file ensemble checkpoints: weights, normalisation, config and a format version.
 
-``save_ensemble`` writes atomically; ``load_ensemble`` rebuilds the ensemble and raises
-:class:`CheckpointError` with a clear message for a missing, corrupt, truncated, foreign or
-mismatched file.
+``save_ensemble`` writes atomically, with a checksum of the content; ``load_ensemble`` rebuilds
+the ensemble and raises :class:`CheckpointError` with a clear message for a missing, corrupt
+(a changed byte included), truncated, foreign or mismatched file.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from rcvae_torchrl.io import StoredFileError, atomic_write, load_torch
+from rcvae_torchrl.io import StoredFileError, load_torch, save_torch
 from rcvae_torchrl.models import ModelFunctions, RCVAEConfig, RCVAEEnsemble
 
 from .checks import ModelChecks
@@ -61,7 +61,7 @@ def save_ensemble(
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
     _check_extra(extra)
     payload = ensemble_payload(ensemble, extra)
-    return atomic_write(path, lambda f: torch.save(payload, f))
+    return save_torch(path, payload)
 
 
 def _check_extra(extra: object) -> None:

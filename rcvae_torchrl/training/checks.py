@@ -55,7 +55,7 @@ import torch
 from tensordict import TensorDictBase
 
 from rcvae_torchrl import _checks
-from rcvae_torchrl._checks import check_positive_int, check_unit_interval
+from rcvae_torchrl._checks import check_entries, check_positive_int, check_unit_interval
 from rcvae_torchrl.competency._checks import check_probability
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -314,10 +314,16 @@ class ModelChecks:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> ModelChecks:
-        tensors = {
-            k: torch.tensor(values[k], dtype=torch.float64)
-            for k in ("one_step", "copy_one_step", "spread", "k_step", "copy_k_step")
-        }
+        """The inverse of :meth:`as_dict` (e.g. read back from JSON); a record missing an
+        entry it needs raises ValueError naming it."""
+        tensors_at = ("one_step", "copy_one_step", "spread", "k_step", "copy_k_step")
+        check_entries(
+            "values",
+            values,
+            (*tensors_at, "names", "k", "checked", "min_gain"),
+            "a ModelChecks.as_dict()",
+        )
+        tensors = {k: torch.tensor(values[k], dtype=torch.float64) for k in tensors_at}
         covered = values.get("covered")  # absent from checks saved before coverage existed
         return cls(
             tuple(values["names"]),
@@ -1243,6 +1249,14 @@ class OutcomeCheck:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> OutcomeCheck:
+        """The inverse of :meth:`as_dict` (e.g. read back from JSON); a record missing an
+        entry it needs raises ValueError naming it."""
+        check_entries(
+            "values",
+            values,
+            ("forecast", "real", "runs", "alpha", "min_starts"),
+            "an OutcomeCheck.as_dict()",
+        )
         return cls(
             torch.tensor(values["forecast"], dtype=torch.float64),
             torch.tensor(values["real"], dtype=torch.float64),

@@ -700,7 +700,18 @@ class StateNovelty:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> StateNovelty:
-        """The inverse of :meth:`as_dict`; a wrong shape, type or value raises ValueError."""
+        """The inverse of :meth:`as_dict`; a missing entry, a wrong shape, type or value raises
+        ValueError."""
+        _checks.check_entries(
+            "novelty",
+            values,
+            (
+                *("states", "center", "scale", "low", "high", "level", "start_level", "k"),
+                *("held_out", "start_held_out", "episodes_measured", "quantile"),
+                *("start_quantile", "episode_quantile", "episode_level"),
+            ),
+            "a StateNovelty.as_dict()",
+        )
         states = _states("novelty.states", values["states"])
         dim = states.shape[-1]
         vectors = {}

@@ -46,12 +46,13 @@ from rcvae_torchrl._checks import (
 from rcvae_torchrl.data import (
     TRAJ_KEY,
     check_episode_ids,
+    check_frames_type,
     episode_spans,
     make_window_buffer,
     resample_episodes,
     sample_windows,
 )
-from rcvae_torchrl.io import atomic_write
+from rcvae_torchrl.io import save_torch
 from rcvae_torchrl.loggers import log_scalars
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.objectives import RCVAELoss
@@ -452,10 +453,7 @@ def _check_episodes(
     that no sampled window happens to hold would otherwise pass, and a NaN in the normaliser's
     statistics spoils every prediction). Errors name ``name`` and the entry. Returns the
     episodes' spans (``episode_spans``)."""
-    if not isinstance(data, TensorDictBase):
-        raise TypeError(
-            f"{name}: expected a flat TensorDict of episodes [frames], got {type(data).__name__}"
-        )
+    check_frames_type(data, name)
     if data.batch_dims != 1 or data.batch_size[0] == 0:
         raise ValueError(
             f"{name}: expected a flat TensorDict of episodes [frames] with at least one frame, "
@@ -870,7 +868,7 @@ def _save(
             "state": {**dataclasses.asdict(state)},
         },
     }
-    atomic_write(path, lambda f: torch.save(payload, f))
+    save_torch(path, payload)
 
 
 def _data_digest(train_data: TensorDictBase, val_data: TensorDictBase) -> str:
@@ -1042,7 +1040,7 @@ def _write_gathered(
                 "state": {**dataclasses.asdict(state)},
             },
         }
-        atomic_write(path, lambda f: torch.save(payload, f))
+        save_torch(path, payload)
         for block in path.parent.glob(f"{path.stem}.members-*{path.suffix}"):
             block.unlink()
     distributed.barrier()

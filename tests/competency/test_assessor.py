@@ -1,6 +1,8 @@
 """CompetencyAssessor and CompetencyReport: keys, shapes, loops, chunks, summary rules, errors."""
 
+import dataclasses
 import doctest
+import json
 import math
 import warnings
 
@@ -284,9 +286,17 @@ def hand_report(dt=0.05, live=None, **summary) -> CompetencyReport:
     return CompetencyReport(data, ("a", "b", "c", "d"), 600, dt, 0.95)
 
 
+#: what a report of a world model without a novelty check says of novelty
+NOT_JUDGED = (
+    "Novelty not judged: the world model has no novelty check (ensemble.novelty, which "
+    "train_ensemble fits; or StateNovelty.from_episodes), so nothing here says whether the "
+    "start states and imagined states are like those it was trained on."
+)
+
+
 def test_summary_text_rules_on_known_numbers():
     assert hand_report().summary() == (
-        "P(success within 30 s) = 0.84 (95% interval 0.78–0.89). "
+        f"P(success within 30 s) = 0.84 (95% interval 0.78–0.89). {NOT_JUDGED} "
         "Most of the doubt is epistemic (0.70 of 1.10 bits): the model has not seen states "
         "like this. Most uncertain: b (time mean 0.90 bits, peak at t = 4.5 s), "
         "d (time mean 0.50 bits, peak at t = 1 s)."
@@ -392,7 +402,8 @@ def test_a_passed_check_whose_forecasts_miss_per_start_cautions_each_start():
         "above covers only the imagined samples' chance."
     )
     assert report.summary(index=1).startswith(
-        f"P(success within 30 s) = 0.84 (95% interval 0.78–0.89). {caution} Most of the doubt"
+        f"P(success within 30 s) = 0.84 (95% interval 0.78–0.89). {caution} {NOT_JUDGED} "
+        "Most of the doubt"
     )
     fair = OutcomeCheck.from_outcomes(chance.clamp(0.02, 0.98), real)
     assert fair.passed and not fair.scattered
@@ -457,8 +468,8 @@ def test_one_start_rose_only_beyond_the_spread_of_the_references_own_starts():
     assert outliers.overall().endswith(
         "the rise is epistemic, the model has not seen states like this: more data here would "
         "reduce it. Start state by start state, the rise is epistemic in 2 of 12 and aleatoric "
-        "in 0. No check of these forecasts against real episodes is attached to this "
-        "report (with_forecast_check)."
+        f"in 0. {NOT_JUDGED} No check of these forecasts against real episodes is attached to "
+        "this report (with_forecast_check)."
     )
     # a stricter level: fewer of the reference's own starts above it
     assert own.reference.quantile == 0.95
@@ -993,8 +1004,25 @@ def test_a_reference_measured_otherwise_is_refused(env, starts, plan):
         with pytest.raises(ValueError, match=said.replace("*", r"\*")):
             report.with_reference(other)
     longer = make_assessor(env, horizon=T + 2, boundary=boundary(time_limit=T + 2))
+    longer_report = longer.assess(starts, actions=torch.zeros(T + 2, A), seed=0)
     with pytest.raises(ValueError, match=rf"imagined steps: the reference's {T + 2}, this"):
-        report.with_reference(longer.assess(starts, actions=torch.zeros(T + 2, A), seed=0))
+        report.with_reference(longer_report)
+    # a Reference kept as JSON keeps how it was measured, and is refused alike (a trial's
+    # service compared a report with the reference of another horizon and samples, silently)
+    other = make_assessor(env, samples_per_member=2 * N).assess(starts, actions=plan, seed=0)
+    for measured, said in (
+        (longer_report, rf"imagined steps: the reference's {T + 2}, this report's {T}"),
+        (other, f"samples_per_member: the reference's {2 * N}, this report's {N}"),
+    ):
+        kept = measured.with_reference(measured).reference
+        read = Reference(**json.loads(json.dumps(dataclasses.asdict(kept))))
+        with pytest.raises(ValueError, match=said):
+            report.with_reference(read)
+    kept = alike.with_reference(alike).reference
+    read = Reference(**json.loads(json.dumps(dataclasses.asdict(kept))))
+    assert read.measure is not None and report.with_reference(read).reference == read
+    bare = Reference(kept.aleatoric, kept.epistemic)  # made by hand: nothing to compare
+    assert report.with_reference(bare).reference == bare
 
 
 def test_a_forecast_check_does_not_vouch_for_start_states_unlike_its_own(env, plan):

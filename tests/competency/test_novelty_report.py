@@ -219,6 +219,34 @@ def test_a_success_region_no_training_state_lies_in_is_named():
         make_assessor(make_env(model), boundary=far)  # no states kept: nothing to tell
 
 
+def test_a_report_without_a_novelty_check_says_novelty_was_not_judged():
+    """A service's model loaded without a novelty check: its summaries said nothing of it, as
+    if its starts had been judged like the training states."""
+    model = make_ensemble()
+    model.novelty = None
+    report = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
+    said = "Novelty not judged: the world model has no novelty check (ensemble.novelty"
+    assert said in report.summary(index=0) and said in report.overall()
+    model.novelty = _novelty()
+    judged = make_assessor(make_env(model)).assess(_starts(), actions=torch.zeros(T, 2), seed=0)
+    assert "Novelty not judged" not in judged.summary() + judged.overall()
+
+
+def test_a_success_region_that_holds_every_training_state_is_named():
+    """A Reacher trial: a predicate on the target's position (always in range) held in every
+    state, and every forecast was 1 with nothing said."""
+    model = make_ensemble()
+    model.novelty = _novelty()  # training states around 0, spread 0.1
+    everywhere = SuccessBoundary(lambda o: o[..., 0] > -5.0, time_limit=T)
+    with pytest.warns(
+        UserWarning,
+        match=r"^boundary: all 3,000 training states the world model keeps \(ensemble.novelty."
+        r"states, drawn from its training episodes\) lie in the success region: a task met "
+        r"wherever the model was trained is forecast as met from every start",
+    ):
+        make_assessor(make_env(model), boundary=everywhere)
+
+
 def test_a_survival_whose_failure_region_holds_every_training_state_is_named():
     """A pendulum trial: a model of episodes that never stood up, on a task of balancing it
     upright; every training state lies in the failure region, and nothing said so."""

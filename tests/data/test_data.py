@@ -450,3 +450,33 @@ def test_frames_of_one_episode_in_several_blocks_are_told_to_be_sorted(episodes)
     reused[TRAJ_KEY] = reused[TRAJ_KEY] % 3  # episodes 0 and 3 share an id, apart in time
     with pytest.raises(ValueError, match=r"tag several episodes; join collections with merge"):
         check_episode_ids(reused)
+
+
+def test_frames_drawn_from_a_replay_buffer_and_sorted_by_id_are_not_episodes(episodes):
+    """A Reacher trial: frames drawn with a replay buffer's ``sample()`` and sorted by id pass
+    as one block per id, but their frames do not follow each other in time; training on them
+    was silent. The frames as collected (the buffer's ``rb[:]``) pass, and the buffer itself,
+    given as the data, is named with the way to its frames."""
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+    drawn = torch.randperm(episodes.shape[0], generator=torch.Generator().manual_seed(0))[:150]
+    sampled = episodes[drawn]
+    sampled = sampled[torch.argsort(sampled[TRAJ_KEY], stable=True)]
+    with pytest.raises(
+        ValueError,
+        match=r"^data: expected each episode's frames in time order \(a frame's \('next', "
+        r"'observation'\) is the 'observation' of the frame after it under the same id\), but "
+        r"\d+ of \d+ such pairs do not join \(the first: frames \d+ and \d+, id \d\): frames "
+        r"drawn from a replay buffer by sample\(\)",
+    ):
+        split_episodes(sampled, 0.2)
+    rb = ReplayBuffer(storage=LazyTensorStorage(episodes.shape[0]))
+    rb.extend(episodes)
+    train, val = split_episodes(rb[:], 0.2)  # the stored frames, as collected
+    assert train.shape[0] + val.shape[0] == episodes.shape[0]
+    with pytest.raises(TypeError, match=r"^data: expected a flat TensorDict .* got ReplayBuffer;"):
+        split_episodes(rb, 0.2)
+    # a copy through float32 arithmetic still joins (within rounding)
+    nudged = episodes.clone()
+    nudged["next", "observation"] = nudged["next", "observation"] * (1 + 1e-7)
+    check_episode_ids(nudged)

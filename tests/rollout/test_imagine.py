@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 
@@ -170,6 +172,42 @@ def test_a_later_non_finite_policy_action_is_named_by_its_step(ensemble):
         r"a tensor of shape \(4, 1, 2\)",
     ):
         imagine(ensemble, torch.zeros(1, 5), policy=policy, horizon=5, samples_per_member=1)
+
+
+def test_a_non_finite_action_is_named_before_the_policy_fails_on_its_outcome(ensemble):
+    """A planner that makes a NaN action and then raises on the NaN state it led to (its model
+    env refuses it): the error names the step of the NaN action, not the later failure."""
+
+    def policy(s):
+        if not bool(torch.isfinite(s).all()):
+            raise ValueError("observation: expected finite values")
+        value = torch.nan if s.abs().sum() > 0 else 0.0  # step 0 (zeros) fine, step 1 NaN
+        return torch.full((*s.shape[:-1], 2), value)
+
+    with pytest.raises(ValueError, match=r"policy output at step 1: expected finite") as caught:
+        imagine(ensemble, torch.zeros(1, 5), policy=policy, horizon=5, samples_per_member=1)
+    assert "observation: expected finite" in str(caught.value.__context__)
+
+
+def test_states_the_model_made_non_finite_are_blamed_on_the_model(ensemble):
+    """Damaged weights make NaN states from finite ones; the policy's NaN actions from them
+    are named as the model's doing."""
+    damaged = copy.deepcopy(ensemble)
+    with torch.no_grad():
+        for param in damaged.parameters():
+            param.fill_(torch.nan)
+    with pytest.raises(
+        ValueError,
+        match=r"the imagined states at step 1: expected finite values, got \d+ NaN .*: the world "
+        r"model made them from finite states and actions",
+    ):
+        imagine(
+            damaged,
+            torch.zeros(1, 5),
+            policy=lambda s: s[..., :2].tanh(),
+            horizon=3,
+            samples_per_member=1,
+        )
 
 
 def test_closed_loop_reads_nothing_back_per_step(ensemble, monkeypatch):

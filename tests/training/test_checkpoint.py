@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from rcvae_torchrl.io import atomic_write
+from rcvae_torchrl.io import CHECKSUM_KEY, atomic_write, load_torch, save_torch
 from rcvae_torchrl.models import RCVAEConfig
 from rcvae_torchrl.rollout import imagine
 from rcvae_torchrl.training import (
@@ -55,10 +55,34 @@ def test_missing_truncated_and_foreign_files(tmp_path, small_ensemble):
 
 
 def _edit(path, tmp_path, change):
-    payload = torch.load(path, weights_only=True)
+    """A checkpoint edited through the library's own file functions (its checksum remade)."""
+    payload = load_torch(path)
     change(payload)
-    torch.save(payload, tmp_path / "edited.pt")
-    return tmp_path / "edited.pt"
+    return save_torch(tmp_path / "edited.pt", payload)
+
+
+def test_a_changed_byte_of_the_weights_is_refused_not_loaded(tmp_path, small_ensemble):
+    """A byte flipped on disk inside a tensor's data unpickles fine (the archive holds raw
+    bytes): the checksum written with the content refuses it, naming the file."""
+    ensemble = small_ensemble()
+    ensemble.fit_normalizer(torch.randn(50, 3) * 3 + 1, torch.rand(50, 1))
+    path = save_ensemble(ensemble, tmp_path / "m.pt")
+    data = bytearray(path.read_bytes())
+    std = ensemble.normalizer.state_std.numpy().tobytes()
+    at = bytes(data).index(std)  # this tensor's bytes, stored as they are
+    data[at + 2] ^= 0x40
+    (tmp_path / "flipped.pt").write_bytes(bytes(data))
+    raw = torch.load(tmp_path / "flipped.pt", weights_only=True)  # unpickles fine...
+    changed = raw["state_dict"]["normalizer.state_std"]
+    assert not torch.equal(changed, ensemble.normalizer.state_std)  # ...with another number
+    with pytest.raises(CheckpointError, match=r"flipped\.pt' is corrupt: its content does not "):
+        load_ensemble(tmp_path / "flipped.pt")
+    # a file written before checksums (its payload without the entry) loads as it is
+    raw = load_torch(path)
+    assert CHECKSUM_KEY not in raw
+    torch.save(raw, tmp_path / "unchecked.pt")
+    loaded = load_ensemble(tmp_path / "unchecked.pt")
+    torch.testing.assert_close(_samples(loaded), _samples(ensemble), rtol=0, atol=0)
 
 
 def test_mismatched_version_config_and_weights(tmp_path, small_ensemble):
@@ -104,7 +128,10 @@ def test_incomplete_and_non_finite_payloads(tmp_path, small_ensemble):
     with pytest.raises(CheckpointError, match=r"'normalizer\.state_mean' holds NaN or infinite"):
         load_ensemble(nan)
     checks = _edit(path, tmp_path, lambda p: p.update(checks={"names": ["a"]}))
-    with pytest.raises(CheckpointError, match="its self-check results are corrupt: KeyError"):
+    with pytest.raises(
+        CheckpointError,
+        match="its self-check results are corrupt: ValueError: values: expected the entries ",
+    ):
         load_ensemble(checks)
 
 

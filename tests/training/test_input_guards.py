@@ -69,6 +69,7 @@ def test_resume_refuses_other_data_and_another_model(tmp_path, linear_data, smal
     _train(small_ensemble(2), train, val, checkpoint_path=path)
     scaled = train.clone()
     scaled["observation"] *= 100
+    scaled["next", "observation"] *= 100  # other data, still episodes in time order
     with pytest.raises(CheckpointError, match="was written by a training on other data"):
         _train(small_ensemble(2), scaled, val, checkpoint_path=path, resume=True)
     with pytest.raises(CheckpointError, match=r"holds members 0\.\.1, this run trains 0\.\.2"):

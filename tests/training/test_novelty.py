@@ -9,6 +9,7 @@ import torch
 from conftest import linear_episodes
 from scipy.stats import binom
 
+from rcvae_torchrl.io import load_torch, save_torch
 from rcvae_torchrl.training import (
     CheckpointError,
     StateNovelty,
@@ -271,13 +272,13 @@ def test_from_episodes_and_training_fit_one_kept_in_checkpoints(small_ensemble, 
     )
     assert off.ensemble.novelty is None and off.novelty is None
     # a corrupt or mismatched record is a CheckpointError naming it
-    payload = torch.load(path, weights_only=True)
+    payload = load_torch(path)
     payload["novelty"]["level"] = -1.0
-    torch.save(payload, tmp_path / "bad.pt")
+    save_torch(tmp_path / "bad.pt", payload)
     with pytest.raises(CheckpointError, match=r"novelty\) are corrupt.*novelty.level"):
         load_ensemble(tmp_path / "bad.pt")
     payload["novelty"] = StateNovelty.fit(_gaussian(20, 0, 2), _gaussian(5, 1, 2)).as_dict()
-    torch.save(payload, tmp_path / "other.pt")
+    save_torch(tmp_path / "other.pt", payload)
     with pytest.raises(CheckpointError, match="have 2 dimensions, the model's observations 3"):
         load_ensemble(tmp_path / "other.pt")
 

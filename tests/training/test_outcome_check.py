@@ -98,6 +98,16 @@ def test_statistics_against_closed_forms():
     back = OutcomeCheck.from_dict(check.as_dict())
     assert torch.equal(back.forecast, check.forecast) and torch.equal(back.real, check.real)
     assert back.p_value == check.p_value and back.as_dict() == check.as_dict()
+    # a record missing an entry (a service's JSON of another version) is named, not a KeyError
+    cut = {k: v for k, v in check.as_dict().items() if k != "forecast"}
+    with pytest.raises(ValueError, match=r"^values: expected the entries \['forecast', 'real'"):
+        OutcomeCheck.from_dict(cut)
+    with pytest.raises(
+        ValueError, match=r"\(an OutcomeCheck.as_dict\(\)\), missing \['forecast'\]"
+    ):
+        OutcomeCheck.from_dict(cut)
+    with pytest.raises(TypeError, match=r"^values: expected a mapping .*, got list"):
+        OutcomeCheck.from_dict([1, 2])
 
 
 def test_bad_inputs_are_named():
