@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 __all__ = [
+    "ROUNDING",
     "as_tensor",
     "check_batch_shapes",
     "check_bool",
@@ -36,6 +37,11 @@ __all__ = [
     "check_unit_interval",
     "make_generator",
 ]
+
+
+#: a float32 value copied through arithmetic stays within this of its source, relative above 1
+#: (an error within ``ROUNDING * (1 + |x|)`` is no error)
+ROUNDING = 1e-5
 
 
 # ----------------------------------------------------------------------------- records

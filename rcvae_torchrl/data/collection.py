@@ -16,6 +16,7 @@ from torchrl.envs.utils import ExplorationType
 from tqdm.auto import tqdm
 
 from rcvae_torchrl._checks import (
+    ROUNDING,
     check_non_negative_int,
     check_positive_int,
     check_positive_int_or_none,
@@ -352,9 +353,6 @@ def check_episode_ids(data: TensorDictBase, name: str = "data") -> None:
         )
 
 
-_ROUNDING = 1e-5  # an observation copied through float32 arithmetic joins within this
-
-
 def _pairs_apart(
     data: TensorDictBase, ids: torch.Tensor, order: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -369,7 +367,7 @@ def _pairs_apart(
         ids, obs, nxt = ids[order], obs[order], nxt[order]
     same = ids[1:] == ids[:-1]
     later, earlier = obs[1:][same], nxt[:-1][same]
-    close = torch.isclose(later, earlier, rtol=_ROUNDING, atol=_ROUNDING, equal_nan=True)
+    close = torch.isclose(later, earlier, rtol=ROUNDING, atol=ROUNDING, equal_nan=True)
     return same, ~close.reshape(close.shape[0], -1).all(-1)
 
 

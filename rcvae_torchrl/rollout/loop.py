@@ -74,10 +74,10 @@ def _check_policy_actions(
             check_finite(f"the imagined states at step {t}", states[t])
         except ValueError as err:
             raise ValueError(
-                f"{err}: the world model made them from finite states and actions, and the "
-                "policy's actions from them were not finite either (damaged weights, e.g. a "
-                "checkpoint changed on disk, a training that diverged, or inputs far outside "
-                "the model's training data)"
+                f"{err}: the world model made them (the policy's actions were finite until "
+                "then), and the policy's actions from them were not finite either (damaged "
+                "weights, e.g. a checkpoint changed on disk, a training that diverged, or inputs "
+                "far outside the model's training data)"
             ) from None
         check_finite(f"policy output at step {t}", actions[t])
 

@@ -55,7 +55,12 @@ import torch
 from tensordict import TensorDictBase
 
 from rcvae_torchrl import _checks
-from rcvae_torchrl._checks import check_entries, check_positive_int, check_unit_interval
+from rcvae_torchrl._checks import (
+    ROUNDING,
+    check_entries,
+    check_positive_int,
+    check_unit_interval,
+)
 from rcvae_torchrl.competency._checks import check_probability
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -374,8 +379,6 @@ def _longest_episode(data: TensorDictBase) -> int:
 _DRAWS = 4000
 #: the share of a new start drawn like a forecast check's own that its cover keeps
 _COVER_QUANTILE = 0.99
-#: the relative difference below which a real state counts as on its imagined interval's edge
-_ROUNDING = 1e-5
 
 
 def _coverage(
@@ -412,7 +415,7 @@ def _coverage(
     # within float rounding of the interval is inside: a dimension the model gets exactly (a
     # clock advanced by a state constraint) has an interval of width 0 that the real value
     # misses by 1e-7
-    rounding = _ROUNDING * (1 + truth.abs())
+    rounding = ROUNDING * (1 + truth.abs())
     inside = (truth >= low - rounding) & (truth <= high + rounding)
     exact = (n + 1 - 2 * rank) / (n + 1)
     half = max(1, int(0.25 * (n + 1)))
@@ -467,14 +470,14 @@ def _drift_p_values(
     independent, so each episode's mean excess is one unit of a t-test (``None``: fewer than
     :data:`_DRIFT_EPISODES` episodes; 1 where every episode's excess is the same and not
     above 0, 0 where it is above). An error within float rounding of the truth
-    (:data:`_ROUNDING`, relative above 1) is none: a dimension the model gets exactly (a clock
+    (:data:`ROUNDING`, relative above 1) is none: a dimension the model gets exactly (a clock
     advanced by a state constraint, whose period may equal ``k`` so that the copy is exact too)
     does not drift by 1e-7."""
     from scipy.stats import t as student_t
 
     truth = truth.to(torch.float64)
     error = forecast.to(torch.float64) - truth
-    error = torch.where(error.abs() <= _ROUNDING * (1 + truth.abs()), 0.0, error)
+    error = torch.where(error.abs() <= ROUNDING * (1 + truth.abs()), 0.0, error)
     excess = error.square() - (1 + 1 / samples) * (truth - baseline).square()
     excess = excess.cpu()
     ids, unit = torch.unique(episodes.cpu(), return_inverse=True)
