@@ -835,13 +835,27 @@ def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
     the boundary's success region (for a survival boundary: outside its failure region): the
     model never saw a success (a state the task survives in), and every forecast of one
     extrapolates (data of a random policy on a task of a distant goal, or of a pendulum that
-    never stood up on a task of balancing it); and when all of them lie in the success region
-    (a predicate that holds everywhere: the forecast is 1 whatever the agent does)."""
+    never stood up on a task of balancing it), unless the predicate reads other dimensions or
+    units than it means; and when all of them lie in the success region, or in the failure
+    region of a task that has both (a predicate that holds everywhere: the forecast is 1, or 0,
+    whatever the agent does)."""
     states = getattr(novelty, "states", None)
     if not isinstance(states, Tensor) or not states.shape[0]:
         return
+    kept = (
+        f"{states.shape[0]:,} training states the world model keeps (ensemble.novelty.states, "
+        "drawn from its training episodes)"
+    )
+
+    def holds(predicate: Any, name: str) -> Tensor:
+        return boundary._evaluate(predicate, f"{name}, on the world model's {kept}", states)
+
+    reads = (
+        "check that the predicate reads the dimensions and units it means (a slice past the "
+        "state's end, a target's position in place of the distance to it, steps for seconds)"
+    )
     if boundary.is_survival:
-        if not bool(boundary._evaluate(boundary.failure, "failure", states).all()):
+        if not bool(holds(boundary.failure, "failure").all()):
             return
         region, seen, reach = (
             "outside the failure region",
@@ -849,15 +863,21 @@ def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
             "stay out of it",
         )
     else:
-        inside = boundary._evaluate(boundary.success, "success", states)
+        inside = holds(boundary.success, "success")
         if bool(inside.all()):
             warnings.warn(
-                f"boundary: all {states.shape[0]:,} training states the world model keeps "
-                "(ensemble.novelty.states, drawn from its training episodes) lie in the success "
-                "region: a task met wherever the model was trained is forecast as met from "
-                "every start, whatever the agent does; check that the success predicate reads "
-                "the dimensions it means (a slice past the state's end, a target's position in "
-                "place of the distance to it)",
+                f"boundary: all {kept} lie in the success region: a task met wherever the "
+                f"model was trained is forecast as met from every start, whatever the agent "
+                f"does; {reads}",
+                UserWarning,
+                stacklevel=3,
+            )
+            return
+        if boundary.failure is not None and bool(holds(boundary.failure, "failure").all()):
+            warnings.warn(
+                f"boundary: all {kept} lie in the failure region: a task failed wherever the "
+                f"model was trained is forecast as failed from every start, whatever the agent "
+                f"does; {reads}",
                 UserWarning,
                 stacklevel=3,
             )
@@ -866,10 +886,9 @@ def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
             return
         region, seen, reach = "in the success region", "a success", "reach it"
     warnings.warn(
-        f"boundary: none of the {states.shape[0]:,} training states the world model keeps "
-        f"(ensemble.novelty.states, drawn from its training episodes) lies {region}: the "
-        f"model never saw {seen}, and every forecast of one extrapolates, however much the "
-        f"members agree; train on episodes that {reach}",
+        f"boundary: none of the {kept} lies {region}: the model never saw {seen}, and every "
+        f"forecast of one extrapolates, however much the members agree; train on episodes "
+        f"that {reach}, or {reads}",
         UserWarning,
         stacklevel=3,
     )

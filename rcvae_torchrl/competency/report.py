@@ -600,6 +600,7 @@ class CompetencyReport:
                 self.confidence,
                 self._outcome(),
             ),
+            self._unchecked_sentence(),
             self._per_start_caution(),
             self._uncovered_caution(one),
             self._novelty_sentence(one, flags),
@@ -621,6 +622,17 @@ class CompetencyReport:
         if warning:
             sentences.insert(0, f"Warning: {warning}.")
         return " ".join(s for s in sentences if s)
+
+    def _unchecked_sentence(self) -> str:
+        """A forecast with no check against real episodes attached: not ``trustworthy``, said
+        beside each start's P (a reader of one start's paragraph does not see
+        :meth:`overall`)."""
+        if self.forecast_check is not None:
+            return ""
+        return (
+            "Unchecked: no check of these forecasts against real episodes is attached "
+            "(with_forecast_check), so nothing shows this one right."
+        )
 
     def _per_start_caution(self) -> str:
         """A passed forecast check whose forecasts miss their own starts' rates beyond chance

@@ -20,6 +20,7 @@ Layouts: forecasts ``[B]``; outcomes ``[B, R]`` bool (``runs`` may differ per st
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -390,6 +391,13 @@ def crps_samples(samples: Tensor, observed: Tensor) -> Tensor:
     return (x[:, None] - y[None, :]).abs().mean(0) - 0.5 * spread
 
 
+#: an AUROC below this, over at least ``_BACKWARDS_STARTS`` start states, is forecasts ranking
+#: the real outcomes backwards (success counted on one side as failure on the other), not a
+#: weak forecast: one that tells nothing scores about 0.5
+_BACKWARDS = 0.2
+_BACKWARDS_STARTS = 10
+
+
 def validate_forecasts(
     forecast: Tensor,
     outcome: Tensor,
@@ -422,6 +430,17 @@ def validate_forecasts(
     weights = reliability.episodes.to(torch.float64) / float(runs.sum())
     gaps = (reliability.mean_forecast - reliability.frequency).abs().nan_to_num(0.0)
     mean_forecast = float(scores.mean())  # episode-weighted, as the real rate is
+    ranked = float(auroc(scores, labels))
+    if ranked < _BACKWARDS and f.numel() >= _BACKWARDS_STARTS:
+        warnings.warn(
+            f"outcome: the forecasts rank the real outcomes backwards (AUROC {ranked:.3f} over "
+            f"{labels.numel()} episodes: the episodes that failed had the higher forecasts); "
+            "are the real outcomes those of the forecast's task? (for a survival boundary, "
+            "count real_outcomes' successes with boundary.success_over_time, not its failure "
+            "predicate; a predicate negated on one side only does this)",
+            UserWarning,
+            stacklevel=2,
+        )
     return {
         "forecast": mean_forecast,
         "real": real,
@@ -429,7 +448,7 @@ def validate_forecasts(
         "per_start_mae": float((f - rates).abs().mean()),
         "spearman": float(rank_correlation(f, rates)),
         "real_rate_span": float(rates.max() - rates.min()),
-        "auroc": float(auroc(scores, labels)),
+        "auroc": ranked,
         "brier": brier,
         "brier_base": brier_base,
         "brier_skill": float(brier_skill_score(brier, brier_base)),

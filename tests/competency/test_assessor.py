@@ -294,9 +294,16 @@ NOT_JUDGED = (
 )
 
 
+#: what a report without a forecast check says beside each start's P
+UNCHECKED = (
+    "Unchecked: no check of these forecasts against real episodes is attached "
+    "(with_forecast_check), so nothing shows this one right."
+)
+
+
 def test_summary_text_rules_on_known_numbers():
     assert hand_report().summary() == (
-        f"P(success within 30 s) = 0.84 (95% interval 0.78–0.89). {NOT_JUDGED} "
+        f"P(success within 30 s) = 0.84 (95% interval 0.78–0.89). {UNCHECKED} {NOT_JUDGED} "
         "Most of the doubt is epistemic (0.70 of 1.10 bits): the model has not seen states "
         "like this. Most uncertain: b (time mean 0.90 bits, peak at t = 4.5 s), "
         "d (time mean 0.50 bits, peak at t = 1 s)."

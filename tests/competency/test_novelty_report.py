@@ -212,6 +212,16 @@ def test_a_success_region_no_training_state_or_every_one_lies_in_is_named():
     ):
         with pytest.warns(UserWarning, match=rf"^boundary: {said}"):
             make_assessor(make_env(model), boundary=boundary)
+    # a reach-avoid task whose failure region holds everywhere (a trial's '>' for '<='): P = 0
+    blocked = SuccessBoundary(
+        lambda o: o[..., 0] > 0.1, time_limit=T, failure=lambda o: o[..., 1] < 5.0
+    )
+    with pytest.warns(UserWarning, match=rf"^boundary: all {kept} .* lie in the failure region"):
+        make_assessor(make_env(model), boundary=blocked)
+    # a predicate of the wrong shape is named with what it was tried on
+    wide = SuccessBoundary(lambda o: o[..., :1] > 0.1, time_limit=T)
+    with pytest.raises(ValueError, match=r"^success, on the world model's 3,000 training states"):
+        make_assessor(make_env(model), boundary=wide)
     near = SuccessBoundary(lambda o: o[..., 0] > 0.1, time_limit=T)
     stay = SuccessBoundary.survival(lambda o: o[..., 0] > 5.0, time_limit=T)
     with warnings.catch_warnings():
@@ -246,7 +256,10 @@ def test_a_survival_whose_failure_region_holds_every_training_state_is_named():
         match=r"^boundary: none of the 3,000 training states the world model keeps "
         r"\(ensemble.novelty.states, drawn from its training episodes\) lies outside the "
         r"failure region: the model never saw a state it survives in, and every forecast of one "
-        r"extrapolates, however much the members agree; train on episodes that stay out of it$",
+        r"extrapolates, however much the members agree; train on episodes that stay out of it, "
+        r"or check that the predicate reads the dimensions and units it means \(a slice past "
+        r"the state's end, a target's position in place of the distance to it, steps for "
+        r"seconds\)$",
     ):
         make_assessor(make_env(model), boundary=fallen)
 

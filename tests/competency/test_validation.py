@@ -260,3 +260,21 @@ def test_time_to_success_crps_beats_climatology_only_when_informative():
     assert scores["crps"] < 0.2 * scores["crps_climatology"] and scores["skill"] > 0.8
     blind = real.reshape(-1)[torch.randperm(200, generator=g)].reshape(10, 20)
     assert time_to_success_scores(blind, real)["skill"] < 0.1
+
+
+def test_forecasts_that_rank_the_outcomes_backwards_are_named():
+    """A cart-pole trial counted its real successes with a survival boundary's failure
+    predicate: AUROC 0.027, read as a forecast "too optimistic" by 0.59, with nothing said of
+    the swapped outcomes. Below an AUROC of 0.2 over 10 starts or more, the scores warn; a weak
+    forecast (AUROC near 0.5) and fewer starts do not."""
+    import warnings
+
+    forecast = torch.linspace(0.05, 0.95, 12)
+    runs = torch.arange(10)[None, :] < torch.round(forecast * 10)[:, None]  # the forecast's rates
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert validate_forecasts(forecast, runs)["auroc"] > 0.8
+        validate_forecasts(forecast.flip(0)[:9], runs[:9])  # backwards, but 9 starts
+        validate_forecasts(torch.full((12,), 0.5), runs)  # tells nothing: AUROC 0.5
+    with pytest.warns(UserWarning, match=r"^outcome: the forecasts rank the real outcomes backw"):
+        assert validate_forecasts(forecast, ~runs)["auroc"] < 0.2
