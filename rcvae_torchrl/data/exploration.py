@@ -14,7 +14,7 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
-from torchrl.modules.planners.common import MPCPlannerBase
+from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_bounds, check_positive_int

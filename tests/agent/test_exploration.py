@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal
-from torchrl.modules.planners.common import MPCPlannerBase
+from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl.agent import RealOutcomes, real_outcomes, score_forecast
 from rcvae_torchrl.data import (
