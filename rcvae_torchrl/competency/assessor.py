@@ -475,12 +475,27 @@ class CompetencyAssessor(KeyedModule):
         out.set(self.tensor_keys.competency, self._competency(observed, starts.shape[0]))
         for name, fn in self.per_sample.items():
             out.set(("per_sample", name), _per_sample_value(name, fn, observed, starts.shape[0]))
+        out.set("start_state", self._start_regions(starts))
         if novelty is not None:
             actions = rollout.get("action", None)
             out.set("novelty", _novelty_entries(novelty, starts, imagined, ended, actions))
         if keep_rollouts:
             out.set("rollout", rollout.permute(2, 0, 1, 3))
         return out
+
+    def _start_regions(self, starts: Tensor) -> TensorDict:
+        """``"in_success"`` and ``"in_failure"`` ``[b]``: whether a start state already lies in
+        the boundary's success or failure region (the forecast looks from ``s_1`` on, so such
+        a start's outcome is mostly settled before the agent acts; ``False`` without the
+        region)."""
+        regions = {}
+        for name in ("success", "failure"):
+            predicate = getattr(self.boundary, name)
+            inside = torch.zeros(starts.shape[0], dtype=torch.bool, device=starts.device)
+            if predicate is not None:
+                inside = self.boundary._evaluate(predicate, name, starts[:, None, :])[:, 0]
+            regions[f"in_{name}"] = inside
+        return TensorDict(regions, batch_size=starts.shape[:1])
 
     @property
     def novelty(self) -> Any:

@@ -122,6 +122,9 @@ class CompetencyReport:
       ``"p_success_member"`` ``[*B, E]``, ``"success"`` / ``"failure"`` ``[*B, E, N]``,
       ``"outcome_uncertainty"`` ``[*B]``, ``"time_to_success"`` (``"first_step"``
       ``[*B, E, N]``, per-step entries ``[*B, T]``, statistics ``[*B]``);
+    - ``"start_state"``: ``"in_success"`` and ``"in_failure"`` bool ``[*B]``, whether the start
+      state already lies in the boundary's success or failure region (its outcome mostly
+      settled before the agent acts; a paragraph says so);
     - ``"novelty"`` (when the world model has a novelty check, ``ensemble.novelty``, which
       training fits: :class:`~rcvae_torchrl.training.StateNovelty`): ``"start"`` ``[*B]``, the
       start state's distance to the training states over the check's level (above 1: unlike
@@ -600,6 +603,7 @@ class CompetencyReport:
                 self.confidence,
                 self._outcome(),
             ),
+            self._settled_sentence(one),
             self._unchecked_sentence(),
             self._per_start_caution(),
             self._uncovered_caution(one),
@@ -622,6 +626,20 @@ class CompetencyReport:
         if warning:
             sentences.insert(0, f"Warning: {warning}.")
         return " ".join(s for s in sentences if s)
+
+    def _settled_sentence(self, one: TensorDictBase) -> str:
+        """A start state already in the success or the failure region (``("start_state",
+        ·)``, absent from older reports): its outcome is mostly settled before the agent acts."""
+        entries = one.get("start_state", None)
+        if entries is None:
+            return ""
+        for region in ("success", "failure"):
+            if bool(entries.get(f"in_{region}")):
+                return (
+                    f"The start state already lies in the {region} region: its outcome is "
+                    "mostly settled before the agent acts, and says little of the agent."
+                )
+        return ""
 
     def _unchecked_sentence(self) -> str:
         """A forecast with no check against real episodes attached: not ``trustworthy``, said

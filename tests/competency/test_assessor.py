@@ -1125,3 +1125,25 @@ def test_identical_members_read_little_epistemic_doubt_by_default():
     assert raw > 0.5 and corrected < 0.25 * raw
     one = make_assessor(env, samples_per_member=1).assess(starts, actions=plan, seed=0)
     assert one.measure["bias_correction"] == "none"  # it cannot run with one sample
+
+
+def test_a_start_already_in_the_success_or_failure_region_is_said_to_be_settled(env, plan):
+    """A point-mass trial: starts already in the target (or the obstacle) got P = 1 (or 0)
+    with nothing said. The report keeps which starts lie in either region and says so in
+    their paragraphs; the others' paragraphs say nothing of it."""
+    starts = torch.zeros(3, S)
+    ball, target = obs_indices("ball"), obs_indices("target")
+    starts[0, target] = torch.tensor([0.5, 0.5])
+    starts[0, ball] = torch.tensor([0.5, 0.51])  # within 0.03 of the target
+    starts[1, ball] = torch.tensor([0.9, 0.9])  # far from it, and in the "failure" region
+    starts[2, ball] = torch.tensor([-0.5, 0.0])
+    obstacle = lambda o: o[..., ball[0]] > 0.8  # noqa: E731
+    report = make_assessor(env, boundary=boundary(failure=obstacle)).assess(
+        starts, actions=plan, seed=0
+    )
+    assert report.data["start_state", "in_success"].tolist() == [True, False, False]
+    assert report.data["start_state", "in_failure"].tolist() == [False, True, False]
+    said = "The start state already lies in the {} region: its outcome is mostly settled"
+    assert said.format("success") in report.summary(index=0)
+    assert said.format("failure") in report.summary(index=1)
+    assert "already lies" not in report.summary(index=2)
