@@ -481,8 +481,15 @@ class CompetencyReport:
                 if cautioned
                 else ""
             )
-            text += _change_sentence(aleatoric, epistemic, self.reference, novel=clause)
-            text += self._one_by_one_sentence()
+            causes = self._one_by_one_causes()
+            text += _change_sentence(
+                aleatoric, epistemic, self.reference, novel=clause, one_by_one=causes
+            )
+            text += (
+                f" Start state by start state, the rise is epistemic in "
+                f"{causes.count('epistemic')} of {len(causes)} and aleatoric in "
+                f"{causes.count('aleatoric')}."
+            )
         if self.model_caution and not warning:
             text += f" Caution: {self.model_caution}."
         text += self._novel_count_sentence()
@@ -520,8 +527,8 @@ class CompetencyReport:
             )
         )
 
-    def _one_by_one_sentence(self) -> str:
-        """How many start states rose one by one (the rule of their own paragraphs): a mean
+    def _one_by_one_causes(self) -> list[str | None]:
+        """Each start state's rise, by the rule of its own paragraph (``None``: none): a mean
         over the starts can rise with a few outliers, or hide them."""
         part = _bits(self.uncertainty, self.reference.per_live_step)
         pairs = zip(
@@ -529,11 +536,7 @@ class CompetencyReport:
             part.get("epistemic").reshape(-1).tolist(),
             strict=True,
         )
-        causes = [_cause(a, e, self.reference, one_start=True) for a, e in pairs]
-        return (
-            f" Start state by start state, the rise is epistemic in {causes.count('epistemic')} "
-            f"of {len(causes)} and aleatoric in {causes.count('aleatoric')}."
-        )
+        return [_cause(a, e, self.reference, one_start=True) for a, e in pairs]
 
     @property
     def batch_size(self) -> torch.Size:
@@ -856,12 +859,15 @@ def _change_sentence(
     reference: Reference,
     one_start: bool = False,
     novel: str = "",
+    one_by_one: Sequence[str | None] | None = None,
 ) -> str:
     """What changed against the reference, and which part rose (the larger rise); for
     ``one_start``, a part rose only above the reference's start states' spread. Where the
     novelty check cautioned (``novel``: which starts, as a clause) and the doubt is as in the
     reference, it is said to be so despite the caution, not to show no sign of unseen
-    states."""
+    states. A mean over start states whose part rose while none of them rose beyond the
+    reference's spread (``one_by_one``: each start's rise) is said to be within that spread:
+    a mean of small bits rises 1.3x with the draw of its starts, and no cause is named."""
     ratios = _ratios(aleatoric, epistemic, reference)
     values = {"epistemic": epistemic, "aleatoric": aleatoric}
     refs = {"epistemic": reference.epistemic, "aleatoric": reference.aleatoric}
@@ -880,9 +886,19 @@ def _change_sentence(
     neither = f"neither part rose {reference.rise:g}x or more"
     text = f"Against the {reference.name}, {parts[0]} and {parts[1]}"
     cause = _cause(aleatoric, epistemic, reference, one_start)
-    if cause is not None:
+    unconfirmed = (
+        cause is not None
+        and one_by_one is not None
+        and _high(reference, cause) is not None
+        and cause not in one_by_one
+    )
+    if cause is not None and not unconfirmed:
         return text + f": the rise is {cause}, {_ROSE[cause]}."
-    within = [k for k in ("epistemic", "aleatoric") if ratios[k] >= reference.rise]
+    within = [
+        k
+        for k in ("epistemic", "aleatoric")
+        if ratios[k] >= reference.rise and _high(reference, k) is not None
+    ]
     if within:  # risen against the mean, not above the spread of the reference's starts
         levels = " and ".join(f"{_high(reference, k):.2f} {k} {unit}" for k in within)
         return (

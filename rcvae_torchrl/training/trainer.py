@@ -54,7 +54,7 @@ from rcvae_torchrl.data import (
 )
 from rcvae_torchrl.io import save_torch
 from rcvae_torchrl.loggers import log_scalars
-from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.models import RCVAEEnsemble, masked_mean_std
 from rcvae_torchrl.objectives import RCVAELoss
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
@@ -301,6 +301,8 @@ def train_ensemble(
             train_data["action"],
             next_observations=train_data["next", "observation"],
         )
+    elif distributed.is_main() and not resume:
+        _warn_stale_normalizer(ensemble, train_data)
     ensemble.load_state_dict(distributed.broadcast(_weights(ensemble)))
     data = _data_digest(train_data, val_data) if path is not None else None
     state = _finished_gathered_run(path, data) if resume else None
@@ -371,6 +373,54 @@ def _check_args(checks: object) -> dict[str, Any]:
     if unknown:
         raise TypeError(f"checks: unknown check_model arguments {unknown} (known: {sorted(known)})")
     return dict(checks)
+
+
+#: how a resume refusal says to go on from a trained model with other data or settings
+_WARM_START = (
+    "a new path trains the ensemble it is given: to go on from this run's weights, on more "
+    "data or for more steps, pass load_ensemble(...) of its model, and refit its normaliser "
+    "where the data moved"
+)
+
+#: a fitted normaliser is stale for data whose mean lies this many of its stds from its mean,
+#: or whose std is this many times its std (or this many times smaller)
+_STALE_SHIFT = 1.0
+_STALE_SCALE = 2.0
+
+
+def _warn_stale_normalizer(ensemble: RCVAEEnsemble, train_data: TensorDictBase) -> None:
+    """Warn when the ensemble's normaliser, fitted before (a model trained on other data,
+    loaded to be trained on more), is far from ``train_data``'s statistics: it is kept, so the
+    new states are scaled by the old ones (a point-mass trial's new half of the arena sat
+    about 4 of the old stds out), with nothing said."""
+    norm = ensemble.normalizer
+    names = ensemble.config.observation_names
+    worst = None
+    for entry, key, mean, std in (
+        ("observation", "observation", norm.state_mean, norm.state_std),
+        ("action", "action", norm.action_mean, norm.action_std),
+    ):
+        m, s = masked_mean_std(train_data[key].to(mean))  # as the normaliser fits them
+        shift = (m - mean).abs() / std
+        scale = torch.maximum(s / std, std / s)
+        for i in range(mean.shape[0]):
+            score = max(float(shift[i]) / _STALE_SHIFT, float(scale[i]) / _STALE_SCALE)
+            if score > 1 and (worst is None or score > worst[0]):
+                label = names[i] if entry == "observation" and names else f"{entry}[{i}]"
+                worst = (score, label, float(m[i]), float(s[i]), float(mean[i]), float(std[i]))
+    if worst is None:
+        return
+    _, label, m, s, fitted_mean, fitted_std = worst
+    warnings.warn(
+        f"train_data: the ensemble's normaliser was fitted before, and is kept, but these data "
+        f"lie elsewhere: {label} has mean {m:.3g} and std {s:.3g} here, {fitted_mean:.3g} and "
+        f"{fitted_std:.3g} in the statistics; to train on new data (more episodes, a fine-tune), "
+        "refit them first (ensemble.fit_normalizer(train_data['observation'], "
+        "train_data['action'], next_observations=train_data['next', 'observation'])) or train a "
+        "new ensemble, which fits its own",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _warn_short_episodes(
@@ -918,7 +968,7 @@ def _training_payload(
         changes = ", ".join(f"{k}={saved.get(k)!r} there, {given.get(k)!r} now" for k in differ)
         raise CheckpointError(
             f"checkpoint {str(path)!r}: was written with another TrainConfig ({changes}); "
-            "resume with the same config or a new path",
+            f"resume with the same config or a new path ({_WARM_START})",
             path,
         )
     saved_data = training.get("data")  # None: written before data digests, or without a path
@@ -926,7 +976,7 @@ def _training_payload(
         raise CheckpointError(
             f"checkpoint {str(path)!r}: was written by a training on other data (train_data or "
             "val_data differ from the run's that wrote it); resume with the same data or a new "
-            "path",
+            f"path ({_WARM_START})",
             path,
         )
     return training

@@ -469,7 +469,18 @@ def test_one_start_rose_only_beyond_the_spread_of_the_references_own_starts():
     by_mean = reference.with_reference(Reference(0.4, 0.29))  # no spread known: the mean alone
     assert sum("the rise is" in by_mean.summary(index=i) for i in range(20)) == 6
     # a mean over start states is compared with the reference's mean
-    assert _starts_report([0.45] * 12).with_reference(reference).cause() == "epistemic"
+    shifted = _starts_report([0.45] * 12).with_reference(reference)
+    assert shifted.cause() == "epistemic"
+    # ...but where no start rose beyond the reference's spread, the mean's rise is not called
+    # the model's ignorance (a point-mass trial: 1.3x of 0.07 bits, 0 of 10 starts rising, read
+    # "the model has not seen states like this: more data here would reduce it")
+    assert (
+        "epistemic uncertainty rose 1.6x (0.29 -> 0.45 bits) and aleatoric stayed at 1.0x (0.40 "
+        "-> 0.40 bits): neither part rose beyond the reference's own start states: 95% of such "
+        "starts stay at or below 0.48 epistemic bits. Start state by start state, the rise is "
+        "epistemic in 0 of 12" in shifted.overall()
+    )
+    assert "more data here" not in shifted.overall()
     outliers = _starts_report([0.3] * 10 + [1.0] * 2).with_reference(reference)
     assert outliers.cause() == "epistemic"  # the mean 0.42 rose 1.4x, by two starts
     assert outliers.overall().endswith(

@@ -70,7 +70,9 @@ def test_resume_refuses_other_data_and_another_model(tmp_path, linear_data, smal
     scaled = train.clone()
     scaled["observation"] *= 100
     scaled["next", "observation"] *= 100  # other data, still episodes in time order
-    with pytest.raises(CheckpointError, match="was written by a training on other data"):
+    with pytest.raises(  # and how to go on from its weights on other data
+        CheckpointError, match=r"was written by a training on other data .* pass load_ensemble"
+    ):
         _train(small_ensemble(2), scaled, val, checkpoint_path=path, resume=True)
     with pytest.raises(CheckpointError, match=r"holds members 0\.\.1, this run trains 0\.\.2"):
         _train(small_ensemble(3), train, val, checkpoint_path=path, resume=True)
@@ -238,3 +240,27 @@ def test_only_flat_episodes_are_saved(tmp_path, linear_data):
     with pytest.raises(ValueError, match=r"^data: expected a flat TensorDict \[frames\], got \(2,"):
         save_episodes(train.reshape(2, -1), tmp_path / "episodes.pt")
     assert not (tmp_path / "episodes.pt").exists()
+
+
+def test_a_fitted_normaliser_far_from_new_data_is_named(linear_data, small_ensemble):
+    """A point-mass trial fine-tuned a trained model on data of the other half of the arena:
+    the old normaliser was kept (the new states about 4 of its stds out), with nothing said.
+    Training again on data like the first says nothing; on data elsewhere, it names the
+    dimension and how to refit."""
+    import warnings
+
+    train, val = linear_data
+    model = small_ensemble(2)
+    _train(model, train, val)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _train(model, train, val)  # the data it was fitted on: nothing to say
+    moved = train.clone()
+    moved["observation"] += 50
+    moved["next", "observation"] += 50  # the same episodes, elsewhere
+    with pytest.warns(
+        UserWarning,
+        match=r"^train_data: the ensemble's normaliser was fitted before, and is kept, but these "
+        r"data lie elsewhere: observation\[0\] has mean 50 and std .* refit them first \(ensemble",
+    ):
+        _train(model, moved, val)
