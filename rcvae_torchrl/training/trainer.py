@@ -238,7 +238,9 @@ def train_ensemble(
     block of members, and the gathered ensemble equals the one a single process trains.
 
     Args:
-        ensemble: the model; its normaliser is fitted on ``train_data`` if not fitted yet.
+        ensemble: the model; its normaliser is fitted on ``train_data`` if not fitted yet, and
+            kept if fitted (a fine-tune on more data), with a warning where ``train_data``
+            lie far from its statistics (refit it with ``ensemble.fit_normalizer`` there).
             Under ``torch.distributed`` rank 0's initial weights are used by every rank.
         train_data, val_data: whole episodes, split by episode (``split_episodes``).
         config: budget and hyper-parameters.
