@@ -21,6 +21,7 @@ from torch import Tensor
 
 from rcvae_torchrl._conformal import conformal_level
 from rcvae_torchrl.data.exploration import check_same_acting
+from rcvae_torchrl.io import _as_json
 
 __all__ = ["CompetencyReport", "Reference"]
 
@@ -43,15 +44,6 @@ _ROSE = {
 #: A reference report of fewer start states is named with its count in every summary.
 _FEW_REFERENCE_STARTS = 10
 _PARTS = ("aleatoric", "epistemic")
-
-
-def _listed(value: Any) -> Any:
-    """``value`` with its tuples as lists, at any depth (as JSON reads them back)."""
-    if isinstance(value, list | tuple):
-        return [_listed(v) for v in value]
-    if isinstance(value, Mapping):
-        return {k: _listed(v) for k, v in value.items()}
-    return value
 
 
 def _is_number(value: object) -> bool:
@@ -429,9 +421,10 @@ class CompetencyReport:
         if None in pairs["imagined steps"]:  # a report without bits per step
             del pairs["imagined steps"]
         if measure is not None and self.measure is not None:
-            keys = sorted(set(measure) | set(self.measure))
-            pairs.update({k: (measure.get(k), self.measure.get(k)) for k in keys})
-        differ = {k: pair for k, pair in pairs.items() if _listed(pair[0]) != _listed(pair[1])}
+            theirs, ours = _as_json(measure), _as_json(self.measure)  # as JSON reads them back
+            keys = sorted(set(theirs) | set(ours))
+            pairs.update({k: (theirs.get(k), ours.get(k)) for k in keys})
+        differ = {k: pair for k, pair in pairs.items() if pair[0] != pair[1]}
         if differ:
             said = "; ".join(
                 f"{k}: the reference's {theirs!r}, this report's {ours!r}"
