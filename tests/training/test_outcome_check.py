@@ -110,6 +110,23 @@ def test_statistics_against_closed_forms():
         OutcomeCheck.from_dict([1, 2])
 
 
+def test_records_read_back_name_their_missing_entries():
+    """Every record a service keeps beside its model (real outcomes, a novelty check) names
+    the entries a record of another version lacks, as a forecast check's does."""
+    from rcvae_torchrl.agent import RealOutcomes
+    from rcvae_torchrl.training import StateNovelty
+
+    outcomes = RealOutcomes(torch.ones(3, 2, dtype=torch.bool), torch.zeros(3, 2), torch.ones(3))
+    kept = {k: v for k, v in outcomes.as_dict().items() if k != "first_step"}
+    with pytest.raises(ValueError, match=r"\(a RealOutcomes.as_dict\(\)\), missing \['first_"):
+        RealOutcomes.from_dict(kept)
+    g = torch.Generator().manual_seed(0)
+    novelty = StateNovelty.fit(torch.randn(200, 2, generator=g), torch.randn(50, 2, generator=g))
+    kept = {k: v for k, v in novelty.as_dict().items() if k != "level"}
+    with pytest.raises(ValueError, match=r"^novelty: expected the entries .* missing \['level'\]"):
+        StateNovelty.from_dict(kept)
+
+
 def test_bad_inputs_are_named():
     forecast, real = _forecast(12), torch.zeros(12, 2, dtype=torch.bool)
     with pytest.raises(ValueError, match=r"real_success: expected a bool tensor \[n=12, R >= 1\]"):
