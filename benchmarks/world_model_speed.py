@@ -18,21 +18,28 @@ All timings are medians of repeats taken round-robin across the variants compare
    all in one chunk) against a Python loop over single members, same run.
 3. One transition step for E·N particles: member-major ``ensemble.step`` against the indexed
    layout (``RCVAETransition``, TS-∞ with round-robin and random members, and TS-1).
+4. The GRU recurrence of a training step: :func:`~rcvae_torchrl.models.gru_scan` (one
+   autograd node with a written-out backward pass) against
+   :func:`~rcvae_torchrl.models.gru_scan_stepwise` (autograd through every step's ops), the
+   study's default model at E = 1, 2, 4 (32 windows x L = 32 per member, the distributed
+   training benchmark's step), same run, interleaved.
 
 ``--device cuda`` (or ``cuda:N``) runs every model on a GPU, each call timed until its kernels
 have run, and records the GPU's name.
 
     python benchmarks/world_model_speed.py [--repeats 7] [--horizon 20] [--threads N] [--quick]
-                                           [--device cpu|cuda|cuda:N]
+                                           [--device cpu|cuda|cuda:N] [--scan-only]
                                            [--out world_model_speed_2threads]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 from collections.abc import Callable
 from dataclasses import asdict
+from unittest import mock
 
 import torch
 from _report import (
@@ -44,7 +51,8 @@ from _report import (
 )
 from tensordict import TensorDict
 
-from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble, gru_scan_stepwise
+from rcvae_torchrl.models import rcvae as rcvae_module
 from rcvae_torchrl.objectives import RCVAELoss
 from rcvae_torchrl.rollout import imagine, init_model_state, make_transition_module
 from recipes.pusher_competency.config import ModelConfig
@@ -84,11 +92,13 @@ def train_step(
     windows: int = 64,
     length: int = 32,
     compiled: bool = False,
+    stepwise_scan: bool = False,
 ):
     """A closure running one loss + backward + Adam step on fixed windows ``[E, W, L]``; with
     ``compiled`` the loss (forward and backward) under ``torch.compile``, static shapes (one
     compile per window count: a second count recompiled with dynamic shapes failed on a GPU,
-    in the noise draw ``randn`` of a symbolic size)."""
+    in the noise draw ``randn`` of a symbolic size); with ``stepwise_scan`` the model's GRU
+    recurrence through :func:`gru_scan_stepwise` (patched in for the step only)."""
     model = make_model(ensemble_size, config, device)
     loss_fn = torch.compile(RCVAELoss(model), dynamic=False) if compiled else RCVAELoss(model)
     opt = torch.optim.Adam(model.parameters(), lr=1e-3)
@@ -100,10 +110,16 @@ def train_step(
     ).to(device)
 
     def step() -> None:
-        out = loss_fn(td)
-        opt.zero_grad()
-        (out["loss_reconstruction"] + out["loss_kl"]).backward()
-        opt.step()
+        scan = (
+            mock.patch.object(rcvae_module, "gru_scan", gru_scan_stepwise)
+            if stepwise_scan
+            else contextlib.nullcontext()
+        )
+        with scan:
+            out = loss_fn(td)
+            opt.zero_grad()
+            (out["loss_reconstruction"] + out["loss_kl"]).backward()
+            opt.step()
 
     return step
 
@@ -114,6 +130,30 @@ def train_step_times(config: RCVAEConfig, repeats: int, device: torch.device) ->
     runs = {str(e): train_step(config, e, device) for e in (1, 5)}
     runs["1x5w"] = train_step(config, 1, device, windows=5 * 64)
     return interleaved_medians(runs, repeats, device, warmup=2)
+
+
+SCAN_MEMBERS = (1, 2, 4)
+SCAN_STEPS = 10
+
+
+def scan_times(repeats: int, device: torch.device) -> dict[str, float]:
+    """Median step seconds of the study's default model at E = 1, 2, 4 (32 windows per member),
+    its recurrence through ``gru_scan`` (``"E<e>"``) and ``gru_scan_stepwise``
+    (``"E<e>_stepwise"``). Each timed call runs ``SCAN_STEPS`` steps one after the other, as
+    training does (a single step timed right after another variant's starts with that
+    variant's data in the caches, which hides about half of the difference)."""
+
+    def steps(step: Callable[[], None]) -> Callable[[], None]:
+        return lambda: [step() for _ in range(SCAN_STEPS)]
+
+    runs = {}
+    for e in SCAN_MEMBERS:
+        runs[f"E{e}"] = steps(train_step(DEFAULT, e, device, windows=32))
+        runs[f"E{e}_stepwise"] = steps(
+            train_step(DEFAULT, e, device, windows=32, stepwise_scan=True)
+        )
+    times = interleaved_medians(runs, repeats, device, warmup=1)
+    return {name: t / SCAN_STEPS for name, t in times.items()}
 
 
 def generation_rates(model: RCVAEEnsemble, n: int, horizon: int, repeats: int) -> dict[str, float]:
@@ -163,11 +203,38 @@ def main() -> None:
         "--out", default="world_model_speed", help="results name (benchmarks/results/<out>.json)"
     )
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
+    parser.add_argument("--scan-only", action="store_true", help="the GRU recurrence's table only")
     args = parser.parse_args()
     device = benchmark_device(args.device)
     torch.set_num_threads(args.threads)
     repeats = 3 if args.quick else args.repeats
     sizes = (16, 256) if args.quick else (16, 256, 4096)
+
+    meta = {
+        "load_average_1min": os.getloadavg()[0],
+        "repeats": repeats,
+        "threads": args.threads,
+        "device": device_name(device),
+    }
+    scan = scan_times(repeats, device)
+    scan_ratio = {e: scan[f"E{e}_stepwise"] / scan[f"E{e}"] for e in SCAN_MEMBERS}
+    print_table(
+        "Training step, study default model, 32 windows x L=32 per member (median ms): the GRU "
+        "recurrence as one node (gru_scan) vs autograd through each step",
+        ["members", "gru_scan_ms", "stepwise_ms", "stepwise_over_gru_scan"],
+        [
+            [e, 1e3 * scan[f"E{e}"], 1e3 * scan[f"E{e}_stepwise"], scan_ratio[e]]
+            for e in SCAN_MEMBERS
+        ],
+    )
+
+    scan_results = {
+        "scan_train_step_s": scan,
+        "scan_stepwise_over_gru_scan": {str(e): r for e, r in scan_ratio.items()},
+    }
+    if args.scan_only:
+        write_json(args.out, {**scan_results, **meta})
+        return
 
     configs = {"pusher_H128": CONFIG, "study_default_H64": DEFAULT, "small_H32": SMALL}
     train = {name: train_step_times(cfg, repeats, device) for name, cfg in configs.items()}
@@ -212,6 +279,7 @@ def main() -> None:
             "train_step_ratio_e5_over_e1": ratio,
             "train_step_ratio_one_member_5x_windows": batch_ratio,
             "train_ratio_target_le_3": {name: r <= 3.0 for name, r in ratio.items()},
+            **scan_results,
             "generation_steps_per_s": {str(n): r for n, r in gen.items()},
             "transition_step_s": {str(n): t for n, t in trans.items()},
             "horizon": args.horizon,

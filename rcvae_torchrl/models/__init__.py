@@ -1,7 +1,13 @@
 """The RCVAE world model: config, vectorised ensemble, normalisation, building blocks."""
 
 from rcvae_torchrl.models.config import RCVAEConfig
-from rcvae_torchrl.models.ensemble_gru import EnsembleGRUCell, gru_scan, gru_step, gru_update
+from rcvae_torchrl.models.ensemble_gru import (
+    EnsembleGRUCell,
+    gru_scan,
+    gru_scan_stepwise,
+    gru_step,
+    gru_update,
+)
 from rcvae_torchrl.models.ensemble_layers import (
     EnsembleLinear,
     EnsembleMLP,
@@ -38,6 +44,7 @@ __all__ = [
     "ensemble_mlp",
     "gaussian_head",
     "gru_scan",
+    "gru_scan_stepwise",
     "gru_step",
     "gru_update",
     "masked_mean_std",

@@ -7,10 +7,14 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.autograd.function import once_differentiable
 
 from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, ensemble_linear
 
-__all__ = ["EnsembleGRUCell", "gru_scan", "gru_step", "gru_update"]
+__all__ = ["EnsembleGRUCell", "gru_scan", "gru_scan_stepwise", "gru_step", "gru_update"]
+
+_tanh_backward = torch.ops.aten.tanh_backward  # grad * (1 - y^2), y = tanh(x)
+_sigmoid_backward = torch.ops.aten.sigmoid_backward  # grad * y (1 - y), y = sigmoid(x)
 
 
 def gru_update(gates_x: torch.Tensor, gates_h: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
@@ -88,9 +92,14 @@ def gru_scan(
 
     Only the recurrent part runs per step: the input gates are split into their reset/update
     and new parts once for all steps, and the reset and update gates take one add and one
-    sigmoid, so a step is 10 ops forward and 10 autograd nodes backward (12 and 12 through
-    :func:`gru_update` and a module call). What each op costs besides its arithmetic does
-    not grow with E, so it is a fixed cost of every training step, whatever the members.
+    sigmoid (10 ops a step). When a gradient is needed (and not under ``torch.compile``, which
+    traces :func:`gru_scan_stepwise`), the scan is one autograd node whose backward pass is
+    written out: per step the gate gradients from the gates the forward pass kept (12 ops and
+    one ``baddbmm`` for the carried gradient, no autograd node), and the hidden weights'
+    gradient as one ``bmm`` over all steps, in place of about 20 autograd nodes a step. What each op costs besides its
+    arithmetic does not grow with E, so the node count is a fixed cost of every training step,
+    whatever the members. The outputs are :func:`gru_scan_stepwise`'s bits; the gradients are
+    its values up to float rounding (another summation order).
 
     Args:
         cell: the GRU cell.
@@ -102,17 +111,34 @@ def gru_scan(
     Returns:
         h_1..h_L, ``[E, *B, L, H]``.
     """
+    needs_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (gates_x, hidden, *cell.hidden_proj.parameters())
+    )
+    if not needs_grad or torch.compiler.is_compiling():
+        return gru_scan_stepwise(cell, gates_x, hidden, mask)
+    batch, size = hidden.shape[:-1], hidden.shape[-1]
+    h = hidden.reshape(batch[0], -1, size)  # [E, N, H]: one baddbmm per step
+    gates = gates_x.reshape(*h.shape[:2], *gates_x.shape[-2:])
+    weight, bias = cell.hidden_proj.weight, cell.hidden_proj.bias
+    out = _GRUScan.apply(gates, h, weight, bias, _keep(mask, batch, h.dtype))
+    return out.reshape(*batch, out.shape[-2], size)
+
+
+def gru_scan_stepwise(
+    cell: EnsembleGRUCell,
+    gates_x: torch.Tensor,
+    hidden: torch.Tensor,
+    mask: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """:func:`gru_scan` as plain autograd ops, one step after the other: the reference its
+    written-out backward pass is tested against, what ``torch.compile`` traces, and the pass
+    when no gradient is needed."""
     batch, size = hidden.shape[:-1], hidden.shape[-1]
     h = hidden.reshape(batch[0], -1, size)  # [E, N, H]: one baddbmm per step
     gates = gates_x.reshape(*h.shape[:2], *gates_x.shape[-2:])
     reset_update_x, new_x = (g.unbind(dim=-2) for g in gates.split([2 * size, size], dim=-1))
-    # the bias unsqueezed per step, as in a module call: its gradient then sums step by step,
-    # in the same order as when open-loop steps (module calls) follow
     bias, weight = cell.hidden_proj.bias, cell.hidden_proj.weight
-    keep = None
-    if mask is not None:
-        keep = mask.to(h.dtype).expand(mask.shape[0], *batch[1:], mask.shape[-1])
-        keep = keep.reshape(mask.shape[0], -1, mask.shape[-1], 1).unbind(dim=-2)
+    keep = _keep(mask, batch, h.dtype)
     states = []
     for t, (ru_x, n_x) in enumerate(zip(reset_update_x, new_x, strict=True)):
         if keep is not None and t > 0:
@@ -122,3 +148,87 @@ def gru_scan(
         h = torch.lerp(torch.tanh(n_x + reset * n_h), h, update)
         states.append(h)
     return torch.stack(states, dim=-2).view(*batch, len(states), size)
+
+
+def _keep(
+    mask: torch.Tensor | None, batch: torch.Size, dtype: torch.dtype
+) -> tuple[torch.Tensor, ...] | None:
+    """The mask as one ``[E or 1, N, 1]`` multiplier per step (``N`` = the flattened batch)."""
+    if mask is None:
+        return None
+    keep = mask.to(dtype).expand(mask.shape[0], *batch[1:], mask.shape[-1])
+    return keep.reshape(mask.shape[0], -1, mask.shape[-1], 1).unbind(dim=-2)
+
+
+class _GRUScan(torch.autograd.Function):
+    """The scan of :func:`gru_scan` as one autograd node: ``gates [E, N, L, 3H]``, ``h_0
+    [E, N, H]``, the hidden projection's ``weight [E, H, 3H]`` and ``bias [E, 3H]``, the per-step
+    mask multipliers or ``None`` → h_1..h_L as a ``[E, N, L, H]`` view.
+
+    The forward pass computes :func:`gru_scan_stepwise`'s ops (the same bits) and keeps each
+    step's input state, gates and hidden projection of the new gate; the backward pass runs the
+    steps in reverse with ``r, u, n`` the reset, update and new gates and ``h`` the step's input
+    state (``h' = n + u (h - n)``, ``n = tanh(x_n + r h_n)``)::
+
+        dn_pre = (1 - n^2) (1 - u) dh'        du_pre = u (1 - u) (h - n) dh'
+        dr_pre = r (1 - r) h_n dn_pre         dh = u dh' + [dr_pre, du_pre, r dn_pre] W^T
+
+    (the input gates' gradient is ``[dr_pre, du_pre, dn_pre]``), then ``dW = Σ_t h_t^T
+    [dr_pre, du_pre, r dn_pre]_t`` in one ``bmm`` and ``db`` as its row sum.
+    """
+
+    @staticmethod
+    def forward(ctx, gates, h, weight, bias, keep):
+        size, steps = h.shape[-1], gates.shape[-2]
+        reset_update_x, new_x = (g.unbind(dim=-2) for g in gates.split([2 * size, size], dim=-1))
+        # h_0..h_L step-major per member, so that each step's state is one block per member
+        # and the states read by the steps are one [E, L N, H] matrix for the weights' gradient
+        seq = h.new_empty(h.shape[0], steps + 1, *h.shape[1:])
+        seq[:, 0] = h
+        states = seq.unbind(dim=1)
+        read = seq[:, :steps] if keep is None else h.new_empty(h.shape[0], steps, *h.shape[1:])
+        reads, gate_outputs, news, hidden_news = read.unbind(dim=1), [], [], []
+        bias = bias.unsqueeze(1)
+        for t, (ru_x, n_x) in enumerate(zip(reset_update_x, new_x, strict=True)):
+            h = states[t]
+            if keep is not None:  # the masked state, kept where the weights' gradient reads it
+                h = torch.mul(h, keep[t - 1], out=reads[t]) if t > 0 else reads[t].copy_(h)
+            ru_h, n_h = torch.baddbmm(bias, h, weight).split([2 * size, size], dim=-1)
+            reset_update = torch.sigmoid(ru_x + ru_h)
+            reset, update = reset_update.chunk(2, dim=-1)
+            new = torch.tanh(n_x + reset * n_h)
+            torch.lerp(new, h, update, out=states[t + 1])
+            gate_outputs.append(reset_update)
+            news.append(new)
+            hidden_news.append(n_h)
+        ctx.steps = (read, gate_outputs, news, hidden_news, keep)
+        ctx.save_for_backward(weight)
+        return seq[:, 1:].transpose(1, 2)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):
+        (weight,) = ctx.saved_tensors
+        read, gate_outputs, news, hidden_news, keep = ctx.steps
+        members, steps, rows, size = read.shape
+        reads, grads = read.unbind(dim=1), grad.unbind(dim=-2)
+        weight_t = weight.transpose(1, 2)
+        grad_gates = grad.new_empty(members, rows, steps, 3 * size)
+        grad_hidden = grad.new_empty(members, steps, rows, 3 * size)  # step-major, as `read`
+        gates_at, hidden_at = grad_gates.unbind(dim=2), grad_hidden.unbind(dim=1)
+        dh = None
+        for t in range(steps - 1, -1, -1):
+            dh = grads[t] if dh is None else grads[t] + dh
+            reset, update = gate_outputs[t].chunk(2, dim=-1)
+            through = dh * update
+            d_new = _tanh_backward(dh - through, news[t])
+            d_reset = _sigmoid_backward(d_new * hidden_news[t], reset)
+            d_update = _sigmoid_backward(dh * (reads[t] - news[t]), update)
+            torch.cat([d_reset, d_update, d_new * reset], dim=-1, out=hidden_at[t])
+            torch.cat([d_reset, d_update, d_new], dim=-1, out=gates_at[t])
+            dh = torch.baddbmm(through, hidden_at[t], weight_t)
+            if keep is not None and t > 0:
+                dh = dh * keep[t - 1]
+        flat = grad_hidden.view(members, -1, 3 * size)
+        grad_weight = torch.bmm(read.reshape(members, -1, size).transpose(1, 2), flat)
+        return grad_gates, dh, grad_weight, flat.sum(dim=1), None

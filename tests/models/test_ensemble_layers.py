@@ -6,7 +6,14 @@ import pytest
 import torch
 from torch import nn
 
-from rcvae_torchrl.models import EnsembleGRUCell, EnsembleLinear, EnsembleMLP, gru_scan, gru_update
+from rcvae_torchrl.models import (
+    EnsembleGRUCell,
+    EnsembleLinear,
+    EnsembleMLP,
+    gru_scan,
+    gru_scan_stepwise,
+    gru_update,
+)
 from rcvae_torchrl.rollout import MemberLayout
 
 
@@ -95,7 +102,17 @@ def test_member_layout_rejects_non_flat_member():
         MemberLayout(torch.zeros(2, 2, dtype=torch.long), 3)
 
 
-def test_gru_scan_matches_stepping_the_cell_bit_for_bit():
+def _stepped(cell, gates_x, h0, mask):
+    h, stepped = h0, []
+    for t in range(gates_x.shape[-2]):
+        if t > 0:
+            h = h * mask[..., t - 1, None].to(h.dtype)
+        h = gru_update(gates_x[..., t, :], cell.hidden_proj(h), h)
+        stepped.append(h)
+    return torch.stack(stepped, dim=-2)
+
+
+def test_gru_scan_stepwise_matches_stepping_the_cell_bit_for_bit():
     # E * B * H a multiple of 32, so that no gate falls in the scalar tail of torch's vectorised
     # loops (32 floats at a time): its scalar sigmoid differs from the vectorised one in the
     # last bit
@@ -105,14 +122,8 @@ def test_gru_scan_matches_stepping_the_cell_bit_for_bit():
     h0 = torch.randn(3, 2, 5, 16, requires_grad=True)
     mask = torch.rand(1, 2, 5, 7) > 0.3
     gates_x = cell.input_proj(x)
-    scanned = gru_scan(cell, gates_x, h0, mask)
-    h, stepped = h0, []
-    for t in range(7):
-        if t > 0:
-            h = h * mask[..., t - 1, None].to(h.dtype)
-        h = gru_update(gates_x[..., t, :], cell.hidden_proj(h), h)
-        stepped.append(h)
-    stepped = torch.stack(stepped, dim=-2)
+    scanned = gru_scan_stepwise(cell, gates_x, h0, mask)
+    stepped = _stepped(cell, gates_x, h0, mask)
     assert scanned.shape == (3, 2, 5, 7, 16) and torch.equal(scanned, stepped)
     weights = torch.randn_like(scanned)
     inputs = [x, h0, *cell.parameters()]
@@ -120,3 +131,57 @@ def test_gru_scan_matches_stepping_the_cell_bit_for_bit():
     want = torch.autograd.grad((stepped * weights).sum(), inputs)
     for a, b in zip(got, want, strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_gru_scan_backward_matches_autograd_through_the_steps(masked, dtype):
+    """The written-out backward pass: the stepwise scan's outputs bit for bit, its gradients
+    (every input, both parameters of both projections) to float rounding."""
+    torch.manual_seed(1)
+    cell = EnsembleGRUCell(3, 4, 16).to(dtype)
+    x = torch.randn(3, 2, 5, 7, 4, dtype=dtype, requires_grad=True)
+    h0 = torch.randn(3, 2, 5, 16, dtype=dtype, requires_grad=True)
+    mask = torch.rand(3, 2, 5, 7) > 0.3 if masked else None
+    gates_x = cell.input_proj(x)
+    fused = gru_scan(cell, gates_x, h0, mask)
+    reference = gru_scan_stepwise(cell, gates_x, h0, mask)
+    assert fused.grad_fn is not None and type(fused.grad_fn) is not type(reference.grad_fn)
+    assert torch.equal(fused, reference)
+    weights = torch.randn_like(fused)
+    inputs = [x, h0, *cell.parameters()]
+    got = torch.autograd.grad((fused * weights).sum(), inputs, retain_graph=True)
+    want = torch.autograd.grad((reference * weights).sum(), inputs)
+    tol = {"rtol": 1e-5, "atol": 1e-5} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 1e-12}
+    for a, b in zip(got, want, strict=True):
+        assert a.shape == b.shape
+        torch.testing.assert_close(a, b, **tol)
+
+
+def test_gru_scan_gradients_pass_gradcheck():
+    """Finite differences, in float64, through the gates, h_0 and the hidden projection (a
+    masked batch: the reset after an invalid step included)."""
+    torch.manual_seed(2)
+    cell = EnsembleGRUCell(2, 3, 4).double()
+    gates = torch.randn(2, 3, 5, 12, dtype=torch.float64, requires_grad=True)
+    h0 = torch.randn(2, 3, 4, dtype=torch.float64, requires_grad=True)
+    mask = torch.tensor([True, False, True, True, False]).expand(1, 3, 5)
+    names = ("hidden_proj.weight", "hidden_proj.bias")
+
+    def scan(gates, h0, weight, bias):  # the cell's hidden projection swapped for the inputs
+        swapped = dict(zip(names, (weight, bias), strict=True))
+        return torch.func.functional_call(cell, swapped, (gates, h0, mask), strict=False)
+
+    cell.forward = lambda gates, h0, mask: gru_scan(cell, gates, h0, mask)
+    params = [cell.get_parameter(n).detach().clone().requires_grad_() for n in names]
+    assert torch.autograd.gradcheck(scan, (gates, h0, *params))
+
+
+def test_gru_scan_without_gradient_is_the_stepwise_pass():
+    torch.manual_seed(3)
+    cell = EnsembleGRUCell(2, 3, 8)
+    gates, h0 = torch.randn(2, 4, 6, 24), torch.zeros(2, 4, 8)
+    with torch.no_grad():
+        out = gru_scan(cell, gates, h0)
+    assert out.grad_fn is None
+    assert torch.equal(out, gru_scan_stepwise(cell, gates, h0))
