@@ -847,13 +847,13 @@ class _InBounds:
 
 def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
     """Warn when none of the training states the world model's novelty check keeps lies in
-    the boundary's success region (for a survival boundary: outside its failure region): the
-    model never saw a success (a state the task survives in), and every forecast of one
-    extrapolates (data of a random policy on a task of a distant goal, or of a pendulum that
-    never stood up on a task of balancing it), unless the predicate reads other dimensions or
-    units than it means; and when all of them lie in the success region, or in the failure
-    region of a task that has both (a predicate that holds everywhere: the forecast is 1, or 0,
-    whatever the agent does)."""
+    the boundary's success region (for a survival boundary: outside its failure region, or
+    none inside it): the model never saw a success (a state the task survives in; a failure),
+    and every forecast of one extrapolates (data of a random policy on a task of a distant
+    goal, or of a pendulum that never stood up on a task of balancing it), unless the predicate
+    reads other dimensions or units than it means; and when all of them lie in the success
+    region, or in the failure region of a task that has both (a predicate that holds
+    everywhere: the forecast is 1, or 0, whatever the agent does)."""
     states = getattr(novelty, "states", None)
     if not isinstance(states, Tensor) or not states.shape[0]:
         return
@@ -870,7 +870,18 @@ def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
         "state's end, a target's position in place of the distance to it, steps for seconds)"
     )
     if boundary.is_survival:
-        if not bool(holds(boundary.failure, "failure").all()):
+        failed = holds(boundary.failure, "failure")
+        if not bool(failed.any()):
+            warnings.warn(
+                f"boundary: none of the {kept} lies in the failure region: the model never saw "
+                f"a failure, so every failure it forecasts extrapolates past its data and a "
+                f"forecast of none says only that it imagines none; train on episodes that "
+                f"fail too, or {reads}",
+                UserWarning,
+                stacklevel=3,
+            )
+            return
+        if not bool(failed.all()):
             return
         region, seen, reach = (
             "outside the failure region",

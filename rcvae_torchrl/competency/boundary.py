@@ -256,11 +256,56 @@ class SuccessBoundary:
                 f"{name}: expected the predicate to return a bool tensor (e.g. distance <= r), "
                 f"got dtype {result.dtype}"
             )
+        if observation.shape[-2] > 1:
+            _check_each_state_alone(predicate, name, observation, result)
         return result
 
     def __repr__(self) -> str:
         kind = ", survival" if self.is_survival else ""
         return f"{type(self).__name__}(time_limit={self.time_limit}, dt={self.dt}{kind})"
+
+
+def _check_each_state_alone(
+    predicate: Predicate, name: str, observation: Tensor, result: Tensor
+) -> None:
+    """A predicate must judge each state alone (:data:`Predicate`): its results for the first
+    trajectory of ``observation`` ``[..., T, D]`` must be those for the same states one at a
+    time, ``[T, 1, D]``. One that combines states along the steps (a cumulative sum, a count)
+    would judge the start states of a batch, or the training states the boundary is probed
+    on, as one sequence, silently."""
+    trajectories = observation.reshape(-1, *observation.shape[-2:])
+    if not trajectories.shape[0]:  # an empty batch: nothing to judge
+        return
+    first = trajectories[0]
+    steps = first.shape[0]
+    try:
+        alone = predicate(first[:, None, :])
+    except (AttributeError, IndexError, KeyError, TypeError, RuntimeError) as error:
+        raise ValueError(
+            f"{name}: the predicate failed on observations of shape {(steps, 1, first.shape[1])} "
+            f"(the states of one trajectory, each alone: it must take any batch shape "
+            f"[..., D], and a threshold per start state broadcast against the batch fails "
+            f"here), with {type(error).__name__}: {error}"
+        ) from error
+    along = result.reshape(-1, steps)[0]
+    if isinstance(alone, Tensor) and alone.shape == (steps, 1) and torch.equal(alone[:, 0], along):
+        return
+    if isinstance(alone, Tensor) and alone.shape == (steps, 1):
+        detail = f"{int((alone[:, 0] != along).sum())} of the {steps} states judged otherwise"
+    else:
+        shape = tuple(alone.shape) if isinstance(alone, Tensor) else type(alone).__name__
+        detail = f"a result of shape {shape} for them, expected {(steps, 1)}"
+    raise ValueError(
+        f"{name}: expected a predicate of each state alone (obs [..., D] -> bool [...]), got "
+        f"other results for the states of one trajectory judged one at a time "
+        f"([{steps}, 1, D]) than along its steps ([..., {steps}, D]): {detail}. A predicate "
+        "that combines states along an axis (a cumulative sum or a count over the steps), or "
+        "reads a state's place in the batch (a threshold per start state), would judge a "
+        "batch of start states, or the training states the boundary is checked on, as one "
+        "sequence; put what it counts in the state (a transform on the env, such as TorchRL's "
+        "RewardSum for the return or StepCounter for the steps) and judge that, and assess "
+        "starts that need a threshold of their own one at a time, each with its boundary"
+    )
 
 
 def _time_limit_steps(steps: int | None, seconds: float | None, dt: float | None) -> int | float:

@@ -336,8 +336,11 @@ def check_episode_ids(data: TensorDictBase, name: str = "data") -> None:
             )
         raise ValueError(
             f"{name}: expected one contiguous block of frames per episode id, but ids "
-            f"{repeated} tag several episodes; join collections with merge_episodes or collect "
-            "with first_id past the ids you have"
+            f"{repeated} tag several blocks of frames that do not join up step by step even "
+            "sorted by id: either several episodes under one id (join collections with "
+            "merge_episodes, or collect with first_id past the ids you have), or frames out of "
+            "time order (shuffled, or drawn with a replay buffer's sample(): pass the frames "
+            "as collected, or sort them by id and step, e.g. by a StepCounter's step_count)"
         )
     pairs = _pairs_apart(data, ids)
     if pairs is not None and bool(pairs[1].any()):

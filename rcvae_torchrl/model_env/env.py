@@ -257,6 +257,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             self.action_bounds = ActionBounds(
                 low.to(self.device, dtype), high.to(self.device, dtype)
             )
+            _warn_training_actions_outside(self.ensemble, self.action_bounds)
 
     def set_start_states(self, start_states: torch.Tensor | None) -> None:
         """Set (or clear, with ``None``) the start observations ``[K, S]`` sampled at reset."""
@@ -525,3 +526,42 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         if not return_success:
             return returns
         return returns, scores.success.reshape(*batch, c, -1) & valid
+
+
+def _warn_training_actions_outside(ensemble: RCVAEEnsemble, bounds: ActionBounds) -> None:
+    """Warn when the world model's training actions, as its normaliser keeps them (mean and
+    spread per dimension), cannot have lain inside the action spec's bounds: a mean outside
+    them, or a spread above half their width (the most that actions inside them can have),
+    each with 5 % of the width to spare. Actions recorded in other units than the env takes
+    (0 to 50 units for an env of [0, 1]) were accepted, and the model was then fed actions
+    it had never seen, silently."""
+    normalizer = ensemble.normalizer
+    if not normalizer.fitted:
+        return
+    mean = normalizer.action_mean.detach().to("cpu", torch.float64)
+    # the bounds of each action dimension (over any batch dims of the spec)
+    low, high = (b.detach().to("cpu", torch.float64).reshape(-1, mean.shape[0]) for b in bounds)
+    low, high = low.amin(0), high.amax(0)
+    std = normalizer.action_std.detach().to("cpu", torch.float64)
+    width = high - low
+    spare = 0.05 * width
+    outside = torch.isfinite(width) & (
+        (mean < low - spare) | (mean > high + spare) | (std > 0.5 * width + spare)
+    )
+    if not bool(outside.any()):
+        return
+    dims = outside.nonzero().flatten().tolist()
+
+    def show(values: torch.Tensor) -> list[float]:
+        return [round(float(v), 4) for v in values[dims]]
+
+    warnings.warn(
+        f"action_spec: the world model's training actions cannot have lain inside its bounds "
+        f"at action dimension(s) {dims}: their mean {show(mean)} and spread {show(std)} (the "
+        f"model's normaliser) against bounds {show(low)} to {show(high)} (actions inside them "
+        f"spread by at most half the width); were they recorded in other units than the env "
+        f"takes, or changed by a transform after collection? The model is fed the env's "
+        f"actions, which it has not seen, and its forecasts extrapolate",
+        UserWarning,
+        stacklevel=3,
+    )

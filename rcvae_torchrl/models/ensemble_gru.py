@@ -96,10 +96,10 @@ def gru_scan(
     traces :func:`gru_scan_stepwise`), the scan is one autograd node whose backward pass is
     written out: per step the gate gradients from the gates the forward pass kept (12 ops and
     one ``baddbmm`` for the carried gradient, no autograd node), and the hidden weights'
-    gradient as one ``bmm`` over all steps, in place of about 20 autograd nodes a step. What each op costs besides its
-    arithmetic does not grow with E, so the node count is a fixed cost of every training step,
-    whatever the members. The outputs are :func:`gru_scan_stepwise`'s bits; the gradients are
-    its values up to float rounding (another summation order).
+    gradient as one ``bmm`` over all steps, in place of about 20 autograd nodes a step. What
+    each op costs besides its arithmetic does not grow with E, so the op count is a fixed cost
+    of every training step, whatever the members. The outputs are :func:`gru_scan_stepwise`'s
+    bits; the gradients are its values up to float rounding (another summation order).
 
     Args:
         cell: the GRU cell.

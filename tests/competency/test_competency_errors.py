@@ -155,6 +155,27 @@ def test_boundary_errors():
         bad.success_over_time(torch.randn(2, 5, 3))
 
 
+def test_a_predicate_that_combines_states_along_the_steps_is_refused():
+    """A return summed along the steps (in place of a RewardSum entry in the state) judges a
+    forecast's trajectories, a batch of start states and the training states the boundary is
+    checked on as one sequence: refused, naming the states judged otherwise."""
+    obs = torch.full((2, 5, 3), 0.5)
+    summed = SuccessBoundary(lambda o: o[..., 0].cumsum(-1) > 2.0)
+    with pytest.raises(
+        ValueError,
+        match=r"^success: expected a predicate of each state alone .* judged one at a time "
+        r"\(\[5, 1, D\]\) than along its steps \(\[\.\.\., 5, D\]\): 1 of the 5 states judged "
+        r"otherwise\. .*RewardSum for the return",
+    ):
+        summed.success_over_time(obs)
+    counted = SuccessBoundary.survival(lambda o: o[..., 0].cumsum(-1) > 0.6, time_limit=5)
+    with pytest.raises(ValueError, match=r"^failure: expected a predicate of each state alone"):
+        counted.outcome(obs)
+    # each state alone: accepted, the same results as before
+    alone = SuccessBoundary(lambda o: o[..., 0] > 0.4, time_limit=3)
+    assert alone.success_over_time(obs).tolist() == [[True] * 3 + [False] * 2] * 2
+
+
 def test_estimator_arguments_are_checked_when_the_metric_is_made():
     """A misspelt keyword is named with the ones the estimator takes, before any rollout."""
     with pytest.raises(TypeError, match=r"the 'histogram' estimator takes .*'bin_width'.*"):

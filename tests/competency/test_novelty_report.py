@@ -223,11 +223,11 @@ def test_a_success_region_no_training_state_or_every_one_lies_in_is_named():
     with pytest.raises(ValueError, match=r"^success, on the world model's 3,000 training states"):
         make_assessor(make_env(model), boundary=wide)
     near = SuccessBoundary(lambda o: o[..., 0] > 0.1, time_limit=T)
-    stay = SuccessBoundary.survival(lambda o: o[..., 0] > 5.0, time_limit=T)
+    stay = SuccessBoundary.survival(lambda o: o[..., 0] > 0.1, time_limit=T)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         make_assessor(make_env(model), boundary=near)  # some training states lie there
-        make_assessor(make_env(model), boundary=stay)  # survival: states outside failure
+        make_assessor(make_env(model), boundary=stay)  # survival: states in and out of failure
         model.novelty = None
         make_assessor(make_env(model), boundary=far)  # no states kept: nothing to tell
 
@@ -262,6 +262,25 @@ def test_a_survival_whose_failure_region_holds_every_training_state_is_named():
         r"seconds\)$",
     ):
         make_assessor(make_env(model), boundary=fallen)
+
+
+def test_a_survival_whose_failure_region_holds_no_training_state_is_named():
+    """An inventory trial: a stock-out predicate read the backlog (never negative) in place of
+    the stock; the model had never seen a failure, imagined some past its data (P = 0.13 to
+    0.50 where the real answer was 1.0), and nothing said so."""
+    model = make_ensemble()
+    model.novelty = _novelty()  # training states around 0, spread 0.1
+    never = SuccessBoundary.survival(lambda o: o[..., 1] < -5.0, time_limit=T)
+    with pytest.warns(
+        UserWarning,
+        match=r"^boundary: none of the 3,000 training states the world model keeps "
+        r"\(ensemble.novelty.states, drawn from its training episodes\) lies in the failure "
+        r"region: the model never saw a failure, so every failure it forecasts extrapolates "
+        r"past its data and a forecast of none says only that it imagines none; train on "
+        r"episodes that fail too, or check that the predicate reads the dimensions and units "
+        r"it means",
+    ):
+        make_assessor(make_env(model), boundary=never)
 
 
 def test_a_forecast_check_made_from_a_report_measures_starts_in_the_training_spread():

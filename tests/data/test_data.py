@@ -225,7 +225,7 @@ def test_collections_get_unique_ids_and_duplicates_are_refused(episodes):
     from rcvae_torchrl.data import merge_episodes
 
     twice = torch.cat([episodes, episodes])  # ids 0..5 twice: stitched episodes
-    with pytest.raises(ValueError, match=r"ids \[0, 1, 2, 3, 4\] tag several episodes"):
+    with pytest.raises(ValueError, match=r"ids \[0, 1, 2, 3, 4\] tag several blocks of frames"):
         split_episodes(twice, 0.2)
     with pytest.raises(ValueError, match="merge_episodes"):
         make_window_buffer(twice, 8)
@@ -448,8 +448,14 @@ def test_frames_of_one_episode_in_several_blocks_are_told_to_be_sorted(episodes)
     check_episode_ids(fixed)
     reused = episodes.clone()
     reused[TRAJ_KEY] = reused[TRAJ_KEY] % 3  # episodes 0 and 3 share an id, apart in time
-    with pytest.raises(ValueError, match=r"tag several episodes; join collections with merge"):
+    with pytest.raises(ValueError, match=r"several episodes under one id \(join collections"):
         check_episode_ids(reused)
+    # frames shuffled: the same message names the other cause, and how to sort them
+    shuffled = episodes[
+        torch.randperm(episodes.shape[0], generator=torch.Generator().manual_seed(0))
+    ]
+    with pytest.raises(ValueError, match=r"or frames out of time order \(shuffled, .*step_count"):
+        check_episode_ids(shuffled)
 
 
 def test_frames_drawn_from_a_replay_buffer_and_sorted_by_id_are_not_episodes(episodes):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -265,3 +267,33 @@ def test_the_assessor_refuses_a_transform_that_changes_the_action(ensemble, real
     others = [StepCounter(5), RewardSum(), InitTracker()]
     kept = make_rcvae_env(*args, start_states=starts, seed=0, transforms=others)
     assert CompetencyAssessor(kept, boundary, bin_width=0.1).model_env is kept
+
+
+def test_training_actions_in_other_units_than_the_env_takes_are_warned_of(pusher_data, real_env):
+    """An inventory trial: a model trained on orders of 0 to 50 units, for an env whose action
+    spec is [0, 1] (in 50s), was accepted; its forecasts then fed it actions it never saw."""
+    from model_env_utils import CONFIG
+
+    from rcvae_torchrl.models import RCVAEEnsemble
+
+    def model(actions: torch.Tensor) -> RCVAEEnsemble:
+        ensemble = RCVAEEnsemble(CONFIG, ensemble_size=2)
+        ensemble.fit_normalizer(pusher_data["observation"], actions)
+        return ensemble
+
+    actions = pusher_data["action"]  # inside the Pusher's [-1, 1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        RCVAEEnsembleEnv(model(actions), pusher_reward, pusher_success, real_env=real_env)
+    scaled = model(actions * 25.0 + 25.0)  # the same actions in other units
+    with pytest.warns(
+        UserWarning,
+        match=r"^action_spec: the world model's training actions cannot have lain inside its "
+        r"bounds at action dimension\(s\) \[0, 1\]: their mean \[.*\] and spread .* against "
+        r"bounds \[-1\.0, -1\.0\] to \[1\.0, 1\.0\]",
+    ):
+        RCVAEEnsembleEnv(scaled, pusher_reward, pusher_success, real_env=real_env)
+    wide = actions.clone()
+    wide[..., 1] = wide[..., 1].sign() * 3.0  # a spread no actions inside [-1, 1] can have
+    with pytest.warns(UserWarning, match=r"at action dimension\(s\) \[1\]: "):
+        RCVAEEnsembleEnv(model(wide), pusher_reward, pusher_success, real_env=real_env)
