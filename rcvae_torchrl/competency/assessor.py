@@ -98,7 +98,8 @@ class CompetencyAssessor(KeyedModule):
         horizon: T, steps imagined; default the boundary's time limit. Open-loop action
             sequences must have T steps (without a horizon, their length is T).
         estimator: ``"histogram"`` (default), ``"gaussian"``, ``"knn"`` or ``"mixture"``.
-        dt: seconds per step for the summary's times; default the boundary's.
+        dt: seconds per step for the summary's times (in the boundary's ``time_unit``);
+            default the boundary's.
         policy: default closed-loop policy (a TensorDict module ``"observation"`` →
             ``"action"`` or a tensor callable ``[..., S] -> [..., A]``, e.g. the MPC planner).
         confidence: coverage of the P(success) interval.
@@ -203,12 +204,14 @@ class CompetencyAssessor(KeyedModule):
                 f"expected a horizon of at least {boundary.time_limit}, got {self.horizon}"
             )
         self.dt = _dt(dt, boundary)
-        _check_dt_against_real_env(self.dt, model_env)
+        if boundary.time_unit == "s":  # a simulator's control step is in seconds
+            _check_dt_against_real_env(self.dt, model_env)
         short = self.horizon is not None and self.horizon < boundary.time_limit < math.inf
         if short and not boundary.is_survival:
             # the report answers the shorter deadline, which only its wording would show
-            seconds = "" if self.dt is None else f" = {self.horizon * self.dt:g} s"
-            limit = "" if self.dt is None else f" = {boundary.time_limit * self.dt:g} s"
+            unit = boundary.time_unit
+            seconds = "" if self.dt is None else f" = {self.horizon * self.dt:g} {unit}"
+            limit = "" if self.dt is None else f" = {boundary.time_limit * self.dt:g} {unit}"
             warnings.warn(
                 f"horizon: {self.horizon} steps{seconds}, shorter than the boundary's time limit "
                 f"of {boundary.time_limit} steps{limit}: the forecast answers P(success within "
@@ -379,6 +382,7 @@ class CompetencyAssessor(KeyedModule):
             novelty=self.novelty,
             measure=self.measure,
             task=self.task(int(limit)),
+            time_unit=self.boundary.time_unit,
         )
 
     def task(self, time_limit: int | None = None) -> str:

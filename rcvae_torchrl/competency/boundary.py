@@ -39,10 +39,14 @@ class SuccessBoundary:
         success: predicate ``obs [..., D] -> bool [...]`` for the success region; ``None`` for
             a survival boundary (needs ``failure`` and a time limit).
         time_limit: number of steps that count; ``None`` for the whole horizon.
-        time_limit_s: alternatively the limit in seconds, with ``dt`` (steps =
-            ``floor(time_limit_s / dt)``).
-        dt: seconds per step; needed by ``time_limit_s`` and for times in seconds.
+        time_limit_s: alternatively the limit in seconds (in ``time_unit``), with ``dt``
+            (steps = ``floor(time_limit_s / dt)``).
+        dt: seconds per step (in ``time_unit``); needed by ``time_limit_s`` and for times in
+            seconds.
         failure: optional predicate for the failure region.
+        time_unit: the unit of ``dt`` and of every time the reports write (``"s"``; e.g.
+            ``"days"`` for an env whose step is a day, with ``dt=1``). With another unit than
+            seconds, ``dt`` is not compared with a simulator's control step.
 
     Example:
         >>> boundary = SuccessBoundary.ball(position=[0, 1], target=[2, 3], radius=0.03,
@@ -62,7 +66,12 @@ class SuccessBoundary:
         time_limit_s: float | None = None,
         dt: float | None = None,
         failure: Predicate | None = None,
+        time_unit: str = "s",
     ) -> None:
+        if not isinstance(time_unit, str) or not time_unit.strip():
+            raise TypeError(
+                f"time_unit: expected the name of dt's unit (e.g. 's', 'days'), got {time_unit!r}"
+            )
         if success is not None and not callable(success):
             raise TypeError(
                 f"success: expected a callable predicate (or None: a survival boundary), got "
@@ -73,6 +82,7 @@ class SuccessBoundary:
         self.success = success
         self.failure = failure
         self.dt = dt
+        self.time_unit = time_unit
         self.time_limit = _time_limit_steps(time_limit, time_limit_s, dt)
         if success is None and failure is None:
             raise TypeError(

@@ -237,6 +237,8 @@ class CompetencyReport:
     #: .exploration_mode`); ``None`` where not known or open loop. Real episodes of the policy
     #: acting otherwise do not check it (:meth:`with_forecast_check`)
     acting: str | None = None
+    #: the unit of ``dt`` and of the times the summaries write (the boundary's ``time_unit``)
+    time_unit: str = "s"
 
     @property
     def novel(self) -> Tensor | None:
@@ -584,7 +586,7 @@ class CompetencyReport:
 
     def _outcome(self) -> str:
         """What P() is of: ``success within 30 s``, or ``no failure for 30 s`` (survival)."""
-        duration = _duration(self.time_limit, self.dt)
+        duration = _duration(self.time_limit, self.dt, self.time_unit)
         return f"no failure for {duration}" if self.survival else f"success within {duration}"
 
     def _paragraph(self, one: TensorDictBase) -> str:
@@ -614,7 +616,7 @@ class CompetencyReport:
                     uncertainty.get(("time_mean", "total")),
                     uncertainty.get("peak_step"),
                     self.dim_names,
-                    self.dt,
+                    (self.dt, self.time_unit),
                     self.top_k,
                     _imagined_samples(competency),
                 )
@@ -732,7 +734,7 @@ class CompetencyReport:
             ": the forecast extrapolates there"
             if leaves < 0
             else f". The first step at which more than half of the samples are is "
-            f"{_when(leaves, self.dt)}: the forecast extrapolates from there"
+            f"{_when(leaves, self.dt, self.time_unit)}: the forecast extrapolates from there"
         )
         return (
             f"Caution: {share:.0%} of the imagined states are unlike the states the model was "
@@ -976,11 +978,12 @@ def _dims_sentence(
     time_mean: Tensor,
     peak_step: Tensor,
     names: Sequence[str],
-    dt: float | None,
+    step: tuple[float | None, str],
     top_k: int,
     samples: int | None = None,
 ) -> str:
-    """The ``top_k`` dimensions by time-mean bits ``[D]`` (above 0) with their peak ``[D]``;
+    """The ``top_k`` dimensions by time-mean bits ``[D]`` (above 0) with their peak ``[D]``
+    (at a time of ``step``, ``(dt, unit)``);
     one whose bits reach the ceiling of the ``samples`` imagined (log2 of their number, where
     every sample has a bin of its own) is said to be there: its bits count the samples, not
     their spread."""
@@ -998,15 +1001,15 @@ def _dims_sentence(
             else ""
         )
         parts.append(
-            f"{names[d]} (time mean {bits:.2f} bits, peak at {_when(int(peak_step[d]), dt)}{at})"
+            f"{names[d]} (time mean {bits:.2f} bits, peak at {_when(int(peak_step[d]), *step)}{at})"
         )
     return f"Most uncertain: {', '.join(parts)}." if parts else ""
 
 
-def _duration(steps: int, dt: float | None) -> str:
-    return f"{steps} steps" if dt is None else f"{round(steps * dt, 6):g} s"
+def _duration(steps: int, dt: float | None, unit: str = "s") -> str:
+    return f"{steps} steps" if dt is None else f"{round(steps * dt, 6):g} {unit}"
 
 
-def _when(index: int, dt: float | None) -> str:
+def _when(index: int, dt: float | None, unit: str = "s") -> str:
     """Index t of the time axis holds s_{t+1}: step t + 1, time (t + 1)·dt."""
-    return f"step {index + 1}" if dt is None else f"t = {round((index + 1) * dt, 6):g} s"
+    return f"step {index + 1}" if dt is None else f"t = {round((index + 1) * dt, 6):g} {unit}"

@@ -1160,3 +1160,24 @@ def test_a_start_already_in_the_success_or_failure_region_is_said_to_be_settled(
     assert said.format("success") in report.summary(index=0)
     assert said.format("failure") in report.summary(index=1)
     assert "already lies" not in report.summary(index=2)
+
+
+def test_a_boundary_in_days_writes_its_times_in_days(starts, plan):
+    """An inventory trial: a step of one day (dt=1) was written "P(no failure for 30 s)" and
+    "peak at t = 3 s"; a boundary's time_unit names the unit of dt in every time written,
+    and seconds stay the default."""
+    model = make_ensemble()
+    env = RCVAEEnsembleEnv(model, pusher_reward, pusher_success, seed=0)
+    days = boundary(dt=1.0, time_unit="days")
+    report = make_assessor(env, boundary=days).assess(starts, actions=plan, seed=0)
+    text = report.summary(index=0)
+    assert f"within {T:g} days" in text and "peak at t = " in text and " days)" in text
+    assert " s)" not in text and " s:" not in text
+    assert report.time_unit == "days" and report[0:1].time_unit == "days"
+    seconds = make_assessor(env, boundary=boundary()).assess(starts, actions=plan, seed=0)
+    assert f"within {T * DT:g} s" in seconds.summary(index=0) and seconds.time_unit == "s"
+    with pytest.warns(UserWarning, match=r"horizon: 4 steps = 4 days, shorter than .* = 6 days"):
+        make_assessor(env, boundary=days, horizon=4)
+    for bad in ("", 3):
+        with pytest.raises(TypeError, match="time_unit: expected the name of dt's unit"):
+            boundary(dt=1.0, time_unit=bad)
