@@ -39,10 +39,10 @@ class SuccessBoundary:
         success: predicate ``obs [..., D] -> bool [...]`` for the success region; ``None`` for
             a survival boundary (needs ``failure`` and a time limit).
         time_limit: number of steps that count; ``None`` for the whole horizon.
-        time_limit_s: alternatively the limit in seconds (in ``time_unit``), with ``dt``
-            (steps = ``floor(time_limit_s / dt)``).
-        dt: seconds per step (in ``time_unit``); needed by ``time_limit_s`` and for times in
-            seconds.
+        time_limit_s: alternatively the limit in time (seconds, or ``time_unit``), with
+            ``dt`` (steps = ``floor(time_limit_s / dt)``).
+        dt: the duration of one step in seconds (or ``time_unit``); needed by
+            ``time_limit_s`` and for times in the reports.
         failure: optional predicate for the failure region.
         time_unit: the unit of ``dt`` and of every time the reports write (``"s"``; e.g.
             ``"days"`` for an env whose step is a day, with ``dt=1``). With another unit than
@@ -272,7 +272,8 @@ class SuccessBoundary:
 
     def __repr__(self) -> str:
         kind = ", survival" if self.is_survival else ""
-        return f"{type(self).__name__}(time_limit={self.time_limit}, dt={self.dt}{kind})"
+        unit = "" if self.time_unit == "s" else f", time_unit={self.time_unit!r}"
+        return f"{type(self).__name__}(time_limit={self.time_limit}, dt={self.dt}{unit}{kind})"
 
 
 def _check_each_state_alone(

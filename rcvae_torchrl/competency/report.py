@@ -983,10 +983,9 @@ def _dims_sentence(
     samples: int | None = None,
 ) -> str:
     """The ``top_k`` dimensions by time-mean bits ``[D]`` (above 0) with their peak ``[D]``
-    (at a time of ``step``, ``(dt, unit)``);
-    one whose bits reach the ceiling of the ``samples`` imagined (log2 of their number, where
-    every sample has a bin of its own) is said to be there: its bits count the samples, not
-    their spread."""
+    (a time, with ``step = (dt, unit)``); one whose bits reach the ceiling of the ``samples``
+    imagined (log2 of their number, where every sample has a bin of its own) is said to be
+    there: its bits count the samples, not their spread."""
     order = torch.argsort(time_mean, descending=True, stable=True)[:top_k].tolist()
     ceiling = math.log2(samples) if samples and samples > 1 else math.inf
     parts = []
