@@ -143,9 +143,13 @@ def check_dtype(name: str, x: Tensor, dtype: torch.dtype, owner: str = "the mode
     if x.dtype != dtype:
         hint = ""
         if x.is_floating_point() and dtype.is_floating_point:
+            wider = torch.finfo(x.dtype).bits > torch.finfo(dtype).bits
             hint = (
                 f"; convert the inputs (x.to({dtype})), or for a TorchRL env append a "
                 "DoubleToFloat transform"
+                if wider
+                else f"; convert the inputs (x.to({dtype})), or the model to theirs "
+                f"(model.to({x.dtype}))"
             )
         elif "action" in name and not x.is_floating_point() and dtype.is_floating_point:
             hint = (

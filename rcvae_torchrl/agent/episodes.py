@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDict, TensorDictBase, unravel_key
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.batched_envs import BatchedEnvBase
@@ -280,11 +280,17 @@ def _success_flags(
     else:
         flags = episode.get("next")
         if success not in flags.keys(True, True):
+            given = unravel_key(success) if isinstance(success, (str, tuple)) else success
+            under = (
+                f"; the name is read under 'next': pass success={given[1]!r}"
+                if isinstance(given, tuple) and given[0] == "next" and len(given) == 2
+                else ""
+            )
             raise KeyError(
                 f"success: the env writes no {success!r} flag (its entries under 'next': "
-                f"{sorted(map(str, flags.keys(True, True)))}); pass success= the name of its "
-                "flag, or a function of an episode's observations [T, S] -> [T] bool (e.g. a "
-                "SuccessBoundary's success_over_time)"
+                f"{sorted(map(str, flags.keys(True, True)))}){under}; pass success= the name "
+                "of its flag, or a function of an episode's observations [T, S] -> [T] bool "
+                "(e.g. a SuccessBoundary's success_over_time)"
             )
         won = flags.get(success)
         if won.dtype != torch.bool:  # a reward of 1e-40 would count as a success

@@ -66,12 +66,17 @@ class RealOutcomes:
     #: :func:`~rcvae_torchrl.data.exploration_mode`); ``None`` where not known (outcomes read
     #: back from plain tensors)
     acting: str | None = None
+    #: the steps each episode was run for at most (``real_outcomes``' ``max_steps``); ``None``
+    #: where not known (outcomes made of plain tensors)
+    max_steps: int | None = None
 
     def as_dict(self) -> dict[str, torch.Tensor]:
         """Plain tensors (for ``torch.save``)."""
         out = {"success": self.success, "first_step": self.first_step, "steps": self.steps}
         if self.trace is not None:
             out["trace"] = self.trace
+        if self.max_steps is not None:
+            out["max_steps"] = torch.tensor(self.max_steps)
         return out
 
     @classmethod
@@ -80,14 +85,34 @@ class RealOutcomes:
         check_entries(
             "values", values, ("success", "first_step", "steps"), "a RealOutcomes.as_dict()"
         )
-        return cls(values["success"], values["first_step"], values["steps"], values.get("trace"))
+        most = values.get("max_steps")
+        return cls(
+            values["success"],
+            values["first_step"],
+            values["steps"],
+            values.get("trace"),
+            max_steps=None if most is None else int(most),
+        )
 
     def within(self, steps: int) -> RealOutcomes:
         """These outcomes with a success counted only within its first ``steps`` steps (a
         forecast's deadline): a later one is a failure of the task the forecast answers, and
         its ``first_step`` is ``steps`` ("not within", as a forecast's imagined times say it:
-        a time-to-success score of real times past the deadline would judge another task)."""
+        a time-to-success score of real times past the deadline would judge another task).
+        Episodes run for fewer steps (``max_steps``) are refused: one without a success by
+        their end has no known outcome within the deadline (with a flag the env writes as
+        ``success``, :func:`real_outcomes` cannot tell the deadline, so this is where it is
+        checked)."""
         check_positive_int("steps", steps)
+        if self.max_steps is not None and self.max_steps < steps:
+            unknown = ~self.success & (self.steps >= self.max_steps)
+            raise ValueError(
+                f"steps: expected real episodes run for at least the forecast's deadline of "
+                f"{steps} steps, got episodes of at most max_steps={self.max_steps}: the "
+                f"{int(unknown.sum())} of {unknown.numel()} without a success by then have no "
+                f"known outcome within the deadline (counted as failures, they make any "
+                f"forecast look too optimistic); run real_outcomes with max_steps >= {steps}"
+            )
         hit = self.success & (self.first_step < steps)
         first = torch.where(hit, self.first_step, torch.full_like(self.first_step, steps))
         return dataclasses.replace(self, success=hit, first_step=first)
@@ -104,8 +129,9 @@ class RealOutcomes:
                 f"index: expected a slice, indices or a bool mask of the {len(self)} start "
                 f"states (one start state: outcomes[i : i + 1]), got {index!r}"
             )
-        pick = {k: v[index] for k, v in self.as_dict().items()}
-        return dataclasses.replace(RealOutcomes.from_dict(pick), acting=self.acting)
+        pick = {k: v[index] for k, v in self.as_dict().items() if k != "max_steps"}
+        picked = RealOutcomes.from_dict(pick)
+        return dataclasses.replace(picked, acting=self.acting, max_steps=self.max_steps)
 
 
 def real_outcomes(
@@ -227,7 +253,7 @@ def real_outcomes(
     if undecided is not None and bool(undecided.any()):
         _warn_undecided_ends(undecided, _boundary_of(success))
     shaped = (None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat)
-    return RealOutcomes(*shaped, acting=mode.value)
+    return RealOutcomes(*shaped, acting=mode.value, max_steps=max_steps)
 
 
 def _decided_by(success: object) -> int | None:

@@ -181,13 +181,20 @@ class CompetencyAssessor(KeyedModule):
             ("start_chunk", start_chunk),
         ):
             _checks.check_positive_int(name, value)
+        if samples_per_member < 2:
+            raise ValueError(
+                f"samples_per_member: expected at least 2 imagined episodes per member (the "
+                f"aleatoric part is each member's own spread: from one sample it is 0, and "
+                f"every bit would be called epistemic), got {samples_per_member}; for bits you "
+                f"read, take 40 or more"
+            )
         if bin_width is not None:
             _checks.bin_width_tensor(bin_width, obs_dim, torch.empty(0))
         _check_keywords(estimator, estimator_args)
         if estimator == "histogram" and "bias_correction" not in estimator_args:
             # the plug-in split reads the members' undersampling as their disagreement: a
             # quadruped's 78 dimensions read 80 epistemic bits of it, 2.7 corrected
-            estimator_args["bias_correction"] = "shuffle" if samples_per_member >= 2 else "none"
+            estimator_args["bias_correction"] = "shuffle"
         self.model_env = model_env
         self.success_metric = SuccessMetric(boundary, confidence, interval)
         self.dim_names = _dim_names(dim_names, model_env.ensemble.config)

@@ -124,9 +124,16 @@ def _real_specs(ensemble: RCVAEEnsemble, env: EnvBase) -> tuple[TensorSpec, ...]
         )
     obs = observations[OBSERVATION_KEY]
     if obs.dtype != ensemble.dtype:
+        narrower = obs.dtype.is_floating_point and obs.dtype.itemsize < ensemble.dtype.itemsize
+        cast = (
+            f"give the model the env's dtype (ensemble.to({obs.dtype})), or an env of the "
+            f"model's (prepare_env casts every entry to float32)"
+            if narrower
+            else "cast with TorchRL's DoubleToFloat transform (prepare_env does)"
+        )
         raise TypeError(
             f"real_env: {name}'s {OBSERVATION_KEY!r} has dtype {obs.dtype}, the ensemble's is "
-            f"{ensemble.dtype}; cast with TorchRL's DoubleToFloat transform (prepare_env does)"
+            f"{ensemble.dtype}; {cast}"
         )
     success = observations[SUCCESS_KEY] if SUCCESS_KEY in observations.keys() else None
     if env.action_key != ACTION_KEY or env.reward_key != REWARD_KEY:

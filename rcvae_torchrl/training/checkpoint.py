@@ -185,6 +185,12 @@ def ensemble_from_payload(
             f"{type(state).__name__}",
             source,
         )
+    # in the weights' own precision: load_state_dict copies into the new model's (float32)
+    # tensors, which would round a float64 model's weights silently
+    tensors = [v for v in state.values() if isinstance(v, torch.Tensor)]
+    saved = {v.dtype for v in tensors if v.is_floating_point()}
+    if len(saved) == 1:
+        ensemble = ensemble.to(saved.pop())
     try:
         ensemble.load_state_dict(state, strict=True)
     except RuntimeError as err:

@@ -397,6 +397,7 @@ class StateNovelty:
             if key not in data.keys() or ("next", key) not in data.keys(True):
                 raise KeyError(f"{name}: expected {key!r} and ('next', {key!r}) entries")
             parts[name] = torch.cat([data.get(key), data.get(("next", key))])
+        check_novelty_episodes(train_data)
         frames = train_data.shape[0]
         firsts = torch.zeros(2 * frames, dtype=torch.bool)
         firsts[episode_spans(train_data)[0]] = True
@@ -828,6 +829,19 @@ def _scales(scales: object) -> tuple[float, ...]:
     if not isinstance(scales, Sequence) or not all(_checks._is_number(x) for x in scales):
         raise ValueError(f"novelty.group_scales: expected a list of numbers, got {scales!r}")
     return tuple(float(x) for x in scales)
+
+
+def check_novelty_episodes(train_data: TensorDictBase) -> None:
+    """Refuse training data of fewer than 2 episodes for the novelty check: each episode's
+    first state is measured against the other episodes' states (one episode left none, and
+    the check failed with NaN scales after a whole training run)."""
+    count = len(episode_spans(train_data)[0])
+    if count < 2:
+        raise ValueError(
+            f"train_data: the novelty check measures each training episode's first state "
+            f"against the other episodes' states: expected at least 2 training episodes, got "
+            f"{count}; collect more, or train with novelty=False (no check of novel states)"
+        )
 
 
 def _conformal_level(distances: Tensor, quantile: float) -> tuple[float, float]:

@@ -59,7 +59,7 @@ from rcvae_torchrl.objectives import RCVAELoss
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 from .checks import ModelChecks, ModelCheckWarning, check_model
-from .novelty import StateNovelty, entry_groups
+from .novelty import StateNovelty, check_novelty_episodes, entry_groups
 
 __all__ = [
     "TrainConfig",
@@ -288,6 +288,8 @@ def train_ensemble(
         spans = _check_episodes(ensemble, data, name, config.window)
         if distributed.is_main():
             _warn_short_episodes(data, name, config.window, spans)
+    if novelty:  # fitted after training: refused before it
+        check_novelty_episodes(train_data)
     if train_data is val_data and distributed.is_main():
         warnings.warn(
             "val_data: the same episodes as train_data: validation then measures the fit, not "
@@ -977,8 +979,9 @@ def _training_payload(
     if data is not None and saved_data is not None and saved_data != data:
         raise CheckpointError(
             f"checkpoint {str(path)!r}: was written by a training on other data (train_data or "
-            "val_data differ from the run's that wrote it); resume with the same data or a new "
-            f"path ({_WARM_START})",
+            "val_data differ from the run's that wrote it, in a value or a dtype: the same "
+            "episodes cast to another precision are other data); resume with the same data or "
+            f"a new path ({_WARM_START})",
             path,
         )
     return training

@@ -210,6 +210,44 @@ def test_episodes_shorter_than_the_boundary_s_time_limit_are_refused():
     assert out.success.all()  # nothing fails: every episode survives its 20 steps
 
 
+def test_episodes_judged_by_the_env_s_flag_and_cut_before_a_deadline_are_refused_there():
+    """A trial judged a 25-step forecast by the env's own flag in 10-step episodes: scored
+    0.559 against 0.008 real ("too optimistic") with nothing said, while a boundary's
+    success_over_time is refused at once. With a flag, real_outcomes cannot tell the
+    deadline: the outcomes keep their max_steps, and scoring them against a longer one is
+    refused; the name of a flag given as ('next', name) is corrected."""
+    from rcvae_torchrl.agent import RealOutcomes
+    from rcvae_torchrl.training import OutcomeCheck
+
+    args = dict(runs_per_start=1, reset_to_state=reset_to_state, progress=False)
+    out = real_outcomes(make_pusher_env(), _still, pusher_starts(2), max_steps=10, **args)
+    assert out.max_steps == 10 and out[0:1].max_steps == 10 and not out.success.any()
+    assert RealOutcomes.from_dict(out.as_dict()).max_steps == 10
+    assert out.within(10).success.shape == (2, 1) and out.within(6).max_steps == 10
+    with pytest.raises(
+        ValueError,
+        match=r"^steps: expected real episodes run for at least the forecast's deadline of 25 "
+        r"steps, got episodes of at most max_steps=10: the 2 of 2 without a success by then "
+        r"have no known outcome within the deadline .*max_steps >= 25$",
+    ):
+        out.within(25)
+
+    class Report:  # what OutcomeCheck reads of a report with a 25-step deadline
+        time_limit, acting, competency = 25, None, {"p_success": torch.full((2,), 0.5)}
+
+    with pytest.raises(ValueError, match=r"^steps: expected real episodes run for at least"):
+        OutcomeCheck.from_outcomes(Report(), out)
+    with pytest.raises(KeyError, match=r"read under 'next': pass success='succes'"):
+        real_outcomes(
+            make_pusher_env(),
+            _still,
+            pusher_starts(1),
+            max_steps=3,
+            success=("next", "succes"),
+            **args,
+        )
+
+
 def test_outcomes_of_some_start_states():
     from rcvae_torchrl.agent import RealOutcomes
 

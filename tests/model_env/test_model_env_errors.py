@@ -297,3 +297,24 @@ def test_training_actions_in_other_units_than_the_env_takes_are_warned_of(pusher
     wide[..., 1] = wide[..., 1].sign() * 3.0  # a spread no actions inside [-1, 1] can have
     with pytest.warns(UserWarning, match=r"at action dimension\(s\) \[1\]: "):
         RCVAEEnsembleEnv(model(wide), pusher_reward, pusher_success, real_env=real_env)
+
+
+def test_a_dtype_mismatch_is_told_which_way_to_cast(pusher_data, real_env):
+    """A trial's float64 model beside a float32 env (prepare_env's) and float32 data was told
+    to "cast with TorchRL's DoubleToFloat transform", the wrong way round."""
+    from model_env_utils import CONFIG
+
+    from rcvae_torchrl._checks import check_dtype
+    from rcvae_torchrl.models import RCVAEEnsemble
+
+    double = RCVAEEnsemble(CONFIG, ensemble_size=2).double()
+    with pytest.raises(
+        TypeError,
+        match=r"has dtype torch\.float32, the ensemble's is torch\.float64; give the model the "
+        r"env's dtype \(ensemble\.to\(torch\.float32\)\), or an env of the model's",
+    ):
+        RCVAEEnsembleEnv(double, pusher_reward, pusher_success, real_env=real_env)
+    with pytest.raises(TypeError, match=r"or the model to theirs \(model\.to\(torch\.float32\)\)$"):
+        check_dtype("x", torch.zeros(2), torch.float64)
+    with pytest.raises(TypeError, match=r"append a DoubleToFloat transform$"):
+        check_dtype("x", torch.zeros(2, dtype=torch.float64), torch.float32)

@@ -31,6 +31,20 @@ def test_round_trip_keeps_weights_normaliser_and_config(tmp_path, small_ensemble
     assert not list(tmp_path.glob("sub/.*.tmp")), "no temporary file left behind"
 
 
+def test_a_float64_model_comes_back_in_float64(tmp_path, small_ensemble):
+    """A trial's float64 model came back from load_ensemble as float32 (weights rounded by
+    about 1.5e-8), which its own float64 env then refused."""
+    ensemble = small_ensemble().double()
+    ensemble.fit_normalizer(
+        torch.randn(50, 3, dtype=torch.float64) * 3 + 1, torch.rand(50, 1, dtype=torch.float64)
+    )
+    loaded = load_ensemble(save_ensemble(ensemble, tmp_path / "double.pt"))
+    assert loaded.dtype == torch.float64
+    for (name, want), got in zip(ensemble.state_dict().items(), loaded.state_dict().values()):
+        assert got.dtype == want.dtype and torch.equal(got, want), name
+    assert load_ensemble(save_ensemble(small_ensemble(), tmp_path / "f.pt")).dtype == torch.float32
+
+
 def test_missing_truncated_and_foreign_files(tmp_path, small_ensemble):
     with pytest.raises(CheckpointError, match=r"none\.pt.*the file is missing"):
         load_ensemble(tmp_path / "none.pt")

@@ -273,3 +273,30 @@ def test_a_training_loss_that_is_not_finite_stops_the_run_at_the_next_validation
     with pytest.raises(FloatingPointError, match=said):
         train_ensemble(small_ensemble(), train, val, config, checkpoint_path=ckpt, progress=False)
     assert not ckpt.exists()
+
+
+def test_one_training_episode_with_the_novelty_check_is_refused_before_training(
+    linear_data, small_ensemble
+):
+    """A trial trained on one episode: the whole run finished, then the novelty check failed
+    with "group_scales: expected one positive scale per group (2), got (nan, nan)", naming
+    neither the data nor the way out."""
+    from rcvae_torchrl.data import TRAJ_KEY
+    from rcvae_torchrl.training import StateNovelty
+
+    train, val = linear_data
+    one = train[train[TRAJ_KEY] == train[TRAJ_KEY][0]]
+    refused = (
+        r"^train_data: the novelty check measures each training episode's first state against "
+        r"the other episodes' states: expected at least 2 training episodes, got 1; collect "
+        r"more, or train with novelty=False"
+    )
+    ensemble = small_ensemble()
+    before = _weights(ensemble)
+    with pytest.raises(ValueError, match=refused):
+        train_ensemble(ensemble, one, val, CONFIG, progress=False)
+    assert all(torch.equal(before[k], v) for k, v in ensemble.state_dict().items())  # untrained
+    with pytest.raises(ValueError, match=refused):
+        StateNovelty.from_episodes(one, val)
+    result = train_ensemble(small_ensemble(), one, val, CONFIG, progress=False, novelty=False)
+    assert result.novelty is None
