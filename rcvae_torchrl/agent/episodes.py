@@ -25,6 +25,7 @@ from rcvae_torchrl.data import (
     seed_env,
     warn_narrow_bounds,
 )
+from rcvae_torchrl.rollout import policy_reset
 
 __all__ = ["EpisodeStats", "ResetToState", "run_episodes", "seed_episodes"]
 
@@ -182,8 +183,9 @@ def run_episodes(
     for i, seed in enumerate(tqdm(seeds, desc=desc, disable=not progress, leave=False)):
         seed_env(env, int(seed))
         td = env.reset() if starts is None else reset_to(reset_to_state, env, starts[i])
-        if hasattr(type(policy), "reset"):  # a planner's warm start (not an env's reset)
-            policy.reset()
+        reset = policy_reset(policy)  # a planner's warm start (not an env's reset)
+        if reset is not None:
+            reset()
         with acting(mode, seed=int(seed), generators=planner_generators(policy)):
             episode = _rollout(env, policy, max_steps, td, break_when_any_done=True)
         check_actions(env, episode)
@@ -374,8 +376,9 @@ def episode_groups(
     for low in tqdm(range(0, total, n), desc=desc, disable=not progress, leave=False):
         rows = torch.arange(low, low + n).clamp_max(total - 1)  # pad with the last episode
         td = start(env, [int(seeds[i]) for i in rows], rows)
-        if hasattr(type(policy), "reset"):
-            policy.reset()
+        reset = policy_reset(policy)
+        if reset is not None:
+            reset()
         with acting(mode, seed=int(seeds[low]), generators=planner_generators(policy)):
             episode = _rollout(
                 env,

@@ -39,7 +39,7 @@ from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
 from rcvae_torchrl.competency.report import CompetencyReport
 from rcvae_torchrl.data import acting, exploration_mode, held_generators
-from rcvae_torchrl.rollout import as_tensor_policy
+from rcvae_torchrl.rollout import as_tensor_policy, policy_reset
 
 __all__ = ["CompetencyAssessor", "ImaginesRollouts", "PerSample", "Policy"]
 
@@ -113,12 +113,12 @@ class CompetencyAssessor(KeyedModule):
             for forecast bands); the report holds them under ``("per_sample", name)`` with the
             start state first, ``[*B, E, N, T, ...]``. A NaN value is refused.
         **estimator_args: other estimator arguments (e.g. ``k``, ``joint``). The histogram's
-            ``bias_correction`` defaults to ``"shuffle"`` here (``"none"`` with one sample per
-            member, where it cannot run): its plug-in epistemic part reads the members'
-            undersampling as their disagreement, bits of it per dimension (a 78-dimensional
-            quadruped read 80 epistemic bits, 2.7 corrected). ``bias_correction="none"``
-            gives the plug-in split (faster: the correction splits the samples again a few
-            times).
+            ``bias_correction`` defaults to ``"shuffle"`` here (one sample per member is
+            refused: a member's spread from one sample is 0): its plug-in epistemic part
+            reads the members' undersampling as their disagreement, bits of it per dimension
+            (a 78-dimensional quadruped read 80 epistemic bits, 2.7 corrected).
+            ``bias_correction="none"`` gives the plug-in split (faster: the correction splits
+            the samples again a few times).
 
     Example:
         >>> from rcvae_torchrl.model_env import RCVAEEnsembleEnv
@@ -301,8 +301,9 @@ class CompetencyAssessor(KeyedModule):
         parts = []
         for k in mine:
             i = chunks[k]
-            if policy is not None and hasattr(type(policy), "reset"):
-                policy.reset()  # e.g. a planner's warm start: each chunk's episodes are new
+            reset = policy_reset(policy)
+            if reset is not None:
+                reset()  # e.g. a planner's warm start: each chunk's episodes are new
             draws = None if seed is None else distributed.work_generator(seed, k, 5)
             with (
                 self._chunk_noise(seed, k, generator, policy) as noise,
@@ -370,8 +371,24 @@ class CompetencyAssessor(KeyedModule):
         """A :class:`CompetencyReport` of ``data`` (the TensorDict :meth:`assess` returns as
         ``report.data``, e.g. read back from a file) with this assessor's settings: names,
         time limit (``steps`` imagined, default the horizon), dt, confidence, keys and the
-        world model's self-check warning."""
-        steps = self.horizon if steps is None else steps
+        world model's self-check warning.
+
+        ``steps`` must be the steps ``data`` imagined, where it holds its bits per step (its
+        default then): its P(success) was judged at the time limit or at the end of those
+        steps, whichever came first, and other steps would change only the words (a 3-s
+        report read "within 1 s" with its 3-s P). For another deadline, judge the rollouts
+        again (:func:`~rcvae_torchrl.competency.success_on_grid`, ``per_sample``) or assess
+        anew."""
+        total = data.get((self.tensor_keys.uncertainty, "total"), None)
+        imagined = None if total is None else int(total.shape[data.batch_dims])
+        if steps is not None and imagined is not None and steps != imagined:
+            raise ValueError(
+                f"steps: expected the {imagined} steps data imagined (its bits are per step of "
+                f"them), got {steps}: the report's P(success) was judged over those steps, and "
+                "other steps would change only the words; for another deadline judge the "
+                "rollouts again (success_on_grid, per_sample) or assess anew"
+            )
+        steps = steps if steps is not None else imagined if imagined is not None else self.horizon
         limit = self.boundary.time_limit if steps is None else min(self.boundary.time_limit, steps)
         return CompetencyReport(
             data,
@@ -828,8 +845,14 @@ class _InBounds:
 
     def __init__(self, policy: Policy, low: Tensor, high: Tensor) -> None:
         self.policy = as_tensor_policy(policy)
+        self._reset = policy_reset(policy)
         self.low, self.high = low, high
         self.excess: list[Tensor] = []  # per step: the largest excess over the bounds
+
+    def reset(self) -> None:
+        """The policy's own reset (where it has one): each batch of imagined episodes is new."""
+        if self._reset is not None:
+            self._reset()
 
     def __call__(self, observation: Tensor) -> Tensor:
         action = self.policy(observation)

@@ -28,6 +28,7 @@ from rcvae_torchrl.rollout.imagine import (
     chunk_size_for,
     imagine,
     plan_actions,
+    policy_reset,
 )
 from rcvae_torchrl.rollout.layout import MemberLayout
 from rcvae_torchrl.rollout.loop import ActionBounds, Policy, RolloutHook, StepRecord, rollout
@@ -87,6 +88,7 @@ __all__ = [
     "make_transition_module",
     "particle_groups",
     "plan_actions",
+    "policy_reset",
     # compiled scoring
     "AOTCacheWarning",
     "AOTLoadError",

@@ -9,17 +9,27 @@ as at the root of a TorchRL rollout).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import unravel_key
+from torchrl.modules import GRUModule, LSTMModule
 
 from rcvae_torchrl import _checks
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout.loop import ActionBounds, Policy, StepRecord, rollout
 from rcvae_torchrl.rollout.task import Task, alive_mask
 
-__all__ = ["ImaginePolicy", "as_tensor_policy", "chunk_size_for", "imagine", "plan_actions"]
+__all__ = [
+    "ImaginePolicy",
+    "as_tensor_policy",
+    "chunk_size_for",
+    "imagine",
+    "plan_actions",
+    "policy_reset",
+]
 
 ImaginePolicy = TensorDictModuleBase | Policy
 """A TensorDict module (reads ``"observation"``, writes ``"action"``) or a tensor callable."""
@@ -61,6 +71,14 @@ def as_tensor_policy(
         raise KeyError(
             f"policy: writes {writes}, not {action_key!r}; give it out_keys=[{action_key!r}]"
         )
+    recurrent = [type(m).__name__ for m in policy.modules() if isinstance(m, _RECURRENT)]
+    if recurrent:  # before any call: the module fills its missing memory in with zeros
+        raise KeyError(
+            f"policy: holds a recurrent {recurrent[0]}, whose memory lives in entries beside "
+            f"the state (InitTracker's 'is_init', its primer's hidden state) that imagination "
+            f"does not carry: it would act as if every step were its first. "
+            f"{_KEEP_MEMORY.format(key=observation_key)}"
+        )
 
     def call(observation: torch.Tensor) -> torch.Tensor:
         td = TensorDict({observation_key: observation}, batch_size=observation.shape[:-1])
@@ -70,14 +88,31 @@ def as_tensor_policy(
             reads = [k for k in getattr(policy, "in_keys", []) if k not in td.keys(True, True)]
             if not reads:
                 raise
-            raise KeyError(
-                f"policy: reads {reads}, but in imagination the world model gives it only "
-                f"{observation_key!r} [..., S]: write the policy on {observation_key!r} (the "
-                "env's entries concatenated, as rcvae_torchrl.data.prepare_env's layout names "
-                "them)"
-            ) from err
+            raise KeyError(_reads_more(reads, observation_key)) from err
 
     return call
+
+
+#: TorchRL's recurrent modules: their memory is kept in entries beside the state
+_RECURRENT = (LSTMModule, GRUModule)
+#: what a policy with memory does instead
+_KEEP_MEMORY = (
+    "Keep the memory inside a policy of your own: a callable on {key!r} [E, R, S] -> actions "
+    "[E, R, A] with a reset() method, called on each step of a batch of imagined episodes in "
+    "turn, and reset() before each batch"
+)
+
+
+def _reads_more(reads: list, observation_key: str) -> str:
+    """Why a TensorDict policy that reads ``reads`` besides the state cannot act in
+    imagination, and what to do."""
+    return (
+        f"policy: reads {reads}, but in imagination the world model gives it only "
+        f"{observation_key!r} [..., S]: write the policy on {observation_key!r} (the env's "
+        "entries concatenated, as rcvae_torchrl.data.prepare_env's layout names them). A "
+        "recurrent policy's memory (InitTracker's 'is_init', a primer's hidden state) is not "
+        f"carried either. {_KEEP_MEMORY.format(key=observation_key)}"
+    )
 
 
 class _Recorder:
@@ -138,11 +173,16 @@ def _rollout_chunks(
     bounds: ActionBounds | None,
     generator: torch.Generator | None,
     chunk_size: int | None,
+    reset: Callable[[], object] | None = None,
 ) -> list:
     """Roll every chunk of trajectory rows out (TS-∞, member-major) with a fresh hook each;
-    returns the hooks."""
+    returns the hooks. ``reset`` (a stateful policy's, e.g. a planner's warm start) is called
+    before every chunk but the first, whose episodes are new too (the caller resets before
+    the first)."""
     hooks = []
     for state, actions in _chunks(ensemble, starts, samples, chunk_size, plan):
+        if hooks and reset is not None:
+            reset()
         hooks.append(make_hook())
         rollout(
             ensemble,
@@ -157,6 +197,12 @@ def _rollout_chunks(
             generator=generator,
         )
     return hooks
+
+
+def policy_reset(policy: object) -> Callable[[], object] | None:
+    """A stateful policy's ``reset`` (a method of its class, e.g. a planner's: its warm start
+    forgotten), called where imagined episodes begin; ``None`` for a stateless one."""
+    return policy.reset if policy is not None and hasattr(type(policy), "reset") else None
 
 
 def imagine(
@@ -234,6 +280,7 @@ def imagine(
             bounds=bounds,
             generator=generator,
             chunk_size=chunk_size,
+            reset=policy_reset(policy),
         )
     parts = [hook.stacked() for hook in hooks]
     out = TensorDict(

@@ -1186,3 +1186,46 @@ def test_a_boundary_in_days_writes_its_times_in_days(starts, plan):
     for bad in ("", 3):
         with pytest.raises(TypeError, match="time_unit: expected the name of dt's unit"):
             boundary(dt=1.0, time_unit=bad)
+
+
+def test_a_stateful_agent_starts_every_batch_of_imagined_episodes_afresh(starts):
+    """An LSTM trial: the assessor reset the agent per chunk of starts, but imagination runs
+    a chunk's episodes in batches of 1,024 per member, and the later batches began with the
+    last one's memory (a planner's warm start too). Through the bounds check's wrapper, every
+    batch now begins with the agent's reset."""
+    from rcvae_torchrl.rollout import ActionBounds
+
+    class Counting:
+        def __init__(self) -> None:
+            self.steps, self.first_steps = 0, []
+
+        def reset(self) -> None:
+            self.steps = 0
+
+        def __call__(self, s: torch.Tensor) -> torch.Tensor:
+            if self.steps == 0:
+                self.first_steps.append(s.shape[1])
+            self.steps += 1
+            return torch.zeros(*s.shape[:-1], A)
+
+    env = make_env(make_ensemble())
+    env.action_bounds = ActionBounds(-torch.ones(A), torch.ones(A))
+    agent = Counting()
+    make_assessor(env, samples_per_member=400, policy=agent).assess(starts, seed=0)
+    assert agent.first_steps == [1024, 3 * 400 - 1024]  # two batches, each from step 0
+
+
+def test_a_report_rebuilt_with_other_steps_than_imagined_is_refused(env, starts, plan):
+    """A trial rebuilt a 3-s report with steps=50 (1 s): it read "P(success within 1 s) =
+    1.00" with the 3-s P, and was scored against 1-s real outcomes."""
+    assessor = make_assessor(env)
+    report = assessor.assess(starts, actions=plan, seed=0)
+    again = assessor.report(report.data)  # the steps the data imagined: the same report
+    assert again.time_limit == report.time_limit == T
+    assert again.summary() == report.summary()
+    with pytest.raises(
+        ValueError,
+        match=rf"^steps: expected the {T} steps data imagined \(its bits are per step of them\), "
+        rf"got {T - 2}: .* judge the rollouts again \(success_on_grid, per_sample\)",
+    ):
+        assessor.report(report.data, steps=T - 2)

@@ -261,3 +261,58 @@ def test_the_default_chunks_are_the_cpus_1024(ensemble):
     default = draw("default")["observation"]
     assert torch.equal(default, draw(1024)["observation"])
     assert not torch.equal(default, draw(None)["observation"])
+
+
+class _Counting:
+    """A policy with memory (the steps it has acted in its batch of episodes) and a reset."""
+
+    def __init__(self) -> None:
+        self.steps, self.resets, self.first_steps = 0, 0, []
+
+    def reset(self) -> None:
+        self.steps, self.resets = 0, self.resets + 1
+
+    def __call__(self, s: torch.Tensor) -> torch.Tensor:
+        if self.steps == 0:
+            self.first_steps.append(s.shape[1])
+        self.steps += 1
+        return torch.full((*s.shape[:-1], 2), 0.1 * min(self.steps, 5))
+
+
+def test_a_stateful_policy_is_reset_before_every_batch_of_imagined_episodes(ensemble):
+    """An LSTM trial: imagine's chunks of 1,024 episodes per member began with the last
+    chunk's memory (h = 0.9999 in place of 0), and a planner's warm start leaked the same way.
+    Each chunk after the first now starts with the policy's reset; the caller resets before
+    the first."""
+    policy = _Counting()
+    out = imagine(
+        ensemble, torch.zeros(5, 5), policy=policy, horizon=3, samples_per_member=4, chunk_size=8
+    )
+    assert policy.resets == 2 and policy.first_steps == [8, 8, 4]  # 20 rows, chunks of 8
+    # every episode acts as at its start: the same actions in every chunk
+    assert torch.equal(out["action"], out["action"][:1, :1, :1].expand_as(out["action"]))
+
+
+def test_a_recurrent_tensordict_policy_is_refused_before_it_runs(ensemble):
+    """A trial's LSTM policy (TorchRL's LSTMModule, with InitTracker's is_init written from
+    the observation) ran with its memory reset at every step, silently: it reads entries
+    imagination does not carry, which the module filled with zeros."""
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+    from torchrl.modules import LSTMModule
+
+    lstm = LSTMModule(input_size=5, hidden_size=4, in_keys=["observation", "rh", "rc"],
+                      out_keys=["features", ("next", "rh"), ("next", "rc")])  # fmt: skip
+    init = TensorDictModule(
+        lambda o: torch.ones(*o.shape[:-1], 1, dtype=torch.bool),
+        in_keys=["observation"],
+        out_keys=["is_init"],
+    )
+    head = TensorDictModule(torch.nn.Linear(4, 2), in_keys=["features"], out_keys=["action"])
+    policy = TensorDictSequential(init, lstm, head)
+    with pytest.raises(
+        KeyError,
+        match=r"policy: holds a recurrent LSTMModule, whose memory lives in entries beside the "
+        r"state .* as if every step were its first\. Keep the memory inside a policy of your "
+        r"own: .* reset\(\) before each batch",
+    ):
+        imagine(ensemble, torch.zeros(2, 5), policy=policy, horizon=3, samples_per_member=2)
