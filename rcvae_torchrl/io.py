@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import torch
+from tensordict import TensorDictBase
 
 from rcvae_torchrl import fingerprint
 
@@ -154,7 +155,16 @@ CHECKSUM_KEY = "content_sha256"
 
 def save_torch(path: str | Path, obj: Any) -> Path:
     """``torch.save(obj)`` to ``path``, atomically; a dict gets one more entry,
-    ``CHECKSUM_KEY``, the digest of the rest, which :func:`load_torch` checks."""
+    ``CHECKSUM_KEY``, the digest of the rest, which :func:`load_torch` checks. A TensorDict
+    is refused (it would be written whole, as objects :func:`load_torch` does not unpickle):
+    save episodes with ``rcvae_torchrl.data.save_episodes``, or ``td.to_dict()``."""
+    if isinstance(obj, TensorDictBase):
+        raise TypeError(
+            f"obj: expected plain tensors, numbers and strings in lists and dicts, got a "
+            f"{type(obj).__name__}, which load_torch would refuse to unpickle; save episodes "
+            "with rcvae_torchrl.data.save_episodes (load_episodes reads them back), or save "
+            "td.to_dict()"
+        )
     if isinstance(obj, dict):
         if CHECKSUM_KEY in obj:
             raise ValueError(f"obj: {CHECKSUM_KEY!r} is the entry save_torch writes; rename it")

@@ -167,6 +167,24 @@ def test_a_torch_file_of_other_objects_is_named_another_kind_of_file(tmp_path):
     assert "add_safe_globals" not in str(err.value)  # no advice to load it unsafely
 
 
+def test_a_tensordict_given_to_save_torch_is_refused_naming_save_episodes(tmp_path):
+    """A torchrun trial saved collected episodes with save_torch: written whole, then refused
+    by load_torch as "another kind of file"."""
+    from tensordict import TensorDict
+
+    from rcvae_torchrl.data import load_episodes, save_episodes
+
+    episodes = TensorDict({"observation": torch.zeros(4, 2)}, batch_size=[4])
+    with pytest.raises(
+        TypeError,
+        match=r"^obj: expected plain tensors, .* got a TensorDict, .*data\.save_episodes",
+    ):
+        save_torch(tmp_path / "episodes.pt", episodes)
+    assert list(tmp_path.iterdir()) == []  # nothing written
+    path = save_episodes(episodes, tmp_path / "episodes.pt")
+    assert torch.equal(load_episodes(path)["observation"], episodes["observation"])
+
+
 def test_json_files_are_strict_and_read_back_their_non_finite_floats(tmp_path):
     """A NaN or an infinity is written as a string (Python's bare NaN is no JSON: strict
     parsers refuse the whole file) and read back as the float."""

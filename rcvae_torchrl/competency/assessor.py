@@ -297,6 +297,8 @@ class CompetencyAssessor(KeyedModule):
         _checks.check_bool("return_rollouts", return_rollouts)
         flat = observation.reshape(-1, observation.shape[-1])
         chunks = range(0, flat.shape[0], self.start_chunk)
+        if distributed.is_active() and len(chunks) < distributed.world_size():
+            _warn_idle_ranks(flat.shape[0], self.start_chunk, distributed.world_size())
         mine = distributed.shard(len(chunks)) if distributed.is_active() else range(len(chunks))
         parts = []
         for k in mine:
@@ -949,6 +951,21 @@ def _warn_success_unseen(boundary: SuccessBoundary, novelty: Any) -> None:
         f"boundary: none of the {kept} lies {region}: the model never saw {seen}, and every "
         f"forecast of one extrapolates, however much the members agree; train on episodes "
         f"that {reach}, or {reads}",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
+def _warn_idle_ranks(starts: int, chunk: int, ranks: int) -> None:
+    """Warn (on rank 0) when the chunks of starts are fewer than the ranks sharing them."""
+    if not distributed.is_main():
+        return
+    chunks = math.ceil(starts / chunk)
+    warnings.warn(
+        f"start_chunk: {starts} start states in chunks of {chunk} make {chunks} for {ranks} "
+        f"ranks, which share out chunks: {ranks - chunks} of them get no work; give "
+        f"start_chunk={math.ceil(starts / ranks)} or less (the forecasts then draw other "
+        f"noise: a chunk's seed is its own)",
         UserWarning,
         stacklevel=3,
     )

@@ -755,7 +755,10 @@ def clip_grad_norm_per_member(params: list[torch.Tensor], max_norm: float) -> to
     ``torch.nn.utils.clip_grad_norm_`` does for one model; returns the norms ``[E]``."""
     grads = [p.grad for p in params if p.grad is not None]
     squares = torch._foreach_mul(grads, grads)  # one call for all tensors, the same numbers
-    norms = torch.stack([s.flatten(1).sum(1) for s in squares]).sum(0).sqrt()
+    # each member's sums along its own row ([E, P], an inner reduction): a sum over the
+    # stacked tensors' axis ([P, E].sum(0)) rounds otherwise for 2 members than for 4, and a
+    # rank training 2 of 4 members clipped them otherwise than one process training all 4
+    norms = torch.stack([s.flatten(1).sum(1) for s in squares], dim=1).sum(1).sqrt()
     scale = (max_norm / (norms + 1e-6)).clamp(max=1.0)
     # Every gradient times its member's factor, unread: a test of the factors on the host
     # would wait for the device; a factor of 1 leaves a gradient as it is.

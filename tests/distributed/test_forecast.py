@@ -24,6 +24,14 @@ def test_sharded_forecast_equals_single_process(tmp_path, single_process):
         saved = torch.load(tmp_path / f"report{rank}.pt", weights_only=False)
         _assert_equal(saved["data"], single_process)
         assert saved["error"].startswith("seed: an assessment sharded over torch.distributed")
+    # one start (one chunk) for two ranks: rank 0 says that rank 1 gets no work
+    idle = torch.load(tmp_path / "report0.pt", weights_only=False)["idle"]
+    assert idle == [
+        "start_chunk: 1 start states in chunks of 2 make 1 for 2 ranks, which share out "
+        "chunks: 1 of them get no work; give start_chunk=1 or less (the forecasts then draw "
+        "other noise: a chunk's seed is its own)"
+    ]
+    assert torch.load(tmp_path / "report1.pt", weights_only=False)["idle"] == []
     assert single_process.batch_size == (7,)  # 4 chunks of 2: ranks take chunks 0-1 and 2-3
     p = single_process["competency", "p_success"]
     assert ((p > 0) & (p < 1)).any() and (p == 0).any()  # outcomes that differ by start
