@@ -246,15 +246,13 @@ class SuccessBoundary:
         _checks.check_min_rank("observation", observation, 2, "[..., T, D]")
         _checks.check_floating("observation", observation)
         _checks.check_finite("observation", observation)
-        try:
-            result = predicate(observation)  # type: ignore[misc]
-        except (AttributeError, IndexError, KeyError, TypeError, RuntimeError) as error:
-            raise ValueError(
-                f"{name}: the predicate failed on observations of shape "
-                f"{tuple(observation.shape)} ([..., T, D]: the model's state vector, its D = "
-                f"{observation.shape[-1]} dimensions read as observation[..., i], not the env's "
-                f"entries by name), with {type(error).__name__}: {error}"
-            ) from error
+        result = _called(
+            predicate,
+            name,
+            observation,
+            f"[..., T, D]: the model's state vector, its D = {observation.shape[-1]} dimensions "
+            "read as observation[..., i], not the env's entries by name",
+        )
         if not isinstance(result, Tensor) or result.shape != observation.shape[:-1]:
             got = tuple(result.shape) if isinstance(result, Tensor) else type(result).__name__
             raise ValueError(
@@ -276,6 +274,18 @@ class SuccessBoundary:
         return f"{type(self).__name__}(time_limit={self.time_limit}, dt={self.dt}{unit}{kind})"
 
 
+def _called(predicate: Predicate, name: str, observation: Tensor, reading: str) -> object:
+    """``predicate(observation)``; its failure a ``ValueError`` naming the shape it failed on
+    and how that shape is read (``reading``)."""
+    try:
+        return predicate(observation)
+    except (AttributeError, IndexError, KeyError, TypeError, RuntimeError) as error:
+        raise ValueError(
+            f"{name}: the predicate failed on observations of shape {tuple(observation.shape)} "
+            f"({reading}), with {type(error).__name__}: {error}"
+        ) from error
+
+
 def _check_each_state_alone(
     predicate: Predicate, name: str, observation: Tensor, result: Tensor
 ) -> None:
@@ -289,15 +299,13 @@ def _check_each_state_alone(
         return
     first = trajectories[0]
     steps = first.shape[0]
-    try:
-        alone = predicate(first[:, None, :])
-    except (AttributeError, IndexError, KeyError, TypeError, RuntimeError) as error:
-        raise ValueError(
-            f"{name}: the predicate failed on observations of shape {(steps, 1, first.shape[1])} "
-            f"(the states of one trajectory, each alone: it must take any batch shape "
-            f"[..., D], and a threshold per start state broadcast against the batch fails "
-            f"here), with {type(error).__name__}: {error}"
-        ) from error
+    alone = _called(
+        predicate,
+        name,
+        first[:, None, :],
+        "the states of one trajectory, each alone: it must take any batch shape [..., D], and "
+        "a threshold per start state broadcast against the batch fails here",
+    )
     along = result.reshape(-1, steps)[0]
     if isinstance(alone, Tensor) and alone.shape == (steps, 1) and torch.equal(alone[:, 0], along):
         return
