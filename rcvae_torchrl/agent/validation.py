@@ -421,9 +421,25 @@ def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
                 hit = stats.success[i]
                 undecided[i] = bool(_undecided_ends(success, episode, hit, length, horizon))
             if values is not None:
-                row = trace(episode).reshape(-1)
+                row = _traced(trace, episode).reshape(-1)
                 values[i, : row.numel()] = row
     return stats.success, first, stats.steps, values, fingerprints, undecided
+
+
+def _traced(trace: Callable[[torch.Tensor], torch.Tensor], observation: torch.Tensor) -> Any:
+    """``trace(observation)``, required to give one value per step: ``[..., T]`` of the
+    observations ``[..., T, S]`` (a trace of two values per step failed inside the outcomes'
+    bookkeeping with a bare broadcast error)."""
+    values = trace(observation)
+    if not isinstance(values, torch.Tensor) or values.shape != observation.shape[:-1]:
+        got = tuple(values.shape) if isinstance(values, torch.Tensor) else type(values).__name__
+        raise ValueError(
+            f"trace: expected one value per step of the observations {tuple(observation.shape)} "
+            f"([..., T, S] -> [..., T] = {tuple(observation.shape[:-1])}), got {got}; for "
+            "several values per step, run the episodes once per value or keep the one you "
+            "judge by"
+        )
+    return values
 
 
 def _gathered(part: tuple | None) -> tuple:
@@ -489,7 +505,7 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> tuple[RealOutcom
     steps = torch.where(hit, first + 1, length)
     values = None
     if trace is not None:
-        per_step = trace(episode["next", "observation"]).reshape(episode.shape).float()
+        per_step = _traced(trace, episode["next", "observation"]).reshape(episode.shape).float()
         values = torch.full((episode.shape[0], max_steps), float("nan"))
         values[:, :steps_run] = per_step.masked_fill(ended, float("nan"))
     observed = episode["next", "observation"].double().flatten(2).sum(-1)

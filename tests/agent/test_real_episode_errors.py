@@ -248,6 +248,24 @@ def test_episodes_judged_by_the_env_s_flag_and_cut_before_a_deadline_are_refused
         )
 
 
+def test_a_trace_of_several_values_per_step_is_named():
+    """A trial traced two distances per step: the outcomes failed with "The expanded size of
+    the tensor (50) must match the existing size (100)", naming neither trace nor its shape."""
+    args = dict(runs_per_start=1, reset_to_state=reset_to_state, progress=False, max_steps=4)
+    with pytest.raises(
+        ValueError,
+        match=r"^trace: expected one value per step of the observations \(4, 14\) "
+        r"\(\[\.\.\., T, S\] -> \[\.\.\., T\] = \(4,\)\), got \(4, 2\)",
+    ):
+        real_outcomes(
+            make_pusher_env(), _still, pusher_starts(1), trace=lambda o: o[..., :2], **args
+        )
+    out = real_outcomes(
+        make_pusher_env(), _still, pusher_starts(1), trace=lambda o: o[..., 0], **args
+    )
+    assert out.trace.shape == (1, 1, 4) and torch.isfinite(out.trace).all()
+
+
 def test_outcomes_of_some_start_states():
     from rcvae_torchrl.agent import RealOutcomes
 
