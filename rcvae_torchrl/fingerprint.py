@@ -32,13 +32,28 @@ from typing import Any
 
 import torch
 
-__all__ = ["describe", "digest", "source_digest"]
+__all__ = ["describe", "digest", "source_digest", "weights_digest"]
 
 
 def digest(value: Any) -> str:
     """The SHA-256 hex digest of ``value``'s :func:`describe` (canonical JSON)."""
     text = json.dumps(describe(value), sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def weights_digest(module: Any) -> str | None:
+    """Which agent a policy is, by its weights: the SHA-256 digest of the values of a module's
+    parameters and buffers (each tensor's dtype, shape and values, as a sorted list: neither
+    their names nor what wraps them count), so the same weights give the same digest in a
+    ``TensorDictModule``, a planner or a wrapper of one's own, and other weights another.
+    ``None`` for a callable that is not a ``torch.nn.Module``, or one without weights (a
+    policy written as code): its identity is not known."""
+    if not isinstance(module, torch.nn.Module):
+        return None
+    tensors = [*module.parameters(), *module.buffers()]
+    if not tensors:
+        return None
+    return digest(sorted(json.dumps(_tensor(t), sort_keys=True) for t in tensors))
 
 
 def source_digest(paths: Iterable[str | Path]) -> str:

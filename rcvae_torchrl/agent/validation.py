@@ -25,6 +25,7 @@ from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import (
+    check_bool,
     check_entries,
     check_finite,
     check_non_negative_int,
@@ -33,10 +34,13 @@ from rcvae_torchrl._checks import (
 from rcvae_torchrl.competency import (
     CompetencyReport,
     SuccessBoundary,
+    check_same_predicates,
+    hold_last_state,
     time_to_success_scores,
     validate_forecasts,
 )
-from rcvae_torchrl.data import TRAJ_KEY, check_same_acting, exploration_mode
+from rcvae_torchrl.data import TRAJ_KEY, acting_record, check_same_agent, exploration_mode
+from rcvae_torchrl.fingerprint import weights_digest
 from rcvae_torchrl.threads import threads_kept
 
 from .episodes import (
@@ -63,35 +67,67 @@ class RealOutcomes:
     steps: torch.Tensor  #: int64 ``[B, R]``: the episode's length
     trace: torch.Tensor | None = None  #: ``[B, R, T]`` per-step values, NaN after the episode
     #: how the policy acted (its exploration type's name, e.g. ``"random"``: see
-    #: :func:`~rcvae_torchrl.data.exploration_mode`); ``None`` where not known (outcomes read
-    #: back from plain tensors)
+    #: :func:`~rcvae_torchrl.data.exploration_mode`); ``None`` where not known (outcomes made
+    #: of plain tensors) or where the policy acts alike in every mode (a deterministic network,
+    #: a planner: :func:`~rcvae_torchrl.data.acting_record`)
     acting: str | None = None
     #: the steps each episode was run for at most (``real_outcomes``' ``max_steps``); ``None``
     #: where not known (outcomes made of plain tensors)
     max_steps: int | None = None
+    #: the agent, as the digest of its policy's weights
+    #: (:func:`~rcvae_torchrl.fingerprint.weights_digest`); ``None`` where not known (a policy
+    #: without weights, outcomes made of plain tensors)
+    agent: str | None = None
+    #: what judged the episodes, where a :class:`~rcvae_torchrl.competency.SuccessBoundary`
+    #: did (its :attr:`~rcvae_torchrl.competency.SuccessBoundary.predicates`); ``None`` where
+    #: an env's flag or a function of one's own judged them
+    predicates: str | None = None
+    #: ``[B, R, T, S]`` the observation after each step (``real_outcomes``'
+    #: ``keep_observations``), NaN after the episode; ``None`` where not kept
+    observation: torch.Tensor | None = None
 
-    def as_dict(self) -> dict[str, torch.Tensor]:
-        """Plain tensors (for ``torch.save``)."""
-        out = {"success": self.success, "first_step": self.first_step, "steps": self.steps}
-        if self.trace is not None:
-            out["trace"] = self.trace
+    def as_dict(self) -> dict[str, Any]:
+        """Plain tensors (for ``torch.save``), and what is known of the agent and the
+        predicates that judged them, as strings."""
+        out: dict[str, Any] = {
+            "success": self.success,
+            "first_step": self.first_step,
+            "steps": self.steps,
+        }
+        for name in ("trace", "observation"):
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
         if self.max_steps is not None:
             out["max_steps"] = torch.tensor(self.max_steps)
+        for name in _KNOWN:
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
         return out
 
     @classmethod
-    def from_dict(cls, values: dict[str, torch.Tensor]) -> RealOutcomes:
-        """What :meth:`as_dict` gave (plain tensors: how the policy acted is not among them)."""
+    def from_dict(cls, values: dict[str, Any]) -> RealOutcomes:
+        """What :meth:`as_dict` gave."""
         check_entries(
             "values", values, ("success", "first_step", "steps"), "a RealOutcomes.as_dict()"
         )
         most = values.get("max_steps")
+        known = {}
+        for name in _KNOWN:
+            value = values.get(name)
+            if value is not None and not isinstance(value, str):
+                raise TypeError(
+                    f"values[{name!r}]: expected a str (RealOutcomes.as_dict()), got "
+                    f"{type(value).__name__}"
+                )
+            known[name] = value
         return cls(
             values["success"],
             values["first_step"],
             values["steps"],
             values.get("trace"),
             max_steps=None if most is None else int(most),
+            observation=values.get("observation"),
+            **known,
         )
 
     def within(self, steps: int) -> RealOutcomes:
@@ -117,6 +153,42 @@ class RealOutcomes:
         first = torch.where(hit, self.first_step, torch.full_like(self.first_step, steps))
         return dataclasses.replace(self, success=hit, first_step=first)
 
+    def judged_by(self, boundary: SuccessBoundary) -> RealOutcomes:
+        """These episodes judged by another :class:`~rcvae_torchrl.competency.SuccessBoundary`
+        (another radius, deadline or failure region), from their kept observations
+        (``real_outcomes(..., keep_observations=True)``), as :func:`real_outcomes` judges
+        them with ``success=boundary.success_over_time``: ``first_step`` the first step in
+        its success region (``T`` when none), ``steps`` one past it, else the episode's
+        length. The episodes do not depend on the boundary (they end at the env's own ``done``
+        or after ``max_steps``), so these are the outcomes that run would have given, and
+        the same warning says where the env ended an episode the boundary decided nothing
+        in. The outcomes keep the boundary's ``predicates``; the trace stays as it was."""
+        if not isinstance(boundary, SuccessBoundary):
+            raise TypeError(f"boundary: expected a SuccessBoundary, got {type(boundary).__name__}")
+        if self.observation is None:
+            raise ValueError(
+                "observation: these outcomes kept no observations to judge again; run "
+                "real_outcomes(..., keep_observations=True)"
+            )
+        steps = self.observation.shape[-2]
+        _check_steps_cover_the_boundary(boundary.success_over_time, steps)
+        held, alive = hold_last_state(self.observation)
+        success = boundary.success_over_time
+        won = success(held) & alive
+        hit = won.any(-1)
+        first = torch.where(hit, won.float().argmax(-1), steps)
+        length = alive.sum(-1)
+        undecided = _undecided_ends(success, held, hit, length, steps)
+        if undecided is not None and bool(undecided.any()):
+            _warn_undecided_ends(undecided, boundary)
+        return dataclasses.replace(
+            self,
+            success=hit,
+            first_step=first,
+            steps=torch.where(hit, first + 1, length),
+            predicates=boundary.predicates,
+        )
+
     def __len__(self) -> int:
         """``B``, the start states."""
         return self.success.shape[0]
@@ -129,9 +201,16 @@ class RealOutcomes:
                 f"index: expected a slice, indices or a bool mask of the {len(self)} start "
                 f"states (one start state: outcomes[i : i + 1]), got {index!r}"
             )
-        pick = {k: v[index] for k, v in self.as_dict().items() if k != "max_steps"}
+        pick = {k: v[index] for k, v in self.as_dict().items() if k in _PER_START}
         picked = RealOutcomes.from_dict(pick)
-        return dataclasses.replace(picked, acting=self.acting, max_steps=self.max_steps)
+        kept = {name: getattr(self, name) for name in (*_KNOWN, "max_steps")}
+        return dataclasses.replace(picked, **kept)
+
+
+#: what RealOutcomes knows of how its episodes were made and judged (strings, or None)
+_KNOWN = ("acting", "agent", "predicates")
+#: its entries of one row per start state
+_PER_START = ("success", "first_step", "steps", "trace", "observation")
 
 
 def real_outcomes(
@@ -150,6 +229,7 @@ def real_outcomes(
     progress: bool = True,
     desc: str = "real episodes",
     exploration_type: ExplorationType | str | None = None,
+    keep_observations: bool = False,
 ) -> RealOutcomes:
     """Run ``policy`` ``runs_per_start`` times from each start ``[B, ...]``.
 
@@ -206,11 +286,18 @@ def real_outcomes(
     planner's (its own generator and its model env's). The outcomes keep
     it (:attr:`RealOutcomes.acting`), and a forecast made with the policy acting otherwise is
     not scored against them (:func:`score_forecast`, ``OutcomeCheck.from_outcomes``).
+
+    ``keep_observations``: keep every episode's observations, ``[B, R, max_steps, S]`` in
+    :attr:`RealOutcomes.observation` (memory: ``B·R·max_steps·S`` values), e.g. to measure
+    the real episodes' spread the way a report measures the imagined ones'
+    (:meth:`~rcvae_torchrl.competency.CompetencyAssessor.real_spread`), or to judge them by
+    another boundary (:meth:`RealOutcomes.judged_by`).
     """
     check_positive_int("runs_per_start", runs_per_start)
     check_positive_int("workers", workers)
     check_positive_int("max_steps", max_steps)
     check_non_negative_int("seed", seed)
+    check_bool("keep_observations", keep_observations)
     if isinstance(starts, torch.Tensor) and starts.dim() < 2:
         raise ValueError(
             f"starts: expected start states [B, S] (or a TensorDict [B]), got shape "
@@ -219,6 +306,7 @@ def real_outcomes(
     if len(starts) == 0:
         raise ValueError("starts: expected at least one start state, got none")
     _check_steps_cover_the_boundary(success, max_steps)
+    mode = exploration_mode(exploration_type)
     leaves = starts.values(True, True) if isinstance(starts, TensorDictBase) else [starts]
     for leaf in leaves:
         if isinstance(leaf, torch.Tensor):
@@ -228,6 +316,12 @@ def real_outcomes(
             f"env: with workers={workers}, expected a function that makes the env (each worker "
             f"process builds its own), got {type(env).__name__}"
         )
+    boundary = _boundary_of(success)
+    made = {  # of the policy given, before any wrapper here
+        "acting": acting_record(policy, mode),
+        "agent": weights_digest(policy),
+        "predicates": None if boundary is None else boundary.predicates,
+    }
     if policy_rows is not None:
         if isinstance(policy, MPCPlannerBase):
             raise ValueError(
@@ -235,25 +329,25 @@ def real_outcomes(
                 f"from one block of {policy_rows} rows to the next), got {policy_rows}"
             )
         policy = FixedRowsPolicy(policy, policy_rows)
-    mode = exploration_mode(exploration_type)
     b, r = len(starts), runs_per_start
     mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))
     index = torch.arange(b).repeat_interleave(r)[mine]
     seeds = [seed * 100_003 + i for i in mine]
-    episodes = (starts, index, seeds, max_steps, success, trace)
+    episodes = (starts, index, seeds, max_steps, success, trace, keep_observations)
     show = progress and distributed.is_main()
     part = (
         _my_outcomes(env, workers, policy, reset_to_state, episodes, show, desc, mode)
         if mine
         else None
     )
-    *flat, fingerprints, undecided = _gathered(part)
+    *flat, observation, fingerprints, undecided = _gathered(part)
     if r > 1:
         _warn_copies(fingerprints.reshape(b, r), reset_to_state, mode)
     if undecided is not None and bool(undecided.any()):
         _warn_undecided_ends(undecided, _boundary_of(success))
-    shaped = (None if v is None else v.reshape(b, r, *v.shape[1:]) for v in flat)
-    return RealOutcomes(*shaped, acting=mode.value, max_steps=max_steps)
+    shaped = (None if v is None else v.reshape(b, r, *v.shape[1:]) for v in (*flat, observation))
+    *outcomes, observation = shaped
+    return RealOutcomes(*outcomes, max_steps=max_steps, observation=observation, **made)
 
 
 def _decided_by(success: object) -> int | None:
@@ -355,10 +449,10 @@ def _my_outcomes(
     desc: str,
     mode: ExplorationType,
 ) -> tuple:
-    """``(success, first_step, steps, trace or None, fingerprints, undecided or None)`` of this
-    process's ``episodes`` (a fingerprint: the sum of an episode's observations, for telling
-    copies; undecided: ended by the env where the boundary decided nothing, see
-    :func:`_undecided_ends`):
+    """``(success, first_step, steps, trace or None, observation or None, fingerprints,
+    undecided or None)`` of this process's ``episodes`` (a fingerprint: the sum of an
+    episode's observations, for telling copies; undecided: ended by the env where the
+    boundary decided nothing, see :func:`_undecided_ends`):
     in ``workers`` processes, in a batched env, or one at a time."""
     if workers > 1:
         pool = episode_workers(env, workers, reset_to_state)
@@ -374,7 +468,7 @@ def _my_outcomes(
     if env.batch_size:
         start = partial(start_episodes, reset_to_state=reset_to_state)
         return _batched_outcomes(env, start, policy, *episodes, show, desc, mode)
-    starts, index, seeds, max_steps, success, trace = episodes
+    starts, index, seeds, max_steps, success, trace, keep = episodes
     stats = run_episodes(
         env,
         policy,
@@ -388,7 +482,7 @@ def _my_outcomes(
         decided_by=_decided_by(success),
         exploration_type=mode,
     )
-    return _outcomes(stats, len(seeds), success, trace, max_steps)
+    return _outcomes(stats, len(seeds), success, trace, max_steps, keep)
 
 
 def _check_batch(batch_size: torch.Size) -> None:
@@ -397,22 +491,27 @@ def _check_batch(batch_size: torch.Size) -> None:
         raise ValueError(f"env: expected an env with batch_size [] or [N], got {list(batch_size)}")
 
 
-def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
-    """``(success, first_step, steps, trace or None)`` of ``episodes`` episodes ``[n, ...]``.
+def _outcomes(stats, episodes: int, success, trace, horizon: int, keep: bool) -> tuple:
+    """``(success, first_step, steps, trace or None, observation or None)`` of ``episodes``
+    episodes ``[n, ...]`` (observations kept where ``keep``).
     Functions of the observations see one episode's ``[T, S]`` at a time: a success that
     depends on the time (a survival boundary's ``success_over_time``) counts from each
     episode's first step."""
     first = torch.where(stats.success, stats.steps - 1, torch.full_like(stats.steps, horizon))
     values = None if trace is None else torch.full((episodes, horizon), float("nan"))
-    observed = stats.data["next", "observation"].double().flatten(1).sum(-1)
+    after = stats.data["next", "observation"]
+    kept = _nan_padded((episodes, horizon), after) if keep else None
+    observed = after.double().flatten(1).sum(-1)
     fingerprints = torch.zeros(episodes, dtype=torch.float64).index_add_(
         0, stats.data[TRAJ_KEY].reshape(-1).long(), observed
     )
     boundary = _boundary_of(success) is not None
     undecided = torch.zeros(episodes, dtype=torch.bool) if boundary else None
-    if callable(success) or trace is not None:  # the episodes lie one after the other
+    if callable(success) or trace is not None or keep:  # the episodes lie one after the other
         lengths = torch.bincount(stats.data[TRAJ_KEY], minlength=episodes).tolist()
-        for i, episode in enumerate(stats.data["next", "observation"].split(lengths)):
+        for i, episode in enumerate(after.split(lengths)):
+            if kept is not None:
+                kept[i, : len(episode)] = episode
             if callable(success):  # the first success may lie before the episode's end
                 hits = success(episode).reshape(-1).nonzero()
                 first[i] = int(hits[0, 0]) if hits.numel() else horizon
@@ -423,7 +522,14 @@ def _outcomes(stats, episodes: int, success, trace, horizon: int) -> tuple:
             if values is not None:
                 row = _traced(trace, episode).reshape(-1)
                 values[i, : row.numel()] = row
-    return stats.success, first, stats.steps, values, fingerprints, undecided
+    return stats.success, first, stats.steps, values, kept, fingerprints, undecided
+
+
+def _nan_padded(rows: tuple[int, int], observation: torch.Tensor) -> torch.Tensor:
+    """``[n, T, *S]`` of NaN in the observations' floating dtype (float32 for others), to be
+    filled with each episode's observations."""
+    dtype = observation.dtype if observation.is_floating_point() else torch.float32
+    return torch.full((*rows, *observation.shape[1:]), math.nan, dtype=dtype)
 
 
 def _traced(trace: Callable[[torch.Tensor], torch.Tensor], observation: torch.Tensor) -> Any:
@@ -463,6 +569,7 @@ def _batched_outcomes(
     max_steps: int,
     success: str | Callable[[torch.Tensor], torch.Tensor],
     trace: Callable[[torch.Tensor], torch.Tensor] | None,
+    keep: bool,
     progress: bool,
     desc: str,
     mode: ExplorationType,
@@ -480,17 +587,21 @@ def _batched_outcomes(
         desc=desc,
         exploration_type=mode,
     )
-    for _, keep, episode in groups:  # rows past keep pad the last group: not episodes asked for
-        out, fingerprints = _chunk_outcomes(episode[:keep], success, trace, max_steps)
-        observation = episode[:keep]["next", "observation"]
+    for _, kept, episode in groups:  # rows past kept pad the last group: not episodes asked for
+        out, fingerprints = _chunk_outcomes(episode[:kept], success, trace, max_steps, keep)
+        observation = episode[:kept]["next", "observation"]
         undecided = _undecided_ends(success, observation, out.success, out.steps, max_steps)
-        parts.append([out.success, out.first_step, out.steps, out.trace, fingerprints, undecided])
+        kept_out = [out.success, out.first_step, out.steps, out.trace, out.observation]
+        parts.append([*kept_out, fingerprints, undecided])
     return tuple(None if t[0] is None else torch.cat(t) for t in zip(*parts))
 
 
-def _chunk_outcomes(episode, success, trace, max_steps: int) -> tuple[RealOutcomes, torch.Tensor]:
-    """Outcomes of a batched rollout ``[N, T]`` (a sub-env's episode ends at its first done),
-    and each episode's fingerprint (its observations summed, for telling copies)."""
+def _chunk_outcomes(
+    episode, success, trace, max_steps: int, keep: bool
+) -> tuple[RealOutcomes, torch.Tensor]:
+    """Outcomes of a batched rollout ``[N, T]`` (a sub-env's episode ends at its first done;
+    its observations kept where ``keep``), and each episode's fingerprint (its observations
+    summed, for telling copies)."""
     done = episode["next", "done"].reshape(episode.shape)
     ended = done.cumsum(1) - done.long() > 0  # steps after the episode's last one
     won = _success_flags(episode, success) & ~ended
@@ -508,8 +619,15 @@ def _chunk_outcomes(episode, success, trace, max_steps: int) -> tuple[RealOutcom
         per_step = _traced(trace, episode["next", "observation"]).reshape(episode.shape).float()
         values = torch.full((episode.shape[0], max_steps), float("nan"))
         values[:, :steps_run] = per_step.masked_fill(ended, float("nan"))
-    observed = episode["next", "observation"].double().flatten(2).sum(-1)
-    return RealOutcomes(hit, first, steps, values), observed.masked_fill(ended, 0.0).sum(1)
+    after = episode["next", "observation"]
+    kept = None
+    if keep:
+        kept = _nan_padded((episode.shape[0], max_steps), after[:, 0])
+        pad = ended.reshape(*ended.shape, *([1] * (after.dim() - 2)))
+        kept[:, :steps_run] = after.masked_fill(pad, math.nan).to(kept.dtype)
+    observed = after.double().flatten(2).sum(-1)
+    outcomes = RealOutcomes(hit, first, steps, values, observation=kept)
+    return outcomes, observed.masked_fill(ended, 0.0).sum(1)
 
 
 def _check_steps_cover_the_boundary(success: object, max_steps: int) -> None:
@@ -554,7 +672,8 @@ def score_forecast(
         )
     times = {}
     if isinstance(forecast, CompetencyReport):
-        check_same_acting(forecast.acting, outcomes.acting)
+        check_same_agent(forecast, outcomes)
+        check_same_predicates(forecast, outcomes)
         limit = forecast.time_limit
         outcomes = outcomes.within(limit)
         imagined = forecast.competency.get(("time_to_success", "first_step"), None)

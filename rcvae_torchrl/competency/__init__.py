@@ -16,7 +16,12 @@ from rcvae_torchrl.competency.assessor import (
     ImaginesRollouts,
     PerSample,
 )
-from rcvae_torchrl.competency.boundary import Predicate, SuccessBoundary
+from rcvae_torchrl.competency.boundary import (
+    Predicate,
+    SuccessBoundary,
+    check_same_predicates,
+    hold_last_state,
+)
 from rcvae_torchrl.competency.calibration import (
     BrierDecomposition,
     ReliabilityDiagram,
@@ -140,6 +145,8 @@ __all__ = [
     # metric modules
     "Predicate",
     "SuccessBoundary",
+    "check_same_predicates",
+    "hold_last_state",
     "SuccessMetric",
     "UncertaintyMetric",
     "bits_per_live_step",

@@ -33,12 +33,13 @@ from torchrl.envs.utils import ExplorationType
 from rcvae_torchrl import distributed, fingerprint
 from rcvae_torchrl.competency import _checks
 from rcvae_torchrl.competency._keys import KeyedModule
-from rcvae_torchrl.competency.boundary import SuccessBoundary
+from rcvae_torchrl.competency.boundary import SuccessBoundary, hold_last_state
 from rcvae_torchrl.competency.decomposition import check_shuffle_samples, estimator_arg_names
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
 from rcvae_torchrl.competency.report import CompetencyReport
-from rcvae_torchrl.data import acting, exploration_mode, held_generators
+from rcvae_torchrl.data import acting, acting_record, exploration_mode, held_generators
+from rcvae_torchrl.fingerprint import weights_digest
 from rcvae_torchrl.rollout import as_tensor_policy, policy_reset
 
 __all__ = ["CompetencyAssessor", "ImaginesRollouts", "PerSample", "Policy"]
@@ -322,7 +323,11 @@ class CompetencyAssessor(KeyedModule):
                 )
         steps = self.horizon if plan is None else plan.shape[-2]
         report = self.report(_gathered(parts, flat.device).reshape(batch), steps)
-        return report if plan is not None else dataclasses.replace(report, acting=mode.value)
+        if plan is not None:
+            return report
+        return dataclasses.replace(
+            report, acting=acting_record(policy, mode), agent=weights_digest(policy)
+        )
 
     @contextlib.contextmanager
     def _chunk_noise(
@@ -408,6 +413,7 @@ class CompetencyAssessor(KeyedModule):
             novelty=self.novelty,
             measure=self.measure,
             task=self.task(int(limit)),
+            predicates=self.boundary.predicates,
             time_unit=self.boundary.time_unit,
         )
 
@@ -417,18 +423,76 @@ class CompetencyAssessor(KeyedModule):
         (their code and the values they read, as :func:`rcvae_torchrl.fingerprint.digest`
         describes a function), the deadline judged (``time_limit`` steps, default the
         boundary's), dt, and the world model's weights. Two reports share it only where both
-        judge the same task with the same model; the agent is not in it."""
+        judge the same task with the same model. The agent is not in it: a report keeps it on
+        its own (:attr:`CompetencyReport.agent`)."""
         boundary = self.boundary
         limit = boundary.time_limit if time_limit is None else time_limit
         ensemble = getattr(self.model_env, "ensemble", None)
         weights = {} if ensemble is None else dict(ensemble.state_dict())
-        try:
-            predicates = fingerprint.digest([boundary.success, boundary.failure])
-        except Exception:  # an object describe() cannot walk: this process's own objects
-            predicates = f"objects {id(boundary.success)} {id(boundary.failure)}"
-        return fingerprint.digest(
-            {"predicates": predicates, "time_limit": limit, "dt": self.dt, "model": weights}
+        task = {"predicates": boundary.predicates, "time_limit": limit, "dt": self.dt}
+        return fingerprint.digest({**task, "model": weights})
+
+    def real_spread(self, outcomes: Any) -> TensorDictBase:
+        """The agent's real episodes' spread, in bits, measured as this assessor measures the
+        imagined episodes' (its bin widths, the boundary's episode end, its horizon): the
+        ``R`` real episodes from each start (``outcomes``, the
+        :class:`~rcvae_torchrl.agent.RealOutcomes` of ``real_outcomes(...,
+        keep_observations=True)``, run for at least the horizon) as the samples of one
+        member, whose entropy is all aleatoric. The entries are a report's ``"uncertainty"``
+        ones (``"total"`` = ``"aleatoric"`` ``[B, T, D]``, ``"epistemic"`` 0, ``"time_mean"``,
+        ``"summary"``, ``"by_dim"``, and with an episode end ``"live"`` and
+        ``"per_live_step"``), batch ``[B]``.
+
+        A world model that learned the env's noise imagines about as many aleatoric bits from
+        the same starts (:meth:`CompetencyReport.with_real_spread` compares them); far more
+        are its own error, which its members share and so do not call epistemic (a
+        deterministic env and agent repeat their episodes: 0 bits). The histogram estimator
+        only (its bins do not mind repeated samples); the plug-in entropy of ``R`` samples
+        that spread over many bins reads low, as a member's ``N`` samples' do: compare with
+        ``R`` near ``samples_per_member``."""
+        metric = self.uncertainty_metric
+        if metric.estimator != "histogram":
+            raise ValueError(
+                f"estimator: the real spread is measured with the histogram estimator, this "
+                f"assessor's is {metric.estimator!r}"
+            )
+        observation = getattr(outcomes, "observation", None)
+        if observation is None:
+            raise ValueError(
+                "outcomes: expected real outcomes with their observations, got "
+                f"{type(outcomes).__name__} without; run real_outcomes(..., "
+                "keep_observations=True)"
+            )
+        b, r, steps = observation.shape[:3]
+        if r < 2:
+            raise ValueError(
+                f"outcomes: expected at least 2 real episodes per start state to measure their "
+                f"spread, got {r}"
+            )
+        if self.horizon is None or steps < self.horizon:
+            raise ValueError(
+                f"outcomes: expected real episodes of at least the horizon "
+                f"({self.horizon} steps), got {steps} steps"
+            )
+        held, ran = hold_last_state(observation[:, :, : self.horizon])
+        ended = self.boundary.ended_over_time(held) | ~ran
+        samples = held.transpose(0, 1).unsqueeze(0).expand(2, -1, -1, -1, -1)  # [2, R, B, T, D]
+        observed = TensorDict({"observation": samples}, batch_size=samples.shape[:-1])
+        if metric.episode_end:
+            observed.set("ended", ended.transpose(0, 1).unsqueeze(0).expand(samples.shape[:-1]))
+        skip = ("bias_correction", "shuffles", "generator")  # one member: nothing to correct
+        args = {k: v for k, v in metric.estimator_args.items() if k not in skip}
+        spread = UncertaintyMetric(
+            metric.bin_width,
+            "histogram",
+            metric.dim_names,
+            metric.dim_reduction,
+            metric.episode_end,
+            **args,
         )
+        out = spread(observed).get("uncertainty")
+        out.batch_size = torch.Size([b])
+        return out
 
     @property
     def measure(self) -> dict[str, Any]:

@@ -15,9 +15,10 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from rcvae_torchrl import fingerprint
 from rcvae_torchrl.competency import _checks
 
-__all__ = ["Predicate", "SuccessBoundary"]
+__all__ = ["Predicate", "SuccessBoundary", "check_same_predicates", "hold_last_state"]
 
 #: ``obs [..., D] -> bool [...]``, a function of each state alone: a forecast calls it on
 #: whole trajectories ``[..., T, D]`` and the model env on one step's states ``[..., D]``, so
@@ -120,6 +121,18 @@ class SuccessBoundary:
             ([True, False], [False, True])
         """
         return cls(None, failure=failure, **kwargs)  # type: ignore[arg-type]
+
+    @property
+    def predicates(self) -> str:
+        """What judges a trajectory here, as a digest of the success and failure predicates
+        (their code and the values they read, :func:`rcvae_torchrl.fingerprint.digest`): a
+        report keeps it in its task, real outcomes judged by this boundary keep it too, and
+        a forecast is not scored against outcomes judged by other predicates (another radius).
+        Predicates the digest cannot walk are named by their identity in this process."""
+        try:
+            return fingerprint.digest([self.success, self.failure])
+        except Exception:  # an object describe() cannot walk: this process's own objects
+            return f"objects {id(self.success)} {id(self.failure)}"
 
     @property
     def is_survival(self) -> bool:
@@ -395,3 +408,37 @@ def _target_getter(
         return obs[..., indices]
 
     return get
+
+
+def check_same_predicates(forecast: object, real: object, name: str = "outcomes") -> None:
+    """Refuse to score a forecast against real episodes judged by other predicates:
+    ``forecast`` a report, ``real`` the real outcomes, each with the ``predicates`` of the
+    boundary that judged it (:attr:`SuccessBoundary.predicates`); ``name`` is the argument
+    ``real`` came as. Not compared where either does not know them (``None``: outcomes judged
+    by an env's flag or a function of one's own)."""
+    mine, theirs = getattr(forecast, "predicates", None), getattr(real, "predicates", None)
+    if mine is None or theirs is None or mine == theirs:
+        return
+    raise ValueError(
+        f"{name}: the real episodes were judged by another boundary than the forecast's: its "
+        f"predicates' code or values differ (digest {theirs[:12]}, the forecast's "
+        f"{mine[:12]}; e.g. another radius), so the two answer different tasks; run "
+        "real_outcomes with success=boundary.success_over_time of the assessor's boundary"
+    )
+
+
+def hold_last_state(observation: Tensor) -> tuple[Tensor, Tensor]:
+    """Episodes of several lengths, ``[..., T, S]`` padded with NaN after each one's last step
+    (real episodes kept by ``real_outcomes``): ``(held, ran)``, each step after an episode's
+    end holding its last state (a boundary's predicates see states, never NaN), and bool
+    ``[..., T]`` of the steps it ran. Every episode must have run at least its first step."""
+    ran = ~observation.isnan().any(-1)
+    if not bool(ran[..., 0].all()):
+        raise ValueError(
+            "observation: expected every episode to have run at least one step (a finite "
+            "first observation), got one that is NaN from its first step"
+        )
+    steps = torch.arange(observation.shape[-2], device=observation.device)
+    last = torch.where(ran, steps, 0).cummax(-1).values
+    held = observation.gather(-2, last.unsqueeze(-1).expand_as(observation))
+    return held, ran

@@ -19,8 +19,9 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
+from rcvae_torchrl import _checks
 from rcvae_torchrl._conformal import conformal_level
-from rcvae_torchrl.data.exploration import check_same_acting
+from rcvae_torchrl.data.exploration import check_same_agent
 from rcvae_torchrl.io import _as_json
 
 __all__ = ["CompetencyReport", "Reference"]
@@ -237,8 +238,19 @@ class CompetencyReport:
     #: .exploration_mode`); ``None`` where not known or open loop. Real episodes of the policy
     #: acting otherwise do not check it (:meth:`with_forecast_check`)
     acting: str | None = None
+    #: the agent whose forecasts these are, as the digest of its policy's weights
+    #: (:func:`~rcvae_torchrl.fingerprint.weights_digest`); ``None`` where not known (a
+    #: policy without weights, open loop, a report built by hand). Real episodes of another
+    #: agent do not check it (:meth:`with_forecast_check`, ``score_forecast``)
+    agent: str | None = None
+    #: the boundary's :attr:`~rcvae_torchrl.competency.SuccessBoundary.predicates` (they are
+    #: in :attr:`task` too): real outcomes judged by other predicates do not score it
+    predicates: str | None = None
     #: the unit of ``dt`` and of the times the summaries write (the boundary's ``time_unit``)
     time_unit: str = "s"
+    #: how far the aleatoric bits may lie from the real episodes' spread before a summary
+    #: says so: ``(factor, bits)``, both exceeded (:meth:`with_real_spread`)
+    spread_tolerance: tuple[float, float] = (1.5, 1.0)
 
     @property
     def novel(self) -> Tensor | None:
@@ -327,9 +339,9 @@ class CompetencyReport:
         The check must be of this report's :attr:`task`: a check of another boundary, deadline
         or world model is refused, and one built from bare forecasts (which know no task) makes
         a report that knows its task untrustworthy, with a warning saying why. The agent is
-        not part of the task: check with the agent the report's forecasts follow (a check of
-        its real episodes with a stochastic policy acting in another exploration mode than in
-        the report's imagined ones is refused)."""
+        not part of the task but is checked on its own: a check of real episodes of another
+        agent (other policy weights, :attr:`agent`) or of a stochastic policy acting in
+        another exploration mode than in the report's imagined episodes is refused."""
         if not (hasattr(check, "passed") and callable(getattr(check, "describe", None))):
             raise TypeError(
                 "check: expected an OutcomeCheck (rcvae_torchrl.training.OutcomeCheck."
@@ -343,8 +355,69 @@ class CompetencyReport:
                 "deadline or world model; check this report's own task, from the report of its "
                 "start states: OutcomeCheck.from_outcomes(report, outcomes)"
             )
-        check_same_acting(self.acting, getattr(check, "acting", None), name="check")
+        check_same_agent(self, check, name="check")
         return replace(self, forecast_check=check)
+
+    def with_real_spread(
+        self, spread: TensorDictBase, factor: float = 1.5, min_bits: float = 1.0
+    ) -> CompetencyReport:
+        """This report with the spread of the agent's real episodes from the same start states,
+        measured as its bits were (:meth:`CompetencyAssessor.real_spread` of
+        ``real_outcomes(..., keep_observations=True)`` from them, in the same order). Each
+        summary then gives it beside the imagined aleatoric part (per live step where both
+        have live steps, else as time means), and where the aleatoric part exceeds it by more
+        than ``factor`` times and by ``min_bits`` bits, a caution says that it overstates the
+        env's noise: the excess is the world model's own error, which its members share and so
+        do not count as epistemic (a deterministic env and agent repeat their episodes: 0 bits
+        real). Where it falls short as far, a caution says that the model has not learned the
+        randomness of the env and the agent. The spread is kept as the ``"real_spread"``
+        entries of :attr:`data`."""
+        if not isinstance(spread, TensorDictBase) or "total" not in spread.keys():
+            raise TypeError(
+                "spread: expected the entries of CompetencyAssessor.real_spread, got "
+                f"{type(spread).__name__}"
+            )
+        if spread.batch_size.numel() != self.batch_size.numel():
+            raise ValueError(
+                f"spread: expected the real episodes of this report's {self.batch_size.numel()} "
+                f"start states, got {spread.batch_size.numel()}"
+            )
+        _checks.check_positive("factor", factor)
+        if factor < 1:
+            raise ValueError(f"factor: expected >= 1, got {factor!r}")
+        _checks.check_non_negative("min_bits", min_bits)
+        data = self.data.clone(recurse=False)
+        data.set("real_spread", spread.reshape(self.batch_size))
+        return replace(self, data=data, spread_tolerance=(float(factor), float(min_bits)))
+
+    def _spread_sentence(self, uncertainty: TensorDictBase, spread: TensorDictBase | None) -> str:
+        """The real episodes' spread beside the aleatoric bits (means over the start states
+        given), with a caution where they lie farther apart than :attr:`spread_tolerance`;
+        '' without a real spread."""
+        if spread is None:
+            return ""
+        live = "per_live_step" in spread.keys() and "per_live_step" in uncertainty.keys()
+        aleatoric = float(_bits(uncertainty, live).get("aleatoric").mean())
+        real = float(_bits(spread, live).get("total").mean())
+        n = spread.batch_size.numel()
+        starts = "this start state" if n == 1 else f"these {n} start states"
+        text = (
+            f"The agent's real episodes from {starts} spread {real:.2f} {_unit(live)}, the "
+            f"imagined aleatoric part {aleatoric:.2f}."
+        )
+        factor, least = self.spread_tolerance
+        if aleatoric > factor * real and aleatoric - real >= least:
+            text += (
+                " Caution: the aleatoric bits overstate the real episodes' spread: the excess "
+                "is the world model's own error, which its members share (so it is not "
+                "counted as epistemic), not the env's noise."
+            )
+        elif real > factor * aleatoric and real - aleatoric >= least:
+            text += (
+                " Caution: the aleatoric bits understate the real episodes' spread: the world "
+                "model has not learned all of the randomness of the env and the agent."
+            )
+        return text
 
     def mean_bits(self, per_live_step: bool = False) -> tuple[float, float]:
         """Aleatoric and epistemic time-mean bits (summed over dimensions), averaged over the
@@ -487,6 +560,8 @@ class CompetencyReport:
             )
         if self.model_caution and not warning:
             text += f" Caution: {self.model_caution}."
+        spread = self._spread_sentence(self.uncertainty, self.data.get("real_spread", None))
+        text += f" {spread}" if spread else ""
         text += self._novel_count_sentence()
         uncovered = self.uncovered
         if uncovered is not None and bool(uncovered.any()) and self.forecast_check.passed:
@@ -609,6 +684,7 @@ class CompetencyReport:
             self._uncertainty_sentence(
                 uncertainty, bool(warning), flags, self._actions_only(one, flags)
             ),
+            self._spread_sentence(uncertainty, one.get("real_spread", None)),
         ]
         if "peak_step" in uncertainty.keys():
             sentences.append(

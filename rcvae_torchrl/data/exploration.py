@@ -11,9 +11,17 @@ import contextlib
 from collections.abc import Iterator, Sequence
 
 import torch
-from tensordict.nn import TensorDictModule
+from tensordict.nn import ProbabilisticTensorDictModule, TensorDictModule
 from torch import nn
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
+from torchrl.modules import (
+    AdditiveGaussianModule,
+    AdditiveGaussianWrapper,
+    EGreedyModule,
+    EGreedyWrapper,
+    OrnsteinUhlenbeckProcessModule,
+    OrnsteinUhlenbeckProcessWrapper,
+)
 from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
@@ -23,8 +31,10 @@ __all__ = [
     "GaussianExploration",
     "UniformRandomPolicy",
     "acting",
+    "acting_record",
     "action_bounds",
     "check_same_acting",
+    "check_same_agent",
     "exploration_mode",
     "held_generators",
     "planner_generators",
@@ -143,6 +153,49 @@ def check_same_acting(forecast: str | None, real: str | None, name: str = "outco
         "mode, and one is judged against the other; give CompetencyAssessor.assess and "
         f"real_outcomes the same exploration_type (e.g. exploration_type={forecast!r}), or "
         "run both inside one torchrl set_exploration_type(...)"
+    )
+
+
+#: TorchRL modules whose actions depend on the exploration type: a stochastic policy's
+#: sampling module (inside a ``ProbabilisticActor``) and the exploration noise modules
+_BY_MODE = (
+    ProbabilisticTensorDictModule,
+    AdditiveGaussianModule,
+    AdditiveGaussianWrapper,
+    EGreedyModule,
+    EGreedyWrapper,
+    OrnsteinUhlenbeckProcessModule,
+    OrnsteinUhlenbeckProcessWrapper,
+)
+
+
+def acting_record(policy: object, mode: ExplorationType) -> str | None:
+    """What a run records of how ``policy`` acted in exploration mode ``mode``: the mode's
+    name where the policy's actions can depend on it (a module holding a TorchRL
+    ``ProbabilisticActor`` or exploration-noise module, or a callable that is not a module,
+    which may hold one), ``None`` for a module that holds none (a deterministic network, a
+    planner): it acts the same in every mode, and its runs in two modes judge one agent."""
+    if not isinstance(policy, nn.Module):
+        return mode.value
+    return mode.value if any(isinstance(m, _BY_MODE) for m in policy.modules()) else None
+
+
+def check_same_agent(forecast: object, real: object, name: str = "outcomes") -> None:
+    """Refuse to judge a forecast against real episodes of another agent: ``forecast`` a
+    report (or a forecast check), ``real`` the real outcomes (or a check) compared with it,
+    each with its ``acting`` (:func:`check_same_acting`) and ``agent`` (the policy's weights,
+    :func:`~rcvae_torchrl.fingerprint.weights_digest`); ``name`` is the argument ``real``
+    came as. What either side does not know (``None``, or not there) is not compared."""
+    check_same_acting(getattr(forecast, "acting", None), getattr(real, "acting", None), name)
+    mine, theirs = getattr(forecast, "agent", None), getattr(real, "agent", None)
+    if mine is None or theirs is None or mine == theirs:
+        return
+    raise ValueError(
+        f"{name}: the real episodes are of another agent than the forecast's: their policy's "
+        f"weights (digest {theirs[:12]}) are not those of the policy the forecast imagined "
+        f"(digest {mine[:12]}); a forecast is judged against real episodes of the agent it "
+        "forecast: run real_outcomes with the policy given to CompetencyAssessor.assess (or "
+        "assess the agent whose episodes these are)"
     )
 
 

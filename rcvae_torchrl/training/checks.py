@@ -61,10 +61,11 @@ from rcvae_torchrl._checks import (
     check_positive_int,
     check_unit_interval,
 )
+from rcvae_torchrl.competency import check_same_predicates
 from rcvae_torchrl.competency._checks import check_probability
 from rcvae_torchrl.data import (
     TRAJ_KEY,
-    check_same_acting,
+    check_same_agent,
     episode_spans,
     make_window_buffer,
     sample_windows,
@@ -704,6 +705,10 @@ class OutcomeCheck:
     #: :attr:`~rcvae_torchrl.agent.RealOutcomes.acting`, else the report's); ``None`` where not
     #: known. A report whose imagined policy acted otherwise is not vouched for
     acting: str | None = None
+    #: the agent: the digest of its policy's weights (the real episodes' :attr:`~rcvae_torchrl
+    #: .agent.RealOutcomes.agent`, else the report's); ``None`` where not known. A report of
+    #: another agent is not vouched for
+    agent: str | None = None
 
     def __post_init__(self) -> None:
         for name in ("forecast", "real"):
@@ -763,11 +768,15 @@ class OutcomeCheck:
         report's start states too (or ``start_states`` ``[n, D]`` given with bare forecasts), and
         vouches for forecasts of start states like them alone (:meth:`covers`), each dimension
         in units of its spread in the world model's training states where the report has a
-        novelty check (or ``state_scale`` ``[D]`` given). A report whose policy acted in
-        another exploration mode than the real episodes' (``acting``) is refused."""
+        novelty check (or ``state_scale`` ``[D]`` given). Real episodes of another agent
+        than the report's (other policy weights, ``agent``; a policy acting in another
+        exploration mode, ``acting``), or judged by another boundary (``predicates``), are
+        refused."""
         deadline = getattr(forecast, "time_limit", None)
+        check_same_agent(forecast, real_success, name="real_success")
+        check_same_predicates(forecast, real_success, name="real_success")
         acted = getattr(forecast, "acting", None), getattr(real_success, "acting", None)
-        check_same_acting(*acted)
+        agents = getattr(forecast, "agent", None), getattr(real_success, "agent", None)
         if hasattr(forecast, "competency") and deadline is not None:  # a CompetencyReport
             known = getattr(forecast, "task", "") or None
             if task is not None and known is not None and task != known:
@@ -823,6 +832,7 @@ class OutcomeCheck:
             if state_scale is None
             else torch.as_tensor(state_scale).detach().cpu().double(),
             acting=acted[1] if acted[1] is not None else acted[0],
+            agent=agents[1] if agents[1] is not None else agents[0],
         )
 
     @property
@@ -1236,6 +1246,8 @@ class OutcomeCheck:
             "what": self.what,
             "tolerance": self.tolerance,
             "task": self.task,
+            "acting": self.acting,
+            "agent": self.agent,
             "start_states": None if self.start_states is None else self.start_states.tolist(),
             "state_scale": None if self.state_scale is None else self.state_scale.tolist(),
             "starts": self.starts,
@@ -1269,6 +1281,8 @@ class OutcomeCheck:
             what=str(values.get("what", "the forecasts")),
             tolerance=float(values.get("tolerance", 0.2)),
             task=values.get("task"),
+            acting=values.get("acting"),
+            agent=values.get("agent"),
             start_states=None
             if values.get("start_states") is None
             else torch.tensor(values["start_states"], dtype=torch.float64),

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from rcvae_torchrl.agent import real_outcomes
+from rcvae_torchrl.competency import SuccessBoundary
 from rcvae_torchrl.envs import (
     ball_to_target,
     make_batched_pusher_env,
@@ -30,6 +31,7 @@ def test_batched_outcomes_equal_the_one_env_run(terminate):
         seed=2,
         progress=False,
         policy_rows=64,  # the scripted pusher's float32 actions then do not depend on the batch
+        keep_observations=True,
     )
     policy = make_scripted_policy()
     serial = real_outcomes(
@@ -46,6 +48,12 @@ def test_batched_outcomes_equal_the_one_env_run(terminate):
         assert torch.equal(getattr(batched, name), getattr(serial, name)), name
     torch.testing.assert_close(batched.trace, serial.trace, equal_nan=True)
     assert not torch.equal(batched.trace[:, 0], batched.trace[:, 1])  # each run its own noise
+    # the kept observations: the same in both, NaN after each episode, and the trace's states
+    assert batched.observation.shape == (2, 3, 45, 14)
+    torch.testing.assert_close(batched.observation, serial.observation, equal_nan=True)
+    ran = ~batched.observation.isnan().any(-1)
+    assert torch.equal(ran, ~batched.trace.isnan())
+    torch.testing.assert_close(ball_to_target(batched.observation)[ran], batched.trace[ran])
 
 
 def test_batched_outcomes_by_a_success_function():
@@ -96,3 +104,48 @@ def test_a_success_that_depends_on_time_counts_from_each_episodes_start():
         out = real_outcomes(env, make_scripted_policy(), starts, **args)
         assert out.success.all() and (out.first_step == 4).all(), type(env).__name__
         assert torch.equal(out.trace, torch.arange(8.0).expand(2, 2, 8))
+
+
+@pytest.mark.parametrize("batched", [False, True])
+def test_kept_episodes_judged_by_another_boundary_equal_a_run_judged_by_it(batched):
+    starts, env_kwargs = pusher_starts(2), dict(time_limit=3.0, terminate_on_success=False)
+    near, far = (
+        SuccessBoundary.within_distance(ball_to_target, radius, time_limit=60, dt=0.05)
+        for radius in (0.03, 0.12)
+    )
+
+    def run(boundary, keep=False):
+        env = (
+            make_batched_pusher_env(3, "stochastic", action_noise_std=1.0, **env_kwargs)
+            if batched
+            else make_pusher_env("stochastic", action_noise_std=1.0, **env_kwargs)
+        )
+        return real_outcomes(
+            env,
+            make_scripted_policy(),
+            starts,
+            runs_per_start=3,
+            reset_to_state=reset_to_state,
+            max_steps=60,
+            success=boundary.success_over_time,
+            seed=4,
+            progress=False,
+            policy_rows=64,
+            keep_observations=keep,
+        )
+
+    kept = run(near, keep=True)
+    assert kept.predicates == near.predicates
+    direct = run(far)
+    judged = kept.judged_by(far)
+    assert judged.predicates == far.predicates != near.predicates
+    assert float(judged.success.float().mean()) > float(kept.success.float().mean())
+    for name in ("success", "first_step", "steps"):
+        assert torch.equal(getattr(judged, name), getattr(direct, name)), name
+    again = judged.judged_by(near)  # judged back: the first outcomes
+    for name in ("success", "first_step", "steps"):
+        assert torch.equal(getattr(again, name), getattr(kept, name)), name
+    with pytest.raises(ValueError, match=r"^observation: these outcomes kept no observations"):
+        direct.judged_by(near)
+    with pytest.raises(TypeError, match=r"^boundary: expected a SuccessBoundary, got function"):
+        kept.judged_by(ball_to_target)

@@ -222,7 +222,7 @@ def test_a_forecast_is_not_judged_by_episodes_of_the_policy_acting_otherwise():
     refused = r"^{}: the real episodes' policy acted 'deterministic' .* imagined one 'random'"
     with pytest.raises(ValueError, match=refused.format("outcomes")):
         score_forecast(report, mean)
-    with pytest.raises(ValueError, match=refused.format("outcomes")):
+    with pytest.raises(ValueError, match=refused.format("real_success")):
         OutcomeCheck.from_outcomes(report, mean)
     check = OutcomeCheck.from_outcomes(report.competency["p_success"], mean.success)
     assert check.acting is None  # bare outcomes: not known

@@ -19,6 +19,9 @@ def test_parallel_real_outcomes_equal_serial(tmp_path):
         for kind, outcomes in serial.items():
             assert gathered[kind].keys() == outcomes.as_dict().keys()
             for name, value in outcomes.as_dict().items():
+                if isinstance(value, str):  # what is known of the agent and the predicates
+                    assert gathered[kind][name] == value, name
+                    continue
                 torch.testing.assert_close(
                     gathered[kind][name], value, rtol=0, atol=0, equal_nan=True, msg=name
                 )

@@ -1,0 +1,185 @@
+"""A forecast is judged against real episodes of its own agent, judged by its own boundary.
+
+A report, real outcomes and a forecast check each keep which agent acted (the digest of its
+policy's weights) and, where a boundary judged them, its predicates; scoring or checking a
+forecast against another agent's episodes, or against episodes judged by another radius, is
+refused by name.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import pytest
+import torch
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import AdditiveGaussianModule
+
+from rcvae_torchrl.agent import RealOutcomes, real_outcomes, score_forecast
+from rcvae_torchrl.competency import SuccessBoundary
+from rcvae_torchrl.data import acting_record, exploration_mode
+from rcvae_torchrl.fingerprint import weights_digest
+from rcvae_torchrl.io import load_torch, save_torch
+from rcvae_torchrl.training import OutcomeCheck
+from tests.agent.test_exploration import point_mass, stochastic_actor
+from tests.agent.worker_envs import plain_reset
+from tests.competency.test_assessor import (
+    DT,
+    T,
+    boundary,
+    make_assessor,
+    make_ensemble,
+    make_env,
+    obs_indices,
+)
+
+RANDOM, DETERMINISTIC = exploration_mode("random"), exploration_mode("deterministic")
+
+
+def linear_policy(obs_dim: int, seed: int) -> TensorDictModule:
+    torch.manual_seed(seed)
+    net = nn.Sequential(nn.Linear(obs_dim, 2), nn.Tanh())
+    return TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
+
+
+def test_the_weights_digest_names_the_weights_whatever_wraps_them():
+    policy = linear_policy(4, seed=0)
+    digest = weights_digest(policy)
+    assert digest is not None and len(digest) == 64
+    assert weights_digest(policy.module) == digest  # the bare network
+    assert weights_digest(nn.Sequential(policy)) == digest  # under another name
+    assert weights_digest(linear_policy(4, seed=0)) == digest  # a copy: the same values
+    assert weights_digest(linear_policy(4, seed=1)) != digest
+    with torch.no_grad():
+        policy.module[0].bias[0] += 1e-6
+    assert weights_digest(policy) != digest  # one weight changed
+    assert weights_digest(nn.Tanh()) is None  # no weights: not known
+    assert weights_digest(lambda td: td) is None
+
+
+def test_a_policy_that_acts_alike_in_every_mode_records_no_mode():
+    assert acting_record(linear_policy(4, 0), RANDOM) is None
+    assert acting_record(stochastic_actor(), RANDOM) == "random"
+    assert acting_record(stochastic_actor(), DETERMINISTIC) == "deterministic"
+    spec = Bounded(-1.0, 1.0, shape=(2,))
+    noisy = TensorDictSequential(linear_policy(4, 0), AdditiveGaussianModule(spec))
+    assert acting_record(noisy, DETERMINISTIC) == "deterministic"  # noise only when random
+    assert acting_record(lambda td: td, RANDOM) == "random"  # not a module: may hold one
+
+
+def _distance(observation: torch.Tensor) -> torch.Tensor:
+    return observation[..., :2].norm(dim=-1)
+
+
+def _real(policy, success, **kwargs) -> RealOutcomes:
+    env = point_mass()
+    starts = env.reset()["observation"].expand(3, -1).clone()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # copies: a deterministic policy
+        return real_outcomes(
+            env,
+            policy,
+            starts,
+            runs_per_start=2,
+            reset_to_state=plain_reset,
+            max_steps=8,
+            success=success,
+            progress=False,
+            **kwargs,
+        )
+
+
+def test_real_outcomes_keep_the_agent_and_the_boundary_and_read_them_back(tmp_path):
+    policy = linear_policy(4, seed=0)
+    near = SuccessBoundary.within_distance(_distance, 0.25, time_limit=8)
+    outcomes = _real(policy, near.success_over_time, exploration_type="deterministic")
+    assert outcomes.agent == weights_digest(policy)
+    assert outcomes.acting is None  # a deterministic network: the mode does not matter
+    assert outcomes.predicates == near.predicates
+    flagged = _real(policy, lambda obs: obs[..., :2].norm(dim=-1) < 0.25)
+    assert flagged.predicates is None  # a function of one's own: not a boundary's
+    again = RealOutcomes.from_dict(outcomes.as_dict())
+    assert (again.agent, again.acting, again.predicates) == (
+        outcomes.agent,
+        None,
+        near.predicates,
+    )
+    save_torch(tmp_path / "real.pt", outcomes.as_dict())
+    stored = RealOutcomes.from_dict(load_torch(tmp_path / "real.pt"))
+    assert stored.agent == outcomes.agent and stored.predicates == near.predicates
+    assert outcomes[1:].agent == outcomes.agent and outcomes[1:].predicates == near.predicates
+    with pytest.raises(TypeError, match=r"^values\['agent'\]: expected a str"):
+        RealOutcomes.from_dict({**outcomes.as_dict(), "agent": 3})
+    other = SuccessBoundary.within_distance(_distance, 0.3, time_limit=8)
+    assert other.predicates != near.predicates  # another radius, another digest
+
+
+def _report_and_outcomes(policy, **known):
+    assessor = make_assessor(make_env(make_ensemble()))
+    starts = torch.randn(12, 14, generator=torch.Generator().manual_seed(1)) * 0.1
+    report = assessor.assess(starts, policy=policy, seed=0)
+    success = torch.rand(12, 2, generator=torch.Generator().manual_seed(2)) < 0.5
+    first = torch.where(success, 2, 6)
+    return report, RealOutcomes(success, first, first + 1, **known)
+
+
+def test_a_forecast_is_not_judged_by_another_agent_s_episodes():
+    agent, other = linear_policy(14, seed=0), linear_policy(14, seed=1)
+    report, own = _report_and_outcomes(agent, agent=weights_digest(agent))
+    assert report.agent == weights_digest(agent) and report.acting is None
+    assert set(score_forecast(report, own))
+    theirs = RealOutcomes(own.success, own.first_step, own.steps, agent=weights_digest(other))
+    refused = r"^{}: the real episodes are of another agent than the forecast's: .*\(digest {}\)"
+    mine = weights_digest(agent)[:12]
+    with pytest.raises(ValueError, match=refused.format("outcomes", mine)):
+        score_forecast(report, theirs)
+    with pytest.raises(ValueError, match=refused.format("real_success", mine)):
+        OutcomeCheck.from_outcomes(report, theirs)
+    # a check made of bare forecasts and the other agent's outcomes keeps that agent
+    check = OutcomeCheck.from_outcomes(
+        report.competency["p_success"],
+        theirs,
+        task=report.task,
+        start_states=report.data["observation"],
+    )
+    assert check.agent == weights_digest(other)
+    with pytest.raises(ValueError, match=refused.format("check", mine)):
+        report.with_forecast_check(check)
+    kept = OutcomeCheck.from_dict(json.loads(json.dumps(check.as_dict())))
+    assert kept.agent == check.agent
+    with pytest.raises(ValueError, match=refused.format("check", mine)):
+        report.with_forecast_check(kept)
+    # outcomes that do not know their agent are not compared
+    bare = RealOutcomes(own.success, own.first_step, own.steps)
+    assert set(score_forecast(report, bare))
+    assert report.with_forecast_check(OutcomeCheck.from_outcomes(report, own)).forecast_check
+
+
+def test_a_deterministic_network_s_episodes_in_any_mode_judge_its_forecast():
+    agent = linear_policy(14, seed=0)
+    report, own = _report_and_outcomes(agent, agent=weights_digest(agent))
+    assert report.acting is None  # sampled by default, but it draws nothing
+    # its real episodes run by its mean, as a caller may well ask: the same agent
+    by_mean = RealOutcomes(
+        own.success, own.first_step, own.steps, acting=None, agent=weights_digest(agent)
+    )
+    assert set(score_forecast(report, by_mean))
+
+
+def test_a_forecast_is_not_scored_against_episodes_judged_by_another_boundary():
+    agent = linear_policy(14, seed=0)
+    report, own = _report_and_outcomes(agent, predicates=boundary().predicates)
+    assert report.predicates == boundary().predicates
+    assert set(score_forecast(report, own))
+    wider = SuccessBoundary.ball(
+        obs_indices("ball"), 0.05, target=obs_indices("target"), time_limit=T, dt=DT
+    )
+    judged = RealOutcomes(own.success, own.first_step, own.steps, predicates=wider.predicates)
+    refused = r"^{}: the real episodes were judged by another boundary than the forecast's"
+    with pytest.raises(ValueError, match=refused.format("outcomes")):
+        score_forecast(report, judged)
+    with pytest.raises(ValueError, match=refused.format("real_success")):
+        OutcomeCheck.from_outcomes(report, judged)
