@@ -330,6 +330,12 @@ def real_outcomes(
             )
         policy = FixedRowsPolicy(policy, policy_rows)
     b, r = len(starts), runs_per_start
+    last = seed * 100_003 + b * r - 1
+    if last >= 2**32:  # an env's seed is a 32-bit integer (numpy, MuJoCo)
+        raise ValueError(
+            f"seed: expected episode seeds below 2**32 (seed·100_003 + episode), got seed={seed}, "
+            f"whose last episode's is {last}; take seed <= {(2**32 - b * r) // 100_003}"
+        )
     mine = list(distributed.shard(b * r) if distributed.is_active() else range(b * r))
     index = torch.arange(b).repeat_interleave(r)[mine]
     seeds = [seed * 100_003 + i for i in mine]

@@ -316,7 +316,7 @@ class CompetencyReport:
         parts = [self.model_warning] if self.model_warning else []
         check = self.forecast_check
         if check is not None and not check.passed:
-            parts.append(f"forecast check on other start states: {check.describe()}")
+            parts.append(f"forecast check {self._check_place}: {check.describe()}")
         elif check is not None and (uncovered := self._uncovered_sentence):
             parts.append(uncovered)
         elif check is not None and self.task and not getattr(check, "task", None):
@@ -570,7 +570,7 @@ class CompetencyReport:
                 "check was made on, which does not vouch for their forecasts."
             )
         if self.forecast_check is not None and self.forecast_check.passed:
-            text += f" Forecast check on other start states: {self.forecast_check.describe()}."
+            text += f" Forecast check {self._check_place}: {self.forecast_check.describe()}."
         elif self.forecast_check is None:
             text += (
                 " No check of these forecasts against real episodes is attached to this "
@@ -725,6 +725,25 @@ class CompetencyReport:
             "Unchecked: no check of these forecasts against real episodes is attached "
             "(with_forecast_check), so nothing shows this one right."
         )
+
+    @cached_property
+    def _check_place(self) -> str:
+        """Where the attached forecast check was made, against this report's start states: "on
+        other start states" (none of these among its own, or its own not known), "on these
+        start states" (all of them), or on some of them."""
+        own = getattr(self.forecast_check, "start_states", None)
+        if own is None or self.observation_key not in self.data.keys(True):
+            return "on other start states"
+        starts = self.data.get(self.observation_key)
+        mine = starts.reshape(-1, starts.shape[-1]).detach().cpu().double()
+        if mine.shape[-1] != own.shape[-1]:
+            return "on other start states"
+        among = torch.cdist(mine, own.double(), p=math.inf).le(1e-6).any(-1)
+        if bool(among.all()):
+            return "on these start states"
+        if not bool(among.any()):
+            return "on other start states"
+        return f"on {int(among.sum())} of these {among.numel()} start states and others"
 
     def _per_start_caution(self) -> str:
         """A passed forecast check whose forecasts miss their own starts' rates beyond chance

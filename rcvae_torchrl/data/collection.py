@@ -386,12 +386,17 @@ def merge_episodes(*datasets: TensorDictBase) -> TensorDict:
     """Concatenate flat episode datasets ``[frames]``, renumbering ids so they stay unique.
 
     Each dataset's episodes keep their order; ids become ``0, 1, ...`` across all of them.
+    An episode that repeats another frame for frame (every floating entry equal: a dataset
+    passed twice, or collected twice with the same seeds) is warned about: merged, it would
+    count twice in training, and in a split into training and held-out episodes it can land
+    on both sides.
 
     Example:
         >>> from tensordict import TensorDict
-        >>> part = TensorDict({TRAJ_KEY: torch.tensor([0, 0, 1])}, batch_size=[3])
-        >>> merge_episodes(part, part)[TRAJ_KEY].tolist()
-        [0, 0, 1, 2, 2, 3]
+        >>> one = TensorDict({TRAJ_KEY: torch.tensor([0, 0, 1]), "x": torch.rand(3)}, [3])
+        >>> two = TensorDict({TRAJ_KEY: torch.tensor([5, 5]), "x": torch.rand(2)}, [2])
+        >>> merge_episodes(one, two)[TRAJ_KEY].tolist()
+        [0, 0, 1, 2, 2]
     """
     if not datasets:
         raise ValueError("datasets: expected at least one dataset, got none")
@@ -421,4 +426,34 @@ def merge_episodes(*datasets: TensorDictBase) -> TensorDict:
         renumbered.set(TRAJ_KEY, runs + offset)
         offset += int(runs.max()) + 1 if runs.numel() else 0
         parts.append(renumbered)
-    return torch.cat(parts)
+    merged = torch.cat(parts)
+    _warn_repeated_episodes(merged)
+    return merged
+
+
+def _warn_repeated_episodes(merged: TensorDictBase) -> None:
+    """Warn where an episode of the merged datasets (ids ``0, 1, ...``, each episode's frames
+    together) repeats another one frame for frame: the same length, and the same sums of every
+    floating entry over its frames, plain and weighted by the frame's step."""
+    floats = [v for v in merged.values(True, True) if v.is_floating_point()]
+    if not floats or not len(merged):
+        return
+    frames = sum(v.double().reshape(len(merged), -1).nan_to_num().sum(-1) for v in floats)
+    ids = merged.get(TRAJ_KEY).long()
+    length = torch.bincount(ids)
+    step = torch.arange(len(merged)) - (length.cumsum(0) - length)[ids] + 1
+    sums = torch.zeros(len(length), 2, dtype=torch.float64)
+    sums[:, 0].index_add_(0, ids, frames)
+    sums[:, 1].index_add_(0, ids, frames * step)  # the frames' order counts too
+    signature = torch.cat([sums, length[:, None].double()], dim=1)
+    counts = torch.unique(signature, dim=0, return_counts=True)[1]
+    repeated = int((counts - 1).sum())
+    if repeated:
+        warnings.warn(
+            f"datasets: {repeated} of the {len(length)} merged episodes repeat another one frame "
+            "for frame (a dataset passed twice, or collected twice with the same seeds): they "
+            "would count twice in training, and a split into training and held-out episodes "
+            "can put one copy on each side; merge each episode once",
+            UserWarning,
+            stacklevel=3,
+        )

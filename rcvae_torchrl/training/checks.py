@@ -248,8 +248,9 @@ class ModelChecks:
             )
         if not self.coverage_measured:
             sentences.append(
-                f"the world model's spread is unchecked: {self.episodes} held-out episodes "
-                f"last over {self.coverage_steps} steps, the coverage check needs "
+                f"the world model's spread is unchecked: {self.episodes} held-out "
+                f"{'episode lasts' if self.episodes == 1 else 'episodes last'} over "
+                f"{self.coverage_steps} steps, the coverage check needs "
                 f"{self.min_episodes}, so an overconfident model would go unseen; hold out "
                 "more (or longer) episodes"
             )

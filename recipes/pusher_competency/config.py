@@ -172,7 +172,11 @@ class AssessConfig:
     ``"shuffle"`` (the histogram's epistemic part corrected for its sampling bias, see
     :func:`~rcvae_torchrl.competency.decompose_uncertainty`). ``start_chunk``: start states
     imagined together, each chunk seeded by the study's seed and its index (the unit of work
-    shared over ``torchrun`` ranks).
+    shared over ``torchrun`` ranks). ``spread_starts`` start states of each condition (spread
+    evenly over the scored ones; 0: none) are run ``spread_runs`` times more, their
+    observations kept, to measure the real episodes' spread in the bits the forecast's
+    aleatoric part claims (the report compares them; 32 runs, near ``samples_per_member``, so
+    that both entropies are estimated from about as many samples).
     """
 
     start_states: int = 100
@@ -190,6 +194,8 @@ class AssessConfig:
     episode_end: bool = True
     bias_correction: str = "shuffle"
     forecast_panels: int = 3
+    spread_starts: int = 12
+    spread_runs: int = 32
 
     def __post_init__(self) -> None:
         _at_least(
@@ -207,6 +213,8 @@ class AssessConfig:
             1,
             int,
         )
+        _at_least(self, ("spread_starts",), 0, int)
+        _at_least(self, ("spread_runs",), 2, int)
         _whole_steps(self, ("horizon_s",))
         _at_least(self, ("success_radius",), 0.0)
         if not self.success_radius > 0:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -160,6 +161,8 @@ DAGGER_SEEDS = 80_000
 # Real episodes of the truth stage: seeds REAL_SEEDS + 10·seed + c, each run its own stream;
 # those from held-out episodes' first states (the report's forecast check): HELD_OUT_SEEDS + ...
 REAL_SEEDS = 9_000
+# The real episodes whose spread is measured: SPREAD_SEEDS + 10·seed + c.
+SPREAD_SEEDS = 9_500
 HELD_OUT_SEEDS = 8_000
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i; those
 # the forecast check draws (Study.held_out_starts), HELD_OUT_START_SEEDS higher (mod 2**32).
@@ -573,17 +576,60 @@ class Study:
             distributed.barrier()
             saved = load_torch(path, "real outcomes")
             summary[condition] = {"success_rate": saved["success"].float().mean().item()}
+            if self.cfg.assess.spread_starts:
+                summary[condition]["spread"] = self.real_spread(condition, index, policy)
         return summary
 
+    def real_spread(self, condition: str, index: int, policy: Callable) -> dict[str, float]:
+        """The spread of the agent's real episodes from ``assess.spread_starts`` of the
+        condition's start states (evenly spread over them), ``assess.spread_runs`` each, in
+        the bits of the forecast (:meth:`~rcvae_torchrl.competency.CompetencyAssessor
+        .real_spread`), saved with the forecast's aleatoric bits of the same start states."""
+        path = self.dir / "truth" / f"{condition}_spread.pt"
+        if not distributed.broadcast(path.is_file()):
+            s = self.cfg.assess
+            model_name, variant = CONDITIONS[condition]
+            forecast = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
+            starts = forecast["starts"]
+            count = min(s.spread_starts, len(starts))
+            picked = torch.linspace(0, len(starts) - 1, count).round().long().unique()
+            with warnings.catch_warnings():
+                # in a deterministic Pusher the runs repeat one episode: the 0 bits measured
+                warnings.filterwarnings("ignore", "runs_per_start: each of the", UserWarning)
+                outcomes = self.real_runs(
+                    variant,
+                    policy,
+                    starts[picked],
+                    seed=SPREAD_SEEDS + self.cfg.seed * 10 + index,
+                    desc=f"real spread: {condition}",
+                    runs=s.spread_runs,
+                    keep_observations=True,
+                )
+            spread = self.assessor(model_name, variant).real_spread(outcomes)
+            if distributed.is_main():
+                save_torch(path, _spread_record(spread, forecast, picked))
+            distributed.barrier()
+        saved = load_torch(path, "real spread")
+        return {k: float(saved[k].mean()) for k in ("real", "imagined")}
+
     def real_runs(
-        self, variant: str, policy: Callable, starts: torch.Tensor, *, seed: int, desc: str, **kw
+        self,
+        variant: str,
+        policy: Callable,
+        starts: torch.Tensor,
+        *,
+        seed: int,
+        desc: str,
+        runs: int | None = None,
+        **kw,
     ) -> RealOutcomes:
         """The agent (``policy``, a policy module) in the real Pusher of ``variant`` from each
-        of ``starts``: once per start in a deterministic env, ``assess.stochastic_seeds_per_start``
-        times in the stochastic one, in batched envs over ``assess.real_workers`` workers;
-        ``kw`` goes to :func:`~rcvae_torchrl.agent.real_outcomes`."""
+        of ``starts``: ``runs`` times, by default once per start in a deterministic env and
+        ``assess.stochastic_seeds_per_start`` times in the stochastic one, in batched envs over
+        ``assess.real_workers`` workers; ``kw`` goes to
+        :func:`~rcvae_torchrl.agent.real_outcomes`."""
         s = self.cfg.assess
-        runs = self.runs_per_start(variant)
+        runs = self.runs_per_start(variant) if runs is None else runs
         per_worker = -(-min(s.real_envs, len(starts) * runs) // s.real_workers)
         return real_outcomes(
             self.batched_env(variant, per_worker),
@@ -613,6 +659,10 @@ class Study:
         truths = {
             c: load_torch(self.dir / "truth" / f"{c}.pt", "real outcomes") for c in CONDITIONS
         }
+        spread_paths = {c: self.dir / "truth" / f"{c}_spread.pt" for c in CONDITIONS}
+        spreads = {
+            c: load_torch(path, "real spread") for c, path in spread_paths.items() if path.is_file()
+        }
         episode_env = self.env("deterministic", time_limit=self.cfg.assess.horizon_s)
         policy = make_policy_module(self.load_policy())
         models = {name: self.load_model(name) for name in WORLD_MODELS}
@@ -629,6 +679,7 @@ class Study:
             far_checks=far,
             forecast_checks={c: self.forecast_check(c, held_out[c]) for c in held_out},
             held_out_maps={c: fit_platt(*held_out[c]) for c in held_out},
+            real_spreads=spreads,
         )
 
     def forecast_check(
@@ -684,6 +735,30 @@ class Study:
             check_model(model, truth, coverage_steps=k, alpha=alpha, seed=self.cfg.seed, warn=False)
             for k in steps
         ]
+
+
+def _spread_record(spread, forecast: dict, picked: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The real spread of start states ``picked`` (of the forecast's) as stored: per start
+    ``[n]`` (and per dimension ``[n, D]``), the real bits and the forecast's aleatoric bits,
+    per live step where the episodes end (else as time means)."""
+    aleatoric = forecast["aleatoric"][picked]  # [n, T, D]
+    real = spread["total"]
+    if "live" in spread.keys():
+        imagined_steps = forecast["live"][picked].sum(-1, keepdim=True)
+        real_steps = spread["live"].sum(-1, keepdim=True)
+    else:
+        imagined_steps = real_steps = torch.full((len(picked), 1), float(real.shape[1]))
+    by_dim = {
+        "real_by_dim": real.sum(1) / real_steps,
+        "imagined_by_dim": aleatoric.sum(1) / imagined_steps,
+    }
+    return {
+        "index": picked,
+        "real": by_dim["real_by_dim"].sum(-1),
+        "imagined": by_dim["imagined_by_dim"].sum(-1),
+        **by_dim,
+        "per_live_step": torch.tensor("live" in spread.keys()),
+    }
 
 
 def _forecast_record(data) -> dict[str, torch.Tensor]:

@@ -17,7 +17,7 @@ from rcvae_torchrl.competency import (
     expected_calibration_error,
     reliability_diagram,
 )
-from rcvae_torchrl.envs import CONTROL_TIMESTEP
+from rcvae_torchrl.envs import CONTROL_TIMESTEP, OBSERVATION_NAMES
 from rcvae_torchrl.envs.render import gl_unavailable_reason, record_episode
 from rcvae_torchrl.io import atomic_write, read_json, write_json
 from rcvae_torchrl.reporting import (
@@ -254,6 +254,7 @@ def write_report(
     far_checks: Mapping[str, Sequence[ModelChecks]] | None = None,
     forecast_checks: Mapping[str, OutcomeCheck] | None = None,
     held_out_maps: Mapping[str, PlattMap] | None = None,
+    real_spreads: Mapping[str, Mapping[str, torch.Tensor]] | None = None,
 ) -> dict[str, Any]:
     """Write table.md/.csv, the figures, episode.gif and report.md; return the summary.
 
@@ -264,7 +265,9 @@ def write_report(
     (``Study.far_checks``). ``forecast_checks``: per condition, the agent's forecasts from start
     states not scored against its real episodes from them (``Study.forecast_check``).
     ``held_out_maps``: per condition, the Platt map fitted on those episodes, whose
-    recalibration of the scored forecasts is reported beside them."""
+    recalibration of the scored forecasts is reported beside them. ``real_spreads``: per
+    condition, the real episodes' spread from some of its start states against the
+    forecast's aleatoric bits there (``Study.real_spread``)."""
     rows = {c: condition_row(c, forecasts[c], truths[c]) for c in forecasts}
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     p, y = (torch.cat(t) for t in zip(*(_pairs(forecasts[c], truths[c]) for c in forecasts)))
@@ -309,12 +312,16 @@ def write_report(
         },
         "forecast_checks": {c: found.as_dict() for c, found in forecast_checks.items()},
         "novelty": novelty_rows(forecasts, truths),
+        "real_spread": spread_rows(real_spreads or {}),
     }
     write_json(run_dir / "summary.json", summary)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
     texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
     text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)
     text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
+    if summary["real_spread"]:
+        spread = _spread_text(summary["real_spread"])
+        text = text.replace("## Uncertainty over time", spread + "## Uncertainty over time", 1)
     novelty = _novelty_text(summary["novelty"])
     text = text.replace("## The agent", novelty + "## The agent", 1)
     if model_checks or far_checks or forecast_checks:
@@ -326,6 +333,53 @@ def write_report(
         text = text.replace("## The agent", section + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
+
+
+def spread_rows(spreads: Mapping[str, Mapping[str, torch.Tensor]]) -> dict[str, dict[str, Any]]:
+    """Per condition: the forecast's aleatoric bits and the real episodes' spread from the same
+    start states (means over them), their ratio, and the dimensions with the largest excess."""
+    rows = {}
+    for condition, saved in spreads.items():
+        imagined, real = float(saved["imagined"].mean()), float(saved["real"].mean())
+        excess = (saved["imagined_by_dim"] - saved["real_by_dim"]).mean(0)
+        top = excess.argsort(descending=True)[:3].tolist()
+        rows[condition] = {
+            "starts": int(saved["index"].numel()),
+            "imagined": imagined,
+            "real": real,
+            "ratio": _ratio(imagined, real),
+            "per_live_step": bool(saved["per_live_step"]),
+            "largest_excess": {OBSERVATION_NAMES[d]: float(excess[d]) for d in top},
+        }
+    return rows
+
+
+def _spread_text(rows: Mapping[str, Mapping[str, Any]]) -> str:
+    unit = "bits per live step" if all(r["per_live_step"] for r in rows.values()) else "bits"
+    lines = [
+        "### The aleatoric bits against the real episodes' spread",
+        "",
+        "The aleatoric part claims the spread of the agent's own episodes from a start state. "
+        "Here the agent ran many more times in the real env from some of the start states "
+        "(evenly spread over the scored ones), its observations kept, and their spread was "
+        "measured as the forecast's bits are (the same bins and episode end). A model that "
+        "learned the env's noise imagines about as many bits; bits far above the real ones are "
+        "the model's own error, which its members share, so the split does not call them "
+        f"epistemic. In {unit}, summed over the dimensions:",
+        "",
+        "| condition | start states | imagined aleatoric | real spread | imagined / real | "
+        "largest excess (dimension: bits) |",
+        "|:---|---:|---:|---:|---:|:---|",
+        *[
+            f"| {c} | {r['starts']} | {r['imagined']:.2f} | {r['real']:.2f} | "
+            f"{_number(r['ratio'])} | "
+            + ", ".join(f"{name}: {bits:.2f}" for name, bits in r["largest_excess"].items())
+            + " |"
+            for c, r in rows.items()
+        ],
+        "",
+    ]
+    return "\n".join(lines) + "\n"
 
 
 def novelty_rows(

@@ -174,6 +174,12 @@ def test_bad_starts_and_a_reset_that_returns_nothing_are_named(batched):
 
     with pytest.raises(TypeError, match=r"^reset_to_state: expected the env's reset TensorDict"):
         real_outcomes(env, _still, pusher_starts(2), reset_to_state=forgets_to_return, **args)
+    # an env's seed is a 32-bit integer: seeds past it are named before any episode runs
+    too_far = r"^seed: expected episode seeds below 2\*\*32 .* got seed=42950, .* seed <= 42948"
+    with pytest.raises(ValueError, match=too_far):
+        real_outcomes(
+            env, _still, pusher_starts(2), reset_to_state=reset_to_state, seed=42950, **args
+        )
 
 
 def test_a_score_of_plain_outcomes_names_the_function_for_them():

@@ -1086,6 +1086,26 @@ def test_a_forecast_check_does_not_vouch_for_start_states_unlike_its_own(env, pl
     # a check made from a report keeps that report's start states
     from_report = OutcomeCheck.from_outcomes(report, torch.ones(3, 2, dtype=torch.bool))
     assert torch.equal(from_report.start_states, alike.double())
+    # where the check was made, said as it is: other start states, these, or some of them
+    assert checked.overall().endswith(f" Forecast check on other start states: {check.describe()}.")
+    same = OutcomeCheck.from_outcomes(
+        torch.full((3,), 0.5, dtype=torch.float64),
+        real[:3],
+        task=report.task,
+        start_states=alike,
+        min_starts=1,
+    )
+    on_these = report.with_forecast_check(same)
+    said = f"orecast check on these start states: {same.describe()}"
+    assert said in (on_these.overall() + on_these.warning)
+    partly = OutcomeCheck.from_outcomes(
+        torch.full((61,), 0.5, dtype=torch.float64),
+        torch.cat([real, real[:1]]),
+        task=report.task,
+        start_states=torch.cat([own, alike[:1]]),
+    )
+    some = report.with_forecast_check(partly).overall()
+    assert f"Forecast check on 1 of these 3 start states and others: {partly.describe()}." in some
 
 
 def test_one_sample_per_member_is_refused_when_built(env):

@@ -1,6 +1,7 @@
 """Episode collection, exploration policies, episode splits and window sampling."""
 
 import functools
+import warnings
 
 import pytest
 import torch
@@ -229,10 +230,18 @@ def test_collections_get_unique_ids_and_duplicates_are_refused(episodes):
         split_episodes(twice, 0.2)
     with pytest.raises(ValueError, match="merge_episodes"):
         make_window_buffer(twice, 8)
-    merged = merge_episodes(episodes, episodes)
+    # the same episodes twice: renumbered apart, and said to repeat (they would count twice)
+    with pytest.warns(UserWarning, match=r"^datasets: 6 of the 12 merged episodes repeat another"):
+        merged = merge_episodes(episodes, episodes)
     assert torch.equal(torch.unique(merged[TRAJ_KEY]), torch.arange(12))
     assert torch.equal(merged[TRAJ_KEY][: episodes.shape[0]], episodes[TRAJ_KEY])
     split_episodes(merged, 0.2)  # accepted
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # other episodes: nothing to say
+        shifted = episodes.clone()
+        shifted["observation"] = shifted["observation"] + 1.0
+        shifted["next", "observation"] = shifted["next", "observation"] + 1.0
+        assert len(merge_episodes(episodes, shifted)) == 2 * len(episodes)
     fewer = episodes.exclude("action")
     with pytest.raises(
         ValueError,

@@ -110,6 +110,16 @@ def test_every_stage_ran_and_left_its_outputs(runs):
         assert forecast["epistemic"].shape[-1] == 14
         truth = torch.load(d / "truth" / f"{condition}.pt", weights_only=True)
         assert truth["success"].shape[0] == START_STATES
+        # the quick profile's 2 spread starts, 4 real runs each, in the forecast's bits
+        spread = torch.load(d / "truth" / f"{condition}_spread.pt", weights_only=True)
+        assert spread["index"].tolist() == [0, START_STATES - 1]
+        assert spread["real_by_dim"].shape == spread["imagined_by_dim"].shape == (2, 14)
+        assert bool((spread["imagined"] > 0).all())  # the models' own error, at least
+        if condition != "stochastic":  # a deterministic Pusher and agent repeat an episode
+            assert not bool(spread["real"].any())
+    report = (d / "report.md").read_text()
+    assert "### The aleatoric bits against the real episodes' spread" in report
+    assert re.search(r"\| deterministic \| 2 \| [0-9.]+ \| 0\.00 \| inf \|", report), report
     assert json.loads((d / "study_config.json").read_text())["assess"]["horizon_s"] == 2.0
 
 

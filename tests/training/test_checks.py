@@ -101,6 +101,8 @@ def test_coverage_of_a_calibrated_model_and_of_a_harsher_reality(trained):
         few.message()
     )
     assert ModelChecks.from_dict(few.as_dict()).message() == few.message()
+    one = dataclasses.replace(few, episodes=1)
+    assert "spread is unchecked: 1 held-out episode lasts over 20 steps" in one.message()
     with pytest.warns(ModelCheckWarning, match="spread is unchecked"):
         check_model(result.ensemble, same, min_episodes=61)
 
