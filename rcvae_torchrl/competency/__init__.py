@@ -30,6 +30,7 @@ from rcvae_torchrl.competency.calibration import (
     expected_calibration_error,
     reliability_diagram,
 )
+from rcvae_torchrl.competency.comparison import AgentComparison, compare_agents
 from rcvae_torchrl.competency.decomposition import (
     ESTIMATORS,
     UncertaintyDecomposition,
@@ -84,6 +85,8 @@ from rcvae_torchrl.competency.validation import (
 )
 
 __all__ = [
+    "AgentComparison",
+    "compare_agents",
     # entropy estimators (bits)
     "EntropyBounds",
     "fit_gaussian_mixture_entropy_bounds",
