@@ -109,7 +109,11 @@ class UncertaintyMetric(KeyedModule):
     that have ended count in one shared terminal bin (histogram estimator only; see
     :func:`~rcvae_torchrl.competency.decompose_uncertainty`). A step where every episode has
     ended has no uncertainty, so the time means then also measure how long the episodes last;
-    two more entries measure the doubt while they run:
+    two more entries measure the doubt while they run. The terminal bin is in every dimension:
+    at a step where a share ``live`` of the samples runs, a dimension's bits are ``h(live) +
+    live·H(running samples)``, ``h`` the binary entropy of whether an episode has ended, so a
+    ``"sum"`` over dimensions counts that part once per dimension (a dimension constant within
+    an episode, such as a goal, has exactly that part and no other):
 
     - ``"live"`` ``[*B, T]``: the share of the ``E·N`` imagined episodes still running;
     - ``"per_live_step"``: the ``"summary"`` bits summed over time and divided by the steps the
