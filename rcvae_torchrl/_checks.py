@@ -31,6 +31,7 @@ __all__ = [
     "check_positive_int_or_none",
     "check_rank",
     "check_same_shape",
+    "check_same_starts",
     "check_shape",
     "check_tensor",
     "check_trailing",
@@ -231,6 +232,31 @@ def check_same_shape(name_a: str, a: Tensor, name_b: str, b: Tensor) -> None:
         raise ValueError(
             f"{name_a} and {name_b}: expected the same shape, "
             f"got {tuple(a.shape)} and {tuple(b.shape)}"
+        )
+
+
+def check_same_starts(name: str, mine: Tensor | None, theirs: Tensor | None, what: str) -> None:
+    """Refuse ``theirs`` (start states ``[B, S]`` of what ``name`` holds) where they are not
+    ``mine`` (``[B', S]``, e.g. a report's), row for row: other start states, or the same in
+    another order, judge other tasks. ``what`` says what ``name`` holds (e.g. "the real
+    episodes"). Not compared where either is not known (``None``) or the dimensions differ."""
+    if mine is None or theirs is None:
+        return
+    mine, theirs = mine.reshape(-1, mine.shape[-1]), theirs.reshape(-1, theirs.shape[-1])
+    if mine.shape[-1] != theirs.shape[-1]:
+        return
+    if mine.shape[0] != theirs.shape[0]:
+        raise ValueError(
+            f"{name}: expected {what} of the forecast's {mine.shape[0]} start states, got "
+            f"{theirs.shape[0]}"
+        )
+    differ = (mine.detach().cpu().double() - theirs.detach().cpu().double()).abs().amax(-1)
+    other = (differ > 1e-5 * (1.0 + mine.detach().cpu().double().abs().amax(-1))).nonzero()
+    if other.numel():
+        raise ValueError(
+            f"{name}: expected {what} from the forecast's start states, in its order, got "
+            f"{other.numel()} of {mine.shape[0]} other ones (the first: start {int(other[0])}); "
+            "other start states, or the same in another order, are other tasks"
         )
 
 

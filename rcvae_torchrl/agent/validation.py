@@ -30,6 +30,7 @@ from rcvae_torchrl._checks import (
     check_finite,
     check_non_negative_int,
     check_positive_int,
+    check_same_starts,
 )
 from rcvae_torchrl.competency import (
     CompetencyReport,
@@ -85,6 +86,10 @@ class RealOutcomes:
     #: ``[B, R, T, S]`` the observation after each step (``real_outcomes``'
     #: ``keep_observations``), NaN after the episode; ``None`` where not kept
     observation: torch.Tensor | None = None
+    #: ``[B, S]`` the start states' observations (``real_outcomes``' starts, or their
+    #: ``"observation"``); ``None`` where not known. A forecast of other start states, or of
+    #: these in another order, is not scored against them
+    starts: torch.Tensor | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """Plain tensors (for ``torch.save``), and what is known of the agent and the
@@ -94,7 +99,7 @@ class RealOutcomes:
             "first_step": self.first_step,
             "steps": self.steps,
         }
-        for name in ("trace", "observation"):
+        for name in ("trace", "observation", "starts"):
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
         if self.max_steps is not None:
@@ -127,6 +132,7 @@ class RealOutcomes:
             values.get("trace"),
             max_steps=None if most is None else int(most),
             observation=values.get("observation"),
+            starts=values.get("starts"),
             **known,
         )
 
@@ -171,7 +177,15 @@ class RealOutcomes:
                 "real_outcomes(..., keep_observations=True)"
             )
         steps = self.observation.shape[-2]
-        _check_steps_cover_the_boundary(boundary.success_over_time, steps)
+        limit = _decided_by(boundary.success_over_time)
+        if limit is not None and limit > steps:
+            dt = getattr(boundary, "dt", None)
+            said = "" if dt is None else f" ({limit} · dt {dt:g} {boundary.time_unit})"
+            raise ValueError(
+                f"boundary: expected a time limit within the kept episodes' {steps} steps, got "
+                f"{limit} steps{said}; a dt other than the env's step counts its time in other "
+                "steps, and episodes shorter than the limit cannot tell a survival"
+            )
         held, alive = hold_last_state(self.observation)
         success = boundary.success_over_time
         won = success(held) & alive
@@ -210,7 +224,7 @@ class RealOutcomes:
 #: what RealOutcomes knows of how its episodes were made and judged (strings, or None)
 _KNOWN = ("acting", "agent", "predicates")
 #: its entries of one row per start state
-_PER_START = ("success", "first_step", "steps", "trace", "observation")
+_PER_START = ("success", "first_step", "steps", "trace", "observation", "starts")
 
 
 def real_outcomes(
@@ -317,6 +331,7 @@ def real_outcomes(
             f"process builds its own), got {type(env).__name__}"
         )
     boundary = _boundary_of(success)
+    observed = starts.get("observation", None) if isinstance(starts, TensorDictBase) else starts
     made = {  # of the policy given, before any wrapper here
         "acting": acting_record(policy, mode),
         "agent": weights_digest(policy),
@@ -353,7 +368,21 @@ def real_outcomes(
         _warn_undecided_ends(undecided, _boundary_of(success))
     shaped = (None if v is None else v.reshape(b, r, *v.shape[1:]) for v in (*flat, observation))
     *outcomes, observation = shaped
-    return RealOutcomes(*outcomes, max_steps=max_steps, observation=observation, **made)
+    kept_starts = None
+    if isinstance(observed, torch.Tensor) and observed.dim() == 2:
+        kept_starts = observed.detach().cpu()
+    return RealOutcomes(
+        *outcomes, max_steps=max_steps, observation=observation, starts=kept_starts, **made
+    )
+
+
+def _report_starts(report: object) -> torch.Tensor | None:
+    """A report's start states ``[B, S]`` (its observations), or ``None``."""
+    data, key = getattr(report, "data", None), getattr(report, "observation_key", None)
+    if data is None or key is None or key not in data.keys(True):
+        return None
+    observed = data.get(key)
+    return observed.reshape(-1, observed.shape[-1])
 
 
 def _decided_by(success: object) -> int | None:
@@ -677,9 +706,18 @@ def score_forecast(
             "validate_forecasts"
         )
     times = {}
+    count = forecast.batch_size.numel() if isinstance(forecast, CompetencyReport) else None
+    if count is None and isinstance(forecast, torch.Tensor) and forecast.dim() == 1:
+        count = forecast.shape[0]
+    if count is not None and count != len(outcomes):
+        raise ValueError(
+            f"outcomes: expected the real outcomes of the forecast's {count} start states, got "
+            f"{len(outcomes)}"
+        )
     if isinstance(forecast, CompetencyReport):
         check_same_agent(forecast, outcomes)
         check_same_predicates(forecast, outcomes)
+        check_same_starts("outcomes", _report_starts(forecast), outcomes.starts, "real episodes")
         limit = forecast.time_limit
         outcomes = outcomes.within(limit)
         imagined = forecast.competency.get(("time_to_success", "first_step"), None)

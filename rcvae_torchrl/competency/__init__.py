@@ -66,7 +66,7 @@ from rcvae_torchrl.competency.recalibration import (
     cross_fitted_recalibration,
     fit_platt,
 )
-from rcvae_torchrl.competency.report import CompetencyReport, Reference
+from rcvae_torchrl.competency.report import CompetencyReport, RealSpread, Reference
 from rcvae_torchrl.competency.validation import (
     StartReliability,
     auroc,
@@ -156,6 +156,7 @@ __all__ = [
     # one-call assessment from start states
     "CompetencyAssessor",
     "CompetencyReport",
+    "RealSpread",
     "ImaginesRollouts",
     "PerSample",
     "Reference",

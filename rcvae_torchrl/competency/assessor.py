@@ -37,7 +37,7 @@ from rcvae_torchrl.competency.boundary import SuccessBoundary, hold_last_state
 from rcvae_torchrl.competency.decomposition import check_shuffle_samples, estimator_arg_names
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
-from rcvae_torchrl.competency.report import CompetencyReport
+from rcvae_torchrl.competency.report import CompetencyReport, RealSpread
 from rcvae_torchrl.data import acting, acting_record, exploration_mode, held_generators
 from rcvae_torchrl.fingerprint import weights_digest
 from rcvae_torchrl.rollout import as_tensor_policy, policy_reset
@@ -432,16 +432,17 @@ class CompetencyAssessor(KeyedModule):
         task = {"predicates": boundary.predicates, "time_limit": limit, "dt": self.dt}
         return fingerprint.digest({**task, "model": weights})
 
-    def real_spread(self, outcomes: Any) -> TensorDictBase:
+    def real_spread(self, outcomes: Any) -> RealSpread:
         """The agent's real episodes' spread, in bits, measured as this assessor measures the
         imagined episodes' (its bin widths, the boundary's episode end, its horizon): the
         ``R`` real episodes from each start (``outcomes``, the
         :class:`~rcvae_torchrl.agent.RealOutcomes` of ``real_outcomes(...,
         keep_observations=True)``, run for at least the horizon) as the samples of one
-        member, whose entropy is all aleatoric. The entries are a report's ``"uncertainty"``
-        ones (``"total"`` = ``"aleatoric"`` ``[B, T, D]``, ``"epistemic"`` 0, ``"time_mean"``,
-        ``"summary"``, ``"by_dim"``, and with an episode end ``"live"`` and
-        ``"per_live_step"``), batch ``[B]``.
+        member, whose entropy is all aleatoric: a :class:`RealSpread`, whose ``bits`` are a
+        report's ``"uncertainty"`` entries (``"total"`` = ``"aleatoric"`` ``[B, T, D]``,
+        ``"epistemic"`` 0, ``"time_mean"``, ``"summary"``, ``"by_dim"``, and with an episode end
+        ``"live"`` and ``"per_live_step"``), batch ``[B]``, with how they were measured and the
+        outcomes' agent and start states.
 
         A world model that learned the env's noise imagines about as many aleatoric bits from
         the same starts (:meth:`CompetencyReport.with_real_spread` compares them); far more
@@ -492,7 +493,15 @@ class CompetencyAssessor(KeyedModule):
         )
         out = spread(observed).get("uncertainty")
         out.batch_size = torch.Size([b])
-        return out
+        return RealSpread(
+            bits=out,
+            measure={k: self.measure[k] for k in ("estimator", "bin_width", "episode_end")},
+            predicates=self.boundary.predicates,
+            steps=int(self.horizon),
+            agent=getattr(outcomes, "agent", None),
+            acting=getattr(outcomes, "acting", None),
+            starts=getattr(outcomes, "starts", None),
+        )
 
     @property
     def measure(self) -> dict[str, Any]:

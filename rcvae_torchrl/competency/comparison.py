@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from rcvae_torchrl._checks import check_unit_interval
+from rcvae_torchrl._checks import check_same_starts, check_unit_interval
 from rcvae_torchrl.competency.report import CompetencyReport
 
 __all__ = ["AgentComparison", "compare_agents"]
@@ -31,6 +31,9 @@ class AgentComparison:
     low: Tensor  #: ``[B]`` lower end of its interval (the imagined samples' chance)
     high: Tensor  #: ``[B]`` upper end
     by_member: Tensor  #: ``[B, E]`` each member's P_a − P_b
+    #: ``[E]`` the interval's half width of each member's difference over the start states
+    #: (its own imagined samples' chance)
+    member_margin: Tensor
     p_a: Tensor  #: ``[B]`` agent a's P(success)
     p_b: Tensor  #: ``[B]`` agent b's
     confidence: float
@@ -39,6 +42,10 @@ class AgentComparison:
     outcome: str = "success"
     #: why either report is not trustworthy ('' when both are)
     warning: str = ""
+    #: whether both reports are of one agent (the same weights)
+    same_agent: bool = False
+    #: the reports whose forecasts no check against real episodes vouches for
+    unchecked: tuple[str, ...] = ()
 
     @property
     def mean(self) -> float:
@@ -63,11 +70,26 @@ class AgentComparison:
         return self.by_member.mean(0)
 
     @property
-    def members_agree(self) -> bool:
-        """Whether every member gives the same agent the higher chance over the start states
-        (and none a tie): where they disagree, which agent is better is epistemic doubt."""
+    def member_verdicts(self) -> Tensor:
+        """``[E]`` each member's verdict over the start states: 1 where it gives ``a`` the
+        higher chance beyond its imagined samples' chance (:attr:`member_margin`), -1 where it
+        gives ``b`` the higher one, 0 where it does not tell them apart."""
         members = self.members
-        return bool((members > 0).all() or (members < 0).all())
+        return (members > self.member_margin).long() - (members < -self.member_margin).long()
+
+    @property
+    def members_agree(self) -> bool:
+        """Whether every member gives the same agent the higher chance, each beyond its own
+        samples' chance."""
+        verdicts = self.member_verdicts
+        return bool((verdicts == 1).all() or (verdicts == -1).all())
+
+    @property
+    def members_disagree(self) -> bool:
+        """Whether some members give ``a`` the higher chance and others ``b``, each beyond its
+        own samples' chance: which agent is better is then epistemic doubt."""
+        verdicts = self.member_verdicts
+        return bool((verdicts == 1).any() and (verdicts == -1).any())
 
     def summary(self) -> str:
         """One paragraph: the two chances, their difference and its interval, and whether the
@@ -83,26 +105,47 @@ class AgentComparison:
         )
         members = self.members
         spread = f"{float(members.min()):+.2f} to {float(members.max()):+.2f}"
-        better = int((members > 0).sum())
-        if not bool(members.any()):
+        verdicts = self.member_verdicts
+        favour_a, favour_b = int((verdicts == 1).sum()), int((verdicts == -1).sum())
+        count = members.numel()
+        if self.members_agree:
             text += (
-                f" No member of the world model tells them apart (each of the "
-                f"{members.numel()} gives 0.00)."
+                f" All {count} members of the world model give "
+                f"{a if favour_a else b} the higher chance (each {spread})."
             )
-        elif self.members_agree:
+        elif self.members_disagree:
             text += (
-                f" All {members.numel()} members of the world model agree on the sign (each "
-                f"gives {spread})."
+                f" The members disagree: {favour_a} of {count} give {a} the higher chance and "
+                f"{favour_b} give {b} (their differences {spread}), each beyond its imagined "
+                "samples' chance, so the world model does not know enough of these states to "
+                "choose between the agents (epistemic doubt); real episodes of both, or more "
+                "data where they differ, would tell."
+            )
+        elif favour_a or favour_b:
+            text += (
+                f" {favour_a + favour_b} of {count} members give "
+                f"{a if favour_a else b} the higher chance beyond their imagined samples' "
+                f"chance, the others tell the agents apart no better than chance (differences "
+                f"{spread})."
             )
         else:
             text += (
-                f" The members disagree: {better} of {members.numel()} give {a} the higher "
-                f"chance (their differences {spread}), so the world model does not know enough "
-                "of these states to choose between the agents (epistemic doubt); real episodes "
-                "of both, or more data where they differ, would tell."
+                f" No member of the world model tells them apart beyond its imagined samples' "
+                f"chance (differences {spread})."
             )
         if low <= 0 <= high:
             text += " The interval holds 0: the imagined chances do not tell the agents apart."
+        if self.same_agent:
+            text += (
+                " Both reports are of one agent (the same weights): any difference is the "
+                "imagined samples' chance."
+            )
+        if self.unchecked:
+            which = "Neither report's" if len(self.unchecked) == 2 else f"{self.unchecked[0]}'s"
+            text += (
+                f" {which} forecasts are checked against real episodes (with_forecast_check): "
+                "this is the world model's verdict."
+            )
         return (f"Warning: {self.warning}. " if self.warning else "") + text
 
 
@@ -134,17 +177,11 @@ def compare_agents(
         raise ValueError(f"names: expected two non-empty names, got {names!r}")
     if a.task != b.task or not a.task:
         raise ValueError(
-            "b: expected a report of the same task as a (the same boundary, deadline and world "
-            f"model), got task {b.task[:12] or 'unknown'} against {a.task[:12] or 'unknown'}; "
+            f"b: expected a report of the same task as a, got one of {_other_task(a, b)}; "
             "assess both agents with one assessor"
         )
     starts = [r.data.get(r.observation_key) for r in (a, b)]
-    if starts[0].shape != starts[1].shape or not torch.equal(starts[0], starts[1]):
-        raise ValueError(
-            "b: expected the same start states as a, in the same order (shapes "
-            f"{tuple(starts[1].shape)} and {tuple(starts[0].shape)}); assess both agents from "
-            "the same starts"
-        )
+    check_same_starts("b", starts[0], starts[1], "a report")
     success = [r.competency.get("success").flatten(0, -3) for r in (a, b)]  # [B, E, N]
     if success[0].shape != success[1].shape:
         mine, theirs = tuple(success[0].shape[1:]), tuple(success[1].shape[1:])
@@ -152,11 +189,13 @@ def compare_agents(
             f"b: expected as many members and samples per member as a ({mine} [E, N]), got {theirs}"
         )
     pairs = success[0].double() - success[1].double()  # [B, E, N]
+    z = _z(confidence)
+    per_member = pairs.transpose(0, 1).flatten(1)  # [E, B·N]
+    member_se = per_member.std(1) / math.sqrt(per_member.shape[1])
     flat = pairs.flatten(1)
     difference = flat.mean(1)
     n = flat.shape[1]
     se = flat.std(1) / math.sqrt(n) if n > 1 else torch.zeros_like(difference)
-    z = _z(confidence)
     said = {name: r.warning for name, r in zip(names, (a, b)) if r.warning}
     if len(said) == 2 and a.warning == b.warning:  # one world model's warning, said once
         warnings = [f"both reports: {a.warning}"]
@@ -167,13 +206,27 @@ def compare_agents(
         low=(difference - z * se).clamp(-1.0, 1.0),
         high=(difference + z * se).clamp(-1.0, 1.0),
         by_member=pairs.mean(-1),
+        member_margin=(z * member_se).nan_to_num(0.0),
         p_a=success[0].double().flatten(1).mean(1),
         p_b=success[1].double().flatten(1).mean(1),
         confidence=float(confidence),
         names=tuple(names),
         outcome=a._outcome(),
         warning="; ".join(warnings),
+        same_agent=a.agent is not None and a.agent == b.agent,
+        unchecked=tuple(n for n, r in zip(names, (a, b)) if r.forecast_check is None),
     )
+
+
+def _other_task(a: CompetencyReport, b: CompetencyReport) -> str:
+    """What makes ``b``'s task another than ``a``'s, in words."""
+    if a.predicates and b.predicates and a.predicates != b.predicates:
+        return "another boundary (its predicates' code or values)"
+    if a.time_limit != b.time_limit:
+        return f"another deadline ({b.time_limit} steps against {a.time_limit})"
+    if not (a.task and b.task):
+        return "a task not known (a report built by hand)"
+    return "another world model (its weights) or step (dt)"
 
 
 def _z(confidence: float) -> float:

@@ -96,6 +96,34 @@ class Reference:
             )
 
 
+#: the parts of a measure the real spread shares with a report's bits (not the samples per
+#: member or the bias correction: the real episodes are one group of samples)
+_SPREAD_MEASURE = ("estimator", "bin_width", "episode_end")
+
+
+@dataclass(frozen=True)
+class RealSpread:
+    """The spread of an agent's real episodes from some start states, in the bits an assessor
+    measures imagined episodes in (:meth:`CompetencyAssessor.real_spread`); a report of the
+    same agent, task and start states takes it (:meth:`CompetencyReport.with_real_spread`)."""
+
+    #: the ``"uncertainty"`` entries of the real episodes, batch ``[B]`` (``"total"`` =
+    #: ``"aleatoric"``, ``"epistemic"`` 0, ``"time_mean"``, ``"summary"``, and with an episode
+    #: end ``"live"`` and ``"per_live_step"``)
+    bits: TensorDictBase
+    #: how they were measured (the assessor's estimator, bin widths and episode end)
+    measure: Mapping[str, Any]
+    #: the boundary that ended the episodes (:attr:`SuccessBoundary.predicates`)
+    predicates: str
+    #: the steps measured (the assessor's horizon)
+    steps: int
+    #: the agent and how it acted (the real outcomes'); ``None`` where not known
+    agent: str | None = None
+    acting: str | None = None
+    #: ``[B, S]`` the start states (the real outcomes'); ``None`` where not known
+    starts: Tensor | None = None
+
+
 @dataclass(frozen=True)
 class CompetencyReport:
     """The assessment of a batch of start states, and its plain-language summary.
@@ -359,7 +387,7 @@ class CompetencyReport:
         return replace(self, forecast_check=check)
 
     def with_real_spread(
-        self, spread: TensorDictBase, factor: float = 1.5, min_bits: float = 1.0
+        self, spread: RealSpread, factor: float = 1.5, min_bits: float = 1.0
     ) -> CompetencyReport:
         """This report with the spread of the agent's real episodes from the same start states,
         measured as its bits were (:meth:`CompetencyAssessor.real_spread` of
@@ -371,29 +399,53 @@ class CompetencyReport:
         do not count as epistemic (a deterministic env and agent repeat their episodes: 0 bits
         real). Where it falls short as far, a caution says that the model has not learned the
         randomness of the env and the agent. The spread is kept as the ``"real_spread"``
-        entries of :attr:`data`."""
-        if not isinstance(spread, TensorDictBase) or "total" not in spread.keys():
+        entries of :attr:`data`.
+
+        A spread of other start states (or in another order), of another agent, measured
+        otherwise (other bins, no episode end), over other steps or ended by another boundary is
+        refused: it would not be the spread these bits claim."""
+        if not isinstance(spread, RealSpread):
             raise TypeError(
-                "spread: expected the entries of CompetencyAssessor.real_spread, got "
+                "spread: expected the RealSpread of CompetencyAssessor.real_spread, got "
                 f"{type(spread).__name__}"
             )
-        if spread.batch_size.numel() != self.batch_size.numel():
+        count = spread.bits.batch_size.numel()
+        if count != self.batch_size.numel():
             raise ValueError(
                 f"spread: expected the real episodes of this report's {self.batch_size.numel()} "
-                f"start states, got {spread.batch_size.numel()}"
+                f"start states, got {count}"
             )
+        mine = _as_json({k: (self.measure or {}).get(k) for k in _SPREAD_MEASURE})
+        theirs = _as_json({k: spread.measure.get(k) for k in _SPREAD_MEASURE})
+        steps = self._imagined_steps()
+        if steps is not None:
+            mine["steps"], theirs["steps"] = steps, spread.steps
+        if self.predicates is not None:
+            mine["boundary"], theirs["boundary"] = self.predicates[:12], spread.predicates[:12]
+        differ = [k for k in mine if self.measure is not None or k in ("steps", "boundary")]
+        differ = [k for k in differ if mine[k] != theirs[k]]
+        if differ:
+            said = "; ".join(f"{k}: {theirs[k]!r}, this report's {mine[k]!r}" for k in differ)
+            raise ValueError(
+                f"spread: measured otherwise than this report's bits ({said}); measure it with "
+                "the assessor that made the report (assessor.real_spread)"
+            )
+        check_same_agent(self, spread, name="spread")
+        observed = self.data.get(self.observation_key, None)
+        _checks.check_same_starts("spread", observed, spread.starts, "real episodes")
         _checks.check_positive("factor", factor)
         if factor < 1:
             raise ValueError(f"factor: expected >= 1, got {factor!r}")
         _checks.check_non_negative("min_bits", min_bits)
         data = self.data.clone(recurse=False)
-        data.set("real_spread", spread.reshape(self.batch_size))
+        data.set("real_spread", spread.bits.reshape(self.batch_size))
         return replace(self, data=data, spread_tolerance=(float(factor), float(min_bits)))
 
     def _spread_sentence(self, uncertainty: TensorDictBase, spread: TensorDictBase | None) -> str:
         """The real episodes' spread beside the aleatoric bits (means over the start states
-        given), with a caution where they lie farther apart than :attr:`spread_tolerance`;
-        '' without a real spread."""
+        given), per live step where both have live steps (and as time means, the unit of the
+        split above), with a caution where they lie farther apart than
+        :attr:`spread_tolerance`; '' without a real spread."""
         if spread is None:
             return ""
         live = "per_live_step" in spread.keys() and "per_live_step" in uncertainty.keys()
@@ -401,10 +453,21 @@ class CompetencyReport:
         real = float(_bits(spread, live).get("total").mean())
         n = spread.batch_size.numel()
         starts = "this start state" if n == 1 else f"these {n} start states"
-        text = (
-            f"The agent's real episodes from {starts} spread {real:.2f} {_unit(live)}, the "
-            f"imagined aleatoric part {aleatoric:.2f}."
-        )
+        if live:
+            means = (
+                float(_bits(spread, False).get("total").mean()),
+                float(_bits(uncertainty, False).get("aleatoric").mean()),
+            )
+            text = (
+                f"The agent's real episodes from {starts} spread {real:.2f} bits per live step "
+                f"({means[0]:.2f} as a time mean), the imagined aleatoric part {aleatoric:.2f} "
+                f"({means[1]:.2f})."
+            )
+        else:
+            text = (
+                f"The agent's real episodes from {starts} spread {real:.2f} bits, the imagined "
+                f"aleatoric part {aleatoric:.2f}."
+            )
         factor, least = self.spread_tolerance
         if aleatoric > factor * real and aleatoric - real >= least:
             text += (

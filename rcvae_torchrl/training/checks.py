@@ -796,6 +796,10 @@ class OutcomeCheck:
             if state_scale is None and scale is not None and scale.numel() == dims:
                 state_scale = scale
             forecast = forecast.competency["p_success"]
+        # real episodes from other start states (or in another order) judge other tasks
+        _checks.check_same_starts(
+            "real_success", start_states, getattr(real_success, "starts", None), "real episodes"
+        )
         if task is not None and not isinstance(task, str):
             raise TypeError(f"task: expected a report's task (a str), got {type(task).__name__}")
         if callable(getattr(real_success, "within", None)):  # a RealOutcomes

@@ -605,7 +605,7 @@ class Study:
                     runs=s.spread_runs,
                     keep_observations=True,
                 )
-            spread = self.assessor(model_name, variant).real_spread(outcomes)
+            spread = self.assessor(model_name, variant).real_spread(outcomes).bits
             if distributed.is_main():
                 save_torch(path, _spread_record(spread, forecast, picked))
             distributed.barrier()

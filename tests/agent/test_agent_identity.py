@@ -183,3 +183,41 @@ def test_a_forecast_is_not_scored_against_episodes_judged_by_another_boundary():
         score_forecast(report, judged)
     with pytest.raises(ValueError, match=refused.format("real_success")):
         OutcomeCheck.from_outcomes(report, judged)
+
+
+def test_a_forecast_is_not_scored_against_episodes_from_other_starts_or_order():
+    agent = linear_policy(14, seed=0)
+    report, own = _report_and_outcomes(agent)
+    starts = report.data["observation"]
+    kept = RealOutcomes(own.success, own.first_step, own.steps, starts=starts.double())
+    assert set(score_forecast(report, kept)) and OutcomeCheck.from_outcomes(report, kept)
+    assert torch.equal(kept[2:5].starts, starts[2:5].double())  # indexing keeps them
+    assert torch.equal(RealOutcomes.from_dict(kept.as_dict()).starts, kept.starts)
+    order = torch.arange(11, -1, -1)
+    shuffled = RealOutcomes(own.success, own.first_step, own.steps, starts=starts[order])
+    other = r"^{}: expected real episodes from the forecast's start states, in its order, got "
+    with pytest.raises(ValueError, match=other.format("outcomes") + r"12 of 12 other ones"):
+        score_forecast(report, shuffled)
+    with pytest.raises(ValueError, match=other.format("real_success") + r"12 of 12 other"):
+        OutcomeCheck.from_outcomes(report, shuffled)
+    moved = starts.clone()
+    moved[3] += 0.5
+    one_off = RealOutcomes(own.success, own.first_step, own.steps, starts=moved)
+    with pytest.raises(ValueError, match=r"1 of 12 other ones \(the first: start 3\)"):
+        score_forecast(report, one_off)
+    with pytest.raises(
+        ValueError,
+        match=r"^outcomes: expected the real outcomes of the forecast's 12 start "
+        r"states, got 3$",
+    ):
+        score_forecast(report, own[:3])
+    with pytest.raises(ValueError, match=r"^outcomes: expected the real outcomes of the forecast"):
+        score_forecast(report.competency["p_success"], own[:3])
+
+
+def test_real_outcomes_keep_their_start_states():
+    policy = linear_policy(4, seed=0)
+    near = SuccessBoundary.within_distance(_distance, 0.25, time_limit=8)
+    outcomes = _real(policy, near.success_over_time)
+    env = point_mass()
+    assert torch.equal(outcomes.starts, env.reset()["observation"].expand(3, -1))

@@ -149,3 +149,11 @@ def test_kept_episodes_judged_by_another_boundary_equal_a_run_judged_by_it(batch
         direct.judged_by(near)
     with pytest.raises(TypeError, match=r"^boundary: expected a SuccessBoundary, got function"):
         kept.judged_by(ball_to_target)
+    # a boundary of other steps (a dt other than the env's 0.05 s): named with its time limit
+    finer = SuccessBoundary.within_distance(ball_to_target, 0.12, time_limit_s=3.0, dt=0.01)
+    with pytest.raises(
+        ValueError,
+        match=r"^boundary: expected a time limit within the kept episodes' 60 steps, got 300 "
+        r"steps \(300 · dt 0.01 s\); a dt other than the env's step",
+    ):
+        kept.judged_by(finer)

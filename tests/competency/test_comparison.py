@@ -11,8 +11,18 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
-from rcvae_torchrl.competency import AgentComparison, compare_agents
-from tests.competency.test_assessor import E, S, make_assessor, make_ensemble, make_env
+from rcvae_torchrl.competency import AgentComparison, SuccessBoundary, compare_agents
+from rcvae_torchrl.envs import obs_indices
+from tests.competency.test_assessor import (
+    DT,
+    E,
+    S,
+    T,
+    boundary,
+    make_assessor,
+    make_ensemble,
+    make_env,
+)
 
 N = 8
 
@@ -66,18 +76,35 @@ def test_the_difference_and_its_interval_in_closed_form():
     torch.testing.assert_close(compared.low, torch.full((2,), 0.5 - half, dtype=torch.float64))
     torch.testing.assert_close(compared.high, torch.full((2,), 0.5 + half, dtype=torch.float64))
     assert compared.interval == pytest.approx((0.5, 0.5))  # alike starts: no spread over tasks
-    assert not compared.members_agree  # member 2 ties: it does not tell them apart
+    # member 0 always, member 1 half the time: beyond chance; member 2 ties
+    assert compared.member_verdicts.tolist() == [1, 1, 0]
+    assert not compared.members_agree and not compared.members_disagree
     text = compared.summary()
     assert text.startswith("Over 2 start states: P(success within 0.3 s) 1.00 for A and 0.50")
     assert "A − B = +0.50 (95% interval +0.50 to +0.50)." in text
-    assert "The members disagree: 2 of 3 give A the higher chance" in text
+    assert (
+        "2 of 3 members give A the higher chance beyond their imagined samples' chance, the "
+        "others tell the agents apart no better than chance (differences +0.00 to +1.00)."
+    ) in text
+    assert text.endswith(
+        "Neither report's forecasts are checked against real episodes (with_forecast_check): "
+        "this is the world model's verdict."
+    )
+    # members on both sides, each beyond its chance: epistemic doubt
+    flipped = b_success.clone()
+    flipped[:, 2] = True
+    a_success = ones.clone()
+    a_success[:, 2] = False
+    split = compare_agents(_with_success(a, a_success), _with_success(b, flipped))
+    assert split.member_verdicts.tolist() == [1, 1, -1] and split.members_disagree
+    assert "The members disagree: 2 of 3 give A the higher chance and 1 give B" in split.summary()
 
 
 def test_members_that_agree_and_an_interval_that_holds_zero():
     _, _, (a, b) = _reports()
     g = torch.Generator().manual_seed(3)
-    a_success = torch.rand(2, E, N, generator=g) < torch.tensor([0.9, 0.2])[:, None, None]
-    b_success = torch.rand(2, E, N, generator=g) < torch.tensor([0.6, 0.1])[:, None, None]
+    a_success = torch.rand(2, E, N, generator=g) < torch.tensor([0.95, 0.9])[:, None, None]
+    b_success = torch.rand(2, E, N, generator=g) < torch.tensor([0.1, 0.2])[:, None, None]
     compared = compare_agents(
         _with_success(a, a_success),
         _with_success(b, b_success),
@@ -89,18 +116,21 @@ def test_members_that_agree_and_an_interval_that_holds_zero():
     low, high = compared.interval
     d = compared.difference.double()
     half = 1.959964 * float(d.std()) / math.sqrt(2)
-    assert (low, high) == pytest.approx((compared.mean - half, compared.mean + half))
+    assert (low, high) == pytest.approx((compared.mean - half, min(compared.mean + half, 1.0)))
     text = compared.summary()
     assert "for planner and" in text and "planner − policy =" in text
     # these draws: every member gives the planner the higher chance, and 0 is outside
-    assert compared.members_agree and bool((compared.members > 0).all()) and low > 0
-    assert f"All {E} members of the world model agree on the sign (each gives +" in text
+    assert compared.members_agree and compared.member_verdicts.tolist() == [1] * E and low > 0
+    assert f"All {E} members of the world model give planner the higher chance (each +" in text
     assert "The interval holds 0" not in text
     same = compare_agents(a, a)
     assert not bool(same.difference.any()) and not bool(same.by_member.any())
     said = same.summary()
-    assert f"No member of the world model tells them apart (each of the {E} gives 0.00)" in said
-    assert said.endswith("The interval holds 0: the imagined chances do not tell the agents apart.")
+    assert "No member of the world model tells them apart beyond its imagined samples' chance" in (
+        said
+    )
+    assert "Both reports are of one agent (the same weights)" in said
+    assert "The interval holds 0: the imagined chances do not tell the agents apart." in said
 
 
 def test_reports_of_another_task_or_other_starts_are_refused():
@@ -108,10 +138,25 @@ def test_reports_of_another_task_or_other_starts_are_refused():
     other_task = make_assessor(make_env(make_ensemble(seed=1)), samples_per_member=N).assess(
         starts, policy=_agent(0.5), seed=0
     )
-    with pytest.raises(ValueError, match=r"^b: expected a report of the same task as a"):
+    other = r"^b: expected a report of the same task as a, got one of {}"
+    with pytest.raises(ValueError, match=other.format(r"another world model \(its weights\)")):
         compare_agents(a, other_task)
-    moved = assessor.assess(starts + 0.01, policy=_agent(0.5), seed=0)
-    with pytest.raises(ValueError, match=r"^b: expected the same start states as a"):
+    shorter = make_assessor(
+        make_env(make_ensemble()), samples_per_member=N, boundary=boundary(time_limit=T - 2)
+    ).assess(starts, policy=_agent(0.5), seed=0)
+    with pytest.raises(ValueError, match=other.format(rf"another deadline \({T - 2} steps ")):
+        compare_agents(a, shorter)
+    wider = SuccessBoundary.ball(
+        obs_indices("ball"), 0.05, target=obs_indices("target"), time_limit=T, dt=DT
+    )
+    radius = make_assessor(make_env(make_ensemble()), samples_per_member=N, boundary=wider)
+    with pytest.raises(ValueError, match=other.format("another boundary")):
+        compare_agents(a, radius.assess(starts, policy=_agent(0.5), seed=0))
+    shifted = starts.clone()
+    shifted[1] += 0.01
+    moved = assessor.assess(shifted, policy=_agent(0.5), seed=0)
+    elsewhere = r"^b: expected a report from the forecast's start states, in its order, got 1 of 2"
+    with pytest.raises(ValueError, match=elsewhere + r" other ones \(the first: start 1\)"):
         compare_agents(a, moved)
     fewer = make_assessor(make_env(make_ensemble()), samples_per_member=4).assess(
         starts, policy=_agent(0.5), seed=0

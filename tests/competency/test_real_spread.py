@@ -8,12 +8,15 @@ bits of a step are those of the process over states and {ended}.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
 from rcvae_torchrl.agent import RealOutcomes
+from rcvae_torchrl.competency import RealSpread
 from rcvae_torchrl.envs import obs_indices, resolution_tensor
+from rcvae_torchrl.fingerprint import weights_digest
 from tests.competency.test_assessor import T, make_assessor, make_ensemble, make_env
 
 R, S = 4, 14
@@ -43,7 +46,7 @@ def _outcomes(obs: torch.Tensor) -> RealOutcomes:
 @pytest.mark.parametrize("episode_end", [False, True])
 def test_the_real_spread_in_closed_form(episode_end):
     assessor = make_assessor(make_env(make_ensemble()), episode_end=episode_end)
-    spread = assessor.real_spread(_outcomes(_episodes()))
+    spread = assessor.real_spread(_outcomes(_episodes())).bits
     assert spread.batch_size == (2,)
     total = spread["total"]  # [2, T, S]
     assert total.shape == (2, T, S)
@@ -87,34 +90,64 @@ def test_a_report_says_where_its_aleatoric_bits_leave_the_real_spread():
     assessor = make_assessor(make_env(make_ensemble()), episode_end=True)
     report = assessor.assess(_episodes()[:, 0, 0], actions=torch.zeros(T, 2), seed=0)
     spread = assessor.real_spread(_outcomes(_episodes()))
+    assert isinstance(spread, RealSpread) and spread.steps == T
     aleatoric = report.uncertainty["per_live_step", "aleatoric"]
     assert bool((aleatoric > 1.0).all())  # an untrained model: bits of its own error
     attached = report.with_real_spread(spread)
-    assert torch.equal(attached.data["real_spread", "total"], spread["total"])
+    assert torch.equal(attached.data["real_spread", "total"], spread.bits["total"])
     first = attached.summary(0)
-    assert "The agent's real episodes from this start state spread 0.00 bits per live step, " in (
-        first
-    )
-    assert f"the imagined aleatoric part {float(aleatoric[0]):.2f}." in first
+    mean = float(report.uncertainty["summary", "aleatoric"][0])
+    assert (
+        "The agent's real episodes from this start state spread 0.00 bits per live step (0.00 "
+        f"as a time mean), the imagined aleatoric part {float(aleatoric[0]):.2f} ({mean:.2f})."
+    ) in first
     assert "Caution: the aleatoric bits overstate the real episodes' spread" in first
-    real = float(spread["per_live_step", "total"].mean())
+    real = float(spread.bits["per_live_step", "total"].mean())
     overall = attached.overall()
     assert f"from these 2 start states spread {real:.2f} bits per live step" in overall
     assert "overstate" in overall
     assert "real episodes from" not in report.overall()  # none attached: nothing said
     # real episodes spread far wider than imagined: the model has not learned the noise
-    wide = spread.clone()
+    wide = spread.bits.clone()
     wide["per_live_step", "total"] = aleatoric * 10
-    said = report.with_real_spread(wide).summary(1)
+    said = report.with_real_spread(replace(spread, bits=wide)).summary(1)
     assert "Caution: the aleatoric bits understate the real episodes' spread" in said
     # within the tolerance: no caution
-    near = spread.clone()
+    near = spread.bits.clone()
     near["per_live_step", "total"] = aleatoric * 1.2
+    near = replace(spread, bits=near)
     assert "Caution: the aleatoric bits" not in report.with_real_spread(near).summary(0)
     assert "Caution: the aleatoric bits" in report.with_real_spread(near, factor=1.1).summary(0)
-    with pytest.raises(ValueError, match=r"^spread: expected the real episodes of this report's 2"):
-        report.with_real_spread(spread[:1])
     with pytest.raises(ValueError, match=r"^factor: expected >= 1, got 0.5"):
         report.with_real_spread(spread, factor=0.5)
-    with pytest.raises(TypeError, match=r"^spread: expected the entries of CompetencyAssessor"):
-        report.with_real_spread(spread["total"])
+
+
+def test_a_spread_of_other_starts_agent_or_measure_is_refused():
+    assessor = make_assessor(make_env(make_ensemble()), episode_end=True)
+    starts = _episodes()[:, 0, 0]
+    report = assessor.assess(starts, actions=torch.zeros(T, 2), seed=0)
+    spread = assessor.real_spread(_outcomes(_episodes()))
+    with pytest.raises(TypeError, match=r"^spread: expected the RealSpread of CompetencyAssess"):
+        report.with_real_spread(report.uncertainty)  # imagined bits are no real spread
+    with pytest.raises(ValueError, match=r"^spread: expected the real episodes of this report's 2"):
+        report.with_real_spread(replace(spread, bits=spread.bits[:1]))
+    wider = make_assessor(
+        make_env(make_ensemble()), episode_end=True, bin_width=resolution_tensor() * 10
+    )
+    with pytest.raises(ValueError, match=r"^spread: measured otherwise than this report's bits "):
+        report.with_real_spread(wider.real_spread(_outcomes(_episodes())))
+    no_end = make_assessor(make_env(make_ensemble()))
+    with pytest.raises(ValueError, match=r"episode_end: False, this report's True"):
+        report.with_real_spread(no_end.real_spread(_outcomes(_episodes())))
+    with pytest.raises(ValueError, match=rf"steps: {T + 2}, this report's {T}"):
+        report.with_real_spread(replace(spread, steps=T + 2))
+    agent, other = (torch.nn.Linear(S, 2) for _ in range(2))
+    mine = replace(report, agent=weights_digest(agent))
+    with pytest.raises(ValueError, match=r"^spread: the real episodes are of another agent"):
+        mine.with_real_spread(replace(spread, agent=weights_digest(other)))
+    assert mine.with_real_spread(replace(spread, agent=weights_digest(agent))).data is not None
+    moved = starts.clone()
+    moved[1, 0] += 1.0
+    with pytest.raises(ValueError, match=r"^spread: expected real episodes from the forecast's "):
+        report.with_real_spread(replace(spread, starts=moved))
+    assert report.with_real_spread(replace(spread, starts=starts)).data is not None
