@@ -92,8 +92,9 @@ class RealOutcomes:
     starts: torch.Tensor | None = None
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain tensors (for ``torch.save``), and what is known of the agent and the
-        predicates that judged them, as strings."""
+        """Plain values (for ``torch.save``): the tensors (the kept observations and start
+        states where known), and what is known of the agent and of the predicates that judged
+        the episodes, as strings."""
         out: dict[str, Any] = {
             "success": self.success,
             "first_step": self.first_step,

@@ -13,15 +13,8 @@ from collections.abc import Iterator, Sequence
 import torch
 from tensordict.nn import ProbabilisticTensorDictModule, TensorDictModule
 from torch import nn
+from torchrl import modules as torchrl_modules
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
-from torchrl.modules import (
-    AdditiveGaussianModule,
-    AdditiveGaussianWrapper,
-    EGreedyModule,
-    EGreedyWrapper,
-    OrnsteinUhlenbeckProcessModule,
-    OrnsteinUhlenbeckProcessWrapper,
-)
 from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
@@ -160,12 +153,11 @@ def check_same_acting(forecast: str | None, real: str | None, name: str = "outco
 #: sampling module (inside a ``ProbabilisticActor``) and the exploration noise modules
 _BY_MODE = (
     ProbabilisticTensorDictModule,
-    AdditiveGaussianModule,
-    AdditiveGaussianWrapper,
-    EGreedyModule,
-    EGreedyWrapper,
-    OrnsteinUhlenbeckProcessModule,
-    OrnsteinUhlenbeckProcessWrapper,
+    *(
+        getattr(torchrl_modules, f"{noise}{kind}")
+        for noise in ("AdditiveGaussian", "EGreedy", "OrnsteinUhlenbeckProcess")
+        for kind in ("Module", "Wrapper")
+    ),
 )
 
 
