@@ -357,8 +357,9 @@ def real_outcomes(
     seeds = [seed * 100_003 + i for i in mine]
     episodes = (starts, index, seeds, max_steps, success, trace, keep_observations)
     show = progress and distributed.is_main()
+    sampled = made["acting"] == ExplorationType.RANDOM.value  # draws of its own per action
     part = (
-        _my_outcomes(env, workers, policy, reset_to_state, episodes, show, desc, mode)
+        _my_outcomes(env, workers, policy, reset_to_state, episodes, show, desc, mode, sampled)
         if mine
         else None
     )
@@ -484,6 +485,7 @@ def _my_outcomes(
     show: bool,
     desc: str,
     mode: ExplorationType,
+    sampled: bool = False,
 ) -> tuple:
     """``(success, first_step, steps, trace or None, observation or None, fingerprints,
     undecided or None)`` of this process's ``episodes`` (a fingerprint: the sum of an
@@ -491,6 +493,8 @@ def _my_outcomes(
     boundary decided nothing, see :func:`_undecided_ends`):
     in ``workers`` processes, in a batched env, or one at a time."""
     if workers > 1:
+        if sampled:
+            _warn_side_by_side_draws(f"workers={workers}")
         pool = episode_workers(env, workers, reset_to_state)
         try:
             _check_batch(pool.batch_size[1:])
@@ -502,6 +506,8 @@ def _my_outcomes(
     env = env() if callable(env) and not isinstance(env, EnvBase) else env
     _check_batch(env.batch_size)
     if env.batch_size:
+        if sampled:
+            _warn_side_by_side_draws(f"a batched env of {env.batch_size.numel()}")
         start = partial(start_episodes, reset_to_state=reset_to_state)
         return _batched_outcomes(env, start, policy, *episodes, show, desc, mode)
     starts, index, seeds, max_steps, success, trace, keep = episodes
@@ -519,6 +525,20 @@ def _my_outcomes(
         exploration_type=mode,
     )
     return _outcomes(stats, len(seeds), success, trace, max_steps, keep)
+
+
+def _warn_side_by_side_draws(how: str) -> None:
+    """Warn that a policy sampling its actions draws them otherwise side by side (``how``)
+    than one episode at a time: its outcomes are other draws of the same chances."""
+    warnings.warn(
+        f"policy: it samples its actions (a stochastic policy acting 'random'), and with {how} "
+        "its episodes run side by side, each group's draws seeded by its first episode's seed: "
+        "they are other draws of the same chances than the one-env run's (and than a run with "
+        "other workers or envs), not the same episodes. Run one env (torchrun ranks keep the "
+        "one-env episodes) where the episodes themselves must repeat",
+        UserWarning,
+        stacklevel=4,
+    )
 
 
 def _check_batch(batch_size: torch.Size) -> None:

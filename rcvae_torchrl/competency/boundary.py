@@ -422,8 +422,9 @@ def check_same_predicates(forecast: object, real: object, name: str = "outcomes"
     raise ValueError(
         f"{name}: the real episodes were judged by another boundary than the forecast's: its "
         f"predicates' code or values differ (digest {theirs[:12]}, the forecast's "
-        f"{mine[:12]}; e.g. another radius), so the two answer different tasks; run "
-        "real_outcomes with success=boundary.success_over_time of the assessor's boundary"
+        f"{mine[:12]}; e.g. another radius), so the two answer different tasks; judge kept "
+        "episodes again with outcomes.judged_by(boundary), or run real_outcomes with "
+        "success=boundary.success_over_time, of the assessor's boundary"
     )
 
 

@@ -123,6 +123,17 @@ class RealSpread:
     #: ``[B, S]`` the start states (the real outcomes'); ``None`` where not known
     starts: Tensor | None = None
 
+    def __repr__(self) -> str:
+        count = self.bits.batch_size.numel()
+        unit = "per_live_step" if "per_live_step" in self.bits.keys() else "summary"
+        bits = float(self.bits.get((unit, "total")).mean())
+        agent = None if self.agent is None else self.agent[:12]
+        return (
+            f"RealSpread(start_states={count}, steps={self.steps}, "
+            f"{unit.replace('summary', 'time_mean')}_bits={bits:.2f}, agent={agent!r}, "
+            f"acting={self.acting!r})"
+        )
+
 
 @dataclass(frozen=True)
 class CompetencyReport:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from types import SimpleNamespace
 
 import pytest
@@ -157,3 +158,45 @@ def test_kept_episodes_judged_by_another_boundary_equal_a_run_judged_by_it(batch
         r"steps \(300 · dt 0.01 s\); a dt other than the env's step",
     ):
         kept.judged_by(finer)
+
+
+class _Spread(torch.nn.Module):
+    """A stochastic arm: loc and scale of its two actions from the observation."""
+
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc = -observation[..., 4:6].clamp(-1, 1)
+        return loc, torch.full_like(loc, 0.5)
+
+
+def sampling_arm():
+    """A ProbabilisticActor for the Pusher's arm (sampled by default)."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.modules import ProbabilisticActor, TanhNormal
+
+    return ProbabilisticActor(
+        TensorDictModule(_Spread(), in_keys=["observation"], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        out_keys=["action"],
+        distribution_class=TanhNormal,
+        distribution_kwargs={"low": -1.0, "high": 1.0},
+    )
+
+
+def test_a_sampling_policy_run_side_by_side_is_said_to_draw_otherwise():
+    actor = sampling_arm()
+    args = dict(
+        runs_per_start=2, reset_to_state=reset_to_state, max_steps=5, progress=False, seed=1
+    )
+    side_by_side = r"^policy: it samples its actions .* with a batched env of 2 its episodes"
+    with pytest.warns(UserWarning, match=side_by_side):
+        real_outcomes(make_batched_pusher_env(2), actor, pusher_starts(1), **args)
+    with warnings.catch_warnings(record=True) as caught:  # by its mean: the one-env episodes
+        warnings.simplefilter("always")
+        real_outcomes(
+            make_batched_pusher_env(2),
+            actor,
+            pusher_starts(1),
+            exploration_type="deterministic",
+            **args,
+        )
+    assert not [w for w in caught if "samples its actions" in str(w.message)]

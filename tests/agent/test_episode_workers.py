@@ -98,3 +98,12 @@ def test_workers_need_a_positive_count_and_an_env_factory():
         real_outcomes(make(), policy, starts, workers=2, **args)
     one = real_outcomes(make, policy, starts, workers=1, **args)  # a factory, in this process
     assert one.steps.tolist() == [[2]]
+
+
+def test_a_sampling_policy_over_workers_is_said_to_draw_otherwise():
+    from tests.agent.test_batched_outcomes import sampling_arm
+
+    make = partial(make_pusher_env, "deterministic")
+    args = dict(runs_per_start=2, reset_to_state=reset_to_state, max_steps=2, progress=False)
+    with pytest.warns(UserWarning, match=r"^policy: it samples its actions .* with workers=2 "):
+        real_outcomes(make, sampling_arm(), pusher_starts(1), workers=2, **args)

@@ -91,6 +91,11 @@ def test_a_report_says_where_its_aleatoric_bits_leave_the_real_spread():
     report = assessor.assess(_episodes()[:, 0, 0], actions=torch.zeros(T, 2), seed=0)
     spread = assessor.real_spread(_outcomes(_episodes()))
     assert isinstance(spread, RealSpread) and spread.steps == T
+    real = float(spread.bits["per_live_step", "total"].mean())
+    assert repr(spread) == (
+        f"RealSpread(start_states=2, steps={T}, per_live_step_bits={real:.2f}, agent=None, "
+        "acting=None)"
+    )
     aleatoric = report.uncertainty["per_live_step", "aleatoric"]
     assert bool((aleatoric > 1.0).all())  # an untrained model: bits of its own error
     attached = report.with_real_spread(spread)
