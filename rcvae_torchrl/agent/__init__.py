@@ -25,7 +25,7 @@ from .starts import (
     reset_to_physics,
     start_episodes,
 )
-from .validation import RealOutcomes, real_outcomes, score_forecast
+from .validation import RealOutcomes, real_outcomes, score_comparison, score_forecast
 from .workers import EpisodeStartEnv, episode_workers, start_worker_episodes
 
 __all__ = [
@@ -57,6 +57,7 @@ __all__ = [
     # the real agent against a forecast
     "RealOutcomes",
     "real_outcomes",
+    "score_comparison",
     "score_forecast",
     # MPC agent
     "PlannerConfig",

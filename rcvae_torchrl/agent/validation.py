@@ -56,7 +56,7 @@ from .policy import FixedRowsPolicy
 from .starts import reset_by_seed, start_episodes
 from .workers import episode_workers, start_worker_episodes
 
-__all__ = ["RealOutcomes", "real_outcomes", "score_forecast"]
+__all__ = ["RealOutcomes", "real_outcomes", "score_comparison", "score_forecast"]
 
 
 @dataclass
@@ -750,3 +750,61 @@ def score_forecast(
         forecast = forecast.competency["p_success"]
     scores = validate_forecasts(forecast.cpu(), outcomes.success, base_rate=base_rate)
     return {**scores, **times}
+
+
+def score_comparison(
+    a: CompetencyReport,
+    b: CompetencyReport,
+    real_a: RealOutcomes,
+    real_b: RealOutcomes,
+    *,
+    confidence: float = 0.95,
+) -> dict[str, float]:
+    """Two agents' forecast difference (:func:`~rcvae_torchrl.competency.compare_agents` of
+    reports ``a`` and ``b``) against their real one: each agent's real episodes from the same
+    start states (``real_a``, ``real_b``), each checked against its own report as
+    :func:`score_forecast` checks them (the agent, the boundary, the start states, successes
+    within the deadline). Returns the forecast difference P_a − P_b over the start states and
+    its interval (``forecast``, ``forecast_low``, ``forecast_high``), the real one and its
+    interval over the start states (``real``, ``real_low``, ``real_high``: a normal interval of
+    the mean of the per-start differences of the real rates), ``gap`` (forecast minus real),
+    ``same_sign`` (1.0 where both name the same agent as the better one, or both a tie) and
+    ``per_start_mae`` (the mean absolute error of the per-start differences)."""
+    from rcvae_torchrl.competency import compare_agents
+
+    compared = compare_agents(a, b, confidence=confidence)
+    rates = []
+    for name, report, outcomes in (("real_a", a, real_a), ("real_b", b, real_b)):
+        if not isinstance(outcomes, RealOutcomes):
+            raise TypeError(
+                f"{name}: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"
+            )
+        if len(outcomes) != report.batch_size.numel():
+            raise ValueError(
+                f"{name}: expected the real outcomes of the reports' "
+                f"{report.batch_size.numel()} start states, got {len(outcomes)}"
+            )
+        check_same_agent(report, outcomes, name=name)
+        check_same_predicates(report, outcomes, name=name)
+        check_same_starts(name, _report_starts(report), outcomes.starts, "real episodes")
+        rates.append(outcomes.within(report.time_limit).success.double().mean(1))
+    real = rates[0] - rates[1]  # [B]
+    n = real.numel()
+    z = float(torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + confidence / 2)))
+    half = z * float(real.std()) / math.sqrt(n) if n > 1 else 0.0
+    forecast = compared.mean
+    low, high = compared.interval
+    mean = float(real.mean())
+    return {
+        "forecast": forecast,
+        "forecast_low": low,
+        "forecast_high": high,
+        "real": mean,
+        "real_low": max(mean - half, -1.0),
+        "real_high": min(mean + half, 1.0),
+        "gap": forecast - mean,
+        "same_sign": float(math.copysign(1, forecast) == math.copysign(1, mean))
+        if forecast and mean
+        else float(forecast == mean == 0),
+        "per_start_mae": float((compared.difference.cpu() - real).abs().mean()),
+    }

@@ -9,6 +9,7 @@ refused by name.
 from __future__ import annotations
 
 import json
+import math
 import warnings
 
 import pytest
@@ -221,3 +222,40 @@ def test_real_outcomes_keep_their_start_states():
     outcomes = _real(policy, near.success_over_time)
     env = point_mass()
     assert torch.equal(outcomes.starts, env.reset()["observation"].expand(3, -1))
+
+
+def test_a_comparison_of_two_agents_is_scored_against_their_real_episodes():
+    from rcvae_torchrl.agent import score_comparison
+    from rcvae_torchrl.competency import compare_agents
+
+    first, second = linear_policy(14, seed=0), linear_policy(14, seed=1)
+    a, _ = _report_and_outcomes(first)
+    b, _ = _report_and_outcomes(second)
+    starts = a.data["observation"]
+    success_a = torch.zeros(12, 4, dtype=torch.bool)
+    success_a[:6] = True  # agent a always succeeds from the first 6 starts, never after
+    success_b = torch.zeros(12, 4, dtype=torch.bool)
+
+    def outcomes(success, policy):
+        first_step = torch.where(success, 2, 6)
+        return RealOutcomes(
+            success, first_step, first_step + 1, agent=weights_digest(policy), starts=starts
+        )
+
+    real_a, real_b = outcomes(success_a, first), outcomes(success_b, second)
+    scored = score_comparison(a, b, real_a, real_b)
+    compared = compare_agents(a, b)
+    half = 1.959964 * math.sqrt(12 / 11 * 0.25) / math.sqrt(12)  # per-start differences 1 or 0
+    assert scored["real"] == pytest.approx(0.5)
+    assert (scored["real_low"], scored["real_high"]) == pytest.approx((0.5 - half, 0.5 + half))
+    assert scored["forecast"] == pytest.approx(compared.mean)
+    assert scored["gap"] == pytest.approx(compared.mean - 0.5)
+    per_start = compared.difference - torch.tensor([1.0] * 6 + [0.0] * 6, dtype=torch.float64)
+    assert scored["per_start_mae"] == pytest.approx(float(per_start.abs().mean()))
+    assert scored["same_sign"] == float(compared.mean > 0)
+    with pytest.raises(ValueError, match=r"^real_b: the real episodes are of another agent"):
+        score_comparison(a, b, real_a, outcomes(success_b, first))  # a's episodes as b's
+    with pytest.raises(ValueError, match=r"^real_a: expected the real outcomes of the reports' 12"):
+        score_comparison(a, b, real_a[:3], real_b)
+    with pytest.raises(TypeError, match=r"^real_b: expected the RealOutcomes of real_outcomes"):
+        score_comparison(a, b, real_a, success_b)
