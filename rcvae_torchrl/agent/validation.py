@@ -36,10 +36,12 @@ from rcvae_torchrl.competency import (
     CompetencyReport,
     SuccessBoundary,
     check_same_predicates,
+    compare_agents,
     hold_last_state,
     time_to_success_scores,
     validate_forecasts,
 )
+from rcvae_torchrl.competency.comparison import mean_interval
 from rcvae_torchrl.data import TRAJ_KEY, acting_record, check_same_agent, exploration_mode
 from rcvae_torchrl.fingerprint import weights_digest
 from rcvae_torchrl.threads import threads_kept
@@ -376,6 +378,26 @@ def real_outcomes(
     return RealOutcomes(
         *outcomes, max_steps=max_steps, observation=observation, starts=kept_starts, **made
     )
+
+
+def _judged_for(
+    report: CompetencyReport, outcomes: RealOutcomes, name: str, whose: str = "the forecast's"
+) -> RealOutcomes:
+    """``outcomes`` (the argument ``name``) checked to be real episodes of ``report``'s agent,
+    boundary and start states, with a success counted within its deadline only."""
+    _check_count(name, report.batch_size.numel(), outcomes, whose)
+    check_same_agent(report, outcomes, name=name)
+    check_same_predicates(report, outcomes, name=name)
+    check_same_starts(name, _report_starts(report), outcomes.starts, "real episodes")
+    return outcomes.within(report.time_limit)
+
+
+def _check_count(name: str, count: int, outcomes: RealOutcomes, whose: str) -> None:
+    if count != len(outcomes):
+        raise ValueError(
+            f"{name}: expected the real outcomes of {whose} {count} start states, got "
+            f"{len(outcomes)}"
+        )
 
 
 def _report_starts(report: object) -> torch.Tensor | None:
@@ -727,20 +749,11 @@ def score_forecast(
             "validate_forecasts"
         )
     times = {}
-    count = forecast.batch_size.numel() if isinstance(forecast, CompetencyReport) else None
-    if count is None and isinstance(forecast, torch.Tensor) and forecast.dim() == 1:
-        count = forecast.shape[0]
-    if count is not None and count != len(outcomes):
-        raise ValueError(
-            f"outcomes: expected the real outcomes of the forecast's {count} start states, got "
-            f"{len(outcomes)}"
-        )
+    if isinstance(forecast, torch.Tensor) and forecast.dim() == 1:
+        _check_count("outcomes", forecast.shape[0], outcomes, "the forecast's")
     if isinstance(forecast, CompetencyReport):
-        check_same_agent(forecast, outcomes)
-        check_same_predicates(forecast, outcomes)
-        check_same_starts("outcomes", _report_starts(forecast), outcomes.starts, "real episodes")
         limit = forecast.time_limit
-        outcomes = outcomes.within(limit)
+        outcomes = _judged_for(forecast, outcomes, "outcomes")
         imagined = forecast.competency.get(("time_to_success", "first_step"), None)
         if imagined is not None and imagined.dim() >= 2:  # [B, E, N]: censored at the deadline
             imagined = imagined.flatten(1).clamp_max(limit).cpu().double()
@@ -770,8 +783,6 @@ def score_comparison(
     the mean of the per-start differences of the real rates), ``gap`` (forecast minus real),
     ``same_sign`` (1.0 where both name the same agent as the better one, or both a tie) and
     ``per_start_mae`` (the mean absolute error of the per-start differences)."""
-    from rcvae_torchrl.competency import compare_agents
-
     compared = compare_agents(a, b, confidence=confidence)
     rates = []
     for name, report, outcomes in (("real_a", a, real_a), ("real_b", b, real_b)):
@@ -779,29 +790,20 @@ def score_comparison(
             raise TypeError(
                 f"{name}: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"
             )
-        if len(outcomes) != report.batch_size.numel():
-            raise ValueError(
-                f"{name}: expected the real outcomes of the reports' "
-                f"{report.batch_size.numel()} start states, got {len(outcomes)}"
-            )
-        check_same_agent(report, outcomes, name=name)
-        check_same_predicates(report, outcomes, name=name)
-        check_same_starts(name, _report_starts(report), outcomes.starts, "real episodes")
-        rates.append(outcomes.within(report.time_limit).success.double().mean(1))
+        judged = _judged_for(report, outcomes, name, whose="the reports'")
+        rates.append(judged.success.double().mean(1))
     real = rates[0] - rates[1]  # [B]
-    n = real.numel()
-    z = float(torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + confidence / 2)))
-    half = z * float(real.std()) / math.sqrt(n) if n > 1 else 0.0
     forecast = compared.mean
     low, high = compared.interval
     mean = float(real.mean())
+    real_low, real_high = mean_interval(real, confidence)
     return {
         "forecast": forecast,
         "forecast_low": low,
         "forecast_high": high,
         "real": mean,
-        "real_low": max(mean - half, -1.0),
-        "real_high": min(mean + half, 1.0),
+        "real_low": real_low,
+        "real_high": real_high,
         "gap": forecast - mean,
         "same_sign": float(math.copysign(1, forecast) == math.copysign(1, mean))
         if forecast and mean

@@ -37,7 +37,7 @@ from rcvae_torchrl.competency.boundary import SuccessBoundary, hold_last_state
 from rcvae_torchrl.competency.decomposition import check_shuffle_samples, estimator_arg_names
 from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
-from rcvae_torchrl.competency.report import CompetencyReport, RealSpread
+from rcvae_torchrl.competency.report import SPREAD_MEASURE, CompetencyReport, RealSpread
 from rcvae_torchrl.data import acting, acting_record, exploration_mode, held_generators
 from rcvae_torchrl.fingerprint import weights_digest
 from rcvae_torchrl.rollout import as_tensor_policy, policy_reset
@@ -495,7 +495,7 @@ class CompetencyAssessor(KeyedModule):
         out.batch_size = torch.Size([b])
         return RealSpread(
             bits=out,
-            measure={k: self.measure[k] for k in ("estimator", "bin_width", "episode_end")},
+            measure={k: self.measure[k] for k in SPREAD_MEASURE},
             predicates=self.boundary.predicates,
             steps=int(self.horizon),
             agent=getattr(outcomes, "agent", None),

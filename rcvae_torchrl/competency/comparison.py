@@ -57,12 +57,9 @@ class AgentComparison:
         """The interval of :attr:`mean` over the start states (a normal interval of the mean of
         the per-start differences at :attr:`confidence`: the tasks' spread and the imagined
         samples' chance; one start state: its own interval)."""
-        n = self.difference.numel()
-        if n == 1:
+        if self.difference.numel() == 1:
             return float(self.low), float(self.high)
-        se = float(self.difference.std()) / math.sqrt(n)
-        z = _z(self.confidence)
-        return max(self.mean - z * se, -1.0), min(self.mean + z * se, 1.0)
+        return mean_interval(self.difference, self.confidence)
 
     @property
     def members(self) -> Tensor:
@@ -229,6 +226,16 @@ def _other_task(a: CompetencyReport, b: CompetencyReport) -> str:
     return "another world model (its weights) or step (dt)"
 
 
+def mean_interval(values: Tensor, confidence: float) -> tuple[float, float]:
+    """A normal interval at ``confidence`` of the mean of differences ``values`` ``[n]`` (its
+    standard error from their spread; ``n = 1``: the value itself), within ``[-1, 1]``."""
+    mean, n = float(values.mean()), values.numel()
+    half = _z(confidence) * float(values.std()) / math.sqrt(n) if n > 1 else 0.0
+    return max(mean - half, -1.0), min(mean + half, 1.0)
+
+
 def _z(confidence: float) -> float:
     """The standard normal quantile of a two-sided interval at ``confidence``."""
-    return float(torch.distributions.Normal(0.0, 1.0).icdf(torch.tensor(0.5 + confidence / 2)))
+    from scipy import stats
+
+    return float(stats.norm.ppf(0.5 + confidence / 2))
