@@ -39,7 +39,12 @@ from rcvae_torchrl.competency.decomposition import (
 )
 from rcvae_torchrl.competency.entropy import gaussian_entropy, histogram_entropy, knn_entropy
 from rcvae_torchrl.competency.intervals import binomial_interval
-from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric, bits_per_live_step
+from rcvae_torchrl.competency.metrics import (
+    SuccessMetric,
+    UncertaintyMetric,
+    bits_per_live_step,
+    rescale_aleatoric,
+)
 from rcvae_torchrl.competency.mixture import (
     EntropyBounds,
     fit_gaussian_mixture_entropy_bounds,
@@ -66,7 +71,12 @@ from rcvae_torchrl.competency.recalibration import (
     cross_fitted_recalibration,
     fit_platt,
 )
-from rcvae_torchrl.competency.report import CompetencyReport, RealSpread, Reference
+from rcvae_torchrl.competency.report import (
+    AleatoricShare,
+    CompetencyReport,
+    RealSpread,
+    Reference,
+)
 from rcvae_torchrl.competency.validation import (
     StartReliability,
     auroc,
@@ -153,10 +163,12 @@ __all__ = [
     "SuccessMetric",
     "UncertaintyMetric",
     "bits_per_live_step",
+    "rescale_aleatoric",
     # one-call assessment from start states
     "CompetencyAssessor",
     "CompetencyReport",
     "RealSpread",
+    "AleatoricShare",
     "ImaginesRollouts",
     "PerSample",
     "Reference",

@@ -38,7 +38,7 @@ from rcvae_torchrl.competency.outcome import (
     time_to_success,
 )
 
-__all__ = ["SuccessMetric", "UncertaintyMetric", "bits_per_live_step"]
+__all__ = ["SuccessMetric", "UncertaintyMetric", "bits_per_live_step", "rescale_aleatoric"]
 
 _LAYOUT = "[E, N, *B, T, D]"
 #: start states (and steps spread over the horizon) in which bins of their own are looked for
@@ -59,6 +59,55 @@ def bits_per_live_step(time_mean: Tensor, live: Tensor) -> Tensor:
     """
     steps = live.sum(dim=-1).clamp_min(torch.finfo(live.dtype).tiny)
     return time_mean * live.shape[-1] / steps
+
+
+def rescale_aleatoric(uncertainty: TensorDictBase, share: Tensor) -> TensorDictBase:
+    """:class:`UncertaintyMetric`'s entries with each dimension's aleatoric bits times its
+    ``share`` ``[D]`` (in [0, 1]) and the rest of them counted as epistemic: the total is
+    kept, ``epistemic = total - share * aleatoric`` at every step, in the time means, the
+    summaries (per live step too) and ``"by_dim"``, where they are. Per-dimension entries
+    only (``"total"`` ``[*B, T, D]``), as the histogram estimator gives them.
+
+    Example:
+        >>> bits = UncertaintyMetric(bin_width=0.5)(
+        ...     TensorDict(observation=torch.randn(2, 8, 3, 4, 2))
+        ... )["uncertainty"]
+        >>> half = rescale_aleatoric(bits, torch.tensor([0.5, 1.0]))
+        >>> bool(torch.allclose(half["total"], bits["total"]))
+        True
+    """
+    total, aleatoric = uncertainty.get("total"), uncertainty.get("aleatoric")
+    if share.ndim != 1 or total.ndim < 2 or share.shape[0] != total.shape[-1]:
+        raise ValueError(
+            f"share: expected one share per state dimension [{total.shape[-1]}] of bits "
+            f"[*B, T, D], got share {tuple(share.shape)} for bits {tuple(total.shape)}"
+        )
+    share = share.to(total)
+    out = uncertainty.clone(recurse=False)
+
+    def split(entries: TensorDictBase, scale: Tensor | float) -> TensorDictBase:
+        entries = entries.clone(recurse=False)
+        entries.set("aleatoric", entries.get("aleatoric") * scale)
+        entries.set("epistemic", entries.get("total") - entries.get("aleatoric"))
+        return entries
+
+    out.set("aleatoric", aleatoric * share)
+    out.set("epistemic", total - aleatoric * share)
+    old = aleatoric.mean(-2)
+    if "time_mean" in uncertainty.keys():
+        old = uncertainty.get(("time_mean", "aleatoric"))
+        out.set("time_mean", split(uncertainty.get("time_mean"), share))
+    # the summaries reduce the time means over the dimensions (a sum or a mean): scaled alike
+    kept = (old * share).sum(-1) / old.sum(-1).clamp_min(torch.finfo(old.dtype).tiny)
+    for key in ("summary", "per_live_step"):
+        if key in uncertainty.keys():
+            out.set(key, split(uncertainty.get(key), kept))
+    if "by_dim" in uncertainty.keys():
+        by_dim = uncertainty.get("by_dim").clone(recurse=False)
+        for i, name in enumerate(by_dim.keys()):
+            by_dim.set(name, split(by_dim.get(name), share[i]))
+        out.set("by_dim", by_dim)
+    return out
 
 
 def _observation(tensordict: TensorDictBase, key: NestedKey) -> Tensor:

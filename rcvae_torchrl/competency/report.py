@@ -21,10 +21,11 @@ from torch import Tensor
 
 from rcvae_torchrl import _checks
 from rcvae_torchrl._conformal import conformal_level
+from rcvae_torchrl.competency.metrics import bits_per_live_step, rescale_aleatoric
 from rcvae_torchrl.data.exploration import check_same_agent
 from rcvae_torchrl.io import _as_json
 
-__all__ = ["CompetencyReport", "Reference"]
+__all__ = ["AleatoricShare", "CompetencyReport", "Reference"]
 
 # Aleatoric bits are the spread the members agree on: the env's randomness, or an error of
 # the model that every member makes (a model that has not learned a deterministic env spreads
@@ -34,6 +35,14 @@ _REASONS = {
     "epistemic": "the model has not seen states like this",
     "aleatoric": "the members agree that the states vary this much: by chance, or by an error "
     "they all make, which the ensemble cannot tell apart",
+}
+# With the split calibrated against real episodes (:class:`AleatoricShare`) the aleatoric
+# part is the spread they showed and the epistemic part holds the model's shared error too.
+_CALIBRATED_REASONS = {
+    "epistemic": "the model has not learned these states well enough: its members disagree, "
+    "or spread beyond what the agent's real episodes do",
+    "aleatoric": "the agent's real episodes spread this much: chance that more data would "
+    "not reduce",
 }
 _ROSE = {
     "epistemic": "the model has not seen states like this: more data here would reduce it",
@@ -133,6 +142,163 @@ class RealSpread:
             f"{unit.replace('summary', 'time_mean')}_bits={bits:.2f}, agent={agent!r}, "
             f"acting={self.acting!r})"
         )
+
+
+@dataclass(frozen=True)
+class AleatoricShare:
+    """Which share of a world model's aleatoric bits the env's real episodes show, per state
+    dimension: fitted where the agent's real episodes were run many times from some start
+    states (:meth:`fit`), then applied to its forecasts from others
+    (:meth:`CompetencyReport.with_aleatoric_share`), whose split it calibrates.
+
+    A world model's aleatoric part is the spread its members agree on: the env's randomness,
+    or an error they all make, which the ensemble cannot tell apart (a model of a
+    deterministic env spreads its imagined states too, where the real episodes repeat). The
+    real episodes' spread tells them apart: ``share[d] = min(1, real[d] / imagined[d])``, the
+    bits of dimension ``d`` summed over the fitted start states (per live step where the
+    episodes end at the boundary, else time means). Applied, each dimension keeps that share
+    of its aleatoric bits at every step and the rest counts as epistemic, the model's own
+    error (its total is kept: :func:`~rcvae_torchrl.competency.rescale_aleatoric`). A share
+    of 0 says the env repeats what the agent does there; 1, that the model's spread is no
+    more than the real one (where it is less, the share stays 1: the model has not learned
+    all of the env's randomness, :meth:`CompetencyReport.with_real_spread` says so). One
+    share per dimension over the whole horizon: fit it on start states like those it is
+    applied to, and on other start states than those it is scored on."""
+
+    #: ``[D]`` the share of each dimension's aleatoric bits kept, in [0, 1]
+    share: Tensor
+    #: ``[D]`` the imagined aleatoric and the real bits it was fitted on (means over the starts)
+    imagined: Tensor
+    real: Tensor
+    #: the start states it was fitted on
+    start_states: int
+    #: whether the bits are per live step (else time means)
+    per_live_step: bool
+    #: what the forecasts answer and how their bits were measured, as in the fitted report
+    #: (:attr:`CompetencyReport.task`, the :data:`SPREAD_MEASURE` part of its measure, its steps)
+    task: str
+    measure: Mapping[str, Any]
+    steps: int | None
+    dim_names: tuple[str, ...]
+
+    @classmethod
+    def fit(cls, report: CompetencyReport, spread: RealSpread) -> AleatoricShare:
+        """The share from ``report`` (a forecast from some start states) and ``spread`` (the
+        agent's real episodes from the same start states, :meth:`CompetencyAssessor
+        .real_spread`), refused where :meth:`CompetencyReport.with_real_spread` refuses them
+        (other start states, agent, bins, steps or boundary)."""
+        if not isinstance(report, CompetencyReport):
+            raise TypeError(f"report: expected a CompetencyReport, got {type(report).__name__}")
+        report.with_real_spread(spread)  # the checks that tie the two together
+        imagined = report.uncertainty.get(("time_mean", "aleatoric"))
+        if imagined.ndim != report.data.batch_dims + 1:
+            raise ValueError(
+                "report: expected bits per state dimension (the histogram estimator's), got "
+                f"time means of shape {tuple(imagined.shape)}"
+            )
+        real = spread.bits.get(("time_mean", "total")).reshape(imagined.shape).to(imagined)
+        live = report.has_live_steps and "live" in spread.bits.keys()
+        if live:  # bits per step of each one's life: the imagined and real episodes end apart
+            imagined = _per_live_step(imagined, report.uncertainty.get("live"))
+            real = _per_live_step(real, spread.bits.get("live").reshape(*imagined.shape[:-1], -1))
+        imagined, real = imagined.reshape(-1, imagined.shape[-1]), real.reshape(-1, real.shape[-1])
+        share = torch.where(
+            imagined.sum(0) > 0,
+            (real.sum(0) / imagined.sum(0).clamp_min(torch.finfo(imagined.dtype).tiny)).clamp(
+                0.0, 1.0
+            ),
+            torch.ones_like(imagined[0]),
+        )
+        return cls(
+            share=share.detach().cpu(),
+            imagined=imagined.mean(0).detach().cpu(),
+            real=real.mean(0).detach().cpu(),
+            start_states=imagined.shape[0],
+            per_live_step=live,
+            task=report.task,
+            measure={k: (report.measure or {}).get(k) for k in SPREAD_MEASURE},
+            steps=report._imagined_steps(),
+            dim_names=tuple(report.dim_names),
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain values (for ``torch.save`` with ``weights_only`` loading): tensors, numbers,
+        strings and lists."""
+        return {
+            "share": self.share,
+            "imagined": self.imagined,
+            "real": self.real,
+            "start_states": self.start_states,
+            "per_live_step": self.per_live_step,
+            "task": self.task,
+            "measure": _as_json(dict(self.measure)),
+            "steps": self.steps,
+            "dim_names": list(self.dim_names),
+        }
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> AleatoricShare:
+        """What :meth:`as_dict` gave."""
+        _checks.check_entries(
+            "values",
+            values,
+            (
+                "share",
+                "imagined",
+                "real",
+                "start_states",
+                "per_live_step",
+                "task",
+                "measure",
+                "steps",
+                "dim_names",
+            ),
+            "an AleatoricShare.as_dict()",
+        )
+        share = values["share"]
+        if (
+            not isinstance(share, Tensor)
+            or share.ndim != 1
+            or len(values["dim_names"]) != len(share)
+        ):
+            raise ValueError(
+                "values['share']: expected a tensor [D] with one name per dimension, got "
+                f"{share!r} and {len(values['dim_names'])} names"
+            )
+        if bool(((share < 0) | (share > 1) | share.isnan()).any()):
+            raise ValueError(f"values['share']: expected shares in [0, 1], got {share.tolist()}")
+        return cls(
+            share=share,
+            imagined=values["imagined"],
+            real=values["real"],
+            start_states=int(values["start_states"]),
+            per_live_step=bool(values["per_live_step"]),
+            task=str(values["task"]),
+            measure=dict(values["measure"]),
+            steps=None if values["steps"] is None else int(values["steps"]),
+            dim_names=tuple(values["dim_names"]),
+        )
+
+    def describe(self) -> str:
+        """One sentence: the share overall and where the model's spread is most its error."""
+        unit = "bits per live step" if self.per_live_step else "bits"
+        imagined, real = float(self.imagined.sum()), float(self.real.sum())
+        kept = float((self.imagined * self.share).sum())
+        least = int(self.share.argmin())
+        n = self.start_states
+        starts = "1 start state" if n == 1 else f"{n} start states"
+        return (
+            f"The split is calibrated against the agent's real episodes from {starts}: they "
+            f"spread {real:.2f} {unit} where the world model imagined {imagined:.2f} aleatoric, "
+            f"so {kept:.2f} of them count as aleatoric and the rest as the model's own error "
+            f"(epistemic); the least kept, {self.dim_names[least]}: "
+            f"{float(self.share[least]):.0%}."
+        )
+
+
+def _per_live_step(time_mean: Tensor, live: Tensor) -> Tensor:
+    """``time_mean`` ``[*B, D]`` as bits per live step (``live`` ``[*B, T]``)."""
+    return bits_per_live_step(time_mean.movedim(-1, 0), live.to(time_mean)).movedim(0, -1)
 
 
 @dataclass(frozen=True)
@@ -290,6 +456,9 @@ class CompetencyReport:
     #: how far the aleatoric bits may lie from the real episodes' spread before a summary
     #: says so: ``(factor, bits)``, both exceeded (:meth:`with_real_spread`)
     spread_tolerance: tuple[float, float] = (1.5, 1.0)
+    #: the share of the aleatoric bits that real episodes showed, applied to this report's
+    #: split (:meth:`with_aleatoric_share`); ``None``: the world model's own split
+    aleatoric_share: AleatoricShare | None = None
 
     @property
     def novel(self) -> Tensor | None:
@@ -451,6 +620,47 @@ class CompetencyReport:
         data = self.data.clone(recurse=False)
         data.set("real_spread", spread.bits.reshape(self.batch_size))
         return replace(self, data=data, spread_tolerance=(float(factor), float(min_bits)))
+
+    def with_aleatoric_share(self, share: AleatoricShare) -> CompetencyReport:
+        """This report with its split calibrated by ``share`` (:meth:`AleatoricShare.fit`,
+        from the agent's real episodes from other start states): each dimension keeps that
+        share of its aleatoric bits and the rest counts as epistemic, the world model's own
+        error; the total bits, P(success) and everything else stay. Every summary says so and
+        names the doubt's causes accordingly. A share of another world model or boundary
+        (another :attr:`task`), measured otherwise (other bins, no episode end, other steps)
+        or of other dimensions is refused, as is a second share."""
+        if not isinstance(share, AleatoricShare):
+            raise TypeError(
+                "share: expected the AleatoricShare of AleatoricShare.fit, got "
+                f"{type(share).__name__}"
+            )
+        if self.aleatoric_share is not None:
+            raise ValueError(
+                "share: this report's split is calibrated already; apply a share to the "
+                "report the assessor returned"
+            )
+        if self.task and share.task and share.task != self.task:
+            raise ValueError(
+                f"share: fitted for another task than this report's (task {share.task[:12]}, "
+                f"this report's {self.task[:12]}): another world model, boundary or deadline; "
+                "fit it with the assessor that made this report"
+            )
+        mine = _as_json({k: (self.measure or {}).get(k) for k in SPREAD_MEASURE})
+        theirs = _as_json(dict(share.measure))
+        mine["steps"], theirs["steps"] = self._imagined_steps(), share.steps
+        mine["dimensions"], theirs["dimensions"] = list(self.dim_names), list(share.dim_names)
+        if self.measure is None:  # a report built by hand: its measure is not known
+            mine.update({k: theirs[k] for k in SPREAD_MEASURE})
+        differ = [k for k in mine if mine[k] != theirs[k]]
+        if differ:
+            said = "; ".join(f"{k}: {theirs[k]!r}, this report's {mine[k]!r}" for k in differ)
+            raise ValueError(
+                f"share: fitted on bits measured otherwise than this report's ({said}); fit it "
+                "with the assessor that made this report"
+            )
+        data = self.data.clone(recurse=False)
+        data.set(self.uncertainty_key, rescale_aleatoric(self.uncertainty, share.share))
+        return replace(self, data=data, aleatoric_share=share)
 
     def _spread_sentence(self, uncertainty: TensorDictBase, spread: TensorDictBase | None) -> str:
         """The real episodes' spread beside the aleatoric bits (means over the start states
@@ -758,6 +968,7 @@ class CompetencyReport:
             self._uncertainty_sentence(
                 uncertainty, bool(warning), flags, self._actions_only(one, flags)
             ),
+            "" if self.aleatoric_share is None else self.aleatoric_share.describe(),
             self._spread_sentence(uncertainty, one.get("real_spread", None)),
         ]
         if "peak_step" in uncertainty.keys():
@@ -927,7 +1138,8 @@ class CompetencyReport:
             return _unreliable_split_sentence(aleatoric, epistemic, total, _unit(live))
         caution = f" Caution: {self.model_caution}." if self.model_caution else ""
         if self.reference is None:
-            return _doubt_sentence(aleatoric, epistemic, total) + caution
+            calibrated = self.aleatoric_share is not None
+            return _doubt_sentence(aleatoric, epistemic, total, calibrated) + caution
         start, imagined = flags  # the novelty cautions (:meth:`_novel_flags`)
         novel_clause = (
             "the start is unlike the training states (above)"
@@ -978,12 +1190,17 @@ def _success_sentence(p: float, low: float, high: float, confidence: float, outc
     return f"P({outcome}) = {p:.2f} ({confidence:.0%} interval {low:.2f}–{high:.2f})."
 
 
-def _doubt_sentence(aleatoric: float, epistemic: float, total: float) -> str:
-    """The dominant uncertainty type (larger of the two; a tie is aleatoric) and its share."""
+def _doubt_sentence(
+    aleatoric: float, epistemic: float, total: float, calibrated: bool = False
+) -> str:
+    """The dominant uncertainty type (larger of the two; a tie is aleatoric) and its share;
+    its cause as the world model's own split tells it, or as a split ``calibrated`` against
+    real episodes does."""
     if aleatoric == epistemic == total == 0.0:
         return "No doubt about the imagined states (0.00 bits): all samples agree."
     kind, bits = ("epistemic", epistemic) if epistemic > aleatoric else ("aleatoric", aleatoric)
-    return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {_REASONS[kind]}."
+    reason = (_CALIBRATED_REASONS if calibrated else _REASONS)[kind]
+    return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {reason}."
 
 
 def _unreliable_split_sentence(

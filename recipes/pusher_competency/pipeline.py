@@ -41,7 +41,7 @@ from rcvae_torchrl.agent import (
     run_episodes,
     save_policy,
 )
-from rcvae_torchrl.competency import CompetencyAssessor, fit_platt
+from rcvae_torchrl.competency import AleatoricShare, CompetencyAssessor, fit_platt
 from rcvae_torchrl.data import (
     episode_spans,
     load_episodes,
@@ -161,8 +161,10 @@ DAGGER_SEEDS = 80_000
 # Real episodes of the truth stage: seeds REAL_SEEDS + 10·seed + c, each run its own stream;
 # those from held-out episodes' first states (the report's forecast check): HELD_OUT_SEEDS + ...
 REAL_SEEDS = 9_000
-# The real episodes whose spread is measured: SPREAD_SEEDS + 10·seed + c.
+# The real episodes whose spread is measured: SPREAD_SEEDS + 10·seed + c; those from held-out
+# start states that calibrate the split: SHARE_SEEDS + 10·seed + c.
 SPREAD_SEEDS = 9_500
+SHARE_SEEDS = 9_700
 HELD_OUT_SEEDS = 8_000
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i; those
 # the forecast check draws (Study.held_out_starts), HELD_OUT_START_SEEDS higher (mod 2**32).
@@ -578,7 +580,45 @@ class Study:
             summary[condition] = {"success_rate": saved["success"].float().mean().item()}
             if self.cfg.assess.spread_starts:
                 summary[condition]["spread"] = self.real_spread(condition, index, policy)
+                if condition in CHECKED_CONDITIONS:
+                    summary[condition]["share"] = self.aleatoric_share(condition, index, policy)
         return summary
+
+    def aleatoric_share(self, condition: str, index: int, policy: Callable) -> dict[str, Any]:
+        """The share of ``condition``'s world model's aleatoric bits that the agent's real
+        episodes show (:class:`~rcvae_torchrl.competency.AleatoricShare`), fitted on
+        ``assess.spread_starts`` of its held-out start states (none of them scored),
+        ``assess.spread_runs`` real episodes each; saved, and its shares and real bits returned."""
+        path = self.dir / "truth" / f"{condition}_share.pt"
+        if not distributed.broadcast(path.is_file()):
+            s = self.cfg.assess
+            model_name, variant = CONDITIONS[condition]
+            held_out = self.held_out_starts(condition)
+            count = min(s.spread_starts, len(held_out))
+            starts = held_out[torch.linspace(0, len(held_out) - 1, count).round().long().unique()]
+            assessor = self.assessor(model_name, variant)
+            report = assessor.assess(
+                starts.to(self.device),
+                policy=self.load_policy().to(self.device),
+                seed=self.cfg.seed,
+            )
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", "runs_per_start: each of the", UserWarning)
+                outcomes = self.real_runs(
+                    variant,
+                    policy,
+                    starts,
+                    seed=SHARE_SEEDS + self.cfg.seed * 10 + index,
+                    desc=f"real spread, held-out starts: {condition}",
+                    runs=s.spread_runs,
+                    keep_observations=True,
+                )
+            share = AleatoricShare.fit(report, assessor.real_spread(outcomes))
+            if distributed.is_main():
+                save_torch(path, share.as_dict())
+            distributed.barrier()
+        share = AleatoricShare.from_dict(load_torch(path, "aleatoric share"))
+        return {"share": share.share.tolist(), "real": float(share.real.sum())}
 
     def real_spread(self, condition: str, index: int, policy: Callable) -> dict[str, float]:
         """The spread of the agent's real episodes from ``assess.spread_starts`` of the
@@ -663,6 +703,13 @@ class Study:
         spreads = {
             c: load_torch(path, "real spread") for c, path in spread_paths.items() if path.is_file()
         }
+        share_paths = {c: self.dir / "truth" / f"{c}_share.pt" for c in CHECKED_CONDITIONS}
+        shares = {
+            c: AleatoricShare.from_dict(load_torch(path, "aleatoric share"))
+            for c, path in share_paths.items()
+            if path.is_file()
+        }
+        fitted = {CONDITIONS[c][0]: share for c, share in shares.items()}  # by world model
         episode_env = self.env("deterministic", time_limit=self.cfg.assess.horizon_s)
         policy = make_policy_module(self.load_policy())
         models = {name: self.load_model(name) for name in WORLD_MODELS}
@@ -680,6 +727,7 @@ class Study:
             forecast_checks={c: self.forecast_check(c, held_out[c]) for c in held_out},
             held_out_maps={c: fit_platt(*held_out[c]) for c in held_out},
             real_spreads=spreads,
+            split_shares={c: fitted[m] for c, (m, _) in CONDITIONS.items() if m in fitted},
         )
 
     def forecast_check(

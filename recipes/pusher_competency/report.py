@@ -8,14 +8,17 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict import TensorDict
 from torchrl.envs import EnvBase
 
 from rcvae_torchrl.competency import (
+    AleatoricShare,
     PlattMap,
     bits_per_live_step,
     brier_score,
     expected_calibration_error,
     reliability_diagram,
+    rescale_aleatoric,
 )
 from rcvae_torchrl.envs import CONTROL_TIMESTEP, OBSERVATION_NAMES
 from rcvae_torchrl.envs.render import gl_unavailable_reason, record_episode
@@ -156,10 +159,15 @@ def _ratio(a: float, b: float) -> float:
     return float("inf") if a > 0 else float("nan")
 
 
-def pattern_checks(
-    rows: Mapping[str, Mapping[str, Any]], overall: Mapping[str, float]
-) -> dict[str, dict[str, Any]]:
-    """The qualitative pattern of the paper and the calibration targets, as measured."""
+def _comparable(a: float, b: float) -> float:
+    """``a / b`` for a check that the two are comparable: equal parts (nothing and nothing
+    too, as a deterministic env's real aleatoric parts are) are a ratio of 1."""
+    return 1.0 if a == b else _ratio(a, b)
+
+
+def paper_pattern(rows: Mapping[str, Mapping[str, Any]], after: str = "") -> dict[str, dict]:
+    """The paper's qualitative pattern in the table's ``rows``: its three ratios, each with
+    whether it is met; ``after`` is added to each check's name (e.g. the split it is of)."""
     det, sto, ood = rows["deterministic"], rows["stochastic"], rows["out-of-distribution"]
     checks = {
         "aleatoric stochastic / deterministic >= 1.5": _ratio(
@@ -168,12 +176,12 @@ def pattern_checks(
         "epistemic out-of-distribution / deterministic >= 1.3": _ratio(
             ood["epistemic_bits"], det["epistemic_bits"]
         ),
-        "aleatoric out-of-distribution / deterministic within 0.7-1.3": _ratio(
+        "aleatoric out-of-distribution / deterministic within 0.7-1.3": _comparable(
             ood["aleatoric_bits"], det["aleatoric_bits"]
         ),
     }
-    out = {
-        name: {
+    return {
+        name + after: {
             "value": value,
             "met": bool(
                 value >= 1.5
@@ -185,6 +193,13 @@ def pattern_checks(
         }
         for name, value in checks.items()
     }
+
+
+def pattern_checks(
+    rows: Mapping[str, Mapping[str, Any]], overall: Mapping[str, float]
+) -> dict[str, dict[str, Any]]:
+    """The qualitative pattern of the paper and the calibration targets, as measured."""
+    out = paper_pattern(rows)
     for name, row in rows.items():
         gap = abs(row["forecast_p_success"] - row["empirical_p_success"])
         out[f"|forecast - empirical| <= 0.10 ({name})"] = {"value": gap, "met": gap <= 0.10}
@@ -255,6 +270,7 @@ def write_report(
     forecast_checks: Mapping[str, OutcomeCheck] | None = None,
     held_out_maps: Mapping[str, PlattMap] | None = None,
     real_spreads: Mapping[str, Mapping[str, torch.Tensor]] | None = None,
+    split_shares: Mapping[str, AleatoricShare] | None = None,
 ) -> dict[str, Any]:
     """Write table.md/.csv, the figures, episode.gif and report.md; return the summary.
 
@@ -267,7 +283,10 @@ def write_report(
     ``held_out_maps``: per condition, the Platt map fitted on those episodes, whose
     recalibration of the scored forecasts is reported beside them. ``real_spreads``: per
     condition, the real episodes' spread from some of its start states against the
-    forecast's aleatoric bits there (``Study.real_spread``)."""
+    forecast's aleatoric bits there (``Study.real_spread``). ``split_shares``: per condition,
+    the share of its world model's aleatoric bits that the real episodes from held-out start
+    states showed (``Study.aleatoric_share``); with one for every condition, the table's bits
+    and the paper's pattern are given again with the split calibrated by it."""
     rows = {c: condition_row(c, forecasts[c], truths[c]) for c in forecasts}
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     p, y = (torch.cat(t) for t in zip(*(_pairs(forecasts[c], truths[c]) for c in forecasts)))
@@ -277,6 +296,14 @@ def write_report(
         "success_rate": y.mean().item(),
     }
     checks = pattern_checks(rows, overall)
+    shares = dict(split_shares or {})
+    calibrated = {}
+    if shares and set(shares) == set(forecasts):
+        calibrated = {
+            c: condition_row(c, calibrated_split(forecasts[c], shares[c]), truths[c])
+            for c in forecasts
+        }
+        checks.update(paper_pattern(calibrated, AFTER_SHARE))
     a = config.assess
     scores = validation(forecasts, truths, a.success_radius, held_out_maps)
     deadlines = [round(d / CONTROL_TIMESTEP) for d in a.surface_deadlines_s]
@@ -313,6 +340,16 @@ def write_report(
         "forecast_checks": {c: found.as_dict() for c, found in forecast_checks.items()},
         "novelty": novelty_rows(forecasts, truths),
         "real_spread": spread_rows(real_spreads or {}),
+        "calibrated_split": {
+            c: {
+                **{k: row[k] for k in ("total_bits", "aleatoric_bits", "epistemic_bits")},
+                "share": dict(zip(OBSERVATION_NAMES, shares[c].share.tolist())),
+                "fitted_on": shares[c].start_states,
+                "real": float(shares[c].real.sum()),
+                "imagined": float(shares[c].imagined.sum()),
+            }
+            for c, row in calibrated.items()
+        },
     }
     write_json(run_dir / "summary.json", summary)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
@@ -322,6 +359,9 @@ def write_report(
     if summary["real_spread"]:
         spread = _spread_text(summary["real_spread"])
         text = text.replace("## Uncertainty over time", spread + "## Uncertainty over time", 1)
+    if calibrated:
+        split = _calibrated_text(rows, summary["calibrated_split"], checks, a.spread_runs)
+        text = text.replace("## Uncertainty over time", split + "## Uncertainty over time", 1)
     novelty = _novelty_text(summary["novelty"])
     text = text.replace("## The agent", novelty + "## The agent", 1)
     if model_checks or far_checks or forecast_checks:
@@ -333,6 +373,64 @@ def write_report(
         text = text.replace("## The agent", section + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
+
+
+#: the name the paper's pattern checks take with the calibrated split
+AFTER_SHARE = " (split calibrated on held-out real episodes)"
+
+
+def calibrated_split(
+    forecast: Mapping[str, torch.Tensor], share: AleatoricShare
+) -> dict[str, torch.Tensor]:
+    """A stored forecast's bits with its split calibrated by ``share``
+    (:func:`~rcvae_torchrl.competency.rescale_aleatoric`: each dimension keeps the share of
+    its aleatoric bits the real episodes showed, the rest is epistemic); the rest unchanged."""
+    parts = TensorDict({k: forecast[k] for k in ("total", "aleatoric", "epistemic")})
+    return {**forecast, **rescale_aleatoric(parts, share.share).to_dict()}
+
+
+def _calibrated_text(
+    rows: Mapping[str, Mapping[str, Any]],
+    calibrated: Mapping[str, Mapping[str, Any]],
+    checks: Mapping[str, Mapping[str, Any]],
+    runs: int,
+) -> str:
+    first = next(iter(calibrated.values()))
+    lines = [
+        "### The split calibrated against real episodes",
+        "",
+        "The table's split is the world models' own: their aleatoric part is all the spread "
+        "their members agree on, the env's noise or an error they all make. Here the agent ran "
+        f"{runs} more real episodes from each of {first['fitted_on']} start states of each "
+        "world model's own env that no score uses (its held-out episodes' first states), and each "
+        "dimension keeps the share of its aleatoric bits that their spread showed "
+        "(`AleatoricShare`); the rest counts as epistemic, the model's own error. The totals "
+        "and every forecast stay as they are. Before and after, in time-mean bits:",
+        "",
+        "| condition | aleatoric before | epistemic before | aleatoric after | epistemic after "
+        "| held-out real spread / imagined aleatoric (bits per live step) |",
+        "|:---|---:|---:|---:|---:|---:|",
+        *[
+            f"| {c} | {rows[c]['aleatoric_bits']:.3f} | {rows[c]['epistemic_bits']:.3f} | "
+            f"{r['aleatoric_bits']:.3f} | {r['epistemic_bits']:.3f} | "
+            f"{r['real']:.2f} / {r['imagined']:.2f} |"
+            for c, r in calibrated.items()
+        ],
+        "",
+        "The paper's pattern with the calibrated split (two equal parts compare as 1, "
+        "nothing against nothing included):",
+        "",
+        "| check | measured | met |",
+        "|:---|---:|:---:|",
+        *[
+            f"| {name.replace(AFTER_SHARE, '')} | {c['value']:.3f} | "
+            f"{'yes' if c['met'] else 'no'} |"
+            for name, c in checks.items()
+            if name.endswith(AFTER_SHARE)
+        ],
+        "",
+    ]
+    return "\n".join(lines) + "\n"
 
 
 def spread_rows(spreads: Mapping[str, Mapping[str, torch.Tensor]]) -> dict[str, dict[str, Any]]:

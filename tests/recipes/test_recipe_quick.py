@@ -22,10 +22,11 @@ from doc_blocks import rst_python_blocks, run_blocks
 from micro import MICRO, START_STATES
 from PIL import Image
 
+from rcvae_torchrl.competency import AleatoricShare
 from rcvae_torchrl.io import read_json
 from recipes.pusher_competency import pipeline
 from recipes.pusher_competency.pusher import CONDITIONS
-from recipes.pusher_competency.report import COLUMNS
+from recipes.pusher_competency.report import AFTER_SHARE, COLUMNS
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "pusher_competency" / "main.py"
@@ -117,8 +118,27 @@ def test_every_stage_ran_and_left_its_outputs(runs):
         assert bool((spread["imagined"] > 0).all())  # the models' own error, at least
         if condition != "stochastic":  # a deterministic Pusher and agent repeat an episode
             assert not bool(spread["real"].any())
+    # the split calibrated on held-out starts of each world model's own env
+    for condition, (model, variant) in CONDITIONS.items():
+        if model != variant:
+            assert not (d / "truth" / f"{condition}_share.pt").exists()
+            continue
+        share = AleatoricShare.from_dict(
+            torch.load(d / "truth" / f"{condition}_share.pt", weights_only=True)
+        )
+        assert share.start_states == 2 and share.share.shape == (14,)
+        if condition == "deterministic":  # real episodes repeat: nothing is the env's noise
+            moving = share.imagined > 0
+            assert bool(moving.any()) and not bool(share.share[moving].any())
     report = (d / "report.md").read_text()
     assert "### The aleatoric bits against the real episodes' spread" in report
+    assert "### The split calibrated against real episodes" in report
+    summary = json.loads((d / "summary.json").read_text())
+    det = summary["calibrated_split"]["deterministic"]
+    assert det["aleatoric_bits"] == 0.0  # a deterministic Pusher and agent: no chance left
+    assert summary["calibrated_split"]["out-of-distribution"]["aleatoric_bits"] == 0.0
+    name = "aleatoric out-of-distribution / deterministic within 0.7-1.3" + AFTER_SHARE
+    assert summary["checks"][name] == {"value": 1.0, "met": True}  # nothing against nothing
     assert re.search(r"\| deterministic \| 2 \| [0-9.]+ \| 0\.00 \| inf \|", report), report
     assert json.loads((d / "study_config.json").read_text())["assess"]["horizon_s"] == 2.0
 
