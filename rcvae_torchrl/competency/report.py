@@ -287,10 +287,16 @@ class AleatoricShare:
         least = int(self.share.argmin())
         n = self.start_states
         starts = "1 start state" if n == 1 else f"{n} start states"
-        return (
+        text = (
             f"The split is calibrated against the agent's real episodes from {starts}: they "
-            f"spread {real:.2f} {unit} where the world model imagined {imagined:.2f} aleatoric, "
-            f"so {kept:.2f} of them count as aleatoric and the rest as the model's own error "
+            f"spread {real:.2f} {unit} where the world model imagined {imagined:.2f} aleatoric"
+        )
+        if not bool(self.share.any()):
+            return text + (
+                ", so none of them count as aleatoric: all are the model's own error (epistemic)."
+            )
+        return text + (
+            f", so {kept:.2f} of them count as aleatoric and the rest as the model's own error "
             f"(epistemic); the least kept, {self.dim_names[least]}: "
             f"{float(self.share[least]):.0%}."
         )

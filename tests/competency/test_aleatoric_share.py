@@ -138,9 +138,13 @@ def test_a_calibrated_report_keeps_its_forecast_and_says_so():
     repeated = report.with_aleatoric_share(none)
     assert not bool(repeated.uncertainty["aleatoric"].any())
     torch.testing.assert_close(repeated.uncertainty["epistemic"], report.uncertainty["total"])
-    assert "Most of the doubt is epistemic" in repeated.summary(
-        0
-    ) and "spread beyond what the agent's real episodes do" in repeated.summary(0)
+    said = repeated.summary(0)
+    assert none.describe() in said
+    assert none.describe().endswith(
+        "aleatoric, so none of them count as aleatoric: all are the model's own error (epistemic)."
+    )
+    assert "Most of the doubt is epistemic" in said
+    assert "spread beyond what the agent's real episodes do" in said
     # the same report indexed keeps its share
     assert report.with_aleatoric_share(share)[0].aleatoric_share is share
 

@@ -133,6 +133,8 @@ def test_every_stage_ran_and_left_its_outputs(runs):
     report = (d / "report.md").read_text()
     assert "### The aleatoric bits against the real episodes' spread" in report
     assert "### The split calibrated against real episodes" in report
+    # out of sample: the scored starts' real spread against the aleatoric bits the share keeps
+    assert re.search(r"\| deterministic \| 0\.00 \| 0\.00 \| 1 \|", report), report
     summary = json.loads((d / "summary.json").read_text())
     det = summary["calibrated_split"]["deterministic"]
     assert det["aleatoric_bits"] == 0.0  # a deterministic Pusher and agent: no chance left
