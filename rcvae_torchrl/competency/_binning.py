@@ -128,12 +128,14 @@ def grouped_entropies(
     group_sum, counts = _group_xlogx_sums(codes, spans, labels, groups, table)
     pooled = counts.view(-1, groups).sum(dim=1)
     pooled_sum = _segment_sums(table.take(pooled), spans)
-    total = math.log2(groups * n) - pooled_sum / (groups * n)
-    mean_group = math.log2(n) - group_sum / (groups * n)
+    # log2 N - Σ c·log2 c / N: entropies, >= 0, whose rounding can leave -4e-16 where all
+    # samples share a bin
+    total = (math.log2(groups * n) - pooled_sum / (groups * n)).clamp_min(0.0)
+    mean_group = (math.log2(n) - group_sum / (groups * n)).clamp_min(0.0)
     relabelled = None
     if relabels is not None:
         sums = [_group_xlogx_sums(codes, spans, r, groups, table)[0] for r in relabels]
-        relabelled = math.log2(n) - torch.stack(sums) / (groups * n)
+        relabelled = (math.log2(n) - torch.stack(sums) / (groups * n)).clamp_min(0.0)
     return total, mean_group, relabelled
 
 

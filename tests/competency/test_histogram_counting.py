@@ -166,3 +166,18 @@ def test_samples_beyond_the_countable_bins_are_refused(scale):
     # the same layout with bins of its own scale: one bit of disagreement
     out = decompose_uncertainty(samples, bin_width=0.1 * scale)
     assert float(out.epistemic) == pytest.approx(1.0, abs=0.05)
+
+
+@pytest.mark.parametrize("correction", ["none", "shuffle"])
+def test_samples_that_share_a_bin_give_no_bits_below_zero(correction):
+    # log2 50 - 50·log2 50 / 50 rounds to -4.4e-16 in float64: an entropy never goes below 0
+    samples = torch.full((5, 50, 3, 7, 2), 0.25, dtype=torch.float64)
+    samples[..., 1] += torch.arange(5, dtype=torch.float64).view(5, 1, 1, 1)
+    parts = decompose_uncertainty(samples, "histogram", bin_width=0.5, bias_correction=correction)
+    assert bool((parts.aleatoric >= 0).all()) and bool((parts.total >= 0).all())
+    torch.testing.assert_close(parts.aleatoric[..., 0], torch.zeros(3, 7, dtype=torch.float64))
+    if correction == "none":  # (the shuffles' divergence is moved to the aleatoric part)
+        torch.testing.assert_close(parts.aleatoric, torch.zeros_like(parts.aleatoric))
+    torch.testing.assert_close(parts.total[..., 0], torch.zeros(3, 7, dtype=torch.float64))
+    expected = torch.full((3, 7), math.log2(5), dtype=torch.float64)
+    torch.testing.assert_close(parts.total[..., 1], expected)
