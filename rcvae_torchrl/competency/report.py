@@ -601,17 +601,9 @@ class CompetencyReport:
                 f"spread: expected the real episodes of this report's {self.batch_size.numel()} "
                 f"start states, got {count}"
             )
-        known = SPREAD_MEASURE if self.measure is not None else ()  # a report built by hand
-        mine = _as_json({k: self.measure.get(k) for k in known})
-        theirs = _as_json({k: spread.measure.get(k) for k in known})
-        steps = self._imagined_steps()
-        if steps is not None:
-            mine["steps"], theirs["steps"] = steps, spread.steps
-        if self.predicates is not None:
-            mine["boundary"], theirs["boundary"] = self.predicates[:12], spread.predicates[:12]
-        differ = [k for k in mine if mine[k] != theirs[k]]
-        if differ:
-            said = "; ".join(f"{k}: {theirs[k]!r}, this report's {mine[k]!r}" for k in differ)
+        boundary = {} if self.predicates is None else {"boundary": spread.predicates[:12]}
+        said = self._measured_otherwise(spread.measure, spread.steps, **boundary)
+        if said:
             raise ValueError(
                 f"spread: measured otherwise than this report's bits ({said}); measure it with "
                 "the assessor that made the report (assessor.real_spread)"
@@ -626,6 +618,24 @@ class CompetencyReport:
         data = self.data.clone(recurse=False)
         data.set("real_spread", spread.bits.reshape(self.batch_size))
         return replace(self, data=data, spread_tolerance=(float(factor), float(min_bits)))
+
+    def _measured_otherwise(
+        self, measure: Mapping[str, Any], steps: int | None, **also: Any
+    ) -> str:
+        """How bits measured by ``measure`` over ``steps`` (and ``also``: ``boundary``, the
+        predicates' digest; ``dimensions``, their names) differ from this report's, in the
+        parts of a measure the real spread shares (:data:`SPREAD_MEASURE`); '' where they do
+        not. What this report does not know (built by hand) is not compared."""
+        known = SPREAD_MEASURE if self.measure is not None else ()
+        mine = _as_json({k: self.measure.get(k) for k in known})
+        theirs = _as_json({k: measure.get(k) for k in known})
+        if self._imagined_steps() is not None:
+            mine["steps"], theirs["steps"] = self._imagined_steps(), steps
+        ours = {"boundary": (self.predicates or "")[:12], "dimensions": list(self.dim_names)}
+        for key, value in also.items():
+            mine[key], theirs[key] = ours[key], list(value) if key == "dimensions" else value
+        differ = [k for k in mine if mine[k] != theirs[k]]
+        return "; ".join(f"{k}: {theirs[k]!r}, this report's {mine[k]!r}" for k in differ)
 
     def with_aleatoric_share(self, share: AleatoricShare) -> CompetencyReport:
         """This report with its split calibrated by ``share`` (:meth:`AleatoricShare.fit`,
@@ -651,15 +661,8 @@ class CompetencyReport:
                 f"this report's {self.task[:12]}): another world model, boundary or deadline; "
                 "fit it with the assessor that made this report"
             )
-        mine = _as_json({k: (self.measure or {}).get(k) for k in SPREAD_MEASURE})
-        theirs = _as_json(dict(share.measure))
-        mine["steps"], theirs["steps"] = self._imagined_steps(), share.steps
-        mine["dimensions"], theirs["dimensions"] = list(self.dim_names), list(share.dim_names)
-        if self.measure is None:  # a report built by hand: its measure is not known
-            mine.update({k: theirs[k] for k in SPREAD_MEASURE})
-        differ = [k for k in mine if mine[k] != theirs[k]]
-        if differ:
-            said = "; ".join(f"{k}: {theirs[k]!r}, this report's {mine[k]!r}" for k in differ)
+        said = self._measured_otherwise(share.measure, share.steps, dimensions=share.dim_names)
+        if said:
             raise ValueError(
                 f"share: fitted on bits measured otherwise than this report's ({said}); fit it "
                 "with the assessor that made this report"
