@@ -235,7 +235,8 @@ def _cell(stats: dict[str, Any]) -> str:
     """Mean ± sd, and over how many seeds where some had no finite value (a trial's CRPS skill
     read as two seeds' mean was one seed's, the other's NaN left out unsaid)."""
     if not math.isfinite(stats["mean"]):
-        return "n/a"
+        values = stats["values"]  # a rise from nothing in every seed (e.g. over 0 bits): inf
+        return "inf" if values and all(v == math.inf for v in values) else "n/a"
     of = stats.get("of", len(stats["values"]))
     some = f" (of {of} seed{'' if of == 1 else 's'})" if of < len(stats["values"]) else ""
     if not math.isfinite(stats["sd"]):

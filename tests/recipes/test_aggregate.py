@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -216,3 +217,5 @@ def test_a_mean_over_fewer_seeds_than_the_study_says_over_how_many():
     assert _cell(_stats([0.1, 0.3, None])) == "0.200 ± 0.141 (of 2 seeds)"
     assert _cell(_stats([0.1, 0.3])) == "0.200 ± 0.141"
     assert _cell(_stats([float("nan")])) == "n/a"
+    assert _cell(_stats([math.inf, math.inf])) == "inf"  # a rise from 0 bits in every seed
+    assert _cell(_stats([math.inf, float("nan")])) == "n/a"
