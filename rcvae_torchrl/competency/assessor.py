@@ -501,6 +501,7 @@ class CompetencyAssessor(KeyedModule):
             agent=getattr(outcomes, "agent", None),
             acting=getattr(outcomes, "acting", None),
             starts=getattr(outcomes, "starts", None),
+            runs=int(r),
         )
 
     @property

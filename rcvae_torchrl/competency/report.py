@@ -44,6 +44,11 @@ _CALIBRATED_REASONS = {
     "aleatoric": "the agent's real episodes spread this much: chance that more data would "
     "not reduce",
 }
+_CALIBRATED_ROSE = {
+    "epistemic": "the model has not learned these states well enough: more data here would "
+    "reduce it",
+    "aleatoric": "the agent's real episodes spread more here than in the reference: chance",
+}
 _ROSE = {
     "epistemic": "the model has not seen states like this: more data here would reduce it",
     "aleatoric": "the members agree that the states vary more than in the reference: by "
@@ -89,6 +94,9 @@ class Reference:
     measure: Mapping[str, Any] | None = None
     #: the imagined steps its bits were measured over; None: not known, not compared
     steps: int | None = None
+    #: whether its split was calibrated against real episodes (:class:`AleatoricShare`);
+    #: None: not known, not compared
+    calibrated: bool | None = None
 
     def __post_init__(self) -> None:
         for field_name in ("aleatoric", "epistemic", "aleatoric_high", "epistemic_high"):
@@ -131,6 +139,8 @@ class RealSpread:
     acting: str | None = None
     #: ``[B, S]`` the start states (the real outcomes'); ``None`` where not known
     starts: Tensor | None = None
+    #: the real episodes per start state (R); ``None`` where not known
+    runs: int | None = None
 
     def __repr__(self) -> str:
         count = self.bits.batch_size.numel()
@@ -155,14 +165,20 @@ class AleatoricShare:
     or an error they all make, which the ensemble cannot tell apart (a model of a
     deterministic env spreads its imagined states too, where the real episodes repeat). The
     real episodes' spread tells them apart: ``share[d] = min(1, real[d] / imagined[d])``, the
-    bits of dimension ``d`` summed over the fitted start states (per live step where the
-    episodes end at the boundary, else time means). Applied, each dimension keeps that share
-    of its aleatoric bits at every step and the rest counts as epistemic, the model's own
-    error (its total is kept: :func:`~rcvae_torchrl.competency.rescale_aleatoric`). A share
-    of 0 says the env repeats what the agent does there; 1, that the model's spread is no
-    more than the real one (where it is less, the share stays 1: the model has not learned
-    all of the env's randomness, :meth:`CompetencyReport.with_real_spread` says so). One
-    share per dimension over the whole horizon: fit it on start states like those it is
+    bits of dimension ``d`` summed over the fitted start states, per step of the episodes'
+    life where they end at the boundary (how long the imagined and the real episodes last is
+    not the spread; else time means). Applied, each dimension keeps that share of its
+    aleatoric bits at every step and the rest counts as epistemic, the model's own error
+    (its total is kept: :func:`~rcvae_torchrl.competency.rescale_aleatoric`). A share of 0
+    says the env repeats what the agent does there; 1, that the model's spread is no more
+    than the real one (where it is less, the share stays 1: the model has not learned all of
+    the env's randomness, :meth:`CompetencyReport.with_real_spread` says so).
+
+    The plug-in entropy of ``n`` samples reads lower the fewer they are, so the real episodes
+    per start must be as many as the imagined samples per member (``R = N``), and the share
+    is applied only to forecasts with ``N`` samples per member, of the same world model and
+    boundary (:attr:`CompetencyReport.task`), bins and horizon, and agent acting the same way.
+    One share per dimension over the whole horizon: fit it on start states like those it is
     applied to, and on other start states than those it is scored on."""
 
     #: ``[D]`` the share of each dimension's aleatoric bits kept, in [0, 1]
@@ -175,21 +191,57 @@ class AleatoricShare:
     #: whether the bits are per live step (else time means)
     per_live_step: bool
     #: what the forecasts answer and how their bits were measured, as in the fitted report
-    #: (:attr:`CompetencyReport.task`, the :data:`SPREAD_MEASURE` part of its measure, its steps)
+    #: (:attr:`CompetencyReport.task`, the :data:`SPREAD_MEASURE` part of its measure, its steps);
+    #: '' / None where not known (not compared)
     task: str
     measure: Mapping[str, Any]
     steps: int | None
     dim_names: tuple[str, ...]
+    #: the imagined samples per member and real episodes per start it was fitted with (N = R)
+    samples_per_member: int | None = None
+    #: the agent and how it acted in the real episodes (the spread's); None where not known
+    agent: str | None = None
+    acting: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("share", "imagined", "real"):
+            value = getattr(self, name)
+            if not isinstance(value, Tensor):
+                value = torch.as_tensor(value, dtype=torch.float32)
+                object.__setattr__(self, name, value)
+            if value.ndim != 1 or len(value) != len(self.dim_names):
+                raise ValueError(
+                    f"{name}: expected one value per state dimension ({len(self.dim_names)} "
+                    f"named), got shape {tuple(value.shape)}"
+                )
+            if bool((value.isnan() | (value < 0)).any()):
+                raise ValueError(f"{name}: expected values >= 0, got {value.tolist()}")
+        if bool((self.share > 1).any()):
+            raise ValueError(f"share: expected shares in [0, 1], got {self.share.tolist()}")
+        object.__setattr__(self, "dim_names", tuple(self.dim_names))
 
     @classmethod
     def fit(cls, report: CompetencyReport, spread: RealSpread) -> AleatoricShare:
-        """The share from ``report`` (a forecast from some start states) and ``spread`` (the
-        agent's real episodes from the same start states, :meth:`CompetencyAssessor
+        """The share from ``report`` (a forecast from some start states, as the assessor
+        returned it) and ``spread`` (the agent's real episodes from the same start states,
+        as many per start as the report's samples per member: :meth:`CompetencyAssessor
         .real_spread`), refused where :meth:`CompetencyReport.with_real_spread` refuses them
         (other start states, agent, bins, steps or boundary)."""
         if not isinstance(report, CompetencyReport):
             raise TypeError(f"report: expected a CompetencyReport, got {type(report).__name__}")
+        if report.aleatoric_share is not None:
+            raise ValueError(
+                "report: its split is calibrated already (with_aleatoric_share); fit on the "
+                "report the assessor returned"
+            )
         report.with_real_spread(spread)  # the checks that tie the two together
+        n = (report.measure or {}).get("samples_per_member")
+        if n is not None and spread.runs is not None and spread.runs != n:
+            raise ValueError(
+                f"spread: expected {n} real episodes per start state, as many as the report's "
+                f"imagined samples per member (the plug-in entropy of fewer samples reads "
+                f"lower, of more higher), got {spread.runs}"
+            )
         imagined = report.uncertainty.get(("time_mean", "aleatoric"))
         if imagined.ndim != report.data.batch_dims + 1:
             raise ValueError(
@@ -202,104 +254,106 @@ class AleatoricShare:
             imagined = _per_live_step(imagined, report.uncertainty.get("live"))
             real = _per_live_step(real, spread.bits.get("live").reshape(*imagined.shape[:-1], -1))
         imagined, real = imagined.reshape(-1, imagined.shape[-1]), real.reshape(-1, real.shape[-1])
+        total = imagined.sum(0)
         share = torch.where(
-            imagined.sum(0) > 0,
-            (real.sum(0) / imagined.sum(0).clamp_min(torch.finfo(imagined.dtype).tiny)).clamp(
-                0.0, 1.0
-            ),
-            torch.ones_like(imagined[0]),
+            total > 0,
+            (real.sum(0) / total.clamp_min(torch.finfo(total.dtype).tiny)).clamp(0.0, 1.0),
+            torch.ones_like(total),
         )
         return cls(
-            share=share.detach().cpu(),
-            imagined=imagined.mean(0).detach().cpu(),
-            real=real.mean(0).detach().cpu(),
+            share=share.detach().cpu().float(),
+            imagined=imagined.mean(0).detach().cpu().float(),
+            real=real.mean(0).detach().cpu().float(),
             start_states=imagined.shape[0],
             per_live_step=live,
             task=report.task,
-            measure={k: (report.measure or {}).get(k) for k in SPREAD_MEASURE},
+            measure=_as_json({k: (report.measure or {}).get(k) for k in SPREAD_MEASURE}),
             steps=report._imagined_steps(),
             dim_names=tuple(report.dim_names),
+            samples_per_member=n if n is not None else spread.runs,
+            agent=spread.agent,
+            acting=spread.acting,
         )
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain values (for ``torch.save`` with ``weights_only`` loading): tensors, numbers,
-        strings and lists."""
+        """Plain values that JSON and ``torch.load(weights_only=True)`` both read back: lists,
+        numbers and strings (:meth:`from_dict`)."""
         return {
-            "share": self.share,
-            "imagined": self.imagined,
-            "real": self.real,
+            "share": self.share.tolist(),
+            "imagined": self.imagined.tolist(),
+            "real": self.real.tolist(),
             "start_states": self.start_states,
             "per_live_step": self.per_live_step,
             "task": self.task,
             "measure": _as_json(dict(self.measure)),
             "steps": self.steps,
             "dim_names": list(self.dim_names),
+            "samples_per_member": self.samples_per_member,
+            "agent": self.agent,
+            "acting": self.acting,
         }
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> AleatoricShare:
-        """What :meth:`as_dict` gave."""
+        """What :meth:`as_dict` gave (lists or tensors), checked as the constructor checks."""
+        required = ("share", "imagined", "real", "start_states", "per_live_step", "task")
         _checks.check_entries(
-            "values",
-            values,
-            (
-                "share",
-                "imagined",
-                "real",
-                "start_states",
-                "per_live_step",
-                "task",
-                "measure",
-                "steps",
-                "dim_names",
-            ),
-            "an AleatoricShare.as_dict()",
+            "values", values, (*required, "measure", "steps", "dim_names"), _AS_DICT
         )
-        share = values["share"]
-        if (
-            not isinstance(share, Tensor)
-            or share.ndim != 1
-            or len(values["dim_names"]) != len(share)
-        ):
-            raise ValueError(
-                "values['share']: expected a tensor [D] with one name per dimension, got "
-                f"{share!r} and {len(values['dim_names'])} names"
-            )
-        if bool(((share < 0) | (share > 1) | share.isnan()).any()):
-            raise ValueError(f"values['share']: expected shares in [0, 1], got {share.tolist()}")
+        for name in ("share", "imagined", "real"):
+            value = values[name]
+            if not isinstance(value, (Tensor, list, tuple)):
+                raise TypeError(
+                    f"values[{name!r}]: expected a list of numbers ({_AS_DICT}), got "
+                    f"{type(value).__name__}"
+                )
+        for name in ("task", "agent", "acting"):
+            value = values.get(name)
+            if value is not None and not isinstance(value, str):
+                raise TypeError(f"values[{name!r}]: expected a str ({_AS_DICT}), got {value!r}")
+        steps, n = values["steps"], values.get("samples_per_member")
         return cls(
-            share=share,
-            imagined=values["imagined"],
-            real=values["real"],
+            share=torch.as_tensor(values["share"], dtype=torch.float32),
+            imagined=torch.as_tensor(values["imagined"], dtype=torch.float32),
+            real=torch.as_tensor(values["real"], dtype=torch.float32),
             start_states=int(values["start_states"]),
             per_live_step=bool(values["per_live_step"]),
-            task=str(values["task"]),
+            task=values["task"],
             measure=dict(values["measure"]),
-            steps=None if values["steps"] is None else int(values["steps"]),
+            steps=None if steps is None else int(steps),
             dim_names=tuple(values["dim_names"]),
+            samples_per_member=None if n is None else int(n),
+            agent=values.get("agent"),
+            acting=values.get("acting"),
         )
 
     def describe(self) -> str:
-        """One sentence: the share overall and where the model's spread is most its error."""
+        """One sentence: what the share was fitted on, and how much of the model's aleatoric
+        bits it keeps (means over the start states it was fitted on)."""
         unit = "bits per live step" if self.per_live_step else "bits"
         imagined, real = float(self.imagined.sum()), float(self.real.sum())
         kept = float((self.imagined * self.share).sum())
         least = int(self.share.argmin())
         n = self.start_states
-        starts = "1 start state" if n == 1 else f"{n} start states"
+        starts = "1 other start state" if n == 1 else f"{n} other start states"
         text = (
-            f"The split is calibrated against the agent's real episodes from {starts}: they "
-            f"spread {real:.2f} {unit} where the world model imagined {imagined:.2f} aleatoric"
+            f"The split is calibrated against the agent's real episodes from {starts}, where "
+            f"they spread {real:.2f} {unit} and the world model imagined {imagined:.2f} "
+            "aleatoric"
         )
         if not bool(self.share.any()):
             return text + (
-                ", so none of them count as aleatoric: all are the model's own error (epistemic)."
+                ", so none of its aleatoric bits count as aleatoric: all are the model's own "
+                "error (epistemic)."
             )
         return text + (
-            f", so {kept:.2f} of them count as aleatoric and the rest as the model's own error "
-            f"(epistemic); the least kept, {self.dim_names[least]}: "
+            f", so it keeps {kept / imagined:.0%} of its aleatoric bits as aleatoric and counts "
+            f"the rest as its own error (epistemic); the least kept, {self.dim_names[least]}: "
             f"{float(self.share[least]):.0%}."
         )
+
+
+_AS_DICT = "an AleatoricShare.as_dict()"
 
 
 def _per_live_step(time_mean: Tensor, live: Tensor) -> Tensor:
@@ -631,7 +685,11 @@ class CompetencyReport:
         theirs = _as_json({k: measure.get(k) for k in known})
         if self._imagined_steps() is not None:
             mine["steps"], theirs["steps"] = self._imagined_steps(), steps
-        ours = {"boundary": (self.predicates or "")[:12], "dimensions": list(self.dim_names)}
+        ours = {
+            "boundary": (self.predicates or "")[:12],
+            "dimensions": list(self.dim_names),
+            "samples_per_member": (self.measure or {}).get("samples_per_member"),
+        }
         for key, value in also.items():
             mine[key], theirs[key] = ours[key], list(value) if key == "dimensions" else value
         differ = [k for k in mine if mine[k] != theirs[k]]
@@ -655,18 +713,38 @@ class CompetencyReport:
                 "share: this report's split is calibrated already; apply a share to the "
                 "report the assessor returned"
             )
+        if self.reference is not None:
+            raise ValueError(
+                "share: this report compares its split with a reference already; apply the "
+                "share first, to this report and to its reference alike, then with_reference"
+            )
         if self.task and share.task and share.task != self.task:
             raise ValueError(
                 f"share: fitted for another task than this report's (task {share.task[:12]}, "
                 f"this report's {self.task[:12]}): another world model, boundary or deadline; "
                 "fit it with the assessor that made this report"
             )
-        said = self._measured_otherwise(share.measure, share.steps, dimensions=share.dim_names)
+        also: dict[str, Any] = {"dimensions": share.dim_names}
+        if share.samples_per_member is not None and self.measure is not None:
+            also["samples_per_member"] = share.samples_per_member
+        said = self._measured_otherwise(share.measure, share.steps, **also)
         if said:
             raise ValueError(
                 f"share: fitted on bits measured otherwise than this report's ({said}); fit it "
                 "with the assessor that made this report"
             )
+        for what, mine, theirs in (
+            ("policy weights' digest", self.agent, share.agent),
+            ("exploration type", self.acting, share.acting),
+        ):
+            if mine is not None and theirs is not None and mine != theirs:
+                raise ValueError(
+                    f"share: fitted on the real episodes of another agent than this report's "
+                    f"(its {what} {theirs[:12]!r}, this report's {mine[:12]!r}): real episodes "
+                    "spread as the agent acts and where it goes (a stochastic policy acting "
+                    "'random' is another agent than acting 'deterministic'); fit a share with "
+                    "this agent's real episodes"
+                )
         data = self.data.clone(recurse=False)
         data.set(self.uncertainty_key, rescale_aleatoric(self.uncertainty, share.share))
         return replace(self, data=data, aleatoric_share=share)
@@ -764,6 +842,7 @@ class CompetencyReport:
                 quantile=quantile,
                 measure=reference.measure,
                 steps=reference._imagined_steps(),
+                calibrated=reference.aleatoric_share is not None,
             )
         elif not isinstance(reference, Reference):
             raise TypeError(
@@ -776,6 +855,14 @@ class CompetencyReport:
             raise ValueError(
                 "reference: its bits are per live step, but this report has none (assess with "
                 "episode_end=True, or give time-mean bits)"
+            )
+        mine = self.aleatoric_share is not None
+        if reference.calibrated is not None and reference.calibrated != mine:
+            kinds = {True: "calibrated against real episodes", False: "the world model's own"}
+            raise ValueError(
+                f"reference: its split is {kinds[reference.calibrated]}, this report's "
+                f"{kinds[mine]}: every rise or fall between them would be the calibration's; "
+                "apply the same AleatoricShare to both reports, or to neither"
             )
         return replace(self, reference=reference)
 
@@ -832,7 +919,7 @@ class CompetencyReport:
         if warning:  # as in each start's paragraph: the split is no evidence
             text += _unreliable_split_sentence(aleatoric, epistemic, total, _unit(live))
         elif self.reference is None:
-            text += _doubt_sentence(aleatoric, epistemic, total)
+            text += _doubt_sentence(aleatoric, epistemic, total, self.aleatoric_share is not None)
         else:
             novel = self.novel
             cautioned = 0 if novel is None else int(novel.sum())
@@ -853,6 +940,8 @@ class CompetencyReport:
             )
         if self.model_caution and not warning:
             text += f" Caution: {self.model_caution}."
+        if self.aleatoric_share is not None:
+            text += f" {self.aleatoric_share.describe()}"
         spread = self._spread_sentence(self.uncertainty, self.data.get("real_spread", None))
         text += f" {spread}" if spread else ""
         text += self._novel_count_sentence()
@@ -1283,7 +1372,8 @@ def _change_sentence(
         and cause not in one_by_one
     )
     if cause is not None and not unconfirmed:
-        return text + f": the rise is {cause}, {_ROSE[cause]}."
+        rose = _CALIBRATED_ROSE if reference.calibrated else _ROSE
+        return text + f": the rise is {cause}, {rose[cause]}."
     within = [
         k
         for k in ("epistemic", "aleatoric")

@@ -173,10 +173,13 @@ class AssessConfig:
     :func:`~rcvae_torchrl.competency.decompose_uncertainty`). ``start_chunk``: start states
     imagined together, each chunk seeded by the study's seed and its index (the unit of work
     shared over ``torchrun`` ranks). ``spread_starts`` start states of each condition (spread
-    evenly over the scored ones; 0: none) are run ``spread_runs`` times more, their
+    evenly over the scored ones; 0: none) are run ``samples_per_member`` times more, their
     observations kept, to measure the real episodes' spread in the bits the forecast's
-    aleatoric part claims (the report compares them; 32 runs, near ``samples_per_member``, so
-    that both entropies are estimated from about as many samples).
+    aleatoric part claims (the report compares them), and as many start states of each world
+    model's own env that no score uses, to calibrate the split (``AleatoricShare``).
+    ``spread_runs``: ``None`` (the default) or ``samples_per_member``, the only count allowed:
+    the plug-in entropy of fewer samples reads lower, so the real spread is measured from as
+    many samples as each member's.
     """
 
     start_states: int = 100
@@ -195,7 +198,7 @@ class AssessConfig:
     bias_correction: str = "shuffle"
     forecast_panels: int = 3
     spread_starts: int = 12
-    spread_runs: int = 32
+    spread_runs: int | None = None
 
     def __post_init__(self) -> None:
         _at_least(
@@ -214,7 +217,13 @@ class AssessConfig:
             int,
         )
         _at_least(self, ("spread_starts",), 0, int)
-        _at_least(self, ("spread_runs",), 2, int)
+        if self.spread_runs is not None and self.spread_runs != self.samples_per_member:
+            raise ValueError(
+                f"spread_runs: expected None or samples_per_member={self.samples_per_member} "
+                "(the real spread is measured from as many runs per start as each member's "
+                f"imagined samples: the plug-in entropy of fewer reads lower), got "
+                f"{self.spread_runs!r}"
+            )
         _whole_steps(self, ("horizon_s",))
         _at_least(self, ("success_radius",), 0.0)
         if not self.success_radius > 0:

@@ -588,7 +588,8 @@ class Study:
         """The share of ``condition``'s world model's aleatoric bits that the agent's real
         episodes show (:class:`~rcvae_torchrl.competency.AleatoricShare`), fitted on
         ``assess.spread_starts`` of its held-out start states (none of them scored),
-        ``assess.spread_runs`` real episodes each; saved, and its shares and real bits returned."""
+        ``assess.samples_per_member`` real episodes each (as many as each member's imagined
+        samples); saved, and its shares and real bits returned."""
         path = self.dir / "truth" / f"{condition}_share.pt"
         if not distributed.broadcast(path.is_file()):
             s = self.cfg.assess
@@ -610,7 +611,7 @@ class Study:
                     starts,
                     seed=SHARE_SEEDS + self.cfg.seed * 10 + index,
                     desc=f"real spread, held-out starts: {condition}",
-                    runs=s.spread_runs,
+                    runs=s.samples_per_member,
                     keep_observations=True,
                 )
             share = AleatoricShare.fit(report, assessor.real_spread(outcomes))
@@ -622,7 +623,7 @@ class Study:
 
     def real_spread(self, condition: str, index: int, policy: Callable) -> dict[str, float]:
         """The spread of the agent's real episodes from ``assess.spread_starts`` of the
-        condition's start states (evenly spread over them), ``assess.spread_runs`` each, in
+        condition's start states (evenly spread over them), ``assess.samples_per_member`` each, in
         the bits of the forecast (:meth:`~rcvae_torchrl.competency.CompetencyAssessor
         .real_spread`), saved with the forecast's aleatoric bits of the same start states."""
         path = self.dir / "truth" / f"{condition}_spread.pt"
@@ -642,7 +643,7 @@ class Study:
                     starts[picked],
                     seed=SPREAD_SEEDS + self.cfg.seed * 10 + index,
                     desc=f"real spread: {condition}",
-                    runs=s.spread_runs,
+                    runs=s.samples_per_member,
                     keep_observations=True,
                 )
             spread = self.assessor(model_name, variant).real_spread(outcomes).bits

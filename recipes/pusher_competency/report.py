@@ -360,7 +360,7 @@ def write_report(
         spread = _spread_text(summary["real_spread"])
         text = text.replace("## Uncertainty over time", spread + "## Uncertainty over time", 1)
     if calibrated:
-        split = _calibrated_text(rows, summary["calibrated_split"], checks, a.spread_runs)
+        split = _calibrated_text(rows, summary["calibrated_split"], checks, a.samples_per_member)
         text = text.replace("## Uncertainty over time", split + "## Uncertainty over time", 1)
     novelty = _novelty_text(summary["novelty"])
     text = text.replace("## The agent", novelty + "## The agent", 1)

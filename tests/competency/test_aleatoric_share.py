@@ -8,6 +8,7 @@ part is the total less the kept aleatoric part.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import pytest
@@ -16,9 +17,9 @@ from tensordict import TensorDict
 
 from rcvae_torchrl.competency import AleatoricShare, UncertaintyMetric, rescale_aleatoric
 from rcvae_torchrl.envs import OBSERVATION_NAMES, resolution_tensor
-from rcvae_torchrl.io import load_torch, save_torch
+from rcvae_torchrl.io import load_torch, read_json, save_torch, write_json
 from tests.competency.test_assessor import T, make_assessor, make_ensemble, make_env
-from tests.competency.test_real_spread import _episodes, _outcomes
+from tests.competency.test_real_spread import R, _episodes, _outcomes
 
 
 def _bits(episode_end: bool = True) -> TensorDict:
@@ -73,8 +74,14 @@ def test_rescale_keeps_the_total_and_moves_the_rest_to_epistemic_at_every_level(
         rescale_aleatoric(bits, torch.ones(3))
 
 
+def _assessor(seed: int = 0, **kwargs):
+    """An assessor with as many samples per member as the real runs per start (R)."""
+    kwargs.setdefault("episode_end", True)
+    return make_assessor(make_env(make_ensemble(seed)), samples_per_member=R, **kwargs)
+
+
 def _fitted(episode_end: bool = True):
-    assessor = make_assessor(make_env(make_ensemble()), episode_end=episode_end)
+    assessor = _assessor(episode_end=episode_end)
     starts = _episodes()[:, 0, 0]
     report = assessor.assess(starts, actions=torch.zeros(T, 2), seed=0)
     spread = assessor.real_spread(_outcomes(_episodes()))
@@ -103,9 +110,12 @@ def test_the_share_is_the_real_spread_over_the_imagined_aleatoric_bits(episode_e
         imagined.sum(0) > 0, (real.sum(0) / imagined.sum(0)).clamp(max=1.0), torch.ones(())
     )
     torch.testing.assert_close(share.share, expected)
-    # dimension 0's runs spread over 4 bins at every step, 2 bits of the 4 starts' sum; the
-    # untrained model's spread is wider: it keeps part; without an episode end the others repeat
-    assert 0 < float(share.share[0]) < 1
+    # start 1's runs spread over R bins of dimension 0 at every step: log2 R bits there, start
+    # 0's repeat (0 bits); without an episode end the other dimensions repeat: none kept
+    if not episode_end:
+        torch.testing.assert_close(real.sum(0)[0], torch.tensor(math.log2(R)))
+        expected_0 = min(1.0, math.log2(R) / float(imagined.sum(0)[0]))
+        assert float(share.share[0]) == pytest.approx(expected_0)
     if not episode_end:
         moving = imagined.sum(0)[1:] > 0
         assert not bool(share.share[1:][moving].any())
@@ -130,9 +140,13 @@ def test_a_calibrated_report_keeps_its_forecast_and_says_so():
     assert e > report.mean_bits()[1] and a < report.mean_bits()[0]
     kept = float((share.imagined * share.share).sum())
     assert (
-        f"spread {float(share.real.sum()):.2f} bits per live step where the world model imagined "
-        f"{float(share.imagined.sum()):.2f} aleatoric, so {kept:.2f} of them count as aleatoric"
+        f"from 2 other start states, where they spread {float(share.real.sum()):.2f} bits per "
+        f"live step and the world model imagined {float(share.imagined.sum()):.2f} aleatoric, "
+        f"so it keeps {kept / float(share.imagined.sum()):.0%} of its aleatoric bits"
     ) in share.describe()
+    overall = calibrated.overall()  # over all start states too
+    assert share.describe() in overall and "Most of the doubt" in overall
+    assert "by chance, or by an error they all make" not in overall
     # a deterministic env's repeated episodes: no aleatoric part is left, all is epistemic
     none = replace(share, share=torch.zeros_like(share.share))
     repeated = report.with_aleatoric_share(none)
@@ -141,7 +155,8 @@ def test_a_calibrated_report_keeps_its_forecast_and_says_so():
     said = repeated.summary(0)
     assert none.describe() in said
     assert none.describe().endswith(
-        "aleatoric, so none of them count as aleatoric: all are the model's own error (epistemic)."
+        "aleatoric, so none of its aleatoric bits count as aleatoric: all are the model's own "
+        "error (epistemic)."
     )
     assert "Most of the doubt is epistemic" in said
     assert "spread beyond what the agent's real episodes do" in said
@@ -153,11 +168,11 @@ def test_a_share_of_another_model_measure_or_report_is_refused():
     _, report, spread, share = _fitted()
     with pytest.raises(ValueError, match=r"^share: this report's split is calibrated already"):
         report.with_aleatoric_share(share).with_aleatoric_share(share)
-    other = make_assessor(make_env(make_ensemble(seed=1)), episode_end=True)
+    other = _assessor(seed=1)
     theirs = other.assess(_episodes()[:, 0, 0], actions=torch.zeros(T, 2), seed=0)
     with pytest.raises(ValueError, match=r"^share: fitted for another task than this report's"):
         theirs.with_aleatoric_share(share)
-    unended = make_assessor(make_env(make_ensemble()), episode_end=False)
+    unended = _assessor(episode_end=False)
     plain = unended.assess(_episodes()[:, 0, 0], actions=torch.zeros(T, 2), seed=0)
     with pytest.raises(ValueError, match=r"^share: fitted on bits measured otherwise .*episode_e"):
         plain.with_aleatoric_share(replace(share, task=plain.task))
@@ -168,32 +183,67 @@ def test_a_share_of_another_model_measure_or_report_is_refused():
         AleatoricShare.fit(report[:1], spread)
     with pytest.raises(TypeError, match=r"^report: expected a CompetencyReport"):
         AleatoricShare.fit(report.data, spread)
-    coarse = make_assessor(
-        make_env(make_ensemble()), episode_end=True, bin_width=2 * resolution_tensor()
-    )
+    coarse = _assessor(bin_width=2 * resolution_tensor())
     wider = coarse.assess(_episodes()[:, 0, 0], actions=torch.zeros(T, 2), seed=0)
     with pytest.raises(ValueError, match=r"^spread: measured otherwise than this report's"):
         AleatoricShare.fit(wider, spread)
+    # fitted on a calibrated report, every share would read 1: refused
+    with pytest.raises(ValueError, match=r"^report: its split is calibrated already"):
+        AleatoricShare.fit(report.with_aleatoric_share(share), spread)
+    # as many real runs per start as imagined samples per member, and applied at that count
+    more = make_assessor(make_env(make_ensemble()), episode_end=True, samples_per_member=2 * R)
+    twice = more.assess(_episodes()[:, 0, 0], actions=torch.zeros(T, 2), seed=0)
+    with pytest.raises(ValueError, match=rf"^spread: expected {2 * R} real episodes per start st"):
+        AleatoricShare.fit(twice, spread)
+    with pytest.raises(ValueError, match=r"^share: fitted on bits .*samples_per_member: 4, this"):
+        twice.with_aleatoric_share(share)
+    # another agent, or the same one acting otherwise
+    for field, value in (("agent", "f" * 64), ("acting", "random")):
+        mine = replace(report, **{field: value})
+        theirs_share = replace(share, **{field: "0" * 64 if field == "agent" else "deterministic"})
+        with pytest.raises(ValueError, match=r"^share: fitted on the real episodes of another ag"):
+            mine.with_aleatoric_share(theirs_share)
+    # a calibrated report and a reference of the model's own split: every rise would be the
+    # calibration's; both calibrated alike compare, in the calibrated words
+    with pytest.raises(ValueError, match=r"^reference: its split is the world model's own, th"):
+        report.with_aleatoric_share(share).with_reference(report)
+    with pytest.raises(ValueError, match=r"^reference: its split is calibrated against real e"):
+        report.with_reference(report.with_aleatoric_share(share))
+    with pytest.raises(ValueError, match=r"^share: this report compares its split with a refer"):
+        report.with_reference(report).with_aleatoric_share(share)
+    calibrated = report.with_aleatoric_share(share)
+    compared = calibrated.with_reference(calibrated[:1])
+    assert compared.reference.calibrated is True
+    assert "has not seen states like this" not in compared.summary(1)
 
 
-def test_a_share_is_saved_and_read_back(tmp_path):
+@pytest.mark.parametrize("kind", ["torch", "json"])
+def test_a_share_is_saved_and_read_back(tmp_path, kind):
     _, report, _, share = _fitted()
-    path = save_torch(tmp_path / "share.pt", share.as_dict())
-    back = AleatoricShare.from_dict(load_torch(path, "aleatoric share"))
+    if kind == "torch":
+        path = save_torch(tmp_path / "share.pt", share.as_dict())
+        back = AleatoricShare.from_dict(load_torch(path, "aleatoric share"))
+    else:
+        write_json(tmp_path / "share.json", share.as_dict())
+        back = AleatoricShare.from_dict(read_json(tmp_path / "share.json"))
     for name in ("share", "imagined", "real"):
         torch.testing.assert_close(getattr(back, name), getattr(share, name))
-    assert (back.task, back.steps, back.dim_names, back.per_live_step) == (
-        share.task,
-        share.steps,
-        share.dim_names,
-        share.per_live_step,
-    )
+    kept = ("task", "steps", "dim_names", "per_live_step", "samples_per_member", "measure")
+    assert {k: getattr(back, k) for k in kept} == {k: getattr(share, k) for k in kept}
+    assert back.samples_per_member == R
     torch.testing.assert_close(
         report.with_aleatoric_share(back).uncertainty["aleatoric"],
         report.with_aleatoric_share(share).uncertainty["aleatoric"],
     )
     with pytest.raises(ValueError, match=r"^values: expected the entries .* missing \['task'\]"):
         AleatoricShare.from_dict({k: v for k, v in share.as_dict().items() if k != "task"})
-    bad = {**share.as_dict(), "share": share.share + 2}
-    with pytest.raises(ValueError, match=r"^values\['share'\]: expected shares in \[0, 1\]"):
+    bad = {**share.as_dict(), "share": (share.share + 2).tolist()}
+    with pytest.raises(ValueError, match=r"^share: expected shares in \[0, 1\]"):
         AleatoricShare.from_dict(bad)
+    with pytest.raises(TypeError, match=r"^values\['imagined'\]: expected a list of numbers"):
+        AleatoricShare.from_dict({**share.as_dict(), "imagined": "junk"})
+    # the constructor checks what it is given
+    with pytest.raises(ValueError, match=r"^share: expected values >= 0, got \[nan"):
+        replace(share, share=torch.full_like(share.share, math.nan))
+    with pytest.raises(ValueError, match=r"^real: expected one value per state dimension \(14 "):
+        replace(share, real=torch.zeros(3))

@@ -213,6 +213,10 @@ def test_the_schema_is_the_base_of_every_profile():
         ("assess.horizon_s=-5", r"^assess\.horizon_s: expected a positive whole number"),
         ("assess.real_workers=0", r"^assess\.real_workers: expected an integer >= 1, got 0"),
         (
+            "assess.spread_runs=32",
+            r"^assess\.spread_runs: expected None or samples_per_member=50 \(the real spread",
+        ),
+        (
             "assess.samples_per_member=1",
             r"^assess\.samples_per_member: the shuffle correction \(bias_correction='shuffle'\)",
         ),
