@@ -761,6 +761,7 @@ class CompetencyReport:
         real = float(_bits(spread, live).get("total").mean())
         n = spread.batch_size.numel()
         starts = "this start state" if n == 1 else f"these {n} start states"
+        part = "aleatoric part" if self.aleatoric_share is None else "calibrated aleatoric part"
         if live:
             means = (
                 float(_bits(spread, False).get("total").mean()),
@@ -768,13 +769,13 @@ class CompetencyReport:
             )
             text = (
                 f"The agent's real episodes from {starts} spread {real:.2f} bits per live step "
-                f"({means[0]:.2f} as a time mean), the imagined aleatoric part {aleatoric:.2f} "
+                f"({means[0]:.2f} as a time mean), the imagined {part} {aleatoric:.2f} "
                 f"({means[1]:.2f})."
             )
         else:
             text = (
                 f"The agent's real episodes from {starts} spread {real:.2f} bits, the imagined "
-                f"aleatoric part {aleatoric:.2f}."
+                f"{part} {aleatoric:.2f}."
             )
         factor, least = self.spread_tolerance
         if aleatoric > factor * real and aleatoric - real >= least:

@@ -123,7 +123,7 @@ def test_the_share_is_the_real_spread_over_the_imagined_aleatoric_bits(episode_e
 
 
 def test_a_calibrated_report_keeps_its_forecast_and_says_so():
-    _, report, _, share = _fitted()
+    _, report, spread, share = _fitted()
     calibrated = report.with_aleatoric_share(share)
     assert calibrated.aleatoric_share is share
     torch.testing.assert_close(calibrated.uncertainty["total"], report.uncertainty["total"])
@@ -144,6 +144,8 @@ def test_a_calibrated_report_keeps_its_forecast_and_says_so():
         f"live step and the world model imagined {float(share.imagined.sum()):.2f} aleatoric, "
         f"so it keeps {kept / float(share.imagined.sum()):.0%} of its aleatoric bits"
     ) in share.describe()
+    spread_said = calibrated.with_real_spread(spread).summary(0)
+    assert "the imagined calibrated aleatoric part" in spread_said
     overall = calibrated.overall()  # over all start states too
     assert share.describe() in overall and "Most of the doubt" in overall
     assert "by chance, or by an error they all make" not in overall
