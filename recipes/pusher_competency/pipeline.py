@@ -595,25 +595,20 @@ class Study:
             s = self.cfg.assess
             model_name, variant = CONDITIONS[condition]
             held_out = self.held_out_starts(condition)
-            count = min(s.spread_starts, len(held_out))
-            starts = held_out[torch.linspace(0, len(held_out) - 1, count).round().long().unique()]
+            starts = held_out[_evenly(len(held_out), s.spread_starts)]
             assessor = self.assessor(model_name, variant)
             report = assessor.assess(
                 starts.to(self.device),
                 policy=self.load_policy().to(self.device),
                 seed=self.cfg.seed,
             )
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", "runs_per_start: each of the", UserWarning)
-                outcomes = self.real_runs(
-                    variant,
-                    policy,
-                    starts,
-                    seed=SHARE_SEEDS + self.cfg.seed * 10 + index,
-                    desc=f"real spread, held-out starts: {condition}",
-                    runs=s.samples_per_member,
-                    keep_observations=True,
-                )
+            outcomes = self.kept_runs(
+                variant,
+                policy,
+                starts,
+                seed=SHARE_SEEDS + self.cfg.seed * 10 + index,
+                desc=f"real spread, held-out starts: {condition}",
+            )
             share = AleatoricShare.fit(report, assessor.real_spread(outcomes))
             if distributed.is_main():
                 save_torch(path, share.as_dict())
@@ -632,26 +627,38 @@ class Study:
             model_name, variant = CONDITIONS[condition]
             forecast = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
             starts = forecast["starts"]
-            count = min(s.spread_starts, len(starts))
-            picked = torch.linspace(0, len(starts) - 1, count).round().long().unique()
-            with warnings.catch_warnings():
-                # in a deterministic Pusher the runs repeat one episode: the 0 bits measured
-                warnings.filterwarnings("ignore", "runs_per_start: each of the", UserWarning)
-                outcomes = self.real_runs(
-                    variant,
-                    policy,
-                    starts[picked],
-                    seed=SPREAD_SEEDS + self.cfg.seed * 10 + index,
-                    desc=f"real spread: {condition}",
-                    runs=s.samples_per_member,
-                    keep_observations=True,
-                )
+            picked = _evenly(len(starts), s.spread_starts)
+            outcomes = self.kept_runs(
+                variant,
+                policy,
+                starts[picked],
+                seed=SPREAD_SEEDS + self.cfg.seed * 10 + index,
+                desc=f"real spread: {condition}",
+            )
             spread = self.assessor(model_name, variant).real_spread(outcomes).bits
             if distributed.is_main():
                 save_torch(path, _spread_record(spread, forecast, picked))
             distributed.barrier()
         saved = load_torch(path, "real spread")
         return {k: float(saved[k].mean()) for k in ("real", "imagined")}
+
+    def kept_runs(
+        self, variant: str, policy: Callable, starts: torch.Tensor, *, seed: int, desc: str
+    ) -> RealOutcomes:
+        """The real episodes whose spread is measured: ``assess.samples_per_member`` from each
+        of ``starts`` (as many as each member's imagined samples), their observations kept."""
+        with warnings.catch_warnings():
+            # in a deterministic Pusher the runs repeat one episode: the 0 bits measured
+            warnings.filterwarnings("ignore", "runs_per_start: each of the", UserWarning)
+            return self.real_runs(
+                variant,
+                policy,
+                starts,
+                seed=seed,
+                desc=desc,
+                runs=self.cfg.assess.samples_per_member,
+                keep_observations=True,
+            )
 
     def real_runs(
         self,
@@ -784,6 +791,11 @@ class Study:
             check_model(model, truth, coverage_steps=k, alpha=alpha, seed=self.cfg.seed, warn=False)
             for k in steps
         ]
+
+
+def _evenly(count: int, most: int) -> torch.Tensor:
+    """Up to ``most`` indices spread evenly over ``range(count)``, first and last included."""
+    return torch.linspace(0, count - 1, min(most, count)).round().long().unique()
 
 
 def _spread_record(spread, forecast: dict, picked: torch.Tensor) -> dict[str, torch.Tensor]:
