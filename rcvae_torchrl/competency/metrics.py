@@ -82,6 +82,8 @@ def rescale_aleatoric(uncertainty: TensorDictBase, share: Tensor) -> TensorDictB
             f"share: expected one share per state dimension [{total.shape[-1]}] of bits "
             f"[*B, T, D], got share {tuple(share.shape)} for bits {tuple(total.shape)}"
         )
+    if not bool(((share >= 0) & (share <= 1)).all()):  # NaN fails too
+        raise ValueError(f"share: expected shares in [0, 1], got {share.tolist()}")
     share = share.to(total)
     out = uncertainty.clone(recurse=False)
 

@@ -72,6 +72,9 @@ def test_rescale_keeps_the_total_and_moves_the_rest_to_epistemic_at_every_level(
     torch.testing.assert_close(bare["aleatoric"], out["aleatoric"])
     with pytest.raises(ValueError, match=r"^share: expected one share per state dimension \[2\]"):
         rescale_aleatoric(bits, torch.ones(3))
+    for bad in (torch.tensor([0.5, 1.5]), torch.tensor([math.nan, 0.5])):
+        with pytest.raises(ValueError, match=r"^share: expected shares in \[0, 1\]"):
+            rescale_aleatoric(bits, bad)
 
 
 def _assessor(seed: int = 0, **kwargs):
