@@ -388,7 +388,7 @@ def _judged_for(
     _check_count(name, report.batch_size.numel(), outcomes, whose)
     check_same_agent(report, outcomes, name=name)
     check_same_predicates(report, outcomes, name=name)
-    check_same_starts(name, _report_starts(report), outcomes.starts, "real episodes")
+    check_same_starts(name, report.start_states, outcomes.starts, "real episodes")
     return outcomes.within(report.time_limit)
 
 
@@ -398,15 +398,6 @@ def _check_count(name: str, count: int, outcomes: RealOutcomes, whose: str) -> N
             f"{name}: expected the real outcomes of {whose} {count} start states, got "
             f"{len(outcomes)}"
         )
-
-
-def _report_starts(report: object) -> torch.Tensor | None:
-    """A report's start states ``[B, S]`` (its observations), or ``None``."""
-    data, key = getattr(report, "data", None), getattr(report, "observation_key", None)
-    if data is None or key is None or key not in data.keys(True):
-        return None
-    observed = data.get(key)
-    return observed.reshape(-1, observed.shape[-1])
 
 
 def _decided_by(success: object) -> int | None:

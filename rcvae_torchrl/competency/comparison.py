@@ -177,8 +177,7 @@ def compare_agents(
             f"b: expected a report of the same task as a, got one of {_other_task(a, b)}; "
             "assess both agents with one assessor"
         )
-    starts = [r.data.get(r.observation_key) for r in (a, b)]
-    check_same_starts("b", starts[0], starts[1], "a report")
+    check_same_starts("b", a.start_states, b.start_states, "a report")
     success = [r.competency.get("success").flatten(0, -3) for r in (a, b)]  # [B, E, N]
     if success[0].shape != success[1].shape:
         mine, theirs = tuple(success[0].shape[1:]), tuple(success[1].shape[1:])

@@ -540,8 +540,7 @@ class CompetencyReport:
         covers = getattr(check, "covers", None)
         if covers is None or getattr(check, "start_states", None) is None:
             return None
-        starts = self.data.get(self.observation_key)
-        covered = covers(starts.reshape(-1, starts.shape[-1]))
+        covered = covers(self.start_states)
         return None if covered is None else ~covered.reshape(self.batch_size)
 
     @cached_property
@@ -551,8 +550,7 @@ class CompetencyReport:
         uncovered, check = self.uncovered, self.forecast_check
         if uncovered is None or not bool(uncovered.any()):
             return ""
-        starts = self.data.get(self.observation_key)
-        p_value = check.coverage_p_value(starts.reshape(-1, starts.shape[-1]))
+        p_value = check.coverage_p_value(self.start_states)
         if not p_value < check.alpha:
             return ""
         return (
@@ -663,8 +661,7 @@ class CompetencyReport:
                 "the assessor that made the report (assessor.real_spread)"
             )
         check_same_agent(self, spread, name="spread")
-        observed = self.data.get(self.observation_key, None)
-        _checks.check_same_starts("spread", observed, spread.starts, "real episodes")
+        _checks.check_same_starts("spread", self.start_states, spread.starts, "real episodes")
         _checks.check_positive("factor", factor)
         if factor < 1:
             raise ValueError(f"factor: expected >= 1, got {factor!r}")
@@ -798,6 +795,15 @@ class CompetencyReport:
         ``episode_end``)."""
         part = _bits(self.uncertainty, per_live_step)
         return float(part.get("aleatoric").mean()), float(part.get("epistemic").mean())
+
+    @property
+    def start_states(self) -> Tensor | None:
+        """The start states ``[B', S]`` (the batch flattened, in order), or ``None`` where
+        :attr:`data` holds none (a report built by hand)."""
+        if self.observation_key not in self.data.keys(True):
+            return None
+        observed = self.data.get(self.observation_key)
+        return observed.reshape(-1, observed.shape[-1])
 
     @property
     def has_live_steps(self) -> bool:
@@ -1115,11 +1121,10 @@ class CompetencyReport:
         """Where the attached forecast check was made, against this report's start states: "on
         other start states" (none of these among its own, or its own not known), "on these
         start states" (all of them), or on some of them."""
-        own = getattr(self.forecast_check, "start_states", None)
-        if own is None or self.observation_key not in self.data.keys(True):
+        own, starts = getattr(self.forecast_check, "start_states", None), self.start_states
+        if own is None or starts is None:
             return "on other start states"
-        starts = self.data.get(self.observation_key)
-        mine = starts.reshape(-1, starts.shape[-1]).detach().cpu().double()
+        mine = starts.detach().cpu().double()
         if mine.shape[-1] != own.shape[-1]:
             return "on other start states"
         among = torch.cdist(mine, own.double(), p=math.inf).le(1e-6).any(-1)

@@ -786,10 +786,8 @@ class OutcomeCheck:
                     "leave task out with a report (it is the report's)"
                 )
             task = known if task is None else task
-            data, key = getattr(forecast, "data", None), getattr(forecast, "observation_key", None)
-            if start_states is None and data is not None and key in data.keys(True):
-                observed = data.get(key)
-                start_states = observed.reshape(-1, observed.shape[-1])
+            if start_states is None:
+                start_states = getattr(forecast, "start_states", None)
             novelty = getattr(forecast, "novelty", None)
             scale = getattr(novelty, "scale", None)
             dims = None if start_states is None else start_states.shape[-1]
