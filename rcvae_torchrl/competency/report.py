@@ -341,6 +341,8 @@ class AleatoricShare:
             f"they spread {real:.2f} {unit} and the world model imagined {imagined:.2f} "
             "aleatoric"
         )
+        if imagined <= 0:  # nothing imagined there: nothing to keep or to move
+            return text + "."
         if not bool(self.share.any()):
             return text + (
                 ", so none of its aleatoric bits count as aleatoric: all are the model's own "
