@@ -1161,13 +1161,14 @@ class OutcomeCheck:
         verdict = "unbiased as far as the tests can tell" if self.passed else self.verdict
         if not self.biased and self.p_value < self.alpha:  # the interval below excludes 0
             verdict = (
-                "not named biased: the t-test alone would name them, but the outcomes' exact "
-                "chance allows the gap"
+                "not named biased: a bias is named only where both tests find the gap beyond "
+                "chance, and only the t-test does; the outcomes' exact chance allows it"
             )
         elif not self.biased and self.exact_p_value < self.alpha:
             verdict = (
-                "not named biased: the outcomes' exact chance alone would name them, but the "
-                "t-test allows the gap (its interval holds 0)"
+                "not named biased: a bias is named only where both tests find the gap beyond "
+                "chance, and only the outcomes' exact chance does; the t-test over the starts "
+                "allows it (its interval holds 0)"
             )
         elif not self.biased and not self.precise:
             verdict = "unchecked"
@@ -1212,9 +1213,10 @@ class OutcomeCheck:
                 f"; per start not tested: each start's {self.runs} episodes agree, so they "
                 "are taken for one outcome repeated (a deterministic env's; in a stochastic "
                 "one, no start's outcome varied in these runs) and tell no start's chance"
+                + self._no_skill_seen()
             )
         if not self.per_start_measured:
-            return ""
+            return self._no_skill_seen()
         shift = " beyond the shift they share" if self.biased else ""
         if self.no_better_than_constant:
             return (
@@ -1236,6 +1238,22 @@ class OutcomeCheck:
             f"; per start they miss their start's real rate{shift} by no more than the chance "
             f"of {self.runs} episodes can hide (p = {self.per_start_p_value:.2g}: not shown to "
             "miss, which few episodes per start cannot tell from agreeing)"
+        )
+
+    def _no_skill_seen(self) -> str:
+        """Where the per-start test cannot run (one outcome per start, or runs that repeat one
+        outcome), what the real episodes still show: forecasts that scored no better than one
+        forecast for every start ('' where they scored better, or nothing varied). The verdict
+        does not rest on it: with one outcome per start, so few starts rarely tell such a
+        score from chance (a ball-in-cup model forecast 0.45 for 20 starts of which 4
+        succeeded, Brier skill -0.67, and its check could only call the gap imprecise)."""
+        skill = self.brier_skill
+        if not skill <= 0:  # better than one forecast, or NaN: nothing varied
+            return ""
+        return (
+            f"; they also scored no better than one forecast of {float(self.real.mean()):.2f} "
+            f"for every start (Brier skill {skill:+.3f} over the real episodes): nothing here "
+            "shows that they tell one start state's task from another"
         )
 
     def as_dict(self) -> dict[str, Any]:

@@ -82,8 +82,8 @@ def test_statistics_against_closed_forms():
     assert off.exact_p_value > 0.5 and not off.biased
     # and the sentence says why the gap, outside the t-test's interval, is not named a bias
     assert off.describe().startswith(
-        f"{off.what} are not named biased: the t-test alone would name them, but the outcomes' "
-        "exact chance allows the gap: "
+        f"{off.what} are not named biased: a bias is named only where both tests find the gap "
+        "beyond chance, and only the t-test does; the outcomes' exact chance allows it: "
     )
     all_won = torch.ones(40, 1, dtype=torch.bool)  # 40 of 40 where 0.5 was forecast
     sure = OutcomeCheck.from_outcomes(torch.full((40,), 0.5, dtype=torch.float64), all_won)
@@ -241,6 +241,32 @@ def test_the_per_start_test_needs_independent_runs():
     assert not single.per_start_measured and "per start" not in single.describe()
 
 
+def test_forecasts_that_score_below_a_constant_are_said_to_with_one_outcome_per_start():
+    # one outcome per start (a deterministic env): the per-start test cannot run, and 20
+    # starts cannot name a constant 0.45 biased where 4 succeeded, but the words say what the
+    # episodes show: Brier (4 * 0.55^2 + 16 * 0.45^2) / 20 = 0.2225 against 0.2 * 0.8 = 0.16
+    forecast = torch.full((20,), 0.45, dtype=torch.float64)
+    real = torch.zeros(20, 1, dtype=torch.bool)
+    real[:4] = True
+    check = OutcomeCheck.from_outcomes(forecast, real)
+    assert not check.per_start_measured and not check.biased and not check.passed
+    assert check.brier_skill == pytest.approx(1 - 0.2225 / 0.16)
+    said = (
+        "; they also scored no better than one forecast of 0.20 for every start (Brier skill "
+        "-0.391 over the real episodes): nothing here shows that they tell one start state's "
+        "task from another"
+    )
+    assert check.describe().endswith(said) and check.message() == check.describe()
+    # the same outcomes repeated 3 times per start (runs that agree): the same words
+    repeated = OutcomeCheck.from_outcomes(forecast, real.expand(20, 3))
+    assert repeated.describe().endswith("tell no start's chance" + said)
+    # forecasts that tell the starts apart better than one number: nothing added
+    apart = forecast.clone()
+    apart[:4], apart[4:] = 0.6, 0.15
+    better = OutcomeCheck.from_outcomes(apart, real)
+    assert better.brier_skill > 0 and "no better than one forecast" not in better.describe()
+
+
 def test_a_gap_only_the_exact_test_rejects_is_not_called_unbiased():
     # a deterministic env, one run per start: forecasts near 0 at starts that succeed are
     # beyond the outcomes' chance, while the per-start differences' spread keeps the t-test
@@ -252,7 +278,9 @@ def test_a_gap_only_the_exact_test_rejects_is_not_called_unbiased():
     check = OutcomeCheck.from_outcomes(forecast, real)
     assert check.exact_p_value < check.alpha <= check.p_value and not check.biased
     assert check.describe().startswith(
-        f"{check.what} are not named biased: the outcomes' exact chance alone would name them"
+        f"{check.what} are not named biased: a bias is named only where both tests find the "
+        "gap beyond chance, and only the outcomes' exact chance does; the t-test over the starts "
+        "allows it (its interval holds 0)"
     )
 
 
@@ -318,7 +346,9 @@ def test_a_check_too_wide_to_see_a_bias_that_matters_has_not_passed():
         "(gap +0.333, 99 % interval -0.016 to +0.682; p = 0.013 by a t-test over the starts, "
         "0.042 by the outcomes' exact chance, 4,000 draws): no bias is named, but the interval "
         "reaches beyond ±0.2, so a bias that large is not ruled out and the check has not "
-        "passed; check more start states"
+        "passed; check more start states; they also scored no better than one forecast of "
+        "0.17 for every start (Brier skill -0.800 over the real episodes): nothing here shows "
+        "that they tell one start state's task from another"
     )
     # the same forecasts against 200 starts: the interval is narrow, and now the bias shows
     many = torch.zeros(200, 1, dtype=torch.bool)
