@@ -1143,7 +1143,8 @@ class OutcomeCheck:
     def describe(self) -> str:
         """One sentence: the verdict, the mean forecast and real rate, the gap with its
         interval at the test's level, the two p-values (:attr:`biased`) and, where it applies,
-        the per-start test's verdict."""
+        the per-start test's verdict; where that test cannot run, a Brier skill at or below 0
+        (:attr:`brier_skill`) is said, though no verdict rests on it."""
         if not self.measured and self.settled and not self.biased:
             return (
                 f"{self.what} are unchecked: {self.settled} of the {self.starts} start states "
