@@ -59,15 +59,17 @@ AGENT_DATA_SEED = 77_000
 FINISHED = ("data", "models", "agent/policy.pt", "forecast", "truth")
 
 
-def open_run(run_dir: Path, work: Path | None = None) -> Study:
+def open_run(run_dir: Path, work: Path | None = None, changes: dict | None = None) -> Study:
     """The study of ``run_dir`` (with the settings of the run its ``agent/`` was made in where it
-    records none, and the start-state count of its forecasts), in ``work`` if given."""
+    records none, and the start-state count of its forecasts), in ``work`` if given, with each
+    section's keys in ``changes`` replaced."""
     origin = run_dir
     if not (run_dir / "study_config.json").is_file():
         origin = (run_dir / "agent").resolve().parent
     starts = load_torch(run_dir / "forecast" / "deterministic.pt", "forecast")["starts"]
-    changes = {"assess": {"start_states": len(starts)}}
-    return study_of_run(work or run_dir, changes=changes, settings_from=origin)
+    changed = {section: dict(values) for section, values in (changes or {}).items()}
+    changed.setdefault("assess", {})["start_states"] = len(starts)
+    return study_of_run(work or run_dir, changes=changed, settings_from=origin)
 
 
 def agent_episodes(study: Study, model_name: str, episodes: int):
