@@ -59,6 +59,17 @@ AGENT_DATA_SEED = 77_000
 FINISHED = ("data", "models", "agent/policy.pt", "forecast", "truth")
 
 
+def check_finished(run_dirs: list[Path]) -> None:
+    """Refuse, naming ``run_dirs``, a directory that lacks a part of a finished run."""
+    for run_dir in run_dirs:
+        missing = [p for p in FINISHED if not (run_dir / p).exists()]
+        if missing:
+            raise SystemExit(
+                f"run_dirs: expected finished study runs, {str(run_dir)!r} lacks "
+                f"{', '.join(missing)}"
+            )
+
+
 def open_run(run_dir: Path, work: Path | None = None, changes: dict | None = None) -> Study:
     """The study of ``run_dir`` (with the settings of the run its ``agent/`` was made in where it
     records none, and the start-state count of its forecasts), in ``work`` if given, with each
@@ -193,13 +204,7 @@ def main() -> None:
             raise SystemExit(f"--{name}: expected at least 1, got {getattr(args, name)}")
     if not args.lr > 0:
         raise SystemExit(f"--lr: expected a positive learning rate, got {args.lr}")
-    for run_dir in args.run_dirs:
-        missing = [p for p in FINISHED if not (run_dir / p).exists()]
-        if missing:
-            raise SystemExit(
-                f"run_dirs: expected finished study runs, {str(run_dir)!r} lacks "
-                f"{', '.join(missing)}"
-            )
+    check_finished(args.run_dirs)
     torch.set_num_threads(1)
     rows = [row for run_dir in args.run_dirs for row in one_run(run_dir, args)]
     how = (

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 from _report import atomic_json, conditions, print_table, write_json
-from closed_loop_data import FINISHED, open_run
+from closed_loop_data import check_finished, open_run
 from scipy.stats import spearmanr
 
 from rcvae_torchrl.competency import validate_forecasts
@@ -132,13 +132,7 @@ def main() -> None:
     for text in args.settings:
         section, key, value = parse_setting(text)
         changes.setdefault(section, {})[key] = value
-    for run_dir in args.run_dirs:
-        missing = [p for p in FINISHED if not (run_dir / p).exists()]
-        if missing:
-            raise SystemExit(
-                f"run_dirs: expected finished study runs, {str(run_dir)!r} lacks "
-                f"{', '.join(missing)}"
-            )
+    check_finished(args.run_dirs)
     torch.set_num_threads(1)
     rows = [row for run_dir in args.run_dirs for row in one_run(run_dir, changes, args)]
     print_table(

@@ -11,6 +11,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 
+import closed_loop_data
 import retrain_forecast
 
 
@@ -36,7 +37,7 @@ def test_settings_are_read_as_typed_values():
 
 def _finished(run: Path) -> Path:
     """A directory with every part of a finished run (empty)."""
-    for part in retrain_forecast.FINISHED:
+    for part in closed_loop_data.FINISHED:
         path = run / part
         if path.suffix:
             path.parent.mkdir(parents=True, exist_ok=True)
