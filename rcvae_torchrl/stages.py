@@ -61,15 +61,54 @@ from rcvae_torchrl.io import (  # settings as they read back from JSON, as recor
     _as_json,
     _differences,
     atomic_write,
+    check_run_config,
     read_json,
     record_run_config,
     write_json,
 )
 from rcvae_torchrl.loggers import log_scalars
 
-__all__ = ["StageError", "StageRunner", "file_record"]
+__all__ = ["MARKERS", "StageError", "StageRunner", "check_run_directory", "file_record"]
 
 _CHUNK = 1 << 20
+
+
+#: The folder of a run directory that holds the stages' markers.
+MARKERS = "stages"
+
+
+def check_run_directory(
+    run_dir: str | Path,
+    settings: Mapping[str, Any],
+    *,
+    config_name: str = "study_config.json",
+    made_before: Iterable[str] = (),
+) -> None:
+    """Refuse, before a run creates anything in ``run_dir``, a directory it must not write in:
+    one whose settings record (``config_name``) holds other settings
+    (:func:`~rcvae_torchrl.io.check_run_config`), or one that holds files but neither a
+    settings record nor stage markers (:data:`MARKERS`): a folder of the user's own (or files
+    some other program left), whose files a stage would take for its unfinished outputs and
+    remove or overwrite. ``made_before``: names of what a run itself creates in the directory
+    before its runner records the settings (its log file, its logger's folder), which do not
+    count. A missing or empty directory, and a run's directory whose record alone was lost (its
+    markers name its files), pass."""
+    run_dir = Path(run_dir)
+    check_run_config(run_dir / config_name, settings)
+    if not run_dir.is_dir() or (run_dir / config_name).exists() or (run_dir / MARKERS).is_dir():
+        return
+    allowed = set(made_before)
+    foreign = sorted(p.name for p in run_dir.iterdir() if p.name not in allowed)
+    if foreign:
+        shown = ", ".join(repr(name) for name in foreign[:5])
+        more = f" and {len(foreign) - 5} more" if len(foreign) > 5 else ""
+        raise ValueError(
+            f"run_dir: expected a new or empty directory, or one a run made, got "
+            f"{str(run_dir)!r}, which holds {shown}{more} but no run's settings record "
+            f"({config_name!r}) and no stage markers ({MARKERS + '/'!r}): a run would take "
+            "those files for its own unfinished outputs and remove or overwrite them; give "
+            "another run_dir"
+        )
 
 
 class StageError(RuntimeError):
@@ -163,7 +202,7 @@ class StageRunner:
 
     def marker(self, name: str) -> Path:
         """The marker file of stage ``name``."""
-        return self.run_dir / "stages" / f"{name}.json"
+        return self.run_dir / MARKERS / f"{name}.json"
 
     def run(
         self,
@@ -251,7 +290,7 @@ class StageRunner:
         and its marker written here, when its inputs are this stage's and its files check out;
         else None (a log line says why, when that run finished the stage)."""
         other = self._reuse_from
-        path = other / "stages" / f"{name}.json"
+        path = other / MARKERS / f"{name}.json"
         if not path.is_file():
             return None
         try:

@@ -26,6 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 from rcvae_torchrl import threads as threads_module
 
 __all__ = [
+    "RUN_MADE",
     "SEED_MAX",
     "at_least",
     "build_config",
@@ -152,6 +153,11 @@ def set_threads(threads: int | str | None, op_flop: float | None = None) -> int:
     check_threads(threads)
     return threads_module.set_threads(threads, op_flop)
 
+
+#: What a recipe makes in its run directory before its stages record the settings: its log
+#: (``run.log``) and its logger's folder (``logs``). A directory that holds anything else but
+#: no run's record is refused (:func:`rcvae_torchrl.stages.check_run_directory`).
+RUN_MADE = ("run.log", "logs")
 
 #: The report files both recipes write, named one by one in their report stage's outputs (a
 #: pattern such as "*.md" would take a user's notes beside them for the stage's, and remove

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from rcvae_torchrl.io import StoredFileError, load_torch, read_json, save_torch, write_json
-from rcvae_torchrl.stages import StageError, StageRunner, file_record
+from rcvae_torchrl.stages import StageError, StageRunner, check_run_directory, file_record
 
 
 class Pipeline:
@@ -380,3 +380,39 @@ def test_a_run_of_markers_of_all_settings_lends_the_stages_whose_settings_match(
     fourth = Pipeline(tmp_path / "fourth")
     fourth.run(_settings(scale=2.0), stage_settings=READS, reuse_from=tmp_path / "old")
     assert fourth.computed == ["x", "y", "z"]
+
+
+def test_a_run_directory_is_refused_where_a_run_would_remove_files_it_did_not_make(tmp_path):
+    settings = {"seed": 0}
+    check_run_directory(tmp_path / "new", settings)  # missing: a run makes it
+    (tmp_path / "empty").mkdir()
+    check_run_directory(tmp_path / "empty", settings)
+    # what the run itself makes before its record (its log, its logger's folder) does not count
+    made = tmp_path / "made"
+    (made / "logs").mkdir(parents=True)
+    (made / "run.log").write_text("started\n")
+    check_run_directory(made, settings, made_before=("run.log", "logs"))
+    with pytest.raises(ValueError, match=r"holds 'logs', 'run.log' but no run's settings record"):
+        check_run_directory(made, settings)
+    # a folder of the user's own: named, refused, untouched
+    own = tmp_path / "own"
+    (own / "a").mkdir(parents=True)
+    (own / "a" / "x.pt").write_bytes(b"mine")
+    for i in range(6):
+        (own / f"note{i}.txt").write_text("mine")
+    with pytest.raises(ValueError) as refused:
+        check_run_directory(own, settings)
+    assert str(refused.value).startswith(
+        f"run_dir: expected a new or empty directory, or one a run made, got {str(own)!r}, which "
+        "holds 'a', 'note0.txt', 'note1.txt', 'note2.txt', 'note3.txt' and 2 more but no run's "
+        "settings record ('study_config.json') and no stage markers ('stages/')"
+    )
+    assert (own / "a" / "x.pt").read_bytes() == b"mine"
+    # a run's directory: its own settings pass, others are refused
+    Pipeline(tmp_path / "run").run()
+    check_run_directory(tmp_path / "run", {"seed": 0})
+    with pytest.raises(ValueError, match=r"other settings \(\['seed'\] differ"):
+        check_run_directory(tmp_path / "run", {"seed": 1})
+    # a run whose record alone was lost: its markers name its files, so it may run again
+    (tmp_path / "run" / "study_config.json").unlink()
+    check_run_directory(tmp_path / "run", {"seed": 1})

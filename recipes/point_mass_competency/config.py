@@ -77,6 +77,11 @@ class DataConfig:
 
     def __post_init__(self) -> None:
         _check("episodes", self.episodes, 2, int)
+        if not self.exploration_std:  # the episodes are shared out over the levels of noise
+            raise ValueError(
+                "exploration_std: expected at least one std of exploration noise (the episodes "
+                f"are shared out over them), got {list(self.exploration_std)}"
+            )
         for std in self.exploration_std:
             _check("exploration_std", std, 0.0)
         _whole_steps("time_limit_s", self.time_limit_s)

@@ -24,10 +24,10 @@ import torch
 from omegaconf import DictConfig
 from torchrl.record.loggers import generate_exp_name
 
-from rcvae_torchrl.io import check_run_config
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
-from recipes._settings import check_override_keys, set_threads
+from rcvae_torchrl.stages import check_run_directory
+from recipes._settings import RUN_MADE, check_override_keys, set_threads
 from recipes.point_mass_competency.config import RecipeConfig, register_configs, study_config
 from recipes.point_mass_competency.pipeline import run_study, study_settings
 
@@ -42,8 +42,12 @@ def main(cfg: DictConfig) -> None:
         raise SystemExit(f"error: {error}") from None
     set_threads(config.threads)
     run_dir = Path(config.run_dir)
-    # a run directory of other settings is refused before anything is made in it
-    check_run_config(run_dir / "study_config.json", study_settings(config))
+    # a run directory of other settings, or of files of the user's own, is refused before
+    # anything is made in it
+    try:
+        check_run_directory(run_dir, study_settings(config), made_before=RUN_MADE)
+    except ValueError as error:
+        raise SystemExit(f"error: {error}") from None
     with run_log(run_dir / "run.log") as log:
         threads = torch.get_num_threads()
         log.info(f"profile={config.profile} threads={threads} run_dir={run_dir}")

@@ -36,10 +36,10 @@ from omegaconf import DictConfig
 from torchrl.record.loggers import generate_exp_name
 
 from rcvae_torchrl import distributed
-from rcvae_torchrl.io import check_run_config
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
-from recipes._settings import check_override_keys, resolve_device, set_threads
+from rcvae_torchrl.stages import check_run_directory
+from recipes._settings import RUN_MADE, check_override_keys, resolve_device, set_threads
 from recipes.pusher_competency.config import RecipeConfig, register_configs, study_config
 from recipes.pusher_competency.pipeline import run_study, study_settings, training_op_flop
 
@@ -58,8 +58,12 @@ def main(cfg: DictConfig) -> None:
         if device == "cuda" and distributed.is_active():
             device = f"cuda:{torch.cuda.current_device()}"
         if distributed.is_main():  # rank 0 alone prints, logs and writes run.log
-            # a run directory of other settings is refused before anything is made in it
-            check_run_config(Path(config.run_dir) / "study_config.json", study_settings(config))
+            # a run directory of other settings, or of files of the user's own, is refused
+            # before anything is made in it
+            try:
+                check_run_directory(config.run_dir, study_settings(config), made_before=RUN_MADE)
+            except ValueError as error:
+                raise SystemExit(f"error: {error}") from None
             with run_log(Path(config.run_dir) / "run.log") as log:
                 _run(config, device, log.info)
         else:

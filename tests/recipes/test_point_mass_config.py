@@ -47,6 +47,10 @@ def test_values_of_the_wrong_type_name_their_key(override):
         ("train.open_loop_steps=-3", r"^train\.open_loop_steps: expected an integer >= 0"),
         ("task.deadline_s=inf", r"^task\.deadline_s: expected a positive whole number"),
         ("data.episodes=1", r"^data\.episodes: expected an integer >= 2, got 1"),
+        (
+            "data.exploration_std=[]",
+            r"^data\.exploration_std: expected at least one std .*got \[\]",
+        ),
         ("assess.real_workers=0", r"^assess\.real_workers: expected an integer >= 1, got 0"),
         ("run_dir=''", r"^run_dir: expected a directory path"),
         ("run_dir=/proc/x", r"^run_dir: expected a writable directory"),

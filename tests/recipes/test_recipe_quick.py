@@ -344,6 +344,23 @@ def test_bad_settings_fail_clearly_before_anything_is_written(tmp_path, override
     assert not (tmp_path / "run").exists()  # failed before the run directory was made
 
 
+def test_a_folder_of_the_users_own_files_is_refused_and_left_as_it_was(tmp_path):
+    """A stage would take files it finds under its output patterns for its unfinished outputs
+    (and remove them): a directory that holds files but no run's record is refused."""
+    own = tmp_path / "mine"
+    (own / "data").mkdir(parents=True)
+    (own / "data" / "mine.pt").write_bytes(b"mine")
+    (own / "report.md").write_text("notes")
+    before = _snapshot(own)
+    proc, _ = run_recipe("profile=quick", f"run_dir={own}", timeout=120)
+    assert proc.returncode != 0 and "Traceback" not in proc.stderr
+    assert (
+        f"error: run_dir: expected a new or empty directory, or one a run made, got {str(own)!r}, "
+        "which holds 'data', 'report.md' but no run's settings record ('study_config.json')"
+    ) in proc.stderr
+    assert _snapshot(own) == before
+
+
 def test_a_run_of_other_settings_is_refused_before_it_makes_anything(runs):
     """The refusal comes before run.log and the logger's folder: the directory is as it was."""
     d = runs["dir"]
@@ -354,6 +371,7 @@ def test_a_run_of_other_settings_is_refused_before_it_makes_anything(runs):
     assert "holds a run made with other settings (['seed'] differ: seed: 0 recorded, 1 now)" in (
         proc.stderr
     )
+    assert "error: run directory" in proc.stderr and "Traceback" not in proc.stderr
     assert (d / "run.log").read_bytes() == log_before
     assert sorted((d / "logs" / "csv").iterdir()) == experiments
     assert _snapshot(d) == runs["after"]
