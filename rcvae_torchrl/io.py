@@ -63,11 +63,19 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
     The file gets mode ``0o666 & ~umask`` (what ``open`` would give it), not the private mode
     of a temporary file.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a file path (a str or a Path), got {type(path).__name__}")
     path = Path(path)
     if path.is_dir():
         raise IsADirectoryError(
             f"{str(path)!r} is a directory; expected the path of a file (e.g. "
             f"{str(path / 'name')!r})"
+        )
+    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise NotADirectoryError(
+            f"path: expected a file path whose folders are folders, got {str(path)!r}, where "
+            f"{str(blocking)!r} is a file"
         )
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)

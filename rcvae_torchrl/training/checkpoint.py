@@ -121,6 +121,15 @@ def load_ensemble(
     """
     device = _device(map_location)
     payload = read_checkpoint(path)
+    if "training" in payload:  # train_ensemble's checkpoint_path: for resuming, not a model
+        raise CheckpointError(
+            f"checkpoint {str(path)!r}: expected a model saved by save_ensemble, got a training "
+            "checkpoint (train_ensemble's checkpoint_path: the weights of its last validation, "
+            "without the best weights training keeps or the model's self-checks); load the "
+            "model save_ensemble wrote after training, or continue training from this file with "
+            "train_ensemble(..., checkpoint_path=it, resume=True)",
+            path,
+        )
     ensemble = ensemble_from_payload(payload, str(path), expected_config, functions)
     return ensemble.to(device)
 
@@ -165,8 +174,15 @@ def ensemble_from_payload(
     except (TypeError, ValueError) as err:
         raise CheckpointError(f"checkpoint {source!r}: invalid config: {err}", source) from err
     if expected_config is not None and config != expected_config:
+        theirs, ours = dataclasses.asdict(config), dataclasses.asdict(expected_config)
+        differ = "; ".join(
+            f"{k}: expected {ours.get(k)!r}, got {theirs.get(k)!r}"
+            for k in sorted(ours.keys() | theirs.keys())
+            if ours.get(k) != theirs.get(k)
+        )
         raise CheckpointError(
-            f"checkpoint {source!r}: config mismatch: expected {expected_config}, got {config}",
+            f"checkpoint {source!r}: config mismatch ({differ}): expected {expected_config}, "
+            f"got {config}",
             source,
         )
     size = payload["ensemble_size"]

@@ -9,8 +9,10 @@ from rcvae_torchrl.rollout import imagine
 from rcvae_torchrl.training import (
     FORMAT_VERSION,
     CheckpointError,
+    TrainConfig,
     load_ensemble,
     save_ensemble,
+    train_ensemble,
 )
 
 
@@ -105,7 +107,7 @@ def test_mismatched_version_config_and_weights(tmp_path, small_ensemble):
     with pytest.raises(CheckpointError, match="expected format version"):
         load_ensemble(bumped)
     other = RCVAEConfig(3, 1, hidden_dim=32)
-    with pytest.raises(CheckpointError, match="config mismatch"):
+    with pytest.raises(CheckpointError, match=r"config mismatch \(hidden_dim: expected 32, got "):
         load_ensemble(path, expected_config=other)
     wrong = _edit(path, tmp_path, lambda p: p["config"].update(hidden_dim=32))
     with pytest.raises(CheckpointError, match="weights do not match"):
@@ -169,3 +171,45 @@ def test_metadata_that_would_not_load_back_is_refused(tmp_path, small_ensemble):
 def test_a_path_that_is_not_one_is_named(path):
     with pytest.raises(TypeError, match="path: expected a str or a path of checkpoint, got"):
         load_ensemble(path)
+
+
+def test_a_training_checkpoint_is_not_loaded_as_a_model(tmp_path, linear_data, small_ensemble):
+    """train_ensemble's checkpoint holds the last validation's weights (not the best ones
+    training returns) and no self-checks: loading it as the model is refused, saying what to
+    load instead."""
+    train, val = linear_data
+    budget = TrainConfig(max_steps=4, batch_windows=4, window=8, val_every=2, val_windows=4)
+    resume_file = tmp_path / "model_train.pt"
+    result = train_ensemble(
+        small_ensemble(2),
+        train,
+        val,
+        budget,
+        progress=False,
+        checks=False,
+        checkpoint_path=resume_file,
+    )
+    model_file = save_ensemble(result.ensemble, tmp_path / "model.pt")
+    with pytest.raises(CheckpointError) as refused:
+        load_ensemble(resume_file)
+    assert str(refused.value).startswith(
+        f"checkpoint {str(resume_file)!r}: expected a model saved by save_ensemble, got a "
+        "training checkpoint (train_ensemble's checkpoint_path"
+    )
+    assert "train_ensemble(..., checkpoint_path=it, resume=True)" in str(refused.value)
+    assert load_ensemble(model_file).ensemble_size == 2
+
+
+def test_a_path_that_is_no_file_path_is_named(tmp_path, small_ensemble):
+    with pytest.raises(
+        TypeError, match=r"^path: expected a file path \(a str or a Path\), got NoneType"
+    ):
+        save_ensemble(small_ensemble(), None)
+    (tmp_path / "afile").write_text("mine")
+    with pytest.raises(NotADirectoryError) as refused:
+        save_ensemble(small_ensemble(), tmp_path / "afile" / "sub" / "m.pt")
+    assert str(refused.value) == (
+        f"path: expected a file path whose folders are folders, got "
+        f"{str(tmp_path / 'afile' / 'sub' / 'm.pt')!r}, where {str(tmp_path / 'afile')!r} is a file"
+    )
+    assert (tmp_path / "afile").read_text() == "mine"
