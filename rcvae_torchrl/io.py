@@ -198,6 +198,14 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
                 "code the file names); expected one saved by this library",
                 path,
             ) from err
+        if data and not data.startswith(_TORCH_STARTS):  # not even the start of one
+            raise StoredFileError(
+                f"{what} {str(path)!r} is not a torch file, or its start is damaged: it begins "
+                f"{data[:12]!r}, where a "
+                "torch file is a zip archive (b'PK\\x03\\x04...'); expected one saved by "
+                "this library",
+                path,
+            ) from err
         raise StoredFileError(
             f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): "
             f"{_load_failure(err)}",
@@ -213,6 +221,10 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
                 path,
             )
     return obj
+
+
+#: How a torch file begins: a zip archive (torch.save's format), or a pickle (the legacy one).
+_TORCH_STARTS = (b"PK\x03\x04", b"\x80")
 
 
 def _load_failure(err: Exception) -> str:

@@ -143,8 +143,12 @@ def test_a_folder_or_a_damaged_file_is_named_as_what_it_is(tmp_path):
         load_torch(tmp_path, "the model")
     damaged = tmp_path / "damaged.pt"
     damaged.write_bytes(bytes(range(256)) * 2)
-    with pytest.raises(StoredFileError, match=r"is truncated or corrupt \(512 bytes\)") as err:
+    with pytest.raises(StoredFileError, match=r"is not a torch file, or its start is damaged"):
         load_torch(damaged)
+    zipped = tmp_path / "zipped.pt"
+    zipped.write_bytes(b"PK\x03\x04" + bytes(range(256)) * 2)  # a zip's start, then damage
+    with pytest.raises(StoredFileError, match=r"is truncated or corrupt \(516 bytes\)") as err:
+        load_torch(zipped)
     assert "weights_only" not in str(err.value)  # torch's advice to load it unsafely is dropped
 
 
@@ -173,6 +177,7 @@ def test_a_tensordict_given_to_save_torch_is_refused_naming_save_episodes(tmp_pa
     from tensordict import TensorDict
 
     from rcvae_torchrl.data import load_episodes, save_episodes
+    from rcvae_torchrl.io import StoredFileError
 
     episodes = TensorDict({"observation": torch.zeros(4, 2)}, batch_size=[4])
     with pytest.raises(
@@ -183,6 +188,17 @@ def test_a_tensordict_given_to_save_torch_is_refused_naming_save_episodes(tmp_pa
     assert list(tmp_path.iterdir()) == []  # nothing written
     path = save_episodes(episodes, tmp_path / "episodes.pt")
     assert torch.equal(load_episodes(path)["observation"], episodes["observation"])
+    # another file of this library, or a bare tensor, is named as what it is
+    save_torch(tmp_path / "model.pt", {"kind": "rcvae_ensemble", "state_dict": {}})
+    with pytest.raises(
+        StoredFileError,
+        match=r"expected what save_episodes writes, a dict of 'batch_size' and 'data', got a dict "
+        r"of \['kind', 'state_dict'\] \(a 'rcvae_ensemble' file\)",
+    ):
+        load_episodes(tmp_path / "model.pt")
+    save_torch(tmp_path / "tensor.pt", torch.zeros(3))
+    with pytest.raises(StoredFileError, match=r"'batch_size' and 'data', got a Tensor$"):
+        load_episodes(tmp_path / "tensor.pt")
 
 
 def test_json_files_are_strict_and_read_back_their_non_finite_floats(tmp_path):

@@ -25,6 +25,22 @@ def load_episodes(path: str | Path) -> TensorDict:
     """Load what :func:`save_episodes` wrote; a missing, truncated or corrupt file is a
     :class:`~rcvae_torchrl.io.StoredFileError` naming it."""
     payload = load_torch(path, "episodes file")
+    if not isinstance(payload, dict) or not {"data", "batch_size"} <= payload.keys():
+        found = (
+            f"a dict of {sorted(map(str, payload))}"
+            if isinstance(payload, dict)
+            else f"a {type(payload).__name__}"
+        )
+        kind = (
+            f" (a {payload['kind']!r} file)"
+            if isinstance(payload, dict) and "kind" in payload
+            else ""
+        )
+        raise StoredFileError(
+            f"episodes file {str(path)!r}: expected what save_episodes writes, a dict of "
+            f"'batch_size' and 'data', got {found}{kind}",
+            path,
+        )
     try:
         return TensorDict(payload["data"], batch_size=payload["batch_size"])
     except Exception as err:
