@@ -201,9 +201,8 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
         if data and not data.startswith(_TORCH_STARTS):  # not even the start of one
             raise StoredFileError(
                 f"{what} {str(path)!r} is not a torch file, or its start is damaged: it begins "
-                f"{data[:12]!r}, where a "
-                "torch file is a zip archive (b'PK\\x03\\x04...'); expected one saved by "
-                "this library",
+                f"{data[:12]!r}, where a torch file is a zip archive (b'PK\\x03\\x04...'); "
+                "expected one saved by this library",
                 path,
             ) from err
         raise StoredFileError(
