@@ -770,9 +770,10 @@ def score_comparison(
     :func:`score_forecast` checks them (the agent, the boundary, the start states, successes
     within the deadline). Returns the forecast difference P_a − P_b over the start states and
     its interval (``forecast``, ``forecast_low``, ``forecast_high``), the real one and its
-    interval over the start states (``real``, ``real_low``, ``real_high``: a normal interval of
-    the mean of the per-start differences of the real rates), ``gap`` (forecast minus real),
-    ``same_sign`` (1.0 where both name the same agent as the better one, or both a tie) and
+    interval over the start states (``real``, ``real_low``, ``real_high``: a Student's t
+    interval of the mean of the per-start differences of the real rates), ``gap`` (forecast
+    minus real), ``same_sign`` (1.0 where both name the same agent as the better one, or both a
+    tie) and
     ``per_start_mae`` (the mean absolute error of the per-start differences)."""
     compared = compare_agents(a, b, confidence=confidence)
     rates = []

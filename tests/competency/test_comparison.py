@@ -12,6 +12,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from rcvae_torchrl.competency import AgentComparison, SuccessBoundary, compare_agents
+from rcvae_torchrl.competency.comparison import mean_interval
 from rcvae_torchrl.envs import obs_indices
 from tests.competency.test_assessor import (
     DT,
@@ -115,14 +116,28 @@ def test_members_that_agree_and_an_interval_that_holds_zero():
     )
     low, high = compared.interval
     d = compared.difference.double()
-    half = 1.959964 * float(d.std()) / math.sqrt(2)
-    assert (low, high) == pytest.approx((compared.mean - half, min(compared.mean + half, 1.0)))
+    # Student's t over the 2 start states (1 degree of freedom: 12.706 at 95 %)
+    half = 12.706205 * float(d.std()) / math.sqrt(2)
+    assert (low, high) == pytest.approx(
+        (max(compared.mean - half, -1.0), min(compared.mean + half, 1.0))
+    )
     text = compared.summary()
     assert "for planner and" in text and "planner − policy =" in text
-    # these draws: every member gives the planner the higher chance, and 0 is outside
-    assert compared.members_agree and compared.member_verdicts.tolist() == [1] * E and low > 0
+    # these draws: every member gives the planner the higher chance at both starts, but two
+    # start states cannot tell the mean over start states from 0: the words say which
+    assert compared.members_agree and compared.member_verdicts.tolist() == [1] * E
+    assert bool((compared.low > 0).all()) and low <= 0
     assert f"All {E} members of the world model give planner the higher chance (each +" in text
-    assert "The interval holds 0" not in text
+    assert (
+        "The interval holds 0: over these start states the imagined chances do not tell the "
+        "agents apart (the start states' spread and the imagined samples' chance; more start "
+        "states narrow it)."
+    ) in text
+    # the same two differences over 6 start states: the interval no longer holds 0
+    six_low, _ = mean_interval(d.repeat(3), 0.95)
+    assert six_low > 0 and six_low == pytest.approx(
+        float(d.mean()) - 2.570582 * float(d.repeat(3).std()) / math.sqrt(6)
+    )
     same = compare_agents(a, a)
     assert not bool(same.difference.any()) and not bool(same.by_member.any())
     said = same.summary()
@@ -130,7 +145,7 @@ def test_members_that_agree_and_an_interval_that_holds_zero():
         said
     )
     assert "Both reports are of one agent (the same weights)" in said
-    assert "The interval holds 0: the imagined chances do not tell the agents apart." in said
+    assert "The interval holds 0: over these start states the imagined chances do not" in said
 
 
 def test_reports_of_another_task_or_other_starts_are_refused():
