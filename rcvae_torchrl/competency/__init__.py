@@ -76,6 +76,7 @@ from rcvae_torchrl.competency.report import (
     CompetencyReport,
     RealSpread,
     Reference,
+    members_p_value,
 )
 from rcvae_torchrl.competency.validation import (
     StartReliability,
@@ -167,6 +168,7 @@ __all__ = [
     # one-call assessment from start states
     "CompetencyAssessor",
     "CompetencyReport",
+    "members_p_value",
     "RealSpread",
     "AleatoricShare",
     "ImaginesRollouts",

@@ -409,6 +409,12 @@ class CompetencyReport:
     2. ``P(success within L) = p (c% interval low–high).`` (``P(no failure for L)`` for a
        survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
+       Where the members' own P differ beyond their imagined samples' chance
+       (:func:`members_p_value` below :data:`MEMBERS_ALPHA`), a sentence gives their range:
+       ``The members disagree on it: their own P(success within 3 s) run from 0.28 to 0.58,
+       more than their imagined samples' chance allows (p = 0.0004): ...``, the model's own
+       doubt about the outcome, which the interval does not cover (the state's bits can read
+       mostly aleatoric while the members disagree on the outcome).
     3. With a novelty check: a start state unlike the training states, or whose imagined
        states are unlike them in a larger share than the check's in-distribution episodes'
        states are (its ``episode_level``; :attr:`novel`), gets a caution naming how far it
@@ -1067,6 +1073,7 @@ class CompetencyReport:
                 self.confidence,
                 self._outcome(),
             ),
+            _members_sentence(competency, self._outcome()),
             self._settled_sentence(one),
             self._unchecked_sentence(),
             self._per_start_caution(),
@@ -1294,6 +1301,47 @@ def _unseen_acting(entries: TensorDictBase, novelty: Any) -> Tensor:
 def _success_sentence(p: float, low: float, high: float, confidence: float, outcome: str) -> str:
     """``P(success within 30 s) = 0.84 (95% interval 0.78–0.89).``"""
     return f"P({outcome}) = {p:.2f} ({confidence:.0%} interval {low:.2f}–{high:.2f})."
+
+
+#: The level at which the members' own P(success) are said to differ beyond the chance of their
+#: imagined samples (:func:`members_p_value`).
+MEMBERS_ALPHA = 0.01
+
+
+def members_p_value(p_member: Tensor, samples: int) -> float:
+    """The p-value of "every member gives the same chance", from each member's P(success)
+    ``p_member`` ``[E]`` over its ``samples`` imagined episodes: Pearson's chi-square test of
+    one chance for all (``E - 1`` degrees of freedom). 1.0 with one member, or where every
+    sample of every member agrees (all succeed or all fail)."""
+    p = torch.as_tensor(p_member).detach().double().flatten()
+    mean = float(p.mean()) if p.numel() else math.nan
+    if p.numel() < 2 or samples < 1 or not 0 < mean < 1:
+        return 1.0
+    from scipy.stats import chi2
+
+    statistic = samples * float(((p - mean) ** 2).sum()) / (mean * (1 - mean))
+    return float(chi2.sf(statistic, p.numel() - 1))
+
+
+def _members_sentence(competency: TensorDictBase, outcome: str) -> str:
+    """Where the members' own P differ beyond their imagined samples' chance
+    (:data:`MEMBERS_ALPHA`), what the interval beside P leaves out: the members' own doubt
+    about the outcome (a cart-pole trial's members gave one start 0.28 to 0.58, and three
+    ensembles trained on the same data as far apart, while the state's bits read "most of the
+    doubt is aleatoric"). '' otherwise, or without the members' entries."""
+    members, success = competency.get("p_success_member", None), competency.get("success", None)
+    if members is None or success is None:
+        return ""
+    p_value = members_p_value(members, int(success.shape[-1]))
+    if not p_value < MEMBERS_ALPHA:
+        return ""
+    low, high = float(members.min()), float(members.max())
+    return (
+        f"The members disagree on it: their own P({outcome}) run from {low:.2f} to {high:.2f}, "
+        f"more than their imagined samples' chance allows (p = {p_value:.2g}): part of the "
+        "doubt about this outcome is what the model has not learned (epistemic), which the "
+        "interval does not cover."
+    )
 
 
 def _doubt_sentence(
