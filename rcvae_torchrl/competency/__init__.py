@@ -76,7 +76,6 @@ from rcvae_torchrl.competency.report import (
     CompetencyReport,
     RealSpread,
     Reference,
-    members_p_value,
 )
 from rcvae_torchrl.competency.validation import (
     StartReliability,
@@ -90,6 +89,7 @@ from rcvae_torchrl.competency.validation import (
     pool_outcomes,
     rank_correlation,
     rate_reliability,
+    same_chance_p_value,
     start_reliability,
     time_to_success_scores,
     validate_forecasts,
@@ -147,6 +147,7 @@ __all__ = [
     "per_start_rates",
     "pool_outcomes",
     "rate_reliability",
+    "same_chance_p_value",
     "rank_correlation",
     "start_reliability",
     "time_to_success_scores",
@@ -168,7 +169,6 @@ __all__ = [
     # one-call assessment from start states
     "CompetencyAssessor",
     "CompetencyReport",
-    "members_p_value",
     "RealSpread",
     "AleatoricShare",
     "ImaginesRollouts",

@@ -22,6 +22,7 @@ from torch import Tensor
 from rcvae_torchrl import _checks
 from rcvae_torchrl._conformal import conformal_level
 from rcvae_torchrl.competency.metrics import bits_per_live_step, rescale_aleatoric
+from rcvae_torchrl.competency.validation import same_chance_p_value
 from rcvae_torchrl.data.exploration import check_same_agent
 from rcvae_torchrl.io import _as_json
 
@@ -410,7 +411,8 @@ class CompetencyReport:
        survival boundary) L = min(time limit, T) steps, in
        seconds when ``dt`` is known; the interval is the Monte-Carlo one of ``SuccessMetric``.
        Where the members' own P differ beyond their imagined samples' chance
-       (:func:`members_p_value` below :data:`MEMBERS_ALPHA`), a sentence gives their range:
+       (:func:`~rcvae_torchrl.competency.same_chance_p_value` below :data:`MEMBERS_ALPHA`), a
+       sentence gives their range:
        ``The members disagree on it: their own P(success within 3 s) run from 0.28 to 0.58,
        more than their imagined samples' chance allows (p = 0.0004): ...``, the model's own
        doubt about the outcome, which the interval does not cover (the state's bits can read
@@ -1304,23 +1306,8 @@ def _success_sentence(p: float, low: float, high: float, confidence: float, outc
 
 
 #: The level at which the members' own P(success) are said to differ beyond the chance of their
-#: imagined samples (:func:`members_p_value`).
+#: imagined samples (:func:`~rcvae_torchrl.competency.same_chance_p_value`).
 MEMBERS_ALPHA = 0.01
-
-
-def members_p_value(p_member: Tensor, samples: int) -> float:
-    """The p-value of "every member gives the same chance", from each member's P(success)
-    ``p_member`` ``[E]`` over its ``samples`` imagined episodes: Pearson's chi-square test of
-    one chance for all (``E - 1`` degrees of freedom). 1.0 with one member, or where every
-    sample of every member agrees (all succeed or all fail)."""
-    p = torch.as_tensor(p_member).detach().double().flatten()
-    mean = float(p.mean()) if p.numel() else math.nan
-    if p.numel() < 2 or samples < 1 or not 0 < mean < 1:
-        return 1.0
-    from scipy.stats import chi2
-
-    statistic = samples * float(((p - mean) ** 2).sum()) / (mean * (1 - mean))
-    return float(chi2.sf(statistic, p.numel() - 1))
 
 
 def _members_sentence(competency: TensorDictBase, outcome: str) -> str:
@@ -1332,7 +1319,7 @@ def _members_sentence(competency: TensorDictBase, outcome: str) -> str:
     members, success = competency.get("p_success_member", None), competency.get("success", None)
     if members is None or success is None:
         return ""
-    p_value = members_p_value(members, int(success.shape[-1]))
+    p_value = same_chance_p_value(members, int(success.shape[-1]))
     if not p_value < MEMBERS_ALPHA:
         return ""
     low, high = float(members.min()), float(members.max())

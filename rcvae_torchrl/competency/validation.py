@@ -42,6 +42,7 @@ __all__ = [
     "pool_outcomes",
     "rank_correlation",
     "rate_reliability",
+    "same_chance_p_value",
     "start_reliability",
     "time_to_success_scores",
     "validate_forecasts",
@@ -523,3 +524,19 @@ def time_to_success_scores(
         "crps_climatology": crps_ref,
         "skill": float(brier_skill_score(crps, crps_ref)),
     }
+
+
+def same_chance_p_value(rates: Tensor, runs: int) -> float:
+    """The p-value of "every group has the same chance" from each group's success rate
+    ``rates`` ``[G]`` over ``runs`` draws each: Pearson's chi-square test of one chance for
+    all (``G - 1`` degrees of freedom). The groups are an ensemble's members (their imagined
+    samples) or a check's start states (their real episodes). 1.0 with one group, or where
+    every draw of every group agrees (all succeed or all fail)."""
+    r = torch.as_tensor(rates).detach().double().flatten()
+    mean = float(r.mean()) if r.numel() else math.nan
+    if r.numel() < 2 or runs < 1 or not 0 < mean < 1:
+        return 1.0
+    from scipy.stats import chi2
+
+    statistic = runs * float(((r - mean) ** 2).sum()) / (mean * (1 - mean))
+    return float(chi2.sf(statistic, r.numel() - 1))

@@ -61,7 +61,7 @@ from rcvae_torchrl._checks import (
     check_positive_int,
     check_unit_interval,
 )
-from rcvae_torchrl.competency import check_same_predicates
+from rcvae_torchrl.competency import check_same_predicates, same_chance_p_value
 from rcvae_torchrl.competency._checks import check_probability
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -1005,6 +1005,21 @@ class OutcomeCheck:
         return max(0.0, float((g - self.real).square().mean()) - noise) ** 0.5
 
     @property
+    def task_spread(self) -> float:
+        """How far the starts' true chances differ, beyond the chance of R episodes: the
+        standard deviation of the real rates ``r`` over the starts with the binomial noise
+        taken out, ``sqrt(max(0, var(r) - mean(r·(1 - r)) / (R - 1)))`` (``var`` with Bessel's
+        correction; each ``r·(1 - r) / (R - 1)`` is the unbiased noise of one rate). Whether
+        the rates differ beyond that noise at all is a test of its own
+        (:func:`~rcvae_torchrl.competency.same_chance_p_value`, which :meth:`describe` reads).
+        NaN when not :attr:`per_start_measured`."""
+        if not self.per_start_measured or self.starts < 2:
+            return float("nan")
+        r = self.real.double()
+        noise = float((r * (1 - r)).mean()) / (self.runs - 1)
+        return max(0.0, float(r.var(correction=1)) - noise) ** 0.5
+
+    @property
     def scattered(self) -> bool:
         """Per-start measured, and the forecasts miss their starts' real rates by more than
         the chance of R episodes allows (level ``alpha``), whether or not they are biased on
@@ -1235,10 +1250,18 @@ class OutcomeCheck:
                 f"square; p = {self.per_start_p_value:.2g})"
                 + ("" if self.biased else ": trust them on average more than for one task")
             )
+        alike = ""
+        if not same_chance_p_value(self.real, self.runs) < self.alpha:
+            alike = (
+                f"; nor do the real rates differ between starts more than the chance of "
+                f"{self.runs} episodes makes them (no task shown easier or harder than another), "
+                "so nothing here shows whether the forecasts tell one task from another"
+            )
         return (
             f"; per start they miss their start's real rate{shift} by no more than the chance "
             f"of {self.runs} episodes can hide (p = {self.per_start_p_value:.2g}: not shown to "
             "miss, which few episodes per start cannot tell from agreeing)"
+            + (alike or self._no_skill_seen())
         )
 
     def _no_skill_seen(self) -> str:
@@ -1279,6 +1302,7 @@ class OutcomeCheck:
             "passed": self.passed,
             "per_start_p_value": self.per_start_p_value,
             "excess_error": self.excess_error,
+            "task_spread": self.task_spread,
             "scattered": self.scattered,
             "brier_skill": self.brier_skill,
             "no_better_than_constant": self.no_better_than_constant,

@@ -8,7 +8,8 @@ import dataclasses
 import pytest
 import torch
 
-from rcvae_torchrl.competency.report import MEMBERS_ALPHA, members_p_value
+from rcvae_torchrl.competency import same_chance_p_value
+from rcvae_torchrl.competency.report import MEMBERS_ALPHA
 from tests.competency.test_assessor import E, S, make_assessor, make_ensemble, make_env
 from tests.competency.test_comparison import _agent
 
@@ -17,12 +18,12 @@ N = 10
 
 def test_the_members_test_in_closed_form():
     # two members of 10 samples, 0.8 and 0.2: chi-square 10 * (0.3^2 + 0.3^2) / 0.25 = 7.2, 1 df
-    assert members_p_value(torch.tensor([0.8, 0.2]), 10) == pytest.approx(0.0072903, rel=1e-4)
-    assert members_p_value(torch.tensor([0.5, 0.5, 0.5]), 10) == pytest.approx(1.0)
+    assert same_chance_p_value(torch.tensor([0.8, 0.2]), 10) == pytest.approx(0.0072903, rel=1e-4)
+    assert same_chance_p_value(torch.tensor([0.5, 0.5, 0.5]), 10) == pytest.approx(1.0)
     # nothing to test: one member, or every sample alike
-    assert members_p_value(torch.tensor([0.3]), 10) == 1.0
-    assert members_p_value(torch.tensor([1.0, 1.0]), 10) == 1.0
-    assert members_p_value(torch.tensor([0.0, 0.0]), 10) == 1.0
+    assert same_chance_p_value(torch.tensor([0.3]), 10) == 1.0
+    assert same_chance_p_value(torch.tensor([1.0, 1.0]), 10) == 1.0
+    assert same_chance_p_value(torch.tensor([0.0, 0.0]), 10) == 1.0
 
 
 def _with_members(report, per_member: list[float]):
@@ -47,7 +48,7 @@ def test_members_that_disagree_beyond_their_samples_chance_are_said_to():
     report = assessor.assess(torch.zeros(1, S), policy=_agent(0.5), seed=0)
     assert E == 3
     apart = _with_members(report, [0.9, 0.5, 0.1])  # chi-square 10 * 0.32 / 0.25 = 12.8, 2 df
-    assert members_p_value(apart.data["competency", "p_success_member"][0], N) < MEMBERS_ALPHA
+    assert same_chance_p_value(apart.data["competency", "p_success_member"][0], N) < MEMBERS_ALPHA
     text = apart.summary(index=0)
     assert (
         "The members disagree on it: their own P(success within 0.3 s) run from 0.10 to 0.90, "

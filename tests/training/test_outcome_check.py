@@ -267,6 +267,37 @@ def test_forecasts_that_score_below_a_constant_are_said_to_with_one_outcome_per_
     assert better.brier_skill > 0 and "no better than one forecast" not in better.describe()
 
 
+def test_the_tasks_spread_against_its_closed_form_and_alike_tasks_said():
+    from rcvae_torchrl.competency import same_chance_p_value
+
+    # 4 starts of 10 runs at rates 0.2, 0.4, 0.6, 0.8: var 0.0667 (Bessel), noise
+    # mean(r(1 - r)) / 9 = 0.2 / 9 = 0.0222: spread sqrt(0.0444)
+    real = torch.arange(10)[None, :] < torch.tensor([2, 4, 6, 8])[:, None]
+    check = OutcomeCheck.from_outcomes(
+        torch.tensor([0.2, 0.4, 0.6, 0.8], dtype=torch.float64), real, min_starts=4
+    )
+    assert check.task_spread == pytest.approx((0.2 / 3 - 0.2 / 9) ** 0.5)
+    assert check.as_dict()["task_spread"] == check.task_spread
+    # alike tasks (every start's true chance 0.5, 12 runs each): the rates differ by chance
+    # alone, so a per-start miss that is not shown says nothing of telling tasks apart
+    truth = torch.full((25,), 0.5, dtype=torch.float64)
+    alike = _drawn(truth, 12, seed=4)
+    forecast = torch.rand(25, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    check = OutcomeCheck.from_outcomes(0.4 + 0.2 * forecast, alike)
+    assert check.per_start_measured and not check.scattered
+    assert same_chance_p_value(check.real, 12) >= check.alpha  # the rates alike by the test
+    assert check.describe().endswith(
+        "; nor do the real rates differ between starts more than the chance of 12 episodes "
+        "makes them (no task shown easier or harder than another), so nothing here shows "
+        "whether the forecasts tell one task from another"
+    )
+    # tasks that differ (chances 0.1 to 0.9): not said
+    apart = _forecast()
+    differ = OutcomeCheck.from_outcomes(apart, _drawn(apart, 12, seed=4))
+    assert same_chance_p_value(differ.real, 12) < differ.alpha
+    assert "nor do the real rates differ" not in differ.describe()
+
+
 def test_a_gap_only_the_exact_test_rejects_is_not_called_unbiased():
     # a deterministic env, one run per start: forecasts near 0 at starts that succeed are
     # beyond the outcomes' chance, while the per-start differences' spread keeps the t-test
