@@ -962,6 +962,13 @@ class CompetencyReport:
         spread = self._spread_sentence(self.uncertainty, self.data.get("real_spread", None))
         text += f" {spread}" if spread else ""
         text += self._novel_count_sentence()
+        disagree = self.members_disagree
+        if disagree is not None and bool(disagree.any()):
+            text += (
+                f" In {int(disagree.sum())} of the {n} start states the members' own "
+                f"P({self._outcome()}) differ beyond their imagined samples' chance (each "
+                "paragraph gives their range): the intervals beside P leave that doubt out."
+            )
         uncovered = self.uncovered
         if uncovered is not None and bool(uncovered.any()) and self.forecast_check.passed:
             text += (
@@ -976,6 +983,22 @@ class CompetencyReport:
                 "report (with_forecast_check)."
             )
         return (f"Warning: {warning}. " if warning else "") + text
+
+    @cached_property
+    def members_disagree(self) -> Tensor | None:
+        """``[*B]`` bool: start states whose members' own P(success) differ beyond the chance
+        of their imagined samples (:func:`~rcvae_torchrl.competency.same_chance_p_value` below
+        :data:`MEMBERS_ALPHA`; each such start's paragraph gives their range); ``None`` without
+        the members' entries."""
+        competency = self.competency
+        members = competency.get("p_success_member", None)
+        success = competency.get("success", None)
+        if members is None or success is None:
+            return None
+        runs = int(success.shape[-1])
+        rows = members.reshape(-1, members.shape[-1])
+        p_values = torch.tensor([same_chance_p_value(row, runs) for row in rows])
+        return (p_values < MEMBERS_ALPHA).reshape(members.shape[:-1])
 
     def _novel_count_sentence(self) -> str:
         """How many start states are unlike the training states, and in how many others the

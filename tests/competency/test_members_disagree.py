@@ -56,6 +56,14 @@ def test_members_that_disagree_beyond_their_samples_chance_are_said_to():
         "this outcome is what the model has not learned (epistemic), which the interval does "
         "not cover."
     ) in text
+    assert apart.members_disagree.tolist() == [True]
+    assert (
+        "In 1 of the 1 start states the members' own P(success within 0.3 s) differ beyond their "
+        "imagined samples' chance (each paragraph gives their range): the intervals beside P "
+        "leave that doubt out."
+    ) in apart.overall()
     # members a sample or two apart: within their chance, nothing said
     close = _with_members(report, [0.6, 0.5, 0.4])
     assert "The members disagree on it" not in close.summary(index=0)
+    assert close.members_disagree.tolist() == [False]
+    assert "the members' own P" not in close.overall()
