@@ -71,13 +71,16 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
             f"{str(path)!r} is a directory; expected the path of a file (e.g. "
             f"{str(path / 'name')!r})"
         )
-    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
-    if blocking is not None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):  # a folder of the path is a file
+        blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+        if blocking is None:
+            raise
         raise NotADirectoryError(
             f"path: expected a file path whose folders are folders, got {str(path)!r}, where "
             f"{str(blocking)!r} is a file"
-        )
-    path.parent.mkdir(parents=True, exist_ok=True)
+        ) from None
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
