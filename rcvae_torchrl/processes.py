@@ -23,6 +23,7 @@ from typing import Any, TypeVar
 
 import torch
 
+from rcvae_torchrl.run_log import LogTarget, forwarded_log, log_targets
 from rcvae_torchrl.threads import free_cores, set_threads
 
 __all__ = ["ChildOutcome", "check_workers", "choose_workers", "map_in_processes", "try_in_a_child"]
@@ -64,9 +65,10 @@ def choose_workers(
     return max(1, min(jobs, round(free_cores(cpus, load))))
 
 
-def _call(threads: int, fn: Callable[..., T], args: tuple) -> T:
+def _call(threads: int, fn: Callable[..., T], args: tuple, logs: list[LogTarget]) -> T:
     set_threads(threads)
-    return fn(*args)
+    with forwarded_log(logs):  # the library's lines where the caller's go (its run.log)
+        return fn(*args)
 
 
 def map_in_processes(
@@ -80,6 +82,9 @@ def map_in_processes(
         workers: processes; 1 runs every job here, one after the other.
         threads: torch intra-op threads in each worker (default: this process's count).
 
+    The library's log lines in a worker go where this process's go (the file and console of
+    :func:`~rcvae_torchrl.run_log.run_log`).
+
     Returns:
         the results in the order of ``jobs``; a job's exception is raised here.
     """
@@ -90,7 +95,8 @@ def map_in_processes(
     threads = torch.get_num_threads() if threads is None else threads
     context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch
     with concurrent.futures.ProcessPoolExecutor(min(workers, len(jobs)), context) as pool:
-        futures = [pool.submit(_call, threads, fn, tuple(args)) for args in jobs]
+        logs = log_targets()
+        futures = [pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
         return [f.result() for f in futures]
 
 

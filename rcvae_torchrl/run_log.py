@@ -1,10 +1,11 @@
 """A run's log: plain lines in a file, colour only on a terminal.
 
 :func:`run_log` opens ``run.log`` (appending, so a resumed run adds to it) and returns a
-:class:`logging.Logger` writing to it and to the console. TorchRL's own logger (``"torchrl"``)
-and Python warnings go to the same file. TorchRL colours its console lines with ANSI codes; in
-the file they are removed, and on a console that is not a terminal (output redirected to a
-file or a pipe) too.
+:class:`logging.Logger` writing to it and to the console. The library's own lines (logger
+``"rcvae_torchrl"`` and below: a training resumed from its checkpoint, an ahead-of-time package
+built) go to both too; TorchRL's own logger (``"torchrl"``) and Python warnings to the file.
+TorchRL colours its console lines with ANSI codes; in the file they are removed, and on a
+console that is not a terminal (output redirected to a file or a pipe) too.
 """
 
 from __future__ import annotations
@@ -17,13 +18,15 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
 
-__all__ = ["ANSI_CODE", "PlainFormatter", "run_log"]
+__all__ = ["ANSI_CODE", "PlainFormatter", "forwarded_log", "log_targets", "run_log"]
 
 #: An ANSI escape sequence (colours, cursor moves).
 ANSI_CODE = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
 _FORMAT = "%(asctime)s [%(name)s][%(levelname)s] %(message)s"
 _DATE = "%Y-%m-%d %H:%M:%S"
+#: The library's loggers (``logging.getLogger(__name__)`` in its modules) are below this one.
+_PACKAGE = "rcvae_torchrl"
 
 
 class PlainFormatter(logging.Formatter):
@@ -44,9 +47,9 @@ def run_log(
 ) -> Iterator[logging.Logger]:
     """Log to ``path`` (plain text, appended) and to ``stream`` (default: stdout) inside the block.
 
-    TorchRL's logger and Python warnings also go to ``path`` for the block's duration; when
-    ``stream`` is not a terminal, TorchRL's console lines are written without colour. Everything
-    is put back as it was on exit.
+    The library's loggers (INFO and above) go to both; TorchRL's logger and Python warnings
+    also go to ``path`` for the block's duration; when ``stream`` is not a terminal, TorchRL's
+    console lines are written without colour. Everything is put back as it was on exit.
 
     Example:
         >>> import io, tempfile
@@ -66,13 +69,15 @@ def run_log(
     to_console.setFormatter(
         logging.Formatter("%(message)s") if _is_terminal(stream) else PlainFormatter("%(message)s")
     )
-    log = logging.getLogger(name)
+    log, package = logging.getLogger(name), logging.getLogger(_PACKAGE)
     torchrl, warned = logging.getLogger("torchrl"), logging.getLogger("py.warnings")
-    saved_level, saved_propagate = log.level, log.propagate
-    log.setLevel(logging.INFO)
-    log.propagate = False
-    log.addHandler(to_file)
-    log.addHandler(to_console)
+    ours = list(dict.fromkeys((log, package)))  # the library's own lines (a resumed training)
+    saved = {logger: (logger.level, logger.propagate) for logger in ours}
+    for logger in ours:
+        logger.setLevel(logging.INFO)
+        logger.propagate = False
+        logger.addHandler(to_file)
+        logger.addHandler(to_console)
     recoloured = _plain_consoles(torchrl)
     # warnings still reach the console: through the root logger's handlers if it has any
     warned_console = None if warned.hasHandlers() else logging.StreamHandler(sys.stderr)
@@ -104,8 +109,7 @@ def run_log(
     finally:
         logging.captureWarnings(False)
         for logger, handler in (
-            (log, to_file),
-            (log, to_console),
+            *((logger, handler) for logger in ours for handler in (to_file, to_console)),
             (torchrl, to_file),
             (warned, to_file),
             (warned, warned_console),
@@ -114,8 +118,9 @@ def run_log(
                 logger.removeHandler(handler)
         for handler, formatter in recoloured.items():
             handler.setFormatter(formatter)
-        log.setLevel(saved_level)
-        log.propagate = saved_propagate
+        for logger, (level, propagate) in saved.items():
+            logger.setLevel(level)
+            logger.propagate = propagate
         to_file.close()
 
 
@@ -129,3 +134,53 @@ def _plain_consoles(logger: logging.Logger) -> dict[logging.Handler, logging.For
             old[handler] = handler.formatter
             handler.setFormatter(PlainFormatter(_FORMAT, _DATE))
     return old
+
+
+#: Where a handler of the library's logger writes, as a spawned process can open it again: a
+#: file's path, or ``"stdout"`` / ``"stderr"``, with the handler's formatter.
+LogTarget = tuple[str, str, logging.Formatter]
+
+
+def log_targets() -> list[LogTarget]:
+    """The files and console streams the library's logger writes to here (:func:`run_log`'s
+    handlers), for a worker process to write its lines to the same places
+    (:func:`forwarded_log`)."""
+    targets: list[LogTarget] = []
+    for handler in logging.getLogger(_PACKAGE).handlers:
+        if isinstance(handler, logging.FileHandler):
+            targets.append(("file", handler.baseFilename, handler.formatter))
+        elif isinstance(handler, logging.StreamHandler):
+            for name in ("stdout", "stderr"):
+                if handler.stream is getattr(sys, name):
+                    targets.append(("stream", name, handler.formatter))
+    return targets
+
+
+@contextmanager
+def forwarded_log(targets: list[LogTarget]) -> Iterator[None]:
+    """Inside the block, the library's INFO lines go to ``targets`` (from :func:`log_targets`
+    in the parent process): a worker's resumed training is in the parent's ``run.log``."""
+    package = logging.getLogger(_PACKAGE)
+    handlers: list[logging.Handler] = []
+    for kind, where, formatter in targets:
+        handler = (
+            logging.FileHandler(where, mode="a", encoding="utf-8")
+            if kind == "file"
+            else logging.StreamHandler(getattr(sys, where))
+        )
+        handler.setFormatter(formatter)
+        handlers.append(handler)
+    saved = package.level, package.propagate
+    if handlers:
+        package.setLevel(logging.INFO)
+        package.propagate = False
+    for handler in handlers:
+        package.addHandler(handler)
+    try:
+        yield
+    finally:
+        for handler in handlers:
+            package.removeHandler(handler)
+            handler.close()
+        package.setLevel(saved[0])
+        package.propagate = saved[1]

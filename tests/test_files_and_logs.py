@@ -89,6 +89,27 @@ def test_run_log_is_plain_in_the_file_and_off_a_terminal(tmp_path):
     assert (tmp_path / "run.log").stat().st_mode & 0o777 == 0o666 & ~_current_umask()
 
 
+def test_the_library_s_lines_reach_the_run_log_and_levels_are_put_back(tmp_path):
+    console = io.StringIO()
+    package, module = logging.getLogger("rcvae_torchrl"), logging.getLogger("rcvae_torchrl.x.y")
+    before = package.level, package.propagate
+    with run_log(tmp_path / "run.log", stream=console):
+        module.info("resuming from c.pt at step 30 of 40")
+        module.debug("not at INFO")
+    module.info("after the block")
+    text = (tmp_path / "run.log").read_text()
+    assert text.count("resuming") == 1  # once, not once per handler or logger
+    assert text.splitlines()[0].endswith(
+        "[rcvae_torchrl.x.y][INFO] resuming from c.pt at step 30 of 40"
+    )
+    assert "not at INFO" not in text and "after the block" not in text
+    assert console.getvalue() == "resuming from c.pt at step 30 of 40\n"
+    assert (package.level, package.propagate) == before
+    with run_log(tmp_path / "own.log", name="rcvae_torchrl", stream=io.StringIO()) as log:
+        log.info("one line")  # the package's own logger named: its handlers added once
+    assert (tmp_path / "own.log").read_text().count("one line") == 1
+
+
 def _current_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)

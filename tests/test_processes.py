@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import io
+import logging
 import math
 
 import pytest
 import torch
 
 from rcvae_torchrl.processes import check_workers, choose_workers, map_in_processes
+from rcvae_torchrl.run_log import log_targets, run_log
 
 
 @pytest.mark.parametrize(
@@ -41,6 +44,18 @@ def test_bad_worker_settings_name_the_setting(bad):
 def test_jobs_run_in_workers_in_order_with_the_thread_count_given():
     assert map_in_processes(math.pow, [(2, 3), (3, 2), (2, 0.5)], 2) == [8.0, 9.0, 2**0.5]
     assert map_in_processes(torch.get_num_threads, [(), ()], 2, threads=1) == [1, 1]
+
+
+def test_a_worker_s_library_lines_reach_the_caller_s_run_log(tmp_path):
+    say = logging.getLogger("rcvae_torchrl.some_module").info  # pickles by the logger's name
+    console = io.StringIO()
+    with run_log(tmp_path / "run.log", stream=console):
+        map_in_processes(say, [("job %d resumed", 1), ("job %d resumed", 2)], 2)
+    lines = (tmp_path / "run.log").read_text().splitlines()
+    assert sorted(line.split("] ", 1)[1] for line in lines) == ["job 1 resumed", "job 2 resumed"]
+    assert all("[rcvae_torchrl.some_module][INFO]" in line for line in lines)
+    assert console.getvalue() == ""  # a StringIO is not a stream a worker can reach
+    assert log_targets() == []  # nothing is left attached after the block
 
 
 def test_one_worker_runs_the_jobs_here():

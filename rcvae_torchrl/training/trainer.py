@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import logging
 import math
 import warnings
 from collections.abc import Mapping
@@ -60,6 +61,8 @@ from rcvae_torchrl.objectives import RCVAELoss
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 from .checks import ModelChecks, ModelCheckWarning, check_model
 from .novelty import StateNovelty, check_novelty_episodes, entry_groups
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "TrainConfig",
@@ -620,6 +623,7 @@ def _train_shard(
                 noise_rng,
                 layout,
             )
+            _log_resumed(shard_path, state, config)
     logger, prefix = logging
     logger = logger if logger is not None else _default_logger(path)
     bar = tqdm(
@@ -1034,7 +1038,29 @@ def _finished_gathered_run(path: Path | None, data: str | None) -> _State | None
     training = _training_payload(path, data=data)
     if not training["state"]["finished"]:
         return None  # a single process's checkpoint: this rank's block check refuses it
-    return _State(**training["state"])
+    state = _State(**training["state"])
+    if distributed.is_main():
+        _log_resumed(path, state, config=None)
+    return state
+
+
+def _log_resumed(path: Path, state: _State, config: TrainConfig | None) -> None:
+    """Say in the log (``rcvae_torchrl.training.trainer``, INFO) that training goes on from
+    ``path``, or that ``path`` holds a finished run whose best weights are taken as they are."""
+    if state.finished:
+        log.info(
+            "train world model: %s holds a finished run (%d steps): its best weights are loaded, "
+            "nothing is trained",
+            path,
+            state.step,
+        )
+    else:
+        log.info(
+            "train world model: resuming from %s at step %d of %d",
+            path,
+            state.step,
+            config.max_steps,
+        )
 
 
 # ---------------------------------------------------------------------- gathering

@@ -2,6 +2,7 @@
 
 import dataclasses
 import itertools
+import logging
 import signal
 import subprocess
 import sys
@@ -87,7 +88,8 @@ def test_early_stopping(linear_data, small_ensemble):
 
 _SCRIPT = textwrap.dedent(
     """
-    import os, signal, sys, torch
+    import logging, os, signal, sys, torch
+    logging.basicConfig(level=logging.INFO)  # the library's lines to stderr
     sys.path.insert(0, {tests!r})
     from conftest import linear_episodes
     from rcvae_torchrl.data import TRAJ_KEY
@@ -125,6 +127,7 @@ def test_resume_after_kill_matches_an_uninterrupted_run(tmp_path):
     assert ckpt.exists() and not out.exists()
     resumed = _run(tmp_path, kill_at=-1, ckpt=ckpt, out=out)
     assert resumed.returncode == 0, resumed.stderr.decode()[-2000:]
+    assert f"resuming from {ckpt} at step 20 of 40" in resumed.stderr.decode()  # saved at 20
     reference = _run(tmp_path, kill_at=-1, ckpt=tmp_path / "ref.pt", out=tmp_path / "ref_final.pt")
     assert reference.returncode == 0, reference.stderr.decode()[-2000:]
     a, b = torch.load(out), torch.load(tmp_path / "ref_final.pt")
@@ -153,7 +156,8 @@ def test_decayed_learning_rate_changes_training(linear_data, small_ensemble):
     assert not torch.equal(a.embed.weight, b.embed.weight)
 
 
-def test_finished_run_is_not_trained_again(linear_data, small_ensemble, tmp_path):
+def test_finished_run_is_not_trained_again(linear_data, small_ensemble, tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="rcvae_torchrl")
     train, val = linear_data
     ckpt = tmp_path / "c.pt"
     first = train_ensemble(
@@ -171,6 +175,7 @@ def test_finished_run_is_not_trained_again(linear_data, small_ensemble, tmp_path
     assert again.steps == first.steps == 40
     for x, y in zip(first.ensemble.state_dict().values(), again.ensemble.state_dict().values()):
         assert torch.equal(x, y)
+    assert f"{ckpt} holds a finished run (40 steps): its best weights are loaded" in caplog.text
 
 
 def test_a_checkpoint_from_before_a_new_setting_resumes(linear_data, small_ensemble, tmp_path):
