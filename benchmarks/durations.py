@@ -37,7 +37,8 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the library, when run from a checkout without installing it
 
-from rcvae_torchrl.io import atomic_write, write_json  # noqa: E402
+from rcvae_torchrl.io import atomic_write, read_json, write_json  # noqa: E402
+from rcvae_torchrl.stages import MARKERS  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results" / "durations.json"
 README = ROOT / "README.md"
@@ -177,10 +178,10 @@ def read_run(run_dir: Path) -> tuple[str, dict[str, Any]]:
     found = dict(re.findall(r"(\w+)=(\S+)", first))
     if "profile" not in found or "threads" not in found:
         raise ValueError(f"{run_dir / 'run.log'}: expected 'profile=... threads=...' first")
-    markers = sorted((run_dir / "stages").glob("*.json"))
+    markers = sorted((run_dir / MARKERS).glob("*.json"))
     if not any(m.stem == "report" for m in markers):
         raise ValueError(f"{run_dir}: the run has not finished (no report stage marker)")
-    seconds = sum(json.loads(m.read_text())["seconds"] for m in markers)
+    seconds = sum(read_json(m, "stage marker", checksum=True)["seconds"] for m in markers)
     where = f" on {found['device']}" if found.get("device", "cpu") != "cpu" else ""
     entry = {
         "seconds": round(seconds, 1),

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import io
 import json
 import math
@@ -125,12 +126,25 @@ def _numbers(obj: Any) -> Any:
     return obj
 
 
-def write_json(path: str | Path, obj: Any) -> Path:
+def write_json(path: str | Path, obj: Any, *, checksum: bool = False) -> Path:
     """Write ``obj`` as indented, strict JSON, atomically: a non-finite float as the string
     ``"NaN"``, ``"Infinity"`` or ``"-Infinity"`` (which :func:`read_json` reads back as the
-    float), other non-JSON values as strings."""
-    text = json.dumps(_strict(obj), indent=2, default=str, allow_nan=False).encode()
+    float), other non-JSON values as strings. ``checksum``: a dict gets one more entry,
+    ``CHECKSUM_KEY``, the SHA-256 of the rest, which ``read_json(..., checksum=True)`` checks
+    (so that a value edited by hand is not taken as the program's own)."""
+    strict = json.loads(json.dumps(_strict(obj), default=str, allow_nan=False))
+    if checksum:
+        if not isinstance(strict, dict):
+            raise TypeError(f"obj: expected a dict to checksum, got {type(obj).__name__}")
+        strict = {**strict, CHECKSUM_KEY: _json_digest(strict)}
+    text = json.dumps(strict, indent=2, allow_nan=False).encode()
     return atomic_write(path, lambda f: f.write(text))
+
+
+def _json_digest(obj: Any) -> str:
+    """The SHA-256 of JSON content (as :func:`json.loads` gives it), whatever its layout."""
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def _existing_file(path: object, what: str) -> Path:
@@ -146,21 +160,34 @@ def _existing_file(path: object, what: str) -> Path:
     return path
 
 
-def read_json(path: str | Path, what: str = "a JSON file") -> Any:
+def read_json(path: str | Path, what: str = "a JSON file", *, checksum: bool = False) -> Any:
     """The JSON content of ``path`` (the strings :func:`write_json` writes for non-finite
     floats as those floats); :class:`StoredFileError` naming the file when it is missing or
-    not valid JSON (e.g. truncated)."""
+    not valid JSON (e.g. truncated). ``checksum``: a dict's ``CHECKSUM_KEY`` entry (written by
+    ``write_json(..., checksum=True)``) is checked against the rest, a
+    :class:`StoredFileError` when they differ, and left out of what is returned; a dict
+    without one (written before) is taken as it is."""
     path = _existing_file(path, what)
     try:
-        return _numbers(json.loads(path.read_bytes()))
+        content = json.loads(path.read_bytes())
     except (json.JSONDecodeError, UnicodeDecodeError) as err:
         raise StoredFileError(
             f"{what} {str(path)!r} is truncated or corrupt (not valid JSON: {err})", path
         ) from err
+    if checksum and isinstance(content, dict) and CHECKSUM_KEY in content:
+        recorded = content.pop(CHECKSUM_KEY)
+        if recorded != _json_digest(content):
+            raise StoredFileError(
+                f"{what} {str(path)!r}: its content changed since it was written (its "
+                f"{CHECKSUM_KEY!r} does not match the rest)",
+                path,
+            )
+    return _numbers(content)
 
 
-#: the entry of a saved dict that holds the SHA-256 of the rest (``fingerprint.digest``: every
-#: tensor's dtype, shape and bytes, every number and string, and the layout holding them)
+#: the entry of a saved dict that holds the SHA-256 of the rest (in a torch file
+#: ``fingerprint.digest``: every tensor's dtype, shape and bytes, every number and string, and
+#: the layout holding them; in a JSON file, that of its content in a canonical layout)
 CHECKSUM_KEY = "content_sha256"
 
 

@@ -14,7 +14,9 @@ re-verifies what it reuses:
 - an output file deleted, truncated or changed: the file is removed and the stage runs again
   (a line in the log says which file and why); its other files are reused where the stage
   function skips existing ones;
-- a marker that cannot be read: the stage runs again;
+- a marker that cannot be read, or whose content changed since the stage wrote it (its
+  checksum differs: a number edited by hand would otherwise be reported as the stage's): the
+  stage runs again;
 - inputs that differ from the recorded ones (an earlier stage's outputs came out different when
   it ran again): every output of the stage is removed and it runs again;
 - a file the stage function cannot read (:class:`~rcvae_torchrl.io.StoredFileError`): the file
@@ -224,7 +226,7 @@ class StageRunner:
         if saved is None and self._reuse_from is not None and distributed.is_main():
             saved = self._borrowed(name, outputs)
         if distributed.broadcast(saved is not None):  # rank 0's view: every rank takes one branch
-            saved = saved or read_json(self.marker(name), f"marker of stage {name!r}")
+            saved = saved or _read_marker(self.marker(name), name)
         elif distributed.is_main() or sharded:
             # a stage on rank 0 alone acts as one process: a sharing call in it must not wait
             with contextlib.nullcontext() if sharded else distributed.alone():
@@ -233,7 +235,7 @@ class StageRunner:
         else:
             distributed.barrier()
         if not distributed.is_main():
-            saved = read_json(self.marker(name), f"marker of stage {name!r}")
+            saved = _read_marker(self.marker(name), name)
         summary = {k: v for k, v in saved.items() if k not in ("outputs", "inputs")}
         log_scalars(self.logger, summary, len(self.summaries), prefix=f"stages/{name}/")
         self.summaries[name] = summary
@@ -281,7 +283,7 @@ class StageRunner:
             return None
         if saved["inputs"] != inputs:  # recorded as the stage's own inputs from now on
             saved["inputs"] = inputs
-            write_json(path, saved)
+            write_json(path, saved, checksum=True)
         self.log(f"[{name}] done earlier: reusing {path.parent.name}/{path.name} (files verified)")
         return saved
 
@@ -324,7 +326,7 @@ class StageRunner:
             "seconds": round(time.perf_counter() - start, 1),
             "reused_from": {"run_dir": str(other), "seconds": ran},
         }
-        write_json(self.marker(name), saved)
+        write_json(self.marker(name), saved, checksum=True)
         count = len(saved["outputs"])
         self.log(
             f"[{name}] reusing the finished stage of {str(other)!r} (files verified; {linked} of "
@@ -436,7 +438,7 @@ class StageRunner:
             "outputs": self._records(outputs) if distributed.is_main() else {},
         }
         if distributed.is_main():
-            write_json(self.marker(name), saved)
+            write_json(self.marker(name), saved, checksum=True)
         self._log(f"[{name}] finished in {saved['seconds']} s")
         return saved
 
@@ -479,7 +481,7 @@ class StageRunner:
 def _read_marker(path: Path, name: str) -> dict[str, Any]:
     """The marker of stage ``name`` at ``path``; :class:`StoredFileError` when it cannot be
     read or records no files."""
-    saved = read_json(path, f"marker of stage {name!r}")
+    saved = read_json(path, f"marker of stage {name!r}", checksum=True)
     if not isinstance(saved, dict) or not isinstance(saved.get("outputs"), dict):
         raise StoredFileError(f"marker of stage {name!r} {str(path)!r}: no file records")
     return saved

@@ -112,6 +112,47 @@ def test_a_damaged_marker_reruns_its_stage(tmp_path, damage):
         assert any("[make] marker of stage 'make'" in line for line in lines)
 
 
+def test_a_marker_edited_by_hand_reruns_its_stage_and_a_marker_from_before_checksums_holds(
+    tmp_path,
+):
+    """A number changed in a marker would be reported as the stage's own: its checksum tells
+    it, the stage runs again (its files are intact, so it reuses them) and the summary is the
+    stage's."""
+    Pipeline(tmp_path).run()
+    marker = tmp_path / "stages" / "use.json"
+    saved = json.loads(marker.read_text())
+    assert len(saved["content_sha256"]) == 64  # the SHA-256 of the rest
+    marker.write_text(json.dumps({**saved, "total": 60.0}, indent=2))
+    again = Pipeline(tmp_path)
+    runner, lines = again.run()
+    assert again.computed == ["z"] and runner.summaries["use"]["total"] == 6.0
+    assert any(
+        line.startswith("[use] marker of stage 'use'")
+        and "its content changed since it was written" in line
+        for line in lines
+    )
+    assert "content_sha256" not in runner.summaries["use"]
+    old = {k: v for k, v in json.loads(marker.read_text()).items() if k != "content_sha256"}
+    marker.write_text(json.dumps(old))  # as markers were written before their checksums
+    third = Pipeline(tmp_path)
+    runner, lines = third.run()
+    assert third.computed == [] and runner.summaries["use"]["total"] == 6.0
+
+
+def test_json_checksums_hold_through_non_finite_floats_and_tuples_and_name_a_change(tmp_path):
+    path = tmp_path / "f.json"
+    write_json(path, {"a": float("nan"), "b": (1, 2.5), "c": {"d": float("inf")}}, checksum=True)
+    back = read_json(path, "the file", checksum=True)
+    assert back["b"] == [1, 2.5] and back["c"]["d"] == float("inf") and back["a"] != back["a"]
+    assert "content_sha256" not in back
+    path.write_text(path.read_text().replace("2.5", "2.75"))
+    assert read_json(path)["b"] == [1, 2.75]  # unchecked, it is read as it is
+    with pytest.raises(StoredFileError, match=r"the file .*f\.json': its content changed"):
+        read_json(path, "the file", checksum=True)
+    with pytest.raises(TypeError, match="obj: expected a dict to checksum, got list"):
+        write_json(path, [1, 2], checksum=True)
+
+
 def test_a_stage_that_reads_markers_is_not_stopped_by_its_own_damaged_one(tmp_path):
     """An unreadable marker is removed before its stage runs again (a report stage may read
     every marker present)."""

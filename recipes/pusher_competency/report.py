@@ -31,6 +31,7 @@ from rcvae_torchrl.reporting import (
     plot_uncertainty_over_time,
     write_table,
 )
+from rcvae_torchrl.stages import MARKERS
 from rcvae_torchrl.training import ModelChecks, OutcomeCheck
 
 from .config import AssessConfig
@@ -907,8 +908,12 @@ def agent_section(agent: Mapping[str, Any], settings: Any) -> str:
 
 
 def _agent_text(run_dir: Path, settings: Any) -> str:
-    marker = run_dir / "stages" / "agent.json"
-    return agent_section(read_json(marker, "stage marker"), settings) if marker.is_file() else ""
+    marker = run_dir / MARKERS / "agent.json"
+    return (
+        agent_section(read_json(marker, "stage marker", checksum=True), settings)
+        if marker.is_file()
+        else ""
+    )
 
 
 def _bits_text(assess: AssessConfig) -> str:
@@ -938,8 +943,12 @@ def _markdown(
 ) -> str:
     table = (run_dir / "table.md").read_text()
     order = ("data", "models", "agent", "forecast", "truth", "report")
-    found = {p.stem: p for p in (run_dir / "stages").glob("*.json")}
-    stages = {name: read_json(found[name], "stage marker") for name in order if name in found}
+    found = {p.stem: p for p in (run_dir / MARKERS).glob("*.json")}
+    stages = {
+        name: read_json(found[name], "stage marker", checksum=True)
+        for name in order
+        if name in found
+    }
     lines = [
         "# Pusher competency assessment",
         "",

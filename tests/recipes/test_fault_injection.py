@@ -53,6 +53,9 @@ def _stage_files(run_dir: Path) -> list[str]:
 def _damage(path: Path, how: str) -> None:
     if how == "delete":
         path.unlink()
+    elif how == "edit":  # a number changed by hand: the file stays valid JSON
+        content = json.loads(path.read_text())
+        path.write_text(json.dumps({**content, "seconds": content["seconds"] + 1000}))
     elif how == "truncate":
         data = path.read_bytes()
         path.write_bytes(data[: len(data) // 2])
@@ -113,6 +116,7 @@ SAMPLE = [
     ("truth/deterministic.pt", "truncate"),
     ("stages/agent.json", "truncate"),
     ("stages/report.json", "garbage"),
+    ("stages/truth.json", "edit"),
     ("study_config.json", "truncate"),
     ("data/stochastic.pt", "delete"),
 ]
