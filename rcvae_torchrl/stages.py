@@ -11,14 +11,16 @@ matching the patterns the stage declares) and a digest of its inputs (the run's 
 those the stage declares it reads, and the output records of the stages before it). A rerun
 re-verifies what it reuses:
 
-- an output file deleted, truncated or changed: the file is removed and the stage runs again
-  (a line in the log says which file and why); its other files are reused where the stage
-  function skips existing ones;
+- an output file deleted, truncated or changed: the stage runs again (a line in the log says
+  which file and why); a changed file is first moved to ``changed_files/<UTC time>/`` (it may
+  hold the user's edits), and the stage's other files are reused where the stage function
+  skips existing ones;
 - a marker that cannot be read, or whose content changed since the stage wrote it (its
   checksum differs: a number edited by hand would otherwise be reported as the stage's): the
   stage runs again;
 - inputs that differ from the recorded ones (an earlier stage's outputs came out different when
-  it ran again): every output of the stage is removed and it runs again;
+  it ran again): every output of the stage is removed (those changed since it wrote them are
+  moved aside as above) and it runs again;
 - a file the stage function cannot read (:class:`~rcvae_torchrl.io.StoredFileError`): the file
   is removed and the stage runs once more when it is one of the stage's own outputs; otherwise a
   :class:`StageError` names the stage, the file and what to do.
@@ -70,13 +72,26 @@ from rcvae_torchrl.io import (  # settings as they read back from JSON, as recor
 )
 from rcvae_torchrl.loggers import log_scalars
 
-__all__ = ["MARKERS", "StageError", "StageRunner", "check_run_directory", "file_record"]
+__all__ = [
+    "MARKERS",
+    "SET_ASIDE",
+    "StageError",
+    "StageRunner",
+    "check_run_directory",
+    "file_record",
+]
 
 _CHUNK = 1 << 20
 
 
 #: The folder of a run directory that holds the stages' markers.
 MARKERS = "stages"
+#: The folder of a run directory where outputs changed since their stage wrote them (damaged,
+#: or edited by hand) are moved, under the UTC time of the run that found them, before the
+#: stage makes them again: nothing a user changed is deleted.
+SET_ASIDE = "changed_files"
+
+_MISSING = "the file is missing"
 
 
 def check_run_directory(
@@ -187,6 +202,7 @@ class StageRunner:
         self._config_name = config_name
         self._recorded_there: Any = None  # the reuse_from run's settings, once read
         self._unverified = False  # the settings record was missing or unreadable
+        self._aside: Path | None = None  # where this run sets changed outputs aside
         if settings is not None and distributed.is_main():
             self._record_settings(dict(settings), self.run_dir / config_name)
 
@@ -273,12 +289,17 @@ class StageRunner:
                 f"[{name}] its inputs changed (settings or an earlier stage's files): removing "
                 f"its {len(saved['outputs'])} files and running the stage again"
             )
+            changed = self._failed(saved["outputs"])
+            for rel, why in changed.items():
+                if why != _MISSING:  # changed since the stage wrote it: perhaps by hand
+                    self.log(f"[{name}] {rel}: {why}; set aside as {self._set_aside(rel)}")
             self._remove(saved["outputs"])
             return None
         bad = self._failed(saved["outputs"])
         if bad:
             for rel, why in bad.items():
-                self.log(f"[{name}] {rel}: {why}; removing it and running the stage again")
+                kept = "" if why == _MISSING else f"; set aside as {self._set_aside(rel)}"
+                self.log(f"[{name}] {rel}: {why}{kept}; running the stage again")
             self._remove(bad)
             return None
         if saved["inputs"] != inputs:  # recorded as the stage's own inputs from now on
@@ -393,7 +414,7 @@ class StageRunner:
         for rel, record in records.items():
             file = (root or self.run_dir) / rel
             if not file.is_file():
-                bad[rel] = "the file is missing"
+                bad[rel] = _MISSING
                 continue
             actual = file_record(file)
             if actual["bytes"] != record.get("bytes"):
@@ -419,6 +440,22 @@ class StageRunner:
     def _remove(self, rels: Iterable[str]) -> None:
         for rel in rels:
             (self.run_dir / rel).unlink(missing_ok=True)
+
+    def _set_aside(self, rel: str) -> str:
+        """Move the output ``rel`` (changed since its stage wrote it: damaged, or edited by
+        hand) under :data:`SET_ASIDE` instead of deleting it; its new path, relative to the
+        run directory."""
+        if self._aside is None:  # one folder per run of the runner
+            stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+            self._aside = Path(SET_ASIDE) / stamp
+            suffix = 1
+            while (self.run_dir / self._aside).exists():
+                suffix += 1
+                self._aside = Path(SET_ASIDE) / f"{stamp}_{suffix}"
+        target = self.run_dir / self._aside / rel
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(self.run_dir / rel, target)
+        return str(self._aside / rel)
 
     # ------------------------------------------------------------------ running
     def _log(self, line: str) -> None:

@@ -8,7 +8,13 @@ import pytest
 import torch
 
 from rcvae_torchrl.io import StoredFileError, load_torch, read_json, save_torch, write_json
-from rcvae_torchrl.stages import StageError, StageRunner, check_run_directory, file_record
+from rcvae_torchrl.stages import (
+    SET_ASIDE,
+    StageError,
+    StageRunner,
+    check_run_directory,
+    file_record,
+)
 
 
 class Pipeline:
@@ -72,12 +78,41 @@ def test_a_damaged_output_is_recomputed_with_a_log_line(tmp_path, damage, why):
     Pipeline(tmp_path).run()
     before = (tmp_path / "a" / "x.pt").read_bytes()
     damage(tmp_path / "a" / "x.pt")
+    damaged = (tmp_path / "a" / "x.pt").read_bytes() if (tmp_path / "a" / "x.pt").exists() else None
     again = Pipeline(tmp_path)
     runner, lines = again.run()
     assert again.computed == ["x"]  # y is reused; z's inputs are unchanged, so it is too
     assert (tmp_path / "a" / "x.pt").read_bytes() == before
     assert any(line.startswith("[make] a/x.pt: ") and why in line for line in lines)
     assert runner.summaries["use"]["total"] == 6.0
+    aside = list((tmp_path / SET_ASIDE).glob("*/a/x.pt"))
+    if damaged is None:
+        assert aside == []
+    else:  # moved aside, not deleted: it may hold the user's own edits
+        assert [p.read_bytes() for p in aside] == [damaged]
+        line = next(line for line in lines if line.startswith("[make] a/x.pt: "))
+        assert line.endswith(
+            f"; set aside as {aside[0].relative_to(tmp_path)}; running the stage again"
+        )
+
+
+def test_outputs_edited_by_hand_are_set_aside_when_their_stage_reruns_for_new_inputs(tmp_path):
+    Pipeline(tmp_path).run()
+    (tmp_path / "b" / "z.pt").write_bytes(b"my own notes")
+    (tmp_path / "a" / "x.pt").unlink()
+    again = Pipeline(tmp_path, value=2.0)  # x comes out different: use's inputs change
+    runner, lines = again.run()
+    assert again.computed == ["x", "z"] and runner.summaries["use"]["total"] == 9.0
+    (kept,) = (tmp_path / SET_ASIDE).glob("*/b/z.pt")
+    assert kept.read_bytes() == b"my own notes"
+    assert any(line.startswith("[use] b/z.pt: its size changed") for line in lines)
+    Pipeline(tmp_path).run()  # a later run's changes go to a folder of their own
+    (tmp_path / "b" / "z.pt").write_bytes(b"more notes")
+    Pipeline(tmp_path).run()
+    assert sorted(p.read_bytes() for p in (tmp_path / SET_ASIDE).glob("*/b/z.pt")) == [
+        b"more notes",
+        b"my own notes",
+    ]
 
 
 def test_downstream_stages_rerun_when_a_recomputed_input_differs(tmp_path):
