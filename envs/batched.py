@@ -261,7 +261,12 @@ class BatchedPusherEnv(EnvBase):
             envs: env indices ``[k]`` or a boolean mask ``[N]``; None: all, in order.
 
         Example:
+            >>> from rcvae_torchrl.envs import make_pusher_env
+            >>> env = BatchedPusherEnv(4)
             >>> env.set_seeds([7, 8], envs=[0, 3])  # env 0 as make_pusher_env(seed=7), ...
+            >>> first = env.reset()["observation"]
+            >>> bool((first[0] == make_pusher_env(seed=7).reset()["observation"]).all())
+            True
         """
         ids = _as_ids(envs, self.num_envs)
         values = seeds.detach().cpu().numpy() if isinstance(seeds, torch.Tensor) else seeds

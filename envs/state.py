@@ -57,8 +57,13 @@ def reset_to_state(env: EnvBase, observation: torch.Tensor) -> TensorDictBase:
     the episode starts from.
 
     Example:
+        >>> from rcvae_torchrl.envs import OBSERVATION_NAMES, make_pusher_env
         >>> env = make_pusher_env("stochastic", seed=3)
-        >>> td = reset_to_state(env, start)  # start: an observation [14]
+        >>> start = env.reset()["observation"].clone()  # an observation [14]
+        >>> start[OBSERVATION_NAMES.index("ball_x")] = 0.1
+        >>> td = reset_to_state(env, start)
+        >>> bool(torch.allclose(td["observation"], start, atol=1e-5))
+        True
     """
     shape = (*env.batch_size, OBSERVATION_DIM)
     if observation.shape != shape or not torch.isfinite(observation).all():

@@ -41,7 +41,7 @@ from rcvae_torchrl.competency import (
     time_to_success_scores,
     validate_forecasts,
 )
-from rcvae_torchrl.competency.comparison import mean_interval
+from rcvae_torchrl.competency.intervals import mean_interval
 from rcvae_torchrl.data import TRAJ_KEY, acting_record, check_same_agent, exploration_mode
 from rcvae_torchrl.fingerprint import weights_digest
 from rcvae_torchrl.threads import threads_kept
@@ -731,8 +731,14 @@ def score_forecast(
     another exploration mode than the real episodes' (:attr:`RealOutcomes.acting`) is
     refused: it forecast another agent. A report's imagined times to success are scored
     against the real ones too (:func:`~rcvae_torchrl.competency.time_to_success_scores`, both
-    censored at its deadline): ``time_to_success_crps``, ``..._crps_climatology`` and
-    ``..._skill``."""
+    censored at its deadline): ``time_to_success_crps`` and ``..._crps_climatology`` (in env
+    steps) and ``..._skill``.
+
+    These are scores on the start states given, with the bias's interval over them
+    (``bias_low``, ``bias_high``), not a verdict: a forecast that scores well on a few start
+    states can be biased on others. :meth:`OutcomeCheck.from_outcomes
+    <rcvae_torchrl.training.OutcomeCheck.from_outcomes>` tests it (bias, per-start misses) and
+    ``report.with_forecast_check`` makes a report say so."""
     if not isinstance(outcomes, RealOutcomes):
         raise TypeError(
             f"outcomes: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"

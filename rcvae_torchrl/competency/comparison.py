@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from rcvae_torchrl._checks import check_same_starts, check_unit_interval
+from rcvae_torchrl.competency.intervals import mean_interval
 from rcvae_torchrl.competency.report import CompetencyReport
 
 __all__ = ["AgentComparison", "compare_agents"]
@@ -230,21 +231,6 @@ def _other_task(a: CompetencyReport, b: CompetencyReport) -> str:
     if not (a.task and b.task):
         return "a task not known (a report built by hand)"
     return "another world model (its weights) or step (dt)"
-
-
-def mean_interval(values: Tensor, confidence: float) -> tuple[float, float]:
-    """A Student's t interval at ``confidence`` of the mean of differences ``values`` ``[n]``,
-    one per start state (its standard error from their spread, with ``n - 1`` degrees of
-    freedom: a normal interval over a handful of start states is too narrow, 2.2 times too
-    narrow at 95 % with 3; ``n = 1``: the value itself), within ``[-1, 1]``."""
-    mean, n = float(values.mean()), values.numel()
-    if n < 2:
-        return max(mean, -1.0), min(mean, 1.0)
-    from scipy import stats
-
-    quantile = float(stats.t.ppf(0.5 + confidence / 2, n - 1))
-    half = quantile * float(values.std()) / math.sqrt(n)
-    return max(mean - half, -1.0), min(mean + half, 1.0)
 
 
 def _z(confidence: float) -> float:

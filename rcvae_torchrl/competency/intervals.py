@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
@@ -10,7 +11,7 @@ from torch import Tensor
 
 from rcvae_torchrl.competency import _checks
 
-__all__ = ["binomial_interval"]
+__all__ = ["binomial_interval", "mean_interval"]
 
 
 def binomial_interval(
@@ -81,3 +82,18 @@ def _wilson(k: Tensor, n: Tensor, alpha: float) -> tuple[Tensor, Tensor]:
     low = torch.where(k == 0, 0.0, (centre - half).clamp(0.0, 1.0))
     high = torch.where(k == n, 1.0, (centre + half).clamp(0.0, 1.0))
     return low, high
+
+
+def mean_interval(values: Tensor, confidence: float) -> tuple[float, float]:
+    """A Student's t interval at ``confidence`` of the mean of differences ``values`` ``[n]``,
+    one per start state (its standard error from their spread, with ``n - 1`` degrees of
+    freedom: a normal interval over a handful of start states is too narrow, 2.2 times too
+    narrow at 95 % with 3; ``n = 1``: the value itself), within ``[-1, 1]``."""
+    mean, n = float(values.mean()), values.numel()
+    if n < 2:
+        return max(mean, -1.0), min(mean, 1.0)
+    from scipy import stats
+
+    quantile = float(stats.t.ppf(0.5 + confidence / 2, n - 1))
+    half = quantile * float(values.std()) / math.sqrt(n)
+    return max(mean - half, -1.0), min(mean + half, 1.0)

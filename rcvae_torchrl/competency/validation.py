@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from rcvae_torchrl.competency import _checks
-from rcvae_torchrl.competency.intervals import binomial_interval
+from rcvae_torchrl.competency.intervals import binomial_interval, mean_interval
 
 __all__ = [
     "StartReliability",
@@ -415,7 +415,12 @@ def validate_forecasts(
     ``auroc`` (over single episodes; NaN when all outcomes agree), ``brier`` (over episodes),
     ``brier_base`` (the Brier of the constant forecast ``base_rate``, default the episodes' own
     rate), ``brier_skill`` (against it), ``ece`` (episode-weighted over ``n_bins`` bins),
-    ``starts`` and ``episodes``.
+    ``starts`` and ``episodes``; ``bias`` (the mean over start states of forecast minus real
+    rate, signed) with ``bias_low`` and ``bias_high``, its 95 % Student's t interval over the
+    start states (:func:`~rcvae_torchrl.competency.intervals.mean_interval`): on a few start
+    states a small ``gap`` is no evidence of an unbiased forecast while the interval is wide.
+    Scores are not a verdict: :class:`~rcvae_torchrl.training.OutcomeCheck` tests the bias and
+    the per-start misses and says whether the forecast can be trusted.
     """
     f, mask = _outcomes(forecast, outcome, mask)
     rates, runs = per_start_rates(outcome, mask)
@@ -431,6 +436,8 @@ def validate_forecasts(
     weights = reliability.episodes.to(torch.float64) / float(runs.sum())
     gaps = (reliability.mean_forecast - reliability.frequency).abs().nan_to_num(0.0)
     mean_forecast = float(scores.mean())  # episode-weighted, as the real rate is
+    errors = (f.to(torch.float64) - rates).cpu()  # per start; its mean weighs starts alike
+    bias_low, bias_high = mean_interval(errors, 0.95)
     ranked = float(auroc(scores, labels))
     if ranked < _BACKWARDS and f.numel() >= _BACKWARDS_STARTS:
         warnings.warn(
@@ -456,6 +463,9 @@ def validate_forecasts(
         "ece": float((weights * gaps).sum()),
         "starts": int(f.numel()),
         "episodes": int(runs.sum()),
+        "bias": float(errors.mean()),
+        "bias_low": bias_low,
+        "bias_high": bias_high,
     }
 
 

@@ -95,7 +95,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
 
     Args:
         ensemble: the trained world model (its device is the env's).
-        reward_fn: ``reward_fn(observation=s_{t+1} [..., S], action=a_t [..., A]) -> [..., 1]``.
+        reward_fn: ``reward_fn(observation=s_{t+1} [..., S], action=a_t [..., A]) -> [..., 1]``
+            (or ``[...]``).
         success_fn: ``success_fn(observation=s [..., S]) -> [...]`` bool.
         real_env: copy the task specs from it (:meth:`set_specs_from_env`) and draw start
             states from its ``reset()`` when no others are given (which ends the episode it is

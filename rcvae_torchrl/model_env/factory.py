@@ -33,7 +33,7 @@ def make_rcvae_env(
             env that is given no start states (neither in the input nor ``start_states``) draws
             them by resetting it, which ends the episode it is in: act in another instance, or
             reset the model env from states (``None``: default specs). It is never stepped.
-        reward_fn: ``reward_fn(observation=s_{t+1}, action=a_t) -> [..., 1]``.
+        reward_fn: ``reward_fn(observation=s_{t+1}, action=a_t) -> [..., 1]`` (or ``[...]``).
         success_fn: ``success_fn(observation=s) -> [...]`` bool (e.g. a
             ``functools.partial`` of a function with a radius argument).
         transforms: optional transforms; the env is then wrapped in a ``TransformedEnv``, whose

@@ -1,7 +1,6 @@
 """CompetencyAssessor and CompetencyReport: keys, shapes, loops, chunks, summary rules, errors."""
 
 import dataclasses
-import doctest
 import json
 import math
 import warnings
@@ -11,7 +10,6 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
-import rcvae_torchrl.competency.assessor as assessor_module
 from rcvae_torchrl.competency import (
     CompetencyAssessor,
     CompetencyReport,
@@ -863,14 +861,6 @@ def test_assess_errors(env, starts, plan):
         assessor.assess(starts, actions=plan, generator=3)
     with pytest.raises(TypeError, match="return_rollouts: expected True or False, got 'yes'"):
         assessor.assess(starts, actions=plan, return_rollouts="yes")
-
-
-def test_docstring_example():
-    result = doctest.testmod(
-        assessor_module, optionflags=doctest.NORMALIZE_WHITESPACE | doctest.ELLIPSIS
-    )
-    assert result.attempted > 0
-    assert result.failed == 0
 
 
 def test_episode_end_measures_the_uncertainty_of_the_episode(env, starts, plan):

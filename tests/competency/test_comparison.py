@@ -12,7 +12,7 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 
 from rcvae_torchrl.competency import AgentComparison, SuccessBoundary, compare_agents
-from rcvae_torchrl.competency.comparison import mean_interval
+from rcvae_torchrl.competency.intervals import mean_interval
 from rcvae_torchrl.envs import obs_indices
 from tests.competency.test_assessor import (
     DT,

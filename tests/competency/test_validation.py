@@ -229,6 +229,19 @@ def test_validate_forecasts_on_informative_and_uninformative_forecasts():
         validate_forecasts(forecast, outcome[:3])
 
 
+def test_the_bias_interval_is_student_s_t_over_the_start_states():
+    """Errors 0.1, 0.1, 0.35, -0.15: mean 0.1, sd sqrt(0.125 / 3), t(0.975, 3) = 3.182446."""
+    forecast = torch.full((4,), 0.6, dtype=torch.float64)
+    hits = torch.tensor([2, 2, 1, 3])
+    outcome = torch.arange(4)[None, :] < hits[:, None]  # [4, 4]: rates 0.5, 0.5, 0.25, 0.75
+    scores = validate_forecasts(forecast, outcome)
+    half = 3.182446 * math.sqrt(0.125 / 3) / 2
+    assert scores["bias"] == pytest.approx(0.1)
+    assert scores["bias_low"] == pytest.approx(0.1 - half, abs=1e-6)
+    assert scores["bias_high"] == pytest.approx(0.1 + half, abs=1e-6)
+    assert scores["gap"] == pytest.approx(abs(scores["bias"]))  # equal runs: the same mean
+
+
 def test_success_on_grid_is_first_hitting_within_the_deadline():
     from rcvae_torchrl.competency import success_on_grid
 
