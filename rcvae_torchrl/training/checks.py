@@ -955,21 +955,36 @@ class OutcomeCheck:
         whether the per-start differences scatter more than the binomial chance of R
         independent episodes allows. The shift is one logit offset ``c`` for all starts
         (:meth:`shifted`, fitted so that the shifted forecasts' mean is the real rate; a
-        forecast of 0 stays 0), the statistic Pearson's over the starts,
-        ``Σ (k - R·g)² / (R·g·(1 - g))`` with ``g`` the shifted forecasts (kept within
-        [0.001, 0.999]: a forecast from finitely many imagined episodes does not tell a
-        chance below about 1/1000 from 0). It is compared with 4,000 draws of the counts
-        from ``g``, each with its own offset fitted again, seeded: every call gives the same
-        number. NaN when not :attr:`per_start_measured`."""
+        forecast of 0 stays 0), the statistic the binomial deviance over the starts,
+        ``2 Σ [k log(k / (R·g)) + (R - k) log((R - k) / (R·(1 - g)))]`` with ``k`` a start's
+        successes and ``g`` the shifted forecasts (kept within [0.001, 0.999]: a forecast from
+        finitely many imagined episodes does not tell a chance below about 1/1000 from 0). It
+        is compared with 4,000 draws of the counts from ``g``, each with its own offset fitted
+        again, seeded: every call gives the same number. NaN when not
+        :attr:`per_start_measured`.
+
+        The deviance, not Pearson's ``Σ (k - R·g)² / (R·g·(1 - g))``: a settled start
+        (forecast near 0 or 1) puts a rare, huge Pearson term into the draws (one failure in
+        30 runs at ``g = 0.999`` adds 33, against 5 to the deviance), which buries the misses
+        of the other starts. In 200 simulated checks of 20 starts that miss (logit error of
+        sd 0.6, 30 runs each) beside 20 settled ones, Pearson's found the misses in 3.5 % at
+        level 0.01 and the deviance in 84 % (without the settled starts: 85 % and 88 %); where
+        nothing missed, both rejected 0.5 to 2.5 %.
+        """
         if not self.per_start_measured:
             return float("nan")
         runs = float(self.runs)
 
-        def pearson(counts: torch.Tensor) -> torch.Tensor:
+        def deviance(counts: torch.Tensor) -> torch.Tensor:
             g = _shifted(self._logit, counts.mean(-1, keepdim=True) / runs).clamp(
                 _RESOLUTION, 1 - _RESOLUTION
             )
-            return ((counts - runs * g).square() / (runs * g * (1 - g))).sum(-1)
+            hits = counts * (counts / (runs * g)).log()
+            misses = (runs - counts) * ((runs - counts) / (runs * (1 - g))).log()
+            zero = torch.zeros((), dtype=counts.dtype)  # 0 log 0 = 0
+            return 2 * (
+                torch.where(counts > 0, hits, zero) + torch.where(counts < runs, misses, zero)
+            ).sum(-1)
 
         observed_counts = (self.real * runs).round()
         g = _shifted(self._logit, observed_counts.mean() / runs).clamp(_RESOLUTION, 1 - _RESOLUTION)
@@ -978,8 +993,8 @@ class OutcomeCheck:
         simulated = torch.binomial(
             torch.full((draws, g.numel()), runs, dtype=g.dtype), g.expand(draws, -1), generator
         )
-        observed = pearson(observed_counts)
-        return float((int((pearson(simulated) >= observed).sum()) + 1) / (draws + 1))
+        observed = deviance(observed_counts)
+        return float((int((deviance(simulated) >= observed).sum()) + 1) / (draws + 1))
 
     def shifted(self) -> torch.Tensor:
         """The forecasts with the shift all starts share taken out: ``σ(logit f + c)`` ``[n]``,
