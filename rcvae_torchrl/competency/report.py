@@ -32,6 +32,13 @@ __all__ = ["AleatoricShare", "CompetencyReport", "Reference"]
 # the model that every member makes (a model that has not learned a deterministic env spreads
 # its states too), which the ensemble cannot tell apart; the self-checks and a check of the
 # forecast against real episodes can.
+#: Below this many bits of total doubt (summed over dimensions) a report names no dominant
+#: part and no cause: at the declared resolution the imagined states mostly share their bins,
+#: and which of two small parts is the larger tells nothing (a calm env's in-distribution
+#: starts, forecast exactly, read "most of the doubt is epistemic (0.20 of 0.37 bits): the
+#: model has not seen states like this").
+LITTLE_DOUBT_BITS = 1.0
+
 _REASONS = {
     "epistemic": "the model has not seen states like this",
     "aleatoric": "the members agree that the states vary this much: by chance, or by an error "
@@ -453,7 +460,9 @@ class CompetencyReport:
        (``("uncertainty", "summary", ·)``; a tie counts as aleatoric), given with its share
        of the total: ``Most of the doubt is epistemic (0.70
        of 1.10 bits): the model has not seen states like this.`` When all three are 0 the
-       sentence says so. With a warning (rule 1) neither: the bits are given without a cause
+       sentence says so; below :data:`LITTLE_DOUBT_BITS` (1 bit) in all it names no part and
+       no cause (``Little doubt about the imagined states (0.37 bits, ...): 0.17 aleatoric and
+       0.20 epistemic.``). With a warning (rule 1) neither: the bits are given without a cause
        (a model that failed its checks may take missing knowledge for chance, or hide it).
     5. The ``top_k`` dimensions with the largest time-mean total bits (only those above 0),
        each with its mean bits and the time of its peak. Left out for joint estimators.
@@ -603,6 +612,24 @@ class CompetencyReport:
                 "(OutcomeCheck.from_outcomes(report, outcomes)), or pass task=report.task"
             )
         return "; ".join(parts)
+
+    @property
+    def _binned(self) -> bool:
+        """Whether the bits are of binned states (the histogram estimator's: entropies of
+        counts, never below 0), where a total under :data:`LITTLE_DOUBT_BITS` is little
+        doubt; a joint estimator's differential entropies have no such floor."""
+        return (self.measure or {}).get("estimator") == "histogram"
+
+    @property
+    def _split_doubted(self) -> bool:
+        """Whether the bits' split is no evidence of a cause: the world model failed its
+        self-checks (or has none), or its forecasts failed their check. A check that passed on
+        other start states than these (:attr:`uncovered`), or one tied to no task, vouches for
+        none of these forecasts, but says nothing against the model's split: the rise of the
+        epistemic part against a reference is then what tells that these starts lie outside
+        what the model learned."""
+        check = self.forecast_check
+        return bool(self.model_warning) or (check is not None and not check.passed)
 
     def with_forecast_check(self, check: Any) -> CompetencyReport:
         """This report, with the check of the same agent's forecasts against its real episodes
@@ -933,10 +960,11 @@ class CompetencyReport:
         n = self.batch_size.numel()
         text = f"Over {n} start states: mean P({self._outcome()}) = {p:.2f}. "
         warning = self.warning
-        if warning:  # as in each start's paragraph: the split is no evidence
+        if self._split_doubted:  # as in each start's paragraph: the split is no evidence
             text += _unreliable_split_sentence(aleatoric, epistemic, total, _unit(live))
         elif self.reference is None:
-            text += _doubt_sentence(aleatoric, epistemic, total, self.aleatoric_share is not None)
+            calibrated = self.aleatoric_share is not None
+            text += _doubt_sentence(aleatoric, epistemic, total, calibrated, self._binned)
         else:
             novel = self.novel
             cautioned = 0 if novel is None else int(novel.sum())
@@ -955,7 +983,7 @@ class CompetencyReport:
                 f"{causes.count('epistemic')} of {len(causes)} and aleatoric in "
                 f"{causes.count('aleatoric')}."
             )
-        if self.model_caution and not warning:
+        if self.model_caution and not self._split_doubted:
             text += f" Caution: {self.model_caution}."
         if self.aleatoric_share is not None:
             text += f" {self.aleatoric_share.describe()}"
@@ -1105,7 +1133,7 @@ class CompetencyReport:
             self._uncovered_caution(one),
             self._novelty_sentence(one, flags),
             self._uncertainty_sentence(
-                uncertainty, bool(warning), flags, self._actions_only(one, flags)
+                uncertainty, self._split_doubted, flags, self._actions_only(one, flags)
             ),
             "" if self.aleatoric_share is None else self.aleatoric_share.describe(),
             self._spread_sentence(uncertainty, one.get("real_spread", None)),
@@ -1277,7 +1305,7 @@ class CompetencyReport:
         caution = f" Caution: {self.model_caution}." if self.model_caution else ""
         if self.reference is None:
             calibrated = self.aleatoric_share is not None
-            return _doubt_sentence(aleatoric, epistemic, total, calibrated) + caution
+            return _doubt_sentence(aleatoric, epistemic, total, calibrated, self._binned) + caution
         start, imagined = flags  # the novelty cautions (:meth:`_novel_flags`)
         novel_clause = (
             "the start is unlike the training states (above)"
@@ -1355,13 +1383,24 @@ def _members_sentence(competency: TensorDictBase, outcome: str) -> str:
 
 
 def _doubt_sentence(
-    aleatoric: float, epistemic: float, total: float, calibrated: bool = False
+    aleatoric: float,
+    epistemic: float,
+    total: float,
+    calibrated: bool = False,
+    binned: bool = False,
 ) -> str:
     """The dominant uncertainty type (larger of the two; a tie is aleatoric) and its share;
     its cause as the world model's own split tells it, or as a split ``calibrated`` against
-    real episodes does."""
+    real episodes does. Bits of ``binned`` states (the histogram estimator's) below
+    :data:`LITTLE_DOUBT_BITS` in all: little doubt, no part and no cause named."""
     if aleatoric == epistemic == total == 0.0:
         return "No doubt about the imagined states (0.00 bits): all samples agree."
+    if binned and total < LITTLE_DOUBT_BITS:  # which of two small parts is larger is chance
+        return (
+            f"Little doubt about the imagined states ({total:.2f} bits, under "
+            f"{LITTLE_DOUBT_BITS:g}: at the declared resolution they mostly share their bins): "
+            f"{aleatoric:.2f} aleatoric and {epistemic:.2f} epistemic."
+        )
     kind, bits = ("epistemic", epistemic) if epistemic > aleatoric else ("aleatoric", aleatoric)
     reason = (_CALIBRATED_REASONS if calibrated else _REASONS)[kind]
     return f"Most of the doubt is {kind} ({bits:.2f} of {total:.2f} bits): {reason}."

@@ -315,6 +315,18 @@ def test_summary_text_rules_on_known_numbers():
     assert "Most of the doubt is aleatoric (0.50 of 1.00 bits)" in tie
     none = hand_report(aleatoric=0.0, epistemic=0.0, total=0.0).summary()
     assert "No doubt about the imagined states (0.00 bits)" in none
+    # binned bits under 1 in all: which part is larger is chance, and no cause is named
+    little = dataclasses.replace(
+        hand_report(aleatoric=0.17, epistemic=0.2, total=0.37), measure={"estimator": "histogram"}
+    )
+    said = (
+        "Little doubt about the imagined states (0.37 bits, under 1: at the declared "
+        "resolution they mostly share their bins): 0.17 aleatoric and 0.20 epistemic."
+    )
+    assert said in little.summary() and said in little.overall()
+    assert "has not seen states like this" not in little.summary() + little.overall()
+    joint = hand_report(aleatoric=0.17, epistemic=0.2, total=0.37)  # no estimator known
+    assert "Most of the doubt is epistemic (0.20 of 0.37 bits)" in joint.summary()
 
 
 def test_summary_against_a_reference_names_what_rose():
@@ -1066,6 +1078,19 @@ def test_a_forecast_check_does_not_vouch_for_start_states_unlike_its_own(env, pl
     assert " 3 of the 3 start states are unlike those the forecast check was made on" in (
         moved.overall()
     )
+    # vouching for none of them says nothing against the model's split, which still speaks:
+    # against a reference, what rose is what tells that the starts lie outside what it learned
+    unsplit = "this split does not say whether more data would help"
+    assert unsplit not in moved.overall() and unsplit not in moved.summary(index=0)
+    assert "Most of the doubt is " in moved.overall()
+    compared = moved.with_reference(report).overall()
+    assert unsplit not in compared and compared.startswith("Warning: the forecast check vouches")
+    assert "the rise is epistemic, the model has not seen states like this" in compared
+    failed = OutcomeCheck.from_outcomes(
+        torch.full((60,), 0.9, dtype=torch.float64), real, task=report.task, start_states=own
+    )
+    assert not failed.passed
+    assert unsplit in far.with_forecast_check(failed).overall()  # biased: no cause given
     # one start outside of three is within chance: cautioned, still trustworthy
     one_off = torch.cat([alike[:2], alike[2:] + 1.0])
     mixed = make_assessor(env).assess(one_off, actions=plan, generator=seeded())
