@@ -32,6 +32,10 @@ __all__ = ["AleatoricShare", "CompetencyReport", "Reference"]
 # the model that every member makes (a model that has not learned a deterministic env spreads
 # its states too), which the ensemble cannot tell apart; the self-checks and a check of the
 # forecast against real episodes can.
+#: A forecast within this of 0 or 1 is sure (an outcome check that saw too few others vouches
+#: for such forecasts alone: :attr:`~rcvae_torchrl.training.OutcomeCheck.sure_only`).
+SURE = 1e-3
+
 #: Below this many bits of total doubt (summed over dimensions) a report names no dominant
 #: part and no cause: at the declared resolution the imagined states mostly share their bins,
 #: and which of two small parts is the larger tells nothing (a calm env's in-distribution
@@ -597,7 +601,8 @@ class CompetencyReport:
     def warning(self) -> str:
         """Why this forecast is not trustworthy ('' when nothing says so): ``model_warning``,
         and the sentence of a forecast check that did not pass, of one that passed on start
-        states these lie outside (:attr:`uncovered`), or of one tied to no task."""
+        states these lie outside (:attr:`uncovered`), of one tied to no task, or of one that
+        vouches for forecasts of 0 or 1 alone where some of these lie between."""
         parts = [self.model_warning] if self.model_warning else []
         check = self.forecast_check
         if check is not None and not check.passed:
@@ -611,6 +616,15 @@ class CompetencyReport:
                 "of these forecasts; build it from the report of its start states "
                 "(OutcomeCheck.from_outcomes(report, outcomes)), or pass task=report.task"
             )
+        if check is not None and check.passed and getattr(check, "sure_only", False):
+            p = self.competency.get("p_success")
+            doubt = int(((p > SURE) & (p < 1 - SURE)).sum())
+            if doubt:
+                parts.append(
+                    f"the forecast check vouches for forecasts of 0 or 1 alone (it had too few "
+                    f"start states in doubt to check others), and {doubt} of these "
+                    f"{p.numel()} forecasts lie between (0.001 to 0.999)"
+                )
         return "; ".join(parts)
 
     @property

@@ -710,6 +710,11 @@ class OutcomeCheck:
     #: .agent.RealOutcomes.agent`, else the report's); ``None`` where not known. A report of
     #: another agent is not vouched for
     agent: str | None = None
+    #: ``[n]`` bool, the starts whose outcome was settled before the agent acted (already in
+    #: the success or the failure region: a report's ``("start_state", "in_success")`` and
+    #: ``"in_failure"``); ``None`` where not known. Their forecasts of 0 or 1 show nothing
+    #: of the model, and :attr:`sure_only` does not count them
+    began_settled: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         for name in ("forecast", "real"):
@@ -730,6 +735,13 @@ class OutcomeCheck:
                     "start_states: expected one start state per forecast "
                     f"({self.forecast.shape[0]}), got {self.start_states.shape[0]}"
                 )
+        if self.began_settled is not None and (
+            self.began_settled.dtype != torch.bool or self.began_settled.shape != self.real.shape
+        ):
+            raise ValueError(
+                f"began_settled: expected a bool tensor [n={self.forecast.shape[0]}], got dtype "
+                f"{self.began_settled.dtype} and shape {tuple(self.began_settled.shape)}"
+            )
         if self.state_scale is not None:
             _checks.check_tensor("state_scale", self.state_scale)
             dim = None if self.start_states is None else self.start_states.shape[-1]
@@ -754,6 +766,7 @@ class OutcomeCheck:
         task: str | None = None,
         start_states: torch.Tensor | None = None,
         state_scale: torch.Tensor | None = None,
+        began_settled: torch.Tensor | None = None,
     ) -> OutcomeCheck:
         """From forecasts ``[n]`` (probabilities) and real outcomes, bool ``[n, R]``.
 
@@ -772,7 +785,9 @@ class OutcomeCheck:
         novelty check (or ``state_scale`` ``[D]`` given). Real episodes of another agent
         than the report's (other policy weights, ``agent``; a policy acting in another
         exploration mode, ``acting``), or judged by another boundary (``predicates``), are
-        refused."""
+        refused. ``began_settled`` ``[n]`` bool: the starts whose outcome was settled before
+        the agent acted (read from a report; give it with bare forecasts), for
+        :attr:`sure_only`."""
         deadline = getattr(forecast, "time_limit", None)
         check_same_agent(forecast, real_success, name="real_success")
         check_same_predicates(forecast, real_success, name="real_success")
@@ -793,6 +808,10 @@ class OutcomeCheck:
             dims = None if start_states is None else start_states.shape[-1]
             if state_scale is None and scale is not None and scale.numel() == dims:
                 state_scale = scale
+            data = getattr(forecast, "data", None)
+            began = [None if data is None else data.get(("start_state", k), None) for k in _BEGAN]
+            if began_settled is None and all(b is not None for b in began):
+                began_settled = (began[0] | began[1]).reshape(-1).cpu()
             forecast = forecast.competency["p_success"]
         # real episodes from other start states (or in another order) judge other tasks
         _checks.check_same_starts(
@@ -836,6 +855,9 @@ class OutcomeCheck:
             else torch.as_tensor(state_scale).detach().cpu().double(),
             acting=acted[1] if acted[1] is not None else acted[0],
             agent=agents[1] if agents[1] is not None else agents[0],
+            began_settled=None
+            if began_settled is None
+            else torch.as_tensor(began_settled).detach().cpu(),
         )
 
     @property
@@ -862,6 +884,60 @@ class OutcomeCheck:
         """Which starts are :attr:`settled`, bool ``[n]``."""
         f, r = self.forecast, self.real
         return ((f <= _RESOLUTION) & (r == 0)) | ((f >= 1 - _RESOLUTION) & (r == 1))
+
+    @cached_property
+    def _sure(self) -> torch.Tensor:
+        """The starts forecast 0 or 1 (within 0.001) whose outcome was not settled before the
+        agent acted (where that is known, :attr:`began_settled`), bool ``[n]``."""
+        f = self.forecast
+        sure = (f <= _RESOLUTION) | (f >= 1 - _RESOLUTION)
+        return sure if self.began_settled is None else sure & ~self.began_settled
+
+    @property
+    def sure(self) -> int:
+        """Start states forecast 0 or 1 (within 0.001) whose outcome was not settled before
+        the agent acted: the forecasts a near-exact model of a deterministic env gives."""
+        return int(self._sure.sum())
+
+    @property
+    def sure_misses(self) -> int:
+        """Of the :attr:`sure` start states, those where some real run went the other way."""
+        return int((self._sure & ~self._settled).sum())
+
+    @cached_property
+    def sure_bound(self) -> float:
+        """The share of sure forecasts that are wrong, at most (its exact one-sided
+        Clopper-Pearson bound at ``1 - alpha`` from :attr:`sure_misses` of :attr:`sure`: 0 of
+        21 bounds it by 0.197 at alpha 0.01); NaN with no sure start."""
+        n, k = self.sure, self.sure_misses
+        if n == 0:
+            return float("nan")
+        if k >= n:
+            return 1.0
+        from scipy.stats import beta
+
+        return float(beta.ppf(1 - self.alpha, k + 1, n - k))
+
+    @property
+    def sure_only(self) -> bool:
+        """Too few start states in doubt to check forecasts in doubt (not :attr:`measured`),
+        no bias found, and the sure forecasts right as far as ``tolerance``: at most that
+        share of them wrong (:attr:`sure_bound`; each wrong one is off by about 1, so their
+        bias is within ``tolerance`` too). The check has then :attr:`passed` for forecasts of
+        0 or 1 alone: a near-exact model of a deterministic env forecasts almost every start
+        so, and its forecasts could otherwise never be checked (a calm point-mass trial: 298
+        of 300 starts forecast 0 or 1, all right, and the check unmeasured). A report whose
+        own forecasts are in doubt is not vouched for
+        (:attr:`~rcvae_torchrl.competency.CompetencyReport.warning`). Only where it is known
+        which starts were settled before the agent acted (:attr:`began_settled`: from a
+        report, or given): a walker already lying is forecast 0 by any model."""
+        return (
+            self.began_settled is not None  # else a start settled before it acted would count
+            and not self.measured
+            and not self.biased
+            and self.sure > 0
+            and self.sure_bound <= self.tolerance
+        )
 
     @property
     def gap(self) -> float:
@@ -1149,8 +1225,12 @@ class OutcomeCheck:
     @property
     def passed(self) -> bool:
         """Measured and precise, no bias found, and, where R runs per start tell each start's
-        rate, forecasts that tell the starts apart (not :attr:`no_better_than_constant`)."""
-        return self.precise and not self.biased and not self.no_better_than_constant
+        rate, forecasts that tell the starts apart (not :attr:`no_better_than_constant`); or,
+        with too few starts in doubt for that, the forecasts of 0 and 1 right
+        (:attr:`sure_only`), which vouches for such forecasts alone."""
+        return (
+            self.precise and not self.biased and not self.no_better_than_constant
+        ) or self.sure_only
 
     @property
     def verdict(self) -> str:
@@ -1159,6 +1239,8 @@ class OutcomeCheck:
         constant"`` (:attr:`no_better_than_constant`) or ``"not measured"``."""
         if self.biased:
             return "too optimistic" if self.gap > 0 else "too pessimistic"
+        if self.sure_only:
+            return "passed"
         if not self.measured:
             return "not measured"
         if not self.precise:
@@ -1175,6 +1257,18 @@ class OutcomeCheck:
         interval at the test's level, the two p-values (:attr:`biased`) and, where it applies,
         the per-start test's verdict; where that test cannot run, a Brier skill at or below 0
         (:attr:`brier_skill`) is said, though no verdict rests on it."""
+        if self.sure_only:
+            agreed = "in every one" if self.sure_misses == 0 else f"in all but {self.sure_misses}"
+            doubt = self.starts - self.settled
+            return (
+                f"{self.what} are right where they are sure, as far as the check can tell: "
+                f"{self.sure} of the {self.starts} start states were forecast 0 or 1 (within "
+                f"0.001) from a start whose outcome was not yet settled, and their real runs "
+                f"agreed {agreed} (at most {self.sure_bound:.1%} of such forecasts wrong, "
+                f"{1 - self.alpha:.0%} bound); the {doubt} start states in doubt are too few to "
+                f"check forecasts in doubt (the outcome check needs {self.min_starts}), so it "
+                "vouches for forecasts of 0 or 1 alone"
+            )
         if not self.measured and self.settled and not self.biased:
             return (
                 f"{self.what} are unchecked: {self.settled} of the {self.starts} start states "
@@ -1321,6 +1415,11 @@ class OutcomeCheck:
             "scattered": self.scattered,
             "brier_skill": self.brier_skill,
             "no_better_than_constant": self.no_better_than_constant,
+            "began_settled": None if self.began_settled is None else self.began_settled.tolist(),
+            "sure": self.sure,
+            "sure_misses": self.sure_misses,
+            "sure_bound": self.sure_bound if self.sure else None,  # None: no sure start
+            "sure_only": self.sure_only,
         }
 
     @classmethod
@@ -1350,7 +1449,14 @@ class OutcomeCheck:
             state_scale=None
             if values.get("state_scale") is None
             else torch.tensor(values["state_scale"], dtype=torch.float64),
+            began_settled=None  # absent from checks saved before it existed
+            if values.get("began_settled") is None
+            else torch.tensor(values["began_settled"], dtype=torch.bool),
         )
+
+
+#: a report's start-state flags of an outcome settled before the agent acted
+_BEGAN = ("in_success", "in_failure")
 
 
 def _drawn_p(p_value: float) -> str:

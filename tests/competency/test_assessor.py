@@ -1047,6 +1047,37 @@ def test_a_reference_measured_otherwise_is_refused(env, starts, plan):
     assert report.with_reference(bare).reference == bare
 
 
+def test_a_check_of_sure_forecasts_vouches_for_sure_forecasts_alone(env, plan):
+    """A near-exact model of a deterministic env forecasts 0 or 1: a check of such starts,
+    all right, and fewer than 10 in doubt, passes for sure forecasts, and vouches for a report
+    of sure forecasts, not for one whose forecasts lie between."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    starts = torch.randn(30, S, generator=seeded(12)) * 0.1
+    made = make_assessor(env).assess(starts, actions=plan[0], generator=seeded())
+    p = made.competency["p_success"]
+    sure = (p <= 1e-3) | (p >= 1 - 1e-3)
+    assert 21 <= int(sure.sum()) and int((~sure).sum()) < 10  # a bound within 0.2 needs 21
+    real = (p > 0.5)[:, None]  # one run each, as forecast
+    check = OutcomeCheck.from_outcomes(made, real)
+    assert check.began_settled is not None and not bool(check.began_settled.any())
+    assert not check.measured and check.sure_only and check.passed
+    data = made.data.clone()
+    data["competency", "p_success"] = (p > 0.5).to(p.dtype)
+    rounded = dataclasses.replace(made, data=data)
+    assert rounded.with_forecast_check(check).trustworthy
+    data["competency", "p_success"][1] = 0.4
+    between = dataclasses.replace(made, data=data).with_forecast_check(check)
+    assert not between.trustworthy
+    assert between.warning.endswith(
+        "the forecast check vouches for forecasts of 0 or 1 alone (it had too few start states "
+        "in doubt to check others), and 1 of these 30 forecasts lie between (0.001 to 0.999)"
+    )
+    # starts already in the success region show nothing of the model: not counted as sure
+    began = dataclasses.replace(check, began_settled=torch.ones(30, dtype=torch.bool))
+    assert began.sure == 0 and not began.passed
+
+
 def test_a_forecast_check_does_not_vouch_for_start_states_unlike_its_own(env, plan):
     """A cart-pole trial: a check that passed on hanging starts made a report of starts with
     the cart moving fast 'trustworthy' (0.14 forecast against 0.44 real). The check keeps its

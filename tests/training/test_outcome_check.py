@@ -203,6 +203,50 @@ def test_settled_starts_do_not_hide_the_misses_of_the_others():
     assert rejected <= 9  # 4 expected at the 10 % level; 10 or more has a chance below 1 %
 
 
+def test_sure_forecasts_that_are_right_pass_for_sure_forecasts_alone():
+    """A near-exact model of a deterministic env forecasts almost every start 0 or 1: with 28
+    such starts right (one run each) and 2 in doubt, the check passes for sure forecasts alone,
+    its bound the exact 1 - 0.01 ** (1 / 28); 19 sure starts bound it above 0.2, unchecked."""
+    sure = torch.tensor([1.0, 0.0] * 14, dtype=torch.float64)
+    forecast = torch.cat([sure, torch.tensor([0.4, 0.7], dtype=torch.float64)])
+    real = torch.cat([sure.bool(), torch.tensor([False, True])])[:, None]
+    began = torch.zeros(30, dtype=torch.bool)  # no start settled before the agent acted
+    check = OutcomeCheck.from_outcomes(forecast, real, what=WHAT, began_settled=began)
+    assert not check.measured and check.sure == 28 and check.sure_misses == 0
+    assert check.sure_bound == pytest.approx(1 - 0.01 ** (1 / 28))
+    assert check.sure_only and check.passed and check.verdict == "passed"
+    assert check.describe() == (
+        f"{WHAT} are right where they are sure, as far as the check can tell: 28 of the 30 start "
+        "states were forecast 0 or 1 (within 0.001) from a start whose outcome was not yet "
+        "settled, and their real runs agreed in every one (at most 15.2% of such forecasts "
+        "wrong, 99% bound); the 2 start states in doubt are too few to check forecasts in doubt "
+        "(the outcome check needs 10), so it vouches for forecasts of 0 or 1 alone"
+    )
+    few = OutcomeCheck.from_outcomes(forecast[9:], real[9:], began_settled=began[9:])  # 19 sure
+    assert few.sure_bound == pytest.approx(1 - 0.01 ** (1 / 19)) and few.sure_bound > 0.2
+    assert not few.sure_only and not few.passed and few.verdict == "not measured"
+    # two sure forecasts wrong in 40: bounded by the beta quantile, 0.194 <= 0.2
+    sure = torch.tensor([1.0, 0.0] * 20, dtype=torch.float64)
+    wrong = sure.bool().clone()
+    wrong[:2] = ~wrong[:2]
+    missed = OutcomeCheck.from_outcomes(
+        sure, wrong[:, None], began_settled=torch.zeros(40, dtype=torch.bool)
+    )
+    from scipy.stats import beta
+
+    assert missed.sure_misses == 2 and missed.sure_bound == pytest.approx(beta.ppf(0.99, 3, 38))
+    assert missed.sure_only and "agreed in all but 2" in missed.describe()
+    # starts whose outcome was settled before the agent acted show nothing of the model
+    began = OutcomeCheck.from_dict({**check.as_dict(), "began_settled": [True] * 20 + [False] * 10})
+    assert began.sure == 8 and not began.sure_only and not began.passed
+    assert torch.equal(OutcomeCheck.from_dict(began.as_dict()).began_settled, began.began_settled)
+    with pytest.raises(ValueError, match=r"began_settled: expected a bool tensor \[n=30\]"):
+        OutcomeCheck.from_dict({**check.as_dict(), "began_settled": [True] * 29})
+    # unknown (bare forecasts): any start may have been settled before the agent acted
+    unknown = OutcomeCheck.from_outcomes(forecast, real)
+    assert unknown.sure == 28 and not unknown.sure_only and unknown.verdict == "not measured"
+
+
 def test_the_excess_error_against_its_closed_form():
     from scipy.optimize import brentq
     from scipy.special import expit, logit
