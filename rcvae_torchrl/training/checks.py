@@ -1095,6 +1095,26 @@ class OutcomeCheck:
         noise = float((g * (1 - g)).mean()) / self.runs
         return max(0.0, float((g - self.real).square().mean()) - noise) ** 0.5
 
+    def excess_error_interval(self, confidence: float = 0.9) -> tuple[float, float]:
+        """A ``confidence`` interval of :attr:`excess_error`: the percentile bootstrap over the
+        start states (2,000 resamples of them with replacement, the shift fitted again in each;
+        seeded: every call gives the same interval). From a few dozen starts the estimate is
+        noisy: with forecasts that were the truth, 40 starts of 10 runs gave estimates above
+        0.05 in a quarter of the draws (up to 0.12). ``(nan, nan)`` when not
+        :attr:`per_start_measured`."""
+        check_unit_interval("confidence", confidence, include_zero=False)
+        if not self.per_start_measured:
+            return float("nan"), float("nan")
+        n = self.starts
+        picks = torch.randint(n, (_BOOTSTRAP, n), generator=torch.Generator().manual_seed(0))
+        real = self.real[picks]
+        g = _shifted(self._logit[picks], real.mean(-1, keepdim=True))
+        noise = (g * (1 - g)).mean(-1) / self.runs
+        values = ((g - real).square().mean(-1) - noise).clamp_min(0.0).sqrt()
+        tails = torch.tensor([(1 - confidence) / 2, (1 + confidence) / 2], dtype=values.dtype)
+        low, high = torch.quantile(values, tails).tolist()
+        return low, high
+
     @property
     def task_spread(self) -> float:
         """How far the starts' true chances differ, beyond the chance of R episodes: the
@@ -1346,8 +1366,8 @@ class OutcomeCheck:
         if self.no_better_than_constant:
             return (
                 f"; per start they miss their start's real rate{shift} by more than the chance "
-                f"of {self.runs} episodes allows, by about {self.excess_error:.2f} (root mean "
-                f"square; p = {self.per_start_p_value:.2g}), and score no better than one "
+                f"of {self.runs} episodes allows, by about {self._excess_said()}, and score no "
+                "better than one "
                 f"forecast of {float(self.real.mean()):.2f} for every start (Brier skill "
                 f"{self.brier_skill:+.3f} over the real episodes): they do not tell one start "
                 "state's task from another, so the check has not passed"
@@ -1355,8 +1375,7 @@ class OutcomeCheck:
         if self.scattered:
             return (
                 f"; per start they miss their start's real rate{shift} by more than the chance "
-                f"of {self.runs} episodes allows, by about {self.excess_error:.2f} (root mean "
-                f"square; p = {self.per_start_p_value:.2g})"
+                f"of {self.runs} episodes allows, by about {self._excess_said()}"
                 + ("" if self.biased else ": trust them on average more than for one task")
             )
         alike = ""
@@ -1371,6 +1390,14 @@ class OutcomeCheck:
             f"of {self.runs} episodes can hide (p = {self.per_start_p_value:.2g}: not shown to "
             "miss, which few episodes per start cannot tell from agreeing)"
             + (alike or self._no_skill_seen())
+        )
+
+    def _excess_said(self) -> str:
+        """:attr:`excess_error` with its 90 % interval and the per-start test's p-value."""
+        low, high = self.excess_error_interval(0.9)
+        return (
+            f"{self.excess_error:.2f} (root mean square, 90 % interval {low:.2f} to {high:.2f} "
+            f"over resampled starts; p = {self.per_start_p_value:.2g})"
         )
 
     def _no_skill_seen(self) -> str:
@@ -1411,6 +1438,9 @@ class OutcomeCheck:
             "passed": self.passed,
             "per_start_p_value": self.per_start_p_value,
             "excess_error": self.excess_error,
+            "excess_error_interval": list(self.excess_error_interval())
+            if self.per_start_measured
+            else None,
             "task_spread": self.task_spread,
             "scattered": self.scattered,
             "brier_skill": self.brier_skill,
@@ -1454,6 +1484,9 @@ class OutcomeCheck:
             else torch.tensor(values["began_settled"], dtype=torch.bool),
         )
 
+
+#: resamples of the start states for :meth:`OutcomeCheck.excess_error_interval`
+_BOOTSTRAP = 2000
 
 #: a report's start-state flags of an outcome settled before the agent acted
 _BEGAN = ("in_success", "in_failure")

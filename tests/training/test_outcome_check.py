@@ -170,6 +170,18 @@ def test_forecasts_right_on_average_but_wrong_per_start_are_named():
         mirrored.describe()
     )
     assert mirrored.per_start_p_value == mirrored.per_start_p_value  # seeded: the same again
+    low, high = mirrored.excess_error_interval(0.9)
+    assert low < mirrored.excess_error < high and low > 0.2  # far from 0: a real miss
+    assert (low, high) == mirrored.excess_error_interval(0.9)  # seeded
+    assert mirrored.excess_error_interval(0.5)[1] < high  # narrower at a lower confidence
+    assert (
+        f"by about {mirrored.excess_error:.2f} (root mean square, 90 % interval {low:.2f} to "
+        in (mirrored.describe())
+    )
+    fair_low, fair_high = fair.excess_error_interval()
+    assert fair_low == 0.0 and fair_high < low  # right per start: the interval reaches 0
+    with pytest.raises(ValueError, match="confidence"):
+        fair.excess_error_interval(0.0)
 
 
 def test_the_per_start_test_holds_its_level_when_the_forecasts_are_the_truth():
