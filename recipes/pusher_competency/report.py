@@ -671,13 +671,14 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
     ]
     verdicts = []
     for condition, found in forecast_checks.items():
-        if not found.measured and not found.biased:  # a bias is named from fewer starts
+        sure = getattr(found, "sure_only", False)  # passed for forecasts of 0 or 1 alone
+        if not found.measured and not found.biased and not sure:  # a bias is named from fewer
             lines.append(f"| {condition} | {found.starts} | {found.runs} | | | | | not measured |")
             verdicts.append(f"- **{condition}**: {found.message()}.")
             continue
         low, high = found.interval()
-        if not found.passed:  # biased, or too imprecise to tell
-            verdicts.append(f"- **{condition}**: {found.message()}.")
+        if not found.passed or sure:  # biased, too imprecise to tell, or sure forecasts alone
+            verdicts.append(f"- **{condition}**: {found.describe()}.")
         lines.append(
             f"| {condition} | {found.starts} | {found.runs} | "
             f"{float(found.forecast.mean()):.3f} | {float(found.real.mean()):.3f} | "

@@ -140,6 +140,13 @@ def test_forecast_checks_section_gives_each_verdict():
             "fair": OutcomeCheck(forecast, forecast + noise, runs=30),
             "low": OutcomeCheck(forecast, forecast + 0.15 + noise, runs=30, what="the low ones"),
             "few": OutcomeCheck(forecast[:3], forecast[:3], runs=1, what="the few ones"),
+            "sure": OutcomeCheck(
+                torch.ones(30, dtype=torch.float64),
+                torch.ones(30, dtype=torch.float64),
+                runs=1,
+                what="the sure ones",
+                began_settled=torch.zeros(30, dtype=torch.bool),
+            ),
         }
     )
     assert "| condition | starts | real runs each | forecast | real |" in text
@@ -151,6 +158,9 @@ def test_forecast_checks_section_gives_each_verdict():
         "- **few**: the few ones are unchecked: 3 start states, the outcome check needs 10." in text
     )
     assert "- **fair**" not in text  # a passed check needs no sentence
+    # passed for sure forecasts alone: its row, and the sentence that says what it vouches for
+    assert "| sure | 30 | 1 | 1.000 | 1.000 | +0.000 (" in text and text.count("| passed |") == 2
+    assert "- **sure**: the sure ones are right where they are sure, as far as the check" in text
     assert _forecast_checks_text({}) == ""
 
 
