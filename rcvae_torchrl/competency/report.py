@@ -28,14 +28,6 @@ from rcvae_torchrl.io import _as_json
 
 __all__ = ["AleatoricShare", "CompetencyReport", "Reference"]
 
-# Aleatoric bits are the spread the members agree on: the env's randomness, or an error of
-# the model that every member makes (a model that has not learned a deterministic env spreads
-# its states too), which the ensemble cannot tell apart; the self-checks and a check of the
-# forecast against real episodes can.
-#: A forecast within this of 0 or 1 is sure (an outcome check that saw too few others vouches
-#: for such forecasts alone: :attr:`~rcvae_torchrl.training.OutcomeCheck.sure_only`).
-SURE = 1e-3
-
 #: Below this many bits of total doubt (summed over dimensions) a report names no dominant
 #: part and no cause: at the declared resolution the imagined states mostly share their bins,
 #: and which of two small parts is the larger tells nothing (a calm env's in-distribution
@@ -43,6 +35,10 @@ SURE = 1e-3
 #: model has not seen states like this").
 LITTLE_DOUBT_BITS = 1.0
 
+# Aleatoric bits are the spread the members agree on: the env's randomness, or an error of
+# the model that every member makes (a model that has not learned a deterministic env spreads
+# its states too), which the ensemble cannot tell apart; the self-checks and a check of the
+# forecast against real episodes can.
 _REASONS = {
     "epistemic": "the model has not seen states like this",
     "aleatoric": "the members agree that the states vary this much: by chance, or by an error "
@@ -618,7 +614,7 @@ class CompetencyReport:
             )
         if check is not None and check.passed and getattr(check, "sure_only", False):
             p = self.competency.get("p_success")
-            doubt = int(((p > SURE) & (p < 1 - SURE)).sum())
+            doubt = int(check.in_doubt(p).sum())
             if doubt:
                 parts.append(
                     f"the forecast check vouches for forecasts of 0 or 1 alone (it had too few "

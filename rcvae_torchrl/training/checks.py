@@ -889,9 +889,14 @@ class OutcomeCheck:
     def _sure(self) -> torch.Tensor:
         """The starts forecast 0 or 1 (within 0.001) whose outcome was not settled before the
         agent acted (where that is known, :attr:`began_settled`), bool ``[n]``."""
-        f = self.forecast
-        sure = (f <= _RESOLUTION) | (f >= 1 - _RESOLUTION)
+        sure = ~self.in_doubt(self.forecast)
         return sure if self.began_settled is None else sure & ~self.began_settled
+
+    def in_doubt(self, forecast: torch.Tensor) -> torch.Tensor:
+        """Which of ``forecast`` (probabilities, any shape) are in doubt: neither 0 nor 1
+        within the 0.001 that tells a sure forecast (where :attr:`sure_only` vouches for none
+        of them)."""
+        return (forecast > _RESOLUTION) & (forecast < 1 - _RESOLUTION)
 
     @property
     def sure(self) -> int:
