@@ -930,7 +930,7 @@ class OutcomeCheck:
         share of them wrong (:attr:`sure_bound`; each wrong one is off by about 1, so their
         bias is within ``tolerance`` too). The check has then :attr:`passed` for forecasts of
         0 or 1 alone: a near-exact model of a deterministic env forecasts almost every start
-        so, and its forecasts could otherwise never be checked (a calm point-mass trial: 298
+        so, and its forecasts could otherwise never be checked (a calm point-robot trial: 298
         of 300 starts forecast 0 or 1, all right, and the check unmeasured). A report whose
         own forecasts are in doubt is not vouched for
         (:attr:`~rcvae_torchrl.competency.CompetencyReport.warning`). Only where it is known
