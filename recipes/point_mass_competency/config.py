@@ -38,12 +38,17 @@ def _whole_steps(name: str, seconds: Any) -> int:
     return whole_steps(name, seconds, CONTROL_TIMESTEP)
 
 
+#: dm_control's point_mass joints' range (m): its reset draws each coordinate within ±this
+JOINT_RANGE = 0.29
+
+
 @dataclass(frozen=True)
 class TaskConfig:
     """The task and the agent: reach the target (the arena's centre) within a deadline.
 
     ``inner``: training starts have both coordinates within ±inner (m); ``outer``:
-    out-of-distribution starts have one beyond ±outer (dm_control draws starts in ±0.3 m).
+    out-of-distribution starts have one beyond ±outer (dm_control draws starts uniformly
+    within its joints' range, ±0.29 m, so ``outer`` must lie below that).
     ``gains``: the agent's PD controller, a = clip(-kp·position - kd·velocity, -1, 1).
     ``noise_std``: the stochastic condition's actuator noise (an ``ActionNoise`` transform).
     """
@@ -61,9 +66,11 @@ class TaskConfig:
             _check(name, getattr(self, name), 1e-9)
         _check("noise_std", self.noise_std, 0.0)
         _whole_steps("deadline_s", self.deadline_s)
-        if not self.inner <= self.outer < 0.3:
+        if not self.inner <= self.outer < JOINT_RANGE:
             raise ValueError(
-                f"inner, outer: expected inner <= outer < 0.3 m, got {self.inner}, {self.outer}"
+                f"inner, outer: expected inner <= outer < {JOINT_RANGE} m (dm_control "
+                f"draws point_mass starts within its joints' range, ±{JOINT_RANGE} m), got "
+                f"{self.inner}, {self.outer}"
             )
 
 
@@ -76,7 +83,8 @@ class DataConfig:
     time_limit_s: float = 3.0
 
     def __post_init__(self) -> None:
-        _check("episodes", self.episodes, 2, int)
+        # a tenth (at least one) is held out, and the novelty check needs 2 training episodes
+        _check("episodes", self.episodes, 3, int)
         if not self.exploration_std:  # the episodes are shared out over the levels of noise
             raise ValueError(
                 "exploration_std: expected at least one std of exploration noise (the episodes "
@@ -117,8 +125,10 @@ class AssessConfig:
     bins: tuple[float, float] = (0.005, 0.02)  #: histogram widths: position (m), velocity (m/s)
 
     def __post_init__(self) -> None:
-        for name in ("start_states", "samples_per_member", "runs_per_start", "real_workers"):
+        for name in ("start_states", "runs_per_start", "real_workers"):
             _check(name, getattr(self, name), 1, int)
+        # a member's aleatoric part is its own spread: from one sample it is 0
+        _check("samples_per_member", self.samples_per_member, 2, int)
         if len(self.bins) != 2:
             raise ValueError(f"bins: expected (position, velocity) widths, got {self.bins!r}")
         for width in self.bins:

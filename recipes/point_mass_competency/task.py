@@ -95,11 +95,23 @@ def starts_in_region(
 ) -> TensorDict:
     """``count`` starts drawn by the env's own seeded reset, kept when in the region:
     ``"inner"`` (both coordinates within ±inner) or ``"outer"`` (one beyond ±outer)."""
-    kept, seed = [], first_seed
+    kept, seed, drawn = [], first_seed, 0
     while len(kept) < count:
+        if drawn >= _MAX_DRAWS * count:
+            setting = "task.inner" if region == "inner" else "task.outer"
+            raise ValueError(
+                f"{setting}: expected a region the env's reset draws starts in, got "
+                f"{getattr(task, region)} m: {len(kept)} of {drawn} seeded starts lay in it, "
+                f"{count} were needed; widen it"
+            )
         batch = draw_starts(env, range(seed, seed + 4 * count))
         reach = batch["observation"][:, :2].abs().amax(-1)
         inside = reach <= task.inner if region == "inner" else reach >= task.outer
         kept.extend(batch[i] for i in inside.nonzero().flatten().tolist())
         seed += 4 * count
+        drawn += 4 * count
     return torch.stack(kept[:count])
+
+
+#: draws per start needed at most before a region is said to hold too few of the env's starts
+_MAX_DRAWS = 400

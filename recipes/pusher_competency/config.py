@@ -206,7 +206,6 @@ class AssessConfig:
             (
                 "start_states",
                 "start_chunk",
-                "samples_per_member",
                 "seeds_per_start",
                 "stochastic_seeds_per_start",
                 "real_envs",
@@ -217,6 +216,8 @@ class AssessConfig:
             int,
         )
         _at_least(self, ("spread_starts",), 0, int)
+        # a member's aleatoric part is its own spread: from one sample it is 0
+        _at_least(self, ("samples_per_member",), 2, int)
         if self.spread_runs is not None and self.spread_runs != self.samples_per_member:
             raise ValueError(
                 f"spread_runs: expected None or samples_per_member={self.samples_per_member} "

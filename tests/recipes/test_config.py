@@ -196,6 +196,10 @@ def test_the_schema_is_the_base_of_every_profile():
             r"^data\.stochastic_strength: expected \(low, high\), two numbers",
         ),
         ("model.ensemble_size=1", r"^model\.ensemble_size: expected an integer >= 2"),
+        (
+            "assess.samples_per_member=1",
+            r"^assess\.samples_per_member: expected an integer >= 2, got 1",
+        ),
         ("model.state_constraint=bogus", r"^model\.state_constraint: expected 'pusher' or None"),
         ("planner.top_k=500", r"^planner\.top_k: expected at most num_candidates"),
         ("planner.objective=best", r"^planner\.objective: expected one of"),
@@ -215,10 +219,6 @@ def test_the_schema_is_the_base_of_every_profile():
         (
             "assess.spread_runs=32",
             r"^assess\.spread_runs: expected None or samples_per_member=50 \(the real spread",
-        ),
-        (
-            "assess.samples_per_member=1",
-            r"^assess\.samples_per_member: the shuffle correction \(bias_correction='shuffle'\)",
         ),
         ("data.time_limit=inf", r"^data\.time_limit: expected a positive whole number"),
         ("model.input_features=bogus", r"^model\.input_features: expected 'pusher' or None"),

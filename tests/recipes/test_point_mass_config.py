@@ -46,7 +46,12 @@ def test_values_of_the_wrong_type_name_their_key(override):
         ("train.free_nats=-2", r"^train\.free_nats: expected a finite number >= 0"),
         ("train.open_loop_steps=-3", r"^train\.open_loop_steps: expected an integer >= 0"),
         ("task.deadline_s=inf", r"^task\.deadline_s: expected a positive whole number"),
-        ("data.episodes=1", r"^data\.episodes: expected an integer >= 2, got 1"),
+        ("data.episodes=2", r"^data\.episodes: expected an integer >= 3, got 2"),
+        (
+            "assess.samples_per_member=1",
+            r"^assess\.samples_per_member: expected an integer >= 2, got 1",
+        ),
+        ("task.outer=0.29", r"^task\.inner, outer: expected inner <= outer < 0\.29 m"),
         (
             "data.exploration_std=[]",
             r"^data\.exploration_std: expected at least one std .*got \[\]",
