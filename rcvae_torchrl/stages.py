@@ -16,8 +16,11 @@ re-verifies what it reuses:
   hold the user's edits), and the stage's other files are reused where the stage function
   skips existing ones;
 - a marker that cannot be read, or whose content changed since the stage wrote it (its
-  checksum differs: a number edited by hand would otherwise be reported as the stage's): the
-  stage runs again;
+  checksum differs: a number edited by hand would otherwise be reported as the stage's): it is
+  set aside as a changed file is, and the stage runs again;
+- a marker deleted (to run its stage again): the stage's files changed since its last finished
+  run wrote them are set aside before it runs (``stages/<name>.records`` keeps that run's file
+  records), the others reused where the stage function skips existing ones;
 - inputs that differ from the recorded ones (an earlier stage's outputs came out different when
   it ran again): every output of the stage is removed (those changed since it wrote them are
   moved aside as above) and it runs again;
@@ -92,6 +95,8 @@ MARKERS = "stages"
 SET_ASIDE = "changed_files"
 
 _MISSING = "the file is missing"
+#: the suffix of a stage's file records beside its marker (not ``.json``: no marker)
+_RECORDS = ".records"
 
 
 def check_run_directory(
@@ -222,6 +227,37 @@ class StageRunner:
         """The marker file of stage ``name``."""
         return self.run_dir / MARKERS / f"{name}.json"
 
+    def _records_path(self, name: str) -> Path:
+        """Beside the marker, the file records of the stage's last finished run: they outlive
+        a marker deleted to run the stage again (:meth:`_set_aside_edited`)."""
+        return self.run_dir / MARKERS / f"{name}{_RECORDS}"
+
+    def _write_marker(self, name: str, saved: Mapping[str, Any]) -> None:
+        write_json(self._records_path(name), saved["outputs"], checksum=True)
+        write_json(self.marker(name), saved, checksum=True)
+
+    def _set_aside_edited(self, name: str) -> None:
+        """Before stage ``name`` runs without a marker (one deleted to run it again, or one
+        set aside): its files changed since its last finished run wrote them (a note added to
+        ``report.md``) are set aside, not overwritten. The records are then removed: the
+        files the stage writes from here on are its own, which a run interrupted now resumes
+        from."""
+        path = self._records_path(name)
+        if self.marker(name).exists() or not path.is_file():
+            return
+        try:
+            records = read_json(path, f"file records of stage {name!r}", checksum=True)
+        except StoredFileError:
+            records = {}
+        if isinstance(records, dict):
+            for rel, why in self._failed(records).items():
+                if why != _MISSING:
+                    self.log(
+                        f"[{name}] {rel}: changed since the stage last wrote it ({why}); set "
+                        f"aside as {self._set_aside(rel)}"
+                    )
+        path.unlink()
+
     def run(
         self,
         name: str,
@@ -237,6 +273,8 @@ class StageRunner:
         docstring).
         """
         saved = self._reusable(name) if distributed.is_main() else None
+        if saved is None and distributed.is_main():
+            self._set_aside_edited(name)
         if saved is None and self._unverified and distributed.is_main():
             self._remove_unverified(name, outputs)
         if saved is None and self._reuse_from is not None and distributed.is_main():
@@ -278,8 +316,8 @@ class StageRunner:
         try:
             saved = _read_marker(path, name)
         except StoredFileError as err:
-            self.log(f"[{name}] {err}: removing it and running the stage again")
-            path.unlink()
+            aside = self._set_aside(str(path.relative_to(self.run_dir)))
+            self.log(f"[{name}] {err}: set aside as {aside}; running the stage again")
             return None
         inputs = self._stage_inputs(name)
         # a marker of all settings (written before the stage declared what it reads) still
@@ -304,7 +342,7 @@ class StageRunner:
             return None
         if saved["inputs"] != inputs:  # recorded as the stage's own inputs from now on
             saved["inputs"] = inputs
-            write_json(path, saved, checksum=True)
+            self._write_marker(name, saved)
         self.log(f"[{name}] done earlier: reusing {path.parent.name}/{path.name} (files verified)")
         return saved
 
@@ -347,7 +385,7 @@ class StageRunner:
             "seconds": round(time.perf_counter() - start, 1),
             "reused_from": {"run_dir": str(other), "seconds": ran},
         }
-        write_json(self.marker(name), saved, checksum=True)
+        self._write_marker(name, saved)
         count = len(saved["outputs"])
         self.log(
             f"[{name}] reusing the finished stage of {str(other)!r} (files verified; {linked} of "
@@ -475,7 +513,7 @@ class StageRunner:
             "outputs": self._records(outputs) if distributed.is_main() else {},
         }
         if distributed.is_main():
-            write_json(self.marker(name), saved, checksum=True)
+            self._write_marker(name, saved)
         self._log(f"[{name}] finished in {saved['seconds']} s")
         return saved
 

@@ -27,6 +27,7 @@ from rcvae_torchrl import threads as threads_module
 
 __all__ = [
     "RUN_MADE",
+    "CHECKPOINTS",
     "SEED_MAX",
     "at_least",
     "build_config",
@@ -158,6 +159,11 @@ def set_threads(threads: int | str | None, op_flop: float | None = None) -> int:
 #: (``run.log``) and its logger's folder (``logs``). A directory that holds anything else but
 #: no run's record is refused (:func:`rcvae_torchrl.stages.check_run_directory`).
 RUN_MADE = ("run.log", "logs")
+
+#: The folder under ``models/`` of the training checkpoints (``<variant>.pt``): apart from the
+#: stage's outputs (``models/*.pt``), which they are not: a finished stage needs none of them,
+#: so a missing one is not remade and changes nothing later stages read.
+CHECKPOINTS = "checkpoints"
 
 #: The report files both recipes write, named one by one in their report stage's outputs (a
 #: pattern such as "*.md" would take a user's notes beside them for the stage's, and remove

@@ -145,6 +145,11 @@ def test_a_damaged_marker_reruns_its_stage(tmp_path, damage):
     assert json.loads(marker.read_text())["outputs"].keys() == {"a/x.pt", "a/y.pt"}
     if damage != "delete":
         assert any("[make] marker of stage 'make'" in line for line in lines)
+        (aside,) = (tmp_path / SET_ASIDE).glob("*/stages/make.json")  # kept, not deleted
+        assert any(
+            line.endswith(f"set aside as {aside.relative_to(tmp_path)}; running the stage again")
+            for line in lines
+        )
 
 
 def test_a_marker_edited_by_hand_reruns_its_stage_and_a_marker_from_before_checksums_holds(
@@ -186,6 +191,28 @@ def test_json_checksums_hold_through_non_finite_floats_and_tuples_and_name_a_cha
         read_json(path, "the file", checksum=True)
     with pytest.raises(TypeError, match="obj: expected a dict to checksum, got list"):
         write_json(path, [1, 2], checksum=True)
+
+
+def test_a_stage_run_again_by_deleting_its_marker_sets_aside_files_edited_since(tmp_path):
+    """The way to run a stage again is to delete its marker: its files edited since it wrote
+    them (a note added to a report) are set aside, not overwritten; the others are reused."""
+    Pipeline(tmp_path).run()
+    (tmp_path / "b" / "z.pt").write_bytes(b"my notes")
+    (tmp_path / "stages" / "use.json").unlink()
+    again = Pipeline(tmp_path)
+    runner, lines = again.run()
+    assert again.computed == ["z"] and runner.summaries["use"]["total"] == 6.0
+    (kept,) = (tmp_path / SET_ASIDE).glob("*/b/z.pt")
+    assert kept.read_bytes() == b"my notes"
+    assert any(
+        line.startswith("[use] b/z.pt: changed since the stage last wrote it (its size changed")
+        for line in lines
+    )
+    (tmp_path / "stages" / "make.json").unlink()  # its files unchanged: reused, nothing set aside
+    third = Pipeline(tmp_path)
+    runner, lines = third.run()
+    assert third.computed == [] and not list((tmp_path / SET_ASIDE).glob("*/a/*"))
+    assert "[use] done earlier" in " ".join(lines)
 
 
 def test_a_stage_that_reads_markers_is_not_stopped_by_its_own_damaged_one(tmp_path):

@@ -45,7 +45,7 @@ from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
 from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
 
-from .._settings import REPORT_FILES
+from .._settings import CHECKPOINTS, REPORT_FILES
 from .config import CONTROL_TIMESTEP, StudyConfig
 from .report import write_report
 from .task import (
@@ -157,7 +157,7 @@ class Study:
                     train,
                     val,
                     dataclasses.replace(self.cfg.train, seed=self.cfg.seed),
-                    checkpoint_path=self.dir / "models" / f"{name}_train.pt",
+                    checkpoint_path=self.dir / "models" / CHECKPOINTS / f"{name}.pt",
                     resume=True,
                     logger=self.logger,
                     log_prefix=f"models/{name}/",

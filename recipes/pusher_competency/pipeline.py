@@ -75,7 +75,7 @@ from rcvae_torchrl.training import (
     train_ensemble,
 )
 
-from .._settings import REPORT_FILES
+from .._settings import CHECKPOINTS, REPORT_FILES
 from .config import StudyConfig, study_config
 from .data import collect_pusher_data, replay_episodes
 from .pusher import (
@@ -406,7 +406,7 @@ class Study:
             train,
             val,
             self._train_config(name),
-            checkpoint_path=self.dir / "models" / f"{name}_train.pt",
+            checkpoint_path=self.dir / "models" / CHECKPOINTS / f"{name}.pt",
             resume=True,
             logger=self.logger,
             log_prefix=f"models/{name}/",

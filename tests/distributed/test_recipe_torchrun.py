@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from recipes._settings import CHECKPOINTS
 from tests.recipes.micro import MICRO as QUICK_MICRO
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -81,7 +82,7 @@ def test_recipe_under_torchrun_trains_data_parallel(tmp_path):
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node=2"]
     _run([*torchrun, "--standalone"], tmp_path, "train.data_parallel=2")
     for name in ("deterministic", "stochastic"):
-        training = torch.load(tmp_path / "models" / f"{name}_train.pt", weights_only=False)
+        training = torch.load(tmp_path / "models" / CHECKPOINTS / f"{name}.pt", weights_only=False)
         assert training["training"]["config"]["data_parallel"] == 2
         assert training["training"]["state"]["finished"]
     assert (tmp_path / "table.csv").is_file()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -13,6 +14,7 @@ import pytest
 from micro import POINT_MASS_MICRO
 
 from rcvae_torchrl.io import read_json
+from recipes._settings import CHECKPOINTS
 from recipes.point_mass_competency.report import COLUMNS
 from recipes.point_mass_competency.task import CONDITIONS
 
@@ -113,3 +115,19 @@ def test_a_new_run_reuses_the_data_and_models_of_the_same_settings(run_dir, tmp_
             assert (new / rel).stat().st_ino == (run_dir / rel).stat().st_ino, rel
     for stage in ("forecast", "truth", "report"):
         assert f"[{stage}] running" in proc.stdout
+
+
+def test_a_lost_training_checkpoint_changes_nothing(run_dir, tmp_path):
+    """The checkpoints are not outputs of the models stage (a finished stage needs none): a
+    run whose checkpoints were deleted reuses every stage, remaking nothing."""
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    checkpoints = sorted((copy / "models" / CHECKPOINTS).glob("*.pt"))
+    assert [p.name for p in checkpoints] == ["deterministic.pt", "stochastic.pt"]
+    recorded = json.loads((copy / "stages" / "models.json").read_text())["outputs"]
+    assert sorted(recorded) == ["models/deterministic.pt", "models/stochastic.pt"]
+    for path in checkpoints:
+        path.unlink()
+    proc = _run(*MICRO, f"run_dir={copy}")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "] running" not in proc.stdout and "[report] done earlier" in proc.stdout

@@ -24,6 +24,7 @@ from PIL import Image
 
 from rcvae_torchrl.competency import AleatoricShare
 from rcvae_torchrl.io import read_json
+from recipes._settings import CHECKPOINTS
 from recipes.pusher_competency import pipeline
 from recipes.pusher_competency.pusher import CONDITIONS
 from recipes.pusher_competency.report import AFTER_SHARE, COLUMNS
@@ -276,8 +277,14 @@ def test_every_file_a_stage_wrote_is_in_its_marker_and_no_other(runs):
     recorded = set()
     for stage in STAGES:
         recorded |= set(json.loads((d / "stages" / f"{stage}.json").read_text())["outputs"])
-    written = {rel for rel in runs["before"] if not rel.startswith("stages/")}
+    # the training checkpoints are no output: a finished stage needs none of them
+    checkpoints = f"models/{CHECKPOINTS}/"
+    written = {rel for rel in runs["before"] if not rel.startswith(("stages/", checkpoints))}
     assert recorded == written
+    assert {rel for rel in runs["before"] if rel.startswith(checkpoints)} == {
+        f"{checkpoints}deterministic.pt",
+        f"{checkpoints}stochastic.pt",
+    }
     # top-level files are named one by one: no pattern that would take a user's notes
     assert not any(set("*?[") & set(pattern) for pattern in pipeline.STAGES["report"])
 
