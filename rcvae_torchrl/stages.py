@@ -216,8 +216,11 @@ class StageRunner:
         try:
             record_run_config(path, settings)
         except StoredFileError as err:
-            self._log(f"[settings] {err}: writing it again from the current settings")
-            path.unlink(missing_ok=True)
+            aside = self._set_aside(str(path.relative_to(self.run_dir)))
+            self._log(
+                f"[settings] {err}: set aside as {aside}; writing it again from the current "
+                "settings (every stage whose recorded inputs they change runs again)"
+            )
             record_run_config(path, settings)
             existed = False
         # files of unfinished stages cannot be told from those of other settings any more

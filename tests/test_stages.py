@@ -234,10 +234,13 @@ def test_a_damaged_run_config_is_written_again(tmp_path, damage):
         path.write_text(path.read_text()[:5])
     else:
         path.unlink()
+    damaged = path.read_text() if path.exists() else None
     again = Pipeline(tmp_path)
     _, lines = again.run()
     assert again.computed == [] and read_json(path) == {"seed": 0}
     assert (damage == "truncate") == any("[settings] run config" in line for line in lines)
+    kept = list((tmp_path / SET_ASIDE).glob("*/study_config.json"))  # the damaged one, kept
+    assert [p.read_text() for p in kept] == ([] if damage == "delete" else [damaged])
 
 
 def test_other_settings_are_refused_and_a_lost_config_reruns_everything(tmp_path):
