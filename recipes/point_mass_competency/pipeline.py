@@ -85,9 +85,15 @@ class Study:
     """The stages of one study in one run directory."""
 
     def __init__(
-        self, config: StudyConfig, run_dir: Path, progress: bool, logger: Logger | None = None
+        self,
+        config: StudyConfig,
+        run_dir: Path,
+        progress: bool,
+        logger: Logger | None = None,
+        log: Callable[[str], None] | None = None,
     ) -> None:
         self.cfg, self.dir, self.progress, self.logger = config, Path(run_dir), progress, logger
+        self.say = log or (lambda line: None)
         self.agent = PDController(config.task.kp, config.task.kd)
 
     def steps(self, seconds: float) -> int:
@@ -144,6 +150,11 @@ class Study:
             observation_names=layout.names,
             control_step=CONTROL_TIMESTEP,
         )
+        done = [
+            f"models/{n}.pt" for n in WORLD_MODELS if (self.dir / "models" / f"{n}.pt").is_file()
+        ]
+        if done:  # the stage runs again for its other files: say what it keeps
+            self.say(f"[models] {', '.join(done)} written earlier: taken as they are")
         for name in WORLD_MODELS:
             path = self.dir / "models" / f"{name}.pt"
             if not path.is_file():
@@ -290,7 +301,7 @@ def run_study(
         stage_settings=STAGE_SETTINGS,
         reuse_from=reuse_from,
     )
-    study = Study(config, run_dir, progress, logger)
+    study = Study(config, run_dir, progress, logger, log)
     for name, outputs in STAGES.items():
         runner.run(name, getattr(study, name), outputs)
     return runner.summaries

@@ -325,6 +325,9 @@ class Study:
         Returns each job's result by name, and whether they ran in workers (where this study's
         logger could not go)."""
         pending = self._missing(stage, names)
+        done = [f"{stage}/{n}.pt" for n in names if n not in pending]
+        if done:  # the stage runs again for its other files: say what it keeps
+            self.say(f"[{stage}] {', '.join(done)} written earlier: taken as they are")
         most = self.workers if host else self.device_workers
         workers = 1 if distributed.is_active() else max(1, min(most, len(pending)))
         if workers == 1:

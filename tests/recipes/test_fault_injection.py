@@ -140,3 +140,12 @@ def test_every_file_and_every_damage(finished, tmp_path):
     print(f"fault injection: {len(outcomes)} cases: {counts}")
     for (rel, how), outcome in sorted(outcomes.items()):
         print(f"  {rel:40s} {how:9s} {outcome}")
+
+
+def test_a_stage_run_again_says_which_of_its_files_it_keeps(finished, tmp_path):
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished, run_dir)
+    (run_dir / "data" / "stochastic.pt").unlink()
+    _, lines = _run(run_dir)
+    assert "[data] data/deterministic.pt written earlier: taken as they are" in lines
+    assert "[models] done earlier" in " ".join(lines)  # the remade data is the same

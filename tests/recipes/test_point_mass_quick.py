@@ -131,3 +131,11 @@ def test_a_lost_training_checkpoint_changes_nothing(run_dir, tmp_path):
     proc = _run(*MICRO, f"run_dir={copy}")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "] running" not in proc.stdout and "[report] done earlier" in proc.stdout
+    # run again by deleting its marker, the stage says what it keeps (it trains nothing)
+    (copy / "stages" / "models.json").unlink()
+    proc = _run(*MICRO, f"run_dir={copy}")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert (
+        "[models] models/deterministic.pt, models/stochastic.pt written earlier: taken as they are"
+    ) in proc.stdout
+    assert "[forecast] done earlier" in proc.stdout  # the same files: nothing later reruns
