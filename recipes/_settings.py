@@ -27,6 +27,7 @@ from rcvae_torchrl import threads as threads_module
 
 __all__ = [
     "RUN_MADE",
+    "run_dir_refusal",
     "CHECKPOINTS",
     "SEED_MAX",
     "at_least",
@@ -159,6 +160,22 @@ def set_threads(threads: int | str | None, op_flop: float | None = None) -> int:
 #: (``run.log``) and its logger's folder (``logs``). A directory that holds anything else but
 #: no run's record is refused (:func:`rcvae_torchrl.stages.check_run_directory`).
 RUN_MADE = ("run.log", "logs")
+
+
+def run_dir_refusal(error: Exception, run_dir: str | Path, profile: str) -> SystemExit:
+    """The ``error:`` line of a refused ``run_dir``; where it was made with another profile
+    (its ``run.log``, whose every run begins ``profile=...``, says so) the line names it: a
+    forgotten ``profile=quick`` otherwise reads as a dozen settings that differ."""
+    line = f"error: {error}"
+    log = Path(run_dir) / "run.log"
+    made = re.findall(r"\bprofile=(\S+)", log.read_text(errors="replace")) if log.is_file() else []
+    if made and made[-1] != profile and "other settings" in str(error):
+        line += (
+            f"; its run.log says it was made with profile={made[-1]}, and this run has "
+            f"profile={profile}: add profile={made[-1]} to go on with it"
+        )
+    return SystemExit(line)
+
 
 #: The folder under ``models/`` of the training checkpoints (``<variant>.pt``): apart from the
 #: stage's outputs (``models/*.pt``), which they are not: a finished stage needs none of them,

@@ -27,7 +27,7 @@ from torchrl.record.loggers import generate_exp_name
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
 from rcvae_torchrl.stages import check_run_directory
-from recipes._settings import RUN_MADE, check_override_keys, set_threads
+from recipes._settings import RUN_MADE, check_override_keys, run_dir_refusal, set_threads
 from recipes.point_mass_competency.config import RecipeConfig, register_configs, study_config
 from recipes.point_mass_competency.pipeline import run_study, study_settings
 
@@ -47,7 +47,7 @@ def main(cfg: DictConfig) -> None:
     try:
         check_run_directory(run_dir, study_settings(config), made_before=RUN_MADE)
     except ValueError as error:
-        raise SystemExit(f"error: {error}") from None
+        raise run_dir_refusal(error, run_dir, config.profile) from None
     with run_log(run_dir / "run.log") as log:
         threads = torch.get_num_threads()
         log.info(f"profile={config.profile} threads={threads} run_dir={run_dir}")

@@ -39,7 +39,13 @@ from rcvae_torchrl import distributed
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
 from rcvae_torchrl.stages import check_run_directory
-from recipes._settings import RUN_MADE, check_override_keys, resolve_device, set_threads
+from recipes._settings import (
+    RUN_MADE,
+    check_override_keys,
+    resolve_device,
+    run_dir_refusal,
+    set_threads,
+)
 from recipes.pusher_competency.config import RecipeConfig, register_configs, study_config
 from recipes.pusher_competency.pipeline import run_study, study_settings, training_op_flop
 
@@ -63,7 +69,7 @@ def main(cfg: DictConfig) -> None:
             try:
                 check_run_directory(config.run_dir, study_settings(config), made_before=RUN_MADE)
             except ValueError as error:
-                raise SystemExit(f"error: {error}") from None
+                raise run_dir_refusal(error, config.run_dir, config.profile) from None
             with run_log(Path(config.run_dir) / "run.log") as log:
                 _run(config, device, log.info)
         else:

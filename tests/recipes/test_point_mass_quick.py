@@ -139,3 +139,15 @@ def test_a_lost_training_checkpoint_changes_nothing(run_dir, tmp_path):
         "[models] models/deterministic.pt, models/stochastic.pt written earlier: taken as they are"
     ) in proc.stdout
     assert "[forecast] done earlier" in proc.stdout  # the same files: nothing later reruns
+
+
+def test_a_run_dir_of_another_profile_is_refused_naming_it(run_dir):
+    """A forgotten ``profile=`` reads as a dozen settings that differ; its run.log names it."""
+    proc = _run(f"run_dir={run_dir}")  # the default profile on the micro run's directory
+    assert proc.returncode == 1
+    error = proc.stderr.strip().splitlines()[-1]
+    assert error.startswith(f"error: run directory {str(run_dir)!r} holds a run made with other")
+    assert error.endswith(
+        "; its run.log says it was made with profile=quick, and this run has profile=default: "
+        "add profile=quick to go on with it"
+    )
