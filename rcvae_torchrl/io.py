@@ -132,12 +132,13 @@ def write_json(path: str | Path, obj: Any, *, checksum: bool = False) -> Path:
     float), other non-JSON values as strings. ``checksum``: a dict gets one more entry,
     ``CHECKSUM_KEY``, the SHA-256 of the rest, which ``read_json(..., checksum=True)`` checks
     (so that a value edited by hand is not taken as the program's own)."""
-    strict = json.loads(json.dumps(_strict(obj), default=str, allow_nan=False))
-    if checksum:
-        if not isinstance(strict, dict):
+    strict = _strict(obj)
+    if checksum:  # the digest of the content as it reads back (tuples as lists, ...)
+        if not isinstance(strict, Mapping):
             raise TypeError(f"obj: expected a dict to checksum, got {type(obj).__name__}")
+        strict = json.loads(json.dumps(strict, default=str, allow_nan=False))
         strict = {**strict, CHECKSUM_KEY: _json_digest(strict)}
-    text = json.dumps(strict, indent=2, allow_nan=False).encode()
+    text = json.dumps(strict, indent=2, default=str, allow_nan=False).encode()
     return atomic_write(path, lambda f: f.write(text))
 
 

@@ -1028,15 +1028,11 @@ class CompetencyReport:
         of their imagined samples (:func:`~rcvae_torchrl.competency.same_chance_p_value` below
         :data:`MEMBERS_ALPHA`; each such start's paragraph gives their range); ``None`` without
         the members' entries."""
-        competency = self.competency
-        members = competency.get("p_success_member", None)
-        success = competency.get("success", None)
-        if members is None or success is None:
+        rows = self.data.reshape(-1)[self.competency_key]  # one start's competency per row
+        p_values = [_members_p_value(rows[i]) for i in range(rows.shape[0])]
+        if not p_values or p_values[0] is None:
             return None
-        runs = int(success.shape[-1])
-        rows = members.reshape(-1, members.shape[-1])
-        p_values = torch.tensor([same_chance_p_value(row, runs) for row in rows])
-        return (p_values < MEMBERS_ALPHA).reshape(members.shape[:-1])
+        return (torch.tensor(p_values) < MEMBERS_ALPHA).reshape(self.batch_size)
 
     def _novel_count_sentence(self) -> str:
         """How many start states are unlike the training states, and in how many others the
@@ -1371,18 +1367,26 @@ def _success_sentence(p: float, low: float, high: float, confidence: float, outc
 MEMBERS_ALPHA = 0.01
 
 
+def _members_p_value(competency: TensorDictBase) -> float | None:
+    """Whether one start's members' own P(success) differ beyond the chance of their imagined
+    samples: :func:`~rcvae_torchrl.competency.same_chance_p_value` of them; ``None`` without
+    the members' entries (for several starts, the test of all their members together)."""
+    members, success = competency.get("p_success_member", None), competency.get("success", None)
+    if members is None or success is None:
+        return None
+    return same_chance_p_value(members, int(success.shape[-1]))
+
+
 def _members_sentence(competency: TensorDictBase, outcome: str) -> str:
     """Where the members' own P differ beyond their imagined samples' chance
     (:data:`MEMBERS_ALPHA`), what the interval beside P leaves out: the members' own doubt
     about the outcome (a cart-pole swing-up's members gave one start 0.20 to 0.75 while its
     state's bits read "most of the doubt is aleatoric", 98 % of them). '' otherwise, or
     without the members' entries."""
-    members, success = competency.get("p_success_member", None), competency.get("success", None)
-    if members is None or success is None:
+    p_value = _members_p_value(competency)
+    if p_value is None or not p_value < MEMBERS_ALPHA:
         return ""
-    p_value = same_chance_p_value(members, int(success.shape[-1]))
-    if not p_value < MEMBERS_ALPHA:
-        return ""
+    members = competency.get("p_success_member")
     low, high = float(members.min()), float(members.max())
     return (
         f"The members disagree on it: their own P({outcome}) run from {low:.2f} to {high:.2f}, "

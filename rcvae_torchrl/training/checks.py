@@ -646,6 +646,14 @@ def _shifted(logit: torch.Tensor, mean: torch.Tensor | float) -> torch.Tensor:
     return torch.sigmoid(logit + (low + high) / 2)
 
 
+def _excess(g: torch.Tensor, real: torch.Tensor, runs: int) -> torch.Tensor:
+    """:attr:`OutcomeCheck.excess_error` of shifted forecasts ``g`` and real rates ``real``
+    ``[..., n]`` (over the last dimension): ``sqrt(max(0, mean((g - r)²) - mean(g·(1 - g)) /
+    R))``."""
+    noise = (g * (1 - g)).mean(-1) / runs
+    return ((g - real).square().mean(-1) - noise).clamp_min(0.0).sqrt()
+
+
 @dataclass(frozen=True)
 class OutcomeCheck:
     """Forecasts of success against the real success rates of the same start states.
@@ -1096,9 +1104,7 @@ class OutcomeCheck:
         :attr:`per_start_measured`)."""
         if not self.per_start_measured:
             return float("nan")
-        g = self.shifted()
-        noise = float((g * (1 - g)).mean()) / self.runs
-        return max(0.0, float((g - self.real).square().mean()) - noise) ** 0.5
+        return float(_excess(self.shifted(), self.real, self.runs))
 
     def excess_error_interval(self, confidence: float = 0.9) -> tuple[float, float]:
         """A ``confidence`` interval of :attr:`excess_error`: the percentile bootstrap over the
@@ -1113,9 +1119,7 @@ class OutcomeCheck:
         n = self.starts
         picks = torch.randint(n, (_BOOTSTRAP, n), generator=torch.Generator().manual_seed(0))
         real = self.real[picks]
-        g = _shifted(self._logit[picks], real.mean(-1, keepdim=True))
-        noise = (g * (1 - g)).mean(-1) / self.runs
-        values = ((g - real).square().mean(-1) - noise).clamp_min(0.0).sqrt()
+        values = _excess(_shifted(self._logit[picks], real.mean(-1, keepdim=True)), real, self.runs)
         tails = torch.tensor([(1 - confidence) / 2, (1 + confidence) / 2], dtype=values.dtype)
         low, high = torch.quantile(values, tails).tolist()
         return low, high
