@@ -181,7 +181,16 @@ def read_run(run_dir: Path) -> tuple[str, dict[str, Any]]:
     markers = sorted((run_dir / MARKERS).glob("*.json"))
     if not any(m.stem == "report" for m in markers):
         raise ValueError(f"{run_dir}: the run has not finished (no report stage marker)")
-    seconds = sum(read_json(m, "stage marker", checksum=True)["seconds"] for m in markers)
+    saved = {m.stem: read_json(m, "stage marker", checksum=True) for m in markers}
+    for stage, marker in saved.items():  # a stage's seconds must be all of its time
+        if "attempts" in marker or "reused_from" in marker:
+            why = (
+                f"finished at attempt {marker['attempts']} (the earlier ones' time is not known)"
+                if "attempts" in marker
+                else "was reused from another run (its seconds are the placing of its files)"
+            )
+            raise ValueError(f"{run_dir}: stage {stage!r} {why}; record a run that ran through")
+    seconds = sum(marker["seconds"] for marker in saved.values())
     where = f" on {found['device']}" if found.get("device", "cpu") != "cpu" else ""
     entry = {
         "seconds": round(seconds, 1),

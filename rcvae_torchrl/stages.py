@@ -24,6 +24,12 @@ re-verifies what it reuses:
 - inputs that differ from the recorded ones (an earlier stage's outputs came out different when
   it ran again): every output of the stage is removed (those changed since it wrote them are
   moved aside as above) and it runs again;
+- a file that matched a stage's patterns before the stage first ran and is not one it recorded
+  (one the user put in ``models/``, say): listed in the stage's journal
+  ``stages/<name>.started`` at its first attempt, it is never taken for an output, so never
+  recorded, set aside or removed with the stage's files (unless the stage writes over it). The
+  journal also counts the attempts: a stage that resumed after an interrupted one says so in
+  its log lines and its marker (``attempts``; its ``seconds`` are the last attempt's);
 - a file the stage function cannot read (:class:`~rcvae_torchrl.io.StoredFileError`): the file
   is removed and the stage runs once more when it is one of the stage's own outputs; otherwise a
   :class:`StageError` names the stage, the file and what to do.
@@ -97,6 +103,10 @@ SET_ASIDE = "changed_files"
 _MISSING = "the file is missing"
 #: the suffix of a stage's file records beside its marker (not ``.json``: no marker)
 _RECORDS = ".records"
+#: the suffix of an unfinished stage's journal beside its marker: its attempts so far and the
+#: files that matched its patterns before its first attempt (not the stage's: never recorded or
+#: removed as its outputs)
+_STARTED = ".started"
 
 
 def check_run_directory(
@@ -235,6 +245,61 @@ class StageRunner:
         a marker deleted to run the stage again (:meth:`_set_aside_edited`)."""
         return self.run_dir / MARKERS / f"{name}{_RECORDS}"
 
+    def _journal_path(self, name: str) -> Path:
+        """Beside the marker, the journal of stage ``name`` while it is unfinished
+        (:meth:`_begin`)."""
+        return self.run_dir / MARKERS / f"{name}{_STARTED}"
+
+    def _journal(self, name: str) -> dict[str, Any] | None:
+        """The journal of unfinished stage ``name``, None when there is none or it cannot be
+        read (then the stage's next attempt starts a new one)."""
+        path = self._journal_path(name)
+        if not path.is_file():
+            return None
+        try:
+            journal = read_json(path, f"journal of stage {name!r}", checksum=True)
+        except StoredFileError:
+            return None
+        ok = isinstance(journal, dict) and isinstance(journal.get("foreign"), dict)
+        return journal if ok and isinstance(journal.get("attempts"), int) else None
+
+    def _foreign(self, name: str) -> dict[str, Any]:
+        """The files of other origin that matched stage ``name``'s patterns before its first
+        attempt (its journal's), with their records."""
+        return (self._journal(name) or {}).get("foreign", {})
+
+    def _last_outputs(self, name: str) -> set[str]:
+        """The files stage ``name``'s marker or its last records name as its outputs (before a
+        rerun removes or sets aside what failed their check): the stage's own, which it may
+        reuse."""
+        own: set[str] = set()
+        for path, what in ((self.marker(name), "marker"), (self._records_path(name), "records")):
+            if path.is_file():
+                try:
+                    saved = read_json(path, f"{what} of stage {name!r}", checksum=True)
+                except StoredFileError:
+                    continue
+                if isinstance(saved, dict):
+                    own.update(saved.get("outputs", {}) if what == "marker" else saved)
+        return own
+
+    def _begin(self, name: str, outputs: Sequence[str], own: set[str]) -> dict[str, Any]:
+        """Start an attempt at stage ``name``: its journal, kept until the marker is written,
+        counts the attempts and records the files that match the stage's patterns before the
+        first one and are not its own (``own``): a file the user put beside the stage's (in
+        ``models/``, say) is never taken for an output, recorded, or removed with them."""
+        journal = self._journal(name)
+        if journal is None:
+            foreign = {
+                self._rel(p): file_record(p)
+                for p in self._matching(outputs)
+                if self._rel(p) not in own
+            }
+            journal = {"attempts": 0, "foreign": foreign}
+        journal = {**journal, "attempts": journal["attempts"] + 1}
+        write_json(self._journal_path(name), journal, checksum=True)
+        return journal
+
     def _write_marker(self, name: str, saved: Mapping[str, Any]) -> None:
         write_json(self._records_path(name), saved["outputs"], checksum=True)
         write_json(self.marker(name), saved, checksum=True)
@@ -276,10 +341,11 @@ class StageRunner:
         docstring).
         """
         saved = self._reusable(name) if distributed.is_main() else None
+        own = self._last_outputs(name) if saved is None and distributed.is_main() else set()
         if saved is None and distributed.is_main():
             self._set_aside_edited(name)
         if saved is None and self._unverified and distributed.is_main():
-            self._remove_unverified(name, outputs)
+            self._remove_unverified(name, outputs, own)
         if saved is None and self._reuse_from is not None and distributed.is_main():
             saved = self._borrowed(name, outputs)
         if distributed.broadcast(saved is not None):  # rank 0's view: every rank takes one branch
@@ -287,7 +353,7 @@ class StageRunner:
         elif distributed.is_main() or sharded:
             # a stage on rank 0 alone acts as one process: a sharing call in it must not wait
             with contextlib.nullcontext() if sharded else distributed.alone():
-                saved = self._compute(name, fn, outputs)
+                saved = self._compute(name, fn, outputs, own)
             distributed.barrier()
         else:
             distributed.barrier()
@@ -371,7 +437,8 @@ class StageRunner:
             rel, why = next(iter(bad.items()))
             self.log(f"[{name}] not reused from {str(other)!r}: {rel}: {why}")
             return None
-        own = self._matching(outputs)
+        foreign = self._foreign(name)
+        own = [p for p in self._matching(outputs) if self._rel(p) not in foreign]
         if own:
             self.log(
                 f"[{name}] not reused from {str(other)!r}: this run has {len(own)} files of "
@@ -465,18 +532,30 @@ class StageRunner:
                 bad[rel] = "its content changed since the stage wrote it (SHA-256 differs)"
         return bad
 
-    def _remove_unverified(self, name: str, outputs: Sequence[str]) -> None:
+    def _remove_unverified(self, name: str, outputs: Sequence[str], own: set[str]) -> None:
         """Remove the files an unfinished stage left when the run's settings record was
         missing or unreadable: nothing says they were made with these settings, and a stage
-        keeps the files it finds (it resumes where it stopped)."""
-        files = self._matching(outputs)
-        if files:
+        keeps the files it finds (it resumes where it stopped). The stage's files are those its
+        records name (``own``) or, once an attempt began, all but those its journal found
+        before it; a file neither names (put there by hand) is set aside, not removed."""
+        journal = self._journal(name)
+        foreign = (journal or {}).get("foreign", {})
+        left, unknown = [], []
+        for path in self._matching(outputs):
+            rel = self._rel(path)
+            if rel not in foreign:
+                (left if journal is not None or rel in own else unknown).append(rel)
+        if left:
             self._log(
                 f"[{name}] the run's settings record was missing or unreadable: removing the "
-                f"{len(files)} files the unfinished stage left (their settings are unknown)"
+                f"{len(left)} files the unfinished stage left (their settings are unknown)"
             )
-            for path in files:
-                path.unlink(missing_ok=True)
+            self._remove(left)
+        for rel in unknown:
+            self._log(
+                f"[{name}] {rel}: no record says the stage wrote it, and the run's settings "
+                f"record was missing or unreadable; set aside as {self._set_aside(rel)}"
+            )
 
     def _remove(self, rels: Iterable[str]) -> None:
         for rel in rels:
@@ -504,20 +583,33 @@ class StageRunner:
             self.log(line)
 
     def _compute(
-        self, name: str, fn: Callable[[], dict[str, Any]], outputs: Sequence[str]
+        self,
+        name: str,
+        fn: Callable[[], dict[str, Any]],
+        outputs: Sequence[str],
+        own: set[str],
     ) -> dict[str, Any]:
-        self._log(f"[{name}] running")
+        """Run stage ``name`` (an attempt: :meth:`_begin`) and write its marker. The marker's
+        ``seconds`` are this attempt's; a stage that resumed after an interrupted attempt
+        (whose time no file recorded) says so under ``attempts``."""
+        journal = self._begin(name, outputs, own) if distributed.is_main() else None
+        attempts = journal["attempts"] if journal is not None else 1
+        again = f" (attempt {attempts}: resuming from what the earlier ones wrote)"
+        self._log(f"[{name}] running" + (again if attempts > 1 else ""))
         start = time.perf_counter()
         summary = self._call(name, fn, outputs)
         saved = {
             **summary,
             "seconds": round(time.perf_counter() - start, 1),
+            **({"attempts": attempts} if attempts > 1 else {}),
             "inputs": self._stage_inputs(name),
-            "outputs": self._records(outputs) if distributed.is_main() else {},
+            "outputs": self._records(outputs, journal["foreign"]) if journal is not None else {},
         }
         if distributed.is_main():
             self._write_marker(name, saved)
-        self._log(f"[{name}] finished in {saved['seconds']} s")
+            self._journal_path(name).unlink(missing_ok=True)
+        earlier = f" (attempt {attempts}; the earlier attempts' time is not counted)"
+        self._log(f"[{name}] finished in {saved['seconds']} s" + (earlier if attempts > 1 else ""))
         return saved
 
     def _call(
@@ -548,12 +640,25 @@ class StageRunner:
             return False
         return any(rel.match(pattern) for pattern in outputs)
 
+    def _rel(self, path: Path) -> str:
+        """``path`` relative to the run directory, as records name it."""
+        return str(path.relative_to(self.run_dir))
+
     def _matching(self, outputs: Sequence[str]) -> list[Path]:
         """The files under the run directory that match the glob patterns ``outputs``."""
         return sorted({p for pattern in outputs for p in self.run_dir.glob(pattern) if p.is_file()})
 
-    def _records(self, outputs: Sequence[str]) -> dict[str, dict[str, Any]]:
-        return {str(p.relative_to(self.run_dir)): file_record(p) for p in self._matching(outputs)}
+    def _records(
+        self, outputs: Sequence[str], foreign: Mapping[str, Any] | None = None
+    ) -> dict[str, dict[str, Any]]:
+        """The records of the files matching ``outputs``, less the ``foreign`` ones the stage
+        left as they were (one it wrote over is its own)."""
+        records = {}
+        for path in self._matching(outputs):
+            rel, record = self._rel(path), file_record(path)
+            if (foreign or {}).get(rel) != record:
+                records[rel] = record
+        return records
 
 
 def _read_marker(path: Path, name: str) -> dict[str, Any]:

@@ -55,6 +55,13 @@ def test_a_run_directory_gives_its_profile_threads_and_stage_time(tmp_path):
     (run / "run.log").write_text("profile=full device=cuda:0 threads=1 run_dir=x\n")
     key, entry = durations.read_run(run)
     assert key == "full_profile" and entry["source"] == "the stage markers of a full run on cuda:0"
+    for extra, why in [
+        ({"attempts": 2}, r"stage 'models' finished at attempt 2 \(the earlier ones' time"),
+        ({"reused_from": {"run_dir": "y"}}, "stage 'models' was reused from another run"),
+    ]:
+        (run / "stages" / "models.json").write_text(json.dumps({"seconds": 3.2, **extra}))
+        with pytest.raises(ValueError, match=why):
+            durations.read_run(run)
     (run / "stages" / "report.json").unlink()
     with pytest.raises(ValueError, match="has not finished"):
         durations.read_run(run)

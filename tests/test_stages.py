@@ -115,6 +115,58 @@ def test_outputs_edited_by_hand_are_set_aside_when_their_stage_reruns_for_new_in
     ]
 
 
+def test_a_file_of_the_users_beside_a_stages_outputs_is_never_taken_for_one(tmp_path):
+    """A file put where a stage's patterns match (``b/*.pt``) is not recorded as the stage's
+    when it runs again, so a later rerun, which removes the stage's files, leaves it."""
+    Pipeline(tmp_path).run()
+    (tmp_path / "b" / "mine.pt").write_bytes(b"my own model")
+    for value in (2.0, 3.0):  # each time x comes out different: use's inputs change
+        (tmp_path / "a" / "x.pt").unlink()
+        again = Pipeline(tmp_path, value=value)
+        _, lines = again.run()
+        assert again.computed == ["x", "z"] and any("[use] its inputs changed" in x for x in lines)
+        marker = json.loads((tmp_path / "stages" / "use.json").read_text())
+        assert set(marker["outputs"]) == {"b/z.pt"}
+        assert (tmp_path / "b" / "mine.pt").read_bytes() == b"my own model"
+    assert not (tmp_path / SET_ASIDE).exists()
+    assert not list((tmp_path / "stages").glob("*.started"))  # journals go with the markers
+
+
+def test_a_stage_resumed_after_an_interrupted_attempt_says_so_and_keeps_the_users_files(tmp_path):
+    """An attempt killed half-way leaves the stage's journal: the next attempt keeps its list of
+    the files that were there before the first (never the stage's), and the marker and the log
+    say which attempt finished (the time of the killed one is not known)."""
+    Pipeline(tmp_path).run()  # a run's directory, its settings recorded
+    for stage in ("make", "use"):
+        for suffix in (".json", ".records"):
+            (tmp_path / "stages" / f"{stage}{suffix}").unlink()
+    for name in ("x", "y"):
+        (tmp_path / "a" / f"{name}.pt").unlink()
+    (tmp_path / "a" / "mine.pt").write_bytes(b"mine")
+    pipeline = Pipeline(tmp_path)
+    first = pipeline.make
+
+    def killed():
+        save_torch(tmp_path / "a" / "x.pt", torch.ones(3))  # then the process dies
+        raise KeyboardInterrupt
+
+    pipeline.make = killed
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run()
+    journal = read_json(tmp_path / "stages" / "make.started", checksum=True)
+    assert journal["attempts"] == 1 and set(journal["foreign"]) == {"a/mine.pt"}
+    pipeline.make = first
+    _, lines = pipeline.run()
+    assert pipeline.computed == ["y", "z"]  # x was written by the killed attempt
+    marker = json.loads((tmp_path / "stages" / "make.json").read_text())
+    assert marker["attempts"] == 2 and set(marker["outputs"]) == {"a/x.pt", "a/y.pt"}
+    assert "[make] running (attempt 2: resuming from what the earlier ones wrote)" in lines
+    assert any(x.endswith("(attempt 2; the earlier attempts' time is not counted)") for x in lines)
+    assert "attempts" not in json.loads((tmp_path / "stages" / "use.json").read_text())
+    assert not (tmp_path / "stages" / "make.started").exists()
+    assert (tmp_path / "a" / "mine.pt").read_bytes() == b"mine"
+
+
 def test_downstream_stages_rerun_when_a_recomputed_input_differs(tmp_path):
     Pipeline(tmp_path).run()
     (tmp_path / "a" / "x.pt").unlink()
@@ -339,6 +391,20 @@ def test_an_unfinished_stage_of_unknown_settings_leaves_nothing_to_reuse(tmp_pat
     resumed = Pipeline(tmp_path, value=2.0)
     resumed.run({"value": 2.0})
     assert resumed.computed == []
+
+
+def test_a_file_no_record_names_is_set_aside_not_removed_where_settings_are_unknown(tmp_path):
+    """A runner in a folder without a settings record removes what an unfinished stage of
+    unknown settings left; a file no record of the stage names (the user's) is set aside."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "mine.pt").write_bytes(b"mine")
+    pipeline = Pipeline(tmp_path)
+    _, lines = pipeline.run()
+    assert pipeline.computed == ["x", "y", "z"]
+    (kept,) = (tmp_path / SET_ASIDE).glob("*/a/mine.pt")
+    assert kept.read_bytes() == b"mine" and not (tmp_path / "a" / "mine.pt").exists()
+    said = "[make] a/mine.pt: no record says the stage wrote it"
+    assert any(line.startswith(said) for line in lines)
 
 
 # ---------------------------------------------------------------------- reuse across runs
