@@ -32,7 +32,13 @@ from typing import Any
 
 import torch
 
-__all__ = ["describe", "digest", "source_digest", "weights_digest"]
+__all__ = ["SETTINGS", "agent_digest", "describe", "digest", "source_digest", "weights_digest"]
+
+#: The prefix of an :func:`agent_digest` made from a weightless module's settings (not weights)
+SETTINGS = "settings:"
+#: Packages whose module classes are containers or wrappers, not an agent's own code: their
+#: settings (keys, hooks) say how a policy is wrapped, not which it is
+_WRAPPERS = ("torch", "tensordict", "torchrl", "rcvae_torchrl")
 
 
 def digest(value: Any) -> str:
@@ -54,6 +60,42 @@ def weights_digest(module: Any) -> str | None:
     if not tensors:
         return None
     return digest(sorted(json.dumps(_tensor(t), sort_keys=True) for t in tensors))
+
+
+def agent_digest(policy: Any) -> str | None:
+    """Which agent a policy is: its :func:`weights_digest` where it has weights. A module
+    without weights (a scripted controller written as an ``nn.Module``) is known by its
+    settings instead: for each module of a class of the user's own inside it (not torch's,
+    tensordict's, TorchRL's or this library's wrappers), its class name and its public
+    attributes that are numbers, strings, ``None``, tensors or lists of them (a gain ``kp``,
+    a target), prefixed with :data:`SETTINGS`. Two controllers of one class with other gains
+    differ; the same class and gains give the same digest in any process, whatever wraps them
+    and wherever the class is defined. ``None`` for a callable that is not a module (a
+    function) or a module with neither: its identity is not known."""
+    weights = weights_digest(policy)
+    if weights is not None or not isinstance(policy, torch.nn.Module):
+        return weights
+    own = [
+        json.dumps([type(m).__qualname__, _settings(m)], sort_keys=True, default=str)
+        for m in policy.modules()
+        if type(m).__module__.split(".")[0] not in _WRAPPERS
+    ]
+    return SETTINGS + digest(sorted(own)) if own else None
+
+
+def _settings(module: torch.nn.Module) -> dict[str, Any]:
+    """A module's public plain attributes (not ``training``), as :func:`describe` gives them."""
+    return {
+        key: describe(value)
+        for key, value in sorted(vars(module).items())
+        if not key.startswith("_") and key != "training" and _plain(value)
+    }
+
+
+def _plain(value: Any) -> bool:
+    if isinstance(value, (tuple, list)):
+        return all(_plain(v) for v in value)
+    return value is None or isinstance(value, (bool, int, float, str, torch.Tensor))
 
 
 def source_digest(paths: Iterable[str | Path]) -> str:

@@ -43,7 +43,7 @@ from rcvae_torchrl.competency import (
 )
 from rcvae_torchrl.competency.intervals import mean_interval
 from rcvae_torchrl.data import TRAJ_KEY, acting_record, check_same_agent, exploration_mode
-from rcvae_torchrl.fingerprint import weights_digest
+from rcvae_torchrl.fingerprint import agent_digest
 from rcvae_torchrl.threads import threads_kept
 
 from .episodes import (
@@ -77,9 +77,9 @@ class RealOutcomes:
     #: the steps each episode was run for at most (``real_outcomes``' ``max_steps``); ``None``
     #: where not known (outcomes made of plain tensors)
     max_steps: int | None = None
-    #: the agent, as the digest of its policy's weights
-    #: (:func:`~rcvae_torchrl.fingerprint.weights_digest`); ``None`` where not known (a policy
-    #: without weights, outcomes made of plain tensors)
+    #: the agent, as the digest of its policy's weights, or of a weightless module's settings
+    #: (:func:`~rcvae_torchrl.fingerprint.agent_digest`); ``None`` where not known (a policy
+    #: written as a function, outcomes made of plain tensors)
     agent: str | None = None
     #: what judged the episodes, where a :class:`~rcvae_torchrl.competency.SuccessBoundary`
     #: did (its :attr:`~rcvae_torchrl.competency.SuccessBoundary.predicates`); ``None`` where
@@ -337,7 +337,7 @@ def real_outcomes(
     observed = starts.get("observation", None) if isinstance(starts, TensorDictBase) else starts
     made = {  # of the policy given, before any wrapper here
         "acting": acting_record(policy, mode),
-        "agent": weights_digest(policy),
+        "agent": agent_digest(policy),
         "predicates": None if boundary is None else boundary.predicates,
     }
     if policy_rows is not None:

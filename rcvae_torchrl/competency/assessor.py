@@ -39,7 +39,7 @@ from rcvae_torchrl.competency.entropy import BinWidth
 from rcvae_torchrl.competency.metrics import SuccessMetric, UncertaintyMetric
 from rcvae_torchrl.competency.report import SPREAD_MEASURE, CompetencyReport, RealSpread
 from rcvae_torchrl.data import acting, acting_record, exploration_mode, held_generators
-from rcvae_torchrl.fingerprint import weights_digest
+from rcvae_torchrl.fingerprint import agent_digest
 from rcvae_torchrl.rollout import as_tensor_policy, policy_reset
 
 __all__ = ["CompetencyAssessor", "ImaginesRollouts", "PerSample", "Policy"]
@@ -326,7 +326,7 @@ class CompetencyAssessor(KeyedModule):
         if plan is not None:
             return report
         return dataclasses.replace(
-            report, acting=acting_record(policy, mode), agent=weights_digest(policy)
+            report, acting=acting_record(policy, mode), agent=agent_digest(policy)
         )
 
     @contextlib.contextmanager

@@ -10,6 +10,7 @@ failure predicate alone that must not hold before the time limit (:meth:`Success
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Sequence
 
 import torch
@@ -359,6 +360,14 @@ def _time_limit_steps(steps: int | None, seconds: float | None, dt: float | None
         raise ValueError(
             f"time_limit_s: expected at least one step of dt = {dt:g} s, got {seconds:g} s "
             "(no step would end within it)"
+        )
+    if seconds / dt - steps > 1e-6:
+        warnings.warn(
+            f"time_limit_s: {seconds:g} s is not a whole number of steps of dt = {dt:g} s; "
+            f"the deadline is the end of step {steps} ({steps * dt:g} s). Give time_limit "
+            "in steps, or a multiple of dt, to say which",
+            UserWarning,
+            stacklevel=3,
         )
     return steps
 

@@ -522,10 +522,11 @@ class CompetencyReport:
     #: .exploration_mode`); ``None`` where not known or open loop. Real episodes of the policy
     #: acting otherwise do not check it (:meth:`with_forecast_check`)
     acting: str | None = None
-    #: the agent whose forecasts these are, as the digest of its policy's weights
-    #: (:func:`~rcvae_torchrl.fingerprint.weights_digest`); ``None`` where not known (a
-    #: policy without weights, open loop, a report built by hand). Real episodes of another
-    #: agent do not check it (:meth:`with_forecast_check`, ``score_forecast``)
+    #: the agent whose forecasts these are, as the digest of its policy's weights, or of a
+    #: weightless module's settings (:func:`~rcvae_torchrl.fingerprint.agent_digest`); ``None``
+    #: where not known (a policy written as a function, open loop, a report built by hand).
+    #: Real episodes of another agent do not check it (:meth:`with_forecast_check`,
+    #: ``score_forecast``)
     agent: str | None = None
     #: the boundary's :attr:`~rcvae_torchrl.competency.SuccessBoundary.predicates` (they are
     #: in :attr:`task` too): real outcomes judged by other predicates do not score it
@@ -1285,8 +1286,8 @@ class CompetencyReport:
         where = (
             ": the forecast extrapolates there"
             if leaves < 0
-            else f". The first step at which more than half of the samples are is "
-            f"{_when(leaves, self.dt, self.time_unit)}: the forecast extrapolates from there"
+            else f". The first step at which more than half of the samples are unlike them "
+            f"is {_when(leaves, self.dt, self.time_unit)}: the forecast extrapolates from there"
         )
         return (
             f"Caution: {share:.0%} of the imagined states are unlike the states the model was "

@@ -8,6 +8,7 @@ your env's action spec with :func:`action_bounds`.
 from __future__ import annotations
 
 import contextlib
+import warnings
 from collections.abc import Iterator, Sequence
 
 import torch
@@ -19,6 +20,7 @@ from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_bounds, check_positive_int
+from rcvae_torchrl.fingerprint import SETTINGS
 
 __all__ = [
     "GaussianExploration",
@@ -175,12 +177,27 @@ def acting_record(policy: object, mode: ExplorationType) -> str | None:
 def check_same_agent(forecast: object, real: object, name: str = "outcomes") -> None:
     """Refuse to judge a forecast against real episodes of another agent: ``forecast`` a
     report (or a forecast check), ``real`` the real outcomes (or a check) compared with it,
-    each with its ``acting`` (:func:`check_same_acting`) and ``agent`` (the policy's weights,
-    :func:`~rcvae_torchrl.fingerprint.weights_digest`); ``name`` is the argument ``real``
-    came as. What either side does not know (``None``, or not there) is not compared."""
+    each with its ``acting`` (:func:`check_same_acting`) and ``agent``
+    (:func:`~rcvae_torchrl.fingerprint.agent_digest`); ``name`` is the argument ``real``
+    came as. What either side does not know (``None``, or not there) is not compared. Two
+    agents known by their weights that differ are refused; where either is known by its
+    settings only (a module without weights), a difference is warned of, since a controller
+    whose public attributes change as it acts (a step count) differs from itself."""
     check_same_acting(getattr(forecast, "acting", None), getattr(real, "acting", None), name)
     mine, theirs = getattr(forecast, "agent", None), getattr(real, "agent", None)
     if mine is None or theirs is None or mine == theirs:
+        return
+    if SETTINGS in mine[: len(SETTINGS)] + theirs[: len(SETTINGS)]:
+        warnings.warn(
+            f"{name}: the real episodes may be of another agent than the forecast's: "
+            f"{_agent_words(theirs)} (digest {_short(theirs)}) against the forecast's "
+            f"{_agent_words(mine)} (digest {_short(mine)}). A controller without weights is "
+            "known by its class name and public attributes (its gains, say): if they changed "
+            "on purpose, run real_outcomes with the policy given to CompetencyAssessor.assess; "
+            "if they change as it acts, this is the same agent",
+            UserWarning,
+            stacklevel=3,
+        )
         return
     raise ValueError(
         f"{name}: the real episodes are of another agent than the forecast's: their policy's "
@@ -189,6 +206,14 @@ def check_same_agent(forecast: object, real: object, name: str = "outcomes") -> 
         "forecast: run real_outcomes with the policy given to CompetencyAssessor.assess (or "
         "assess the agent whose episodes these are)"
     )
+
+
+def _agent_words(agent: str) -> str:
+    return "settings" if agent.startswith(SETTINGS) else "weights"
+
+
+def _short(agent: str) -> str:
+    return agent.removeprefix(SETTINGS)[:12]
 
 
 def _bounds(low: Bound, high: Bound) -> tuple[torch.Tensor, torch.Tensor]:

@@ -551,8 +551,10 @@ def check_model(
             is shared over the dimensions checked: of a 78-dimensional quadruped, the one its
             survival hung on lay inside its interval in 49 of 60 held-out episodes (p =
             0.0007), not beyond chance over 78 dimensions, and its forecasts were 0.28 off;
-            checked alone (``dims=["torso_upright"]``, or ``checks={"dims": [...]}`` in
-            :func:`~rcvae_torchrl.training.train_ensemble`) it is named.
+            checked alone (``dims=["torso_upright"]``) it is named. Check such dimensions in
+            a call of their own beside the check of every dimension: ``checks={"dims": [...]}``
+            in :func:`~rcvae_torchrl.training.train_ensemble` replaces training's check of
+            every dimension by theirs alone.
         seed: the windows and the samples are drawn from it.
         warn: emit a :class:`ModelCheckWarning` naming the flagged dimensions.
     """
@@ -714,9 +716,9 @@ class OutcomeCheck:
     #: :attr:`~rcvae_torchrl.agent.RealOutcomes.acting`, else the report's); ``None`` where not
     #: known. A report whose imagined policy acted otherwise is not vouched for
     acting: str | None = None
-    #: the agent: the digest of its policy's weights (the real episodes' :attr:`~rcvae_torchrl
-    #: .agent.RealOutcomes.agent`, else the report's); ``None`` where not known. A report of
-    #: another agent is not vouched for
+    #: the agent: the digest of its policy's weights or a weightless module's settings (the
+    #: real episodes' :attr:`~rcvae_torchrl.agent.RealOutcomes.agent`, else the report's);
+    #: ``None`` where not known. A report of another agent is not vouched for
     agent: str | None = None
     #: ``[n]`` bool, the starts whose outcome was settled before the agent acted (already in
     #: the success or the failure region: a report's ``("start_state", "in_success")`` and

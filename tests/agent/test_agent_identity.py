@@ -22,7 +22,7 @@ from torchrl.modules import AdditiveGaussianModule
 from rcvae_torchrl.agent import RealOutcomes, real_outcomes, score_forecast
 from rcvae_torchrl.competency import SuccessBoundary
 from rcvae_torchrl.data import acting_record, exploration_mode
-from rcvae_torchrl.fingerprint import weights_digest
+from rcvae_torchrl.fingerprint import SETTINGS, agent_digest, weights_digest
 from rcvae_torchrl.io import load_torch, save_torch
 from rcvae_torchrl.training import OutcomeCheck
 from tests.agent.test_exploration import point_mass, stochastic_actor
@@ -59,6 +59,52 @@ def test_the_weights_digest_names_the_weights_whatever_wraps_them():
     assert weights_digest(policy) != digest  # one weight changed
     assert weights_digest(nn.Tanh()) is None  # no weights: not known
     assert weights_digest(lambda td: td) is None
+
+
+class Gains(nn.Module):
+    """A scripted controller: no weights, its gains as settings."""
+
+    def __init__(self, kp: float, target=(0.0, 0.0)) -> None:
+        super().__init__()
+        self.kp, self.target = kp, list(target)
+
+    def forward(self, observation):
+        return (-self.kp * (observation[..., :2] - torch.tensor(self.target))).clamp(-1, 1)
+
+
+def test_a_controller_without_weights_is_known_by_its_class_and_settings():
+    digest = agent_digest(Gains(2.0))
+    assert digest.startswith(SETTINGS) and len(digest) == len(SETTINGS) + 64
+    wrapped = TensorDictModule(Gains(2.0), in_keys=["observation"], out_keys=["action"])
+    assert agent_digest(wrapped) == digest  # whatever wraps it
+    assert agent_digest(nn.Sequential(Gains(2.0), nn.Tanh())) == digest
+    assert agent_digest(Gains(2.0).train(False)) == digest  # not its training flag
+    assert agent_digest(Gains(0.5)) != digest  # other gains
+    assert agent_digest(Gains(2.0, target=(0.1, 0.0))) != digest  # another target
+    assert agent_digest(nn.Sequential(Gains(2.0), Gains(2.0))) != digest  # two controllers
+    policy = linear_policy(4, seed=0)  # with weights: the weights' digest, as before
+    assert agent_digest(policy) == weights_digest(policy)
+    assert agent_digest(nn.Tanh()) is None and agent_digest(lambda td: td) is None
+
+
+def test_another_controllers_episodes_are_warned_of_where_only_settings_tell_agents_apart():
+    report, _ = _report_and_outcomes(Gains(0.5))
+    assert report.agent == agent_digest(Gains(0.5))
+    success = torch.rand(12, 2, generator=torch.Generator().manual_seed(2)) < 0.5
+    first = torch.where(success, 2, 6)
+    theirs = RealOutcomes(success, first, first + 1, agent=agent_digest(Gains(2.0)))
+    said = r"^outcomes: the real episodes may be of another agent than the forecast's: settings"
+    with pytest.warns(UserWarning, match=said):
+        assert set(score_forecast(report, theirs))
+    with pytest.warns(UserWarning, match=said.replace("outcomes", "real_success")):
+        OutcomeCheck.from_outcomes(report, theirs)
+    own = RealOutcomes(success, first, first + 1, agent=agent_digest(Gains(0.5)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert set(score_forecast(report, own))
+    mixed = r"weights \(digest f{12}\) against the forecast's settings \(digest \w{12}\)"
+    with pytest.warns(UserWarning, match=mixed):
+        score_forecast(report, RealOutcomes(success, first, first + 1, agent="f" * 64))
 
 
 def test_a_policy_that_acts_alike_in_every_mode_records_no_mode():

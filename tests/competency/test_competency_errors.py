@@ -1,5 +1,7 @@
 """Bad input gives clear errors naming the argument, the expectation and what was given."""
 
+import warnings
+
 import pytest
 import torch
 from tensordict import TensorDict
@@ -136,6 +138,16 @@ def test_boundary_errors():
         SuccessBoundary(lambda o: o[..., 0] > 0, time_limit_s=3.0)
     with pytest.raises(ValueError, match="time_limit, time_limit_s: expected at most one"):
         SuccessBoundary(lambda o: o[..., 0] > 0, time_limit=3, time_limit_s=3.0, dt=0.1)
+    said = r"^time_limit_s: 2.05 s is not a whole number of steps of dt = 0.02 s; the deadline "
+    with pytest.warns(UserWarning, match=said + r"is the end of step 102 \(2.04 s\)"):
+        assert (
+            SuccessBoundary(lambda o: o[..., 0] > 0, time_limit_s=2.05, dt=0.02).time_limit == 102
+        )
+    with warnings.catch_warnings():  # a multiple of dt, whatever its float rounding
+        warnings.simplefilter("error")
+        for seconds, dt, steps in ((0.3, 0.1, 3), (2.04, 0.02, 102), (30.0, 0.05, 600)):
+            limit = SuccessBoundary(lambda o: o[..., 0] > 0, time_limit_s=seconds, dt=dt)
+            assert limit.time_limit == steps
     with pytest.raises(ValueError, match="target: expected 2 observation indices"):
         SuccessBoundary.ball(position=[0, 1], target=[2], radius=0.1)
     with pytest.raises(TypeError, match="boundary: expected a SuccessBoundary"):

@@ -91,7 +91,7 @@ def test_imagined_states_that_leave_the_training_states_are_named():
     assert (
         f"Caution: {float(share[0]):.0%} of the imagined states are unlike the states the model "
         "was trained on, more than ten times the share of held-out states (10%). The first "
-        "step at which more than half of the samples are is "
+        "step at which more than half of the samples are unlike them is "
         f"t = {round((int(leaves[0]) + 1) * DT, 6):g} s: the forecast extrapolates from there, "
         "however much the members agree." in text
     )
