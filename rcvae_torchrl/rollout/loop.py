@@ -51,7 +51,11 @@ def _policy_action(policy: Policy, state: torch.Tensor, t: int, action_dim: int)
     want = (*state.shape[:-1], action_dim)
     if not isinstance(action, torch.Tensor) or tuple(action.shape) != want:
         got = tuple(action.shape) if isinstance(action, torch.Tensor) else type(action).__name__
-        raise ValueError(f"policy: expected actions of shape {want}, got {got}")
+        raise ValueError(
+            f"policy: expected actions of shape {want} (one action of A = {action_dim} entries "
+            f"for each of the {list(state.shape[:-1])} imagined states it was given), got {got}"
+            f" at step {t}"
+        )
     if action.dtype != state.dtype:  # before the bounds' clamp casts an int or bool one
         raise TypeError(
             f"policy: expected actions of dtype {state.dtype} (the model's), got {action.dtype} "

@@ -601,10 +601,11 @@ class StateNovelty:
         """Why one ``state`` ``[D]`` (a ``start`` state) is unlike the training states, in
         words: its distance against the level, the dimensions outside the training states'
         central 99 % (:meth:`outside`; up to ``top``, the farthest first), and, for a state
-        beyond the level, the group whose combination alone crosses it or, where no dimension
-        lies outside its range, that the combination is new and the ``top`` dimensions in which
-        it lies farthest from its ``k`` nearest training states. A state within the level is
-        said to be so."""
+        beyond the level, the group whose combination alone crosses it (said first where the
+        dimensions past their ranges would not call the start unlike on their own) or, where no
+        dimension lies outside its range, that the combination is new and the ``top``
+        dimensions in which it lies farthest from its ``k`` nearest training states. A state
+        within the level is said to be so."""
         state = _states("state", state, self.dim, flat=False)
         if state.dim() != 1:
             raise ValueError(f"state: expected one state [D], got shape {tuple(state.shape)}")
@@ -647,11 +648,22 @@ class StateNovelty:
                 " (within the level: like the training states as a whole, though past the "
                 f"central 99 % of their values in {listed})"
             )
-        text += ": " + listed
-        if group is not None and not bool(outside[list(group)].all()):
-            # farthest in a group whose values are not all outside their ranges
-            text += f"; the combination of {', '.join(names[d] for d in group)} is new"
-        return text
+        if group is None or bool(outside[list(group)].all()):
+            return text + ": " + listed
+        # farthest in a group whose values are not all outside their ranges
+        combination = f"the combination of {', '.join(names[d] for d in group)} is new"
+        if self._range_ratio(state) > 1:  # the values past their ranges call it unlike too
+            return text + f": {listed}; {combination}"
+        # they alone would not: the group is the cause, said first
+        return (
+            text + f": {combination} (past the central 99 % of the training values too: {listed})"
+        )
+
+    def _range_ratio(self, state: Tensor) -> float:
+        """How far one ``state`` ``[D]``'s farthest dimension past its range goes toward the
+        start level on the range's scale (above 1: that alone calls the start unlike)."""
+        views = self._views(state.to(self.center)[None])[0]
+        return float(views[-1]) * self.range_scale / self.start_level
 
     def _crossing_group(self, state: Tensor) -> tuple[int, ...] | None:
         """The group farthest beyond the start level on its scale for one start ``state``,

@@ -147,7 +147,12 @@ def test_input_errors(ensemble, obs, actions, kwargs, error, match):
 
 
 def test_policy_with_wrong_output_is_rejected(ensemble):
-    with pytest.raises(ValueError, match="policy: expected actions of shape"):
+    said = (
+        rf"^policy: expected actions of shape \([\d, ]+\) \(one action of A = "
+        rf"{ensemble.config.action_dim} entries for each of the \[[\d, ]+\] imagined states it "
+        r"was given\), got \([\d, ]+\) at step 0$"
+    )
+    with pytest.raises(ValueError, match=said):
         imagine(ensemble, torch.zeros(5), policy=lambda s: s, horizon=2)
     with pytest.raises(ValueError, match="policy output at step 0: expected finite"):
         imagine(

@@ -86,6 +86,22 @@ def test_a_group_judged_on_its_own_finds_a_combination_new_only_in_its_dimension
         "(every dimension within its training range: the combination of target[0], target[1] "
         "is new)"
     )
+    # a value a little past its range beside it: the group, the cause, is named first
+    edge = inside[0].clone()
+    edge[0] = grouped.high[0] + 0.2 * grouped.scale[0]
+    assert bool(grouped.outside(edge)[0]) and grouped._range_ratio(edge) <= 1
+    said = grouped.describe(edge, names, start=True).split(" are: ")[1]
+    assert said.startswith(
+        "the combination of target[0], target[1] is new (past the central 99 % of the "
+        "training values too: x0 = "
+    )
+    far = inside[0].clone()
+    far[0] = grouped.high[0] + 50 * grouped.scale[0]  # far out: that alone calls it unlike
+    assert grouped._range_ratio(far) > 1
+    said = grouped.describe(far, names, start=True).split(" are: ")[1]
+    assert said.startswith("x0 = ") and said.endswith(
+        "; the combination of target[0], target[1] is new"
+    )
     # kept in checkpoints; an old record without groups reads as none
     record = grouped.as_dict()
     read = StateNovelty.from_dict(record)
