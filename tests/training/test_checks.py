@@ -8,7 +8,6 @@ import warnings
 
 import pytest
 import torch
-from conftest import linear_episodes
 
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
@@ -21,6 +20,7 @@ from rcvae_torchrl.training import (
     save_ensemble,
     train_ensemble,
 )
+from tests.training.conftest import linear_episodes
 
 NAMES = ("x", "y", "z", "noise")
 

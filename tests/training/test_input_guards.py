@@ -7,11 +7,11 @@ import math
 
 import pytest
 import torch
-from conftest import linear_episodes
 
 from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.training import CheckpointError, TrainConfig, train_ensemble
+from tests.training.conftest import linear_episodes
 
 BUDGET = TrainConfig(max_steps=4, batch_windows=4, window=8, val_every=2, val_windows=4)
 

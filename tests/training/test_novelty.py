@@ -6,7 +6,6 @@ import math
 
 import pytest
 import torch
-from conftest import linear_episodes
 from scipy.stats import binom
 
 from rcvae_torchrl.io import load_torch, save_torch
@@ -19,6 +18,7 @@ from rcvae_torchrl.training import (
     train_ensemble,
 )
 from rcvae_torchrl.training.novelty import spread_steps
+from tests.training.conftest import linear_episodes
 
 
 def _gaussian(n: int, seed: int, dim: int = 3) -> torch.Tensor:
