@@ -187,7 +187,7 @@ def check_same_agent(forecast: object, real: object, name: str = "outcomes") -> 
     mine, theirs = getattr(forecast, "agent", None), getattr(real, "agent", None)
     if mine is None or theirs is None or mine == theirs:
         return
-    if SETTINGS in mine[: len(SETTINGS)] + theirs[: len(SETTINGS)]:
+    if mine.startswith(SETTINGS) or theirs.startswith(SETTINGS):
         warnings.warn(
             f"{name}: the real episodes may be of another agent than the forecast's: "
             f"{_agent_words(theirs)} (digest {_short(theirs)}) against the forecast's "
