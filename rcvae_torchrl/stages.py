@@ -24,12 +24,14 @@ re-verifies what it reuses:
 - inputs that differ from the recorded ones (an earlier stage's outputs came out different when
   it ran again): every output of the stage is removed (those changed since it wrote them are
   moved aside as above) and it runs again;
-- a file that matched a stage's patterns before the stage first ran and is not one it recorded
-  (one the user put in ``models/``, say): listed in the stage's journal
-  ``stages/<name>.started`` at its first attempt, it is never taken for an output, so never
-  recorded, set aside or removed with the stage's files (unless the stage writes over it). The
-  journal also counts the attempts: a stage that resumed after an interrupted one says so in
-  its log lines and its marker (``attempts``; its ``seconds`` are the last attempt's);
+- a file that matches a stage's patterns but that the stage's records do not name (one the user
+  put in ``models/`` after the stage ran, say): when the stage runs again, its journal
+  ``stages/<name>.started`` lists the file at its first attempt, and the file is never taken
+  for an output, so never recorded, set aside or removed with the stage's files (unless the
+  stage writes over it). Where no record of the stage is left (``stages/`` deleted), nothing
+  tells its files from others, and all are taken for its own. The journal also counts the
+  attempts: a stage that resumed after an interrupted one says so in its log lines and its
+  marker (``attempts``; its ``seconds`` are the last attempt's);
 - a file the stage function cannot read (:class:`~rcvae_torchrl.io.StoredFileError`): the file
   is removed and the stage runs once more when it is one of the stage's own outputs; otherwise a
   :class:`StageError` names the stage, the file and what to do.
@@ -268,11 +270,11 @@ class StageRunner:
         attempt (its journal's), with their records."""
         return (self._journal(name) or {}).get("foreign", {})
 
-    def _last_outputs(self, name: str) -> set[str]:
+    def _last_outputs(self, name: str) -> set[str] | None:
         """The files stage ``name``'s marker or its last records name as its outputs (before a
         rerun removes or sets aside what failed their check): the stage's own, which it may
-        reuse."""
-        own: set[str] = set()
+        reuse. ``None`` when neither can be read: no record tells its files from others."""
+        own: set[str] | None = None
         for path, what in ((self.marker(name), "marker"), (self._records_path(name), "records")):
             if path.is_file():
                 try:
@@ -280,20 +282,24 @@ class StageRunner:
                 except StoredFileError:
                     continue
                 if isinstance(saved, dict):
+                    own = own or set()
                     own.update(saved.get("outputs", {}) if what == "marker" else saved)
         return own
 
-    def _begin(self, name: str, outputs: Sequence[str], own: set[str]) -> dict[str, Any]:
+    def _begin(self, name: str, outputs: Sequence[str], own: set[str] | None) -> dict[str, Any]:
         """Start an attempt at stage ``name``: its journal, kept until the marker is written,
         counts the attempts and records the files that match the stage's patterns before the
-        first one and are not its own (``own``): a file the user put beside the stage's (in
-        ``models/``, say) is never taken for an output, recorded, or removed with them."""
+        first one and are not its own (``own``, its last records): a file the user put beside
+        the stage's (in ``models/``, say) is never taken for an output, recorded, or removed
+        with them. Where no record of the stage is left (``own`` None: a stage that never
+        finished, or ``stages/`` deleted), nothing tells its files from others, and all are
+        taken for its own."""
         journal = self._journal(name)
         if journal is None:
             foreign = {
                 self._rel(p): file_record(p)
                 for p in self._matching(outputs)
-                if self._rel(p) not in own
+                if own is not None and self._rel(p) not in own
             }
             journal = {"attempts": 0, "foreign": foreign}
         journal = {**journal, "attempts": journal["attempts"] + 1}
@@ -341,7 +347,7 @@ class StageRunner:
         docstring).
         """
         saved = self._reusable(name) if distributed.is_main() else None
-        own = self._last_outputs(name) if saved is None and distributed.is_main() else set()
+        own = self._last_outputs(name) if saved is None and distributed.is_main() else None
         if saved is None and distributed.is_main():
             self._set_aside_edited(name)
         if saved is None and self._unverified and distributed.is_main():
@@ -532,7 +538,7 @@ class StageRunner:
                 bad[rel] = "its content changed since the stage wrote it (SHA-256 differs)"
         return bad
 
-    def _remove_unverified(self, name: str, outputs: Sequence[str], own: set[str]) -> None:
+    def _remove_unverified(self, name: str, outputs: Sequence[str], own: set[str] | None) -> None:
         """Remove the files an unfinished stage left when the run's settings record was
         missing or unreadable: nothing says they were made with these settings, and a stage
         keeps the files it finds (it resumes where it stopped). The stage's files are those its
@@ -544,7 +550,7 @@ class StageRunner:
         for path in self._matching(outputs):
             rel = self._rel(path)
             if rel not in foreign:
-                (left if journal is not None or rel in own else unknown).append(rel)
+                (left if journal is not None or rel in (own or ()) else unknown).append(rel)
         if left:
             self._log(
                 f"[{name}] the run's settings record was missing or unreadable: removing the "
@@ -587,7 +593,7 @@ class StageRunner:
         name: str,
         fn: Callable[[], dict[str, Any]],
         outputs: Sequence[str],
-        own: set[str],
+        own: set[str] | None,
     ) -> dict[str, Any]:
         """Run stage ``name`` (an attempt: :meth:`_begin`) and write its marker. The marker's
         ``seconds`` are this attempt's; a stage that resumed after an interrupted attempt

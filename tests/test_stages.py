@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -137,9 +138,8 @@ def test_a_stage_resumed_after_an_interrupted_attempt_says_so_and_keeps_the_user
     the files that were there before the first (never the stage's), and the marker and the log
     say which attempt finished (the time of the killed one is not known)."""
     Pipeline(tmp_path).run()  # a run's directory, its settings recorded
-    for stage in ("make", "use"):
-        for suffix in (".json", ".records"):
-            (tmp_path / "stages" / f"{stage}{suffix}").unlink()
+    for stage in ("make", "use"):  # run again: their markers deleted (their records kept)
+        (tmp_path / "stages" / f"{stage}.json").unlink()
     for name in ("x", "y"):
         (tmp_path / "a" / f"{name}.pt").unlink()
     (tmp_path / "a" / "mine.pt").write_bytes(b"mine")
@@ -165,6 +165,11 @@ def test_a_stage_resumed_after_an_interrupted_attempt_says_so_and_keeps_the_user
     assert "attempts" not in json.loads((tmp_path / "stages" / "use.json").read_text())
     assert not (tmp_path / "stages" / "make.started").exists()
     assert (tmp_path / "a" / "mine.pt").read_bytes() == b"mine"
+    # with no record of the stage left (stages/ deleted), nothing tells its files from others
+    shutil.rmtree(tmp_path / "stages")
+    Pipeline(tmp_path).run()
+    marker = json.loads((tmp_path / "stages" / "make.json").read_text())
+    assert set(marker["outputs"]) == {"a/mine.pt", "a/x.pt", "a/y.pt"}
 
 
 def test_downstream_stages_rerun_when_a_recomputed_input_differs(tmp_path):
