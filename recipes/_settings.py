@@ -75,10 +75,16 @@ def whole_steps(name: str, seconds: Any, step: float) -> int:
     return round(steps)
 
 
-def check_seed(name: str, value: Any) -> None:
-    """Require an integer seed in ``[0, 2**32 - 1]``."""
-    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= SEED_MAX:
-        raise ValueError(f"{name}: expected an integer in [0, 2**32 - 1], got {value!r}")
+def check_seed(name: str, value: Any, maximum: int = SEED_MAX) -> None:
+    """Require an integer seed in ``[0, maximum]`` (default ``2**32 - 1``; a study whose real
+    episodes' seeds grow with it, ``seed·100_003`` each in ``real_outcomes``, allows less)."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= maximum:
+        if maximum == SEED_MAX:
+            raise ValueError(f"{name}: expected an integer in [0, 2**32 - 1], got {value!r}")
+        raise ValueError(
+            f"{name}: expected an integer in [0, {maximum}] (the study's real episodes are "
+            f"seeded from it, and an env's seed stays below 2**32), got {value!r}"
+        )
 
 
 def check_threads(value: Any) -> None:

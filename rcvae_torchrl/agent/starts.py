@@ -190,7 +190,7 @@ def reset_by_seed(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     is not a function of its seed).
     """
     _check_start(start, "seed", "draw_starts(env, seeds)")
-    env.set_seed(int(start["seed"]))
+    env.set_seed(int(start["seed"]) % 2**32)  # as draw_starts' seed_env gave it
     td = env.reset()
     if not torch.equal(td["observation"], start["observation"].to(td["observation"])):
         raise ValueError(

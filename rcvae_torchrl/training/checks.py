@@ -45,6 +45,7 @@ not scored on.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -1303,10 +1304,11 @@ class OutcomeCheck:
         if not self.measured and self.settled and not self.biased:
             return (
                 f"{self.what} are unchecked: {self.settled} of the {self.starts} start states "
-                "were settled from the start (forecast 0 where every real run failed, or 1 where "
-                "every one succeeded), which shows nothing of the forecasts in doubt, and the "
-                f"outcome check needs {self.min_starts} others; check start states whose outcome "
-                f"is in doubt{self._lean()}"
+                "were forecast 0 or 1 and every real run agreed (forecast 0 where every one "
+                "failed, or 1 where every one succeeded), which shows nothing of the forecasts "
+                f"in doubt, and the outcome check needs {self.min_starts} others"
+                f"{self._too_few_sure()}; check start states whose outcome is in doubt"
+                f"{self._lean()}"
             )
         if not self.measured and not self.biased:
             return (
@@ -1346,17 +1348,32 @@ class OutcomeCheck:
             f"{_DRAWS:,} draws){wide}" + self._per_start_sentence()
         )
 
+    def _too_few_sure(self) -> str:
+        """Where the check knows which starts were settled before the agent acted and some
+        forecasts of 0 or 1 were not, why those alone do not pass it (:attr:`sure_only`): how
+        far their count bounds the share wrong, and how many it takes ('' otherwise)."""
+        if self.began_settled is None or self.sure == 0 or self.sure_bound <= self.tolerance:
+            return ""
+        needed = math.ceil(math.log(self.alpha) / math.log(1 - self.tolerance))
+        wrong = "none" if self.sure_misses == 0 else str(self.sure_misses)
+        return (
+            f"; nor can it vouch for the forecasts of 0 or 1 alone: {wrong} wrong of the "
+            f"{self.sure} made from starts not settled before the agent acted bound the share "
+            f"wrong at {self.sure_bound:.0%} ({1 - self.alpha:.0%} bound), above the tolerance "
+            f"{self.tolerance:g} (with none wrong it takes {needed} such starts)"
+        )
+
     def _lean(self) -> str:
-        """Where a check too small to measure already finds its starts in doubt off by more
-        than their outcomes' exact chance allows, though not by the t-test too (so not
-        :attr:`biased`), what they show ('' otherwise)."""
+        """Where a check too small to measure already finds its starts that are not settled
+        (:attr:`settled`) off by more than their outcomes' exact chance allows, though not by
+        the t-test too (so not :attr:`biased`), what they show ('' otherwise)."""
         if self.measured or self.biased or not self.exact_p_value < self.alpha:
             return ""
         doubt = ~self._settled
         forecast, real = float(self.forecast[doubt].mean()), float(self.real[doubt].mean())
         lean = "optimistic" if forecast > real else "pessimistic"
         return (
-            f"; the {int(doubt.sum())} in doubt already lean {lean}: they forecast "
+            f"; the {int(doubt.sum())} other starts already lean {lean}: they forecast "
             f"{forecast:.2f} on average where their real episodes succeeded {real:.2f} "
             f"({_drawn_p(self.exact_p_value)} by the outcomes' exact chance; the t-test over "
             f"all {self.starts} starts, p = {self.p_value:.3g}, does not name it)"

@@ -28,6 +28,10 @@ from .._settings import (
 __all__ = ["RecipeConfig", "StudyConfig", "register_configs", "study_config"]
 
 CONTROL_TIMESTEP = 0.02  # s: dm_control point_mass's control step
+#: The largest study seed: the real episodes' seeds grow with it (the pipeline's REAL_SEEDS +
+#: CHECK_REAL_SEEDS + 100·seed + condition, times 100_003 per episode in ``real_outcomes``)
+#: and an env's seed stays below 2**32
+MAX_SEED = 200
 
 
 def _check(name: str, value: Any, low: float, kind: type = float) -> None:
@@ -113,19 +117,26 @@ class AssessConfig:
 
     ``start_states`` per condition, each imagined with ``samples_per_member`` samples per
     ensemble member; ``runs_per_start``: real episodes per start in the stochastic env (one in
-    the deterministic ones); ``real_workers``: worker processes (a TorchRL ``ParallelEnv``)
-    that run the real episodes, with the same outcomes (1: in this process); ``bins``: the
-    histogram widths of the uncertainty estimate.
+    the deterministic ones); ``check_starts``: the other start states per condition that the
+    outcome check forecasts and runs (it needs 10 whose forecast is in doubt, or 21 forecast 0
+    or 1 and right: a PD controller's forecasts are mostly sure), ``check_runs`` times each in
+    the stochastic env (its power comes from the starts more than the runs);
+    ``real_workers``: worker processes (a TorchRL ``ParallelEnv``) that run the real episodes,
+    with the same outcomes (1: in this process); ``bins``: the histogram widths of the
+    uncertainty estimate.
     """
 
     start_states: int = 20
+    check_starts: int = 40
+    check_runs: int = 10
     samples_per_member: int = 40
     runs_per_start: int = 30
     real_workers: int = 1
     bins: tuple[float, float] = (0.005, 0.02)  #: histogram widths: position (m), velocity (m/s)
 
     def __post_init__(self) -> None:
-        for name in ("start_states", "runs_per_start", "real_workers"):
+        counts = ("start_states", "check_starts", "check_runs", "runs_per_start", "real_workers")
+        for name in counts:
             _check(name, getattr(self, name), 1, int)
         # a member's aleatoric part is its own spread: from one sample it is 0
         _check("samples_per_member", self.samples_per_member, 2, int)
@@ -158,7 +169,7 @@ class StudyConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        check_seed("seed", self.seed)
+        check_seed("seed", self.seed, MAX_SEED)
         if self.train.window > _whole_steps("data.time_limit_s", self.data.time_limit_s):
             raise ValueError(
                 f"train.window: expected at most the data episodes' {self.data.time_limit_s} s, "

@@ -6,8 +6,12 @@
 3. ``forecast``: the agent's success and uncertainty in three conditions, imagined by the
    :class:`~rcvae_torchrl.competency.CompetencyAssessor`.
 4. ``truth``: the same agent in the real env from the same start states, several runs each.
-5. ``report``: forecast against reality per condition, the uncertainty pattern and the
-   plain-language summaries (against the deterministic condition as the in-distribution
+5. ``check``: each condition's outcome check (:class:`~rcvae_torchrl.training.OutcomeCheck`):
+   the agent forecast and run in the real env from other start states of the condition's
+   region, none of them scored, as a user checks a forecast before reading it.
+6. ``report``: forecast against reality per condition, each report with its outcome check
+   attached (the verdict, and whether the report is to be trusted), the uncertainty pattern and
+   the plain-language summaries (against the deterministic condition as the in-distribution
    reference), ``report.md`` and ``summary.json``.
 """
 
@@ -39,11 +43,11 @@ from rcvae_torchrl.data import (
     save_episodes,
     split_episodes,
 )
-from rcvae_torchrl.io import load_torch, save_torch
+from rcvae_torchrl.io import load_torch, read_json, save_torch, write_json
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
-from rcvae_torchrl.training import load_ensemble, save_ensemble, train_ensemble
+from rcvae_torchrl.training import OutcomeCheck, load_ensemble, save_ensemble, train_ensemble
 
 from .._settings import CHECKPOINTS, REPORT_FILES
 from .config import CONTROL_TIMESTEP, StudyConfig
@@ -69,6 +73,7 @@ STAGES = {
     "models": ("models/*.pt",),
     "forecast": ("forecast/*.pt",),
     "truth": ("truth/*.pt",),
+    "check": ("check/*.json",),
     "report": REPORT_FILES,  # named one by one (see REPORT_FILES)
 }
 #: The settings each stage reads (the later stages read them all): another run's finished data
@@ -77,8 +82,11 @@ STAGE_SETTINGS = {
     "data": ("seed", "task", "data"),
     "models": ("seed", "task", "data", "model", "train"),
 }
-# disjoint seed ranges per purpose: data starts, condition c's starts, and real episodes
+# disjoint seed ranges per purpose: data starts, condition c's starts, real episodes; a
+# condition's check starts lie past its scored ones (CHECK_SEEDS on), its check's real
+# episodes past the scored ones' (CHECK_REAL_SEEDS on)
 DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000
+CHECK_SEEDS, CHECK_REAL_SEEDS = 500_000, 20_000
 
 
 class Study:
@@ -197,11 +205,14 @@ class Study:
             policy=self.agent,
         )
 
-    def starts(self, condition: str):
+    def starts(self, condition: str, count: int | None = None, offset: int = 0):
+        """``count`` (default ``assess.start_states``) start states of ``condition``'s region;
+        ``offset``: where their seeds begin past the scored ones' (the check's)."""
         _, variant, region = CONDITIONS[condition]
         env, _ = make_env(variant, self.cfg.task)
         first = START_SEEDS * (1 + list(CONDITIONS).index(condition)) + 10_000 * self.cfg.seed
-        return starts_in_region(env, self.cfg.task, region, self.cfg.assess.start_states, first)
+        count = self.cfg.assess.start_states if count is None else count
+        return starts_in_region(env, self.cfg.task, region, count, first + offset)
 
     def forecast(self) -> dict[str, Any]:
         summary = {}
@@ -219,30 +230,61 @@ class Study:
 
     def truth(self) -> dict[str, Any]:
         summary = {}
-        for index, (condition, (_, variant, _)) in enumerate(CONDITIONS.items()):
+        for index, condition in enumerate(CONDITIONS):
             path = self.dir / "truth" / f"{condition}.pt"
             if not path.is_file():
                 starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
-                # a deterministic env and controller repeat the same episode: one run suffices
-                runs = self.cfg.assess.runs_per_start if variant == "stochastic" else 1
-                outcomes = real_outcomes(
-                    functools.partial(make_real_env, variant, self.cfg.task),
-                    self.agent.module(),
-                    _tensordict(starts["starts"], "seed"),
-                    runs_per_start=runs,
-                    workers=self.cfg.assess.real_workers,
-                    reset_to_state=reset_by_seed,
-                    max_steps=self.steps(self.cfg.task.deadline_s),
-                    success=self.success_fn(),
-                    trace=distance,
-                    seed=REAL_SEEDS + 100 * self.cfg.seed + index,
-                    progress=self.progress,
-                    desc=f"real: {condition}",
-                )
-                save_torch(path, outcomes.as_dict())
+                starts = _tensordict(starts["starts"], "seed")
+                seed = REAL_SEEDS + 100 * self.cfg.seed + index
+                runs = self.cfg.assess.runs_per_start
+                save_torch(path, self._real(condition, starts, seed, runs).as_dict())
             saved = load_torch(path, "real outcomes")
             summary[condition] = float(saved["success"].float().mean())
         return summary
+
+    def _real(self, condition: str, starts: TensorDict, seed: int, runs: int) -> RealOutcomes:
+        """The agent in ``condition``'s real env from ``starts``: ``runs`` episodes each in the
+        stochastic env, one in a deterministic one (where the env and the controller repeat
+        the same episode)."""
+        variant = CONDITIONS[condition][1]
+        return real_outcomes(
+            functools.partial(make_real_env, variant, self.cfg.task),
+            self.agent.module(),
+            starts,
+            runs_per_start=runs if variant == "stochastic" else 1,
+            workers=self.cfg.assess.real_workers,
+            reset_to_state=reset_by_seed,
+            max_steps=self.steps(self.cfg.task.deadline_s),
+            success=self.success_fn(),
+            trace=distance,
+            seed=seed,
+            progress=self.progress,
+            desc=f"real: {condition}",
+        )
+
+    def check(self) -> dict[str, Any]:
+        """Each condition's outcome check: the agent forecast, then run in the real env, from
+        ``assess.check_starts`` start states of the condition's region that no score uses
+        (their seeds past the scored starts'), ``assess.check_runs`` times each in the
+        stochastic env; saved as ``check/<condition>.json``."""
+        summary = {}
+        for index, (condition, (model_name, variant, _)) in enumerate(CONDITIONS.items()):
+            path = self.dir / "check" / f"{condition}.json"
+            if not path.is_file():
+                starts = self.starts(condition, self.cfg.assess.check_starts, CHECK_SEEDS)
+                report = self.assessor(model_name, variant).assess(
+                    starts["observation"], generator=torch.Generator().manual_seed(self.cfg.seed)
+                )
+                seed = REAL_SEEDS + CHECK_REAL_SEEDS + 100 * self.cfg.seed + index
+                outcomes = self._real(condition, starts, seed, self.cfg.assess.check_runs)
+                check = OutcomeCheck.from_outcomes(report, outcomes)
+                write_json(path, check.as_dict())
+            check = self.load_check(condition)
+            summary[condition] = {"verdict": check.verdict, "passed": check.passed}
+        return summary
+
+    def load_check(self, condition: str) -> OutcomeCheck:
+        return OutcomeCheck.from_dict(read_json(self.dir / "check" / f"{condition}.json", "check"))
 
     def reports(self) -> dict[str, CompetencyReport]:
         """The assessor's reports of the three conditions, read back from the run."""
@@ -262,7 +304,8 @@ class Study:
             c: score_forecast(reports[c].competency["p_success"], RealOutcomes.from_dict(truths[c]))
             for c in CONDITIONS
         }
-        return write_report(self.dir, reports, truths, scores, self.cfg)
+        checked = {c: reports[c].with_forecast_check(self.load_check(c)) for c in CONDITIONS}
+        return write_report(self.dir, checked, truths, scores, self.cfg)
 
 
 def _tensordict(values: dict, first: str) -> TensorDict:

@@ -53,7 +53,11 @@ def _row(name: str, report: CompetencyReport, score: Mapping[str, float]) -> dic
     }
 
 
-def _checks(rows: Mapping[str, Mapping[str, Any]], causes: Mapping[str, str | None]) -> dict:
+def _checks(
+    rows: Mapping[str, Mapping[str, Any]],
+    causes: Mapping[str, str | None],
+    reports: Mapping[str, CompetencyReport],
+) -> dict:
     det, sto, ood = rows["deterministic"], rows["stochastic"], rows["out-of-distribution"]
     checks = {
         f"|forecast - real| <= 0.10 ({c})": (r["gap"], r["gap"] <= 0.10) for c, r in rows.items()
@@ -67,6 +71,9 @@ def _checks(rows: Mapping[str, Mapping[str, Any]], causes: Mapping[str, str | No
             causes[condition],
             causes[condition] == expected,
         )
+    for condition, report in reports.items():
+        check = report.forecast_check
+        checks[f"outcome check passed ({condition})"] = (check.verdict, check.passed)
     return {k: {"value": v, "met": bool(met)} for k, (v, met) in checks.items()}
 
 
@@ -82,7 +89,7 @@ def write_report(
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     referenced = {c: r.with_reference(reports[REFERENCE]) for c, r in reports.items()}
     causes = {c: r.cause() for c, r in referenced.items()}
-    checks = _checks(rows, causes)
+    checks = _checks(rows, causes, reports)
     curves = {
         c: {k: r.uncertainty.get(k).mean(0) for k in ("aleatoric", "epistemic")}
         for c, r in reports.items()
@@ -101,19 +108,41 @@ def write_report(
         "checks": checks,
         "overall": {c: r.overall() for c, r in referenced.items()},
         "model_warnings": {c: r.model_warning for c, r in reports.items()},
+        "forecast_checks": {c: _check_row(r) for c, r in reports.items()},
     }
     write_json(run_dir / "summary.json", summary)
-    text = _markdown(run_dir, checks, summary["overall"], config)
+    text = _markdown(run_dir, checks, summary, config)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary
+
+
+def _check_row(report: CompetencyReport) -> dict[str, Any]:
+    """A condition's outcome check in figures, and whether its report is to be trusted."""
+    check = report.forecast_check
+    low, high = check.interval()
+    return {
+        "starts": check.starts,
+        "runs": check.runs,
+        "verdict": check.verdict,
+        "gap": check.gap,
+        "gap_low": low,
+        "gap_high": high,
+        "passed": check.passed,
+        "trustworthy": report.trustworthy,
+        "describe": check.describe(),
+    }
+
+
+def _yes(flag: bool) -> str:
+    return "yes" if flag else "no"
 
 
 def _cell(value: object) -> str:
     return f"{value:.3f}" if isinstance(value, float) else str(value)
 
 
-def _markdown(run_dir: Path, checks: dict, overall: dict, config: StudyConfig) -> str:
-    t = config.task
+def _markdown(run_dir: Path, checks: dict, summary: dict, config: StudyConfig) -> str:
+    t, overall, found = config.task, summary["overall"], summary["forecast_checks"]
     lines = [
         "# Competency of a PD controller on dm_control's point_mass",
         "",
@@ -126,18 +155,35 @@ def _markdown(run_dir: Path, checks: dict, overall: dict, config: StudyConfig) -
         "",
         "| check | measured | met |",
         "|:---|---:|:---:|",
+        *[f"| {name} | {_cell(c['value'])} | {_yes(c['met'])} |" for name, c in checks.items()],
+        "",
+        "## Outcome checks",
+        "",
+        f"Before a forecast is read, it is checked: per condition, the controller was forecast "
+        f"and run in the real env from {config.assess.check_starts} other start states of the "
+        "condition's region, none of them scored above "
+        "(`OutcomeCheck.from_outcomes`), and the check is attached to the condition's report "
+        "(`with_forecast_check`). A report is trustworthy only where its model passed its "
+        "self-checks and its check passed for forecasts like its own.",
+        "",
+        "| condition | check starts | real runs each | verdict | gap (interval) | trusted |",
+        "|:---|---:|---:|:---|:---|:---:|",
         *[
-            f"| {name} | {_cell(c['value'])} | {'yes' if c['met'] else 'no'} |"
-            for name, c in checks.items()
+            f"| {c} | {r['starts']} | {r['runs']} | {r['verdict']} | {r['gap']:+.3f} "
+            f"({r['gap_low']:+.3f} to {r['gap_high']:+.3f}) | {_yes(r['trustworthy'])} |"
+            for c, r in found.items()
         ],
+        "",
+        "The gap's interval is at the check's level (99 %); trusted: the report's `trustworthy`.",
+        "",
+        *[f"- **{c}**: {r['describe']}." for c, r in found.items()],
         "",
         f"## Summaries (against the {REFERENCE} condition)",
         "",
-        "The library's own words for each condition. Its ratios are of bits per step of the "
-        "imagined episodes' life, which the episodes' lengths do not change; the checks above "
-        "are of time-mean bits, in which an episode that ended adds none: the two differ where "
-        "the conditions' episodes last differently long. The table above holds these forecasts "
-        "against real episodes; the library's report has no forecast check of its own attached.",
+        "The library's own words for each condition, its outcome check included. Its ratios "
+        "are of bits per step of the imagined episodes' life, which the episodes' lengths do "
+        "not change; the checks above are of time-mean bits, in which an episode that ended "
+        "adds none: the two differ where the conditions' episodes last differently long.",
         "",
         *[f"- **{c}**: {text}" for c, text in overall.items()],
         "",

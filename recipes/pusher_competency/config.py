@@ -44,6 +44,11 @@ __all__ = [
     "study_config",
 ]
 
+#: The largest study seed: the real episodes' seeds grow with it (the pipeline's REAL_SEEDS,
+#: SPREAD_SEEDS, SHARE_SEEDS and HELD_OUT_SEEDS + 10·seed + condition, times 100_003 per episode
+#: in ``real_outcomes``) and an env's seed stays below 2**32
+MAX_SEED = 3_000
+
 
 def _at_least(obj: object, names: tuple[str, ...], low: float, kind: type = float) -> None:
     for name in names:
@@ -276,7 +281,7 @@ class StudyConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        check_seed("seed", self.seed)
+        check_seed("seed", self.seed, MAX_SEED)
         longest = max(self.data.time_limit, self.data.random_time_limit)
         if self.train.window > round(longest / CONTROL_TIMESTEP):
             raise ValueError(

@@ -37,6 +37,17 @@ def test_seeded_and_physics_resets_give_the_drawn_start(reacher):
         assert torch.equal(td["observation"], starts["observation"][i])
 
 
+def test_a_seed_past_numpy_s_range_resets_as_it_was_drawn(reacher):
+    """draw_starts seeds the env with the seed mod 2**32 (numpy's range); the seeded reset
+    replays that, whatever the seed (a study seed times 10,000, say)."""
+    big = 10_000 * 1_000_000 + 5
+    starts = draw_starts(reacher, [big])
+    assert starts["seed"].tolist() == [big]
+    assert torch.equal(draw_starts(reacher, [big % 2**32])["observation"], starts["observation"])
+    reacher.reset()
+    assert torch.equal(reset_by_seed(reacher, starts[0])["observation"], starts["observation"][0])
+
+
 def test_a_start_s_model_holds_for_its_episode_only():
     env = prepare_env(DMControlEnv("reacher", "easy"))[0]  # its own: the model is changed
     physics = physics_of(env)

@@ -15,6 +15,7 @@ from omegaconf import OmegaConf
 from rcvae_torchrl.io import StoredFileError, write_json
 from recipes._settings import SEED_MAX, check_override_keys, resolve_device, set_threads
 from recipes.pusher_competency.config import (
+    MAX_SEED,
     RecipeConfig,
     StudyConfig,
     register_configs,
@@ -203,8 +204,8 @@ def test_the_schema_is_the_base_of_every_profile():
         ("model.state_constraint=bogus", r"^model\.state_constraint: expected 'pusher' or None"),
         ("planner.top_k=500", r"^planner\.top_k: expected at most num_candidates"),
         ("planner.objective=best", r"^planner\.objective: expected one of"),
-        ("seed=-1", r"^seed: expected an integer in \[0, 2\*\*32 - 1\], got -1"),
-        (f"seed={SEED_MAX + 1}", rf"^seed: expected an integer in .*, got {SEED_MAX + 1}"),
+        ("seed=-1", r"^seed: expected an integer in \[0, 3000\] \(the study's real episodes"),
+        (f"seed={MAX_SEED + 1}", rf"^seed: expected an integer in .*, got {MAX_SEED + 1}"),
         ("device=3", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got '3'"),
         ("device=tpu", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'tpu'"),
         ("device=meta", r"^device: expected 'auto', 'cpu', 'cuda' or 'cuda:N', got 'meta'"),
@@ -270,8 +271,25 @@ def test_device_option():
             resolve_device(bad)
 
 
-def test_the_largest_seed_is_accepted():
-    assert _config(f"seed={SEED_MAX}").seed == SEED_MAX
+def test_the_largest_seed_is_accepted_and_seeds_every_real_episode_within_2_to_the_32():
+    """Each recipe's largest seed keeps its real episodes' seeds (``seed·100_003 + episode``
+    in ``real_outcomes``, up to 100_003 episodes a call) below 2**32; one more is refused up
+    front, not after the study's training."""
+    from recipes.point_mass_competency import config as point_mass_config
+    from recipes.point_mass_competency import pipeline as point_mass
+    from recipes.pusher_competency import pipeline as pusher
+
+    assert _config(f"seed={MAX_SEED}").seed == MAX_SEED
+    bases = (pusher.REAL_SEEDS, pusher.SPREAD_SEEDS, pusher.SHARE_SEEDS, pusher.HELD_OUT_SEEDS)
+    largest = max(bases) + 10 * MAX_SEED + len(pusher.CONDITIONS) - 1
+    assert (largest + 1) * 100_003 <= 2**32
+    limit = point_mass_config.MAX_SEED
+    assert point_mass_config.StudyConfig(seed=limit).seed == limit
+    largest = point_mass.REAL_SEEDS + point_mass.CHECK_REAL_SEEDS + 100 * limit + 2
+    assert (largest + 1) * 100_003 <= 2**32
+    with pytest.raises(ValueError, match=rf"^seed: expected an integer in \[0, {limit}\]"):
+        point_mass_config.StudyConfig(seed=limit + 1)
+    assert SEED_MAX > MAX_SEED  # what a seed of any generator allows, more than a study does
 
 
 def test_threads_are_set_and_checked():

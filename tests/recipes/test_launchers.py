@@ -2,19 +2,24 @@
 
 from pathlib import Path
 
+import pytest
 import yaml
 from hydra import compose, initialize_config_dir
 
+from recipes.point_mass_competency.config import register_configs as register_point_mass
 from recipes.pusher_competency.config import register_configs
 
-CONF = Path(__file__).resolve().parents[2] / "recipes" / "pusher_competency" / "conf"
+RECIPES = Path(__file__).resolve().parents[2] / "recipes"
+CONF = RECIPES / "pusher_competency" / "conf"
 register_configs()
+register_point_mass()
 
 
-def test_local_launcher_runs_jobs_in_parallel_processes():
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+@pytest.mark.parametrize("recipe", ["pusher_competency", "point_mass_competency"])
+def test_local_launcher_runs_jobs_in_parallel_processes(recipe):
+    with initialize_config_dir(config_dir=str(RECIPES / recipe / "conf"), version_base="1.3"):
         cfg = compose(
-            "pusher_competency",
+            recipe,
             overrides=["hydra/launcher=local", "hydra.launcher.n_jobs=3"],
             return_hydra_config=True,
         )

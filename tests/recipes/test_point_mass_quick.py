@@ -63,7 +63,7 @@ def test_every_output_and_a_row_per_condition(run_dir):
 
 def test_summary_checks_and_plain_words(run_dir):
     summary = read_json(run_dir / "summary.json")
-    assert len(summary["checks"]) == 3 + 2 + 2
+    assert len(summary["checks"]) == 3 + 2 + 2 + 3  # gaps, ratios, causes, outcome checks
     for check in summary["checks"].values():
         assert isinstance(check["met"], bool)
     for condition in CONDITIONS:
@@ -76,6 +76,32 @@ def test_summary_checks_and_plain_words(run_dir):
             assert "Against the in-distribution reference" in text
     report = (run_dir / "report.md").read_text()
     assert "## Summaries (against the deterministic condition)" in report
+
+
+def test_each_condition_s_report_carries_its_outcome_check_from_other_starts(run_dir):
+    """The check stage forecasts and runs the controller from start states of each condition's
+    region that no score uses; the report attaches each check to its condition's report."""
+    from rcvae_torchrl.io import load_torch
+    from rcvae_torchrl.training import OutcomeCheck
+
+    summary = read_json(run_dir / "summary.json")
+    report = (run_dir / "report.md").read_text()
+    assert "## Outcome checks" in report
+    for condition in CONDITIONS:
+        check = OutcomeCheck.from_dict(read_json(run_dir / "check" / f"{condition}.json"))
+        assert check.starts == 3 and check.start_states is not None  # the quick profile's
+        scored = load_torch(run_dir / "forecast" / f"{condition}.pt")["starts"]["observation"]
+        assert not (check.start_states[:, None] == scored[None]).all(-1).any()  # none scored
+        found = summary["forecast_checks"][condition]
+        assert (found["verdict"], found["passed"]) == (check.verdict, check.passed)
+        assert summary["checks"][f"outcome check passed ({condition})"] == {
+            "value": check.verdict,
+            "met": check.passed,
+        }
+        assert f"| {condition} | 3 | " in report and check.describe() in report
+        if not check.passed:  # a report whose check did not pass opens with its warning
+            assert summary["overall"][condition].startswith("Warning: ")
+            assert not found["trustworthy"]
 
 
 def test_the_model_config_names_the_dm_control_entries(run_dir):
@@ -113,7 +139,7 @@ def test_a_new_run_reuses_the_data_and_models_of_the_same_settings(run_dir, tmp_
         assert f"[{stage}] reusing the finished stage of {str(run_dir)!r}" in proc.stdout
         for rel in json.loads((new / "stages" / f"{stage}.json").read_text())["outputs"]:
             assert (new / rel).stat().st_ino == (run_dir / rel).stat().st_ino, rel
-    for stage in ("forecast", "truth", "report"):
+    for stage in ("forecast", "truth", "check", "report"):
         assert f"[{stage}] running" in proc.stdout
 
 

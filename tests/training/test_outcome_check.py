@@ -509,11 +509,29 @@ def test_start_states_settled_from_the_start_show_nothing():
     assert lying.settled == 40 and not lying.measured and not lying.passed
     assert lying.verdict == "not measured"
     assert lying.describe() == (
-        "the forecasts are unchecked: 40 of the 40 start states were settled from the start "
-        "(forecast 0 where every real run failed, or 1 where every one succeeded), which shows "
-        "nothing of the forecasts in doubt, and the outcome check needs 10 others; check start "
-        "states whose outcome is in doubt"
+        "the forecasts are unchecked: 40 of the 40 start states were forecast 0 or 1 and every "
+        "real run agreed (forecast 0 where every one failed, or 1 where every one succeeded), "
+        "which shows nothing of the forecasts in doubt, and the outcome check needs 10 others; "
+        "check start states whose outcome is in doubt"
     )
+    # a reacher trial: 13 right forecasts of 0 or 1 from starts not settled before the agent
+    # acted, 3 in doubt: too few of either, and the sentence says how many the sure ones need
+    forecast = torch.cat([torch.zeros(7), torch.ones(6), torch.full((3,), 0.5)]).double()
+    real = torch.cat([torch.zeros(7, 10), torch.ones(6, 10), torch.ones(3, 10)]).bool()
+    real[13:, :5] = False
+    few = OutcomeCheck.from_outcomes(
+        forecast, real, began_settled=torch.zeros(16, dtype=torch.bool)
+    )
+    assert few.sure == 13 and few.settled == 13 and not few.sure_only and not few.passed
+    bound = 1 - 0.01 ** (1 / 13)  # the exact one-sided bound for 0 wrong of 13
+    assert few.sure_bound == pytest.approx(bound)
+    assert (
+        "and the outcome check needs 10 others; nor can it vouch for the forecasts of 0 or 1 "
+        "alone: none wrong of the 13 made from starts not settled before the agent acted bound "
+        f"the share wrong at {bound:.0%} (99% bound), above the tolerance 0.2 (with none wrong it "
+        "takes 21 such starts); check start states whose outcome is in doubt"
+    ) in few.describe()
+    assert 1 - 0.01 ** (1 / 21) <= 0.2 < 1 - 0.01 ** (1 / 20)  # 21, the fewest that pass
     # a forecast of 0.0005 is 0 at the tests' resolution; one of 0.01, or one success, is not
     # settled, and ten such starts beside the settled ones make the check
     forecast = torch.cat([torch.full((30,), 5e-4), torch.full((10,), 0.5)]).double()
@@ -556,7 +574,7 @@ def test_a_check_too_small_to_measure_says_where_its_starts_in_doubt_lean():
     assert check.p_value > check.alpha > check.exact_p_value
     assert check.verdict == "not measured" and not check.passed
     assert check.describe().endswith(
-        "check start states whose outcome is in doubt; the 6 in doubt already lean optimistic: "
+        "check start states whose outcome is in doubt; the 6 other starts already lean optimistic: "
         "they forecast 0.98 on average where their real episodes succeeded 0.00 (< 0.0005 by "
         "the outcomes' exact chance; the t-test over all 20 starts, p = 0.0102, does not name it)"
     )
