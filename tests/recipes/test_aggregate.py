@@ -211,7 +211,8 @@ def test_the_novelty_cautions_are_summed_over_the_seeds_that_made_the_check():
 
 
 def test_a_mean_over_fewer_seeds_than_the_study_says_over_how_many():
-    from recipes.pusher_competency.aggregate import _cell, _stats
+    from recipes._aggregate import cell as _cell
+    from recipes._aggregate import stats as _stats
 
     assert _cell(_stats([float("nan"), -1.263])) == "-1.263 (of 1 seed)"
     assert _cell(_stats([0.1, 0.3, None])) == "0.200 ± 0.141 (of 2 seeds)"
@@ -219,3 +220,34 @@ def test_a_mean_over_fewer_seeds_than_the_study_says_over_how_many():
     assert _cell(_stats([float("nan")])) == "n/a"
     assert _cell(_stats([math.inf, math.inf])) == "inf"  # a rise from 0 bits in every seed
     assert _cell(_stats([math.inf, float("nan")])) == "n/a"
+
+
+def test_the_point_mass_study_over_seeds_with_its_word_checks_and_outcome_checks(tmp_path):
+    """The template's aggregate: its rows' columns, checks whose value is a word (a cause, a
+    verdict) counted by seeds met with no mean, and the outcome checks by their verdicts."""
+    from recipes.point_mass_competency.aggregate import main as point_mass
+
+    for i, (gap, verdict) in enumerate(((0.02, "passed"), (0.12, "not measured"))):
+        run = tmp_path / f"seed{i}"
+        run.mkdir()
+        summary = {
+            "rows": {"stochastic": {"gap": gap, "auroc": 0.8, "aleatoric_bits": 3.0}},
+            "checks": {
+                "|forecast - real| <= 0.10 (stochastic)": {"value": gap, "met": gap <= 0.1},
+                "outcome check passed (stochastic)": {"value": verdict, "met": i == 0},
+            },
+            "forecast_checks": {"stochastic": {"gap": -gap, "passed": i == 0, "verdict": verdict}},
+        }
+        (run / "summary.json").write_text(json.dumps(summary))
+        (run / "study_config.json").write_text(json.dumps({"seed": i, "task": {"kp": 20}}))
+    result = point_mass([str(tmp_path)])
+    assert result["table"]["stochastic"]["gap"]["mean"] == pytest.approx(0.07)
+    text = (tmp_path / "aggregate.md").read_text()
+    assert "# Point-mass competency study over 2 seeds (seed0, seed1)" in text
+    assert "| \\|forecast - real\\| <= 0.10 (stochastic) | 0.070 ± 0.071 | 1/2 |" in text
+    assert "| outcome check passed (stochastic) |  | 1/2 |" in text  # a word: no mean
+    assert "| outcome check passed (stochastic) | passed | not measured ✗ |" in text
+    assert "| stochastic | -0.020 | 0/2 | 1/2 | -0.020 | not measured ? |" in text
+    with pytest.raises(SystemExit, match=r"expected a study summary \(a mapping with 'checks' and"):
+        (tmp_path / "seed1" / "summary.json").write_text(json.dumps({"rows": {}}))
+        point_mass([str(tmp_path)])
