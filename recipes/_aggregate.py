@@ -10,6 +10,7 @@ sections (``rows``, ``validation``, ...) and, where the run checked its forecast
 
 from __future__ import annotations
 
+import argparse
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -24,6 +25,7 @@ __all__ = [
     "check_cell",
     "checks",
     "checks_lines",
+    "command",
     "escaped",
     "forecast_check_lines",
     "forecast_checks",
@@ -329,3 +331,21 @@ def write(directory: Path, result: dict[str, Any], text: str) -> None:
     write_json(directory / "aggregate.json", result)
     atomic_write(directory / "aggregate.md", lambda f: f.write(text.encode()))
     print(text)
+
+
+def command(
+    argv: list[str] | None,
+    description: str,
+    required: set[str],
+    aggregate: Callable[[dict[str, dict[str, Any]]], dict[str, Any]],
+    markdown: Callable[[dict[str, Any]], str],
+) -> dict[str, Any]:
+    """A recipe's aggregate command: the directory holding ``seed*/summary.json`` from
+    ``argv``, its runs' summaries (:func:`read_summaries`, each with the ``required``
+    sections) through ``aggregate``, written with ``markdown``'s text (:func:`write`)."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("directory", type=Path, help="the directory holding seed*/summary.json")
+    args = parser.parse_args(argv)
+    result = aggregate(read_summaries(args.directory, required))
+    write(args.directory, result, markdown(result))
+    return result

@@ -12,7 +12,6 @@ reads ``seed*/summary.json`` under the given directory and writes ``aggregate.md
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Any
@@ -22,12 +21,11 @@ if __package__ in (None, ""):  # run as a script: make the repository root impor
 
 from recipes._aggregate import (
     checks,
+    command,
     forecast_check_lines,
     forecast_checks,
-    read_summaries,
     table,
     table_lines,
-    write,
 )
 
 __all__ = ["aggregate", "main", "markdown"]
@@ -72,12 +70,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("directory", type=Path, help="the directory holding seed*/summary.json")
-    args = parser.parse_args(argv)
-    result = aggregate(read_summaries(args.directory, {"rows", "checks"}))
-    write(args.directory, result, markdown(result))
-    return result
+    return command(argv, __doc__.splitlines()[0], {"rows", "checks"}, aggregate, markdown)
 
 
 if __name__ == "__main__":
