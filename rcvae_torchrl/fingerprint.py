@@ -64,7 +64,7 @@ def weights_digest(module: Any) -> str | None:
 
 def agent_digest(policy: Any) -> str | None:
     """Which agent a policy is: its :func:`weights_digest` where it has weights. A module
-    without weights (a scripted controller written as an ``nn.Module``) is known by its
+    without weights (a controller written as code in an ``nn.Module``) is known by its
     settings instead: for each module of a class of the user's own inside it (not torch's,
     tensordict's, TorchRL's or this library's wrappers), its class name and its public
     attributes that are numbers, strings, ``None``, tensors or lists of them (a gain ``kp``,
