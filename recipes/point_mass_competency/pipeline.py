@@ -78,9 +78,12 @@ STAGES = {
 }
 #: The settings each stage reads (the later stages read them all): another run's finished data
 #: and models are reused (``reuse_from``) when these and the earlier stages' files are the same.
+#: The data read the task's agent, training region, success radius and noise, not its deadline
+#: or its out-of-distribution region, which only the forecast and the check read.
+_DATA_TASK = ("task.kp", "task.kd", "task.inner", "task.radius", "task.noise_std")
 STAGE_SETTINGS = {
-    "data": ("seed", "task", "data"),
-    "models": ("seed", "task", "data", "model", "train"),
+    "data": ("seed", *_DATA_TASK, "data"),
+    "models": ("seed", *_DATA_TASK, "data", "model", "train"),
 }
 # disjoint seed ranges per purpose: data starts, condition c's starts, real episodes; a
 # condition's check starts lie past its scored ones (CHECK_SEEDS on), its check's real

@@ -129,11 +129,15 @@ def test_run_log_and_the_logger(run_dir):
         assert float(logged.split(",")[1]) == marker[frames[0]]
 
 
-def test_a_new_run_reuses_the_data_and_models_of_the_same_settings(run_dir, tmp_path):
-    """``reuse_from``: more imagined samples per member keep the data and the world models
-    (the same files, hard-linked) and forecast anew."""
-    new = tmp_path / "more_samples"
-    proc = _run(*MICRO, f"run_dir={new}", f"reuse_from={run_dir}", "assess.samples_per_member=8")
+@pytest.mark.parametrize(
+    "change", ["assess.samples_per_member=8", "task.deadline_s=0.8"], ids=["samples", "deadline"]
+)
+def test_a_new_run_reuses_the_data_and_models_of_the_same_settings(run_dir, tmp_path, change):
+    """``reuse_from``: more imagined samples per member, or another deadline (which neither
+    the data nor the models read), keep the data and the world models (the same files,
+    hard-linked) and forecast anew."""
+    new = tmp_path / "changed"
+    proc = _run(*MICRO, f"run_dir={new}", f"reuse_from={run_dir}", change)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for stage in ("data", "models"):
         assert f"[{stage}] reusing the finished stage of {str(run_dir)!r}" in proc.stdout
