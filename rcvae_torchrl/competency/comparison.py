@@ -43,7 +43,8 @@ class AgentComparison:
     outcome: str = "success"
     #: why either report is not trustworthy ('' when both are)
     warning: str = ""
-    #: whether both reports are of one agent (the same weights)
+    #: whether both reports are of one agent (the same weights, or the same settings of a
+    #: controller without weights: :func:`~rcvae_torchrl.fingerprint.agent_digest`)
     same_agent: bool = False
     #: the reports whose forecasts no check against real episodes vouches for
     unchecked: tuple[str, ...] = ()
@@ -142,8 +143,8 @@ class AgentComparison:
             )
         if self.same_agent:
             text += (
-                " Both reports are of one agent (the same weights): any difference is the "
-                "imagined samples' chance."
+                " Both reports are of one agent (the same weights, or a controller's same "
+                "settings): any difference is the imagined samples' chance."
             )
         if self.unchecked:
             which = "Neither report's" if len(self.unchecked) == 2 else f"{self.unchecked[0]}'s"
