@@ -144,7 +144,8 @@ def test_members_that_agree_and_an_interval_that_holds_zero():
     assert "No member of the world model tells them apart beyond its imagined samples' chance" in (
         said
     )
-    assert "Both reports are of one agent (the same weights, or a controller.s same settings)" in said
+    one = "Both reports are of one agent (the same weights, or a controller's same settings)"
+    assert one in said
     assert "The interval holds 0: over these start states the imagined chances do not" in said
 
 
