@@ -64,38 +64,70 @@ def weights_digest(module: Any) -> str | None:
 
 def agent_digest(policy: Any) -> str | None:
     """Which agent a policy is: its :func:`weights_digest` where it has weights. A module
-    without weights (a controller written as code in an ``nn.Module``) is known by its
-    settings instead: for each module of a class of the user's own inside it (not torch's,
-    tensordict's, TorchRL's or this library's wrappers), its class name and its public
-    attributes that are numbers, strings, ``None``, tensors or lists of them (a gain ``kp``,
-    a target), prefixed with :data:`SETTINGS`. Two controllers of one class with other gains
-    differ; the same class and gains give the same digest in any process, whatever wraps them
-    and wherever the class is defined. ``None`` for a callable that is not a module (a
-    function) or a module with neither: its identity is not known."""
+    without weights (a controller written as code in an ``nn.Module``) is known by its code
+    and settings instead: for each module of a class of the user's own inside it (not
+    torch's, tensordict's, TorchRL's or this library's wrappers), its class name, the code of
+    its methods, and its attributes that hold numbers, strings, ``None``, tensors, numpy
+    arrays, or lists and dicts of them (a gain ``kp``, a target; private ones too), prefixed
+    with :data:`SETTINGS`. Two controllers of one class with other gains, or of one name with
+    other code, differ; the same code and gains give the same digest in any process, whatever
+    wraps them and wherever the class is defined. ``None`` for a callable that is not a module
+    (a function) or a module with neither: its identity is not known."""
     weights = weights_digest(policy)
     if weights is not None or not isinstance(policy, torch.nn.Module):
         return weights
     own = [
-        json.dumps([type(m).__qualname__, _settings(m)], sort_keys=True, default=str)
+        json.dumps([_code_of(type(m)), _settings(m)], sort_keys=True, default=str)
         for m in policy.modules()
         if type(m).__module__.split(".")[0] not in _WRAPPERS
     ]
     return SETTINGS + digest(sorted(own)) if own else None
 
 
+#: The instance attributes every ``nn.Module`` has (its parameters, buffers, hooks, flags)
+_MODULE_STATE = frozenset(vars(torch.nn.Module()))
+
+
+def _code_of(cls: type) -> dict[str, Any]:
+    """A class by its name and the code of the methods it defines (its own and its bases'
+    below ``nn.Module``), not by where it is defined: the same code in another file or in
+    ``__main__`` is the same controller, other code another."""
+    methods = {}
+    for klass in cls.__mro__:
+        if klass.__module__.split(".")[0] in _WRAPPERS or klass is object:
+            continue
+        for name, value in sorted(vars(klass).items()):
+            if isinstance(value, types.FunctionType) and name not in methods:
+                methods[name] = _code(value.__code__)
+    return {"class": cls.__qualname__, "methods": methods}
+
+
 def _settings(module: torch.nn.Module) -> dict[str, Any]:
-    """A module's public plain attributes (not ``training``), as :func:`describe` gives them."""
+    """A module's own attributes holding plain values (numbers, strings, tensors or arrays,
+    and lists or dicts of them; private ones too), as :func:`describe` gives them."""
     return {
-        key: describe(value)
+        key: describe(_plain(value))
         for key, value in sorted(vars(module).items())
-        if not key.startswith("_") and key != "training" and _plain(value)
+        if key not in _MODULE_STATE and _plain(value) is not _NOT_PLAIN
     }
 
 
-def _plain(value: Any) -> bool:
+_NOT_PLAIN = object()
+
+
+def _plain(value: Any) -> Any:
+    """``value`` where it is plain (a numpy array as a tensor), else :data:`_NOT_PLAIN`."""
     if isinstance(value, (tuple, list)):
-        return all(_plain(v) for v in value)
-    return value is None or isinstance(value, (bool, int, float, str, torch.Tensor))
+        items = [_plain(v) for v in value]
+        return _NOT_PLAIN if any(v is _NOT_PLAIN for v in items) else items
+    if isinstance(value, Mapping):
+        items = {str(k): _plain(v) for k, v in value.items()}
+        return _NOT_PLAIN if any(v is _NOT_PLAIN for v in items.values()) else items
+    if value is None or isinstance(value, (bool, int, float, str, torch.Tensor)):
+        return value
+    if type(value).__module__ == "numpy" and hasattr(value, "dtype"):  # an array or scalar
+        return torch.as_tensor(value)
+    return _NOT_PLAIN
 
 
 def source_digest(paths: Iterable[str | Path]) -> str:

@@ -599,7 +599,8 @@ class CompetencyReport:
         """Why this forecast is not trustworthy ('' when nothing says so): ``model_warning``,
         and the sentence of a forecast check that did not pass, of one that passed on start
         states these lie outside (:attr:`uncovered`), of one tied to no task, or of one that
-        vouches for forecasts of 0 or 1 alone where some of these lie between."""
+        vouches for forecasts of 0 or 1 alone where some of these lie between, or of one whose
+        real episodes' controller had other settings than this report's agent."""
         parts = [self.model_warning] if self.model_warning else []
         check = self.forecast_check
         if check is not None and not check.passed:
@@ -612,6 +613,14 @@ class CompetencyReport:
                 "task: it may be another boundary's, deadline's or model's, and vouches for none "
                 "of these forecasts; build it from the report of its start states "
                 "(OutcomeCheck.from_outcomes(report, outcomes)), or pass task=report.task"
+            )
+        theirs = getattr(check, "agent", None)
+        if check is not None and self.agent and theirs and theirs != self.agent:
+            # known by settings (a refusal is for weights): warned of when attached, and here
+            parts.append(
+                "the forecast check attached may be of another agent: its real episodes' "
+                "controller has other settings (class name, gains or code) than the one these "
+                "forecasts imagined, so it vouches for none of them; check this agent"
             )
         if check is not None and check.passed and getattr(check, "sure_only", False):
             p = self.competency.get("p_success")

@@ -12,6 +12,7 @@ import json
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
@@ -87,6 +88,54 @@ def test_a_controller_without_weights_is_known_by_its_class_and_settings():
     assert agent_digest(nn.Tanh()) is None and agent_digest(lambda td: td) is None
 
 
+_GAINS_SOURCE = """
+import torch
+from torch import nn
+
+class Gains(nn.Module):
+    def __init__(self, kp, target=(0.0, 0.0)):
+        super().__init__()
+        self.kp, self.target = kp, list(target)
+
+    def forward(self, observation):
+        return {body}
+"""
+_SAME = "(-self.kp * (observation[..., :2] - torch.tensor(self.target))).clamp(-1, 1)"
+
+
+def _gains_class(body: str = _SAME, module: str = "__main__") -> type:
+    """``Gains`` defined anew (another file, ``__main__``), with ``body`` as its action."""
+    namespace = {"__name__": module}
+    exec(_GAINS_SOURCE.format(body=body), namespace)
+    return namespace["Gains"]
+
+
+def test_a_controller_is_known_by_its_code_wherever_defined_and_by_all_its_gains():
+    """A trial's team: a ``PD`` of the same name and gains but another ``forward`` (no
+    damping) got the same digest, and so did gains kept private, in a dict or in an array."""
+    assert agent_digest(_gains_class()(2.0)) == agent_digest(Gains(2.0))  # the same code
+    assert agent_digest(_gains_class(module="agents")(2.0)) == agent_digest(Gains(2.0))
+    other = _gains_class("(-self.kp * observation[..., :2]).clamp(-1, 1)")
+    assert agent_digest(other(2.0)) != agent_digest(Gains(2.0))  # the same name, other code
+
+    class Kept(nn.Module):
+        def __init__(self, gains) -> None:
+            super().__init__()
+            self._kp, self.table, self.array = gains, {"kp": gains}, np.array([gains, 1.0])
+
+        def forward(self, observation):
+            return (-self._kp * observation[..., :2]).clamp(-1, 1)
+
+    assert agent_digest(Kept(3.0)) == agent_digest(Kept(3.0))
+    assert agent_digest(Kept(3.0)) != agent_digest(Kept(5.0))
+    kept = Kept(3.0)
+    kept.table["kp"] = 5.0  # in the dict alone
+    assert agent_digest(kept) != agent_digest(Kept(3.0))
+    kept = Kept(3.0)
+    kept.array[1] = 2.0  # in the array alone
+    assert agent_digest(kept) != agent_digest(Kept(3.0))
+
+
 def test_another_controllers_episodes_are_warned_of_where_only_settings_tell_agents_apart():
     report, _ = _report_and_outcomes(Gains(0.5))
     assert report.agent == agent_digest(Gains(0.5))
@@ -105,6 +154,17 @@ def test_another_controllers_episodes_are_warned_of_where_only_settings_tell_age
     mixed = r"weights \(digest f{12}\) against the forecast's settings \(digest \w{12}\)"
     with pytest.warns(UserWarning, match=mixed):
         score_forecast(report, RealOutcomes(success, first, first + 1, agent="f" * 64))
+    # a check of the other controller's episodes, though it passes, vouches for none of these
+    real = torch.rand(12, 20, generator=torch.Generator().manual_seed(3)) < 0.5
+    first = torch.where(real, 2, 6)
+    passing = RealOutcomes(real, first, first + 1, agent=agent_digest(Gains(2.0)))
+    halves = torch.full((12,), 0.5, dtype=torch.float64)
+    check = OutcomeCheck.from_outcomes(halves, passing, task=report.task)
+    assert check.passed and check.agent == agent_digest(Gains(2.0))
+    with pytest.warns(UserWarning, match=said.replace("outcomes", "check")):
+        attached = report.with_forecast_check(check)
+    assert not attached.trustworthy
+    assert "the forecast check attached may be of another agent" in attached.warning
 
 
 def test_a_policy_that_acts_alike_in_every_mode_records_no_mode():
