@@ -102,17 +102,37 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
 _NON_FINITE = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}
 
 
-def _strict(obj: Any) -> Any:
+def _strict(obj: Any, where: str = "obj") -> Any:
     """``obj`` with every non-finite float as its string (``"NaN"``, ``"Infinity"``,
     ``"-Infinity"``): the bare ``NaN`` Python writes is not JSON, and strict parsers (jq,
-    browsers, most languages' libraries) refuse the whole file for it."""
+    browsers, most languages' libraries) refuse the whole file for it. A tensor, or a record
+    with an ``as_dict`` method (a check, real outcomes), is refused (``where`` names it): as a
+    string it would not read back, and a long tensor's is elided."""
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else ("NaN" if math.isnan(obj) else json.dumps(obj))
     if isinstance(obj, Mapping):
-        return {key: _strict(value) for key, value in obj.items()}
+        return {key: _strict(value, f"{where}[{key!r}]") for key, value in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_strict(value) for value in obj]
+        return [_strict(value, f"{where}[{i}]") for i, value in enumerate(obj)]
+    _refuse_record(obj, where, "write_json")
+    if isinstance(obj, torch.Tensor):
+        raise TypeError(
+            f"{where}: expected JSON values (numbers, strings, lists and dicts), got a tensor "
+            f"of shape {tuple(obj.shape)}, whose printed form would not read back (a long "
+            "one's is elided): write .tolist(), or save tensors with save_torch"
+        )
     return obj
+
+
+def _refuse_record(obj: Any, where: str, call: str) -> None:
+    """Refuse a record that has its own plain form (``as_dict``): written whole, it would
+    not read back."""
+    if callable(getattr(obj, "as_dict", None)) and not isinstance(obj, type):
+        name = type(obj).__name__
+        raise TypeError(
+            f"{where}: expected plain values, got a {name}; {call} its .as_dict() (and read it "
+            f"back with {name}.from_dict)"
+        )
 
 
 def _numbers(obj: Any) -> Any:
@@ -129,7 +149,9 @@ def _numbers(obj: Any) -> Any:
 def write_json(path: str | Path, obj: Any, *, checksum: bool = False) -> Path:
     """Write ``obj`` as indented, strict JSON, atomically: a non-finite float as the string
     ``"NaN"``, ``"Infinity"`` or ``"-Infinity"`` (which :func:`read_json` reads back as the
-    float), other non-JSON values as strings. ``checksum``: a dict gets one more entry,
+    float), other non-JSON values (a path, a dtype) as strings; a tensor, or a record with its
+    own plain form (``as_dict``), is refused by name, since as a string it would not read
+    back. ``checksum``: a dict gets one more entry,
     ``CHECKSUM_KEY``, the SHA-256 of the rest, which ``read_json(..., checksum=True)`` checks
     (so that a value edited by hand is not taken as the program's own)."""
     strict = _strict(obj)
@@ -204,7 +226,10 @@ def save_torch(path: str | Path, obj: Any) -> Path:
             "with rcvae_torchrl.data.save_episodes (load_episodes reads them back), or save "
             "td.to_dict()"
         )
+    _refuse_record(obj, "obj", "save_torch")
     if isinstance(obj, dict):
+        for key, value in obj.items():
+            _refuse_record(value, f"obj[{key!r}]", "save_torch")
         if CHECKSUM_KEY in obj:
             raise ValueError(f"obj: {CHECKSUM_KEY!r} is the entry save_torch writes; rename it")
         obj = {**obj, CHECKSUM_KEY: fingerprint.digest(obj)}

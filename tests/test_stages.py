@@ -250,6 +250,28 @@ def test_json_checksums_hold_through_non_finite_floats_and_tuples_and_name_a_cha
         write_json(path, [1, 2], checksum=True)
 
 
+def test_tensors_and_records_are_refused_where_they_would_not_read_back(tmp_path):
+    """A trial's team wrote a check and real outcomes with write_json: a check became its
+    printed form, and long tensors were elided; save_torch of a check wrote a file load_torch
+    then refused. Both are refused when written, by name, nothing written."""
+    from rcvae_torchrl.training import OutcomeCheck
+
+    check = OutcomeCheck.from_outcomes(torch.full((3,), 0.5), torch.ones(3, 2, dtype=torch.bool))
+    said = r"^obj: expected plain values, got a OutcomeCheck; write_json its \.as_dict\(\)"
+    with pytest.raises(TypeError, match=said):
+        write_json(tmp_path / "check.json", check)
+    with pytest.raises(TypeError, match=r"^obj\['success'\]: expected JSON values .*a tensor of"):
+        write_json(tmp_path / "real.json", {"success": torch.ones(2000, dtype=torch.bool)})
+    with pytest.raises(TypeError, match=r"^obj: expected plain values, got a OutcomeCheck; save"):
+        save_torch(tmp_path / "check.pt", check)
+    with pytest.raises(TypeError, match=r"^obj\['check'\]: expected plain values"):
+        save_torch(tmp_path / "checks.pt", {"check": check})
+    assert not list(tmp_path.iterdir())
+    write_json(tmp_path / "check.json", check.as_dict())  # its plain form reads back
+    again = OutcomeCheck.from_dict(read_json(tmp_path / "check.json"))
+    assert again.verdict == check.verdict
+
+
 def test_a_stage_run_again_by_deleting_its_marker_sets_aside_files_edited_since(tmp_path):
     """The way to run a stage again is to delete its marker: its files edited since it wrote
     them (a note added to a report) are set aside, not overwritten; the others are reused."""

@@ -155,8 +155,9 @@ class RealOutcomes:
                 f"steps: expected real episodes run for at least the forecast's deadline of "
                 f"{steps} steps, got episodes of at most max_steps={self.max_steps}: the "
                 f"{int(unknown.sum())} of {unknown.numel()} without a success by then have no "
-                f"known outcome within the deadline (counted as failures, they make any "
-                f"forecast look too optimistic); run real_outcomes with max_steps >= {steps}"
+                f"known outcome within the deadline (a success could still come, or, for a "
+                f"survival boundary, the episode could last to it); run real_outcomes with "
+                f"max_steps >= {steps}"
             )
         hit = self.success & (self.first_step < steps)
         first = torch.where(hit, self.first_step, torch.full_like(self.first_step, steps))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import json
 import logging
 import math
 import warnings
@@ -1014,6 +1015,7 @@ def _restore(
             "number of ranks); resume with the same ensemble and the same number of ranks",
             path,
         )
+    _check_model_config(path, payload.get("config"), local.config)
     try:  # a finished run's too: its best weights are loaded into the caller's model
         local.load_state_dict(payload["state_dict"])
     except RuntimeError as err:
@@ -1029,6 +1031,30 @@ def _restore(
     for g, rng in zip(windows_rng + noise_rng, states, strict=True):
         g.set_state(rng)
     return _State(**training["state"])
+
+
+def _check_model_config(path: Path, saved: Any, config: Any) -> None:
+    """Refuse to resume into a model of another config: weights of the same shapes would load
+    and come back under the new config's bounds, names or step (and other shapes would fail
+    with a list of every tensor that does not fit); named by the fields that differ."""
+    if not isinstance(saved, dict):  # a checkpoint without its config: nothing to compare
+        return
+    ours = dataclasses.asdict(config)
+    differ = [
+        k for k in sorted(ours.keys() | saved.keys()) if _json(saved.get(k)) != _json(ours.get(k))
+    ]
+    if differ:
+        changes = ", ".join(f"{k}={saved.get(k)!r} there, {ours.get(k)!r} now" for k in differ)
+        raise CheckpointError(
+            f"checkpoint {str(path)!r}: was written for a model of another config ({changes}); "
+            f"resume with the same model config or a new path ({_WARM_START})",
+            path,
+        )
+
+
+def _json(value: Any) -> str:
+    """A config value as JSON (tuples and lists alike)."""
+    return json.dumps(value, sort_keys=True, default=str)
 
 
 def _finished_gathered_run(path: Path | None, data: str | None) -> _State | None:

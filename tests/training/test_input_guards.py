@@ -3,6 +3,7 @@ the run it was: the same data and the same model."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -77,8 +78,17 @@ def test_resume_refuses_other_data_and_another_model(tmp_path, linear_data, smal
     with pytest.raises(CheckpointError, match=r"holds members 0\.\.1, this run trains 0\.\.2"):
         _train(small_ensemble(3), train, val, checkpoint_path=path, resume=True)
     wide = RCVAEEnsemble(RCVAEConfig(3, 1, hidden_dim=32, latent_dim=2, mlp_dim=16), 2)
-    with pytest.raises(CheckpointError, match="weights do not match"):
+    with pytest.raises(  # one line naming the fields, not a list of every tensor
+        CheckpointError,
+        match=r"was written for a model of another config \(hidden_dim=\d+ there, 32 now.*\); "
+        r"resume with the same model config or a new path",
+    ):
         _train(wide, train, val, checkpoint_path=path, resume=True)
+    # another config whose weights have the same shapes would load and take its bounds
+    config = small_ensemble(2).config
+    bounded = RCVAEEnsemble(dataclasses.replace(config, max_log_std=config.max_log_std - 1), 2)
+    with pytest.raises(CheckpointError, match=r"\(max_log_std=\S+ there, \S+ now\)"):
+        _train(bounded, train, val, checkpoint_path=path, resume=True)
     again = _train(small_ensemble(2), train, val, checkpoint_path=path, resume=True)
     assert again.steps == BUDGET.max_steps  # the finished run, returned as it was
 
