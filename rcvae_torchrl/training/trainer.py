@@ -975,14 +975,7 @@ def _training_payload(
     # a setting added since the checkpoint was written had its default value then
     saved = {**dataclasses.asdict(TrainConfig()), **training["config"]}
     given = dataclasses.asdict(config) if config is not None else saved
-    differ = sorted(k for k in saved.keys() | given.keys() if saved.get(k) != given.get(k))
-    if differ:
-        changes = ", ".join(f"{k}={saved.get(k)!r} there, {given.get(k)!r} now" for k in differ)
-        raise CheckpointError(
-            f"checkpoint {str(path)!r}: was written with another TrainConfig ({changes}); "
-            f"resume with the same config or a new path ({_WARM_START})",
-            path,
-        )
+    _refuse_other(path, saved, given, "with another TrainConfig", "config")
     saved_data = training.get("data")  # None: written before data digests, or without a path
     if data is not None and saved_data is not None and saved_data != data:
         raise CheckpointError(
@@ -1037,17 +1030,21 @@ def _check_model_config(path: Path, saved: Any, config: Any) -> None:
     """Refuse to resume into a model of another config: weights of the same shapes would load
     and come back under the new config's bounds, names or step (and other shapes would fail
     with a list of every tensor that does not fit); named by the fields that differ."""
-    if not isinstance(saved, dict):  # a checkpoint without its config: nothing to compare
-        return
-    ours = dataclasses.asdict(config)
-    differ = [
-        k for k in sorted(ours.keys() | saved.keys()) if _json(saved.get(k)) != _json(ours.get(k))
-    ]
+    if isinstance(saved, dict):  # a checkpoint without its config: nothing to compare
+        given = dataclasses.asdict(config)
+        _refuse_other(path, saved, given, "for a model of another config", "model config")
+
+
+def _refuse_other(path: Path, saved: dict, given: dict, written: str, same: str) -> None:
+    """A :class:`CheckpointError` naming each field of ``saved`` (the checkpoint's config)
+    that differs from ``given`` (this run's), compared as JSON (tuples and lists alike)."""
+    keys = sorted(saved.keys() | given.keys())
+    differ = [k for k in keys if _json(saved.get(k)) != _json(given.get(k))]
     if differ:
-        changes = ", ".join(f"{k}={saved.get(k)!r} there, {ours.get(k)!r} now" for k in differ)
+        changes = ", ".join(f"{k}={saved.get(k)!r} there, {given.get(k)!r} now" for k in differ)
         raise CheckpointError(
-            f"checkpoint {str(path)!r}: was written for a model of another config ({changes}); "
-            f"resume with the same model config or a new path ({_WARM_START})",
+            f"checkpoint {str(path)!r}: was written {written} ({changes}); resume with the "
+            f"same {same} or a new path ({_WARM_START})",
             path,
         )
 
