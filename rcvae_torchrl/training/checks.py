@@ -1483,14 +1483,15 @@ class OutcomeCheck:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> OutcomeCheck:
         """The inverse of :meth:`as_dict` (e.g. read back from JSON); a record missing an
-        entry it needs raises ValueError naming it."""
+        entry it needs, or whose stored gap its forecasts and real rates do not give (a rate
+        edited by hand), raises ValueError naming it."""
         check_entries(
             "values",
             values,
             ("forecast", "real", "runs", "alpha", "min_starts"),
             "an OutcomeCheck.as_dict()",
         )
-        return cls(
+        check = cls(
             torch.tensor(values["forecast"], dtype=torch.float64),
             torch.tensor(values["real"], dtype=torch.float64),
             runs=int(values["runs"]),
@@ -1511,6 +1512,17 @@ class OutcomeCheck:
             if values.get("began_settled") is None
             else torch.tensor(values["began_settled"], dtype=torch.bool),
         )
+        # the gap is arithmetic of the record's own forecasts and outcomes (to float32's
+        # rounding, for a check made of float32 rates)
+        stored = values.get("gap")
+        if isinstance(stored, (int, float)) and abs(stored - check.gap) > 1e-6:
+            raise ValueError(
+                f"values: the stored gap {stored:+.6f} is not the one the record's forecasts and "
+                f"real rates give ({check.gap:+.6f}): the record was edited or damaged; make the "
+                "check again (write it with write_json(..., checksum=True) to have such edits "
+                "refused when read)"
+            )
+        return check
 
 
 #: resamples of the start states for :meth:`OutcomeCheck.excess_error_interval`

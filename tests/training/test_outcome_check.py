@@ -3,6 +3,7 @@ statistics against closed forms, its verdicts on known truths, its refusals."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -108,6 +109,17 @@ def test_statistics_against_closed_forms():
         OutcomeCheck.from_dict(cut)
     with pytest.raises(TypeError, match=r"^values: expected a mapping .*, got list"):
         OutcomeCheck.from_dict([1, 2])
+    # a trial's team set the real rates to the forecasts in the saved JSON: a check that had
+    # failed read back as passed; its stored gap, which the edit left, now refuses it
+    edited = {**check.as_dict(), "real": check.as_dict()["forecast"]}
+    with pytest.raises(ValueError, match=r"^values: the stored gap [-+]\d\.\d+ is not the one"):
+        OutcomeCheck.from_dict(edited)
+    old = {k: v for k, v in edited.items() if k != "gap"}  # a record without its figures
+    assert OutcomeCheck.from_dict(old).gap == pytest.approx(0.0)
+    single = OutcomeCheck(check.forecast.float(), check.real.float(), runs=check.runs)
+    assert OutcomeCheck.from_dict(json.loads(json.dumps(single.as_dict()))).gap == pytest.approx(
+        single.gap
+    )  # float32 rates read back in float64: their gap's rounding is no edit
 
 
 def test_records_read_back_name_their_missing_entries():
