@@ -105,11 +105,8 @@ def _code_of(cls: type) -> dict[str, Any]:
 def _settings(module: torch.nn.Module) -> dict[str, Any]:
     """A module's own attributes holding plain values (numbers, strings, tensors or arrays,
     and lists or dicts of them; private ones too), as :func:`describe` gives them."""
-    return {
-        key: describe(_plain(value))
-        for key, value in sorted(vars(module).items())
-        if key not in _MODULE_STATE and _plain(value) is not _NOT_PLAIN
-    }
+    plain = {key: _plain(v) for key, v in sorted(vars(module).items()) if key not in _MODULE_STATE}
+    return {key: describe(value) for key, value in plain.items() if value is not _NOT_PLAIN}
 
 
 _NOT_PLAIN = object()

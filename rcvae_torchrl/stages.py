@@ -228,7 +228,7 @@ class StageRunner:
         try:
             record_run_config(path, settings)
         except StoredFileError as err:
-            aside = self._set_aside(str(path.relative_to(self.run_dir)))
+            aside = self._set_aside(self._rel(path))
             self._log(
                 f"[settings] {err}: set aside as {aside}; writing it again from the current "
                 "settings (every stage whose recorded inputs they change runs again)"
@@ -391,7 +391,7 @@ class StageRunner:
         try:
             saved = _read_marker(path, name)
         except StoredFileError as err:
-            aside = self._set_aside(str(path.relative_to(self.run_dir)))
+            aside = self._set_aside(self._rel(path))
             self.log(f"[{name}] {err}: set aside as {aside}; running the stage again")
             return None
         inputs = self._stage_inputs(name)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import json
 import logging
 import math
 import warnings
@@ -54,7 +53,7 @@ from rcvae_torchrl.data import (
     resample_episodes,
     sample_windows,
 )
-from rcvae_torchrl.io import save_torch
+from rcvae_torchrl.io import _as_json, save_torch
 from rcvae_torchrl.loggers import log_scalars
 from rcvae_torchrl.models import RCVAEEnsemble, masked_mean_std
 from rcvae_torchrl.objectives import RCVAELoss
@@ -1038,8 +1037,8 @@ def _check_model_config(path: Path, saved: Any, config: Any) -> None:
 def _refuse_other(path: Path, saved: dict, given: dict, written: str, same: str) -> None:
     """A :class:`CheckpointError` naming each field of ``saved`` (the checkpoint's config)
     that differs from ``given`` (this run's), compared as JSON (tuples and lists alike)."""
-    keys = sorted(saved.keys() | given.keys())
-    differ = [k for k in keys if _json(saved.get(k)) != _json(given.get(k))]
+    as_read, now = _as_json(saved), _as_json(given)
+    differ = [k for k in sorted(as_read.keys() | now.keys()) if as_read.get(k) != now.get(k)]
     if differ:
         changes = ", ".join(f"{k}={saved.get(k)!r} there, {given.get(k)!r} now" for k in differ)
         raise CheckpointError(
@@ -1047,11 +1046,6 @@ def _refuse_other(path: Path, saved: dict, given: dict, written: str, same: str)
             f"same {same} or a new path ({_WARM_START})",
             path,
         )
-
-
-def _json(value: Any) -> str:
-    """A config value as JSON (tuples and lists alike)."""
-    return json.dumps(value, sort_keys=True, default=str)
 
 
 def _finished_gathered_run(path: Path | None, data: str | None) -> _State | None:
