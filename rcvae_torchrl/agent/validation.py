@@ -92,6 +92,10 @@ class RealOutcomes:
     #: ``"observation"``); ``None`` where not known. A forecast of other start states, or of
     #: these in another order, is not scored against them
     starts: torch.Tensor | None = None
+    #: where a survival boundary judged the episodes, its time limit in steps: a success is
+    #: no failure in that many steps, which tells nothing of another deadline (:meth:`within`);
+    #: ``None`` otherwise
+    survival_limit: int | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """Plain values (for ``torch.save``): the tensors (the kept observations and start
@@ -105,8 +109,9 @@ class RealOutcomes:
         for name in ("trace", "observation", "starts"):
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
-        if self.max_steps is not None:
-            out["max_steps"] = torch.tensor(self.max_steps)
+        for name in ("max_steps", "survival_limit"):
+            if getattr(self, name) is not None:
+                out[name] = torch.tensor(getattr(self, name))
         for name in _KNOWN:
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
@@ -118,7 +123,7 @@ class RealOutcomes:
         check_entries(
             "values", values, ("success", "first_step", "steps"), "a RealOutcomes.as_dict()"
         )
-        most = values.get("max_steps")
+        most, lasting = values.get("max_steps"), values.get("survival_limit")
         known = {}
         for name in _KNOWN:
             value = values.get(name)
@@ -134,6 +139,7 @@ class RealOutcomes:
             values["steps"],
             values.get("trace"),
             max_steps=None if most is None else int(most),
+            survival_limit=None if lasting is None else int(lasting),
             observation=values.get("observation"),
             starts=values.get("starts"),
             **known,
@@ -147,8 +153,19 @@ class RealOutcomes:
         Episodes run for fewer steps (``max_steps``) are refused: one without a success by
         their end has no known outcome within the deadline (with a flag the env writes as
         ``success``, :func:`real_outcomes` cannot tell the deadline, so this is where it is
-        checked)."""
+        checked). So are episodes judged by a survival boundary of another time limit
+        (:attr:`survival_limit`): lasting one deadline without a failure says nothing of
+        another, and a success there is never "within" a shorter one."""
         check_positive_int("steps", steps)
+        if self.survival_limit is not None and self.survival_limit != steps:
+            raise ValueError(
+                f"steps: these outcomes were judged by a survival boundary of "
+                f"{self.survival_limit} steps (a success: no failure for {self.survival_limit} "
+                f"steps), which does not tell whether an episode lasted {steps}; judge the kept "
+                "episodes by the forecast's boundary (outcomes.judged_by(boundary), after "
+                "real_outcomes(..., keep_observations=True)), or run real_outcomes with "
+                "success=boundary.success_over_time of the assessor's boundary"
+            )
         if self.max_steps is not None and self.max_steps < steps:
             unknown = ~self.success & (self.steps >= self.max_steps)
             raise ValueError(
@@ -205,6 +222,7 @@ class RealOutcomes:
             first_step=first,
             steps=torch.where(hit, first + 1, length),
             predicates=boundary.predicates,
+            survival_limit=_survival_limit(boundary),
         )
 
     def __len__(self) -> int:
@@ -221,7 +239,7 @@ class RealOutcomes:
             )
         pick = {k: v[index] for k, v in self.as_dict().items() if k in _PER_START}
         picked = RealOutcomes.from_dict(pick)
-        kept = {name: getattr(self, name) for name in (*_KNOWN, "max_steps")}
+        kept = {name: getattr(self, name) for name in (*_KNOWN, "max_steps", "survival_limit")}
         return dataclasses.replace(picked, **kept)
 
 
@@ -340,6 +358,7 @@ def real_outcomes(
         "acting": acting_record(policy, mode),
         "agent": agent_digest(policy),
         "predicates": None if boundary is None else boundary.predicates,
+        "survival_limit": _survival_limit(boundary),
     }
     if policy_rows is not None:
         if isinstance(policy, MPCPlannerBase):
@@ -698,6 +717,11 @@ def _chunk_outcomes(
     observed = after.double().flatten(2).sum(-1)
     outcomes = RealOutcomes(hit, first, steps, values, observation=kept)
     return outcomes, observed.masked_fill(ended, 0.0).sum(1)
+
+
+def _survival_limit(boundary: SuccessBoundary | None) -> int | None:
+    """The time limit of a survival boundary (what its successes lasted), else ``None``."""
+    return int(boundary.time_limit) if boundary is not None and boundary.is_survival else None
 
 
 def _check_steps_cover_the_boundary(success: object, max_steps: int) -> None:

@@ -200,3 +200,39 @@ def test_a_sampling_policy_run_side_by_side_is_said_to_draw_otherwise():
             **args,
         )
     assert not [w for w in caught if "samples its actions" in str(w.message)]
+
+
+def test_a_longer_survival_is_not_taken_for_a_shorter_deadlines_outcome():
+    """A trial's case: real episodes judged by a survival boundary of 8 steps, scored against a
+    forecast of 5 (the same failure predicate, so the same predicates): ``within(5)`` counted
+    every episode that lasted 8 steps a failure (its success came at step 7, past 5)."""
+    from rcvae_torchrl.agent import RealOutcomes
+
+    never = lambda o: o[..., 0] > 2.0  # noqa: E731 (the pusher's arm angle never gets there)
+    longer, shorter = (SuccessBoundary.survival(never, time_limit=n) for n in (8, 5))
+    assert longer.predicates == shorter.predicates
+    env = make_pusher_env("deterministic", time_limit=3.0, terminate_on_success=False)
+    out = real_outcomes(
+        env,
+        make_scripted_policy(),
+        pusher_starts(2),
+        runs_per_start=1,
+        reset_to_state=reset_to_state,
+        max_steps=8,
+        success=longer.success_over_time,
+        progress=False,
+        keep_observations=True,
+    )
+    assert out.survival_limit == 8 and bool(out.success.all())
+    said = r"^steps: these outcomes were judged by a survival boundary of 8 steps \(a success: "
+    with pytest.raises(ValueError, match=said):
+        out.within(5)
+    assert bool(out.within(8).success.all())
+    # judged again by the forecast's boundary, they answer its deadline
+    judged = out.judged_by(shorter)
+    assert judged.survival_limit == 5 and bool(judged.within(5).success.all())
+    # kept by a record and by a subset; a reach boundary's outcomes have none
+    assert RealOutcomes.from_dict(out.as_dict()).survival_limit == 8
+    assert out[:1].survival_limit == 8
+    reach = SuccessBoundary.within_distance(ball_to_target, 0.03, time_limit=8)
+    assert out.judged_by(reach).survival_limit is None
