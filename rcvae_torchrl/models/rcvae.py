@@ -95,6 +95,10 @@ class RCVAEEnsemble(nn.Module):
         ensemble_size: number of members E (1 gives a single RCVAE).
         functions: the state constraint and input features named in ``config``
             (:class:`~rcvae_torchrl.models.ModelFunctions`); needed only when it names any.
+        seed: draws the initial weights from torch's generator seeded by it (its state restored
+            afterwards), the same weights in any process; ``None``: from torch's global
+            generator as it stands (``torch.manual_seed`` before building). Training's
+            ``TrainConfig.seed`` seeds its sampling and noise, not these weights.
 
     Example:
         >>> cfg = RCVAEConfig(obs_dim=4, action_dim=2, hidden_dim=16, mlp_dim=16)
@@ -110,6 +114,7 @@ class RCVAEEnsemble(nn.Module):
         ensemble_size: int = 5,
         *,
         functions: ModelFunctions | None = None,
+        seed: int | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(config, RCVAEConfig):
@@ -143,7 +148,14 @@ class RCVAEEnsemble(nn.Module):
         # D when the predicted dims are 0..D-1 (the passthrough ones a tail): slices suffice
         dims = config.predicted_dims
         self._predicted_head = len(dims) if dims == tuple(range(len(dims))) else None
-        self._build_networks(config, ensemble_size)
+        if seed is None:
+            self._build_networks(config, ensemble_size)
+            return
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"seed: expected an integer >= 0 or None, got {seed!r}")
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self._build_networks(config, ensemble_size)
 
     def _build_networks(self, c: RCVAEConfig, e: int) -> None:
         h, m, z, d = c.hidden_dim, c.mlp_dim, c.latent_dim, c.predicted_dim

@@ -95,7 +95,9 @@ class TrainConfig:
         patience: validations without improvement after which a member stops (its best
             weights are kept; the run ends when every member has stopped).
         seed: seeds sampling and the model's noise (one generator per member and purpose,
-            seeded by the seed and the member's index).
+            seeded by the seed and the member's index). Not the initial weights: the ensemble
+            drew those when it was built (``RCVAEEnsemble(..., seed=s)``, or
+            ``torch.manual_seed(s)`` before building it).
         episode_start_fraction: the fraction of each member's windows that begin at the first
             step of an episode (the rest are drawn uniformly over the data). Imagination
             starts every episode there, from h_0 = 0, with nothing seen yet: a model whose

@@ -159,3 +159,21 @@ def test_double_precision_model(ensemble):
 def test_members_are_initialised_differently(ensemble):
     weight = ensemble.decoder[0].weight
     assert not torch.equal(weight[0], weight[1])
+
+
+def test_a_seed_draws_the_same_initial_weights_and_leaves_torchs_generator(config):
+    """A trial trained twice with ``TrainConfig(seed=0)`` and got two models: that seed draws
+    training's sampling and noise, not the weights the ensemble was built with."""
+    before = torch.random.get_rng_state()
+    a, b = (RCVAEEnsemble(config, 2, seed=3).state_dict() for _ in range(2))
+    assert torch.equal(torch.random.get_rng_state(), before)  # left as it was
+    other = RCVAEEnsemble(config, 2, seed=4).state_dict()
+    for name, value in a.items():
+        assert torch.equal(value, b[name]), name
+    assert any(not torch.equal(value, other[name]) for name, value in a.items())
+    torch.manual_seed(3)  # the same as seeding torch before building
+    plain = RCVAEEnsemble(config, 2).state_dict()
+    assert all(torch.equal(value, plain[name]) for name, value in a.items())
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match=r"^seed: expected an integer >= 0 or None, got"):
+            RCVAEEnsemble(config, 2, seed=bad)
