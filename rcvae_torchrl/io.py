@@ -13,12 +13,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import glob
 import hashlib
 import io
 import json
 import math
 import os
 import re
+import socket
 import tempfile
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
@@ -62,8 +65,11 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
     """Call ``write(f)`` on a temp file beside ``path``, fsync it, then rename it over ``path``.
 
     The file gets mode ``0o666 & ~umask`` (what ``open`` would give it), not the private mode
-    of a temporary file.
-    """
+    of a temporary file. A temp file is named by this machine and process
+    (``.<name>.<host>-<pid>.<random>.tmp``); one left beside ``path`` by a process of this
+    machine that no longer runs (killed while writing) is removed by the next write of
+    ``path``. Other machines' temp files are left alone (on a shared file system their
+    writers may still run)."""
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path: expected a file path (a str or a Path), got {type(path).__name__}")
     path = Path(path)
@@ -82,7 +88,10 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
             f"path: expected a file path whose folders are folders, got {str(path)!r}, where "
             f"{str(blocking)!r} is a file"
         ) from None
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    _remove_dead_writers_temps(path)
+    fd, tmp = tempfile.mkstemp(
+        prefix=f"{_temp_start(path)}{os.getpid()}.", suffix=".tmp", dir=path.parent
+    )
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -95,6 +104,33 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
             os.remove(tmp)
         raise
     return path
+
+
+def _temp_start(path: Path) -> str:
+    """How the temp files of ``path`` written on this machine begin (the pid follows)."""
+    return f".{path.name}.{socket.gethostname()}-"
+
+
+def _remove_dead_writers_temps(path: Path) -> None:
+    """Remove the temp files of ``path`` that processes of this machine left when they were
+    killed while writing it (their process no longer runs)."""
+    start = _temp_start(path)
+    for temp in path.parent.glob(f"{glob.escape(start)}*.tmp"):
+        found = re.fullmatch(r"(\d+)\.[^.]*\.tmp", temp.name[len(start) :])
+        if found is None or _running(int(found.group(1))):
+            continue
+        with contextlib.suppress(FileNotFoundError):  # another writer removed it first
+            temp.unlink()
+
+
+def _running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 #: How :func:`write_json` writes the floats JSON has no number for (as protobuf's JSON does),

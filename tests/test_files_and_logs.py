@@ -238,3 +238,46 @@ def test_json_files_are_strict_and_read_back_their_non_finite_floats(tmp_path):
     assert back["name"] == "x" and back["none"] is None
     (tmp_path / "old.json").write_text('{"gap": NaN}')  # files written before: read as they were
     assert math.isnan(read_json(tmp_path / "old.json")["gap"])
+
+
+def test_a_temp_file_left_by_a_writer_killed_mid_save_is_removed_by_the_next_save(tmp_path):
+    """A trial killed a process (kill -9) while save_torch wrote: the destination stayed whole,
+    and a hidden temp file stayed beside it for good."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    from rcvae_torchrl.io import load_torch, save_torch
+
+    path = tmp_path / "model.pt"
+    save_torch(path, {"w": torch.zeros(3)})
+    writer = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\n"
+            "from rcvae_torchrl.io import atomic_write\n"
+            "atomic_write(sys.argv[1], lambda f: (f.write(b'part'), f.flush(), time.sleep(60)))",
+            str(path),
+        ]
+    )
+    start = f".model.pt.{socket.gethostname()}-{writer.pid}."
+    for _ in range(600):  # until its temp file is there
+        left = [p for p in tmp_path.iterdir() if p.name.startswith(start)]
+        if left:
+            break
+        time.sleep(0.05)
+    assert left, "the writer made no temp file"
+    # one of a process still running (this one's parent) is not touched
+    alive = tmp_path / f".model.pt.{socket.gethostname()}-{os.getppid()}.abc.tmp"
+    alive.write_bytes(b"x")
+    other_host = tmp_path / ".model.pt.elsewhere-1.abc.tmp"  # another machine's: its own
+    other_host.write_bytes(b"x")
+    writer.send_signal(signal.SIGKILL)
+    writer.wait()
+    assert left[0].exists() and torch.equal(load_torch(path)["w"], torch.zeros(3))
+    save_torch(path, {"w": torch.ones(3)})
+    assert not left[0].exists() and alive.exists() and other_host.exists()
+    assert torch.equal(load_torch(path)["w"], torch.ones(3))
