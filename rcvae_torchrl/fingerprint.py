@@ -32,7 +32,16 @@ from typing import Any
 
 import torch
 
-__all__ = ["SETTINGS", "agent_digest", "describe", "digest", "source_digest", "weights_digest"]
+__all__ = [
+    "SETTINGS",
+    "agent_digest",
+    "describe",
+    "digest",
+    "source_digest",
+    "task_difference",
+    "task_digest",
+    "weights_digest",
+]
 
 #: The prefix of an :func:`agent_digest` made from a weightless module's settings (not weights)
 SETTINGS = "settings:"
@@ -82,6 +91,59 @@ def agent_digest(policy: Any) -> str | None:
         if type(m).__module__.split(".")[0] not in _WRAPPERS
     ]
     return SETTINGS + digest(sorted(own)) if own else None
+
+
+#: The parts of a :func:`task_digest`, in its order, and what another value of each means
+_TASK_PARTS = {
+    "boundary": "another boundary (its predicates' code or values)",
+    "deadline": "another deadline",
+    "dt": "another step (dt)",
+    "model": "another world model (its weights)",
+}
+
+
+def task_digest(predicates: str, time_limit: int, dt: float | None, weights: Any) -> str:
+    """What a forecast answers, part by part: ``"boundary <digest> deadline <steps> dt <dt>
+    model <digest>"``, the boundary's predicates (their digest,
+    :attr:`~rcvae_torchrl.competency.SuccessBoundary.predicates`), the deadline judged in
+    steps, the seconds per step, and the world model's weights (a state dict). Two tasks are
+    the same where the strings are equal; :func:`task_difference` names the parts that
+    differ."""
+    parts = {
+        "boundary": digest(predicates)[:16],
+        "deadline": str(int(time_limit)),
+        "dt": repr(None if dt is None else float(dt)),
+        "model": digest(weights)[:16],
+    }
+    return " ".join(f"{k} {v}" for k, v in parts.items())
+
+
+def _task_parts(task: str) -> dict[str, str] | None:
+    words = task.split(" ")
+    parts = dict(zip(words[::2], words[1::2], strict=False))
+    return (
+        parts if len(words) == 2 * len(_TASK_PARTS) and list(parts) == list(_TASK_PARTS) else None
+    )
+
+
+def task_difference(theirs: str, mine: str) -> str:
+    """What makes task ``theirs`` another than ``mine`` (two :func:`task_digest` strings), in
+    words: ``"another deadline (60 steps there, 100 here) and another world model (its
+    weights)"``; ``""`` where they are the same, ``"another task"`` where either is not a
+    :func:`task_digest` (an older record's plain digest)."""
+    if theirs == mine:
+        return ""
+    a, b = _task_parts(theirs), _task_parts(mine)
+    if a is None or b is None:
+        return "another task"
+    said = []
+    for key, words in _TASK_PARTS.items():
+        if a[key] == b[key]:
+            continue
+        unit = " steps" if key == "deadline" else ""
+        shown = key in ("deadline", "dt")  # digests say nothing to a reader
+        said.append(f"{words} ({a[key]}{unit} there, {b[key]}{unit} here)" if shown else words)
+    return " and ".join(said)
 
 
 #: The instance attributes every ``nn.Module`` has (its parameters, buffers, hooks, flags)

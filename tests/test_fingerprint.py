@@ -82,3 +82,27 @@ def test_another_interpreter_gives_the_same_digest():
         ).stdout
 
     assert run("1").split() == [digest(_with_a_set), digest(_above(0.1)), digest(_calls_a_helper)]
+
+
+def test_a_task_digest_names_the_parts_another_task_differs_in():
+    """A refusal of another task names what differs (the trial's "task 3f2a… against 9c1e…"
+    told the user nothing): boundary, deadline, step or world model, each on its own."""
+    from rcvae_torchrl.fingerprint import task_difference, task_digest
+
+    weights = {"w": torch.ones(3)}
+    base = task_digest("predicates-a", 60, 0.05, weights)
+    assert base == task_digest("predicates-a", 60, 0.05, {"w": torch.ones(3)})
+    assert task_difference(base, base) == ""
+    other_weights = task_digest("predicates-a", 60, 0.05, {"w": torch.zeros(3)})
+    assert task_difference(other_weights, base) == "another world model (its weights)"
+    sooner = task_digest("predicates-a", 40, 0.05, weights)
+    assert task_difference(sooner, base) == "another deadline (40 steps there, 60 steps here)"
+    assert task_difference(task_digest("predicates-b", 60, 0.1, weights), base) == (
+        "another boundary (its predicates' code or values) and another step (dt) "
+        "(0.1 there, 0.05 here)"
+    )
+    assert task_difference(task_digest("predicates-a", 60, None, weights), base) == (
+        "another step (dt) (None there, 0.05 here)"
+    )
+    # an older record's plain digest is another task, with no part to name
+    assert task_difference("3f2a" * 16, base) == "another task"

@@ -385,7 +385,12 @@ class CompetencyAssessor(KeyedModule):
         steps, whichever came first, and other steps would change only the words (a 3-s
         report read "within 1 s" with its 3-s P). For another deadline, judge the rollouts
         again (:func:`~rcvae_torchrl.competency.success_on_grid`, ``per_sample``) or assess
-        anew."""
+        anew.
+
+        The report is labelled with this assessor's task (boundary, deadline, world model) and
+        knows no agent: ``data`` does not say what it answered. To keep a report and read it
+        back with its own task, agent and checks, save :meth:`CompetencyReport.as_dict`
+        (:meth:`CompetencyReport.from_dict` reads it)."""
         total = data.get((self.tensor_keys.uncertainty, "total"), None)
         imagined = None if total is None else int(total.shape[data.batch_dims])
         if steps is not None and imagined is not None and steps != imagined:
@@ -418,19 +423,20 @@ class CompetencyAssessor(KeyedModule):
         )
 
     def task(self, time_limit: int | None = None) -> str:
-        """What this assessor's forecasts answer, as a digest (a report keeps it as its
-        ``task``, and a forecast check made from that report too): the boundary's predicates
-        (their code and the values they read, as :func:`rcvae_torchrl.fingerprint.digest`
+        """What this assessor's forecasts answer, part by part
+        (:func:`rcvae_torchrl.fingerprint.task_digest`; a report keeps it as its ``task``, and
+        a forecast check made from that report too): the boundary's predicates (a digest of
+        their code and the values they read, as :func:`rcvae_torchrl.fingerprint.digest`
         describes a function), the deadline judged (``time_limit`` steps, default the
-        boundary's), dt, and the world model's weights. Two reports share it only where both
-        judge the same task with the same model. The agent is not in it: a report keeps it on
-        its own (:attr:`CompetencyReport.agent`)."""
+        boundary's), dt, and a digest of the world model's weights. Two reports share it only
+        where both judge the same task with the same model, and a refusal names the parts
+        that differ (:func:`~rcvae_torchrl.fingerprint.task_difference`). The agent is not in
+        it: a report keeps it on its own (:attr:`CompetencyReport.agent`)."""
         boundary = self.boundary
         limit = boundary.time_limit if time_limit is None else time_limit
         ensemble = getattr(self.model_env, "ensemble", None)
         weights = {} if ensemble is None else dict(ensemble.state_dict())
-        task = {"predicates": boundary.predicates, "time_limit": limit, "dt": self.dt}
-        return fingerprint.digest({**task, "model": weights})
+        return fingerprint.task_digest(boundary.predicates, limit, self.dt, weights)
 
     def real_spread(self, outcomes: Any) -> RealSpread:
         """The agent's real episodes' spread, in bits, measured as this assessor measures the

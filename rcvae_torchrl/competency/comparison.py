@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from rcvae_torchrl import fingerprint
 from rcvae_torchrl._checks import check_same_starts, check_unit_interval
 from rcvae_torchrl.competency.intervals import mean_interval
 from rcvae_torchrl.competency.report import CompetencyReport
@@ -225,13 +226,9 @@ def compare_agents(
 
 def _other_task(a: CompetencyReport, b: CompetencyReport) -> str:
     """What makes ``b``'s task another than ``a``'s, in words."""
-    if a.predicates and b.predicates and a.predicates != b.predicates:
-        return "another boundary (its predicates' code or values)"
-    if a.time_limit != b.time_limit:
-        return f"another deadline ({b.time_limit} steps against {a.time_limit})"
     if not (a.task and b.task):
         return "a task not known (a report built by hand)"
-    return "another world model (its weights) or step (dt)"
+    return fingerprint.task_difference(b.task, a.task)
 
 
 def _z(confidence: float) -> float:

@@ -9,17 +9,17 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from functools import cached_property
 from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from rcvae_torchrl import _checks
+from rcvae_torchrl import _checks, fingerprint
 from rcvae_torchrl._conformal import conformal_level
 from rcvae_torchrl.competency.metrics import bits_per_live_step, rescale_aleatoric
 from rcvae_torchrl.competency.validation import same_chance_p_value
@@ -366,6 +366,51 @@ class AleatoricShare:
 _AS_DICT = "an AleatoricShare.as_dict()"
 
 
+#: What a :meth:`CompetencyReport.as_dict` record says it is, and the entries it holds
+_REPORT_KIND = "CompetencyReport"
+_REPORT_AS_DICT = "a CompetencyReport.as_dict()"
+_REPORT_ENTRIES = (
+    "kind",
+    "data",
+    "batch_size",
+    "dim_names",
+    "time_limit",
+    "dt",
+    "confidence",
+    "top_k",
+    "keys",
+    "model_warning",
+    "model_caution",
+    "survival",
+    "measure",
+    "task",
+    "acting",
+    "agent",
+    "predicates",
+    "time_unit",
+    "spread_tolerance",
+    "reference",
+    "forecast_check",
+    "novelty",
+    "aleatoric_share",
+)
+
+
+def _key_as_list(key: NestedKey) -> str | list[str]:
+    return key if isinstance(key, str) else list(key)
+
+
+def _key_from_list(key: str | Sequence[str]) -> NestedKey:
+    return key if isinstance(key, str) else tuple(key)
+
+
+def _reference_dict(reference: Reference) -> dict[str, Any]:
+    values = {f.name: getattr(reference, f.name) for f in fields(reference)}
+    if values["measure"] is not None:
+        values["measure"] = dict(values["measure"])
+    return values
+
+
 def _per_live_step(time_mean: Tensor, live: Tensor) -> Tensor:
     """``time_mean`` ``[*B, D]`` as bits per live step (``live`` ``[*B, T]``)."""
     return bits_per_live_step(time_mean.movedim(-1, 0), live.to(time_mean)).movedim(0, -1)
@@ -540,6 +585,127 @@ class CompetencyReport:
     #: split (:meth:`with_aleatoric_share`); ``None``: the world model's own split
     aleatoric_share: AleatoricShare | None = None
 
+    def as_dict(self) -> dict[str, Any]:
+        """The whole report as tensors, numbers, strings, lists and dicts, for
+        :func:`~rcvae_torchrl.io.save_torch` (:meth:`from_dict` reads it back): its ``data``
+        (on the CPU) and batch size, and every label that says what it answers and how far it
+        is to be trusted: task, agent, acting, predicates, deadline, dt, the world model's
+        warning and caution, how its bits were measured, and its novelty check, reference,
+        forecast check and aleatoric share. Saving ``report.data`` alone keeps none of them:
+        :meth:`CompetencyAssessor.report` labels bare data with the reading assessor's task and
+        knows no agent."""
+        return {
+            "kind": _REPORT_KIND,
+            "data": self.data.detach().cpu().to_dict(),
+            "batch_size": list(self.data.batch_size),
+            "dim_names": list(self.dim_names),
+            "time_limit": int(self.time_limit),
+            "dt": None if self.dt is None else float(self.dt),
+            "confidence": float(self.confidence),
+            "top_k": int(self.top_k),
+            "keys": {
+                name: _key_as_list(getattr(self, f"{name}_key"))
+                for name in ("uncertainty", "competency", "observation")
+            },
+            "model_warning": self.model_warning,
+            "model_caution": self.model_caution,
+            "survival": bool(self.survival),
+            "measure": None if self.measure is None else dict(self.measure),
+            "task": self.task,
+            "acting": self.acting,
+            "agent": self.agent,
+            "predicates": self.predicates,
+            "time_unit": self.time_unit,
+            "spread_tolerance": [float(v) for v in self.spread_tolerance],
+            "reference": None if self.reference is None else _reference_dict(self.reference),
+            "forecast_check": None
+            if self.forecast_check is None
+            else self.forecast_check.as_dict(),
+            "novelty": None if self.novelty is None else self.novelty.as_dict(),
+            "aleatoric_share": None
+            if self.aleatoric_share is None
+            else self.aleatoric_share.as_dict(),
+        }
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> CompetencyReport:
+        """The report :meth:`as_dict` gave (e.g. read back with
+        :func:`~rcvae_torchrl.io.load_torch`), with its own task, agent and deadline: a check
+        of another task or agent is refused as it was before the report was saved. Its parts
+        are read back as each one's own ``from_dict`` checks them; a record missing an entry,
+        or holding one this report does not know, is refused by name."""
+        from rcvae_torchrl.training import OutcomeCheck, StateNovelty  # training imports this
+
+        _checks.check_entries("values", values, _REPORT_ENTRIES, _REPORT_AS_DICT)
+        unknown = sorted(set(map(str, values)) - set(_REPORT_ENTRIES))
+        if unknown:
+            raise ValueError(
+                f"values: entries {unknown} are not a report's ({_REPORT_AS_DICT}); expected "
+                f"only {list(_REPORT_ENTRIES)}"
+            )
+        if values["kind"] != _REPORT_KIND:
+            raise ValueError(
+                f"values['kind']: expected {_REPORT_KIND!r} ({_REPORT_AS_DICT}), got "
+                f"{values['kind']!r}"
+            )
+        for name in ("task", "model_warning", "model_caution", "time_unit"):
+            if not isinstance(values[name], str):
+                raise TypeError(
+                    f"values[{name!r}]: expected a str ({_REPORT_AS_DICT}), got "
+                    f"{type(values[name]).__name__}"
+                )
+        for name in ("acting", "agent", "predicates"):
+            if values[name] is not None and not isinstance(values[name], str):
+                raise TypeError(
+                    f"values[{name!r}]: expected a str or None ({_REPORT_AS_DICT}), got "
+                    f"{type(values[name]).__name__}"
+                )
+        _checks.check_positive_int("values['time_limit']", values["time_limit"])
+        if not isinstance(values["data"], Mapping):
+            raise TypeError(
+                f"values['data']: expected a dict of tensors (report.data.to_dict()), got "
+                f"{type(values['data']).__name__}"
+            )
+        try:
+            data = TensorDict(dict(values["data"]), batch_size=list(values["batch_size"]))
+        except (RuntimeError, TypeError, ValueError) as err:
+            raise ValueError(
+                f"values['data']: its tensors do not share the report's batch size "
+                f"{list(values['batch_size'])} ({err})"
+            ) from err
+        keys = {name: _key_from_list(key) for name, key in dict(values["keys"]).items()}
+        share, check, novelty, reference = (
+            values["aleatoric_share"],
+            values["forecast_check"],
+            values["novelty"],
+            values["reference"],
+        )
+        return cls(
+            data,
+            tuple(values["dim_names"]),
+            int(values["time_limit"]),
+            None if values["dt"] is None else float(values["dt"]),
+            float(values["confidence"]),
+            int(values["top_k"]),
+            keys["uncertainty"],
+            keys["competency"],
+            keys["observation"],
+            model_warning=values["model_warning"],
+            reference=None if reference is None else Reference(**dict(reference)),
+            model_caution=values["model_caution"],
+            survival=bool(values["survival"]),
+            forecast_check=None if check is None else OutcomeCheck.from_dict(check),
+            novelty=None if novelty is None else StateNovelty.from_dict(dict(novelty)),
+            measure=None if values["measure"] is None else dict(values["measure"]),
+            task=values["task"],
+            acting=values["acting"],
+            agent=values["agent"],
+            predicates=values["predicates"],
+            time_unit=values["time_unit"],
+            spread_tolerance=tuple(float(v) for v in values["spread_tolerance"]),
+            aleatoric_share=None if share is None else AleatoricShare.from_dict(share),
+        )
+
     @property
     def novel(self) -> Tensor | None:
         """``[*B]`` bool: start states unlike the states the model was trained on, or whose
@@ -673,10 +839,10 @@ class CompetencyReport:
         task = getattr(check, "task", None)
         if self.task and task and task != self.task:
             raise ValueError(
-                f"check: made for another task than this report's (task {task[:12]}, this "
-                f"report's {self.task[:12]}): another boundary (its predicates' code or values), "
-                "deadline or world model; check this report's own task, from the report of its "
-                "start states: OutcomeCheck.from_outcomes(report, outcomes)"
+                "check: made for another task than this report's: "
+                f"{fingerprint.task_difference(task, self.task)}; check this report's own "
+                "task, from the report of its start states: "
+                "OutcomeCheck.from_outcomes(report, outcomes)"
             )
         check_same_agent(self, check, name="check")
         return replace(self, forecast_check=check)
@@ -774,9 +940,9 @@ class CompetencyReport:
             )
         if self.task and share.task and share.task != self.task:
             raise ValueError(
-                f"share: fitted for another task than this report's (task {share.task[:12]}, "
-                f"this report's {self.task[:12]}): another world model, boundary or deadline; "
-                "fit it with the assessor that made this report"
+                "share: fitted for another task than this report's: "
+                f"{fingerprint.task_difference(share.task, self.task)}; fit it with the "
+                "assessor that made this report"
             )
         also: dict[str, Any] = {"dimensions": share.dim_names}
         if share.samples_per_member is not None and self.measure is not None:

@@ -55,7 +55,7 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from rcvae_torchrl import _checks
+from rcvae_torchrl import _checks, fingerprint
 from rcvae_torchrl._checks import (
     ROUNDING,
     check_entries,
@@ -808,8 +808,9 @@ class OutcomeCheck:
             known = getattr(forecast, "task", "") or None
             if task is not None and known is not None and task != known:
                 raise ValueError(
-                    f"task: the forecasts' report answers task {known[:12]}, got {task[:12]}; "
-                    "leave task out with a report (it is the report's)"
+                    "task: expected the task of the forecasts' report, got "
+                    f"{fingerprint.task_difference(task, known)}; leave task out with a report "
+                    "(it is the report's)"
                 )
             task = known if task is None else task
             if start_states is None:
@@ -1303,17 +1304,17 @@ class OutcomeCheck:
             )
         if not self.measured and self.settled and not self.biased:
             return (
-                f"{self.what} are unchecked: {self.settled} of the {self.starts} start states "
-                "were forecast 0 or 1 and every real run agreed (forecast 0 where every one "
-                "failed, or 1 where every one succeeded), which shows nothing of the forecasts "
-                f"in doubt, and the outcome check needs {self.min_starts} others"
+                f"{self.what} are not measured by the outcome check: {self.settled} of the "
+                f"{self.starts} start states were forecast 0 or 1 and every real run agreed "
+                "(forecast 0 where every one failed, or 1 where every one succeeded), which "
+                f"shows nothing of the forecasts in doubt, and it needs {self.min_starts} others"
                 f"{self._too_few_sure()}; check start states whose outcome is in doubt"
                 f"{self._lean()}"
             )
         if not self.measured and not self.biased:
             return (
-                f"{self.what} are unchecked: {self.starts} start states, the outcome check "
-                f"needs {self.min_starts}"
+                f"{self.what} are not measured by the outcome check: {self.starts} start "
+                f"states, where it needs {self.min_starts}"
             )
         low, high = self.interval()
         verdict = "unbiased as far as the tests can tell" if self.passed else self.verdict
@@ -1329,7 +1330,7 @@ class OutcomeCheck:
                 "allows it (its interval holds 0)"
             )
         elif not self.biased and not self.precise:
-            verdict = "unchecked"
+            verdict = "checked too imprecisely to pass"
         wide = ""
         if not self.biased and not self.precise:
             runs = " (or more real episodes per start)" if self._independent_runs else ""

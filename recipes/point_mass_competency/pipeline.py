@@ -226,9 +226,10 @@ class Study:
                 report = self.assessor(model_name, variant).assess(
                     starts["observation"], generator=torch.Generator().manual_seed(self.cfg.seed)
                 )
-                save_torch(path, {"starts": starts.to_dict(), "report": report.data.to_dict()})
+                # the whole report: its task, agent and deadline travel with its data
+                save_torch(path, {"starts": starts.to_dict(), "report": report.as_dict()})
             saved = load_torch(path, "forecast")
-            summary[condition] = float(saved["report"]["competency"]["p_success"].mean())
+            summary[condition] = float(saved["report"]["data"]["competency"]["p_success"].mean())
         return summary
 
     def truth(self) -> dict[str, Any]:
@@ -290,12 +291,12 @@ class Study:
         return OutcomeCheck.from_dict(read_json(self.dir / "check" / f"{condition}.json", "check"))
 
     def reports(self) -> dict[str, CompetencyReport]:
-        """The assessor's reports of the three conditions, read back from the run."""
+        """The reports of the three conditions, read back from the run whole (with the task,
+        agent and deadline they answered)."""
         out = {}
-        for condition, (model_name, variant, _) in CONDITIONS.items():
+        for condition in CONDITIONS:
             saved = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
-            assessor = self.assessor(model_name, variant)
-            out[condition] = assessor.report(_tensordict(saved["report"], "observation"))
+            out[condition] = CompetencyReport.from_dict(saved["report"])
         return out
 
     def report(self) -> dict[str, Any]:

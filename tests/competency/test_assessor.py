@@ -536,7 +536,10 @@ def test_a_forecast_check_that_did_not_pass_opens_every_summary():
     assert checked.trustworthy and checked.summary(index=0).startswith("P(success within 30 s)")
     assert checked.overall().endswith(f" Forecast check on other start states: {fair.describe()}.")
     few = OutcomeCheck.from_outcomes(torch.full((4,), 0.3), real[:4])  # too few starts to tell
-    assert "are unchecked: 4 start states" in hand_report().with_forecast_check(few).warning
+    assert (
+        "are not measured by the outcome check: 4 start states"
+        in hand_report().with_forecast_check(few).warning
+    )
     both = replace_warning(_starts_report([0.7]), "the world model has not learned b")
     assert both.with_forecast_check(optimistic).warning.startswith(
         "the world model has not learned b; forecast check on other start states: the forecasts"
@@ -648,8 +651,9 @@ def test_a_forecast_check_vouches_only_for_reports_of_its_task(env, starts, plan
     assert report.with_forecast_check(same).trustworthy
     assert OutcomeCheck.from_dict(same.as_dict()).task == report.task
 
-    def refused(tasked):
-        with pytest.raises(ValueError, match=r"check: made for another task than this report"):
+    def refused(tasked, named):
+        said = rf"^check: made for another task than this report's: {named}; check this"
+        with pytest.raises(ValueError, match=said):
             report.with_forecast_check(OutcomeCheck.from_outcomes(forecast, real, task=tasked.task))
 
     wider = make_assessor(
@@ -664,9 +668,14 @@ def test_a_forecast_check_vouches_only_for_reports_of_its_task(env, starts, plan
     other_model = make_assessor(make_env(make_ensemble(seed=1))).assess(
         starts, actions=plan, generator=seeded()
     )
-    for name, tasked in [("radius", wider), ("deadline", sooner), ("model", other_model)]:
-        assert tasked.task != report.task, name
-        refused(tasked)
+    # the refusal names the part that differs, not two digests
+    for tasked, named in [
+        (wider, r"another boundary \(its predicates' code or values\)"),
+        (sooner, rf"another deadline \({T - 1} steps there, {T} steps here\)"),
+        (other_model, r"another world model \(its weights\)"),
+    ]:
+        assert tasked.task != report.task, named
+        refused(tasked, named)
     bare = report.with_forecast_check(OutcomeCheck.from_outcomes(forecast, real))
     assert not bare.trustworthy
     assert bare.warning.startswith(
@@ -675,7 +684,8 @@ def test_a_forecast_check_vouches_only_for_reports_of_its_task(env, starts, plan
     assert bare.summary(index=0).startswith("Warning: the forecast check attached was built")
     # a report built by hand knows no task, and takes any check
     assert _starts_report([0.3]).with_forecast_check(_passed_check()).trustworthy
-    with pytest.raises(ValueError, match=r"task: the forecasts' report answers task"):
+    said = r"^task: expected the task of the forecasts' report, got another boundary \(its pr"
+    with pytest.raises(ValueError, match=said):
         OutcomeCheck.from_outcomes(report, torch.ones(3, 2, dtype=torch.bool), task=wider.task)
     with pytest.raises(TypeError, match=r"task: expected a report's task \(a str\), got int"):
         OutcomeCheck.from_outcomes(forecast, real, task=3)

@@ -160,7 +160,10 @@ def test_reports_of_another_task_or_other_starts_are_refused():
     shorter = make_assessor(
         make_env(make_ensemble()), samples_per_member=N, boundary=boundary(time_limit=T - 2)
     ).assess(starts, policy=_agent(0.5), seed=0)
-    with pytest.raises(ValueError, match=other.format(rf"another deadline \({T - 2} steps ")):
+    with pytest.raises(
+        ValueError,
+        match=other.format(rf"another deadline \({T - 2} steps there, {T} steps here\);"),
+    ):
         compare_agents(a, shorter)
     wider = SuccessBoundary.ball(
         obs_indices("ball"), 0.05, target=obs_indices("target"), time_limit=T, dt=DT

@@ -155,7 +155,8 @@ def test_forecast_checks_section_gives_each_verdict():
     assert "| few | 3 | 1 | | | | | not measured |" in text
     assert "- **low**: the low ones are too pessimistic: from 12 start states" in text
     assert (
-        "- **few**: the few ones are unchecked: 3 start states, the outcome check needs 10." in text
+        "- **few**: the few ones are not measured by the outcome check: 3 start states, where "
+        "it needs 10." in text
     )
     assert "- **fair**" not in text  # a passed check needs no sentence
     # passed for sure forecasts alone: its row, and the sentence that says what it vouches for

@@ -92,7 +92,10 @@ def test_statistics_against_closed_forms():
     # too few starts: unmeasured, not passed, and said so
     few = OutcomeCheck(forecast, real, runs=10, min_starts=10, what=WHAT)
     assert not few.measured and not few.passed and not few.biased
-    assert few.message() == f"{WHAT} are unchecked: 4 start states, the outcome check needs 10"
+    assert (
+        few.message()
+        == f"{WHAT} are not measured by the outcome check: 4 start states, where it needs 10"
+    )
     empty = OutcomeCheck(forecast[:0], real[:0], runs=3)
     assert math.isnan(empty.gap) and math.isnan(empty.p_value) and not empty.passed
     assert math.isnan(empty.standard_error) and all(map(math.isnan, empty.interval()))
@@ -462,7 +465,9 @@ def test_a_check_too_wide_to_see_a_bias_that_matters_has_not_passed():
     low, high = useless.interval()
     assert not useless.biased and (high - low) / 2 > 0.2
     assert not useless.precise and not useless.passed and useless.verdict == "too imprecise"
-    assert useless.message().startswith("the forecasts are unchecked: from 12 start states")
+    assert useless.message().startswith(
+        "the forecasts are checked too imprecisely to pass: from 12 start "
+    )
     assert useless.message().endswith(
         "(gap +0.333, 99 % interval -0.016 to +0.682; p = 0.013 by a t-test over the starts, "
         "0.042 by the outcomes' exact chance, 4,000 draws): no bias is named, but the interval "
@@ -521,9 +526,10 @@ def test_start_states_settled_from_the_start_show_nothing():
     assert lying.settled == 40 and not lying.measured and not lying.passed
     assert lying.verdict == "not measured"
     assert lying.describe() == (
-        "the forecasts are unchecked: 40 of the 40 start states were forecast 0 or 1 and every "
-        "real run agreed (forecast 0 where every one failed, or 1 where every one succeeded), "
-        "which shows nothing of the forecasts in doubt, and the outcome check needs 10 others; "
+        "the forecasts are not measured by the outcome check: 40 of the 40 start states were "
+        "forecast 0 or 1 and every real run agreed (forecast 0 where every one failed, or 1 "
+        "where every one succeeded), which shows nothing of the forecasts in doubt, and it "
+        "needs 10 others; "
         "check start states whose outcome is in doubt"
     )
     # a reacher trial: 13 right forecasts of 0 or 1 from starts not settled before the agent
@@ -538,7 +544,7 @@ def test_start_states_settled_from_the_start_show_nothing():
     bound = 1 - 0.01 ** (1 / 13)  # the exact one-sided bound for 0 wrong of 13
     assert few.sure_bound == pytest.approx(bound)
     assert (
-        "and the outcome check needs 10 others; nor can it vouch for the forecasts of 0 or 1 "
+        "and it needs 10 others; nor can it vouch for the forecasts of 0 or 1 "
         "alone: none wrong of the 13 made from starts not settled before the agent acted bound "
         f"the share wrong at {bound:.0%} (99% bound), above the tolerance 0.2 (with none wrong it "
         "takes 21 such starts); check start states whose outcome is in doubt"
