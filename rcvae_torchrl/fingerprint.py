@@ -98,22 +98,23 @@ _TASK_PARTS = {
     "boundary": "another boundary (its predicates' code or values)",
     "deadline": "another deadline",
     "dt": "another step (dt)",
-    "model": "another world model (its weights)",
+    "model": "another world model (its weights, config or functions)",
 }
 
 
-def task_digest(predicates: str, time_limit: int, dt: float | None, weights: Any) -> str:
+def task_digest(predicates: str, time_limit: int, dt: float | None, model: Any) -> str:
     """What a forecast answers, part by part: ``"boundary <digest> deadline <steps> dt <dt>
     model <digest>"``, the boundary's predicates (their digest,
     :attr:`~rcvae_torchrl.competency.SuccessBoundary.predicates`), the deadline judged in
-    steps, the seconds per step, and the world model's weights (a state dict). Two tasks are
-    the same where the strings are equal; :func:`task_difference` names the parts that
+    steps, the seconds per step, and the world model (what :func:`digest` takes: its weights,
+    config and functions, :meth:`~rcvae_torchrl.models.RCVAEEnsemble.behaviour`). Two tasks
+    are the same where the strings are equal; :func:`task_difference` names the parts that
     differ."""
     parts = {
         "boundary": digest(predicates)[:16],
         "deadline": str(int(time_limit)),
         "dt": repr(None if dt is None else float(dt)),
-        "model": digest(weights)[:16],
+        "model": digest(model)[:16],
     }
     return " ".join(f"{k} {v}" for k, v in parts.items())
 

@@ -188,7 +188,7 @@ def write_json(path: str | Path, obj: Any, *, checksum: bool = False) -> Path:
     float), other non-JSON values (a path, a dtype) as strings; a tensor, or a record with its
     own plain form (``as_dict``), is refused by name, since as a string it would not read
     back. ``checksum``: a dict gets one more entry,
-    ``CHECKSUM_KEY``, the SHA-256 of the rest, which ``read_json(..., checksum=True)`` checks
+    ``CHECKSUM_KEY``, the SHA-256 of the rest, which :func:`read_json` checks
     (so that a value edited by hand is not taken as the program's own)."""
     strict = _strict(obj)
     if checksum:  # the digest of the content as it reads back (tuples as lists, ...)
@@ -219,13 +219,14 @@ def _existing_file(path: object, what: str) -> Path:
     return path
 
 
-def read_json(path: str | Path, what: str = "a JSON file", *, checksum: bool = False) -> Any:
+def read_json(path: str | Path, what: str = "a JSON file", *, checksum: bool = True) -> Any:
     """The JSON content of ``path`` (the strings :func:`write_json` writes for non-finite
     floats as those floats); :class:`StoredFileError` naming the file when it is missing or
-    not valid JSON (e.g. truncated). ``checksum``: a dict's ``CHECKSUM_KEY`` entry (written by
-    ``write_json(..., checksum=True)``) is checked against the rest, a
+    not valid JSON (e.g. truncated). ``checksum`` (the default): a dict's ``CHECKSUM_KEY``
+    entry (written by ``write_json(..., checksum=True)``) is checked against the rest, a
     :class:`StoredFileError` when they differ, and left out of what is returned; a dict
-    without one (written before) is taken as it is."""
+    without one (written without) is taken as it is. ``checksum=False`` reads the content as
+    it is, the entry unchecked and kept (to look at a damaged file)."""
     path = _existing_file(path, what)
     try:
         content = json.loads(path.read_bytes())

@@ -94,7 +94,10 @@ def test_a_task_digest_names_the_parts_another_task_differs_in():
     assert base == task_digest("predicates-a", 60, 0.05, {"w": torch.ones(3)})
     assert task_difference(base, base) == ""
     other_weights = task_digest("predicates-a", 60, 0.05, {"w": torch.zeros(3)})
-    assert task_difference(other_weights, base) == "another world model (its weights)"
+    assert (
+        task_difference(other_weights, base)
+        == "another world model (its weights, config or functions)"
+    )
     sooner = task_digest("predicates-a", 40, 0.05, weights)
     assert task_difference(sooner, base) == "another deadline (40 steps there, 60 steps here)"
     assert task_difference(task_digest("predicates-b", 60, 0.1, weights), base) == (

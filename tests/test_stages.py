@@ -243,9 +243,13 @@ def test_json_checksums_hold_through_non_finite_floats_and_tuples_and_name_a_cha
     assert back["b"] == [1, 2.5] and back["c"]["d"] == float("inf") and back["a"] != back["a"]
     assert "content_sha256" not in back
     path.write_text(path.read_text().replace("2.5", "2.75"))
-    assert read_json(path)["b"] == [1, 2.75]  # unchecked, it is read as it is
+    # checked by default (a trial's edit read back unchecked without checksum=True)
+    with pytest.raises(StoredFileError, match=r"the file .*f\.json': its content changed"):
+        read_json(path, "the file")
     with pytest.raises(StoredFileError, match=r"the file .*f\.json': its content changed"):
         read_json(path, "the file", checksum=True)
+    unchecked = read_json(path, checksum=False)  # to look at it: as it is, the entry kept
+    assert unchecked["b"] == [1, 2.75] and len(unchecked["content_sha256"]) == 64
     with pytest.raises(TypeError, match="obj: expected a dict to checksum, got list"):
         write_json(path, [1, 2], checksum=True)
 

@@ -268,7 +268,10 @@ class CompetencyAssessor(KeyedModule):
                 ``[*B, T, A]``, inside the action spec's bounds (as a closed-loop policy's
                 must be: the real episodes refuse actions outside them).
             generator: source of all sampling noise (default: the model env's), drawn chunk
-                after chunk.
+                after chunk. The model env's generator is its own, seeded when the env is
+                made and advanced by every call: two calls without ``seed`` give two reports
+                that differ by the imagined samples' chance, whatever ``torch.manual_seed``
+                says. Pass ``seed`` for the same report.
             seed: instead of ``generator``: chunk ``k`` of ``start_chunk`` start states draws
                 its noise (imagination, the estimator's shuffles, and with a closed-loop policy
                 the generator it holds as ``policy.generator`` and the model env's own, as a
@@ -428,15 +431,22 @@ class CompetencyAssessor(KeyedModule):
         a forecast check made from that report too): the boundary's predicates (a digest of
         their code and the values they read, as :func:`rcvae_torchrl.fingerprint.digest`
         describes a function), the deadline judged (``time_limit`` steps, default the
-        boundary's), dt, and a digest of the world model's weights. Two reports share it only
-        where both judge the same task with the same model, and a refusal names the parts
-        that differ (:func:`~rcvae_torchrl.fingerprint.task_difference`). The agent is not in
-        it: a report keeps it on its own (:attr:`CompetencyReport.agent`)."""
+        boundary's), dt, and a digest of the world model (its weights, config and the
+        functions it calls: :meth:`~rcvae_torchrl.models.RCVAEEnsemble.behaviour`). Two
+        reports share it only where both judge the same task with the same model, and a
+        refusal names the parts that differ
+        (:func:`~rcvae_torchrl.fingerprint.task_difference`). The agent is not in it: a report
+        keeps it on its own (:attr:`CompetencyReport.agent`)."""
         boundary = self.boundary
         limit = boundary.time_limit if time_limit is None else time_limit
         ensemble = getattr(self.model_env, "ensemble", None)
-        weights = {} if ensemble is None else dict(ensemble.state_dict())
-        return fingerprint.task_digest(boundary.predicates, limit, self.dt, weights)
+        if ensemble is None:
+            model = {}
+        elif callable(getattr(ensemble, "behaviour", None)):
+            model = ensemble.behaviour()  # weights, config and the functions it calls
+        else:
+            model = dict(ensemble.state_dict())
+        return fingerprint.task_digest(boundary.predicates, limit, self.dt, model)
 
     def real_spread(self, outcomes: Any) -> RealSpread:
         """The agent's real episodes' spread, in bits, measured as this assessor measures the

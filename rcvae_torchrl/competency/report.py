@@ -1263,10 +1263,15 @@ class CompetencyReport:
         """Plain-language summary (see the class docstring for the rules).
 
         Args:
-            index: one start state (an int, or a tuple for a multi-dimensional batch). ``None``:
-                the one paragraph of an unbatched report, else one paragraph per start state,
-                each headed ``Start state i:``.
+            index: one start state (an int, or a tuple for a multi-dimensional batch, e.g.
+                ``(0, 0)`` of a ``[4, 1]`` batch). ``None``: the one paragraph of an unbatched
+                report, else one paragraph per start state, each headed ``Start state i:``.
         """
+        if index is not None and not self.data.batch_dims:
+            raise IndexError(
+                f"index: this report is of one start state (batch ()), so it has no start "
+                f"states to pick; got {index!r}: call summary() without an index"
+            )
         if index is not None:
             try:
                 one = self.data[index]

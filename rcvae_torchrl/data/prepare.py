@@ -366,7 +366,8 @@ def seed_env(env: EnvBase, seed: int) -> None:
 
 def control_step(env: EnvBase) -> tuple[float, str] | None:
     """The seconds of simulated time one step of ``env`` takes, where it can be read, and how
-    it was read; ``None`` where it cannot.
+    it was read; ``None`` where it cannot (e.g. gymnasium's ``MountainCarContinuous``, which
+    keeps no ``dt``: ``control_step(env)[0]`` fails there, so test for ``None``).
 
     Read from the base env's simulator (dm_control's ``control_timestep()``; gym and
     gymnasium's ``unwrapped.dt``; an env of one's own with a number ``dt`` among its

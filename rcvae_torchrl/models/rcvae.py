@@ -26,8 +26,9 @@ gives the epistemic part of the uncertainty (Lakshminarayanan et al. 2017).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -192,6 +193,19 @@ class RCVAEEnsemble(nn.Module):
     def device(self) -> torch.device:
         """The parameters' device."""
         return self.embed.weight.device
+
+    def behaviour(self) -> dict[str, Any]:
+        """What this model's forecasts are computed from, for a digest
+        (:func:`rcvae_torchrl.fingerprint.digest`; a forecast's task holds it): its weights
+        and buffers, its config, and the functions it calls by name (the state constraint and
+        the input features, their code and the values they read). The same weights loaded
+        with another constraint function forecast otherwise, and give another digest."""
+        return {
+            "weights": dict(self.state_dict()),
+            "config": dataclasses.asdict(self.config),
+            "state_constraint": self.state_constraint,
+            "input_features": self._features,
+        }
 
     # ----------------------------------------------------------------- building blocks
     def initial_hidden(

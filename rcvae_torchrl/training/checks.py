@@ -1267,18 +1267,20 @@ class OutcomeCheck:
 
     @property
     def verdict(self) -> str:
-        """``"passed"``, ``"too optimistic"``, ``"too pessimistic"``, ``"too imprecise"`` (no
-        bias found, with an interval reaching beyond ``± tolerance``), ``"no better than a
-        constant"`` (:attr:`no_better_than_constant`) or ``"not measured"``."""
+        """``"passed"``, ``"too optimistic"``, ``"too pessimistic"``, ``"no better than a
+        constant"`` (:attr:`no_better_than_constant`, whatever the interval's width: more
+        starts would not mend forecasts that do not tell the starts apart), ``"too
+        imprecise"`` (no bias found, with an interval reaching beyond ``± tolerance``) or
+        ``"not measured"``."""
         if self.biased:
             return "too optimistic" if self.gap > 0 else "too pessimistic"
         if self.sure_only:
             return "passed"
         if not self.measured:
             return "not measured"
-        if not self.precise:
-            return "too imprecise"
-        return "no better than a constant" if self.no_better_than_constant else "passed"
+        if self.no_better_than_constant:  # before imprecision: more starts would not mend it
+            return "no better than a constant"
+        return "passed" if self.precise else "too imprecise"
 
     def message(self) -> str:
         """One sentence when the check did not pass ('' when it did; :meth:`describe` says
@@ -1329,10 +1331,10 @@ class OutcomeCheck:
                 "chance, and only the outcomes' exact chance does; the t-test over the starts "
                 "allows it (its interval holds 0)"
             )
-        elif not self.biased and not self.precise:
+        elif not self.biased and not self.precise and not self.no_better_than_constant:
             verdict = "checked too imprecisely to pass"
         wide = ""
-        if not self.biased and not self.precise:
+        if not self.biased and not self.precise and not self.no_better_than_constant:
             runs = " (or more real episodes per start)" if self._independent_runs else ""
             wide = (
                 f": no bias is named, but the interval reaches beyond ±{self.tolerance:g}, so a "
@@ -1485,7 +1487,8 @@ class OutcomeCheck:
     def from_dict(cls, values: dict[str, Any]) -> OutcomeCheck:
         """The inverse of :meth:`as_dict` (e.g. read back from JSON); a record missing an
         entry it needs, or whose stored gap its forecasts and real rates do not give (a rate
-        edited by hand), raises ValueError naming it."""
+        edited by hand), raises ValueError naming it. The verdict is judged again from the
+        numbers; a stored ``passed`` that differs is warned of, not taken."""
         check_entries(
             "values",
             values,
@@ -1522,6 +1525,17 @@ class OutcomeCheck:
                 f"real rates give ({check.gap:+.6f}): the record was edited or damaged; make the "
                 "check again (write it with write_json(..., checksum=True) to have such edits "
                 "refused when read)"
+            )
+        # a verdict is judged from the numbers by this version's rules: a stored one that
+        # differs was edited, or written under other rules, and is said, not taken
+        said = values.get("passed")
+        if isinstance(said, bool) and said != check.passed:
+            warnings.warn(
+                f"values['passed']: the record says {said}, but its forecasts and real rates "
+                f"give {check.passed} ({check.verdict}) by this version's rules, which judge "
+                "it: the entry was edited, or written under other rules",
+                UserWarning,
+                stacklevel=2,
             )
         return check
 

@@ -102,7 +102,9 @@ class TrainConfig:
             step of an episode (the rest are drawn uniformly over the data). Imagination
             starts every episode there, from h_0 = 0, with nothing seen yet: a model whose
             randomness is fixed per episode (``RCVAEConfig.episode_latent_dim``) must learn
-            what an episode's first steps look like, which uniform windows show rarely.
+            what an episode's first steps look like, which uniform windows show rarely; so
+            must any model forecast from episodes' first states when the episodes are long
+            (a quarter, 0.25, is a start).
         bootstrap: each member trains on its own bootstrap resample of the training episodes
             (:func:`~rcvae_torchrl.data.resample_episodes`, drawn once per run from the seed
             and the member's index: about 63 % of the episodes, some twice), as PETS trains

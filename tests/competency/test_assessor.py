@@ -672,7 +672,7 @@ def test_a_forecast_check_vouches_only_for_reports_of_its_task(env, starts, plan
     for tasked, named in [
         (wider, r"another boundary \(its predicates' code or values\)"),
         (sooner, rf"another deadline \({T - 1} steps there, {T} steps here\)"),
-        (other_model, r"another world model \(its weights\)"),
+        (other_model, r"another world model \(its weights, config or functions\)"),
     ]:
         assert tasked.task != report.task, named
         refused(tasked, named)

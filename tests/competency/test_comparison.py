@@ -155,7 +155,9 @@ def test_reports_of_another_task_or_other_starts_are_refused():
         starts, policy=_agent(0.5), seed=0
     )
     other = r"^b: expected a report of the same task as a, got one of {}"
-    with pytest.raises(ValueError, match=other.format(r"another world model \(its weights\)")):
+    with pytest.raises(
+        ValueError, match=other.format(r"another world model \(its weights, config or functions\)")
+    ):
         compare_agents(a, other_task)
     shorter = make_assessor(
         make_env(make_ensemble()), samples_per_member=N, boundary=boundary(time_limit=T - 2)

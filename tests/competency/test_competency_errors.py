@@ -247,6 +247,11 @@ def test_summary_of_a_start_state_outside_the_batch():
         IndexError, match=r"index: expected one start state of the batch \(3,\), got 5"
     ):
         batched.summary(index=5)
+    # one start state alone (a start [S] assessed unbatched): tensordict's "indexing a
+    # tensordict with td.batch_dims==0 is not permitted" said nothing of the report
+    assert report.batch_size == () and report.summary().startswith("P(success")
+    with pytest.raises(IndexError, match=r"^index: this report is of one start state \(batch"):
+        report.summary(index=0)
 
 
 def test_validation_scores_refuse_what_they_would_turn_into_plausible_numbers():

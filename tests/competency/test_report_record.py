@@ -97,3 +97,51 @@ def test_a_damaged_or_foreign_record_is_refused_by_name():
         CompetencyReport.from_dict({**record, "agent": 3})
     with pytest.raises(ValueError, match=r"^values\['time_limit'\]: expected a positive integer"):
         CompetencyReport.from_dict({**record, "time_limit": 0})
+
+
+def _clamped(prev, state):
+    return state.clamp(-1.0, 1.0)
+
+
+def _clamped_faster(prev, state):  # the same name in the config, other physics
+    return (state * 1.15).clamp(-1.0, 1.0)
+
+
+def test_the_same_weights_with_another_state_constraint_are_another_task():
+    """A pendulum trial: a check made with the model's own constraint function vouched for the
+    same weights loaded with another function of the same name (forecast 0.599 against 0.825
+    real, a per-start error of 0.53, ``trustworthy=True``): the task held the weights alone."""
+    from test_assessor import CONFIG, Passed
+
+    from rcvae_torchrl.models import ModelFunctions, RCVAEConfig, RCVAEEnsemble
+
+    config = RCVAEConfig(**{**dataclasses.asdict(CONFIG), "state_constraint": "clamped"})
+
+    def model(fn):
+        made = RCVAEEnsemble(
+            config, 3, functions=ModelFunctions(state_constraints={"clamped": fn}), seed=0
+        )
+        made.fit_normalizer(torch.zeros(10, S), torch.zeros(10, 2))
+        made.checks = Passed()
+        return made
+
+    own, swapped = model(_clamped), model(_clamped_faster)
+    assert all(torch.equal(v, swapped.state_dict()[k]) for k, v in own.state_dict().items())
+    starts = torch.zeros(2, S)
+    plan = torch.zeros(T, 2)
+    mine = make_assessor(make_env(own)).assess(starts, actions=plan, seed=0)
+    theirs = make_assessor(make_env(swapped)).assess(starts, actions=plan, seed=0)
+    assert mine.task != theirs.task
+    real = torch.rand(60, 40, generator=torch.Generator().manual_seed(3)) < 0.5
+    check = OutcomeCheck.from_outcomes(
+        torch.full((60,), 0.5, dtype=torch.float64), real, task=mine.task
+    )
+    assert mine.with_forecast_check(check).trustworthy
+    said = r"another world model \(its weights, config or functions\); check this"
+    with pytest.raises(ValueError, match=said):
+        theirs.with_forecast_check(check)
+    # and another config of the same weights (a wider log-std bound) is another model too
+    wider = dataclasses.replace(config, max_log_std=config.max_log_std + 1)
+    wider = RCVAEEnsemble(wider, 3, functions=own.functions)
+    wider.load_state_dict(own.state_dict())
+    assert own.behaviour()["config"] != wider.behaviour()["config"]

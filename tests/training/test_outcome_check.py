@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 
 import pytest
 import torch
@@ -694,3 +695,41 @@ def test_a_check_covers_start_states_drawn_like_its_own_and_not_others():
         check.covers(own[:, :2])
     with pytest.raises(ValueError, match=r"start_states: expected one start state per forecast"):
         OutcomeCheck.from_outcomes(forecast, real, start_states=own[:5])
+
+
+def test_forecasts_that_do_not_tell_starts_apart_are_named_so_however_wide_the_interval():
+    """A pendulum trial's model with another constraint function: 100 starts of 10 runs, a
+    per-start error of 0.65 and a Brier skill of -1.35, got the verdict "too imprecise" and the
+    advice to check more start states, which would not mend forecasts that rank the starts
+    backwards."""
+    easy = torch.arange(40) % 2 == 0
+    forecast = torch.where(easy, 0.35, 0.85).double()  # backwards: low where it is easy
+    real = torch.zeros(40, 10, dtype=torch.bool)
+    real[easy, :9] = True  # 9 of 10 runs from an easy start succeed
+    real[~easy, :3] = True  # 3 of 10 from a hard one: right on average (0.6)
+    check = OutcomeCheck.from_outcomes(forecast, real)
+    low, high = check.interval()
+    assert not check.biased and max(-low, high) > check.tolerance  # no bias, a wide interval
+    assert check.no_better_than_constant and check.brier_skill < -0.5
+    assert check.verdict == "no better than a constant" and not check.passed
+    said = check.describe()
+    assert said.startswith("the forecasts are no better than a constant: from 40 start states")
+    assert "check more start states" not in said
+    assert "they do not tell one start state's task from another" in said
+
+
+def test_a_stored_verdict_that_its_numbers_do_not_give_is_warned_of_not_taken():
+    """A trial edited ``"passed": true`` to ``false`` in a check written without a checksum;
+    it read back passed, without a word."""
+    forecast = torch.full((40,), 0.5, dtype=torch.float64)
+    real = torch.rand(40, 20, generator=torch.Generator().manual_seed(0)) < 0.5
+    check = OutcomeCheck.from_outcomes(forecast, real)
+    record = json.loads(json.dumps(check.as_dict()))
+    assert check.passed and record["passed"] is True
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert OutcomeCheck.from_dict(record).passed  # as written: no word
+    record["passed"] = False
+    said = r"^values\['passed'\]: the record says False, but its forecasts and real rates give True"
+    with pytest.warns(UserWarning, match=said):
+        assert OutcomeCheck.from_dict(record).passed
