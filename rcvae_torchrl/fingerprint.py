@@ -129,9 +129,9 @@ def _task_parts(task: str) -> dict[str, str] | None:
 
 def task_difference(theirs: str, mine: str) -> str:
     """What makes task ``theirs`` another than ``mine`` (two :func:`task_digest` strings), in
-    words: ``"another deadline (60 steps there, 100 here) and another world model (its
-    weights)"``; ``""`` where they are the same, ``"another task"`` where either is not a
-    :func:`task_digest` (an older record's plain digest)."""
+    words: ``"another deadline (60 steps there, 100 steps here) and another world model (its
+    weights, config or functions)"``; ``""`` where they are the same, ``"another task"``
+    where either is not a :func:`task_digest` (an older record's plain digest)."""
     if theirs == mine:
         return ""
     a, b = _task_parts(theirs), _task_parts(mine)

@@ -282,7 +282,7 @@ class Study:
                 seed = REAL_SEEDS + CHECK_REAL_SEEDS + 100 * self.cfg.seed + index
                 outcomes = self._real(condition, starts, seed, self.cfg.assess.check_runs)
                 check = OutcomeCheck.from_outcomes(report, outcomes)
-                write_json(path, check.as_dict())
+                write_json(path, check.as_dict(), checksum=True)  # an edit is refused
             check = self.load_check(condition)
             summary[condition] = {"verdict": check.verdict, "passed": check.passed}
         return summary
