@@ -10,20 +10,27 @@ value that does, and :func:`digest` hashes one.
   functions and classes; modules themselves and torch's own functions are left out: the torch
   version stands for those);
 - a class: its name and its module's source;
-- a ``functools.partial`` or a callable object: the function and its bound arguments or state;
+- a ``functools.partial`` or a callable object: the function and its bound arguments or state
+  (its ``__dict__`` and the values it keeps in ``__slots__``);
 - a tensor: dtype, shape and a hash of its values; numbers, strings, None: themselves.
 
 What a function reads in other ways (an attribute of an imported module, a file, a global
 changed at run time without its source changing) is not seen: give it a new name or clear the
 cache when that changes.
+
+``digest(value, sources=False)`` leaves the modules' sources out (a class is then its name and
+its methods' code): what identifies a forecast's task, which an unrelated edit of the script
+that defines its predicates must not change.
 """
 
 from __future__ import annotations
 
+import contextvars
 import functools
 import hashlib
 import inspect
 import json
+import math
 import sys
 import types
 from collections.abc import Iterable, Mapping
@@ -40,6 +47,7 @@ __all__ = [
     "source_digest",
     "task_difference",
     "task_digest",
+    "task_parts",
     "weights_digest",
 ]
 
@@ -50,9 +58,25 @@ SETTINGS = "settings:"
 _WRAPPERS = ("torch", "tensordict", "torchrl", "rcvae_torchrl")
 
 
-def digest(value: Any) -> str:
-    """The SHA-256 hex digest of ``value``'s :func:`describe` (canonical JSON)."""
-    text = json.dumps(describe(value), sort_keys=True, default=str)
+#: Whether :func:`describe` holds the source of the modules that functions and classes are
+#: defined in (:func:`digest`'s ``sources``)
+_WITH_SOURCES: contextvars.ContextVar[bool] = contextvars.ContextVar("sources", default=True)
+
+
+def digest(value: Any, *, sources: bool = True) -> str:
+    """The SHA-256 hex digest of ``value``'s :func:`describe` (canonical JSON).
+
+    ``sources``: whether a function or class is described with the source of the module it
+    is defined in (whatever else that module holds: the key of a cached, compiled artefact,
+    which any edit of that source must renew). Without, a function is its code, closure,
+    defaults and the module-level names it reads, and a class its name and its methods' code:
+    what identifies a task's boundary or model, which an unrelated edit of the script that
+    defines them does not change."""
+    token = _WITH_SOURCES.set(sources)
+    try:
+        text = json.dumps(describe(value), sort_keys=True, default=str)
+    finally:
+        _WITH_SOURCES.reset(token)
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -106,20 +130,22 @@ def task_digest(predicates: str, time_limit: int, dt: float | None, model: Any) 
     """What a forecast answers, part by part: ``"boundary <digest> deadline <steps> dt <dt>
     model <digest>"``, the boundary's predicates (their digest,
     :attr:`~rcvae_torchrl.competency.SuccessBoundary.predicates`), the deadline judged in
-    steps, the seconds per step, and the world model (what :func:`digest` takes: its weights,
-    config and functions, :meth:`~rcvae_torchrl.models.RCVAEEnsemble.behaviour`). Two tasks
-    are the same where the strings are equal; :func:`task_difference` names the parts that
-    differ."""
+    steps (``none`` for a boundary without a time limit), the seconds per step, and the world
+    model (what :func:`digest` takes, without sources: its weights, config and functions,
+    :meth:`~rcvae_torchrl.models.RCVAEEnsemble.behaviour`). Two tasks are the same where the
+    strings are equal; :func:`task_difference` names the parts that differ."""
     parts = {
         "boundary": digest(predicates)[:16],
-        "deadline": str(int(time_limit)),
+        "deadline": str(int(time_limit)) if math.isfinite(time_limit) else "none",
         "dt": repr(None if dt is None else float(dt)),
-        "model": digest(model)[:16],
+        "model": digest(model, sources=False)[:16],
     }
     return " ".join(f"{k} {v}" for k, v in parts.items())
 
 
-def _task_parts(task: str) -> dict[str, str] | None:
+def task_parts(task: str) -> dict[str, str] | None:
+    """The parts of a :func:`task_digest` string by name (``"boundary"``, ``"deadline"``,
+    ``"dt"``, ``"model"``: the strings it holds); ``None`` where ``task`` is not one."""
     words = task.split(" ")
     parts = dict(zip(words[::2], words[1::2], strict=False))
     return (
@@ -134,16 +160,20 @@ def task_difference(theirs: str, mine: str) -> str:
     where either is not a :func:`task_digest` (an older record's plain digest)."""
     if theirs == mine:
         return ""
-    a, b = _task_parts(theirs), _task_parts(mine)
+    a, b = task_parts(theirs), task_parts(mine)
     if a is None or b is None:
         return "another task"
     said = []
     for key, words in _TASK_PARTS.items():
         if a[key] == b[key]:
             continue
-        unit = " steps" if key == "deadline" else ""
-        shown = key in ("deadline", "dt")  # digests say nothing to a reader
-        said.append(f"{words} ({a[key]}{unit} there, {b[key]}{unit} here)" if shown else words)
+        if key not in ("deadline", "dt"):  # digests say nothing to a reader
+            said.append(words)
+            continue
+        there, here = (
+            f"{v} steps" if key == "deadline" and v.isdigit() else v for v in (a[key], b[key])
+        )
+        said.append(f"{words} ({there} there, {here} here)")
     return " and ".join(said)
 
 
@@ -227,11 +257,29 @@ def describe(value: Any, _seen: tuple[int, ...] = ()) -> Any:
     if isinstance(value, types.FunctionType):
         return _function(value, seen)
     if isinstance(value, type):
+        if not _WITH_SOURCES.get():
+            return _code_of(value)  # a library's own classes: its version stands for their code
         return {"class": _name(value), "module_source": _module_source(value)}
-    if callable(value) or hasattr(value, "__dict__"):
-        state = getattr(value, "__dict__", {})
+    slots = _slot_values(value)
+    if callable(value) or hasattr(value, "__dict__") or slots:
+        state = {**getattr(value, "__dict__", {}), **slots}
         return {"object": describe(type(value), seen), "state": describe(state, seen)}
     return repr(value)
+
+
+def _slot_values(value: Any) -> dict[str, Any]:
+    """The values an object keeps in ``__slots__`` (its classes' and their bases'), which it
+    has no ``__dict__`` entry for (a ``dataclass(slots=True)``'s fields)."""
+    found = {}
+    for klass in type(value).__mro__:
+        names = getattr(klass, "__slots__", ())
+        for name in (names,) if isinstance(names, str) else names:
+            if name not in ("__dict__", "__weakref__") and name not in found:
+                try:
+                    found[name] = getattr(value, name)
+                except AttributeError:  # a slot never set
+                    continue
+    return found
 
 
 def _name(value: Any) -> str:
@@ -270,7 +318,7 @@ def _function(fn: types.FunctionType, seen: tuple[int, ...]) -> dict[str, Any]:
     return {
         "function": _name(fn),
         "code": _code(code),
-        "module_source": _module_source(fn),
+        "module_source": _module_source(fn) if _WITH_SOURCES.get() else None,
         "closure": describe(closure, seen),
         "defaults": describe(fn.__defaults__, seen),
         "kwdefaults": describe(fn.__kwdefaults__, seen),

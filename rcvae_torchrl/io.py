@@ -66,10 +66,10 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
 
     The file gets mode ``0o666 & ~umask`` (what ``open`` would give it), not the private mode
     of a temporary file. A temp file is named by this machine and process
-    (``.<name>.<host>-<pid>.<random>.tmp``); one left beside ``path`` by a process of this
-    machine that no longer runs (killed while writing) is removed by the next write of
-    ``path``. Other machines' temp files are left alone (on a shared file system their
-    writers may still run)."""
+    (``.<name>.<host>.<pid namespace>-<pid>.<random>.tmp``); one left beside ``path`` by a
+    process of this machine and pid namespace that no longer runs (killed while writing) is
+    removed by the next write of ``path``, where it can be. Other machines' and containers'
+    temp files are left alone (their writers may still run)."""
     if not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"path: expected a file path (a str or a Path), got {type(path).__name__}")
     path = Path(path)
@@ -107,8 +107,22 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> Path:
 
 
 def _temp_start(path: Path) -> str:
-    """How the temp files of ``path`` written on this machine begin (the pid follows)."""
-    return f".{path.name}.{socket.gethostname()}-"
+    """How the temp files of ``path`` written on this machine begin (the pid follows): its
+    name (its first 100 characters: a long name's temp must still fit the file system's 255),
+    the host and the pid namespace (a container's pids are not the host's)."""
+    return f".{path.name[:100]}.{socket.gethostname()[:40]}.{_PID_NAMESPACE}-"
+
+
+def _pid_namespace() -> str:
+    """This process's pid namespace, as Linux names it (``pid:[4026531836]``: its inode); ''
+    where it cannot be read."""
+    try:
+        return re.sub(r"\D", "", os.readlink("/proc/self/ns/pid"))
+    except OSError:
+        return ""
+
+
+_PID_NAMESPACE = _pid_namespace()
 
 
 def _remove_dead_writers_temps(path: Path) -> None:
@@ -119,7 +133,9 @@ def _remove_dead_writers_temps(path: Path) -> None:
         found = re.fullmatch(r"(\d+)\.[^.]*\.tmp", temp.name[len(start) :])
         if found is None or _running(int(found.group(1))):
             continue
-        with contextlib.suppress(FileNotFoundError):  # another writer removed it first
+        # best effort: another writer may have removed it first, or it is another user's in
+        # a shared folder; the write goes ahead either way
+        with contextlib.suppress(OSError):
             temp.unlink()
 
 

@@ -244,12 +244,11 @@ def test_a_temp_file_left_by_a_writer_killed_mid_save_is_removed_by_the_next_sav
     """A trial killed a process (kill -9) while save_torch wrote: the destination stayed whole,
     and a hidden temp file stayed beside it for good."""
     import signal
-    import socket
     import subprocess
     import sys
     import time
 
-    from rcvae_torchrl.io import load_torch, save_torch
+    from rcvae_torchrl.io import _temp_start, load_torch, save_torch
 
     path = tmp_path / "model.pt"
     save_torch(path, {"w": torch.zeros(3)})
@@ -263,7 +262,7 @@ def test_a_temp_file_left_by_a_writer_killed_mid_save_is_removed_by_the_next_sav
             str(path),
         ]
     )
-    start = f".model.pt.{socket.gethostname()}-{writer.pid}."
+    start = f"{_temp_start(path)}{writer.pid}."
     for _ in range(600):  # until its temp file is there
         left = [p for p in tmp_path.iterdir() if p.name.startswith(start)]
         if left:
@@ -271,7 +270,7 @@ def test_a_temp_file_left_by_a_writer_killed_mid_save_is_removed_by_the_next_sav
         time.sleep(0.05)
     assert left, "the writer made no temp file"
     # one of a process still running (this one's parent) is not touched
-    alive = tmp_path / f".model.pt.{socket.gethostname()}-{os.getppid()}.abc.tmp"
+    alive = tmp_path / f"{_temp_start(path)}{os.getppid()}.abc.tmp"
     alive.write_bytes(b"x")
     other_host = tmp_path / ".model.pt.elsewhere-1.abc.tmp"  # another machine's: its own
     other_host.write_bytes(b"x")
@@ -281,3 +280,41 @@ def test_a_temp_file_left_by_a_writer_killed_mid_save_is_removed_by_the_next_sav
     save_torch(path, {"w": torch.ones(3)})
     assert not left[0].exists() and alive.exists() and other_host.exists()
     assert torch.equal(load_torch(path)["w"], torch.ones(3))
+
+
+def test_a_long_name_a_shared_folder_and_another_pid_namespace_do_not_stop_a_write(
+    tmp_path, monkeypatch
+):
+    """A trial: a 238-character name (which the file system holds) no longer fitted its temp
+    file's; another user's dead writer's temp in a sticky folder made every write fail; a
+    container's writer (the same host name, another pid namespace) took the host's live
+    writers for dead ones."""
+    import socket
+    from pathlib import Path
+
+    from rcvae_torchrl import io as rio
+
+    long = tmp_path / ("x" * 238 + ".pt")
+    rio.save_torch(long, {"w": torch.ones(1)})
+    assert torch.equal(rio.load_torch(long)["w"], torch.ones(1))
+    path = tmp_path / "shared.json"
+    start = rio._temp_start(path)
+    assert rio._PID_NAMESPACE in start
+    # another namespace's temp, whatever its pid, is not this one's to judge
+    other = tmp_path / f".shared.json.{socket.gethostname()[:40]}.1-999999.abcd.tmp"
+    other.write_bytes(b"x")
+    dead = tmp_path / f"{start}999999.abcd.tmp"  # no such process here
+    dead.write_bytes(b"x")
+    real_unlink = Path.unlink
+
+    def refused(self, *args, **kwargs):  # another user's file in a sticky folder
+        if self == dead:
+            raise PermissionError(1, "Operation not permitted", str(self))
+        return real_unlink(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "unlink", refused)
+    write_json(path, {"a": 1})  # the cleanup could not remove it: the write goes ahead
+    assert dead.exists() and other.exists() and read_json(path) == {"a": 1}
+    monkeypatch.setattr(Path, "unlink", real_unlink)
+    write_json(path, {"a": 2})
+    assert not dead.exists() and other.exists() and read_json(path) == {"a": 2}

@@ -107,5 +107,62 @@ def test_a_task_digest_names_the_parts_another_task_differs_in():
     assert task_difference(task_digest("predicates-a", 60, None, weights), base) == (
         "another step (dt) (None there, 0.05 here)"
     )
+    # a boundary without a time limit (inf) has a deadline of none
+    unlimited = task_digest("predicates-a", float("inf"), 0.05, weights)
+    assert task_difference(unlimited, base) == "another deadline (none there, 60 steps here)"
     # an older record's plain digest is another task, with no part to name
     assert task_difference("3f2a" * 16, base) == "another task"
+
+
+def test_values_kept_in_slots_count():
+    """A trial's boundary held its radius in a ``dataclass(slots=True)``: objects without a
+    ``__dict__`` were described by their class alone, and every radius had one digest."""
+    import dataclasses
+
+    from rcvae_torchrl.competency import SuccessBoundary
+
+    @dataclasses.dataclass(frozen=True, slots=True)
+    class Near:
+        radius: float
+
+        def __call__(self, observation):
+            return observation[..., 0].abs() <= self.radius
+
+    class Plain:
+        __slots__ = ("limit",)
+
+        def __init__(self, limit):
+            self.limit = limit
+
+    assert digest(Near(0.03)) != digest(Near(0.5)) and digest(Near(0.03)) == digest(Near(0.03))
+    assert digest(Plain(1.0)) != digest(Plain(2.0))
+    boundaries = [SuccessBoundary(Near(r), time_limit=5) for r in (0.03, 0.5)]
+    assert boundaries[0].predicates != boundaries[1].predicates
+
+
+def test_a_tasks_digest_ignores_an_unrelated_edit_of_the_file_defining_it(tmp_path, monkeypatch):
+    """A trial changed ``NUMBER_OF_STARTS = 100`` to 200 in the script defining its model's
+    constraint and boundary: its saved checks were then refused as of "another world model"."""
+    import importlib
+
+    from rcvae_torchrl.competency import SuccessBoundary
+
+    source = (
+        "NUMBER_OF_STARTS = {n}\nLIMIT = {limit}\n\ndef near(o):\n    return o[..., 0] < LIMIT\n"
+    )
+    module = tmp_path / "task_module_for_digest.py"
+    module.write_text(source.format(n=100, limit=0.5))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)  # each reload reads the source
+    mod = importlib.import_module("task_module_for_digest")
+
+    def predicates():
+        return SuccessBoundary(mod.near, time_limit=5).predicates, digest(mod.near, sources=False)
+
+    before = predicates()
+    module.write_text(source.format(n=200, limit=0.5))  # an unrelated line
+    importlib.reload(mod)
+    assert predicates() == before
+    module.write_text(source.format(n=200, limit=0.6))  # the value the predicate reads
+    importlib.reload(mod)
+    assert predicates()[0] != before[0] and predicates()[1] != before[1]

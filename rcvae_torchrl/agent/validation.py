@@ -97,6 +97,16 @@ class RealOutcomes:
     #: ``None`` otherwise
     survival_limit: int | None = None
 
+    def __post_init__(self) -> None:
+        limit = self.survival_limit
+        if limit is not None and (
+            isinstance(limit, bool) or not isinstance(limit, int) or limit < 1
+        ):
+            raise ValueError(
+                f"survival_limit: expected None or a survival boundary's time limit (an int >= "
+                f"1, in steps), got {limit!r}"
+            )
+
     def as_dict(self) -> dict[str, Any]:
         """Plain values (for ``torch.save``): the tensors (the kept observations and start
         states where known), and what is known of the agent and of the predicates that judged
@@ -109,9 +119,13 @@ class RealOutcomes:
         for name in ("trace", "observation", "starts"):
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
-        for name in ("max_steps", "survival_limit"):
-            if getattr(self, name) is not None:
-                out[name] = torch.tensor(getattr(self, name))
+        if self.max_steps is not None:
+            out["max_steps"] = torch.tensor(self.max_steps)
+        # always, None too: a record without it (written before it) cannot tell a survival
+        # boundary's outcomes from a reach boundary's
+        out["survival_limit"] = (
+            None if self.survival_limit is None else torch.tensor(self.survival_limit)
+        )
         for name in _KNOWN:
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name)
@@ -124,6 +138,18 @@ class RealOutcomes:
             "values", values, ("success", "first_step", "steps"), "a RealOutcomes.as_dict()"
         )
         most, lasting = values.get("max_steps"), values.get("survival_limit")
+        if "survival_limit" not in values and values.get("predicates") is not None:
+            warnings.warn(
+                "values: a record written before RealOutcomes kept survival_limit: whether a "
+                "survival boundary judged its episodes, and for how long, is not known. Read at "
+                "another deadline than that boundary's, a survival's outcomes are counted "
+                "wrong (a forecast of a survival boundary is refused); judge the kept episodes "
+                "again (judged_by) or run them again",
+                UserWarning,
+                stacklevel=2,
+            )
+        if lasting is not None:
+            lasting = _whole("values['survival_limit']", lasting)
         known = {}
         for name in _KNOWN:
             value = values.get(name)
@@ -432,9 +458,20 @@ def _decided_by(success: object) -> int | None:
 
 
 def _boundary_of(success: object) -> SuccessBoundary | None:
-    """The :class:`~rcvae_torchrl.competency.SuccessBoundary` whose method ``success`` is."""
+    """The :class:`~rcvae_torchrl.competency.SuccessBoundary` whose ``success_over_time``
+    ``success`` is (another of its methods judges no success: it labels nothing)."""
     boundary = getattr(success, "__self__", None)
+    if getattr(success, "__func__", None) is not SuccessBoundary.success_over_time:
+        return None
     return boundary if isinstance(boundary, SuccessBoundary) else None
+
+
+def _whole(name: str, value: Any) -> int:
+    """``value`` (a number or a one-element tensor) as an int, refused where it is not whole."""
+    number = value.item() if isinstance(value, torch.Tensor) else value
+    if isinstance(number, bool) or not isinstance(number, (int, float)) or number != int(number):
+        raise ValueError(f"{name}: expected a whole number of steps, got {value!r}")
+    return int(number)
 
 
 def _undecided_ends(
@@ -774,6 +811,7 @@ def score_forecast(
     if isinstance(forecast, torch.Tensor) and forecast.dim() == 1:
         _check_count("outcomes", forecast.shape[0], outcomes, "the forecast's")
     if isinstance(forecast, CompetencyReport):
+        forecast = forecast.flattened()  # [2, 3] or one start: as the real outcomes count them
         limit = forecast.time_limit
         outcomes = _judged_for(forecast, outcomes, "outcomes")
         imagined = forecast.competency.get(("time_to_success", "first_step"), None)
@@ -807,6 +845,7 @@ def score_comparison(
     tie) and
     ``per_start_mae`` (the mean absolute error of the per-start differences)."""
     compared = compare_agents(a, b, confidence=confidence)
+    a, b = a.flattened(), b.flattened()  # start by start, as the real outcomes count them
     rates = []
     for name, report, outcomes in (("real_a", a, real_a), ("real_b", b, real_b)):
         if not isinstance(outcomes, RealOutcomes):

@@ -126,12 +126,13 @@ class SuccessBoundary:
     @property
     def predicates(self) -> str:
         """What judges a trajectory here, as a digest of the success and failure predicates
-        (their code and the values they read, :func:`rcvae_torchrl.fingerprint.digest`): a
+        (their code and the values they read, not the rest of the file that defines them:
+        :func:`rcvae_torchrl.fingerprint.digest` without sources): a
         report keeps it in its task, real outcomes judged by this boundary keep it too, and
         a forecast is not scored against outcomes judged by other predicates (another radius).
         Predicates the digest cannot walk are named by their identity in this process."""
         try:
-            return fingerprint.digest([self.success, self.failure])
+            return fingerprint.digest([self.success, self.failure], sources=False)
         except Exception:  # an object describe() cannot walk: this process's own objects
             return f"objects {id(self.success)} {id(self.failure)}"
 
@@ -424,8 +425,18 @@ def check_same_predicates(forecast: object, real: object, name: str = "outcomes"
     ``forecast`` a report, ``real`` the real outcomes, each with the ``predicates`` of the
     boundary that judged it (:attr:`SuccessBoundary.predicates`); ``name`` is the argument
     ``real`` came as. Not compared where either does not know them (``None``: outcomes judged
-    by an env's flag or a function of one's own)."""
+    by an env's flag or a function of one's own). Outcomes judged by a survival forecast's own
+    predicates that do not say the survival's time limit (``survival_limit``, a record older
+    than it) are refused too: their successes may have lasted another deadline."""
     mine, theirs = getattr(forecast, "predicates", None), getattr(real, "predicates", None)
+    if mine is not None and mine == theirs and getattr(forecast, "survival", False):
+        if getattr(real, "survival_limit", 0) is None:  # judged by it, its deadline not kept
+            raise ValueError(
+                f"{name}: the real episodes were judged by the forecast's survival boundary, but "
+                "their record does not say for how long (written before RealOutcomes kept "
+                "survival_limit), so whether they lasted the forecast's deadline is not known; "
+                "judge kept episodes again with outcomes.judged_by(boundary), or run them again"
+            )
     if mine is None or theirs is None or mine == theirs:
         return
     raise ValueError(

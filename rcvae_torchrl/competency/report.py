@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from functools import cached_property
 from typing import Any
@@ -366,6 +366,22 @@ class AleatoricShare:
 _AS_DICT = "an AleatoricShare.as_dict()"
 
 
+#: How a report record's parts of kinds other packages define are read back (their
+#: ``from_dict``), by entry; those packages register them (:func:`register_report_part`)
+_PART_READERS: dict[str, Callable[[dict[str, Any]], Any]] = {}
+
+
+def register_report_part(entry: str, read: Callable[[dict[str, Any]], Any]) -> None:
+    """Read a :meth:`CompetencyReport.as_dict` record's ``entry`` (``"forecast_check"`` or
+    ``"novelty"``) with ``read``, its kind's ``from_dict``: the training package registers its
+    :class:`~rcvae_torchrl.training.OutcomeCheck` and
+    :class:`~rcvae_torchrl.training.StateNovelty` when it is imported (as ``import
+    rcvae_torchrl`` does), which this package does not import."""
+    if entry not in ("forecast_check", "novelty"):
+        raise ValueError(f"entry: expected 'forecast_check' or 'novelty', got {entry!r}")
+    _PART_READERS[entry] = read
+
+
 #: What a :meth:`CompetencyReport.as_dict` record says it is, and the entries it holds
 _REPORT_KIND = "CompetencyReport"
 _REPORT_AS_DICT = "a CompetencyReport.as_dict()"
@@ -409,6 +425,153 @@ def _reference_dict(reference: Reference) -> dict[str, Any]:
     if values["measure"] is not None:
         values["measure"] = dict(values["measure"])
     return values
+
+
+def _tuple(key: NestedKey) -> tuple[str, ...]:
+    return (key,) if isinstance(key, str) else tuple(key)
+
+
+def _report_labels(values: Mapping[str, Any]) -> dict[str, Any]:
+    """A report record's labels (:meth:`CompetencyReport.as_dict`), checked: its entries,
+    their types and ranges, and its deadline, dt and predicates against its task."""
+    _checks.check_entries("values", values, _REPORT_ENTRIES, _REPORT_AS_DICT)
+    unknown = sorted(set(map(str, values)) - set(_REPORT_ENTRIES))
+    if unknown:
+        raise ValueError(
+            f"values: entries {unknown} are not a report's ({_REPORT_AS_DICT}); expected only "
+            f"{list(_REPORT_ENTRIES)}"
+        )
+    if values["kind"] != _REPORT_KIND:
+        raise ValueError(
+            f"values['kind']: expected {_REPORT_KIND!r} ({_REPORT_AS_DICT}), got {values['kind']!r}"
+        )
+
+    def typed(name: str, kinds: tuple[type, ...], what: str) -> Any:
+        value = values[name]
+        if not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds):
+            raise TypeError(f"values[{name!r}]: expected {what} ({_REPORT_AS_DICT}), got {value!r}")
+        return value
+
+    for name in ("task", "model_warning", "model_caution", "time_unit"):
+        typed(name, (str,), "a str")
+    for name in ("acting", "agent", "predicates"):
+        typed(name, (str, type(None)), "a str or None")
+    _checks.check_positive_int("values['time_limit']", values["time_limit"])
+    _checks.check_non_negative_int("values['top_k']", values["top_k"])
+    _checks.check_bool("values['survival']", values["survival"])
+    _checks.check_unit_interval("values['confidence']", values["confidence"], include_zero=False)
+    if values["confidence"] >= 1:
+        raise ValueError(
+            f"values['confidence']: expected a coverage below 1, got {values['confidence']!r}"
+        )
+    dt = typed("dt", (int, float, type(None)), "seconds per step (a number > 0) or None")
+    if dt is not None:
+        _checks.check_positive("values['dt']", dt)
+    names = typed("dim_names", (list, tuple), "a list of dimension names")
+    if not all(isinstance(n, str) for n in names):
+        raise TypeError(f"values['dim_names']: expected names (str), got {names!r}")
+    tolerance = typed("spread_tolerance", (list, tuple), "[factor, bits]")
+    if len(tolerance) != 2 or not all(_is_number(v) and v > 0 for v in tolerance):
+        raise ValueError(
+            f"values['spread_tolerance']: expected [factor, bits], two numbers > 0, got "
+            f"{tolerance!r}"
+        )
+    measure = typed("measure", (Mapping, type(None)), "a dict or None")
+    keys = typed("keys", (Mapping,), "a dict of the report's keys")
+    if sorted(map(str, keys)) != ["competency", "observation", "uncertainty"]:
+        raise ValueError(
+            f"values['keys']: expected the keys 'uncertainty', 'competency' and 'observation', "
+            f"got {sorted(map(str, keys))}"
+        )
+    for name, key in keys.items():
+        if not (
+            isinstance(key, str)
+            or (isinstance(key, (list, tuple)) and key and all(isinstance(k, str) for k in key))
+        ):
+            raise TypeError(
+                f"values['keys'][{name!r}]: expected a key (a str or strs), got {key!r}"
+            )
+    time_limit = int(values["time_limit"])
+    said = fingerprint.task_parts(values["task"])
+    if said is not None:  # what the task answers is what the labels say
+        found = {
+            "deadline": str(time_limit),
+            "dt": repr(None if dt is None else float(dt)),
+            "boundary": None
+            if values["predicates"] is None
+            else fingerprint.digest(values["predicates"])[:16],
+        }
+        for part, value in found.items():
+            if value is not None and said[part] != value:
+                entry = {"deadline": "time_limit", "boundary": "predicates"}.get(part, part)
+                raise ValueError(
+                    f"values[{entry!r}]: not the {part} the record's task says ({said[part]} "
+                    f"there, {value} here): the record was edited or damaged"
+                )
+    return {
+        "keys": {name: _key_from_list(key) for name, key in keys.items()},
+        "dim_names": tuple(names),
+        "time_limit": time_limit,
+        "dt": None if dt is None else float(dt),
+        "confidence": float(values["confidence"]),
+        "top_k": int(values["top_k"]),
+        "model_warning": values["model_warning"],
+        "model_caution": values["model_caution"],
+        "survival": bool(values["survival"]),
+        "measure": None if measure is None else dict(measure),
+        "task": values["task"],
+        "acting": values["acting"],
+        "agent": values["agent"],
+        "predicates": values["predicates"],
+        "time_unit": values["time_unit"],
+        "spread_tolerance": (float(tolerance[0]), float(tolerance[1])),
+    }
+
+
+def _report_data(values: Mapping[str, Any], keys: Mapping[str, NestedKey]) -> TensorDict:
+    """A report record's data (a copy), checked: tensors of its batch size, holding the
+    report's uncertainty and competency, with probabilities in [0, 1]."""
+    batch = values["batch_size"]
+    if not isinstance(batch, (list, tuple)) or not all(
+        isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in batch
+    ):
+        raise TypeError(
+            f"values['batch_size']: expected a list of sizes (ints >= 0), got {batch!r}"
+        )
+    if not isinstance(values["data"], Mapping):
+        raise TypeError(
+            f"values['data']: expected a dict of tensors (report.data.to_dict()), got "
+            f"{type(values['data']).__name__}"
+        )
+    try:
+        data = TensorDict(dict(values["data"]), batch_size=list(batch)).clone()
+    except (RuntimeError, TypeError, ValueError) as err:
+        raise ValueError(
+            f"values['data']: its tensors do not share the report's batch size {list(batch)} "
+            f"({err})"
+        ) from err
+    for part in ("uncertainty", "competency"):
+        if not isinstance(data.get(keys[part], None), TensorDictBase):
+            raise ValueError(
+                f"values['data']: expected the report's {part} entries under {keys[part]!r}, "
+                f"got none"
+            )
+    competency = data.get(keys["competency"])
+    for name in ("p_success", "p_success_low", "p_success_high"):
+        p = competency.get(name, None)
+        if p is None and name != "p_success":  # a report built by hand may lack its interval
+            continue
+        if p is None or p.shape != data.batch_size:
+            raise ValueError(
+                f"values['data']: expected {name} of the batch {list(batch)} among the "
+                f"competency entries, got {None if p is None else list(p.shape)}"
+            )
+        if not bool(((p >= 0) & (p <= 1)).all()):
+            raise ValueError(
+                f"values['data']: {name} holds values outside [0, 1] (from {float(p.min()):g} "
+                f"to {float(p.max()):g}): the record was edited or damaged"
+            )
+    return data
 
 
 def _per_live_step(time_mean: Tensor, live: Tensor) -> Tensor:
@@ -557,10 +720,11 @@ class CompetencyReport:
     #: how the bits were measured (the assessor's estimator, its settings and the samples per
     #: member, :attr:`CompetencyAssessor.measure`); ``None`` where not known
     measure: Mapping[str, Any] | None = None
-    #: what the forecasts answer, as a digest of the boundary (its predicates' code and values,
-    #: the deadline the report judges, dt) and the world model's weights
-    #: (:meth:`CompetencyAssessor.task`); '' where not known (a report built by hand). A
-    #: forecast check must be of the same task (:meth:`with_forecast_check`)
+    #: what the forecasts answer, part by part: a digest of the boundary (its predicates' code
+    #: and values), the deadline the report judges, dt, and a digest of the world model (its
+    #: weights, config and functions; :meth:`CompetencyAssessor.task`); '' where not known (a
+    #: report built by hand). A forecast check must be of the same task
+    #: (:meth:`with_forecast_check`)
     task: str = ""
     #: how the agent chose its actions in the imagined episodes: its exploration type's name
     #: (e.g. ``"random"``, a stochastic policy's samples; :func:`~rcvae_torchrl.data
@@ -596,7 +760,7 @@ class CompetencyReport:
         knows no agent."""
         return {
             "kind": _REPORT_KIND,
-            "data": self.data.detach().cpu().to_dict(),
+            "data": self.data.detach().to("cpu").clone().to_dict(),  # a copy, not shared
             "batch_size": list(self.data.batch_size),
             "dim_names": list(self.dim_names),
             "time_limit": int(self.time_limit),
@@ -632,79 +796,58 @@ class CompetencyReport:
         """The report :meth:`as_dict` gave (e.g. read back with
         :func:`~rcvae_torchrl.io.load_torch`), with its own task, agent and deadline: a check
         of another task or agent is refused as it was before the report was saved. Its parts
-        are read back as each one's own ``from_dict`` checks them; a record missing an entry,
-        or holding one this report does not know, is refused by name."""
-        from rcvae_torchrl.training import OutcomeCheck, StateNovelty  # training imports this
-
-        _checks.check_entries("values", values, _REPORT_ENTRIES, _REPORT_AS_DICT)
-        unknown = sorted(set(map(str, values)) - set(_REPORT_ENTRIES))
-        if unknown:
-            raise ValueError(
-                f"values: entries {unknown} are not a report's ({_REPORT_AS_DICT}); expected "
-                f"only {list(_REPORT_ENTRIES)}"
-            )
-        if values["kind"] != _REPORT_KIND:
-            raise ValueError(
-                f"values['kind']: expected {_REPORT_KIND!r} ({_REPORT_AS_DICT}), got "
-                f"{values['kind']!r}"
-            )
-        for name in ("task", "model_warning", "model_caution", "time_unit"):
-            if not isinstance(values[name], str):
-                raise TypeError(
-                    f"values[{name!r}]: expected a str ({_REPORT_AS_DICT}), got "
-                    f"{type(values[name]).__name__}"
+        are read back as each one's own ``from_dict`` checks them (its data copied, not
+        shared); a record missing an entry, holding one this report does not know, of the
+        wrong type or out of range, or whose deadline, dt or predicates are not those its
+        ``task`` says, is refused by name."""
+        labels = _report_labels(values)
+        keys = labels.pop("keys")
+        data = _report_data(values, keys)
+        total = data.get((*_tuple(keys["uncertainty"]), "total"), None)  # [*B, T, D] or [*B, T]
+        if isinstance(total, Tensor) and total.dim() == data.batch_dims + 2:
+            dims = total.shape[-1]
+            if dims != len(labels["dim_names"]):
+                raise ValueError(
+                    f"values['dim_names']: expected one name per dimension of the bits ({dims}), "
+                    f"got {len(labels['dim_names'])}"
                 )
-        for name in ("acting", "agent", "predicates"):
-            if values[name] is not None and not isinstance(values[name], str):
-                raise TypeError(
-                    f"values[{name!r}]: expected a str or None ({_REPORT_AS_DICT}), got "
-                    f"{type(values[name]).__name__}"
+        parts = {}
+        readers = {
+            **_PART_READERS,
+            "aleatoric_share": AleatoricShare.from_dict,
+            "reference": lambda part: Reference(**part),
+        }
+        for name in ("forecast_check", "novelty", "aleatoric_share", "reference"):
+            part = values[name]
+            read = readers.get(name)
+            if part is not None and read is None:  # its package not imported
+                raise ValueError(
+                    f"values[{name!r}]: no reader of this part is registered; import "
+                    "rcvae_torchrl.training (which defines it) before reading the report"
                 )
-        _checks.check_positive_int("values['time_limit']", values["time_limit"])
-        if not isinstance(values["data"], Mapping):
-            raise TypeError(
-                f"values['data']: expected a dict of tensors (report.data.to_dict()), got "
-                f"{type(values['data']).__name__}"
-            )
-        try:
-            data = TensorDict(dict(values["data"]), batch_size=list(values["batch_size"]))
-        except (RuntimeError, TypeError, ValueError) as err:
-            raise ValueError(
-                f"values['data']: its tensors do not share the report's batch size "
-                f"{list(values['batch_size'])} ({err})"
-            ) from err
-        keys = {name: _key_from_list(key) for name, key in dict(values["keys"]).items()}
-        share, check, novelty, reference = (
-            values["aleatoric_share"],
-            values["forecast_check"],
-            values["novelty"],
-            values["reference"],
-        )
+            if part is not None and not isinstance(part, Mapping):
+                raise TypeError(
+                    f"values[{name!r}]: expected None or a dict (its own as_dict()), got "
+                    f"{type(part).__name__}"
+                )
+            try:
+                parts[name] = None if part is None else read(dict(part))
+            except TypeError as err:  # a part's unknown or missing entries (Reference's own)
+                raise ValueError(f"values[{name!r}]: not a record of its kind ({err})") from err
         return cls(
             data,
-            tuple(values["dim_names"]),
-            int(values["time_limit"]),
-            None if values["dt"] is None else float(values["dt"]),
-            float(values["confidence"]),
-            int(values["top_k"]),
-            keys["uncertainty"],
-            keys["competency"],
-            keys["observation"],
-            model_warning=values["model_warning"],
-            reference=None if reference is None else Reference(**dict(reference)),
-            model_caution=values["model_caution"],
-            survival=bool(values["survival"]),
-            forecast_check=None if check is None else OutcomeCheck.from_dict(check),
-            novelty=None if novelty is None else StateNovelty.from_dict(dict(novelty)),
-            measure=None if values["measure"] is None else dict(values["measure"]),
-            task=values["task"],
-            acting=values["acting"],
-            agent=values["agent"],
-            predicates=values["predicates"],
-            time_unit=values["time_unit"],
-            spread_tolerance=tuple(float(v) for v in values["spread_tolerance"]),
-            aleatoric_share=None if share is None else AleatoricShare.from_dict(share),
+            uncertainty_key=keys["uncertainty"],
+            competency_key=keys["competency"],
+            observation_key=keys["observation"],
+            **labels,
+            **parts,
         )
+
+    def flattened(self) -> CompetencyReport:
+        """This report with its start states in one batch dimension ``[B']`` (the batch
+        flattened in order, as :attr:`start_states` gives them and real outcomes count them;
+        an unbatched report becomes one of a single start state)."""
+        return self if self.data.batch_dims == 1 else replace(self, data=self.data.reshape(-1))
 
     @property
     def novel(self) -> Tensor | None:

@@ -27,6 +27,7 @@ gives the epistemic part of the uncertainty (Lakshminarayanan et al. 2017).
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -152,10 +153,14 @@ class RCVAEEnsemble(nn.Module):
         if seed is None:
             self._build_networks(config, ensemble_size)
             return
-        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-            raise ValueError(f"seed: expected an integer >= 0 or None, got {seed!r}")
+        if (
+            isinstance(seed, bool)
+            or not isinstance(seed, numbers.Integral)
+            or not 0 <= seed < 2**64
+        ):
+            raise ValueError(f"seed: expected an integer in [0, 2**64) or None, got {seed!r}")
         with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
+            torch.manual_seed(int(seed))
             self._build_networks(config, ensemble_size)
 
     def _build_networks(self, c: RCVAEConfig, e: int) -> None:
@@ -657,7 +662,8 @@ class RCVAEEnsemble(nn.Module):
                 f"indices: expected member indices in [0, {self.ensemble_size}), got {idx.tolist()}"
             )
         idx = idx.long()
-        out = RCVAEEnsemble(self.config, int(idx.numel()), functions=self.functions)
+        # seeded: its weights are replaced, and torch's own generator is left as it was
+        out = RCVAEEnsemble(self.config, int(idx.numel()), functions=self.functions, seed=0)
         out = out.to(self.device, self.dtype)
         params = {name for name, _ in self.named_parameters()}
         state = {k: (v[idx] if k in params else v) for k, v in self.state_dict().items()}

@@ -191,7 +191,8 @@ def ensemble_from_payload(
             f"checkpoint {source!r}: ensemble_size: expected a positive int, got {size!r}", source
         )
     try:
-        ensemble = RCVAEEnsemble(config, size, functions=functions)
+        # seeded: its weights are the checkpoint's, and torch's generator is left as it was
+        ensemble = RCVAEEnsemble(config, size, functions=functions, seed=0)
     except KeyError as err:
         raise CheckpointError(f"checkpoint {source!r}: {err.args[0]}", source) from err
     state = payload["state_dict"]

@@ -64,6 +64,7 @@ from rcvae_torchrl._checks import (
 )
 from rcvae_torchrl.competency import check_same_predicates, same_chance_p_value
 from rcvae_torchrl.competency._checks import check_probability
+from rcvae_torchrl.competency.report import register_report_part
 from rcvae_torchrl.data import (
     TRAJ_KEY,
     check_same_agent,
@@ -805,6 +806,8 @@ class OutcomeCheck:
         acted = getattr(forecast, "acting", None), getattr(real_success, "acting", None)
         agents = getattr(forecast, "agent", None), getattr(real_success, "agent", None)
         if hasattr(forecast, "competency") and deadline is not None:  # a CompetencyReport
+            if callable(getattr(forecast, "flattened", None)):  # [2, 3] or one start: as
+                forecast = forecast.flattened()  # the real outcomes count them
             known = getattr(forecast, "task", "") or None
             if task is not None and known is not None and task != known:
                 raise ValueError(
@@ -1518,8 +1521,14 @@ class OutcomeCheck:
         )
         # the gap is arithmetic of the record's own forecasts and outcomes (to float32's
         # rounding, for a check made of float32 rates)
-        stored = values.get("gap")
-        if isinstance(stored, (int, float)) and abs(stored - check.gap) > 1e-6:
+        stored, said = values.get("gap"), values.get("passed")
+        if stored is not None and (
+            isinstance(stored, bool) or not isinstance(stored, (int, float))
+        ):
+            raise TypeError(f"values['gap']: expected a number (the check's gap), got {stored!r}")
+        if said is not None and not isinstance(said, bool):
+            raise TypeError(f"values['passed']: expected True or False, got {said!r}")
+        if stored is not None and abs(stored - check.gap) > 1e-6:
             raise ValueError(
                 f"values: the stored gap {stored:+.6f} is not the one the record's forecasts and "
                 f"real rates give ({check.gap:+.6f}): the record was edited or damaged; make the "
@@ -1528,8 +1537,7 @@ class OutcomeCheck:
             )
         # a verdict is judged from the numbers by this version's rules: a stored one that
         # differs was edited, or written under other rules, and is said, not taken
-        said = values.get("passed")
-        if isinstance(said, bool) and said != check.passed:
+        if said is not None and said != check.passed:
             warnings.warn(
                 f"values['passed']: the record says {said}, but its forecasts and real rates "
                 f"give {check.passed} ({check.verdict}) by this version's rules, which judge "
@@ -1552,3 +1560,6 @@ def _drawn_p(p_value: float) -> str:
     is that (2 / (draws + 1), not a measured value)."""
     floor = 2 / (_DRAWS + 1)
     return f"< {floor:.2g}" if p_value <= floor * (1 + 1e-9) else f"{p_value:.2g}"
+
+
+register_report_part("forecast_check", OutcomeCheck.from_dict)

@@ -38,6 +38,7 @@ from torch import Tensor
 from rcvae_torchrl import _checks, _spread
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl._conformal import conformal_level
+from rcvae_torchrl.competency.report import register_report_part
 from rcvae_torchrl.data import TRAJ_KEY, ObservationLayout, episode_spans
 
 __all__ = [
@@ -903,3 +904,6 @@ def _draw(n: int, most: int, keep: Tensor | None, generator: torch.Generator) ->
     if keep is not None:
         chosen |= keep
     return chosen.nonzero().squeeze(-1)
+
+
+register_report_part("novelty", StateNovelty.from_dict)

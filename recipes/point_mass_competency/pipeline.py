@@ -305,7 +305,8 @@ class Study:
             c: load_torch(self.dir / "truth" / f"{c}.pt", "real outcomes") for c in CONDITIONS
         }
         scores = {
-            c: score_forecast(reports[c].competency["p_success"], RealOutcomes.from_dict(truths[c]))
+            # the report itself: its agent, boundary, start states and deadline are checked
+            c: score_forecast(reports[c], RealOutcomes.from_dict(truths[c]))
             for c in CONDITIONS
         }
         checked = {c: reports[c].with_forecast_check(self.load_check(c)) for c in CONDITIONS}

@@ -236,3 +236,31 @@ def test_a_longer_survival_is_not_taken_for_a_shorter_deadlines_outcome():
     assert out[:1].survival_limit == 8
     reach = SuccessBoundary.within_distance(ball_to_target, 0.03, time_limit=8)
     assert out.judged_by(reach).survival_limit is None
+    # a record written before survival_limit: said when read, and refused by a survival
+    # forecast of the same predicates (its outcomes were read as 0 for 1 before)
+    older = {k: v for k, v in out.as_dict().items() if k != "survival_limit"}
+    with pytest.warns(UserWarning, match=r"^values: a record written before RealOutcomes kept"):
+        unknown = RealOutcomes.from_dict(older)
+    report = SimpleNamespace(predicates=shorter.predicates, survival=True)
+    from rcvae_torchrl.competency import check_same_predicates
+
+    with pytest.raises(ValueError, match=r"^outcomes: the real episodes were judged by the fo"):
+        check_same_predicates(report, unknown)
+    check_same_predicates(report, out)  # its limit known: within() decides
+    # a limit is a whole number of steps >= 1; another method of a boundary labels nothing
+    for bad in (0, -3, True, "5"):
+        with pytest.raises(ValueError, match=r"^survival_limit: expected None or a survival"):
+            RealOutcomes(out.success, out.first_step, out.steps, survival_limit=bad)
+    with pytest.raises(ValueError, match=r"^values\['survival_limit'\]: expected a whole"):
+        RealOutcomes.from_dict({**out.as_dict(), "survival_limit": 5.9})
+    ended = real_outcomes(
+        env,
+        make_scripted_policy(),
+        pusher_starts(1),
+        runs_per_start=1,
+        reset_to_state=reset_to_state,
+        max_steps=8,
+        success=longer.ended_over_time,
+        progress=False,
+    )
+    assert ended.predicates is None and ended.survival_limit is None

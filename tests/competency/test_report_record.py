@@ -97,6 +97,46 @@ def test_a_damaged_or_foreign_record_is_refused_by_name():
         CompetencyReport.from_dict({**record, "agent": 3})
     with pytest.raises(ValueError, match=r"^values\['time_limit'\]: expected a positive integer"):
         CompetencyReport.from_dict({**record, "time_limit": 0})
+    # labels that contradict the record's own task, or out of range (a trial's edits, each
+    # taken before and said falsely in the summary: "P(success within 0.15 s)" of a 6-step P)
+    contradicting = [
+        ({"time_limit": 3}, ValueError, r"^values\['time_limit'\]: not the deadline the rec"),
+        ({"dt": 0.1}, ValueError, r"^values\['dt'\]: not the dt the record's task says"),
+        ({"predicates": "x" * 64}, ValueError, r"^values\['predicates'\]: not the boundary"),
+        ({"confidence": 7}, ValueError, r"^values\['confidence'\]: expected"),
+        ({"top_k": -1}, ValueError, r"^values\['top_k'\]: expected an integer >= 0"),
+        ({"dt": "0.05"}, TypeError, r"^values\['dt'\]: expected seconds per step"),
+        ({"spread_tolerance": [1.5, 1.0, 2.0]}, ValueError, r"^values\['spread_tolerance'\]"),
+        ({"survival": "yes"}, TypeError, r"^values\['survival'\]: expected True or False"),
+        ({"batch_size": 4}, TypeError, r"^values\['batch_size'\]: expected a list of sizes"),
+        ({"dim_names": ["a"]}, ValueError, r"^values\['dim_names'\]: expected one name per"),
+        ({"keys": {"uncertainty": "uncertainty"}}, ValueError, r"^values\['keys'\]: expected"),
+        ({"novelty": [1, 2]}, TypeError, r"^values\['novelty'\]: expected None or a dict"),
+        ({"reference": {"bogus": 1}}, ValueError, r"^values\['reference'\]: not a record of"),
+    ]
+    for change, error, said in contradicting:
+        with pytest.raises(error, match=said):
+            CompetencyReport.from_dict({**record, **change})
+    edited = report.as_dict()
+    edited["data"]["competency"]["p_success"] = torch.full((4,), 3.0, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^values\['data'\]: p_success holds values outside"):
+        CompetencyReport.from_dict(edited)
+    del edited["data"]["competency"]
+    with pytest.raises(ValueError, match=r"^values\['data'\]: expected the report's competency"):
+        CompetencyReport.from_dict(edited)
+
+
+def test_a_record_is_a_copy_of_the_report_and_the_report_read_back_of_the_record():
+    """A trial filled a record's tensor after as_dict(), and the report's P changed with it."""
+    report, _ = _report()
+    p = report.competency["p_success"].clone()
+    record = report.as_dict()
+    record["data"]["competency"]["p_success"].fill_(0.123)
+    assert torch.equal(report.competency["p_success"], p)
+    record = report.as_dict()
+    back = CompetencyReport.from_dict(record)
+    record["data"]["competency"]["p_success"].fill_(0.123)
+    assert torch.equal(back.competency["p_success"], p)
 
 
 def _clamped(prev, state):
@@ -145,3 +185,28 @@ def test_the_same_weights_with_another_state_constraint_are_another_task():
     wider = RCVAEEnsemble(wider, 3, functions=own.functions)
     wider.load_state_dict(own.state_dict())
     assert own.behaviour()["config"] != wider.behaviour()["config"]
+
+
+def test_reports_of_a_batch_of_any_shape_are_scored_start_by_start():
+    """A trial's [2, 3] report was refused by score_forecast ("expected 2 rows (one per start
+    state), got (6, 2)") and by the outcome check, and an unbatched one counted its 3 members
+    as starts."""
+    from rcvae_torchrl.agent import RealOutcomes, score_forecast
+
+    model = make_ensemble()
+    starts = torch.randn(2, 3, S, generator=torch.Generator().manual_seed(1)) * 0.1
+    report = make_assessor(make_env(model)).assess(starts, actions=torch.zeros(T, 2), seed=0)
+    assert report.batch_size == (2, 3) and report.flattened().batch_size == (6,)
+    success = torch.rand(6, 30, generator=torch.Generator().manual_seed(2)) < 0.5
+    first = torch.where(success, 0, T)
+    outcomes = RealOutcomes(success, first, first + 1, starts=starts.reshape(6, S))
+    flat = score_forecast(report.flattened(), outcomes)
+    assert score_forecast(report, outcomes) == flat
+    check = OutcomeCheck.from_outcomes(report, outcomes)
+    assert torch.equal(check.forecast, report.competency["p_success"].reshape(-1).double())
+    one = make_assessor(make_env(model)).assess(starts[0, 0], actions=torch.zeros(T, 2), seed=0)
+    assert one.batch_size == () and one.flattened().batch_size == (1,)
+    scored = score_forecast(one, outcomes[0:1])
+    assert scored["gap"] == pytest.approx(
+        abs(float(one.competency["p_success"]) - float(success[0].double().mean())), abs=1e-6
+    )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -174,6 +175,16 @@ def test_a_seed_draws_the_same_initial_weights_and_leaves_torchs_generator(confi
     torch.manual_seed(3)  # the same as seeding torch before building
     plain = RCVAEEnsemble(config, 2).state_dict()
     assert all(torch.equal(value, plain[name]) for name, value in a.items())
-    for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match=r"^seed: expected an integer >= 0 or None, got"):
+    before = torch.random.get_rng_state()  # nor does picking members draw from it
+    RCVAEEnsemble(config, 3, seed=1).select_members([0, 2])
+    assert torch.equal(torch.random.get_rng_state(), before)
+    assert torch.equal(  # any integer type, up to torch's largest seed
+        RCVAEEnsemble(config, 1, seed=np.int64(3)).embed.weight,
+        RCVAEEnsemble(config, 1, seed=3).embed.weight,
+    )
+    RCVAEEnsemble(config, 1, seed=2**64 - 1)
+    for bad in (-1, 1.5, True, 2**64):
+        with pytest.raises(
+            ValueError, match=r"^seed: expected an integer in \[0, 2\*\*64\) or None, got"
+        ):
             RCVAEEnsemble(config, 2, seed=bad)

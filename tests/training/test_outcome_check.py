@@ -119,7 +119,8 @@ def test_statistics_against_closed_forms():
     with pytest.raises(ValueError, match=r"^values: the stored gap [-+]\d\.\d+ is not the one"):
         OutcomeCheck.from_dict(edited)
     old = {k: v for k, v in edited.items() if k != "gap"}  # a record without its figures
-    assert OutcomeCheck.from_dict(old).gap == pytest.approx(0.0)
+    with pytest.warns(UserWarning, match=r"^values\['passed'\]: the record says False, but"):
+        assert OutcomeCheck.from_dict(old).gap == pytest.approx(0.0)  # its verdict said
     single = OutcomeCheck(check.forecast.float(), check.real.float(), runs=check.runs)
     assert OutcomeCheck.from_dict(json.loads(json.dumps(single.as_dict()))).gap == pytest.approx(
         single.gap
@@ -265,7 +266,9 @@ def test_sure_forecasts_that_are_right_pass_for_sure_forecasts_alone():
     assert missed.sure_misses == 2 and missed.sure_bound == pytest.approx(beta.ppf(0.99, 3, 38))
     assert missed.sure_only and "agreed in all but 2" in missed.describe()
     # starts whose outcome was settled before the agent acted show nothing of the model
-    began = OutcomeCheck.from_dict({**check.as_dict(), "began_settled": [True] * 20 + [False] * 10})
+    settled = {**check.as_dict(), "began_settled": [True] * 20 + [False] * 10}
+    with pytest.warns(UserWarning, match=r"^values\['passed'\]: the record says True"):
+        began = OutcomeCheck.from_dict(settled)  # its stored verdict is not the numbers' now
     assert began.sure == 8 and not began.sure_only and not began.passed
     assert torch.equal(OutcomeCheck.from_dict(began.as_dict()).began_settled, began.began_settled)
     with pytest.raises(ValueError, match=r"began_settled: expected a bool tensor \[n=30\]"):
@@ -733,3 +736,7 @@ def test_a_stored_verdict_that_its_numbers_do_not_give_is_warned_of_not_taken():
     said = r"^values\['passed'\]: the record says False, but its forecasts and real rates give True"
     with pytest.warns(UserWarning, match=said):
         assert OutcomeCheck.from_dict(record).passed
+    with pytest.raises(TypeError, match=r"^values\['passed'\]: expected True or False, got 'tr"):
+        OutcomeCheck.from_dict({**record, "passed": "true"})
+    with pytest.raises(TypeError, match=r"^values\['gap'\]: expected a number"):
+        OutcomeCheck.from_dict({**record, "gap": "0.5"})
