@@ -212,17 +212,21 @@ def test_a_longer_survival_is_not_taken_for_a_shorter_deadlines_outcome():
     longer, shorter = (SuccessBoundary.survival(never, time_limit=n) for n in (8, 5))
     assert longer.predicates == shorter.predicates
     env = make_pusher_env("deterministic", time_limit=3.0, terminate_on_success=False)
-    out = real_outcomes(
-        env,
-        make_scripted_policy(),
-        pusher_starts(2),
-        runs_per_start=1,
-        reset_to_state=reset_to_state,
-        max_steps=8,
-        success=longer.success_over_time,
-        progress=False,
-        keep_observations=True,
-    )
+
+    def run(starts: int, success, keep: bool = False):
+        return real_outcomes(
+            env,
+            make_scripted_policy(),
+            pusher_starts(starts),
+            runs_per_start=1,
+            reset_to_state=reset_to_state,
+            max_steps=8,
+            success=success,
+            progress=False,
+            keep_observations=keep,
+        )
+
+    out = run(2, longer.success_over_time, keep=True)
     assert out.survival_limit == 8 and bool(out.success.all())
     said = r"^steps: these outcomes were judged by a survival boundary of 8 steps \(a success: "
     with pytest.raises(ValueError, match=said):
@@ -253,14 +257,5 @@ def test_a_longer_survival_is_not_taken_for_a_shorter_deadlines_outcome():
             RealOutcomes(out.success, out.first_step, out.steps, survival_limit=bad)
     with pytest.raises(ValueError, match=r"^values\['survival_limit'\]: expected a whole"):
         RealOutcomes.from_dict({**out.as_dict(), "survival_limit": 5.9})
-    ended = real_outcomes(
-        env,
-        make_scripted_policy(),
-        pusher_starts(1),
-        runs_per_start=1,
-        reset_to_state=reset_to_state,
-        max_steps=8,
-        success=longer.ended_over_time,
-        progress=False,
-    )
+    ended = run(1, longer.ended_over_time)
     assert ended.predicates is None and ended.survival_limit is None
