@@ -434,6 +434,13 @@ def _tuple(key: NestedKey) -> tuple[str, ...]:
 def _report_labels(values: Mapping[str, Any]) -> dict[str, Any]:
     """A report record's labels (:meth:`CompetencyReport.as_dict`), checked: its entries,
     their types and ranges, and its deadline, dt and predicates against its task."""
+    if isinstance(values, Mapping) and "kind" not in values and "competency" in values:
+        raise ValueError(
+            "values: a report's data alone (report.data.to_dict(), as saved before whole "
+            "reports were), not a CompetencyReport.as_dict() record: it does not say which "
+            "task, agent or deadline it answered. Assess again and save report.as_dict(), or "
+            "label the data with the assessor that made it: assessor.report(TensorDict(...))"
+        )
     _checks.check_entries("values", values, _REPORT_ENTRIES, _REPORT_AS_DICT)
     unknown = sorted(set(map(str, values)) - set(_REPORT_ENTRIES))
     if unknown:

@@ -89,6 +89,8 @@ def test_a_damaged_or_foreign_record_is_refused_by_name():
         CompetencyReport.from_dict({**record, "extra": 1})
     with pytest.raises(ValueError, match=r"^values: expected the entries .* missing \['task'\]"):
         CompetencyReport.from_dict({k: v for k, v in record.items() if k != "task"})
+    with pytest.raises(ValueError, match=r"^values: a report's data alone \(report.data.to_dict"):
+        CompetencyReport.from_dict(report.data.to_dict())  # as the recipes saved it before
     with pytest.raises(ValueError, match=r"^values\['kind'\]: expected 'CompetencyReport'"):
         CompetencyReport.from_dict({**record, "kind": "OutcomeCheck"})
     with pytest.raises(ValueError, match=r"^values\['data'\]: its tensors do not share the rep"):
