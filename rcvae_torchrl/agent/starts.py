@@ -201,17 +201,34 @@ def reset_by_seed(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     return td
 
 
-def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
+def reset_to_physics(
+    env: EnvBase, start: TensorDictBase, *, model_fields: Sequence[str] = MODEL_FIELDS
+) -> TensorDictBase:
     """Reset a dm_control-based env and put its simulator in ``start["physics"]``.
 
     The state is set inside the task's ``initialize_episode`` (after the task's own
     initialisation), so the observation, the wrappers and the transforms all see a regular
     reset. The task's ``after_step`` is called once more (a no-op for most dm_control tasks),
     so tasks that cache what they observe there see the new state. The start's model fields
-    (:data:`MODEL_FIELDS`: masses, site positions) hold for this episode only: the env's next
-    reset, whoever calls it, first puts its own back (a heavier arm set for one start does not
-    leak into the starts drawn after it).
+    (``model_fields``, by default all of :data:`MODEL_FIELDS`: masses, site positions) hold
+    for this episode only: the env's next reset, whoever calls it, first puts its own back (a
+    heavier arm set for one start does not leak into the starts drawn after it). A patch of
+    one's own on the task's ``initialize_episode`` (an instance attribute) is kept, and runs.
+
+    Those fields replace what the task drew for this episode: a start keeps the target or the
+    mass it was drawn with. Physics that a task randomises per episode (a mass drawn in its
+    ``initialize_episode``: domain randomisation) is then that of the start's draw in every
+    run from it, not a new draw per run: leave such fields out, e.g.
+    ``functools.partial(reset_to_physics, model_fields=("site_pos",))`` as ``reset_to_state``
+    (the task's draw then holds; a start's observation should not depend on it).
     """
+    fields = tuple(model_fields)
+    unknown = [f for f in fields if f not in MODEL_FIELDS]
+    if unknown or isinstance(model_fields, str):
+        raise ValueError(
+            f"model_fields: expected names among MODEL_FIELDS {list(MODEL_FIELDS)}, got "
+            f"{model_fields!r}"
+        )
     physics = physics_of(env)  # a clear error for an env without a dm_control physics
     task = getattr(env, "base_env", env)._env.task
     _check_start(start, "physics", "draw_starts(env, seeds, physics=True)")
@@ -223,27 +240,38 @@ def reset_to_physics(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
                 f"start['physics', {name!r}]: expected {size} finite values, got shape "
                 f"{tuple(value.shape)} with {int((~torch.isfinite(value)).sum())} non-finite"
             )
-    # a restore still pending (two of these resets in a row): its model is the env's own
-    pending = task.__dict__.pop("initialize_episode", None)
-    own = getattr(pending, "own", None)
-    if own is None:
+    # a restore of ours still pending (two of these resets in a row): its model is the env's
+    # own, and it knows what the task's instance held before it (a patch of the user's)
+    current = task.__dict__.get("initialize_episode")
+    if getattr(current, "restores_physics", False):
+        own, users = current.own, current.users
+    else:
         own = {f: np.array(getattr(physics.model, f)).copy() for f in MODEL_FIELDS}
-    original = task.initialize_episode
+        users = current
+    original = users if users is not None else type(task).initialize_episode.__get__(task)
+
+    def put_back_users() -> None:
+        if users is None:
+            task.__dict__.pop("initialize_episode", None)
+        else:
+            task.initialize_episode = users
 
     def restore_then_initialize(physics_) -> None:  # the next reset: the env's own model
         for field in MODEL_FIELDS:
             getattr(physics_.model, field)[:] = own[field]
-        task.__dict__.pop("initialize_episode", None)
+        put_back_users()
         original(physics_)
 
+    restore_then_initialize.restores_physics = True  # type: ignore[attr-defined]
     restore_then_initialize.own = own  # type: ignore[attr-defined]
+    restore_then_initialize.users = users  # type: ignore[attr-defined]
 
     def initialize(physics_) -> None:
         original(physics_)
         with physics_.reset_context():
             for name in ("qpos", "qvel", "act"):
                 getattr(physics_.data, name)[:] = state[name].numpy()
-            for field in MODEL_FIELDS:
+            for field in fields:
                 getattr(physics_.model, field)[:] = state["model", field].numpy()
         task.after_step(physics_)  # a no-op for most tasks; refreshes those that cache
 

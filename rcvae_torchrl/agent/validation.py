@@ -55,7 +55,7 @@ from .episodes import (
     run_episodes,
 )
 from .policy import FixedRowsPolicy
-from .starts import reset_by_seed, start_episodes
+from .starts import reset_by_seed, reset_to_physics, start_episodes
 from .workers import episode_workers, start_worker_episodes
 
 __all__ = ["RealOutcomes", "real_outcomes", "score_comparison", "score_forecast"]
@@ -533,13 +533,21 @@ def _warn_copies(
         if reset_to_state is reset_by_seed
         else ""
     )
+    physics = (
+        ". reset_to_physics restores the start's model fields too (masses, sizes): physics "
+        "the task draws per episode then repeats the start's draw in every run; leave those "
+        "fields out (reset_to_physics(..., model_fields=...))"
+        if reset_to_physics in (reset_to_state, getattr(reset_to_state, "func", None))
+        else ""
+    )
     warnings.warn(
         f"runs_per_start: each of the {b} starts' {r} runs repeated one episode, step for step: "
         f"they are {r} copies of one outcome, not {r} draws of the start's chance. A "
         "deterministic env does this (one run per start then says as much); an env whose "
         "noise comes from its own random stream does it when the reset restarts that stream"
         f"{replay}: reset to the state instead (reset_to_physics, or a function of your own), "
-        f"or draw the noise in a transform (ActionNoise), which each run's seed restarts{drawless}",
+        f"or draw the noise in a transform (ActionNoise), which each run's seed restarts"
+        f"{drawless}{physics}",
         UserWarning,
         stacklevel=3,
     )

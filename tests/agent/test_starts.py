@@ -8,6 +8,7 @@ from tensordict import TensorDict
 from torchrl.envs import DMControlEnv
 
 from rcvae_torchrl.agent import (
+    MODEL_FIELDS,
     draw_starts,
     observe_starts,
     physics_of,
@@ -62,6 +63,65 @@ def test_a_start_s_model_holds_for_its_episode_only():
     assert (physics.model.body_mass == own).all()
     again = draw_starts(env, [3])
     assert torch.equal(again["observation"], seeded["observation"])
+
+
+def test_physics_a_task_draws_per_episode_can_be_left_to_its_draw_and_its_patch_kept():
+    """A domain-randomisation trial drew a cart-pole's pole mass in a patch of the task's
+    ``initialize_episode``: the start's restored ``body_mass`` replaced every run's draw (each
+    start kept its one mass), and the patch itself was deleted after the first reset."""
+    env = prepare_env(DMControlEnv("cartpole", "balance"), ["position", "velocity"])[0]
+    physics = physics_of(env)
+    task = env.base_env._env.task
+    pole = physics.model.name2id("pole_1", "body")
+    drawn = []
+    class_initialize = type(task).initialize_episode
+
+    def randomised(physics_):  # the user's patch: a mass drawn per episode
+        class_initialize(task, physics_)
+        physics_.model.body_mass[pole] = float(task.random.uniform(0.5, 2.0))
+        drawn.append(float(physics_.model.body_mass[pole]))
+
+    task.initialize_episode = randomised
+    start = draw_starts(env, [1], physics=True)[0]
+    at_start = float(start["physics", "model", "body_mass"][pole])
+    masses = []
+    for _ in range(3):  # by default the start's mass, in every run
+        reset_to_physics(env, start)
+        masses.append(float(physics.model.body_mass[pole]))
+    assert masses == [at_start] * 3
+    kept = [f for f in MODEL_FIELDS if f != "body_mass"]
+    fresh = []
+    for _ in range(3):  # the task's own draw, without the mass among the fields restored
+        td = reset_to_physics(env, start, model_fields=kept)
+        fresh.append(float(physics.model.body_mass[pole]))
+        assert torch.equal(td["observation"], start["observation"])  # the same state
+    assert fresh == drawn[-3:] and len(set(fresh)) == 3
+    before = len(drawn)
+    env.reset()  # the patch is the user's: it is still there, and draws
+    assert task.__dict__["initialize_episode"] is randomised and len(drawn) == before + 1
+    with pytest.raises(ValueError, match=r"^model_fields: expected names among MODEL_FIELDS"):
+        reset_to_physics(env, start, model_fields=("mass",))
+    # runs that repeat one episode say why, where the mass was restored
+    from rcvae_torchrl.competency import SuccessBoundary
+
+    class Still(torch.nn.Module):
+        def forward(self, observation):
+            return torch.zeros(*observation.shape[:-1], 1)
+
+    from tensordict.nn import TensorDictModule
+
+    lasting = SuccessBoundary.survival(lambda o: o[..., 0].abs() > 10.0, time_limit=5)
+    with pytest.warns(UserWarning, match=r"copies of one outcome.*leave those fields out"):
+        real_outcomes(
+            env,
+            TensorDictModule(Still(), in_keys=["observation"], out_keys=["action"]),
+            start[None],
+            runs_per_start=2,
+            reset_to_state=reset_to_physics,
+            max_steps=5,
+            success=lasting.success_over_time,
+            progress=False,
+        )
 
 
 def test_physics_resets_reach_states_no_reset_draws(reacher):
