@@ -47,6 +47,7 @@ __all__ = [
     "source_digest",
     "task_difference",
     "task_digest",
+    "task_labels",
     "task_parts",
     "weights_digest",
 ]
@@ -134,13 +135,19 @@ def task_digest(predicates: str, time_limit: int, dt: float | None, model: Any) 
     model (what :func:`digest` takes, without sources: its weights, config and functions,
     :meth:`~rcvae_torchrl.models.RCVAEEnsemble.behaviour`). Two tasks are the same where the
     strings are equal; :func:`task_difference` names the parts that differ."""
-    parts = {
+    parts = {**task_labels(predicates, time_limit, dt), "model": digest(model, sources=False)[:16]}
+    return " ".join(f"{k} {parts[k]}" for k in _TASK_PARTS)
+
+
+def task_labels(predicates: str, time_limit: float, dt: float | None) -> dict[str, str]:
+    """The parts of a :func:`task_digest` that a report's labels give (``"boundary"``,
+    ``"deadline"``, ``"dt"``), as the digest writes them: a record's labels are checked
+    against its task with them."""
+    return {
         "boundary": digest(predicates)[:16],
         "deadline": str(int(time_limit)) if math.isfinite(time_limit) else "none",
         "dt": repr(None if dt is None else float(dt)),
-        "model": digest(model, sources=False)[:16],
     }
-    return " ".join(f"{k} {v}" for k, v in parts.items())
 
 
 def task_parts(task: str) -> dict[str, str] | None:

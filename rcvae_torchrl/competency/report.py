@@ -501,15 +501,11 @@ def _report_labels(values: Mapping[str, Any]) -> dict[str, Any]:
     time_limit = int(values["time_limit"])
     said = fingerprint.task_parts(values["task"])
     if said is not None:  # what the task answers is what the labels say
-        found = {
-            "deadline": str(time_limit),
-            "dt": repr(None if dt is None else float(dt)),
-            "boundary": None
-            if values["predicates"] is None
-            else fingerprint.digest(values["predicates"])[:16],
-        }
+        found = fingerprint.task_labels(values["predicates"] or "", time_limit, dt)
+        if values["predicates"] is None:  # a report that knows no boundary: nothing to compare
+            del found["boundary"]
         for part, value in found.items():
-            if value is not None and said[part] != value:
+            if said[part] != value:
                 entry = {"deadline": "time_limit", "boundary": "predicates"}.get(part, part)
                 raise ValueError(
                     f"values[{entry!r}]: not the {part} the record's task says ({said[part]} "
