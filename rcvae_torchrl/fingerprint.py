@@ -44,6 +44,7 @@ __all__ = [
     "agent_digest",
     "describe",
     "digest",
+    "model_digest",
     "source_digest",
     "task_difference",
     "task_digest",
@@ -135,8 +136,14 @@ def task_digest(predicates: str, time_limit: int, dt: float | None, model: Any) 
     model (what :func:`digest` takes, without sources: its weights, config and functions,
     :meth:`~rcvae_torchrl.models.RCVAEEnsemble.behaviour`). Two tasks are the same where the
     strings are equal; :func:`task_difference` names the parts that differ."""
-    parts = {**task_labels(predicates, time_limit, dt), "model": digest(model, sources=False)[:16]}
+    parts = {**task_labels(predicates, time_limit, dt), "model": model_digest(model)}
     return " ".join(f"{k} {parts[k]}" for k in _TASK_PARTS)
+
+
+def model_digest(model: Any) -> str:
+    """A world model's digest, as a task's ``model`` part holds it: :func:`digest` of what it
+    forecasts from (:meth:`~rcvae_torchrl.models.RCVAEEnsemble.behaviour`) without sources."""
+    return digest(model, sources=False)[:16]
 
 
 def task_labels(predicates: str, time_limit: float, dt: float | None) -> dict[str, str]:

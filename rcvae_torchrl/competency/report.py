@@ -369,16 +369,19 @@ _AS_DICT = "an AleatoricShare.as_dict()"
 #: How a report record's parts of kinds other packages define are read back (their
 #: ``from_dict``), by entry; those packages register them (:func:`register_report_part`)
 _PART_READERS: dict[str, Callable[[dict[str, Any]], Any]] = {}
+#: the entries of those parts
+_PART_ENTRIES = ("forecast_check", "novelty", "dynamics_check")
 
 
 def register_report_part(entry: str, read: Callable[[dict[str, Any]], Any]) -> None:
-    """Read a :meth:`CompetencyReport.as_dict` record's ``entry`` (``"forecast_check"`` or
-    ``"novelty"``) with ``read``, its kind's ``from_dict``: the training package registers its
-    :class:`~rcvae_torchrl.training.OutcomeCheck` and
-    :class:`~rcvae_torchrl.training.StateNovelty` when it is imported (as ``import
+    """Read a :meth:`CompetencyReport.as_dict` record's ``entry`` (``"forecast_check"``,
+    ``"novelty"`` or ``"dynamics_check"``) with ``read``, its kind's ``from_dict``: the training
+    package registers its :class:`~rcvae_torchrl.training.OutcomeCheck`,
+    :class:`~rcvae_torchrl.training.StateNovelty` and
+    :class:`~rcvae_torchrl.training.DynamicsCheck` when it is imported (as ``import
     rcvae_torchrl`` does), which this package does not import."""
-    if entry not in ("forecast_check", "novelty"):
-        raise ValueError(f"entry: expected 'forecast_check' or 'novelty', got {entry!r}")
+    if entry not in _PART_ENTRIES:
+        raise ValueError(f"entry: expected one of {list(_PART_ENTRIES)}, got {entry!r}")
     _PART_READERS[entry] = read
 
 
@@ -410,6 +413,8 @@ _REPORT_ENTRIES = (
     "novelty",
     "aleatoric_share",
 )
+#: entries a record may lack (written before they were): read as None
+_REPORT_OPTIONAL = ("dynamics_check",)
 
 
 def _key_as_list(key: NestedKey) -> str | list[str]:
@@ -442,11 +447,11 @@ def _report_labels(values: Mapping[str, Any]) -> dict[str, Any]:
             "label the data with the assessor that made it: assessor.report(TensorDict(...))"
         )
     _checks.check_entries("values", values, _REPORT_ENTRIES, _REPORT_AS_DICT)
-    unknown = sorted(set(map(str, values)) - set(_REPORT_ENTRIES))
+    unknown = sorted(set(map(str, values)) - set(_REPORT_ENTRIES) - set(_REPORT_OPTIONAL))
     if unknown:
         raise ValueError(
             f"values: entries {unknown} are not a report's ({_REPORT_AS_DICT}); expected only "
-            f"{list(_REPORT_ENTRIES)}"
+            f"{list(_REPORT_ENTRIES) + list(_REPORT_OPTIONAL)}"
         )
     if values["kind"] != _REPORT_KIND:
         raise ValueError(
@@ -751,6 +756,9 @@ class CompetencyReport:
     #: the share of the aleatoric bits that real episodes showed, applied to this report's
     #: split (:meth:`with_aleatoric_share`); ``None``: the world model's own split
     aleatoric_share: AleatoricShare | None = None
+    #: whether real episodes of the env move as the world model learned
+    #: (:meth:`with_dynamics_check`); ``None``: not checked
+    dynamics_check: Any = None
 
     def as_dict(self) -> dict[str, Any]:
         """The whole report as tensors, numbers, strings, lists and dicts, for
@@ -792,6 +800,9 @@ class CompetencyReport:
             "aleatoric_share": None
             if self.aleatoric_share is None
             else self.aleatoric_share.as_dict(),
+            "dynamics_check": None
+            if self.dynamics_check is None
+            else self.dynamics_check.as_dict(),
         }
 
     @classmethod
@@ -820,8 +831,8 @@ class CompetencyReport:
             "aleatoric_share": AleatoricShare.from_dict,
             "reference": lambda part: Reference(**part),
         }
-        for name in ("forecast_check", "novelty", "aleatoric_share", "reference"):
-            part = values[name]
+        for name in (*_PART_ENTRIES, "aleatoric_share", "reference"):
+            part = values.get(name)  # an optional entry a record may lack
             read = readers.get(name)
             if part is not None and read is None:  # its package not imported
                 raise ValueError(
@@ -901,8 +912,9 @@ class CompetencyReport:
         survival 0.18-0.35 too low). The check must be of this report's task (a check built
         from bare forecasts ties to none; see :meth:`with_forecast_check`), and made on start
         states like these (more of them outside the check's own than chance allows, see
-        :attr:`uncovered`, and it does not vouch for them). Start by start, see :attr:`novel`
-        too."""
+        :attr:`uncovered`, and it does not vouch for them); and no check of real episodes of
+        the env says that it moves otherwise than the model learned
+        (:meth:`with_dynamics_check`). Start by start, see :attr:`novel` too."""
         checked = self.forecast_check is not None and self.forecast_check.passed
         return checked and not self.warning
 
@@ -912,8 +924,12 @@ class CompetencyReport:
         and the sentence of a forecast check that did not pass, of one that passed on start
         states these lie outside (:attr:`uncovered`), of one tied to no task, or of one that
         vouches for forecasts of 0 or 1 alone where some of these lie between, or of one whose
-        real episodes' controller had other settings than this report's agent."""
+        real episodes' controller had other settings than this report's agent; and the
+        sentence of a dynamics check that did not pass (:meth:`with_dynamics_check`)."""
         parts = [self.model_warning] if self.model_warning else []
+        moves = self.dynamics_check
+        if moves is not None and not moves.passed:
+            parts.append(f"dynamics check: {moves.describe()}")
         check = self.forecast_check
         if check is not None and not check.passed:
             parts.append(f"forecast check {self._check_place}: {check.describe()}")
@@ -960,8 +976,12 @@ class CompetencyReport:
         none of these forecasts, but says nothing against the model's split: the rise of the
         epistemic part against a reference is then what tells that these starts lie outside
         what the model learned."""
-        check = self.forecast_check
-        return bool(self.model_warning) or (check is not None and not check.passed)
+        check, moves = self.forecast_check, self.dynamics_check
+        return (
+            bool(self.model_warning)
+            or (check is not None and not check.passed)
+            or (moves is not None and not moves.passed)
+        )
 
     def with_forecast_check(self, check: Any) -> CompetencyReport:
         """This report, with the check of the same agent's forecasts against its real episodes
@@ -992,6 +1012,28 @@ class CompetencyReport:
             )
         check_same_agent(self, check, name="check")
         return replace(self, forecast_check=check)
+
+    def with_dynamics_check(self, check: Any) -> CompetencyReport:
+        """This report, with the check of whether real episodes of the env it is meant for
+        move as its world model learned (a :class:`~rcvae_torchrl.training.DynamicsCheck`,
+        :func:`~rcvae_torchrl.training.check_dynamics` of a few of them: no outcome is needed).
+        An env whose physics changed goes through states like the training states, so neither
+        the novelty check nor the members' disagreement tells it; a check that did not pass
+        opens every summary as a warning, and the report is not :attr:`trustworthy`, whatever
+        its forecast check says (that check ran in the env its real episodes came from). A
+        check made with another world model than this report's is refused."""
+        if not (hasattr(check, "passed") and hasattr(check, "model")):
+            raise TypeError(
+                "check: expected a DynamicsCheck (rcvae_torchrl.training.check_dynamics), got "
+                f"{type(check).__name__}"
+            )
+        mine = (fingerprint.task_parts(self.task) or {}).get("model")
+        if mine and check.model != mine:
+            raise ValueError(
+                "check: made with another world model than this report's (its weights, config "
+                "or functions differ); check the real episodes with this report's model"
+            )
+        return replace(self, dynamics_check=check)
 
     def with_real_spread(
         self, spread: RealSpread, factor: float = 1.5, min_bits: float = 1.0
@@ -1342,6 +1384,9 @@ class CompetencyReport:
                 " No check of these forecasts against real episodes is attached to this "
                 "report (with_forecast_check)."
             )
+        moves = self.dynamics_check
+        if moves is not None and moves.passed:
+            text += f" Dynamics check: {moves.describe()}."
         return (f"Warning: {warning}. " if warning else "") + text
 
     @cached_property

@@ -146,6 +146,10 @@ class RCVAEEnsemble(nn.Module):
         #: how unlike its training states a state is (:class:`rcvae_torchrl.training.StateNovelty`),
         #: set by training and kept in checkpoints; ``None`` until fitted
         self.novelty = None
+        #: how far its one-step predictions miss held-out episodes
+        #: (:class:`rcvae_torchrl.training.DynamicsNovelty`), set by training and kept in
+        #: checkpoints; ``None`` until fitted
+        self.dynamics = None
         self.register_buffer("predicted_idx", torch.tensor(config.predicted_dims), persistent=False)
         # D when the predicted dims are 0..D-1 (the passthrough ones a tail): slices suffice
         dims = config.predicted_dims
@@ -650,7 +654,7 @@ class RCVAEEnsemble(nn.Module):
     def select_members(self, indices: Sequence[int] | torch.Tensor) -> RCVAEEnsemble:
         """A new ensemble holding copies of the chosen members (and the same normaliser and
         novelty check, which depend on the data alone; not the self-checks, which judged the
-        whole ensemble).
+        whole ensemble, nor the dynamics check, measured with the whole ensemble's mean).
 
         ``select_members([i])`` is member i as a stand-alone RCVAE.
         """

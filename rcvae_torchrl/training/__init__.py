@@ -2,6 +2,7 @@
 
 from .checkpoint import FORMAT_VERSION, CheckpointError, load_ensemble, save_ensemble
 from .checks import ModelChecks, ModelCheckWarning, OutcomeCheck, check_model
+from .dynamics import DynamicsCheck, DynamicsNovelty, check_dynamics
 from .novelty import StateNovelty, entry_groups
 from .trainer import TrainConfig, TrainResult, log_history, train_ensemble
 
@@ -19,6 +20,10 @@ __all__ = [
     # novelty of states
     "StateNovelty",
     "entry_groups",
+    # novelty of transitions
+    "DynamicsCheck",
+    "DynamicsNovelty",
+    "check_dynamics",
     # checkpoints
     "FORMAT_VERSION",
     "CheckpointError",

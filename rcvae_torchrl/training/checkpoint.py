@@ -19,6 +19,7 @@ from rcvae_torchrl.io import StoredFileError, load_torch, save_torch
 from rcvae_torchrl.models import ModelFunctions, RCVAEConfig, RCVAEEnsemble
 
 from .checks import ModelChecks
+from .dynamics import DynamicsNovelty
 from .novelty import StateNovelty
 
 __all__ = ["FORMAT_VERSION", "CheckpointError", "load_ensemble", "save_ensemble"]
@@ -44,6 +45,9 @@ def ensemble_payload(ensemble: RCVAEEnsemble, extra: dict[str, Any] | None = Non
         "novelty": None
         if getattr(ensemble, "novelty", None) is None
         else ensemble.novelty.as_dict(),
+        "dynamics": None
+        if getattr(ensemble, "dynamics", None) is None
+        else ensemble.dynamics.as_dict(),
     }
 
 
@@ -232,6 +236,18 @@ def ensemble_from_payload(
                 source,
             )
         ensemble.novelty = novelty
+    if payload.get("dynamics") is not None:
+        dynamics = _record(
+            payload, "dynamics", DynamicsNovelty, "one-step errors (dynamics check)", source
+        )
+        if len(dynamics.names) != ensemble.config.obs_dim:
+            raise CheckpointError(
+                f"checkpoint {source!r}: its one-step errors (dynamics check) have "
+                f"{len(dynamics.names)} dimensions, the model's observations "
+                f"{ensemble.config.obs_dim}",
+                source,
+            )
+        ensemble.dynamics = dynamics
     return ensemble
 
 

@@ -60,6 +60,7 @@ from rcvae_torchrl.objectives import RCVAELoss
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 from .checks import ModelChecks, ModelCheckWarning, check_model
+from .dynamics import MIN_HELD_OUT, STEPS, DynamicsNovelty
 from .novelty import StateNovelty, check_novelty_episodes, entry_groups
 
 log = logging.getLogger(__name__)
@@ -204,6 +205,8 @@ class TrainResult:
     member_steps: torch.Tensor | None = None  #: ``[E]`` the step at which each member stopped
     #: the check of novelty against the training states, when fitted (``novelty=``)
     novelty: StateNovelty | None = None
+    #: the model's one-step errors on held-out episodes, when measured (``dynamics=``)
+    dynamics: DynamicsNovelty | None = None
 
 
 @dataclass
@@ -233,6 +236,7 @@ def train_ensemble(
     progress: bool = True,
     checks: bool | Mapping[str, Any] = True,
     novelty: bool = True,
+    dynamics: bool = True,
 ) -> TrainResult:
     """Train ``ensemble`` on episodes (flat TensorDicts ``[frames]`` from ``collect_episodes``).
 
@@ -279,6 +283,13 @@ def train_ensemble(
             :func:`~rcvae_torchrl.training.entry_groups`) into ``ensemble.novelty``; the
             competency assessor then says which start states, and how many imagined states,
             lie beyond it.
+        dynamics: measure how far the trained model's one-step predictions miss
+            (:class:`~rcvae_torchrl.training.DynamicsNovelty`: their unit on ``train_data``,
+            their level on ``val_data``'s episodes) into ``ensemble.dynamics``, with which
+            :func:`~rcvae_torchrl.training.check_dynamics` tells whether real episodes of an
+            env move as the model learned. Left ``None`` where ``val_data`` holds fewer than
+            :data:`~rcvae_torchrl.training.dynamics.MIN_HELD_OUT` episodes of more than
+            :data:`~rcvae_torchrl.training.dynamics.STEPS` frames.
     """
     if not isinstance(ensemble, RCVAEEnsemble):
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
@@ -287,6 +298,7 @@ def train_ensemble(
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")
     check_args = _check_args(checks)
     check_bool("novelty", novelty)
+    check_bool("dynamics", dynamics)
     if path is not None:
         _check_checkpoint_path(path, resume)
     if not isinstance(config, TrainConfig):
@@ -367,7 +379,17 @@ def train_ensemble(
                 train_data, val_data, seed=config.seed, groups=groups
             )
         result.novelty = ensemble.novelty = distributed.broadcast(fitted)
+    if dynamics:
+        measured = None
+        if distributed.is_main() and _held_out_episodes(val_data, STEPS) >= MIN_HELD_OUT:
+            measured = DynamicsNovelty.fit(ensemble, train_data, val_data, seed=config.seed)
+        result.dynamics = ensemble.dynamics = distributed.broadcast(measured)
     return result
+
+
+def _held_out_episodes(data: TensorDictBase, steps: int) -> int:
+    """The episodes of ``data`` of more than ``steps`` frames."""
+    return int((episode_spans(data)[1] > steps).sum())
 
 
 def _check_args(checks: object) -> dict[str, Any]:

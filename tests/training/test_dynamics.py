@@ -1,0 +1,209 @@
+"""The dynamics check: real episodes of the env the model learned pass it; an env whose
+dynamics changed, through states like the training states, fails it, naming the dimension."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from rcvae_torchrl.competency import CompetencyReport
+from rcvae_torchrl.data import TRAJ_KEY
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
+from rcvae_torchrl.training import (
+    DynamicsCheck,
+    DynamicsNovelty,
+    TrainConfig,
+    check_dynamics,
+    load_ensemble,
+    save_ensemble,
+    train_ensemble,
+)
+from rcvae_torchrl.training.dynamics import MIN_HELD_OUT
+from tests.competency.test_assessor import hand_report
+
+NAMES = ("x", "y", "z")
+
+
+def episodes(n: int, steps: int, seed: int, gain: float = 0.5, first: int = 0) -> TensorDict:
+    """Flat episodes of s' = A s + B a + 0.05 eps; ``gain`` is how hard the action pushes z."""
+    g = torch.Generator().manual_seed(seed)
+    a_mat = torch.tensor([[0.9, 0.1, 0.0], [0.0, 0.9, 0.1], [0.0, 0.0, 0.8]])
+    b_mat = torch.tensor([[0.0], [0.0], [gain]])
+    s = torch.randn(n, 3, generator=g)
+    obs, act, nxt = [], [], []
+    for _ in range(steps):
+        a = torch.rand(n, 1, generator=g) * 2 - 1
+        s_next = s @ a_mat.T + a @ b_mat.T + 0.05 * torch.randn(n, 3, generator=g)
+        obs.append(s), act.append(a), nxt.append(s_next)
+        s = s_next
+    data = TensorDict(
+        {
+            "observation": torch.stack(obs, 1),
+            "action": torch.stack(act, 1),
+            ("next", "observation"): torch.stack(nxt, 1),
+            TRAJ_KEY: (torch.arange(n) + first)[:, None].expand(n, steps),
+        },
+        batch_size=[n, steps],
+    )
+    return data.reshape(-1)
+
+
+@pytest.fixture(scope="module")
+def trained():
+    train, val = episodes(24, 40, 0), episodes(16, 40, 1, first=100)
+    config = RCVAEConfig(3, 1, hidden_dim=16, latent_dim=2, mlp_dim=16, observation_names=NAMES)
+    budget = TrainConfig(max_steps=400, batch_windows=16, window=8, val_every=100, lr=3e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the self-checks' verdicts are not this file's
+        result = train_ensemble(
+            RCVAEEnsemble(config, 3, seed=0), train, val, budget, progress=False
+        )
+    return result, train, val
+
+
+def test_training_measures_it_on_the_held_out_episodes(trained):
+    result, _, _ = trained
+    dynamics = result.ensemble.dynamics
+    assert result.dynamics is dynamics and isinstance(dynamics, DynamicsNovelty)
+    assert dynamics.held_out == 16 and dynamics.steps == 20 and dynamics.dims == (0, 1, 2)
+    # conformal: 16 held-out scores keep at most 16/17 of a new one below the level
+    assert dynamics.quantile == pytest.approx(16 / 17)
+    # the unit is the model's one-step error on training episodes: about the env's noise
+    assert ((dynamics.scale > 0.03) & (dynamics.scale < 0.08)).all()
+    assert ((dynamics.reference > 0.7) & (dynamics.reference < 1.4)).all()
+
+
+def test_episodes_of_the_same_env_pass_at_the_stated_rate(trained):
+    ensemble = trained[0].ensemble
+    for seed in (5, 6, 7):
+        check = check_dynamics(ensemble, episodes(20, 40, seed, first=1000))
+        assert check.passed and check.episodes == 20 and check.short == 0
+    many = check_dynamics(ensemble, episodes(400, 40, 9, first=5000))
+    # at most 1 - 16/17 = 5.9 % of in-distribution episodes lie above the level
+    assert many.beyond / many.episodes < 0.09
+    assert many.rate == pytest.approx(1 / 17)
+
+
+def test_a_changed_env_fails_and_names_the_dimension_it_moves(trained):
+    """The action pushes z 20 % harder: the states stay like the training states, while the
+    one-step errors in z rise; 20 episodes tell it."""
+    ensemble = trained[0].ensemble
+    shifted = episodes(20, 40, 5, gain=0.6, first=1000)
+    check = check_dynamics(ensemble, shifted)
+    assert not check.passed and check.beyond >= 8 and check.p_value < 1e-5
+    assert check.named()[0].startswith("z (")
+    assert float(check.ratios[2]) > 1.4 and float(check.ratios[:2].max()) < 1.3
+    text = check.describe()
+    assert f"{check.beyond} of 20 real episodes" in text and "moves otherwise" in text
+    # the states themselves are mostly within the novelty check's level
+    assert float((ensemble.novelty.ratio(shifted["observation"]) > 1).float().mean()) < 0.2
+
+
+def test_short_episodes_are_left_out_and_counted(trained):
+    ensemble = trained[0].ensemble
+    data = torch.cat([episodes(3, 40, 5, first=0), episodes(2, 12, 6, first=10)])
+    check = check_dynamics(ensemble, data)
+    assert (check.episodes, check.short) == (3, 2)
+    none = check_dynamics(ensemble, episodes(2, 12, 6))
+    assert not none.measured and not none.passed and "no episode long enough" in none.describe()
+
+
+def test_another_model_is_refused(trained):
+    ensemble = trained[0].ensemble
+    data = episodes(5, 40, 5)
+    with pytest.raises(ValueError, match="not the world model this check was measured with"):
+        check_dynamics(ensemble.select_members([0, 1]), data, novelty=ensemble.dynamics)
+    with pytest.raises(ValueError, match="no dynamics check"):
+        check_dynamics(ensemble.select_members([0, 1]), data)
+
+
+def test_bad_episodes_are_refused_by_name(trained):
+    ensemble = trained[0].ensemble
+    data = episodes(3, 40, 5)
+    nan = data.clone()
+    nan["observation"][7, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"episodes\['observation'\].*NaN"):
+        check_dynamics(ensemble, nan)
+    wide = data.clone()
+    wide["action"] = torch.zeros(data.shape[0], 2)
+    with pytest.raises(ValueError, match=r"episodes\['action'\]: expected \[frames, 1\]"):
+        check_dynamics(ensemble, wide)
+    with pytest.raises(ValueError, match="without"):
+        check_dynamics(ensemble, data.exclude(TRAJ_KEY))
+    with pytest.raises(TypeError, match="episodes: expected a flat TensorDict"):
+        check_dynamics(ensemble, data["observation"])
+    with pytest.raises(ValueError, match="alpha"):
+        check_dynamics(ensemble, data, alpha=0.0)
+
+
+def test_too_few_held_out_episodes_measure_none(trained):
+    _, train, _ = trained
+    few = episodes(MIN_HELD_OUT - 1, 40, 3, first=200)
+    config = RCVAEConfig(3, 1, hidden_dim=8, latent_dim=2, mlp_dim=8)
+    budget = TrainConfig(max_steps=4, batch_windows=4, window=8, val_every=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = train_ensemble(
+            RCVAEEnsemble(config, 2, seed=0), train, few, budget, progress=False, checks=False
+        )
+    assert result.dynamics is None and result.ensemble.dynamics is None
+    with pytest.raises(ValueError, match=f"at least {MIN_HELD_OUT} episodes"):
+        DynamicsNovelty.fit(result.ensemble, train, few)
+
+
+def test_kept_in_checkpoints_and_records(trained, tmp_path):
+    ensemble = trained[0].ensemble
+    path = save_ensemble(ensemble, tmp_path / "model.pt")
+    loaded = load_ensemble(path)
+    mine, theirs = ensemble.dynamics.as_dict(), loaded.dynamics.as_dict()
+    for key, value in mine.items():
+        same = torch.equal if isinstance(value, torch.Tensor) else (lambda a, b: a == b)
+        assert same(value, theirs[key]), key
+    data = episodes(20, 40, 5, gain=0.6, first=1000)
+    # the loaded model is the same model: its check is the saved one's
+    assert check_dynamics(loaded, data).beyond == check_dynamics(ensemble, data).beyond
+    check = check_dynamics(ensemble, data)
+    again = DynamicsCheck.from_dict(check.as_dict())
+    assert (again.beyond, again.episodes, again.passed) == (check.beyond, 20, False)
+    measured = DynamicsNovelty.from_dict(ensemble.dynamics.as_dict())
+    assert measured.level == ensemble.dynamics.level
+    with pytest.raises(ValueError, match="dims"):
+        DynamicsNovelty.from_dict({**ensemble.dynamics.as_dict(), "dims": [7]})
+    with pytest.raises(ValueError, match="beyond"):
+        DynamicsCheck.from_dict({**check.as_dict(), "beyond": 21})
+
+
+def _report(task: str = "") -> CompetencyReport:
+    """Two start states' report (the competency tests' hand-made one) of ``task``."""
+    data = torch.stack([hand_report(epistemic=e).data for e in (0.2, 0.5)])
+    return CompetencyReport(data, ("a", "b", "c", "d"), 600, 0.05, 0.95, task=task)
+
+
+def test_a_report_with_a_failed_check_is_not_trustworthy(trained):
+    ensemble = trained[0].ensemble
+    from rcvae_torchrl import fingerprint
+
+    task = fingerprint.task_digest("p", 600, 0.05, ensemble.behaviour())
+    failed = check_dynamics(ensemble, episodes(20, 40, 5, gain=0.6, first=1000))
+    passed = check_dynamics(ensemble, episodes(20, 40, 6, first=1000))
+    report = _report(task)
+    assert "dynamics" not in report.warning
+    bad = report.with_dynamics_check(failed)
+    assert bad.warning.startswith("dynamics check: ") and not bad.trustworthy
+    good = report.with_dynamics_check(passed)
+    assert "dynamics check" not in good.warning
+    assert "Dynamics check: 0 of 20 real episodes" in good.overall()
+    assert "they move as the world model learned" in good.overall()
+    # saved whole and read back, the check comes along; a record from before it reads as none
+    again = CompetencyReport.from_dict(bad.as_dict())
+    assert again.dynamics_check.beyond == failed.beyond and again.warning == bad.warning
+    older = {k: v for k, v in report.as_dict().items() if k != "dynamics_check"}
+    assert CompetencyReport.from_dict(older).dynamics_check is None
+    other = fingerprint.task_digest("p", 600, 0.05, ensemble.select_members([0]).behaviour())
+    with pytest.raises(ValueError, match="another world model"):
+        _report(other).with_dynamics_check(failed)
+    with pytest.raises(TypeError, match="expected a DynamicsCheck"):
+        report.with_dynamics_check(object())
