@@ -1002,6 +1002,12 @@ class CompetencyReport:
                 "check: expected an OutcomeCheck (rcvae_torchrl.training.OutcomeCheck."
                 f"from_outcomes), got {type(check).__name__}"
             )
+        other = getattr(check, "attaches_with", "with_forecast_check")
+        if other != "with_forecast_check":
+            raise TypeError(
+                f"check: a {type(check).__name__}, not a check of the forecasts against real "
+                f"outcomes (an OutcomeCheck); attach it with report.{other}(check)"
+            )
         task = getattr(check, "task", None)
         if self.task and task and task != self.task:
             raise ValueError(
@@ -1022,7 +1028,7 @@ class CompetencyReport:
         opens every summary as a warning, and the report is not :attr:`trustworthy`, whatever
         its forecast check says (that check ran in the env its real episodes came from). A
         check made with another world model than this report's is refused."""
-        if not (hasattr(check, "passed") and hasattr(check, "model")):
+        if getattr(check, "attaches_with", None) != "with_dynamics_check":
             raise TypeError(
                 "check: expected a DynamicsCheck (rcvae_torchrl.training.check_dynamics), got "
                 f"{type(check).__name__}"

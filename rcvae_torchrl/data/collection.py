@@ -371,6 +371,8 @@ def _pairs_apart(
     same = ids[1:] == ids[:-1]
     later, earlier = obs[1:][same], nxt[:-1][same]
     close = torch.isclose(later, earlier, rtol=ROUNDING, atol=ROUNDING, equal_nan=True)
+    if close.shape[0] == 0:  # no two frames under one id (episodes of one frame each)
+        return same, torch.zeros(0, dtype=torch.bool, device=close.device)
     return same, ~close.reshape(close.shape[0], -1).all(-1)
 
 
