@@ -299,10 +299,27 @@ class DynamicsNovelty:
     def from_dict(cls, values: dict[str, Any]) -> DynamicsNovelty:
         fields = ("scale", "dims", "held_out_scores", "level", "quantile", "steps", "model")
         _checks.check_entries("values", values, (*fields, "names"), "a DynamicsNovelty.as_dict()")
-        return cls(
-            **{k: values[k] for k in fields},
-            names=tuple(values["names"]),
-        )
+        parts = {k: values[k] for k in fields}
+        for name in ("scale", "held_out_scores"):  # lists where read back from JSON
+            parts[name] = _float_tensor(f"values[{name!r}]", parts[name])
+        return cls(**parts, names=tuple(values["names"]))
+
+
+def _float_tensor(name: str, value: object) -> Tensor:
+    """A float64 tensor of ``value`` (a tensor, or nested lists of numbers as JSON holds them;
+    ``None`` for NaN); a ``TypeError`` naming ``name`` otherwise."""
+    if isinstance(value, Tensor):
+        return value.to(torch.float64)
+    try:
+        return torch.tensor(_nan_for_none(value), dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(f"{name}: expected a tensor or lists of numbers, got {value!r}") from err
+
+
+def _nan_for_none(value: Any) -> Any:
+    if isinstance(value, list):
+        return [_nan_for_none(v) for v in value]
+    return math.nan if value is None else value
 
 
 def _scores(errors: Tensor, scale: Tensor, dims: tuple[int, ...]) -> Tensor:
@@ -424,8 +441,9 @@ class DynamicsCheck:
             "rate": float(self.rate),
             "alpha": float(self.alpha),
             "tolerance": float(self.tolerance),
-            "p_values": self.p_values.clone(),
-            "ratios": self.ratios.clone(),
+            # lists: a check is small, and written to JSON as often as to torch files
+            "p_values": self.p_values.tolist(),
+            "ratios": self.ratios.tolist(),
             "names": list(self.names),
             "model": self.model,
         }
@@ -445,7 +463,10 @@ class DynamicsCheck:
             "model",
         )
         _checks.check_entries("values", values, fields, "a DynamicsCheck.as_dict()")
-        return cls(**{k: values[k] for k in fields if k != "names"}, names=tuple(values["names"]))
+        parts = {k: values[k] for k in fields if k != "names"}
+        for name in ("p_values", "ratios"):  # lists where read back from JSON
+            parts[name] = _float_tensor(f"values[{name!r}]", parts[name])
+        return cls(**parts, names=tuple(values["names"]))
 
 
 def rank_p_values(

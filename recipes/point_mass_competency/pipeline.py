@@ -47,7 +47,14 @@ from rcvae_torchrl.io import load_torch, read_json, save_torch, write_json
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.stages import StageRunner
-from rcvae_torchrl.training import OutcomeCheck, load_ensemble, save_ensemble, train_ensemble
+from rcvae_torchrl.training import (
+    DynamicsCheck,
+    OutcomeCheck,
+    check_dynamics,
+    load_ensemble,
+    save_ensemble,
+    train_ensemble,
+)
 
 from .._settings import CHECKPOINTS, REPORT_FILES
 from .config import CONTROL_TIMESTEP, StudyConfig
@@ -87,9 +94,11 @@ STAGE_SETTINGS = {
 }
 # disjoint seed ranges per purpose: data starts, condition c's starts, real episodes; a
 # condition's check starts lie past its scored ones (CHECK_SEEDS on), its check's real
-# episodes past the scored ones' (CHECK_REAL_SEEDS on)
+# episodes past the scored ones' (CHECK_REAL_SEEDS on); the dynamics checks' episodes take
+# their seeds as they are (DYNAMICS_SEEDS on, a block per seed and condition), past the data's
 DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000
 CHECK_SEEDS, CHECK_REAL_SEEDS = 500_000, 20_000
+DYNAMICS_SEEDS, DYNAMICS_BLOCK = 3_000_000, 100_000
 
 
 class Study:
@@ -283,9 +292,52 @@ class Study:
                 outcomes = self._real(condition, starts, seed, self.cfg.assess.check_runs)
                 check = OutcomeCheck.from_outcomes(report, outcomes)
                 write_json(path, check.as_dict(), checksum=True)  # an edit is refused
-            check = self.load_check(condition)
-            summary[condition] = {"verdict": check.verdict, "passed": check.passed}
+            moves = self.dir / "check" / f"{condition}_dynamics.json"
+            if not moves.is_file():
+                found = self._dynamics(condition, model_name)
+                record = None if found is None else found.as_dict()
+                write_json(moves, {"check": record}, checksum=True)
+            check, found = self.load_check(condition), self.load_dynamics(condition)
+            summary[condition] = {
+                "verdict": check.verdict,
+                "passed": check.passed,
+                "dynamics": None if found is None else found.passed,
+            }
         return summary
+
+    def _dynamics(self, condition: str, model_name: str) -> DynamicsCheck | None:
+        """Does the condition's real env move as its world model learned? The controller run
+        once from each check start (no outcome needed), its episodes' one-step errors ranked
+        against the model's held-out episodes' (:func:`~rcvae_torchrl.training.check_dynamics`);
+        ``None`` where the model has no such check (too few validation episodes)."""
+        model = self.load_model(model_name)
+        if model.dynamics is None:
+            return None
+        variant = CONDITIONS[condition][1]
+        starts = self.starts(condition, self.cfg.assess.check_starts, CHECK_SEEDS)
+        index = list(CONDITIONS).index(condition)
+        seed = DYNAMICS_SEEDS + (self.cfg.seed * len(CONDITIONS) + index) * DYNAMICS_BLOCK
+        stats = run_episodes(
+            make_real_env(variant, self.cfg.task),
+            self.agent.module(),
+            seeds=[seed + i for i in range(starts.shape[0])],
+            starts=starts,
+            reset_to_state=reset_by_seed,
+            max_steps=self.steps(self.cfg.task.deadline_s),
+            success=self.success_fn(),
+            progress=self.progress,
+            desc=f"dynamics: {condition}",
+        )
+        return check_dynamics(model, stats.data)
+
+    def load_dynamics(self, condition: str) -> DynamicsCheck | None:
+        """The condition's dynamics check; ``None`` where its model had none, or in a run
+        directory whose check stage ran before dynamics checks were made."""
+        path = self.dir / "check" / f"{condition}_dynamics.json"
+        if not path.is_file():
+            return None
+        record = read_json(path, "dynamics check")["check"]
+        return None if record is None else DynamicsCheck.from_dict(record)
 
     def load_check(self, condition: str) -> OutcomeCheck:
         return OutcomeCheck.from_dict(read_json(self.dir / "check" / f"{condition}.json", "check"))
@@ -310,6 +362,9 @@ class Study:
             for c in CONDITIONS
         }
         checked = {c: reports[c].with_forecast_check(self.load_check(c)) for c in CONDITIONS}
+        for c in CONDITIONS:
+            if (moves := self.load_dynamics(c)) is not None:
+                checked[c] = checked[c].with_dynamics_check(moves)
         return write_report(self.dir, checked, truths, scores, self.cfg)
 
 

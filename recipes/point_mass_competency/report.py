@@ -109,6 +109,7 @@ def write_report(
         "overall": {c: r.overall() for c, r in referenced.items()},
         "model_warnings": {c: r.model_warning for c, r in reports.items()},
         "forecast_checks": {c: _check_row(r) for c, r in reports.items()},
+        "dynamics_checks": {c: _dynamics_row(r) for c, r in reports.items()},
     }
     write_json(run_dir / "summary.json", summary)
     text = _markdown(run_dir, checks, summary, config)
@@ -129,6 +130,20 @@ def _check_row(report: CompetencyReport) -> dict[str, Any]:
         "gap_high": high,
         "passed": check.passed,
         "trustworthy": report.trustworthy,
+        "describe": check.describe(),
+    }
+
+
+def _dynamics_row(report: CompetencyReport) -> dict[str, Any] | None:
+    """A condition's dynamics check in figures (``None``: its model had none)."""
+    check = report.dynamics_check
+    if check is None:
+        return None
+    return {
+        "episodes": check.episodes,
+        "beyond": check.beyond,
+        "p_value": check.p_value,
+        "passed": check.passed,
         "describe": check.describe(),
     }
 
@@ -177,6 +192,25 @@ def _markdown(run_dir: Path, checks: dict, summary: dict, config: StudyConfig) -
         "The gap's interval is at the check's level (99 %); trusted: the report's `trustworthy`.",
         "",
         *[f"- **{c}**: {r['describe']}." for c, r in found.items()],
+        "",
+        "## Dynamics checks",
+        "",
+        "Does each condition's real env move as its world model learned? The controller was run "
+        "once from each check start, and its episodes' one-step errors ranked against the "
+        "model's held-out episodes' (`check_dynamics`, attached with `with_dynamics_check`: "
+        "one that fails makes the report untrustworthy).",
+        "",
+        *[
+            f"- **{c}**: "
+            + (
+                "not checked: its model has no dynamics check (fewer than 10 validation "
+                "episodes of more than 20 frames)"
+                if r is None
+                else f"{'passed' if r['passed'] else 'failed'}: {r['describe']}"
+            )
+            + "."
+            for c, r in summary["dynamics_checks"].items()
+        ],
         "",
         f"## Summaries (against the {REFERENCE} condition)",
         "",

@@ -181,3 +181,40 @@ def test_a_run_dir_of_another_profile_is_refused_naming_it(run_dir):
         "; its run.log says it was made with profile=quick, and this run has profile=default: "
         "add profile=quick to go on with it"
     )
+
+
+def test_each_condition_s_dynamics_check_is_recorded(run_dir):
+    """The check stage also asks whether each condition's real env moves as its model learned;
+    the micro profile's models hold 1 validation episode, too few to measure it: the report
+    says so, and the run keeps an empty record (no check stage runs again for it)."""
+    summary = read_json(run_dir / "summary.json")
+    report = (run_dir / "report.md").read_text()
+    assert "## Dynamics checks" in report
+    for condition in CONDITIONS:
+        assert read_json(run_dir / "check" / f"{condition}_dynamics.json") == {"check": None}
+        assert summary["dynamics_checks"][condition] is None
+        assert f"- **{condition}**: not checked: its model has no dynamics check" in report
+
+
+def test_a_measured_dynamics_check_reaches_the_report(tmp_path):
+    """With 110 episodes of 50 steps, a tenth held out, each model measures its one-step
+    errors; each condition's controller episodes are checked against them, and a check that
+    failed makes its report untrustworthy."""
+    from rcvae_torchrl.training import DynamicsCheck
+
+    run_dir = tmp_path / "run"
+    more = [o for o in MICRO if not o.startswith("data.episodes")]
+    done = _run(*more, "data.episodes=110", "assess.check_starts=12", f"run_dir={run_dir}")
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    summary = read_json(run_dir / "summary.json")
+    report = (run_dir / "report.md").read_text()
+    for condition in CONDITIONS:
+        record = read_json(run_dir / "check" / f"{condition}_dynamics.json")["check"]
+        check = DynamicsCheck.from_dict(record)
+        assert check.episodes == 12 and check.short == 0
+        row = summary["dynamics_checks"][condition]
+        assert (row["passed"], row["episodes"]) == (check.passed, 12)
+        assert f"- **{condition}**: {'passed' if check.passed else 'failed'}: " in report
+        assert check.describe() in report
+        if not check.passed:
+            assert not summary["forecast_checks"][condition]["trustworthy"]
