@@ -242,6 +242,10 @@ def test_a_report_with_a_failed_check_is_not_trustworthy(trained):
     assert "dynamics" not in report.warning
     bad = report.with_dynamics_check(failed)
     assert bad.warning.startswith("dynamics check: ") and not bad.trustworthy
+    # the warning opens the overview; the split of the doubt is still given its cause (the
+    # episodes may have left the training states, where the rise is the model's own account)
+    assert bad.overall().startswith("Warning: dynamics check: ")
+    assert "this split does not say" not in bad.overall()
     good = report.with_dynamics_check(passed)
     assert "dynamics check" not in good.warning
     assert "Dynamics check: their one-step errors against 1.1 times the held-out" in good.overall()
