@@ -6,11 +6,19 @@ from rcvae_torchrl.data import TRAJ_KEY
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 
 
-def linear_episodes(episodes: int, steps: int, seed: int = 0, sigma: float = 0.05) -> TensorDict:
-    """Flat episodes of s' = A s + B a + sigma * eps (3-D state, 1-D action)."""
+def linear_episodes(
+    episodes: int,
+    steps: int,
+    seed: int = 0,
+    sigma: float = 0.05,
+    gain: float = 0.5,
+    first: int = 0,
+) -> TensorDict:
+    """Flat episodes of s' = A s + B a + sigma * eps (3-D state, 1-D action; ``gain``: how
+    hard the action pushes the third dimension), ids from ``first`` on."""
     g = torch.Generator().manual_seed(seed)
     a_mat = torch.tensor([[0.9, 0.1, 0.0], [0.0, 0.9, 0.1], [0.0, 0.0, 0.8]])
-    b_mat = torch.tensor([[0.0], [0.0], [0.5]])
+    b_mat = torch.tensor([[0.0], [0.0], [gain]])
     s = torch.randn(episodes, 3, generator=g)
     obs, act, nxt = [], [], []
     for _ in range(steps):
@@ -23,7 +31,7 @@ def linear_episodes(episodes: int, steps: int, seed: int = 0, sigma: float = 0.0
             "observation": torch.stack(obs, 1),
             "action": torch.stack(act, 1),
             ("next", "observation"): torch.stack(nxt, 1),
-            TRAJ_KEY: torch.arange(episodes)[:, None].expand(episodes, steps),
+            TRAJ_KEY: (torch.arange(episodes) + first)[:, None].expand(episodes, steps),
         },
         batch_size=[episodes, steps],
     )

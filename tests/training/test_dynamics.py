@@ -23,32 +23,14 @@ from rcvae_torchrl.training import (
 )
 from rcvae_torchrl.training.dynamics import MIN_HELD_OUT, rank_p_values
 from tests.competency.test_assessor import hand_report
+from tests.training.conftest import linear_episodes
 
 NAMES = ("x", "y", "z")
 
 
 def episodes(n: int, steps: int, seed: int, gain: float = 0.5, first: int = 0) -> TensorDict:
-    """Flat episodes of s' = A s + B a + 0.05 eps; ``gain`` is how hard the action pushes z."""
-    g = torch.Generator().manual_seed(seed)
-    a_mat = torch.tensor([[0.9, 0.1, 0.0], [0.0, 0.9, 0.1], [0.0, 0.0, 0.8]])
-    b_mat = torch.tensor([[0.0], [0.0], [gain]])
-    s = torch.randn(n, 3, generator=g)
-    obs, act, nxt = [], [], []
-    for _ in range(steps):
-        a = torch.rand(n, 1, generator=g) * 2 - 1
-        s_next = s @ a_mat.T + a @ b_mat.T + 0.05 * torch.randn(n, 3, generator=g)
-        obs.append(s), act.append(a), nxt.append(s_next)
-        s = s_next
-    data = TensorDict(
-        {
-            "observation": torch.stack(obs, 1),
-            "action": torch.stack(act, 1),
-            ("next", "observation"): torch.stack(nxt, 1),
-            TRAJ_KEY: (torch.arange(n) + first)[:, None].expand(n, steps),
-        },
-        batch_size=[n, steps],
-    )
-    return data.reshape(-1)
+    """Flat episodes of the linear system; ``gain`` is how hard the action pushes z."""
+    return linear_episodes(n, steps, seed, gain=gain, first=first).exclude(("next", "done"))
 
 
 @pytest.fixture(scope="module")
