@@ -138,7 +138,21 @@ def machine_info() -> dict[str, Any]:
         "threads": torch.get_num_threads(),
         "cpus": os.cpu_count(),
         "machine": platform.machine(),
+        # figures differ by processor: the same 2-core VM has been an Intel Xeon and an AMD EPYC
+        "cpu_model": _cpu_model(),
     }
+
+
+def _cpu_model() -> str | None:
+    """The processor's name as the OS gives it (``/proc/cpuinfo``'s model name on Linux)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or None
 
 
 def write_json(name: str, payload: dict[str, Any]) -> Path:
