@@ -373,6 +373,17 @@ _PART_READERS: dict[str, Callable[[dict[str, Any]], Any]] = {}
 _PART_ENTRIES = ("forecast_check", "novelty", "dynamics_check")
 
 
+def _check_dynamics_model(task: str, check: Any, name: str = "check") -> None:
+    """Refuse a dynamics check made with another world model than ``task``'s (where the task
+    names one)."""
+    mine = (fingerprint.task_parts(task) or {}).get("model")
+    if mine and check.model != mine:
+        raise ValueError(
+            f"{name}: made with another world model than this report's (its weights, config "
+            "or functions differ); check the real episodes with this report's model"
+        )
+
+
 def register_report_part(entry: str, read: Callable[[dict[str, Any]], Any]) -> None:
     """Read a :meth:`CompetencyReport.as_dict` record's ``entry`` (``"forecast_check"``,
     ``"novelty"`` or ``"dynamics_check"``) with ``read``, its kind's ``from_dict``: the training
@@ -848,6 +859,12 @@ class CompetencyReport:
                 parts[name] = None if part is None else read(dict(part))
             except TypeError as err:  # a part's unknown or missing entries (Reference's own)
                 raise ValueError(f"values[{name!r}]: not a record of its kind ({err})") from err
+            except ValueError as err:  # named by the entry it came from
+                raise ValueError(f"values[{name!r}]: {err}") from err
+        if parts.get("dynamics_check") is not None:  # made with this report's model, as when
+            _check_dynamics_model(  # it was attached
+                labels["task"], parts["dynamics_check"], "values['dynamics_check']"
+            )
         return cls(
             data,
             uncertainty_key=keys["uncertainty"],
@@ -1032,12 +1049,7 @@ class CompetencyReport:
                 "check: expected a DynamicsCheck (rcvae_torchrl.training.check_dynamics), got "
                 f"{type(check).__name__}"
             )
-        mine = (fingerprint.task_parts(self.task) or {}).get("model")
-        if mine and check.model != mine:
-            raise ValueError(
-                "check: made with another world model than this report's (its weights, config "
-                "or functions differ); check the real episodes with this report's model"
-            )
+        _check_dynamics_model(self.task, check)
         return replace(self, dynamics_check=check)
 
     def with_real_spread(

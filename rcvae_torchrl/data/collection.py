@@ -370,6 +370,8 @@ def _pairs_apart(
         ids, obs, nxt = ids[order], obs[order], nxt[order]
     same = ids[1:] == ids[:-1]
     later, earlier = obs[1:][same], nxt[:-1][same]
+    # in one dtype: an episode's observations and next observations may be stored in two
+    later, earlier = later.to(torch.float64), earlier.to(torch.float64)
     close = torch.isclose(later, earlier, rtol=ROUNDING, atol=ROUNDING, equal_nan=True)
     if close.shape[0] == 0:  # no two frames under one id (episodes of one frame each)
         return same, torch.zeros(0, dtype=torch.bool, device=close.device)

@@ -57,7 +57,7 @@ __all__ = ["DynamicsCheck", "DynamicsNovelty", "check_dynamics", "rank_p_values"
 
 #: transitions of each episode scored, from its first state
 STEPS = 20
-#: the fewest held-out episodes (of at least ``steps + 1`` frames) a level is measured on
+#: the fewest held-out episodes (of at least ``steps`` frames) a check is measured on
 MIN_HELD_OUT = 10
 #: a dimension whose one-step error on training episodes is below this (relative to its
 #: values) is predicted exactly (a clock a state constraint advances): not judged
@@ -76,9 +76,10 @@ def _model_digest(ensemble: RCVAEEnsemble) -> str:
 
 
 def _episodes(name: str, data: object, ensemble: RCVAEEnsemble, steps: int) -> tuple[Tensor, ...]:
-    """The first ``steps + 1`` frames of every episode of flat ``data`` that has them:
-    observations ``[B, steps + 1, S]`` and actions ``[B, steps + 1, A]`` (the model's dtype and
-    device), and the number of episodes too short."""
+    """The first ``steps`` transitions (frames) of every episode of flat ``data`` that has
+    them: its ``steps + 1`` states ``[B, steps + 1, S]`` and actions ``[B, steps + 1, A]`` (the
+    last one a copy, never read; the model's dtype and device), and the number of episodes too
+    short."""
     check_frames_type(data, name)
     assert isinstance(data, TensorDictBase)
     keys = set(data.keys(True))
@@ -114,13 +115,12 @@ def _episodes(name: str, data: object, ensemble: RCVAEEnsemble, steps: int) -> t
             _checks.check_finite(label, x)
     check_episode_ids(data, name)
     first, lengths = episode_spans(data)
-    long = first[lengths > steps]  # steps transitions: steps + 1 states
-    frames = long[:, None] + torch.arange(steps + 1)
-    obs = data.get("observation")[frames[:, :steps]]
-    last = data.get(("next", "observation"))[frames[:, steps - 1]]
-    obs = torch.cat([obs, last[:, None]], 1)
+    long = first[lengths >= steps]  # a frame is a transition: steps frames, steps + 1 states
+    frames = long[:, None] + torch.arange(steps)
+    last = data.get(("next", "observation"))[frames[:, -1]]
+    obs = torch.cat([data.get("observation")[frames], last[:, None]], 1)
     actions = data.get("action")[frames]
-    actions[:, steps] = actions[:, steps - 1]  # the last state's action is never read
+    actions = torch.cat([actions, actions[:, -1:]], 1)  # the last state's action: never read
     like = next(ensemble.parameters())
     return obs.to(like), actions.to(like), int(len(first) - len(long))
 
@@ -175,17 +175,24 @@ class DynamicsNovelty:
                 f"held_out_scores: expected at least {MIN_HELD_OUT} held-out episodes, got "
                 f"{held.shape[0]}"
             )
-        if len(self.names) != s:
-            raise ValueError(f"names: expected {s} names, got {len(self.names)}")
+        object.__setattr__(self, "names", _names(self.names, s))
+        if not self.scale.is_floating_point() or not bool(
+            (torch.isfinite(self.scale) & (self.scale >= 0)).all()
+        ):
+            raise ValueError(f"scale: expected finite units >= 0, got {self.scale}")
         dims = tuple(self.dims)
         if not dims or any(
             isinstance(d, bool) or not isinstance(d, int) or not 0 <= d < s for d in dims
         ):
             raise ValueError(f"dims: expected dimensions in [0, {s}), at least one, got {dims!r}")
         object.__setattr__(self, "dims", dims)
-        object.__setattr__(self, "names", tuple(str(n) for n in self.names))
-        if not (isinstance(self.level, (int, float)) and math.isfinite(self.level)):
-            raise ValueError(f"level: expected a finite score, got {self.level!r}")
+        if not bool((self.scale[list(dims)] > 0).all()):
+            raise ValueError(f"scale: expected a unit > 0 in every dimension judged {dims}")
+        level = self.level
+        if isinstance(level, bool) or not isinstance(level, (int, float)):
+            raise TypeError(f"level: expected a number, got {level!r}")
+        if not (math.isfinite(level) and level > 0):
+            raise ValueError(f"level: expected a finite score > 0, got {level!r}")
         check_unit_interval("quantile", self.quantile, include_zero=False)
         check_positive_int("steps", self.steps)
         judged = held[:, list(dims)]
@@ -219,16 +226,17 @@ class DynamicsNovelty:
         """Measure ``ensemble``'s one-step errors: their unit per dimension on (at most
         ``max_episodes`` of) the training episodes ``train_data``, and the level of the
         episodes' scores on the held-out episodes ``held_out`` (flat episodes, as training
-        takes them; those of fewer than ``steps + 1`` frames are left out). Raises
+        takes them; those of fewer than ``steps`` frames are left out). Raises
         ``ValueError`` for fewer than :data:`MIN_HELD_OUT` held-out episodes long enough."""
         check_positive_int("steps", steps)
         check_positive_int("max_episodes", max_episodes)
+        _checks.check_non_negative_int("seed", seed)
         check_unit_interval("quantile", quantile, include_zero=False)
         obs, actions, _ = _episodes("train_data", train_data, ensemble, steps)
         if obs.shape[0] == 0:
             raise ValueError(
-                f"train_data: no episode of at least {steps + 1} frames ({steps} transitions "
-                "are scored per episode); pass a smaller steps"
+                f"train_data: no episode of at least {steps} frames (the transitions scored "
+                "per episode); fit with a smaller steps=, DynamicsNovelty.fit(..., steps=...)"
             )
         if obs.shape[0] > max_episodes:
             generator = torch.Generator().manual_seed(seed)
@@ -253,7 +261,7 @@ class DynamicsNovelty:
         held_obs, held_actions, _ = _episodes("held_out", held_out, ensemble, steps)
         if held_obs.shape[0] < MIN_HELD_OUT:
             raise ValueError(
-                f"held_out: expected at least {MIN_HELD_OUT} episodes of at least {steps + 1} "
+                f"held_out: expected at least {MIN_HELD_OUT} episodes of at least {steps} "
                 f"frames to measure a level on, got {held_obs.shape[0]}"
             )
         per_dim = _scores(_errors(ensemble, held_obs, held_actions), scale, dims)
@@ -298,11 +306,39 @@ class DynamicsNovelty:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> DynamicsNovelty:
         fields = ("scale", "dims", "held_out_scores", "level", "quantile", "steps", "model")
-        _checks.check_entries("values", values, (*fields, "names"), "a DynamicsNovelty.as_dict()")
+        _known_entries(values, (*fields, "names"), "a DynamicsNovelty.as_dict()")
         parts = {k: values[k] for k in fields}
         for name in ("scale", "held_out_scores"):  # lists where read back from JSON
             parts[name] = _float_tensor(f"values[{name!r}]", parts[name])
-        return cls(**parts, names=tuple(values["names"]))
+        return cls(**parts, names=values["names"])
+
+
+def _known_entries(values: object, fields: tuple[str, ...], what: str) -> None:
+    """``values`` holds ``fields``, and nothing else."""
+    _checks.check_entries("values", values, fields, what)
+    assert isinstance(values, dict)
+    unknown = sorted(set(map(str, values)) - set(fields))
+    if unknown:
+        raise ValueError(f"values: entries {unknown} are not those of {what} ({list(fields)})")
+
+
+def _check_tolerance(tolerance: object) -> None:
+    if (
+        isinstance(tolerance, bool)
+        or not isinstance(tolerance, (int, float))
+        or not math.isfinite(tolerance)
+        or tolerance < 1
+    ):
+        raise ValueError(f"tolerance: expected a finite factor >= 1, got {tolerance!r}")
+
+
+def _names(names: object, count: int) -> tuple[str, ...]:
+    """``count`` dimension names, as a tuple of strings."""
+    if isinstance(names, (str, bytes)) or not isinstance(names, (list, tuple)):
+        raise TypeError(f"names: expected a list of {count} names, got {names!r}")
+    if len(names) != count or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"names: expected {count} names (str), got {list(names)!r}")
+    return tuple(names)
 
 
 def _float_tensor(name: str, value: object) -> Tensor:
@@ -341,7 +377,7 @@ class DynamicsCheck:
 
     #: episodes scored
     episodes: int
-    #: episodes left out, of fewer than ``steps + 1`` frames
+    #: episodes left out, of fewer than ``steps`` frames
     short: int
     #: episodes whose largest score lies beyond the level (:attr:`DynamicsNovelty.level`)
     beyond: int
@@ -370,17 +406,34 @@ class DynamicsCheck:
             )
         check_unit_interval("rate", self.rate)
         check_unit_interval("alpha", self.alpha, include_zero=False)
-        if not (isinstance(self.tolerance, (int, float)) and self.tolerance >= 1):
-            raise ValueError(f"tolerance: expected a factor >= 1, got {self.tolerance!r}")
-        s = len(self.names)
+        _check_tolerance(self.tolerance)
+        if not isinstance(self.model, str):
+            raise TypeError(f"model: expected a digest (str), got {self.model!r}")
+        names = self.names
+        s = len(names) if isinstance(names, (list, tuple)) else -1
+        object.__setattr__(self, "names", _names(names, max(s, 0)))
         for name in ("p_values", "ratios"):
             value = getattr(self, name)
             if not isinstance(value, Tensor) or value.shape != (s,):
                 raise ValueError(f"{name}: expected a [{s}] tensor, got {value!r}")
-        tested = self.p_values[~self.p_values.isnan()]
-        if bool(((tested < 0) | (tested > 1)).any()):
+            if not value.is_floating_point():
+                raise TypeError(f"{name}: expected floating values (NaN where not judged)")
+        tested = ~self.p_values.isnan()
+        p, ratios = self.p_values[tested], self.ratios[tested]
+        if bool(((p < 0) | (p > 1)).any()):
             raise ValueError(f"p_values: expected values in [0, 1] or NaN, got {self.p_values}")
-        object.__setattr__(self, "names", tuple(str(n) for n in self.names))
+        if self.measured and not bool(tested.any()):
+            raise ValueError(
+                f"p_values: expected a p-value in every dimension tested, got none for "
+                f"{self.episodes} episodes scored"
+            )
+        if bool((ratios.isnan() | (ratios < 0)).any()) or not bool(
+            self.ratios[~tested].isnan().all()
+        ):
+            raise ValueError(
+                f"ratios: expected a ratio >= 0 where a p-value is, NaN elsewhere, got "
+                f"{self.ratios}"
+            )
 
     @property
     def measured(self) -> bool:
@@ -462,11 +515,11 @@ class DynamicsCheck:
             "names",
             "model",
         )
-        _checks.check_entries("values", values, fields, "a DynamicsCheck.as_dict()")
+        _known_entries(values, fields, "a DynamicsCheck.as_dict()")
         parts = {k: values[k] for k in fields if k != "names"}
         for name in ("p_values", "ratios"):  # lists where read back from JSON
             parts[name] = _float_tensor(f"values[{name!r}]", parts[name])
-        return cls(**parts, names=tuple(values["names"]))
+        return cls(**parts, names=values["names"])
 
 
 def rank_p_values(
@@ -503,9 +556,14 @@ def check_dynamics(
     per dimension, a one-sided Mann-Whitney test of their scores against the held-out
     episodes' (``novelty``, default ``ensemble.dynamics``, measured by
     :func:`~rcvae_torchrl.training.train_ensemble`), failed where the smallest p-value times
-    the dimensions tested is below ``alpha``. Episodes of fewer than ``novelty.steps + 1``
-    frames are left out (counted in ``short``). One episode cannot fail it at ``alpha=0.01``
-    (its rank among 20 held-out ones is at best 1 in 21); three far off can.
+    the dimensions tested is below ``alpha``. Episodes of fewer than ``novelty.steps``
+    frames are left out (counted in ``short``). How few episodes can fail it: ``m`` episodes
+    beyond every one of ``H`` held-out ones in a dimension give that dimension at best
+    p = 1 / C(H + m, m) (scipy's exact Mann-Whitney distribution, used for small samples without
+    ties; larger or tied samples get its normal approximation, which overstates the smallest
+    p-values), times the ``D`` dimensions tested. With 20 held-out episodes one episode cannot
+    fail it at ``alpha=0.01`` (p = D / 21), three can where D <= 17 (D / 1771); with the
+    fewest held-out episodes measured (10) three cannot even for 3 dimensions (3 / 286).
 
     ``tolerance``: how many times the held-out episodes' errors the given ones' may reach
     before they count as larger (the test ranks them against the held-out scores times it).
@@ -518,16 +576,14 @@ def check_dynamics(
     cart-pole whose pole was 25 % heavier or 1 % longer failed, and 2 of 3 of one whose pole was
     10 % heavier (3 of 3 with 1; 5 % heavier: 0 of 3, against 3 of 3)."""
     check_unit_interval("alpha", alpha, include_zero=False)
-    _checks.check_positive("tolerance", tolerance)
-    if tolerance < 1:
-        raise ValueError(f"tolerance: expected a factor >= 1, got {tolerance!r}")
+    _check_tolerance(tolerance)
     if novelty is None:
         novelty = getattr(ensemble, "dynamics", None)
         if novelty is None:
             raise ValueError(
                 "ensemble: the world model has no dynamics check (ensemble.dynamics is None: "
                 f"trained with dynamics=False or with fewer than {MIN_HELD_OUT} validation "
-                f"episodes of more than {STEPS} frames, loaded from "
+                f"episodes of at least {STEPS} frames, loaded from "
                 "an older checkpoint, or made by select_members, which keeps none: it was "
                 "measured with the whole ensemble's mean); measure one: "
                 "DynamicsNovelty.fit(ensemble, train_data, held_out)"

@@ -288,8 +288,8 @@ def train_ensemble(
             their level on ``val_data``'s episodes) into ``ensemble.dynamics``, with which
             :func:`~rcvae_torchrl.training.check_dynamics` tells whether real episodes of an
             env move as the model learned. Left ``None`` where ``val_data`` holds fewer than
-            :data:`~rcvae_torchrl.training.dynamics.MIN_HELD_OUT` episodes of more than
-            :data:`~rcvae_torchrl.training.dynamics.STEPS` frames.
+            :data:`~rcvae_torchrl.training.dynamics.MIN_HELD_OUT` episodes of at least
+            :data:`~rcvae_torchrl.training.dynamics.STEPS` frames, or ``train_data`` none.
     """
     if not isinstance(ensemble, RCVAEEnsemble):
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
@@ -381,15 +381,16 @@ def train_ensemble(
         result.novelty = ensemble.novelty = distributed.broadcast(fitted)
     if dynamics:
         measured = None
-        if distributed.is_main() and _held_out_episodes(val_data, STEPS) >= MIN_HELD_OUT:
+        enough = _long_episodes(val_data) >= MIN_HELD_OUT and _long_episodes(train_data) > 0
+        if distributed.is_main() and enough:
             measured = DynamicsNovelty.fit(ensemble, train_data, val_data, seed=config.seed)
         result.dynamics = ensemble.dynamics = distributed.broadcast(measured)
     return result
 
 
-def _held_out_episodes(data: TensorDictBase, steps: int) -> int:
-    """The episodes of ``data`` of more than ``steps`` frames."""
-    return int((episode_spans(data)[1] > steps).sum())
+def _long_episodes(data: TensorDictBase) -> int:
+    """The episodes of ``data`` long enough for the dynamics check (:data:`STEPS` frames)."""
+    return int((episode_spans(data)[1] >= STEPS).sum())
 
 
 def _check_args(checks: object) -> dict[str, Any]:

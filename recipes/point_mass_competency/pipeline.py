@@ -292,11 +292,6 @@ class Study:
                 outcomes = self._real(condition, starts, seed, self.cfg.assess.check_runs)
                 check = OutcomeCheck.from_outcomes(report, outcomes)
                 write_json(path, check.as_dict(), checksum=True)  # an edit is refused
-            moves = self.dir / "check" / f"{condition}_dynamics.json"
-            if not moves.is_file():
-                found = self._dynamics(condition, model_name)
-                record = None if found is None else found.as_dict()
-                write_json(moves, {"check": record}, checksum=True)
             check, found = self.load_check(condition), self.load_dynamics(condition)
             summary[condition] = {
                 "verdict": check.verdict,
@@ -331,11 +326,15 @@ class Study:
         return check_dynamics(model, stats.data)
 
     def load_dynamics(self, condition: str) -> DynamicsCheck | None:
-        """The condition's dynamics check; ``None`` where its model had none, or in a run
-        directory whose check stage ran before dynamics checks were made."""
+        """The condition's dynamics check (``None`` where its model has none), made and saved
+        as ``check/<condition>_dynamics.json`` where the run has none yet: the check stage
+        makes it, and the report stage of a run whose check stage ran before dynamics checks
+        were made."""
         path = self.dir / "check" / f"{condition}_dynamics.json"
         if not path.is_file():
-            return None
+            found = self._dynamics(condition, CONDITIONS[condition][0])
+            record = None if found is None else found.as_dict()
+            write_json(path, {"check": record}, checksum=True)  # an edit is refused
         record = read_json(path, "dynamics check")["check"]
         return None if record is None else DynamicsCheck.from_dict(record)
 

@@ -204,7 +204,7 @@ def _markdown(run_dir: Path, checks: dict, summary: dict, config: StudyConfig) -
             f"- **{c}**: "
             + (
                 "not checked: its model has no dynamics check (fewer than 10 validation "
-                "episodes of more than 20 frames)"
+                "episodes of at least 20 frames)"
                 if r is None
                 else f"{'passed' if r['passed'] else 'failed'}: {r['describe']}"
             )

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from micro import POINT_MASS_MICRO
 
-from rcvae_torchrl.io import read_json
+from rcvae_torchrl.io import read_json, write_json
 from recipes._settings import CHECKPOINTS
 from recipes.point_mass_competency.report import COLUMNS
 from recipes.point_mass_competency.task import CONDITIONS
@@ -194,6 +194,30 @@ def test_each_condition_s_dynamics_check_is_recorded(run_dir):
         assert read_json(run_dir / "check" / f"{condition}_dynamics.json") == {"check": None}
         assert summary["dynamics_checks"][condition] is None
         assert f"- **{condition}**: not checked: its model has no dynamics check" in report
+
+
+def test_a_run_from_before_dynamics_checks_gets_them_when_its_report_is_made(run_dir, tmp_path):
+    """A run directory whose check stage ran before dynamics checks were made has none: the
+    report stage, run again, makes them (it does not say the model has none)."""
+    old = tmp_path / "old"
+    shutil.copytree(run_dir, old)
+    made = [f"check/{condition}_dynamics.json" for condition in CONDITIONS]
+    for name in made:  # as the check stage made and recorded its outputs before
+        (old / name).unlink()
+    stage = read_json(old / "stages" / "check.json")
+    records = read_json(old / "stages" / "check.records")
+    for name in made:
+        del stage["outputs"][name], records[name]
+    write_json(old / "stages" / "check.json", stage, checksum=True)
+    write_json(old / "stages" / "check.records", records, checksum=True)
+    (old / "stages" / "report.json").unlink()
+    again = _run(*MICRO, f"run_dir={old}")
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert "[check] done earlier" in again.stdout and "[report] running" in again.stdout
+    for condition in CONDITIONS:
+        assert read_json(old / "check" / f"{condition}_dynamics.json") == {"check": None}
+    third = _run(*MICRO, f"run_dir={old}")  # and the run directory stays usable
+    assert third.returncode == 0 and "] running" not in third.stdout, third.stderr[-3000:]
 
 
 def test_a_measured_dynamics_check_reaches_the_report(tmp_path):

@@ -118,10 +118,16 @@ def test_a_changed_env_fails_and_names_the_dimension_it_moves(trained):
 
 
 def test_short_episodes_are_left_out_and_counted(trained):
+    """An episode of 20 frames holds the 20 transitions scored; one of 19 is too short."""
     ensemble = trained[0].ensemble
-    data = torch.cat([episodes(3, 40, 5, first=0), episodes(2, 12, 6, first=10)])
+    data = torch.cat(
+        [episodes(3, 40, 5), episodes(2, 12, 6, first=10), episodes(2, 20, 7, first=20)]
+    )
     check = check_dynamics(ensemble, data)
-    assert (check.episodes, check.short) == (3, 2)
+    assert (check.episodes, check.short) == (5, 2)
+    exact = check_dynamics(ensemble, episodes(3, 20, 7)).p_values
+    assert torch.equal(exact, check_dynamics(ensemble, episodes(3, 40, 7)).p_values)
+    assert check_dynamics(ensemble, episodes(3, 19, 7)).short == 3
     none = check_dynamics(ensemble, episodes(2, 12, 6))
     assert not none.measured and not none.passed and "no episode long enough" in none.describe()
 
@@ -156,12 +162,16 @@ def test_bad_episodes_are_refused_by_name(trained):
         check_dynamics(ensemble, data["observation"])
     with pytest.raises(ValueError, match=r"reshape\(-1\)"):
         check_dynamics(ensemble, data.reshape(3, 40))
+    # observations and next observations in two dtypes: read as the model's
+    mixed = data.clone()
+    mixed["observation"] = mixed["observation"].double()
+    assert check_dynamics(ensemble, mixed).episodes == 3
     # episodes of one frame each: too short, counted (the episode-order check once crashed)
     single = check_dynamics(ensemble, data[:3].clone().set(TRAJ_KEY, torch.arange(3)))
     assert (single.episodes, single.short) == (0, 3)
     with pytest.raises(ValueError, match="alpha"):
         check_dynamics(ensemble, data, alpha=0.0)
-    with pytest.raises(ValueError, match="tolerance: expected a factor >= 1"):
+    with pytest.raises(ValueError, match="tolerance: expected a finite factor >= 1"):
         check_dynamics(ensemble, data, tolerance=0.9)
 
 
@@ -178,6 +188,22 @@ def test_too_few_held_out_episodes_measure_none(trained):
     assert result.dynamics is None and result.ensemble.dynamics is None
     with pytest.raises(ValueError, match=f"at least {MIN_HELD_OUT} episodes"):
         DynamicsNovelty.fit(result.ensemble, train, few)
+
+
+def test_training_on_short_episodes_measures_none(trained):
+    """Training episodes all shorter than the transitions scored: no unit to measure, and no
+    crash after the training run (the held-out episodes are long enough)."""
+    _, _, val = trained
+    config = RCVAEConfig(3, 1, hidden_dim=8, latent_dim=2, mlp_dim=8)
+    budget = TrainConfig(max_steps=4, batch_windows=4, window=8, val_every=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = train_ensemble(
+            RCVAEEnsemble(config, 2, seed=0), episodes(40, 15, 0), val, budget, progress=False
+        )
+    assert result.dynamics is None
+    with pytest.raises(ValueError, match=r"no episode of at least 20 frames.*steps="):
+        DynamicsNovelty.fit(result.ensemble, episodes(4, 15, 0), val)
 
 
 def test_kept_in_checkpoints_and_records(trained, tmp_path):
@@ -203,6 +229,31 @@ def test_kept_in_checkpoints_and_records(trained, tmp_path):
         DynamicsNovelty.from_dict({**ensemble.dynamics.as_dict(), "held_out_scores": few})
     with pytest.raises(ValueError, match="p_values"):
         DynamicsCheck.from_dict({**check.as_dict(), "p_values": torch.tensor([2.0, 0.5, 0.5])})
+    # edited records that would turn a failed check into a passed one are refused
+    record = ensemble.dynamics.as_dict()
+    for bad in (float("nan"), -1.0, float("inf")):
+        scale = record["scale"].clone()
+        scale[2] = bad
+        with pytest.raises(ValueError, match="scale"):
+            DynamicsNovelty.from_dict({**record, "scale": scale})
+    with pytest.raises(ValueError, match="level"):
+        DynamicsNovelty.from_dict({**record, "level": -1.0})
+    with pytest.raises(TypeError, match="names"):
+        DynamicsNovelty.from_dict({**record, "names": "xyz"})
+    with pytest.raises(ValueError, match="entries"):
+        DynamicsNovelty.from_dict({**record, "extra": 1})
+    failing = check.as_dict()
+    with pytest.raises(ValueError, match="a p-value in every dimension tested"):
+        DynamicsCheck.from_dict({**failing, "p_values": [None] * 3, "ratios": [None] * 3})
+    with pytest.raises(ValueError, match="ratios"):
+        DynamicsCheck.from_dict({**failing, "ratios": [1.0, -1.0, 2.0]})
+    for tolerance in (True, float("inf"), 0.5):
+        with pytest.raises(ValueError, match="tolerance"):
+            DynamicsCheck.from_dict({**failing, "tolerance": tolerance})
+    with pytest.raises(TypeError, match="model"):
+        DynamicsCheck.from_dict({**failing, "model": None})
+    with pytest.raises(ValueError, match="entries"):
+        DynamicsCheck.from_dict({**failing, "extra": 1})
     with pytest.raises(ValueError, match="beyond"):
         DynamicsCheck.from_dict({**check.as_dict(), "beyond": 21})
 
@@ -237,6 +288,18 @@ def test_a_report_with_a_failed_check_is_not_trustworthy(trained):
     assert again.dynamics_check.beyond == failed.beyond and again.warning == bad.warning
     older = {k: v for k, v in report.as_dict().items() if k != "dynamics_check"}
     assert CompetencyReport.from_dict(older).dynamics_check is None
+    # a record holding another model's check is refused as attaching it was
+    theirs = check_dynamics(
+        ensemble.select_members([0, 1]),
+        episodes(5, 40, 5),
+        novelty=DynamicsNovelty.fit(ensemble.select_members([0, 1]), *trained[1:]),
+    )
+    swapped = {**bad.as_dict(), "dynamics_check": theirs.as_dict()}
+    with pytest.raises(ValueError, match=r"values\['dynamics_check'\]: made with another"):
+        CompetencyReport.from_dict(swapped)
+    broken = {**bad.as_dict(), "dynamics_check": {**failed.as_dict(), "model": 7}}
+    with pytest.raises(ValueError, match=r"values\['dynamics_check'\]"):
+        CompetencyReport.from_dict(broken)
     other = fingerprint.task_digest("p", 600, 0.05, ensemble.select_members([0]).behaviour())
     with pytest.raises(ValueError, match="another world model"):
         _report(other).with_dynamics_check(failed)
