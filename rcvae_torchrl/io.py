@@ -255,7 +255,9 @@ def read_json(path: str | Path, what: str = "a JSON file", *, checksum: bool = T
         if recorded != _json_digest(content):
             raise StoredFileError(
                 f"{what} {str(path)!r}: its content changed since it was written (its "
-                f"{CHECKSUM_KEY!r} does not match the rest)",
+                f"{CHECKSUM_KEY!r} does not match the rest); a JSON file not written by this "
+                f"library that holds a {CHECKSUM_KEY!r} entry of its own reads as it is with "
+                "read_json(path, checksum=False)",
                 path,
             )
     return _numbers(content)

@@ -250,6 +250,12 @@ def test_json_checksums_hold_through_non_finite_floats_and_tuples_and_name_a_cha
         read_json(path, "the file", checksum=True)
     unchecked = read_json(path, checksum=False)  # to look at it: as it is, the entry kept
     assert unchecked["b"] == [1, 2.75] and len(unchecked["content_sha256"]) == 64
+    # a user's own JSON with an entry of that name: the refusal says how to read it
+    own = tmp_path / "own.json"
+    own.write_text('{"content_sha256": "my hash", "x": 1}')
+    with pytest.raises(StoredFileError, match=r"not written by this library.*checksum=False"):
+        read_json(own)
+    assert read_json(own, checksum=False) == {"content_sha256": "my hash", "x": 1}
     with pytest.raises(TypeError, match="obj: expected a dict to checksum, got list"):
         write_json(path, [1, 2], checksum=True)
 
