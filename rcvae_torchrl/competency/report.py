@@ -717,6 +717,8 @@ class CompetencyReport:
         forecast_check: the forecast checked against real episodes (:meth:`with_forecast_check`).
         novelty: the world model's novelty check (a
             :class:`~rcvae_torchrl.training.StateNovelty`), for rule 3.
+        dynamics_check: whether real episodes of the env move as the world model learned (a
+            :class:`~rcvae_torchrl.training.DynamicsCheck`, :meth:`with_dynamics_check`).
     """
 
     data: TensorDictBase
