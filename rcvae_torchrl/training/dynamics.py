@@ -315,8 +315,7 @@ class DynamicsNovelty:
 
 def _known_entries(values: object, fields: tuple[str, ...], what: str) -> None:
     """``values`` holds ``fields``, and nothing else."""
-    _checks.check_entries("values", values, fields, what)
-    assert isinstance(values, dict)
+    _checks.check_entries("values", values, fields, what)  # a mapping, or a TypeError
     unknown = sorted(set(map(str, values)) - set(fields))
     if unknown:
         raise ValueError(f"values: entries {unknown} are not those of {what} ({list(fields)})")

@@ -96,9 +96,10 @@ STAGE_SETTINGS = {
 # condition's check starts lie past its scored ones (CHECK_SEEDS on), its check's real
 # episodes past the scored ones' (CHECK_REAL_SEEDS on); the dynamics checks' episodes take
 # their seeds as they are (DYNAMICS_SEEDS on, a block per seed and condition), past the data's
+# and the starts' seeds and below the real episodes' (REAL_SEEDS and on, times 100_003)
 DATA_SEEDS, START_SEEDS, REAL_SEEDS = 0, 1_000_000, 2_000
 CHECK_SEEDS, CHECK_REAL_SEEDS = 500_000, 20_000
-DYNAMICS_SEEDS, DYNAMICS_BLOCK = 3_000_000, 100_000
+DYNAMICS_SEEDS, DYNAMICS_BLOCK = 100_000_000, 100_000
 
 
 class Study:

@@ -4,6 +4,7 @@ dynamics changed, through states like the training states, fails it, naming the 
 from __future__ import annotations
 
 import warnings
+from types import MappingProxyType
 
 import pytest
 import torch
@@ -218,7 +219,7 @@ def test_kept_in_checkpoints_and_records(trained, tmp_path):
     # the loaded model is the same model: its check is the saved one's
     assert check_dynamics(loaded, data).beyond == check_dynamics(ensemble, data).beyond
     check = check_dynamics(ensemble, data)
-    again = DynamicsCheck.from_dict(check.as_dict())
+    again = DynamicsCheck.from_dict(MappingProxyType(check.as_dict()))  # any mapping
     assert (again.beyond, again.episodes, again.passed) == (check.beyond, 20, False)
     measured = DynamicsNovelty.from_dict(ensemble.dynamics.as_dict())
     assert measured.level == ensemble.dynamics.level
