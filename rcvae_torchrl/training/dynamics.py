@@ -594,14 +594,12 @@ def check_dynamics(
         )
     scores, short = novelty.scores(ensemble, episodes)
     dims = list(novelty.dims)
-    held = novelty.held_out_scores
-    p_values = rank_p_values(scores, held, novelty.dims, float(tolerance))
+    p_values = rank_p_values(scores, novelty.held_out_scores, novelty.dims, float(tolerance))
     ratios = torch.full_like(novelty.scale, math.nan)
     beyond = 0
     if scores.shape[0]:
-        ratios[dims] = scores[:, dims].median(0).values / held[:, dims].median(0).values.clamp_min(
-            1e-12
-        )
+        reference = novelty.reference[dims].clamp_min(1e-12)  # the held-out medians
+        ratios[dims] = scores[:, dims].median(0).values / reference
         beyond = int((scores[:, dims].max(1).values > novelty.level).sum())
     return DynamicsCheck(
         episodes=scores.shape[0],
