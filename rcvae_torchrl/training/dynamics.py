@@ -457,9 +457,12 @@ class DynamicsCheck:
     def named(self) -> list[str]:
         """The dimensions whose own test fails (p-value times the dimensions tested below
         ``alpha``), smallest p-value first, at most three; none for a check that passed."""
-        tested = int((~self.p_values.isnan()).sum())
+        judged = ~self.p_values.isnan()
+        tested = int(judged.sum())
         p = torch.nan_to_num(self.p_values, nan=2.0)
-        failing = [i for i in p.argsort().tolist() if float(p[i]) * tested < self.alpha]
+        failing = [
+            i for i in p.argsort().tolist() if judged[i] and float(p[i]) * tested < self.alpha
+        ]
         return [
             f"{self.names[i]} ({float(self.ratios[i]):.1f} times its held-out error)"
             for i in failing[:_NAMED]

@@ -131,6 +131,7 @@ def test_short_episodes_are_left_out_and_counted(trained):
     assert check_dynamics(ensemble, episodes(3, 19, 7)).short == 3
     none = check_dynamics(ensemble, episodes(2, 12, 6))
     assert not none.measured and not none.passed and "no episode long enough" in none.describe()
+    assert none.named() == []  # no dimension was tested: none is named
 
 
 def test_another_model_is_refused(trained):
