@@ -227,7 +227,15 @@ class DynamicsNovelty:
         ``max_episodes`` of) the training episodes ``train_data``, and the level of the
         episodes' scores on the held-out episodes ``held_out`` (flat episodes, as training
         takes them; those of fewer than ``steps`` frames are left out). Raises
-        ``ValueError`` for fewer than :data:`MIN_HELD_OUT` held-out episodes long enough."""
+        ``ValueError`` for fewer than :data:`MIN_HELD_OUT` held-out episodes long enough.
+
+        ``held_out`` is what checked episodes are ranked against: episodes of the env the
+        model learned that it was not trained on. ``train_ensemble`` takes its validation
+        episodes; where the episodes to check are an agent's, its own episodes in that env
+        compare like with like (a smoother agent than the data's policy scores below the
+        validation episodes whatever the env, and only a change that lifts its errors above
+        theirs shows). ``steps``: where the env's dynamics act late in an episode (an object
+        pushed seconds in), score the transitions that reach it (a forecast's horizon)."""
         check_positive_int("steps", steps)
         check_positive_int("max_episodes", max_episodes)
         _checks.check_non_negative_int("seed", seed)

@@ -45,8 +45,8 @@ __all__ = [
 ]
 
 #: The largest study seed: the real episodes' seeds grow with it (the pipeline's REAL_SEEDS,
-#: SPREAD_SEEDS, SHARE_SEEDS and HELD_OUT_SEEDS + 10·seed + condition, times 100_003 per episode
-#: in ``real_outcomes``) and an env's seed stays below 2**32
+#: SPREAD_SEEDS, SHARE_SEEDS, HELD_OUT_SEEDS and DYNAMICS_SEEDS + 10·seed + condition, times
+#: 100_003 per episode as ``real_outcomes`` takes them) and an env's seed stays below 2**32
 MAX_SEED = 3_000
 
 

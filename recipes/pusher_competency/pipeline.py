@@ -9,7 +9,9 @@
 6. ``report``: the paper's table plus calibration, the figures, a GIF and ``report.md``, with
    the world models' checks as far ahead as the forecast and the forecasts checked from start
    states not scored (against the agent's real episodes from them), with the scored forecasts
-   through the Platt map fitted on those episodes beside them.
+   through the Platt map fitted on those episodes beside them, and each condition's env
+   checked to move as its world model learned (the agent's one-step errors there against the
+   model's held-out episodes').
 
 Every stage writes its outputs atomically under the run directory and a marker when done
 (:class:`~rcvae_torchrl.stages.StageRunner`); running again with the same directory reuses
@@ -27,11 +29,13 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl.agent import (
+    FixedRowsPolicy,
     PerturbedPolicy,
     RealOutcomes,
     dagger,
@@ -65,9 +69,12 @@ from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.processes import choose_workers, map_in_processes
 from rcvae_torchrl.stages import StageRunner
 from rcvae_torchrl.training import (
+    DynamicsCheck,
+    DynamicsNovelty,
     ModelChecks,
     OutcomeCheck,
     TrainConfig,
+    check_dynamics,
     check_model,
     load_ensemble,
     log_history,
@@ -166,6 +173,14 @@ REAL_SEEDS = 9_000
 SPREAD_SEEDS = 9_500
 SHARE_SEEDS = 9_700
 HELD_OUT_SEEDS = 8_000
+# The dynamics check's real episodes (Study.dynamics_check): episode i of condition c seeded
+# (DYNAMICS_SEEDS + 10·seed + c)·100_003 + i, as real_outcomes seeds its runs; those it ranks
+# them against (Study.dynamics_reference), of the world model of condition c's own env:
+# DYNAMICS_REFERENCE_SEEDS + ..., from start states drawn with seeds DYNAMICS_START_SEEDS higher
+# than the scored ones' (mod 2**32).
+DYNAMICS_SEEDS = 8_500
+DYNAMICS_REFERENCE_SEEDS = 8_600
+DYNAMICS_START_SEEDS = 2**30
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i; those
 # the forecast check draws (Study.held_out_starts), HELD_OUT_START_SEEDS higher (mod 2**32).
 START_SEED_STRIDE = 7919
@@ -176,6 +191,12 @@ CHECK_EPISODES = 100
 #: The real episodes' policy calls are made on blocks of this many rows (FixedRowsPolicy), so
 #: an episode comes out the same whatever the batched env's size, the workers or the ranks.
 POLICY_ROWS = 64
+#: The dynamics check's real episodes per condition (:meth:`Study.dynamics_check`): one per
+#: start state of the forecast check where it has as many.
+DYNAMICS_EPISODES = 40
+#: The agent's episodes in a world model's own env that its dynamics checks rank against
+#: (:meth:`Study.dynamics_reference`).
+DYNAMICS_REFERENCE = 60
 
 
 def training_op_flop(config: StudyConfig) -> float:
@@ -208,6 +229,7 @@ class Study:
         # host (the data) take self.workers on any device
         self.device_workers = self.workers if device.type == "cpu" or workers != "auto" else 1
         self.say = log or (lambda line: None)
+        self._dynamics_references: dict[str, DynamicsNovelty] = {}
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -726,6 +748,7 @@ class Study:
         models = {name: self.load_model(name) for name in WORLD_MODELS}
         checks = {name: model.checks for name, model in models.items()}
         far = {name: self.far_checks(name, model) for name, model in models.items()}
+        dynamics = {c: self.dynamics_check(c) for c in CONDITIONS}
         return write_report(
             self.dir,
             forecasts,
@@ -736,6 +759,7 @@ class Study:
             model_checks=checks,
             far_checks=far,
             forecast_checks={c: self.forecast_check(c, held_out[c]) for c in held_out},
+            dynamics_checks=dynamics,
             held_out_maps={c: fit_platt(*held_out[c]) for c in held_out},
             real_spreads=spreads,
             split_shares={c: fitted[m] for c, (m, _) in CONDITIONS.items() if m in fitted},
@@ -771,6 +795,65 @@ class Study:
             desc=f"held-out starts: {condition}",
         )
         return report.data["competency", "p_success"].cpu(), real.success
+
+    def dynamics_check(self, condition: str) -> DynamicsCheck:
+        """Does ``condition``'s real env move as its world model learned? The agent run
+        :data:`DYNAMICS_EPISODES` times from the forecast check's start states
+        (:meth:`held_out_starts`, spread evenly over them; each again, with other seeds, where
+        they are fewer), episodes of the horizon's length; their one-step errors over the
+        horizon (or as much of it as the training episodes cover) ranked against those of the
+        agent's own episodes in the world model's env (:meth:`dynamics_reference`;
+        :func:`~rcvae_torchrl.training.check_dynamics`)."""
+        model_name = CONDITIONS[condition][0]
+        starts = self.held_out_starts(condition)
+        count = DYNAMICS_EPISODES
+        if count <= len(starts):
+            starts = starts[_evenly(len(starts), count)]
+        else:
+            starts = starts[torch.arange(count) % len(starts)]
+        index = list(CONDITIONS).index(condition)
+        episodes = self.agent_episodes(condition, starts, DYNAMICS_SEEDS + index)
+        model = self.load_model(model_name)
+        return check_dynamics(model, episodes, novelty=self.dynamics_reference(model_name, model))
+
+    def dynamics_reference(self, model_name: str, model: RCVAEEnsemble) -> DynamicsNovelty:
+        """What the dynamics checks of world model ``model_name`` (``model``) rank against:
+        its one-step errors on :data:`DYNAMICS_REFERENCE` episodes of the agent in the
+        model's own env, from start states drawn by its reset with seeds no other start
+        uses, over the horizon's transitions, or as many as its longest training episodes
+        have (in units of its errors on its training episodes). The agent's episodes, not
+        the model's held-out ones: a policy other than the one that collected the training
+        data visits other states, where the model can predict otherwise although the env is
+        the same; against the agent's own episodes only the env, or the start states, can
+        tell the two apart."""
+        found = self._dynamics_references.get(model_name)
+        if found is None:
+            index = list(CONDITIONS).index(model_name)  # the model's own env's condition
+            starts = self.starts(model_name, DYNAMICS_REFERENCE, offset=DYNAMICS_START_SEEDS)
+            episodes = self.agent_episodes(model_name, starts, DYNAMICS_REFERENCE_SEEDS + index)
+            train, _ = self.episodes(model_name)
+            # the horizon's transitions, or as many as the longest training episodes have
+            steps = min(self.max_steps, int(episode_spans(train)[1].max()))
+            found = DynamicsNovelty.fit(model, train, episodes, steps=steps)
+            self._dynamics_references[model_name] = found
+        return found
+
+    def agent_episodes(self, condition: str, starts: torch.Tensor, block: int) -> TensorDictBase:
+        """The agent's real episodes in ``condition``'s env, one from each of ``starts``,
+        the horizon's length, as flat frames with their actions (on the study's device);
+        episode ``i`` seeded ``(block + 10·seed)·100_003 + i``, as :meth:`real_runs` seeds."""
+        first = (block + self.cfg.seed * 10) * 100_003
+        stats = run_episodes(
+            self.batched_env(CONDITIONS[condition][1], len(starts))(),
+            FixedRowsPolicy(make_policy_module(self.load_policy()), POLICY_ROWS),
+            seeds=[first + i for i in range(len(starts))],
+            starts=starts,
+            reset_to_state=reset_to_state,
+            max_steps=self.max_steps,
+            progress=self.progress,
+            desc=f"agent episodes: {condition}",
+        )
+        return stats.data.to(self.device)
 
     def far_checks(self, name: str, model: RCVAEEnsemble) -> list[ModelChecks]:
         """World model ``name``'s (``model``'s) self-checks with their coverage at

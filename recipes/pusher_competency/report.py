@@ -32,7 +32,7 @@ from rcvae_torchrl.reporting import (
     write_table,
 )
 from rcvae_torchrl.stages import MARKERS
-from rcvae_torchrl.training import ModelChecks, OutcomeCheck
+from rcvae_torchrl.training import DynamicsCheck, ModelChecks, OutcomeCheck
 
 from .config import AssessConfig
 from .pusher import CONDITIONS, FIGURE_PANELS
@@ -272,6 +272,7 @@ def write_report(
     held_out_maps: Mapping[str, PlattMap] | None = None,
     real_spreads: Mapping[str, Mapping[str, torch.Tensor]] | None = None,
     split_shares: Mapping[str, AleatoricShare] | None = None,
+    dynamics_checks: Mapping[str, DynamicsCheck] | None = None,
 ) -> dict[str, Any]:
     """Write table.md/.csv, the figures, episode.gif and report.md; return the summary.
 
@@ -287,7 +288,9 @@ def write_report(
     forecast's aleatoric bits there (``Study.real_spread``). ``split_shares``: per condition,
     the share of its world model's aleatoric bits that the real episodes from held-out start
     states showed (``Study.aleatoric_share``); with one for every condition, the table's bits
-    and the paper's pattern are given again with the split calibrated by it."""
+    and the paper's pattern are given again with the split calibrated by it.
+    ``dynamics_checks``: per condition, whether its real env moves as its world model learned
+    (``Study.dynamics_check``), a check each where measured."""
     rows = {c: condition_row(c, forecasts[c], truths[c]) for c in forecasts}
     write_table(list(rows.values()), COLUMNS, run_dir / "table")
     p, y = (torch.cat(t) for t in zip(*(_pairs(forecasts[c], truths[c]) for c in forecasts)))
@@ -310,6 +313,8 @@ def write_report(
     deadlines = [round(d / CONTROL_TIMESTEP) for d in a.surface_deadlines_s]
     surfaces = competency_surfaces(forecasts, truths, list(a.surface_radii), deadlines)
     checks.update(trust_checks(scores, surfaces))
+    dynamics_checks = dict(dynamics_checks or {})
+    checks.update(dynamics_rows(dynamics_checks))
     model_checks = {k: v for k, v in (model_checks or {}).items() if v is not None}
     far_checks = {k: list(v) for k, v in (far_checks or {}).items() if v}
     forecast_checks = dict(forecast_checks or {})
@@ -339,6 +344,7 @@ def write_report(
             for name, by_horizon in far_checks.items()
         },
         "forecast_checks": {c: found.as_dict() for c, found in forecast_checks.items()},
+        "dynamics_checks": {c: found.as_dict() for c, found in dynamics_checks.items()},
         "novelty": novelty_rows(forecasts, truths),
         "real_spread": spread_rows(real_spreads or {}, shares if calibrated else None),
         "calibrated_split": {
@@ -365,11 +371,12 @@ def write_report(
         text = text.replace("## Uncertainty over time", split + "## Uncertainty over time", 1)
     novelty = _novelty_text(summary["novelty"])
     text = text.replace("## The agent", novelty + "## The agent", 1)
-    if model_checks or far_checks or forecast_checks:
+    if model_checks or far_checks or forecast_checks or dynamics_checks:
         section = (
             _model_checks_text(model_checks)
             + _far_checks_text(far_checks)
             + _forecast_checks_text(forecast_checks)
+            + _dynamics_checks_text(dynamics_checks)
         )
         text = text.replace("## The agent", section + "## The agent", 1)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
@@ -685,6 +692,52 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
             f"{found.gap:+.3f} ({low:+.3f} to {high:+.3f}) | {found.p_value:.2g} | "
             f"{found.verdict} |"
         )
+    return "\n".join([*lines, "", *verdicts]) + "\n\n"
+
+
+#: the name of a condition's dynamics check among the checks
+DYNAMICS_CHECK = "its env moves as its world model learned ({})"
+
+
+def dynamics_rows(dynamics_checks: Mapping[str, DynamicsCheck]) -> dict[str, dict]:
+    """A check per condition whose dynamics were measured: its p-value (the smallest
+    dimension's, times the dimensions tested), met where the check passed."""
+    return {
+        DYNAMICS_CHECK.format(c): {"value": found.p_value, "met": found.passed}
+        for c, found in dynamics_checks.items()
+        if found.measured
+    }
+
+
+def _dynamics_checks_text(dynamics_checks: Mapping[str, DynamicsCheck]) -> str:
+    """Per condition, whether its real env moves as its world model learned."""
+    if not dynamics_checks:
+        return ""
+    first = next(iter(dynamics_checks.values()))
+    lines = [
+        "### Does each env move as its world model learned?",
+        "",
+        "The agent ran again in each condition's real env, from the forecast check's start "
+        "states (none scored), and each episode's one-step errors under the condition's world "
+        "model, over the horizon, were ranked against those of the agent's own episodes in "
+        "the model's env from other start states (`check_dynamics`: per dimension, a one-sided "
+        f"rank test against {first.tolerance:g} times their errors, at level {first.alpha:g} "
+        "over the dimensions). A failed check says the env does not move as the model "
+        "learned, in physics that changed or in states whose motion it never saw: a forecast "
+        "made there extrapolates, however few epistemic bits it shows. A passed one says "
+        "nothing of the outcome (the forecast check above judges that), and a change the "
+        "model takes for noise it learned (an arm weaker within the range the stochastic env "
+        "draws from) passes it.",
+        "",
+        "| condition | episodes | beyond the reference's level | p | verdict |",
+        "|:---|---:|---:|---:|:---|",
+    ]
+    verdicts = []
+    for condition, found in dynamics_checks.items():
+        verdict = "passed" if found.passed else "failed" if found.measured else "not measured"
+        p = f"{found.p_value:.2g}" if found.measured else ""
+        lines.append(f"| {condition} | {found.episodes} | {found.beyond} | {p} | {verdict} |")
+        verdicts.append(f"- **{condition}**: {verdict}: {found.describe()}.")
     return "\n".join([*lines, "", *verdicts]) + "\n\n"
 
 

@@ -23,11 +23,13 @@ from micro import MICRO, START_STATES
 from PIL import Image
 
 from rcvae_torchrl.competency import AleatoricShare
+from rcvae_torchrl.envs.batched import BatchedPusherEnv
 from rcvae_torchrl.io import read_json
+from rcvae_torchrl.training import DynamicsCheck
 from recipes._settings import CHECKPOINTS
 from recipes.pusher_competency import pipeline
 from recipes.pusher_competency.pusher import CONDITIONS
-from recipes.pusher_competency.report import AFTER_SHARE, COLUMNS
+from recipes.pusher_competency.report import AFTER_SHARE, COLUMNS, DYNAMICS_CHECK
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "pusher_competency" / "main.py"
@@ -267,6 +269,66 @@ def test_start_states_unlike_the_training_states_are_counted_per_condition(runs)
     assert "### Start states unlike the training states" in report
     for condition, row in rows.items():
         assert f"| {condition} | {row['starts']} | {row['start_unlike']} | " in report
+
+
+def _study(run_dir: Path) -> pipeline.Study:
+    from recipes.pusher_competency.config import study_config
+
+    config = study_config({**read_json(run_dir / "study_config.json"), "run_dir": run_dir})
+    return pipeline.Study(config, run_dir, torch.device("cpu"), progress=False)
+
+
+def test_each_condition_s_dynamics_check_is_reported(runs):
+    """Each condition's env is checked to move as its world model learned: the agent's
+    episodes from the forecast check's start states against its episodes in the model's own
+    env, over the horizon; the report states the verdicts, and each is a check."""
+    summary = read_json(runs["dir"] / "summary.json")
+    report = (runs["dir"] / "report.md").read_text()
+    assert "### Does each env move as its world model learned?" in report
+    assert list(summary["dynamics_checks"]) == list(CONDITIONS)
+    for condition, record in summary["dynamics_checks"].items():
+        check = DynamicsCheck.from_dict(record)
+        assert (check.episodes, check.short) == (pipeline.DYNAMICS_EPISODES, 0)
+        verdict = "passed" if check.passed else "failed"
+        assert f"| {condition} | {check.episodes} | {check.beyond} | " in report
+        assert f"- **{condition}**: {verdict}: {check.describe()}." in report
+        found = summary["checks"][DYNAMICS_CHECK.format(condition)]
+        assert found == {"value": check.p_value, "met": check.passed}
+
+
+def test_a_dynamics_check_finds_a_stronger_arm_and_repeats_itself(runs, monkeypatch):
+    """The dynamics check of the micro run's deterministic condition, made again: the same
+    verdict and p-values (its episodes are seeded); with the arm's motors at twice their gear
+    in the checked episodes (not in the reference), it fails, naming arm dimensions. The
+    reference starts are none of the scored or unscored start states."""
+    study = _study(runs["dir"])
+    saved = read_json(runs["dir"] / "summary.json")["dynamics_checks"]["deterministic"]
+    again = study.dynamics_check("deterministic")
+    torch.testing.assert_close(
+        again.p_values, DynamicsCheck.from_dict(saved).p_values, rtol=0, atol=0, equal_nan=True
+    )
+    reference = study.dynamics_reference("deterministic", study.load_model("deterministic"))
+    assert reference.held_out == pipeline.DYNAMICS_REFERENCE
+    assert reference.steps == study.max_steps  # the horizon's transitions
+    drawn = study.starts(
+        "deterministic", pipeline.DYNAMICS_REFERENCE, offset=pipeline.DYNAMICS_START_SEEDS
+    )
+    for other in (study.starts("deterministic"), study.held_out_starts("deterministic")):
+        assert not (drawn[:, None] == other[None]).all(-1).any()
+
+    module = sys.modules[BatchedPusherEnv.__module__]
+    stock = module.get_model_and_assets
+
+    def stronger_arm():
+        xml, assets = stock()
+        assert b'gear=".05"' in xml
+        return xml.replace(b'gear=".05"', b'gear=".1"'), assets
+
+    monkeypatch.setattr(module, "get_model_and_assets", stronger_arm)
+    stronger = study.dynamics_check("deterministic")  # the reference made above is kept
+    assert not stronger.passed and stronger.p_value < 1e-6
+    arm = {"shoulder_cos", "shoulder_sin", "wrist_cos", "wrist_sin", "shoulder_vel", "wrist_vel"}
+    assert stronger.named() and {name.split(" ")[0] for name in stronger.named()} <= arm
 
 
 def test_every_file_a_stage_wrote_is_in_its_marker_and_no_other(runs):

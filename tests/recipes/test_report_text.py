@@ -200,3 +200,42 @@ def test_novelty_rows_split_the_per_start_error_by_the_caution():
     )
     assert "| a | 4 | 1 | 0 | – | 0.225 |" in _novelty_text(none)
     assert _novelty_text({}) == ""
+
+
+def test_dynamics_checks_section_gives_each_verdict_and_an_unmeasured_one():
+    """A passed, a failed (its dimension named) and an unmeasured check (every episode too
+    short): one row and one sentence each; only measured ones are checks."""
+    from rcvae_torchrl.training import DynamicsCheck
+    from recipes.pusher_competency.report import (
+        DYNAMICS_CHECK,
+        _dynamics_checks_text,
+        dynamics_rows,
+    )
+
+    def check(episodes: int, p: list[float]) -> DynamicsCheck:
+        p_values = torch.tensor(p, dtype=torch.float64)
+        ratios = torch.where(p_values.isnan(), p_values, torch.tensor([0.9, 3.0]))
+        return DynamicsCheck(
+            episodes=episodes, short=0 if episodes else 5, beyond=2 if episodes else 0,
+            rate=0.05, alpha=0.01, tolerance=1.1, p_values=p_values, ratios=ratios,
+            names=("arm", "ball"), model="m",
+        )  # fmt: skip
+
+    checks = {
+        "same": check(40, [0.5, 0.6]),
+        "changed": check(40, [0.9, 1e-5]),
+        "short": check(0, [float("nan"), float("nan")]),
+    }
+    text = _dynamics_checks_text(checks)
+    assert text.startswith("### Does each env move as its world model learned?")
+    assert "| same | 40 | 2 | 1 | passed |" in text
+    assert "| changed | 40 | 2 | 2e-05 | failed |" in text
+    assert "| short | 0 | 0 |  | not measured |" in text
+    assert "- **changed**: failed: " in text and "larger in ball (3.0 times" in text
+    assert "- **short**: not measured: no episode long enough to check (5 shorter" in text
+    rows = dynamics_rows(checks)
+    assert rows == {
+        DYNAMICS_CHECK.format("same"): {"value": 1.0, "met": True},
+        DYNAMICS_CHECK.format("changed"): {"value": pytest.approx(2e-5), "met": False},
+    }
+    assert _dynamics_checks_text({}) == ""
