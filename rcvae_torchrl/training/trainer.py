@@ -384,8 +384,30 @@ def train_ensemble(
         enough = _long_episodes(val_data) >= MIN_HELD_OUT and _long_episodes(train_data) > 0
         if distributed.is_main() and enough:
             measured = DynamicsNovelty.fit(ensemble, train_data, val_data, seed=config.seed)
+        elif distributed.is_main():
+            _warn_dynamics_unmeasured(val_data)
         result.dynamics = ensemble.dynamics = distributed.broadcast(measured)
     return result
+
+
+def _warn_dynamics_unmeasured(val_data: TensorDictBase) -> None:
+    """Warn that ``dynamics=True`` measured nothing: too few episodes long enough (in
+    ``val_data``, else in the training data)."""
+    held = _long_episodes(val_data)
+    short = (
+        f"val_data holds {held} episodes of at least {STEPS} frames ({MIN_HELD_OUT} needed)"
+        if held < MIN_HELD_OUT
+        else f"train_data holds no episode of at least {STEPS} frames"
+    )
+    warnings.warn(
+        f"dynamics: not measured, {short}: ensemble.dynamics is None, so check_dynamics has no "
+        "held-out errors to rank real episodes against. Give it a reference of episodes of the "
+        "env the model learned (DynamicsNovelty.fit(ensemble, train_data, episodes, steps=...), "
+        "passed as check_dynamics(..., novelty=...)), or train with dynamics=False to measure "
+        "none",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _long_episodes(data: TensorDictBase) -> int:

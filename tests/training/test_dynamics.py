@@ -182,12 +182,28 @@ def test_too_few_held_out_episodes_measure_none(trained):
     few = episodes(MIN_HELD_OUT - 1, 40, 3, first=200)
     config = RCVAEConfig(3, 1, hidden_dim=8, latent_dim=2, mlp_dim=8)
     budget = TrainConfig(max_steps=4, batch_windows=4, window=8, val_every=2)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         result = train_ensemble(
             RCVAEEnsemble(config, 2, seed=0), train, few, budget, progress=False, checks=False
         )
     assert result.dynamics is None and result.ensemble.dynamics is None
+    said = [str(w.message) for w in caught if str(w.message).startswith("dynamics:")]
+    assert said == [
+        f"dynamics: not measured, val_data holds {MIN_HELD_OUT - 1} episodes of at least 20 "
+        f"frames ({MIN_HELD_OUT} needed): ensemble.dynamics is None, so check_dynamics has no "
+        "held-out errors to rank real episodes against. Give it a reference of episodes of the "
+        "env the model learned (DynamicsNovelty.fit(ensemble, train_data, episodes, "
+        "steps=...), passed as check_dynamics(..., novelty=...)), or train with "
+        "dynamics=False to measure none"
+    ]
+    with warnings.catch_warnings(record=True) as caught:  # asked for none: no warning
+        warnings.simplefilter("always")
+        train_ensemble(
+            RCVAEEnsemble(config, 2, seed=0), train, few, budget, progress=False, checks=False,
+            dynamics=False,
+        )  # fmt: skip
+    assert not [w for w in caught if str(w.message).startswith("dynamics:")]
     with pytest.raises(ValueError, match=f"at least {MIN_HELD_OUT} episodes"):
         DynamicsNovelty.fit(result.ensemble, train, few)
 
@@ -198,12 +214,18 @@ def test_training_on_short_episodes_measures_none(trained):
     _, _, val = trained
     config = RCVAEConfig(3, 1, hidden_dim=8, latent_dim=2, mlp_dim=8)
     budget = TrainConfig(max_steps=4, batch_windows=4, window=8, val_every=2)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         result = train_ensemble(
             RCVAEEnsemble(config, 2, seed=0), episodes(40, 15, 0), val, budget, progress=False
         )
     assert result.dynamics is None
+    assert any(
+        str(w.message).startswith(
+            "dynamics: not measured, train_data holds no episode of at least 20 frames"
+        )
+        for w in caught
+    )
     with pytest.raises(ValueError, match=r"no episode of at least 20 frames.*steps="):
         DynamicsNovelty.fit(result.ensemble, episodes(4, 15, 0), val)
 
