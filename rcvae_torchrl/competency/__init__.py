@@ -38,7 +38,7 @@ from rcvae_torchrl.competency.decomposition import (
     variance_decomposition,
 )
 from rcvae_torchrl.competency.entropy import gaussian_entropy, histogram_entropy, knn_entropy
-from rcvae_torchrl.competency.intervals import binomial_interval
+from rcvae_torchrl.competency.intervals import binomial_interval, paired_difference_interval
 from rcvae_torchrl.competency.metrics import (
     SuccessMetric,
     UncertaintyMetric,
@@ -115,6 +115,7 @@ __all__ = [
     "binary_entropy",
     "binomial_interval",
     "first_success_step",
+    "paired_difference_interval",
     "outcome_uncertainty",
     "success_on_grid",
     "success_probability",

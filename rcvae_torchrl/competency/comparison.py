@@ -11,15 +11,13 @@ on chance.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-import torch
 from torch import Tensor
 
 from rcvae_torchrl import fingerprint
 from rcvae_torchrl._checks import check_same_starts, check_unit_interval
-from rcvae_torchrl.competency.intervals import mean_interval
+from rcvae_torchrl.competency.intervals import mean_interval, paired_difference_interval
 from rcvae_torchrl.competency.report import CompetencyReport
 
 __all__ = ["AgentComparison", "compare_agents"]
@@ -33,9 +31,10 @@ class AgentComparison:
     low: Tensor  #: ``[B]`` lower end of its interval (the imagined samples' chance)
     high: Tensor  #: ``[B]`` upper end
     by_member: Tensor  #: ``[B, E]`` each member's P_a − P_b
-    #: ``[E]`` the interval's half width of each member's difference over the start states
+    #: ``[E]`` lower end of the interval of each member's difference over the start states
     #: (its own imagined samples' chance)
-    member_margin: Tensor
+    member_low: Tensor
+    member_high: Tensor  #: ``[E]`` its upper end
     p_a: Tensor  #: ``[B]`` agent a's P(success)
     p_b: Tensor  #: ``[B]`` agent b's
     confidence: float
@@ -73,10 +72,10 @@ class AgentComparison:
     @property
     def member_verdicts(self) -> Tensor:
         """``[E]`` each member's verdict over the start states: 1 where it gives ``a`` the
-        higher chance beyond its imagined samples' chance (:attr:`member_margin`), -1 where it
-        gives ``b`` the higher one, 0 where it does not tell them apart."""
-        members = self.members
-        return (members > self.member_margin).long() - (members < -self.member_margin).long()
+        higher chance beyond its imagined samples' chance (its interval,
+        :attr:`member_low` to :attr:`member_high`, above 0), -1 where it gives ``b`` the
+        higher one (below 0), 0 where it does not tell them apart."""
+        return (self.member_low > 0).long() - (self.member_high < 0).long()
 
     @property
     def members_agree(self) -> bool:
@@ -169,7 +168,10 @@ def compare_agents(
     Per start state the difference's interval comes from the imagined samples, sample by sample
     (``a``'s sample ``i`` of member ``m`` against ``b``'s: the same noise where both were assessed
     with the same ``seed``, which narrows it; independent samples give the right width too), a
-    normal interval at ``confidence``. Each member's own difference shows the epistemic side: where
+    paired score interval at ``confidence``
+    (:func:`~rcvae_torchrl.competency.paired_difference_interval`: where every sample of both
+    agents succeeds, a normal interval had no width at all). Each member's own difference,
+    with the same interval over its samples of all start states, shows the epistemic side: where
     the members disagree on which agent is better, more imagined samples would not settle it.
     Reports of two agents acting otherwise are expected; reports of one agent (the same weights)
     compare it with itself."""
@@ -195,24 +197,21 @@ def compare_agents(
             f"b: expected as many members and samples per member as a ({mine} [E, N]), got {theirs}"
         )
     pairs = success[0].double() - success[1].double()  # [B, E, N]
-    z = _z(confidence)
-    per_member = pairs.transpose(0, 1).flatten(1)  # [E, B·N]
-    member_se = per_member.std(1) / math.sqrt(per_member.shape[1])
-    flat = pairs.flatten(1)
-    difference = flat.mean(1)
-    n = flat.shape[1]
-    se = flat.std(1) / math.sqrt(n) if n > 1 else torch.zeros_like(difference)
+    low, high = paired_difference_interval(success[0].flatten(1), success[1].flatten(1), confidence)
+    by_member = [s.transpose(0, 1).flatten(1) for s in success]  # [E, B·N]
+    member_low, member_high = paired_difference_interval(*by_member, confidence)
     said = {name: r.warning for name, r in zip(names, (a, b)) if r.warning}
     if len(said) == 2 and a.warning == b.warning:  # one world model's warning, said once
         warnings = [f"both reports: {a.warning}"]
     else:
         warnings = [f"{name}'s report: {text}" for name, text in said.items()]
     return AgentComparison(
-        difference=difference,
-        low=(difference - z * se).clamp(-1.0, 1.0),
-        high=(difference + z * se).clamp(-1.0, 1.0),
+        difference=pairs.flatten(1).mean(1),
+        low=low,
+        high=high,
         by_member=pairs.mean(-1),
-        member_margin=(z * member_se).nan_to_num(0.0),
+        member_low=member_low,
+        member_high=member_high,
         p_a=success[0].double().flatten(1).mean(1),
         p_b=success[1].double().flatten(1).mean(1),
         confidence=float(confidence),
@@ -229,10 +228,3 @@ def _other_task(a: CompetencyReport, b: CompetencyReport) -> str:
     if not (a.task and b.task):
         return "a task not known (a report built by hand)"
     return fingerprint.task_difference(b.task, a.task)
-
-
-def _z(confidence: float) -> float:
-    """The standard normal quantile of a two-sided interval at ``confidence``."""
-    from scipy import stats
-
-    return float(stats.norm.ppf(0.5 + confidence / 2))

@@ -10,8 +10,8 @@
    the world models' checks as far ahead as the forecast and the forecasts checked from start
    states not scored (against the agent's real episodes from them), with the scored forecasts
    through the Platt map fitted on those episodes beside them, and each condition's env
-   checked to move as its world model learned (the agent's one-step errors there against the
-   model's held-out episodes').
+   checked to move as its world model learned (the agent's one-step errors there against its
+   errors in the model's own env).
 
 Every stage writes its outputs atomically under the run directory and a marker when done
 (:class:`~rcvae_torchrl.stages.StageRunner`); running again with the same directory reuses

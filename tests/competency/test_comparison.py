@@ -72,10 +72,21 @@ def test_the_difference_and_its_interval_in_closed_form():
     torch.testing.assert_close(
         compared.by_member, torch.tensor([[1.0, 0.5, 0.0]] * 2, dtype=torch.float64)
     )
-    # paired differences: 12 ones and 12 zeros of 24: mean 0.5, sample sd sqrt(6 / 23)
-    half = 1.959964 * math.sqrt(6 / 23) / math.sqrt(E * N)
-    torch.testing.assert_close(compared.low, torch.full((2,), 0.5 - half, dtype=torch.float64))
-    torch.testing.assert_close(compared.high, torch.full((2,), 0.5 + half, dtype=torch.float64))
+    # 24 pairs per start: 12 where both succeed, 12 where A alone does (a margin of the 2x2
+    # table is empty: no correlation term); Newcombe's interval from the Wilson intervals of
+    # 24 of 24 and 12 of 24
+    z, n = 1.959963984540054, E * N
+
+    def wilson(k: int) -> tuple[float, float]:
+        p = k / n
+        centre, half = (p + z * z / (2 * n)), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+        return (centre - half) / (1 + z * z / n), (centre + half) / (1 + z * z / n)
+
+    (low_a, _), (low_b, high_b) = wilson(n), wilson(n // 2)
+    low = 0.5 - math.sqrt((1 - low_a) ** 2 + (high_b - 0.5) ** 2)
+    high = 0.5 + (0.5 - low_b)
+    torch.testing.assert_close(compared.low, torch.full((2,), low, dtype=torch.float64))
+    torch.testing.assert_close(compared.high, torch.full((2,), high, dtype=torch.float64))
     assert compared.interval == pytest.approx((0.5, 0.5))  # alike starts: no spread over tasks
     # member 0 always, member 1 half the time: beyond chance; member 2 ties
     assert compared.member_verdicts.tolist() == [1, 1, 0]
