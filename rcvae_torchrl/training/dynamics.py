@@ -162,6 +162,10 @@ class DynamicsNovelty:
     model: str
     #: a name per dimension
     names: tuple[str, ...]
+    #: ``[H, S]`` the held-out episodes' mean signed errors in units (NaN in dimensions not
+    #: judged): what a shift test ranks new episodes' against (``check_dynamics(shift=True)``);
+    #: ``None`` in a record made before they were kept
+    held_out_shifts: Tensor | None = None
 
     def __post_init__(self) -> None:
         s = self.scale.shape[0] if isinstance(self.scale, Tensor) else -1
@@ -200,6 +204,15 @@ class DynamicsNovelty:
             raise ValueError("held_out_scores: expected finite scores in the dimensions judged")
         if not isinstance(self.model, str):
             raise TypeError(f"model: expected a digest (str), got {self.model!r}")
+        shifts = self.held_out_shifts
+        if shifts is not None:
+            if not isinstance(shifts, Tensor) or shifts.shape != held.shape:
+                raise ValueError(
+                    f"held_out_shifts: expected None or a {list(held.shape)} tensor (as "
+                    f"held_out_scores), got {shifts!r}"
+                )
+            if not bool(torch.isfinite(shifts[:, list(dims)]).all()):
+                raise ValueError("held_out_shifts: expected finite values in the dimensions judged")
 
     @property
     def held_out(self) -> int:
@@ -272,7 +285,8 @@ class DynamicsNovelty:
                 f"held_out: expected at least {MIN_HELD_OUT} episodes of at least {steps} "
                 f"frames to measure a level on, got {held_obs.shape[0]}"
             )
-        per_dim = _scores(_errors(ensemble, held_obs, held_actions), scale, dims)
+        held_errors = _errors(ensemble, held_obs, held_actions)
+        per_dim = _scores(held_errors, scale, dims)
         level, kept = conformal_level(per_dim[:, list(dims)].max(1).values, quantile)
         return cls(
             scale=scale,
@@ -283,12 +297,21 @@ class DynamicsNovelty:
             steps=steps,
             model=_model_digest(ensemble),
             names=tuple(ensemble.config.names),
+            held_out_shifts=_shifts(held_errors, scale, dims),
         )
 
     def scores(self, ensemble: RCVAEEnsemble, episodes: TensorDictBase) -> tuple[Tensor, int]:
         """``[B, S]`` the per-dimension scores of the ``B`` episodes of ``episodes`` long
         enough (NaN in dimensions not judged), and the number too short to score. Refused for
         another model than the one measured (other weights, config or functions)."""
+        scores, _, short = self.measure(ensemble, episodes)
+        return scores, short
+
+    def measure(
+        self, ensemble: RCVAEEnsemble, episodes: TensorDictBase
+    ) -> tuple[Tensor, Tensor, int]:
+        """:meth:`scores`, with the episodes' mean signed errors ``[B, S]`` in units beside
+        them (which way the model misses each episode, on average; NaN where not judged)."""
         if _model_digest(ensemble) != self.model:
             raise ValueError(
                 "ensemble: not the world model this check was measured with (its weights, "
@@ -297,7 +320,8 @@ class DynamicsNovelty:
                 "DynamicsNovelty.fit(ensemble, train_data, held_out)"
             )
         obs, actions, short = _episodes("episodes", episodes, ensemble, self.steps)
-        return _scores(_errors(ensemble, obs, actions), self.scale, self.dims), short
+        errors = _errors(ensemble, obs, actions)
+        return _scores(errors, self.scale, self.dims), _shifts(errors, self.scale, self.dims), short
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -309,24 +333,38 @@ class DynamicsNovelty:
             "steps": int(self.steps),
             "model": self.model,
             "names": list(self.names),
+            **(
+                {}
+                if self.held_out_shifts is None
+                else {"held_out_shifts": self.held_out_shifts.clone()}
+            ),
         }
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> DynamicsNovelty:
         fields = ("scale", "dims", "held_out_scores", "level", "quantile", "steps", "model")
-        _known_entries(values, (*fields, "names"), "a DynamicsNovelty.as_dict()")
+        _known_entries(
+            values, (*fields, "names"), "a DynamicsNovelty.as_dict()", ("held_out_shifts",)
+        )
         parts = {k: values[k] for k in fields}
         for name in ("scale", "held_out_scores"):  # lists where read back from JSON
             parts[name] = _float_tensor(f"values[{name!r}]", parts[name])
-        return cls(**parts, names=values["names"])
+        shifts = values.get("held_out_shifts")
+        if shifts is not None:
+            shifts = _float_tensor("values['held_out_shifts']", shifts)
+        return cls(**parts, names=values["names"], held_out_shifts=shifts)
 
 
-def _known_entries(values: object, fields: tuple[str, ...], what: str) -> None:
-    """``values`` holds ``fields``, and nothing else."""
+def _known_entries(
+    values: object, fields: tuple[str, ...], what: str, optional: tuple[str, ...] = ()
+) -> None:
+    """``values`` holds ``fields``, perhaps ``optional`` ones, and nothing else."""
     _checks.check_entries("values", values, fields, what)  # a mapping, or a TypeError
-    unknown = sorted(set(map(str, values)) - set(fields))
+    unknown = sorted(set(map(str, values)) - set(fields) - set(optional))
     if unknown:
-        raise ValueError(f"values: entries {unknown} are not those of {what} ({list(fields)})")
+        raise ValueError(
+            f"values: entries {unknown} are not those of {what} ({list(fields + optional)})"
+        )
 
 
 def _check_tolerance(tolerance: object) -> None:
@@ -363,6 +401,15 @@ def _nan_for_none(value: Any) -> Any:
     if isinstance(value, list):
         return [_nan_for_none(v) for v in value]
     return math.nan if value is None else value
+
+
+def _shifts(errors: Tensor, scale: Tensor, dims: tuple[int, ...]) -> Tensor:
+    """``[B, S]``: per episode and dimension, the mean signed error over its steps in ``scale``
+    units (which way the model misses, on average); NaN outside ``dims``."""
+    out = torch.full(errors.shape[::2], math.nan, dtype=torch.float64)
+    index = list(dims)
+    out[:, index] = errors[..., index].mean(1) / scale[index]
+    return out
 
 
 def _scores(errors: Tensor, scale: Tensor, dims: tuple[int, ...]) -> Tensor:
@@ -403,6 +450,13 @@ class DynamicsCheck:
     names: tuple[str, ...]
     #: the world model's digest (:attr:`DynamicsNovelty.model`)
     model: str
+    #: ``[S]`` per dimension, the two-sided rank test's p-value of a shift: do these
+    #: episodes' mean signed errors lie elsewhere than the held-out episodes'? (NaN where not
+    #: judged); ``None`` where not tested (``check_dynamics(shift=False)``)
+    shift_p_values: Tensor | None = None
+    #: ``[S]`` per dimension, these episodes' median mean signed error minus the held-out
+    #: episodes', in units of the one-step error on training episodes; ``None`` where not tested
+    shifts: Tensor | None = None
 
     def __post_init__(self) -> None:
         for name in ("episodes", "short", "beyond"):
@@ -441,20 +495,45 @@ class DynamicsCheck:
                 f"ratios: expected a ratio >= 0 where a p-value is, NaN elsewhere, got "
                 f"{self.ratios}"
             )
+        if (self.shift_p_values is None) != (self.shifts is None):
+            raise ValueError("shift_p_values, shifts: expected both or neither")
+        if self.shift_p_values is not None:
+            for name in ("shift_p_values", "shifts"):
+                value = getattr(self, name)
+                if not isinstance(value, Tensor) or value.shape != (s,):
+                    raise ValueError(f"{name}: expected None or a [{s}] tensor, got {value!r}")
+                if not torch.equal(value.isnan(), self.p_values.isnan()):
+                    raise ValueError(
+                        f"{name}: expected values where p_values has them (the dimensions "
+                        f"tested), NaN elsewhere, got {value}"
+                    )
+            q = self.shift_p_values[tested]
+            if bool(((q < 0) | (q > 1)).any()):
+                raise ValueError(
+                    f"shift_p_values: expected values in [0, 1] or NaN, got {self.shift_p_values}"
+                )
 
     @property
     def measured(self) -> bool:
         """Whether any episode was scored."""
         return self.episodes > 0
 
+    def _tests(self) -> list[tuple[float, int, str]]:
+        """Every test made: (p-value, dimension, kind: ``"errors"`` or ``"shift"``)."""
+        out = []
+        for kind, values in (("errors", self.p_values), ("shift", self.shift_p_values)):
+            if values is not None:
+                out += [(float(values[d]), d, kind) for d in range(len(values))]
+        return [t for t in out if not math.isnan(t[0])]
+
     @property
     def p_value(self) -> float:
-        """The smallest dimension's p-value times the number of dimensions tested
-        (Bonferroni), at most 1; 1 when no episode was scored."""
-        tested = self.p_values[~self.p_values.isnan()]
-        if not self.measured or tested.numel() == 0:
+        """The smallest p-value times the number of tests made (Bonferroni: one per dimension
+        tested, two where shifts were tested too), at most 1; 1 when no episode was scored."""
+        tests = self._tests()
+        if not self.measured or not tests:
             return 1.0
-        return min(1.0, float(tested.min()) * tested.numel())
+        return min(1.0, min(p for p, _, _ in tests) * len(tests))
 
     @property
     def passed(self) -> bool:
@@ -465,16 +544,21 @@ class DynamicsCheck:
     def named(self) -> list[str]:
         """The dimensions whose own test fails (p-value times the dimensions tested below
         ``alpha``), smallest p-value first, at most three; none for a check that passed."""
-        judged = ~self.p_values.isnan()
-        tested = int(judged.sum())
-        p = torch.nan_to_num(self.p_values, nan=2.0)
-        failing = [
-            i for i in p.argsort().tolist() if judged[i] and float(p[i]) * tested < self.alpha
-        ]
-        return [
-            f"{self.names[i]} ({float(self.ratios[i]):.1f} times its held-out error)"
-            for i in failing[:_NAMED]
-        ]
+        tests = self._tests()
+        failing = sorted(t for t in tests if t[0] * len(tests) < self.alpha)
+        named = []
+        for _, d, kind in failing:
+            if kind == "errors":
+                named.append(
+                    f"{self.names[d]} ({float(self.ratios[d]):.1f} times its held-out error)"
+                )
+            else:
+                assert self.shifts is not None
+                named.append(
+                    f"{self.names[d]} (its errors shifted by {float(self.shifts[d]):+.2f} of "
+                    "their unit)"
+                )
+        return named[:_NAMED]
 
     def describe(self) -> str:
         if not self.measured:
@@ -482,9 +566,10 @@ class DynamicsCheck:
                 f"no episode long enough to check ({self.short} shorter than the transitions "
                 "scored)"
             )
+        shifted = " and their shift" if self.shift_p_values is not None else ""
         test = (
-            f"their one-step errors against {self.tolerance:g} times the held-out episodes', "
-            f"p = {self.p_value:.2g}; "
+            f"their one-step errors against {self.tolerance:g} times the held-out episodes'"
+            f"{shifted}, p = {self.p_value:.2g}; "
             f"{self.beyond} of {self.episodes} real episodes beyond the held-out episodes' level"
         )
         if self.passed:
@@ -509,6 +594,14 @@ class DynamicsCheck:
             "ratios": self.ratios.tolist(),
             "names": list(self.names),
             "model": self.model,
+            **(
+                {}
+                if self.shift_p_values is None or self.shifts is None
+                else {
+                    "shift_p_values": self.shift_p_values.tolist(),
+                    "shifts": self.shifts.tolist(),
+                }
+            ),
         }
 
     @classmethod
@@ -525,19 +618,28 @@ class DynamicsCheck:
             "names",
             "model",
         )
-        _known_entries(values, fields, "a DynamicsCheck.as_dict()")
+        optional = ("shift_p_values", "shifts")
+        _known_entries(values, fields, "a DynamicsCheck.as_dict()", optional)
         parts = {k: values[k] for k in fields if k != "names"}
-        for name in ("p_values", "ratios"):  # lists where read back from JSON
-            parts[name] = _float_tensor(f"values[{name!r}]", parts[name])
+        parts.update({k: values[k] for k in optional if values.get(k) is not None})
+        for name in ("p_values", "ratios", *optional):  # lists where read back from JSON
+            if name in parts:
+                parts[name] = _float_tensor(f"values[{name!r}]", parts[name])
         return cls(**parts, names=values["names"])
 
 
 def rank_p_values(
-    scores: Tensor, held_out: Tensor, dims: tuple[int, ...], tolerance: float = 1.0
+    scores: Tensor,
+    held_out: Tensor,
+    dims: tuple[int, ...],
+    tolerance: float = 1.0,
+    alternative: str = "greater",
 ) -> Tensor:
     """``[S]`` per dimension in ``dims``, the one-sided Mann-Whitney p-value of "``scores``
     ``[M, S]`` are larger than ``tolerance`` times ``held_out`` ``[H, S]``" (exact for small
-    samples without ties); NaN elsewhere, and everywhere for ``M = 0``."""
+    samples without ties; ``alternative="two-sided"``: are they elsewhere?); NaN elsewhere,
+    and everywhere for ``M = 0``."""
+    _checks.check_choice("alternative", alternative, ("greater", "two-sided"))
     from scipy.stats import mannwhitneyu
 
     out = torch.full((held_out.shape[1],), math.nan, dtype=torch.float64)
@@ -547,7 +649,7 @@ def rank_p_values(
         test = mannwhitneyu(
             scores[:, d].double().numpy(),
             tolerance * held_out[:, d].double().numpy(),
-            alternative="greater",
+            alternative=alternative,
         )
         out[d] = float(test.pvalue)
     return out
@@ -560,6 +662,7 @@ def check_dynamics(
     alpha: float = 0.01,
     tolerance: float = TOLERANCE,
     novelty: DynamicsNovelty | None = None,
+    shift: bool = False,
 ) -> DynamicsCheck:
     """Whether the real ``episodes`` (flat, as training takes them: ``"observation"``,
     ``"action"``, ``("next", "observation")`` and episode ids) move as the world model learned:
@@ -584,9 +687,20 @@ def check_dynamics(
     of 48 batches of 20 such episodes failed at ``alpha=0.01``; with 1.1, none did, while every
     batch of a point mass 5 % heavier, of one with 10 % more damping or 5 % less gear, and of a
     cart-pole whose pole was 25 % heavier or 1 % longer failed, and 2 of 3 of one whose pole was
-    10 % heavier (3 of 3 with 1; 5 % heavier: 0 of 3, against 3 of 3)."""
+    10 % heavier (3 of 3 with 1; 5 % heavier: 0 of 3, against 3 of 3).
+
+    ``shift``: also test, per dimension, whether the episodes' mean signed errors lie
+    elsewhere than the held-out episodes' (a two-sided rank test; the Bonferroni count then
+    covers both tests). A change within the noise the model learned leaves the errors' size
+    as it was but can push every episode the same way (an arm weaker than every one the model
+    saw, where each episode's strength is drawn): the size test misses it, the shift test
+    need not. Take it only against held-out episodes of the same policy as the checked ones
+    (an agent's own episodes in the env the model learned, fitted with
+    :meth:`DynamicsNovelty.fit`): another policy visits states where the model errs another
+    way, and the test cannot tell that from a change."""
     check_unit_interval("alpha", alpha, include_zero=False)
     _check_tolerance(tolerance)
+    _checks.check_bool("shift", shift)
     if novelty is None:
         novelty = getattr(ensemble, "dynamics", None)
         if novelty is None:
@@ -603,9 +717,22 @@ def check_dynamics(
             f"novelty: expected a DynamicsNovelty (or None: ensemble.dynamics), got "
             f"{type(novelty).__name__}"
         )
-    scores, short = novelty.scores(ensemble, episodes)
+    if shift and novelty.held_out_shifts is None:
+        raise ValueError(
+            "shift: the held-out errors hold no signed means (a record made before they were "
+            "kept); measure them again, DynamicsNovelty.fit(ensemble, train_data, held_out)"
+        )
+    scores, shifted, short = novelty.measure(ensemble, episodes)
     dims = list(novelty.dims)
     p_values = rank_p_values(scores, novelty.held_out_scores, novelty.dims, float(tolerance))
+    shift_p_values = shifts = None
+    if shift:
+        assert novelty.held_out_shifts is not None
+        held = novelty.held_out_shifts
+        shift_p_values = rank_p_values(shifted, held, novelty.dims, alternative="two-sided")
+        shifts = torch.full_like(novelty.scale, math.nan, dtype=torch.float64)
+        if shifted.shape[0]:  # none scored: NaN, as the p-values
+            shifts[dims] = shifted[:, dims].median(0).values - held[:, dims].median(0).values
     ratios = torch.full_like(novelty.scale, math.nan)
     beyond = 0
     if scores.shape[0]:
@@ -623,6 +750,8 @@ def check_dynamics(
         ratios=ratios,
         names=novelty.names,
         model=novelty.model,
+        shift_p_values=shift_p_values,
+        shifts=shifts,
     )
 
 

@@ -803,7 +803,8 @@ class Study:
         they are fewer), episodes of the horizon's length; their one-step errors over the
         horizon (or as much of it as the training episodes cover) ranked against those of the
         agent's own episodes in the world model's env (:meth:`dynamics_reference`;
-        :func:`~rcvae_torchrl.training.check_dynamics`)."""
+        :func:`~rcvae_torchrl.training.check_dynamics`), their size and which way they lean
+        (``shift=True``)."""
         model_name = CONDITIONS[condition][0]
         starts = self.held_out_starts(condition)
         count = DYNAMICS_EPISODES
@@ -814,7 +815,9 @@ class Study:
         index = list(CONDITIONS).index(condition)
         episodes = self.agent_episodes(condition, starts, DYNAMICS_SEEDS + index)
         model = self.load_model(model_name)
-        return check_dynamics(model, episodes, novelty=self.dynamics_reference(model_name, model))
+        reference = self.dynamics_reference(model_name, model)
+        # the agent's own episodes on both sides: a shift of its errors is the env's
+        return check_dynamics(model, episodes, novelty=reference, shift=True)
 
     def dynamics_reference(self, model_name: str, model: RCVAEEnsemble) -> DynamicsNovelty:
         """What the dynamics checks of world model ``model_name`` (``model``) rank against:

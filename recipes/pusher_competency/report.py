@@ -721,13 +721,14 @@ def _dynamics_checks_text(dynamics_checks: Mapping[str, DynamicsCheck]) -> str:
         "states (none scored), and each episode's one-step errors under the condition's world "
         "model, over the horizon, were ranked against those of the agent's own episodes in "
         "the model's env from other start states (`check_dynamics`: per dimension, a one-sided "
-        f"rank test against {first.tolerance:g} times their errors, at level {first.alpha:g} "
-        "over the dimensions). A failed check says the env does not move as the model "
+        f"rank test of their size against {first.tolerance:g} times their errors and a "
+        f"two-sided one of which way they lean, at level {first.alpha:g} over all the tests). "
+        "A failed check says the env does not move as the model "
         "learned, in physics that changed or in states whose motion it never saw: a forecast "
         "made there extrapolates, however few epistemic bits it shows. A passed one says "
         "nothing of the outcome (the forecast check above judges that), and a change the "
-        "model takes for noise it learned (an arm weaker within the range the stochastic env "
-        "draws from) passes it.",
+        "model takes for noise it learned (an arm a little weaker, within the range the "
+        "stochastic env draws its strength from) can pass it.",
         "",
         "| condition | episodes | beyond the reference's level | p | verdict |",
         "|:---|---:|---:|---:|:---|",

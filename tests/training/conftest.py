@@ -13,9 +13,11 @@ def linear_episodes(
     sigma: float = 0.05,
     gain: float = 0.5,
     first: int = 0,
+    drift: float = 0.0,
 ) -> TensorDict:
     """Flat episodes of s' = A s + B a + sigma * eps (3-D state, 1-D action; ``gain``: how
-    hard the action pushes the third dimension), ids from ``first`` on."""
+    hard the action pushes the third dimension; ``drift``: a constant push on it every step, a
+    slope), ids from ``first`` on."""
     g = torch.Generator().manual_seed(seed)
     a_mat = torch.tensor([[0.9, 0.1, 0.0], [0.0, 0.9, 0.1], [0.0, 0.0, 0.8]])
     b_mat = torch.tensor([[0.0], [0.0], [gain]])
@@ -24,6 +26,7 @@ def linear_episodes(
     for _ in range(steps):
         a = torch.rand(episodes, 1, generator=g) * 2 - 1
         s_next = s @ a_mat.T + a @ b_mat.T + sigma * torch.randn(episodes, 3, generator=g)
+        s_next[:, 2] += drift
         obs.append(s), act.append(a), nxt.append(s_next)
         s = s_next
     data = TensorDict(

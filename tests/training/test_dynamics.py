@@ -3,6 +3,7 @@ dynamics changed, through states like the training states, fails it, naming the 
 
 from __future__ import annotations
 
+import json
 import warnings
 from types import MappingProxyType
 
@@ -230,6 +231,38 @@ def test_training_on_short_episodes_measures_none(trained):
         DynamicsNovelty.fit(result.ensemble, episodes(4, 15, 0), val)
 
 
+def test_a_steady_push_within_the_noise_fails_the_shift_test_alone(trained):
+    """A constant push on z of 0.6 times the noise every step (a slope): each step's error
+    grows too little for the size test, but every episode's errors lean one way; with
+    ``shift=True`` 20 episodes tell it, naming z and the way its predictions miss. The same
+    env's episodes pass both."""
+    ensemble = trained[0].ensemble
+    for seed in (5, 6, 7):
+        pushed = linear_episodes(20, 40, seed, first=1000, drift=0.03).exclude(("next", "done"))
+        assert check_dynamics(ensemble, pushed).passed  # the size test alone
+        check = check_dynamics(ensemble, pushed, shift=True)
+        assert not check.passed and check.p_value < 1e-3
+        assert [name.split(" ")[0] for name in check.named()] == ["z"]
+        assert float(check.shift_p_values[2]) * 6 < 0.01  # Bonferroni over both tests
+        assert float(check.shift_p_values[:2].min()) > 0.01
+        assert float(check.shifts[2]) < -0.3  # the model predicts z too low
+        assert "z (its errors shifted by -0." in check.describe()
+        assert "and their shift, p = " in check.describe()
+        same = check_dynamics(ensemble, episodes(20, 40, seed, first=1000), shift=True)
+        assert same.passed and same.named() == []
+    # the shift's level over many draws of one distribution, as the size test's
+    g = torch.Generator().manual_seed(1)
+    failed = 0
+    for _ in range(500):
+        held = torch.randn(20, 3, generator=g, dtype=torch.float64)
+        new = torch.randn(20, 3, generator=g, dtype=torch.float64)
+        p = rank_p_values(new, held, (0, 1, 2), alternative="two-sided")
+        failed += float(p.min()) * 3 < 0.01  # Bonferroni over the dimensions
+    assert failed / 500 <= 0.02
+    with pytest.raises(ValueError, match="alternative"):
+        rank_p_values(new, held, (0,), alternative="less")
+
+
 def test_kept_in_checkpoints_and_records(trained, tmp_path):
     ensemble = trained[0].ensemble
     path = save_ensemble(ensemble, tmp_path / "model.pt")
@@ -280,6 +313,25 @@ def test_kept_in_checkpoints_and_records(trained, tmp_path):
         DynamicsCheck.from_dict({**failing, "extra": 1})
     with pytest.raises(ValueError, match="beyond"):
         DynamicsCheck.from_dict({**check.as_dict(), "beyond": 21})
+    # the shift test: its figures kept in records, and refused where a record has no shifts
+    shifted = check_dynamics(ensemble, data, shift=True)
+    again = DynamicsCheck.from_dict(json.loads(json.dumps(shifted.as_dict())))
+    torch.testing.assert_close(again.shift_p_values, shifted.shift_p_values, equal_nan=True)
+    assert again.p_value == shifted.p_value and again.describe() == shifted.describe()
+    assert "shift_p_values" not in check.as_dict()  # not tested: not recorded
+    with pytest.raises(ValueError, match="shift_p_values, shifts: expected both or neither"):
+        DynamicsCheck.from_dict({**shifted.as_dict(), "shifts": None})
+    with pytest.raises(ValueError, match="shifts: expected values where p_values has them"):
+        DynamicsCheck.from_dict({**shifted.as_dict(), "shifts": [None] * 3})
+    torch.testing.assert_close(measured.held_out_shifts, ensemble.dynamics.held_out_shifts)
+    older = {k: v for k, v in record.items() if k != "held_out_shifts"}  # before shifts
+    assert DynamicsNovelty.from_dict(older).held_out_shifts is None
+    with pytest.raises(ValueError, match="shift: the held-out errors hold no signed means"):
+        check_dynamics(ensemble, data, novelty=DynamicsNovelty.from_dict(older), shift=True)
+    with pytest.raises(TypeError, match="shift"):
+        check_dynamics(ensemble, data, shift=1)
+    with pytest.raises(ValueError, match="held_out_shifts"):
+        DynamicsNovelty.from_dict({**record, "held_out_shifts": record["held_out_shifts"][:3]})
 
 
 def _report(task: str = "") -> CompetencyReport:
