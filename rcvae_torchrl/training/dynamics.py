@@ -25,7 +25,11 @@ more were checked. One thing sets the held-out episodes apart: their validation 
 weights training kept, so they are predicted a little better than fresh ones; the test allows
 new episodes :data:`TOLERANCE` times their errors (``tolerance=``).
 Beside the test, the check counts the episodes whose largest score lies beyond that level
-(:attr:`DynamicsNovelty.level`): the ones far off, told apart.
+(:attr:`DynamicsNovelty.level`): the ones far off, told apart. A change within the noise the
+model learned (a parameter it saw vary from episode to episode, moved to the edge of its range)
+keeps each step's error as large as before and passes that test, but every episode's errors then
+lean one way: with ``shift=True`` :func:`check_dynamics` also ranks each episode's mean signed
+error against the held-out episodes' (two-sided), against held-out episodes of the same policy.
 
 Episodes of another policy than the one that collected the training episodes visit other
 states, where the model may predict worse although the physics did not change: a check that
