@@ -48,6 +48,10 @@ class AgentComparison:
     same_agent: bool = False
     #: the reports whose forecasts no check against real episodes vouches for
     unchecked: tuple[str, ...] = ()
+    #: the paired interval of every start state's samples pooled (the imagined samples'
+    #: chance alone, :func:`~rcvae_torchrl.competency.paired_difference_interval`), which
+    #: :attr:`interval` never is narrower than; ``None``: not known (built by hand)
+    pooled: tuple[float, float] | None = None
 
     @property
     def mean(self) -> float:
@@ -58,11 +62,15 @@ class AgentComparison:
     def interval(self) -> tuple[float, float]:
         """The interval of :attr:`mean` over the start states (a Student's t interval of the
         mean of the per-start differences at :attr:`confidence`, :func:`mean_interval`: the
-        start states' spread and the imagined samples' chance; one start state: its own
-        interval)."""
+        start states' spread and the imagined samples' chance), widened to :attr:`pooled`
+        where it is narrower (start states alike have no spread, their samples still have
+        their chance); one start state: its own interval."""
         if self.difference.numel() == 1:
             return float(self.low), float(self.high)
-        return mean_interval(self.difference, self.confidence)
+        low, high = mean_interval(self.difference, self.confidence)
+        if self.pooled is None:
+            return low, high
+        return min(low, self.pooled[0]), max(high, self.pooled[1])
 
     @property
     def members(self) -> Tensor:
@@ -200,6 +208,7 @@ def compare_agents(
     low, high = paired_difference_interval(success[0].flatten(1), success[1].flatten(1), confidence)
     by_member = [s.transpose(0, 1).flatten(1) for s in success]  # [E, B·N]
     member_low, member_high = paired_difference_interval(*by_member, confidence)
+    pooled = paired_difference_interval(success[0].flatten(), success[1].flatten(), confidence)
     said = {name: r.warning for name, r in zip(names, (a, b)) if r.warning}
     if len(said) == 2 and a.warning == b.warning:  # one world model's warning, said once
         warnings = [f"both reports: {a.warning}"]
@@ -220,6 +229,7 @@ def compare_agents(
         warning="; ".join(warnings),
         same_agent=a.agent is not None and a.agent == b.agent,
         unchecked=tuple(n for n, r in zip(names, (a, b)) if r.forecast_check is None),
+        pooled=(float(pooled[0]), float(pooled[1])),
     )
 
 

@@ -106,7 +106,12 @@ def paired_difference_interval(
     _checks.check_confidence(confidence)
     for name, x in (("a", a), ("b", b)):
         if not isinstance(x, Tensor) or x.dtype != torch.bool or x.dim() < 1 or x.shape[-1] < 1:
-            raise TypeError(f"{name}: expected bool outcomes [*batch, n] with n >= 1, got {x!r}")
+            got = (
+                f"a {x.dtype} tensor of shape {tuple(x.shape)}"
+                if isinstance(x, Tensor)
+                else type(x).__name__
+            )
+            raise TypeError(f"{name}: expected bool outcomes [*batch, n] with n >= 1, got {got}")
     if a.shape != b.shape:
         raise ValueError(
             f"b: expected the shape of a, {tuple(a.shape)} (one outcome per pair), got "

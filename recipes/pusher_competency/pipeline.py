@@ -181,6 +181,10 @@ HELD_OUT_SEEDS = 8_000
 DYNAMICS_SEEDS = 8_500
 DYNAMICS_REFERENCE_SEEDS = 8_600
 DYNAMICS_START_SEEDS = 2**30
+# Start states that top up the dynamics check's (Study.dynamics_check) where the forecast
+# check's are fewer: seeds this much higher than the scored ones' (mod 2**32), past the
+# reference's DYNAMICS_REFERENCE.
+DYNAMICS_TOP_UP_SEEDS = 2**30 + 500
 # Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i; those
 # the forecast check draws (Study.held_out_starts), HELD_OUT_START_SEEDS higher (mod 2**32).
 START_SEED_STRIDE = 7919
@@ -799,8 +803,10 @@ class Study:
     def dynamics_check(self, condition: str) -> DynamicsCheck:
         """Does ``condition``'s real env move as its world model learned? The agent run
         :data:`DYNAMICS_EPISODES` times from the forecast check's start states
-        (:meth:`held_out_starts`, spread evenly over them; each again, with other seeds, where
-        they are fewer), episodes of the horizon's length; their one-step errors over the
+        (:meth:`held_out_starts`, spread evenly over them; where they are fewer, topped up
+        with start states drawn by the condition's env's reset with seeds no other start uses:
+        in a deterministic env a start run twice repeats its episode, which the rank tests
+        would count twice), episodes of the horizon's length; their one-step errors over the
         horizon (or as much of it as the training episodes cover) ranked against those of the
         agent's own episodes in the world model's env (:meth:`dynamics_reference`;
         :func:`~rcvae_torchrl.training.check_dynamics`), their size and which way they lean
@@ -811,7 +817,8 @@ class Study:
         if count <= len(starts):
             starts = starts[_evenly(len(starts), count)]
         else:
-            starts = starts[torch.arange(count) % len(starts)]
+            more = self.starts(condition, count - len(starts), offset=DYNAMICS_TOP_UP_SEEDS)
+            starts = torch.cat([starts.to(more.dtype), more])
         index = list(CONDITIONS).index(condition)
         episodes = self.agent_episodes(condition, starts, DYNAMICS_SEEDS + index)
         model = self.load_model(model_name)

@@ -77,7 +77,7 @@ def test_the_difference_and_its_interval_in_closed_form():
     # 24 of 24 and 12 of 24
     z, n = 1.959963984540054, E * N
 
-    def wilson(k: int) -> tuple[float, float]:
+    def wilson(k: int) -> tuple[float, float]:  # of k successes in n
         p = k / n
         centre, half = (p + z * z / (2 * n)), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
         return (centre - half) / (1 + z * z / n), (centre + half) / (1 + z * z / n)
@@ -87,13 +87,18 @@ def test_the_difference_and_its_interval_in_closed_form():
     high = 0.5 + (0.5 - low_b)
     torch.testing.assert_close(compared.low, torch.full((2,), low, dtype=torch.float64))
     torch.testing.assert_close(compared.high, torch.full((2,), high, dtype=torch.float64))
-    assert compared.interval == pytest.approx((0.5, 0.5))  # alike starts: no spread over tasks
+    # alike starts: no spread over tasks, but the 48 samples' own chance (their paired interval
+    # pooled: 24 pairs both succeed, 24 A alone)
+    n = 2 * E * N
+    (low_a, _), (low_b, high_b) = wilson(n), wilson(n // 2)
+    pooled = (0.5 - math.sqrt((1 - low_a) ** 2 + (high_b - 0.5) ** 2), 1 - low_b)
+    assert compared.interval == pytest.approx(pooled)
     # member 0 always, member 1 half the time: beyond chance; member 2 ties
     assert compared.member_verdicts.tolist() == [1, 1, 0]
     assert not compared.members_agree and not compared.members_disagree
     text = compared.summary()
     assert text.startswith("Over 2 start states: P(success within 0.3 s) 1.00 for A and 0.50")
-    assert "A − B = +0.50 (95% interval +0.50 to +0.50)." in text
+    assert f"A − B = +0.50 (95% interval {pooled[0]:+.2f} to {pooled[1]:+.2f})." in text
     assert (
         "2 of 3 members give A the higher chance beyond their imagined samples' chance, the "
         "others tell the agents apart no better than chance (differences +0.00 to +1.00)."

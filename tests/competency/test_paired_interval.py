@@ -61,7 +61,8 @@ def test_independent_draws_are_covered_at_about_the_level():
 @pytest.mark.parametrize(
     ("a", "b", "match"),
     [
-        (torch.ones(3), torch.ones(3, dtype=torch.bool), "a: expected bool outcomes"),
+        (torch.ones(3), torch.ones(3, dtype=torch.bool), r"a: .* got a torch.float32 tensor"),
+        (torch.ones(3, dtype=torch.bool), [True] * 3, "b: expected bool outcomes .* got list"),
         (torch.ones(3, dtype=torch.bool), torch.ones(4, dtype=torch.bool), "b: expected the shape"),
         (torch.ones(0, dtype=torch.bool), torch.ones(0, dtype=torch.bool), "n >= 1"),
     ],

@@ -316,6 +316,23 @@ def test_a_dynamics_check_finds_a_stronger_arm_and_repeats_itself(runs, monkeypa
     for other in (study.starts("deterministic"), study.held_out_starts("deterministic")):
         assert not (drawn[:, None] == other[None]).all(-1).any()
 
+    # fewer forecast-check starts than episodes: topped up with fresh draws, never repeated
+    # (a deterministic env would repeat the episode, and the rank tests count it twice)
+    few = study.held_out_starts("deterministic")[:7]
+    seen = []
+    made = study.agent_episodes
+
+    def recorded(condition, starts, block):
+        seen.append(starts)
+        return made(condition, starts, block)
+
+    monkeypatch.setattr(study, "held_out_starts", lambda condition: few)
+    monkeypatch.setattr(study, "agent_episodes", recorded)
+    topped = study.dynamics_check("deterministic")
+    assert topped.episodes == pipeline.DYNAMICS_EPISODES and torch.equal(seen[0][:7], few)
+    assert len(torch.unique(seen[0], dim=0)) == pipeline.DYNAMICS_EPISODES
+    monkeypatch.undo()
+
     module = sys.modules[BatchedPusherEnv.__module__]
     stock = module.get_model_and_assets
 

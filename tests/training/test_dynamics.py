@@ -246,10 +246,35 @@ def test_a_steady_push_within_the_noise_fails_the_shift_test_alone(trained):
         assert float(check.shift_p_values[2]) * 6 < 0.01  # Bonferroni over both tests
         assert float(check.shift_p_values[:2].min()) > 0.01
         assert float(check.shifts[2]) < -0.3  # the model predicts z too low
-        assert "z (its errors shifted by -0." in check.describe()
+        assert ", shifted in z (its errors shifted by -0." in check.describe()
         assert "and their shift, p = " in check.describe()
         same = check_dynamics(ensemble, episodes(20, 40, seed, first=1000), shift=True)
         assert same.passed and same.named() == []
+    # a dimension that fails both tests is named once, with both
+    both = DynamicsCheck(
+        episodes=20, short=0, beyond=3, rate=0.05, alpha=0.01, tolerance=1.1,
+        p_values=torch.tensor([0.5, 0.5, 1e-6], dtype=torch.float64),
+        ratios=torch.tensor([1.0, 1.0, 3.0], dtype=torch.float64),
+        names=NAMES, model="m",
+        shift_p_values=torch.tensor([0.5, 1e-5, 1e-4], dtype=torch.float64),
+        shifts=torch.tensor([0.0, 0.3, -0.45], dtype=torch.float64),
+    )  # fmt: skip
+    assert both.p_value == pytest.approx(6e-6)  # 6 tests: 3 dimensions, 2 tests each
+    assert both.named() == [
+        "z (3.0 times its held-out error, its errors shifted by -0.45 of their unit)",
+        "y (its errors shifted by +0.30 of their unit)",
+    ]
+    assert ", larger or shifted in z (3.0 times" in both.describe()
+    # copies of one episode count as many draws: the check warns
+    one = episodes(1, 40, 3)
+    copies = torch.cat(
+        [one.clone().set(TRAJ_KEY, torch.full_like(one[TRAJ_KEY], i)) for i in range(5)]
+    )
+    with pytest.warns(UserWarning, match="4 of the 5 episodes scored repeat another one"):
+        check_dynamics(ensemble, copies, shift=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # distinct episodes: no warning
+        check_dynamics(ensemble, episodes(5, 40, 3), shift=True)
     # the shift's level over many draws of one distribution, as the size test's
     g = torch.Generator().manual_seed(1)
     failed = 0
