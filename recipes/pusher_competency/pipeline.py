@@ -82,7 +82,7 @@ from rcvae_torchrl.training import (
     train_ensemble,
 )
 
-from .._settings import CHECKPOINTS, REPORT_FILES
+from .._settings import CHECKPOINTS, REPORT_FILES, resolve_device
 from .config import StudyConfig, study_config
 from .data import collect_pusher_data, replay_episodes
 from .pusher import (
@@ -1005,6 +1005,8 @@ def study_of_run(
     for section, values in (changes or {}).items():  # unknown names: study_config names them
         saved[section] = {**saved.get(section, {}), **values}
     config = study_config({**saved, "run_dir": str(run_dir)})
+    if not isinstance(device, torch.device):  # a name: present on this machine, or refused
+        device = resolve_device(device)
     return Study(config, run_dir, torch.device(device), progress=False)
 
 

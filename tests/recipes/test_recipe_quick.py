@@ -278,6 +278,14 @@ def _study(run_dir: Path) -> pipeline.Study:
     return pipeline.Study(config, run_dir, torch.device("cpu"), progress=False)
 
 
+def test_a_study_of_a_run_takes_only_a_device_this_machine_has(runs):
+    """study_of_run refuses a device that is not here by name, before any work (an episode
+    run on the CPU failed later, moving its frames to it)."""
+    with pytest.raises(ValueError, match="device: 'cuda:99' asked for"):
+        pipeline.study_of_run(runs["dir"], "cuda:99")
+    assert pipeline.study_of_run(runs["dir"]).device == torch.device("cpu")
+
+
 def test_each_condition_s_dynamics_check_is_reported(runs):
     """Each condition's env is checked to move as its world model learned: the agent's
     episodes from the forecast check's start states against its episodes in the model's own
