@@ -222,7 +222,7 @@ def test_a_warning_of_members_that_stopped_early_says_so():
         result = train_ensemble(RCVAEEnsemble(config, 2), train, val, budget, progress=False)
     early = result.member_steps[result.member_steps < 400]
     assert early.numel() > 0
-    message = str(caught[-1].message)
+    message = [str(w.message) for w in caught if issubclass(w.category, ModelCheckWarning)][-1]
     assert (
         f"{early.numel()} of 2 members stopped early, after {int(early.min())}–"
         f"{int(early.max())} of max_steps=400 steps (patience=1 validations" in message
