@@ -198,7 +198,7 @@ def compare_agents(
             "assess both agents with one assessor"
         )
     check_same_starts("b", a.start_states, b.start_states, "a report")
-    success = [r.competency.get("success").flatten(0, -3) for r in (a, b)]  # [B, E, N]
+    success = [r.competency.get("success").flatten(0, -3).bool() for r in (a, b)]  # [B, E, N]
     if success[0].shape != success[1].shape:
         mine, theirs = tuple(success[0].shape[1:]), tuple(success[1].shape[1:])
         raise ValueError(

@@ -93,6 +93,10 @@ def test_the_difference_and_its_interval_in_closed_form():
     (low_a, _), (low_b, high_b) = wilson(n), wilson(n // 2)
     pooled = (0.5 - math.sqrt((1 - low_a) ** 2 + (high_b - 0.5) ** 2), 1 - low_b)
     assert compared.interval == pytest.approx(pooled)
+    # outcomes read back as 0/1 numbers (a record) compare as the flags do
+    numbers = compare_agents(_with_success(a, ones.float()), _with_success(b, b_success.float()))
+    torch.testing.assert_close(numbers.low, compared.low)
+    assert numbers.interval == compared.interval
     # member 0 always, member 1 half the time: beyond chance; member 2 ties
     assert compared.member_verdicts.tolist() == [1, 1, 0]
     assert not compared.members_agree and not compared.members_disagree
