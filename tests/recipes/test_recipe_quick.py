@@ -493,6 +493,31 @@ def test_held_out_checks_benchmark_judges_the_run_both_ways(runs):
     assert json.dumps(closed.as_dict()) == json.dumps(saved)  # the report's, made again (NaN too)
 
 
+def test_dynamics_check_benchmark_counts_the_batches_a_change_fails(runs, tmp_path):
+    """``benchmarks/dynamics_check.py`` on a finished run: the study's check, with its own
+    reference, on batches from fresh starts in the stock env and in one whose motors are twice
+    as strong (failed, as the check's own test finds); a change it does not know is refused."""
+    script = ROOT / "benchmarks" / "dynamics_check.py"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = tmp_path / "dynamics"
+    args = [
+        sys.executable, str(script), str(runs["dir"]), "--batches", "1", "--episodes", "12",
+        "--conditions", "deterministic", "--changes", "gear=2.0", "--out", str(out),
+    ]  # fmt: skip
+    proc = subprocess.run(args, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = read_json(out.with_suffix(".json"))["results"]
+    assert [(r["change"], len(r["batches"])) for r in results] == [("none", 3), ("gear", 1)]
+    assert results[1]["failed"] == 1 and results[1]["size_only_failed"] == 1
+    for r in results:
+        for batch in r["batches"]:
+            assert DynamicsCheck.from_dict(batch["check"]).episodes == 12
+            assert 0.0 <= batch["success"] <= 1.0
+    bad = subprocess.run([*args[:-4], "--changes", "wind=2"], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert bad.returncode == 2 and "expected NAME=FACTOR with NAME one of" in bad.stderr
+
+
 def test_novelty_benchmark_fits_the_check_as_training_does(runs, monkeypatch):
     """``benchmarks/novelty.py`` on a finished run: the models' own checks, or (for models
     trained before the check existed) the same check fitted again; the report's counts."""
