@@ -107,11 +107,11 @@ def main() -> None:
             for b in range(args.batches + (2 if what == "none" else 0)):
                 starts = study.starts(condition, args.episodes, offset=START_OFFSET + 1000 * b)
                 with changed_physics(what, factor):  # the study's own episodes, in it
-                    episodes = study.agent_episodes(condition, starts, EPISODE_BLOCK + 100 * b + k)
-                both = check_dynamics(model, episodes, novelty=reference, shift=True)
-                size = check_dynamics(model, episodes, novelty=reference)
+                    stats = study.agent_episodes(condition, starts, EPISODE_BLOCK + 100 * b + k)
+                both = check_dynamics(model, stats.data, novelty=reference, shift=True)
+                size = check_dynamics(model, stats.data, novelty=reference)
                 found.append({"batch": b, "check": both.as_dict(), "size_only_passed": size.passed,
-                              "passed": both.passed, "success": _success(episodes)})  # fmt: skip
+                              "passed": both.passed, "success": stats.success_rate})  # fmt: skip
             failed = sum(not f["passed"] for f in found)
             size_failed = sum(not f["size_only_passed"] for f in found)
             success = sum(f["success"] for f in found) / len(found)
@@ -146,18 +146,6 @@ def main() -> None:
             "results": results,
         },
     )
-
-
-def _success(episodes) -> float:
-    """The share of the episodes whose env raised its success flag."""
-    from rcvae_torchrl.data import TRAJ_KEY
-
-    ids = episodes[TRAJ_KEY]
-    won = episodes["next", "success"].reshape(len(ids)).to(torch.float64)
-    per_episode = torch.zeros(int(ids.max()) + 1, dtype=torch.float64).scatter_reduce(
-        0, ids, won, reduce="amax"
-    )
-    return float(per_episode[torch.unique(ids)].mean())
 
 
 if __name__ == "__main__":

@@ -29,12 +29,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl.agent import (
+    EpisodeStats,
     FixedRowsPolicy,
     PerturbedPolicy,
     RealOutcomes,
@@ -820,7 +820,7 @@ class Study:
             more = self.starts(condition, count - len(starts), offset=DYNAMICS_TOP_UP_SEEDS)
             starts = torch.cat([starts.to(more.dtype), more])
         index = list(CONDITIONS).index(condition)
-        episodes = self.agent_episodes(condition, starts, DYNAMICS_SEEDS + index)
+        episodes = self.agent_episodes(condition, starts, DYNAMICS_SEEDS + index).data
         model = self.load_model(model_name)
         reference = self.dynamics_reference(model_name, model)
         # the agent's own episodes on both sides: a shift of its errors is the env's
@@ -840,7 +840,8 @@ class Study:
         if found is None:
             index = list(CONDITIONS).index(model_name)  # the model's own env's condition
             starts = self.starts(model_name, DYNAMICS_REFERENCE, offset=DYNAMICS_START_SEEDS)
-            episodes = self.agent_episodes(model_name, starts, DYNAMICS_REFERENCE_SEEDS + index)
+            block = DYNAMICS_REFERENCE_SEEDS + index
+            episodes = self.agent_episodes(model_name, starts, block).data
             train, _ = self.episodes(model_name)
             # the horizon's transitions, or as many as the longest training episodes have
             steps = min(self.max_steps, int(episode_spans(train)[1].max()))
@@ -848,10 +849,11 @@ class Study:
             self._dynamics_references[model_name] = found
         return found
 
-    def agent_episodes(self, condition: str, starts: torch.Tensor, block: int) -> TensorDictBase:
+    def agent_episodes(self, condition: str, starts: torch.Tensor, block: int) -> EpisodeStats:
         """The agent's real episodes in ``condition``'s env, one from each of ``starts``,
-        the horizon's length, as flat frames with their actions (on the study's device);
-        episode ``i`` seeded ``(block + 10·seed)·100_003 + i``, as :meth:`real_runs` seeds."""
+        the horizon's length: their outcomes and their flat frames with the actions (on the
+        study's device); episode ``i`` seeded ``(block + 10·seed)·100_003 + i``, as
+        :meth:`real_runs` seeds."""
         first = (block + self.cfg.seed * 10) * 100_003
         stats = run_episodes(
             self.batched_env(CONDITIONS[condition][1], len(starts))(),
@@ -863,7 +865,7 @@ class Study:
             progress=self.progress,
             desc=f"agent episodes: {condition}",
         )
-        return stats.data.to(self.device)
+        return dataclasses.replace(stats, data=stats.data.to(self.device))
 
     def far_checks(self, name: str, model: RCVAEEnsemble) -> list[ModelChecks]:
         """World model ``name``'s (``model``'s) self-checks with their coverage at
