@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from rcvae_torchrl.io import atomic_write, read_json, write_json
+from rcvae_torchrl.io import StoredFileError, atomic_write, read_json, write_json
 from rcvae_torchrl.training import OutcomeCheck
 
 __all__ = [
@@ -294,7 +294,10 @@ def read_summaries(
 
 
 def _summary(path: Path, required: set[str]) -> dict[str, Any]:
-    summary = read_json(path, "study summary")
+    try:  # a run's summary is checksummed: one edited by hand is named, not aggregated
+        summary = read_json(path, "study summary")
+    except StoredFileError as err:
+        raise SystemExit(str(err)) from err
     if not isinstance(summary, dict) or not required <= summary.keys():
         named = " and ".join(repr(k) for k in sorted(required))
         raise SystemExit(

@@ -111,7 +111,8 @@ def write_report(
         "forecast_checks": {c: _check_row(r) for c, r in reports.items()},
         "dynamics_checks": {c: _dynamics_row(r) for c, r in reports.items()},
     }
-    write_json(run_dir / "summary.json", summary)
+    # checksummed: a value edited by hand (a verdict, a record's field) is refused on reading
+    write_json(run_dir / "summary.json", summary, checksum=True)
     text = _markdown(run_dir, checks, summary, config)
     atomic_write(run_dir / "report.md", lambda f: f.write(text.encode()))
     return summary

@@ -185,8 +185,9 @@ DYNAMICS_START_SEEDS = 2**30
 # check's are fewer: seeds this much higher than the scored ones' (mod 2**32), past the
 # reference's DYNAMICS_REFERENCE.
 DYNAMICS_TOP_UP_SEEDS = 2**30 + 500
-# Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i; those
-# the forecast check draws (Study.held_out_starts), HELD_OUT_START_SEEDS higher (mod 2**32).
+# Start states of condition c are drawn with seeds seed·START_SEED_STRIDE + 1000·c + i (those
+# whose state begins a data episode passed over: Study.starts); those the forecast check draws
+# (Study.held_out_starts), HELD_OUT_START_SEEDS higher (mod 2**32).
 START_SEED_STRIDE = 7919
 HELD_OUT_START_SEEDS = 2**31
 #: The forecast check's real episodes per condition, at least (start states x real runs each):
@@ -234,6 +235,7 @@ class Study:
         self.device_workers = self.workers if device.type == "cpu" or workers != "auto" else 1
         self.say = log or (lambda line: None)
         self._dynamics_references: dict[str, DynamicsNovelty] = {}
+        self._first_states: torch.Tensor | None = None  # the data's (Study._data_first_states)
 
     # ------------------------------------------------------------------ helpers
     @property
@@ -281,14 +283,31 @@ class Study:
     def starts(self, condition: str, count: int | None = None, offset: int = 0) -> torch.Tensor:
         """The condition's start states ``[B, 14]``, drawn by the real env's own reset:
         ``assess.start_states`` of them (the scored ones), or ``count`` with seeds ``offset``
-        higher."""
+        higher. A draw that is the first state of a world-model data episode (of either
+        variant, training or held-out) is passed over for the next seed: the data's collection
+        seeds the same env with small seeds, and a scored task must be none the models learned
+        from or the split was calibrated on."""
         env = self.env(CONDITIONS[condition][1])
         index = list(CONDITIONS).index(condition)
-        starts = []
-        for i in range(self.cfg.assess.start_states if count is None else count):
+        seen = self._data_first_states()
+        starts, i = [], 0
+        while len(starts) < (self.cfg.assess.start_states if count is None else count):
             seed_env(env, (offset + self.cfg.seed * START_SEED_STRIDE + 1000 * index + i) % 2**32)
-            starts.append(env.reset()["observation"])
+            i += 1
+            state = env.reset()["observation"]
+            if not (state.to(seen.dtype) == seen).all(-1).any():
+                starts.append(state)
         return torch.stack(starts)
+
+    def _data_first_states(self) -> torch.Tensor:
+        """The first states ``[N, 14]`` of every world-model data episode (both variants)."""
+        if self._first_states is None:
+            firsts = []
+            for variant in WORLD_MODELS:
+                data = load_episodes(self.dir / "data" / f"{variant}.pt")
+                firsts.append(data.get("observation")[episode_spans(data)[0]])
+            self._first_states = torch.cat(firsts)
+        return self._first_states
 
     def held_out_starts(self, condition: str) -> torch.Tensor:
         """Start states of ``condition`` that are not scored: the first states of its world
@@ -752,7 +771,7 @@ class Study:
         models = {name: self.load_model(name) for name in WORLD_MODELS}
         checks = {name: model.checks for name, model in models.items()}
         far = {name: self.far_checks(name, model) for name, model in models.items()}
-        dynamics = {c: self.dynamics_check(c) for c in CONDITIONS}
+        dynamics = {c: self.dynamics_check(c, models[CONDITIONS[c][0]]) for c in CONDITIONS}
         return write_report(
             self.dir,
             forecasts,
@@ -800,7 +819,7 @@ class Study:
         )
         return report.data["competency", "p_success"].cpu(), real.success
 
-    def dynamics_check(self, condition: str) -> DynamicsCheck:
+    def dynamics_check(self, condition: str, model: RCVAEEnsemble | None = None) -> DynamicsCheck:
         """Does ``condition``'s real env move as its world model learned? The agent run
         :data:`DYNAMICS_EPISODES` times from the forecast check's start states
         (:meth:`held_out_starts`, spread evenly over them; where they are fewer, topped up
@@ -810,7 +829,7 @@ class Study:
         horizon (or as much of it as the training episodes cover) ranked against those of the
         agent's own episodes in the world model's env (:meth:`dynamics_reference`;
         :func:`~rcvae_torchrl.training.check_dynamics`), their size and which way they lean
-        (``shift=True``)."""
+        (``shift=True``). ``model``: the condition's world model where it is loaded already."""
         model_name = CONDITIONS[condition][0]
         starts = self.held_out_starts(condition)
         count = DYNAMICS_EPISODES
@@ -821,7 +840,7 @@ class Study:
             starts = torch.cat([starts.to(more.dtype), more])
         index = list(CONDITIONS).index(condition)
         episodes = self.agent_episodes(condition, starts, DYNAMICS_SEEDS + index).data
-        model = self.load_model(model_name)
+        model = self.load_model(model_name) if model is None else model
         reference = self.dynamics_reference(model_name, model)
         # the agent's own episodes on both sides: a shift of its errors is the env's
         return check_dynamics(model, episodes, novelty=reference, shift=True)

@@ -358,7 +358,8 @@ def write_report(
             for c, row in calibrated.items()
         },
     }
-    write_json(run_dir / "summary.json", summary)
+    # checksummed: a value edited by hand (a verdict, a record's field) is refused on reading
+    write_json(run_dir / "summary.json", summary, checksum=True)
     residual = config.planner.policy_prior  # the agent is then the scripted prior + correction
     texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
     text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)

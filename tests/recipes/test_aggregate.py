@@ -8,6 +8,7 @@ import math
 import pytest
 import torch
 
+from rcvae_torchrl.io import write_json
 from recipes.pusher_competency.aggregate import aggregate, main, markdown
 
 
@@ -113,6 +114,14 @@ def test_unfinished_foreign_and_damaged_seeds_are_refused_by_name(tmp_path):
     (tmp_path / "seed1" / "study_config.json").write_text(json.dumps({"train": {"max_steps": 10}}))
     (tmp_path / "seed1" / "summary.json").write_text("[]")
     with pytest.raises(SystemExit, match=r"seed1/summary.json: expected a study summary"):
+        main([str(tmp_path)])
+    # a run writes its summary checksummed: read as it is, refused by name once edited
+    write_json(tmp_path / "seed1" / "summary.json", _summary(0.05, False), checksum=True)
+    assert main([str(tmp_path)])["checks"]["a check"]["met"] == 1
+    edited = json.loads((tmp_path / "seed1" / "summary.json").read_text())
+    edited["checks"]["a check"]["met"] = True
+    (tmp_path / "seed1" / "summary.json").write_text(json.dumps(edited))
+    with pytest.raises(SystemExit, match=r"seed1/summary.json'?: its content changed since"):
         main([str(tmp_path)])
 
 

@@ -24,7 +24,7 @@ from PIL import Image
 
 from rcvae_torchrl.competency import AleatoricShare
 from rcvae_torchrl.envs.batched import BatchedPusherEnv
-from rcvae_torchrl.io import read_json
+from rcvae_torchrl.io import CHECKSUM_KEY, StoredFileError, read_json
 from rcvae_torchrl.training import DynamicsCheck
 from recipes._settings import CHECKPOINTS
 from recipes.pusher_competency import pipeline
@@ -139,6 +139,12 @@ def test_every_stage_ran_and_left_its_outputs(runs):
     # out of sample: the scored starts' real spread against the aleatoric bits the share keeps
     assert re.search(r"\| deterministic \| 0\.00 \| 0\.00 \| 1 \|", report), report
     summary = json.loads((d / "summary.json").read_text())
+    assert CHECKSUM_KEY in summary  # checksummed: a verdict edited by hand is refused
+    edited = d.parent / "edited_summary.json"
+    edited.write_text(json.dumps({**summary, "checks": {}}))
+    with pytest.raises(StoredFileError, match="its content changed since it was written"):
+        read_json(edited)
+    edited.unlink()
     det = summary["calibrated_split"]["deterministic"]
     assert det["aleatoric_bits"] == 0.0  # a deterministic Pusher and agent: no chance left
     assert summary["calibrated_split"]["out-of-distribution"]["aleatoric_bits"] == 0.0
@@ -572,6 +578,35 @@ def test_the_unscored_start_states_of_each_condition(runs):
         assert torch.equal(unscored, study.held_out_starts(condition))
         scored = study.starts(condition)
         assert not (unscored[:, None] == scored[None]).all(-1).any()  # no scored start among them
+
+
+def test_no_scored_start_begins_a_data_episode(runs):
+    """At seed 0 the data's collection seeds the deterministic env with the seeds the scored
+    starts begin at, so the first draw is a data episode's first state: the scored starts (and
+    those drawn past them) pass over every such draw for the next seed, and stay as many."""
+    from rcvae_torchrl.data import episode_spans, load_episodes, seed_env
+    from recipes.pusher_competency.pusher import WORLD_MODELS
+
+    study = _study(runs["dir"])
+    assert study.cfg.seed == 0
+    firsts = []
+    for variant in WORLD_MODELS:
+        data = load_episodes(runs["dir"] / "data" / f"{variant}.pt")
+        firsts.append(data["observation"][episode_spans(data)[0]])
+    firsts = torch.cat(firsts)
+    env = study.env("deterministic")
+    seed_env(env, 0)  # the deterministic condition's first seed at study seed 0
+    assert (env.reset()["observation"] == firsts).all(-1).any()  # a data episode's first state
+    for condition in CONDITIONS:
+        for starts in (study.starts(condition), study.starts(condition, 12, offset=1)):
+            assert not (starts[:, None] == firsts[None]).all(-1).any(), condition
+            assert len(starts.unique(dim=0)) == len(starts) in (START_STATES, 12)
+    for seed in range(1, 100):  # to the first seed no data episode began with
+        seed_env(env, seed)
+        first = env.reset()["observation"]
+        if not (first == firsts).all(-1).any():
+            break
+    assert torch.equal(study.starts("deterministic")[0], first)
 
 
 def test_demonstrations_side_by_side(runs):
