@@ -46,9 +46,17 @@ ROUNDING = 1e-5
 
 
 # ----------------------------------------------------------------------------- records
-def check_entries(name: str, values: object, required: Sequence[str], what: str) -> None:
+def check_entries(
+    name: str,
+    values: object,
+    required: Sequence[str],
+    what: str,
+    optional: Sequence[str] | None = None,
+) -> None:
     """Require a mapping holding every entry of ``required`` (a record read back, e.g. from
-    JSON, for ``from_dict``), naming the missing ones and what the record should be."""
+    JSON, for ``from_dict``), naming the missing ones and what the record should be.
+    ``optional``: where given, the entries it may hold besides, and no other (a record of
+    another kind, or one edited, is refused naming the entries it should not hold)."""
     if not isinstance(values, Mapping):
         raise TypeError(f"{name}: expected a mapping ({what}), got {type(values).__name__}")
     missing = [key for key in required if key not in values]
@@ -57,6 +65,13 @@ def check_entries(name: str, values: object, required: Sequence[str], what: str)
             f"{name}: expected the entries {list(required)} ({what}), missing {missing}; "
             f"got {sorted(map(str, values))}"
         )
+    if optional is not None:
+        unknown = sorted(set(map(str, values)) - set(required) - set(optional))
+        if unknown:
+            raise ValueError(
+                f"{name}: entries {unknown} are not those of {what}; expected only "
+                f"{list(required) + list(optional)}"
+            )
 
 
 # ----------------------------------------------------------------------------- scalars

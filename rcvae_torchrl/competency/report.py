@@ -457,13 +457,7 @@ def _report_labels(values: Mapping[str, Any]) -> dict[str, Any]:
             "task, agent or deadline it answered. Assess again and save report.as_dict(), or "
             "label the data with the assessor that made it: assessor.report(TensorDict(...))"
         )
-    _checks.check_entries("values", values, _REPORT_ENTRIES, _REPORT_AS_DICT)
-    unknown = sorted(set(map(str, values)) - set(_REPORT_ENTRIES) - set(_REPORT_OPTIONAL))
-    if unknown:
-        raise ValueError(
-            f"values: entries {unknown} are not a report's ({_REPORT_AS_DICT}); expected only "
-            f"{list(_REPORT_ENTRIES) + list(_REPORT_OPTIONAL)}"
-        )
+    _checks.check_entries("values", values, _REPORT_ENTRIES, _REPORT_AS_DICT, _REPORT_OPTIONAL)
     if values["kind"] != _REPORT_KIND:
         raise ValueError(
             f"values['kind']: expected {_REPORT_KIND!r} ({_REPORT_AS_DICT}), got {values['kind']!r}"

@@ -355,8 +355,12 @@ class DynamicsNovelty:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> DynamicsNovelty:
         fields = ("scale", "dims", "held_out_scores", "level", "quantile", "steps", "model")
-        _known_entries(
-            values, (*fields, "names"), "a DynamicsNovelty.as_dict()", ("held_out_shifts",)
+        _checks.check_entries(
+            "values",
+            values,
+            (*fields, "names"),
+            "a DynamicsNovelty.as_dict()",
+            ("held_out_shifts",),
         )
         parts = {k: values[k] for k in fields}
         for name in ("scale", "held_out_scores"):  # lists where read back from JSON
@@ -365,18 +369,6 @@ class DynamicsNovelty:
         if shifts is not None:
             shifts = _float_tensor("values['held_out_shifts']", shifts)
         return cls(**parts, names=values["names"], held_out_shifts=shifts)
-
-
-def _known_entries(
-    values: object, fields: tuple[str, ...], what: str, optional: tuple[str, ...] = ()
-) -> None:
-    """``values`` holds ``fields``, perhaps ``optional`` ones, and nothing else."""
-    _checks.check_entries("values", values, fields, what)  # a mapping, or a TypeError
-    unknown = sorted(set(map(str, values)) - set(fields) - set(optional))
-    if unknown:
-        raise ValueError(
-            f"values: entries {unknown} are not those of {what} ({list(fields + optional)})"
-        )
 
 
 def _check_tolerance(tolerance: object) -> None:
@@ -642,7 +634,7 @@ class DynamicsCheck:
             "model",
         )
         optional = ("shift_p_values", "shifts")
-        _known_entries(values, fields, "a DynamicsCheck.as_dict()", optional)
+        _checks.check_entries("values", values, fields, "a DynamicsCheck.as_dict()", optional)
         parts = {k: values[k] for k in fields if k != "names"}
         parts.update({k: values[k] for k in optional if values.get(k) is not None})
         for name in ("p_values", "ratios", *optional):  # lists where read back from JSON

@@ -85,7 +85,9 @@ def report_model():
 def test_a_damaged_or_foreign_record_is_refused_by_name():
     report, _ = _report()
     record = report.as_dict()
-    with pytest.raises(ValueError, match=r"^values: entries \['extra'\] are not a report's"):
+    with pytest.raises(
+        ValueError, match=r"^values: entries \['extra'\] are not those of a CompetencyReport"
+    ):
         CompetencyReport.from_dict({**record, "extra": 1})
     with pytest.raises(ValueError, match=r"^values: expected the entries .* missing \['task'\]"):
         CompetencyReport.from_dict({k: v for k, v in record.items() if k != "task"})

@@ -322,7 +322,7 @@ def test_kept_in_checkpoints_and_records(trained, tmp_path):
         DynamicsNovelty.from_dict({**record, "level": -1.0})
     with pytest.raises(TypeError, match="names"):
         DynamicsNovelty.from_dict({**record, "names": "xyz"})
-    with pytest.raises(ValueError, match="entries"):
+    with pytest.raises(ValueError, match=r"entries \['extra'\] are not those of a DynamicsNov"):
         DynamicsNovelty.from_dict({**record, "extra": 1})
     failing = check.as_dict()
     with pytest.raises(ValueError, match="a p-value in every dimension tested"):
@@ -334,7 +334,7 @@ def test_kept_in_checkpoints_and_records(trained, tmp_path):
             DynamicsCheck.from_dict({**failing, "tolerance": tolerance})
     with pytest.raises(TypeError, match="model"):
         DynamicsCheck.from_dict({**failing, "model": None})
-    with pytest.raises(ValueError, match="entries"):
+    with pytest.raises(ValueError, match=r"entries \['extra'\] are not those of a DynamicsChe"):
         DynamicsCheck.from_dict({**failing, "extra": 1})
     with pytest.raises(ValueError, match="beyond"):
         DynamicsCheck.from_dict({**check.as_dict(), "beyond": 21})
