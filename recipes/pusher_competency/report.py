@@ -685,7 +685,10 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
             verdicts.append(f"- **{condition}**: {found.message()}.")
             continue
         low, high = found.interval()
-        if not found.passed or sure:  # biased, too imprecise to tell, or sure forecasts alone
+        # a passed check one of whose two tests finds the gap beyond chance: said, since it
+        # leans (a bias is named only where both tests find it)
+        leans = not found.biased and min(found.p_value, found.exact_p_value) < found.alpha
+        if not found.passed or sure or leans:  # biased, too imprecise, sure alone, or leaning
             verdicts.append(f"- **{condition}**: {found.describe()}.")
         lines.append(
             f"| {condition} | {found.starts} | {found.runs} | "

@@ -147,6 +147,14 @@ def test_forecast_checks_section_gives_each_verdict():
                 what="the sure ones",
                 began_settled=torch.zeros(30, dtype=torch.bool),
             ),
+            # 87 of 100 starts forecast 0.95 succeed: the outcomes' exact chance finds the gap
+            # (p = 0.003), the t-test over the starts does not (0.02): passed, and said
+            "leaning": OutcomeCheck(
+                torch.full((100,), 0.95, dtype=torch.float64),
+                (torch.arange(100) < 87).double(),
+                runs=1,
+                what="the leaning ones",
+            ),
         }
     )
     assert "| condition | starts | real runs each | forecast | real |" in text
@@ -160,7 +168,12 @@ def test_forecast_checks_section_gives_each_verdict():
     )
     assert "- **fair**" not in text  # a passed check needs no sentence
     # passed for sure forecasts alone: its row, and the sentence that says what it vouches for
-    assert "| sure | 30 | 1 | 1.000 | 1.000 | +0.000 (" in text and text.count("| passed |") == 2
+    assert "| sure | 30 | 1 | 1.000 | 1.000 | +0.000 (" in text and text.count("| passed |") == 3
+    assert "| leaning | 100 | 1 | 0.950 | 0.870 | +0.080 (" in text
+    assert (
+        "- **leaning**: the leaning ones are not named biased: a bias is named only where both "
+        "tests find the gap beyond chance, and only the outcomes' exact chance does" in text
+    )
     assert "- **sure**: the sure ones are right where they are sure, as far as the check" in text
     assert _forecast_checks_text({}) == ""
 
