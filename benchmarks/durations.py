@@ -55,6 +55,7 @@ WHAT = {
     "test_suite": "`make test` (the default test suite)",
     "quick_profile": "`make run-quick` (the recipe's quick profile)",
     "default_profile": "`make run` (the recipe's default profile)",
+    "default_profile_second_machine": "`make run`, on a second 2-core machine (an AMD EPYC)",
     "weak_arm_profile": "`make run PROFILE=weak_arm` (the default without per-step noise)",
     "action_noise_profile": "`make run PROFILE=action_noise` (the first stochastic design)",
     "full_profile": "`recipes/pusher_competency/main.py profile=full device=cuda` (on a GPU)",
