@@ -33,6 +33,8 @@ __all__ = [
     "read_summaries",
     "section",
     "seed_cell",
+    "shared_bias",
+    "shared_cell",
     "stats",
     "table",
     "table_lines",
@@ -120,8 +122,10 @@ def forecast_checks(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
             for found, verdict in zip(by_seed, verdicts, strict=True)
             if verdict not in (None, "not measured")
         ]
+        alphas = {found.get("alpha", OutcomeCheck.alpha) for found in made}
         out[c] = {
             **stats(shown),
+            "shared": shared_bias(shown, alphas.pop() if len(alphas) == 1 else OutcomeCheck.alpha),
             "biased": sum(v in ("too optimistic", "too pessimistic") for v in verdicts),
             "not_passed": sum(v not in (None, "passed") for v in verdicts),
             "seeds": len(made),
@@ -133,6 +137,41 @@ def forecast_checks(summaries: dict[str, dict[str, Any]]) -> dict[str, Any]:
             ],
         }
     return out
+
+
+#: Seeds the test of a bias they share needs (:func:`shared_bias`).
+SHARED_MIN_SEEDS = 3
+
+
+def shared_bias(gaps: Sequence[float], alpha: float) -> dict[str, Any] | None:
+    """Whether the seeds' outcome checks share a bias: a two-sided one-sample t-test of their
+    gaps at level ``alpha``, each seed one draw. A run's own check tests its model, whose
+    starts all share that model's error; over seeds, each run's model is one draw of what
+    training gives, so a bias every seed's model leans to shows here though each run's check
+    alone, at its level, passes it (the Pusher's out-of-distribution forecasts, too optimistic
+    by 0.06-0.14 in each of six seeds, one of them named biased by its own check). ``None``
+    with fewer than :data:`SHARED_MIN_SEEDS` gaps."""
+    if len(gaps) < SHARED_MIN_SEEDS:
+        return None
+    from scipy.stats import ttest_1samp
+
+    mean = sum(gaps) / len(gaps)
+    if max(gaps) - min(gaps) <= 1e-12:  # every seed the same gap: no spread to test against
+        p_value = 1.0 if abs(mean) <= 1e-12 else 0.0
+    else:
+        p_value = float(ttest_1samp(list(gaps), 0.0).pvalue)
+    verdict = "none found"
+    if p_value < alpha:
+        verdict = "too optimistic" if mean > 0 else "too pessimistic"
+    return {"gap": mean, "p_value": p_value, "alpha": alpha, "seeds": len(gaps), "verdict": verdict}
+
+
+def shared_cell(shared: dict[str, Any] | None) -> str:
+    """The across-seeds test's cell: its verdict and p-value, ✗ where it found a bias."""
+    if shared is None:
+        return f"– (fewer than {SHARED_MIN_SEEDS} seeds)"
+    mark = " ✗" if shared["verdict"] != "none found" else ""
+    return f"{shared['verdict']} (p = {shared['p_value']:.2g}){mark}"
 
 
 def _verdict(found: dict[str, Any]) -> str:
@@ -255,14 +294,17 @@ def forecast_check_lines(result: dict[str, Any]) -> list[str]:
         "outcome check, in its report): the gap, forecast minus real; ✗ marks a seed where the "
         "check found the forecasts biased, ? one where it did not pass otherwise (too few start "
         "states in doubt to measure, too imprecise, no better than a constant), – one whose run "
-        "made no such check.",
-        ["condition", "gap, mean ± sd", "seeds biased", "seeds not passed"],
+        "made no such check. Shared by the seeds: a t-test of the seeds' gaps, each seed one "
+        "draw of the model training gives (at the checks' level), which finds a bias every "
+        "seed's model leans to though each run's own check, on its own episodes, may pass it.",
+        ["condition", "gap, mean ± sd", "shared by the seeds", "seeds biased", "seeds not passed"],
         result["seeds"],
     )
     for c, found in held_out.items():
         cells = " | ".join(map(check_cell, found["by_seed"]))
         lines.append(
-            f"| {c} | {cell(found)} | {found['biased']}/{found['seeds']} | "
+            f"| {c} | {cell(found)} | {shared_cell(found.get('shared'))} | "
+            f"{found['biased']}/{found['seeds']} | "
             f"{found.get('not_passed', found['biased'])}/{found['seeds']} | {cells} |"
         )
     return lines

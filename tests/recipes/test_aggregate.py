@@ -143,8 +143,32 @@ def test_the_held_out_forecast_checks_are_counted_over_the_seeds_that_made_them(
     ]
     text = markdown(result)
     assert "## The forecasts from start states they are not scored on" in text
-    assert "| stochastic | -0.070 ± 0.071 | 1/2 | 1/2 | -0.120 ✗ | -0.020 | – |" in text
+    assert found["shared"] is None  # two seeds: too few to test what they share
+    row = "| stochastic | -0.070 ± 0.071 | – (fewer than 3 seeds) | 1/2 | 1/2 | -0.120 ✗ | -0.020 |"
+    assert row in text
     assert aggregate({"seed0": third})["forecast_checks"] == {}
+
+
+def test_a_bias_every_seed_shares_is_found_though_each_check_passed():
+    """Five seeds whose own checks all passed, each 0.06-0.10 too optimistic: the t-test of
+    their gaps names the shared bias (closed form); gaps that scatter about 0 share none."""
+    from scipy.stats import t as student
+
+    gaps = [0.06, 0.07, 0.08, 0.09, 0.10]
+    runs = {f"seed{i}": _summary(0.02, True) for i in range(5)}
+    for name, gap in zip(runs, gaps, strict=True):
+        runs[name]["forecast_checks"] = {"ood": {"gap": gap, "passed": True, "alpha": 0.01}}
+    shared = aggregate(runs)["forecast_checks"]["ood"]["shared"]
+    # mean 0.08, sd 0.0158 over 5 seeds: t = 0.08 / (0.0158 / sqrt 5) = 11.31, 4 dof
+    expected = 2 * student.sf(0.08 / (0.025**0.5 / 10 / 5**0.5), 4)
+    assert shared["p_value"] == pytest.approx(expected, rel=1e-6) and expected < 0.001
+    assert shared["verdict"] == "too optimistic" and shared["seeds"] == 5
+    assert "| ood | 0.080 ± 0.016 | too optimistic (p = 0.00035) ✗ | 0/5 | 0/5 |" in markdown(
+        aggregate(runs)
+    )
+    for name, gap in zip(runs, [-0.05, 0.03, 0.0, 0.04, -0.02], strict=True):
+        runs[name]["forecast_checks"]["ood"]["gap"] = gap
+    assert aggregate(runs)["forecast_checks"]["ood"]["shared"]["verdict"] == "none found"
 
 
 def test_a_forecast_check_that_measured_nothing_is_not_counted_biased():
@@ -256,7 +280,8 @@ def test_the_point_mass_study_over_seeds_with_its_word_checks_and_outcome_checks
     assert "| \\|forecast - real\\| <= 0.10 (stochastic) | 0.070 ± 0.071 | 1/2 |" in text
     assert "| outcome check passed (stochastic) |  | 1/2 |" in text  # a word: no mean
     assert "| outcome check passed (stochastic) | passed | not measured ✗ |" in text
-    assert "| stochastic | -0.020 | 0/2 | 1/2 | -0.020 | not measured ? |" in text
+    row = "| stochastic | -0.020 | – (fewer than 3 seeds) | 0/2 | 1/2 | -0.020 | not measured ? |"
+    assert row in text
     with pytest.raises(SystemExit, match=r"expected a study summary \(a mapping with 'checks' and"):
         (tmp_path / "seed1" / "summary.json").write_text(json.dumps({"rows": {}}))
         point_mass([str(tmp_path)])
