@@ -290,8 +290,9 @@ class Study:
         env = self.env(CONDITIONS[condition][1])
         index = list(CONDITIONS).index(condition)
         seen = self._data_first_states()
+        wanted = self.cfg.assess.start_states if count is None else count
         starts, i = [], 0
-        while len(starts) < (self.cfg.assess.start_states if count is None else count):
+        while len(starts) < wanted:
             seed_env(env, (offset + self.cfg.seed * START_SEED_STRIDE + 1000 * index + i) % 2**32)
             i += 1
             state = env.reset()["observation"]
