@@ -185,6 +185,19 @@ class AssessConfig:
     ``spread_runs``: ``None`` (the default) or ``samples_per_member``, the only count allowed:
     the plug-in entropy of fewer samples reads lower, so the real spread is measured from as
     many samples as each member's.
+    ``check_episodes``: the real episodes, at least, of the report's forecast check of each
+    condition (the agent from start states no score uses, one run each in a deterministic env,
+    ``stochastic_seeds_per_start`` in the stochastic one): 375 find a bias of 0.10 (the largest
+    the study's targets allow a condition's forecast) at the check's level (0.01, two-sided)
+    with power 0.9 whatever the success rate, (2.576 + 1.282)² · 0.5² / 0.10² = 372 (with 100,
+    the out-of-distribution forecasts' bias of six seeds, +0.06 to +0.14, was named in one run;
+    with 375, in all six). ``check_samples_per_member``: that check's
+    imagined samples per member where its start states are run once each (at most
+    ``samples_per_member``): the check judges the forecasts' mean, to which the samples' chance
+    then adds at most 0.5 / √(10 · 5 · 375) = 0.004 with 5 members, against the real episodes'
+    0.026; each start's forecast is noisier than a scored one's (at most 0.07), which its one
+    real outcome cannot tell. Where a start is run several times the check also judges each
+    start's forecast against its runs' rate, and the forecasts are made as the scored ones.
     """
 
     start_states: int = 100
@@ -204,12 +217,15 @@ class AssessConfig:
     forecast_panels: int = 3
     spread_starts: int = 12
     spread_runs: int | None = None
+    check_episodes: int = 375
+    check_samples_per_member: int = 10
 
     def __post_init__(self) -> None:
         _at_least(
             self,
             (
                 "start_states",
+                "check_episodes",
                 "start_chunk",
                 "seeds_per_start",
                 "stochastic_seeds_per_start",
@@ -222,7 +238,7 @@ class AssessConfig:
         )
         _at_least(self, ("spread_starts",), 0, int)
         # a member's aleatoric part is its own spread: from one sample it is 0
-        _at_least(self, ("samples_per_member",), 2, int)
+        _at_least(self, ("samples_per_member", "check_samples_per_member"), 2, int)
         if self.spread_runs is not None and self.spread_runs != self.samples_per_member:
             raise ValueError(
                 f"spread_runs: expected None or samples_per_member={self.samples_per_member} "

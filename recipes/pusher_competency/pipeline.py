@@ -190,9 +190,6 @@ DYNAMICS_TOP_UP_SEEDS = 2**30 + 500
 # (Study.held_out_starts), HELD_OUT_START_SEEDS higher (mod 2**32).
 START_SEED_STRIDE = 7919
 HELD_OUT_START_SEEDS = 2**31
-#: The forecast check's real episodes per condition, at least (start states x real runs each):
-#: its gap's standard error is then at most 0.05, whatever the success rate (0.5 / √100).
-CHECK_EPISODES = 100
 #: The real episodes' policy calls are made on blocks of this many rows (FixedRowsPolicy), so
 #: an episode comes out the same whatever the batched env's size, the workers or the ranks.
 POLICY_ROWS = 64
@@ -313,7 +310,7 @@ class Study:
     def held_out_starts(self, condition: str) -> torch.Tensor:
         """Start states of ``condition`` that are not scored: the first states of its world
         model's held-out episodes where the condition's env is the one the model's data came
-        from, then, up to :data:`CHECK_EPISODES` real episodes (with
+        from, then, up to ``assess.check_episodes`` real episodes (with
         :meth:`runs_per_start` each), start states drawn by the condition's env's reset with
         seeds no scored start uses."""
         model_name, variant = CONDITIONS[condition]
@@ -321,7 +318,8 @@ class Study:
         if model_name == variant:
             _, held_out = self.episodes(model_name)
             starts = held_out.get("observation")[episode_spans(held_out)[0]]
-        missing = -(-CHECK_EPISODES // self.runs_per_start(variant)) - len(starts)
+        check = self.cfg.assess.check_episodes
+        missing = -(-check // self.runs_per_start(variant)) - len(starts)
         if missing <= 0:
             return starts
         drawn = self.starts(condition, missing, offset=HELD_OUT_START_SEEDS)
@@ -538,9 +536,15 @@ class Study:
             "policy_median_steps": evaluation.steps.float().median().item(),
         }
 
-    def assessor(self, model_name: str, variant: str) -> CompetencyAssessor:
-        """The competency assessor of a condition: the agent's closed-loop forecast."""
+    def assessor(
+        self, model_name: str, variant: str, samples_per_member: int | None = None
+    ) -> CompetencyAssessor:
+        """The competency assessor of a condition: the agent's closed-loop forecast, with
+        ``assess.samples_per_member`` imagined samples per member (or ``samples_per_member``,
+        as many trajectories per chunk of start states: more starts per chunk)."""
         s = self.cfg.assess
+        samples = s.samples_per_member if samples_per_member is None else samples_per_member
+        chunk = max(1, s.start_chunk * s.samples_per_member // samples)
         model_env = make_rcvae_env(
             self.load_model(model_name),
             self.env(variant),
@@ -554,8 +558,8 @@ class Study:
             success_boundary(s.success_radius, s.horizon_s),
             bin_width=resolution_tensor(),
             dim_names=OBSERVATION_NAMES,
-            samples_per_member=s.samples_per_member,
-            start_chunk=s.start_chunk,
+            samples_per_member=samples,
+            start_chunk=chunk,
             episode_end=s.episode_end,
             bias_correction=s.bias_correction,
             per_sample={"ball_to_target": ball_to_target},
@@ -805,10 +809,16 @@ class Study:
     def held_out_outcomes(self, condition: str) -> tuple[torch.Tensor, torch.Tensor]:
         """The agent's forecasts ``[n]`` in ``condition`` from start states it is not scored
         on (:meth:`held_out_starts`), and the outcomes ``[n, R]`` of its real episodes from
-        each (as many per start as the truth stage runs)."""
+        each (as many per start as the truth stage runs). Where each start is run once, the
+        forecasts are made with ``assess.check_samples_per_member`` samples per member (or
+        the study's, where fewer)."""
         model_name, variant = CONDITIONS[condition]
         starts = self.held_out_starts(condition)
-        report = self.assessor(model_name, variant).assess(
+        s = self.cfg.assess
+        samples = None
+        if self.runs_per_start(variant) == 1:
+            samples = min(s.check_samples_per_member, s.samples_per_member)
+        report = self.assessor(model_name, variant, samples).assess(
             starts.to(self.device), policy=self.load_policy().to(self.device), seed=self.cfg.seed
         )
         real = self.real_runs(

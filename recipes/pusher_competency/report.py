@@ -669,8 +669,10 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
         "the first states of the model's held-out episodes, topped up (where they give too "
         "few real episodes for a sharp test) with start states drawn by the condition's env's "
         "reset with seeds no scored start uses. A bias found here is one the scored forecasts "
-        "above can be expected to share; this check needs no scored start. The test is "
-        "two-sided, at level "
+        "above can be expected to share; this check needs no scored start. Where each start "
+        "runs once (a deterministic env), only the forecasts' mean is judged, and they are "
+        "imagined with `assess.check_samples_per_member` samples per member where the scored "
+        "ones have more. The test is two-sided, at level "
         f"{first.alpha:g}, on the per-start differences.",
         "",
         f"| condition | starts | real runs each | forecast | real | gap "

@@ -217,6 +217,11 @@ def test_the_schema_is_the_base_of_every_profile():
         ("train.nll_beta=2", r"^train\.nll_beta: expected a float in \[0, 1\]"),
         ("assess.horizon_s=-5", r"^assess\.horizon_s: expected a positive whole number"),
         ("assess.real_workers=0", r"^assess\.real_workers: expected an integer >= 1, got 0"),
+        ("assess.check_episodes=0", r"^assess\.check_episodes: expected an integer >= 1, got 0"),
+        (
+            "assess.check_samples_per_member=1",
+            r"^assess\.check_samples_per_member: expected an integer >= 2, got 1",
+        ),
         (
             "assess.spread_runs=32",
             r"^assess\.spread_runs: expected None or samples_per_member=50 \(the real spread",

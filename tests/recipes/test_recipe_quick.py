@@ -559,8 +559,8 @@ def test_novelty_benchmark_fits_the_check_as_training_does(runs, monkeypatch):
 
 def test_the_unscored_start_states_of_each_condition(runs):
     """The forecast check's start states: the held-out episodes' first states in the world
-    models' own envs, then fresh draws of the condition's env's reset up to CHECK_EPISODES real
-    episodes; none of them a scored start, the same in every call."""
+    models' own envs, then fresh draws of the condition's env's reset up to
+    assess.check_episodes real episodes; none of them a scored start, the same in every call."""
     from rcvae_torchrl.data import episode_spans
     from recipes.pusher_competency.config import study_config
 
@@ -568,7 +568,7 @@ def test_the_unscored_start_states_of_each_condition(runs):
     study = pipeline.Study(config, runs["dir"], torch.device("cpu"), progress=False)
     for condition, (model, variant) in CONDITIONS.items():
         unscored = study.held_out_starts(condition)
-        episodes = -(-pipeline.CHECK_EPISODES // study.runs_per_start(variant))
+        episodes = -(-study.cfg.assess.check_episodes // study.runs_per_start(variant))
         first = torch.empty(0, 14)
         if model == variant:
             _, held_out = study.episodes(model)
@@ -578,6 +578,36 @@ def test_the_unscored_start_states_of_each_condition(runs):
         assert torch.equal(unscored, study.held_out_starts(condition))
         scored = study.starts(condition)
         assert not (unscored[:, None] == scored[None]).all(-1).any()  # no scored start among them
+
+
+def test_the_forecast_check_imagines_fewer_samples_only_where_a_start_runs_once(runs, monkeypatch):
+    """Where each of the forecast check's starts is run once (a deterministic env), only the
+    forecasts' mean is judged: they are made with assess.check_samples_per_member samples per
+    member, as many trajectories per chunk of starts; where a start runs several times (the
+    stochastic env) each start's forecast is judged too, and made as the scored ones are."""
+    study = pipeline.study_of_run(
+        runs["dir"], changes={"assess": {"check_episodes": 12, "check_samples_per_member": 2}}
+    )
+    s = study.cfg.assess
+    assert s.samples_per_member == 4  # the quick profile's: 2 per member is fewer
+    asked = []
+    assessor = pipeline.Study.assessor
+
+    def spy(self, model_name, variant, samples_per_member=None):
+        made = assessor(self, model_name, variant, samples_per_member)
+        asked.append((variant, made.samples_per_member, made.start_chunk))
+        return made
+
+    monkeypatch.setattr(pipeline.Study, "assessor", spy)
+    for condition in ("deterministic", "stochastic"):
+        forecast, success = study.held_out_outcomes(condition)
+        starts = study.held_out_starts(condition)
+        assert forecast.shape == (len(starts),) and success.shape[0] == len(starts)
+        assert ((forecast >= 0) & (forecast <= 1)).all()
+    assert asked == [
+        ("deterministic", 2, s.start_chunk * 2),  # 4 / 2 samples: twice the starts per chunk
+        ("stochastic", s.samples_per_member, s.start_chunk),
+    ]
 
 
 def test_no_scored_start_begins_a_data_episode(runs):
