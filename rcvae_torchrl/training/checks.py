@@ -765,6 +765,36 @@ class OutcomeCheck:
             if not bool((self.state_scale > 0).all()):
                 raise ValueError("state_scale: expected positive units, got one <= 0")
 
+    @staticmethod
+    def episodes_to_find(bias: float, *, alpha: float = 0.01, power: float = 0.9) -> int:
+        """How many real outcomes a check needs to name forecasts biased by ``bias`` (their
+        mean minus the real rate) at level ``alpha``, two-sided, with probability ``power``,
+        whatever the success rate: the binomial sample size
+        ``((z(1 - alpha / 2) + z(power)) * 0.5 / bias) ** 2``, rounded up, where 0.5 is the
+        largest spread of one outcome. Count independent outcomes: start states where a start
+        repeats its outcome (a deterministic env), episodes where its runs are independent
+        draws (fewer: starts spread their rates too). Forecasts that also miss their own
+        starts' chances, beyond the bias they share, spread the per-start differences further
+        and need more; so does a check that must also pass (:attr:`precise`: its interval within
+        ``tolerance``). 100 outcomes give a gap a standard error of at most 0.05, but name a
+        bias of 0.08 with probability 0.17 to 0.28 only (success rates of 0.5 to 0.8).
+
+        Example:
+            >>> OutcomeCheck.episodes_to_find(0.10)
+            372
+            >>> OutcomeCheck.episodes_to_find(0.05)
+            1488
+        """
+        check_unit_interval("bias", bias, include_zero=False)
+        for name, value in (("alpha", alpha), ("power", power)):
+            check_unit_interval(name, value, include_zero=False)
+            if value >= 1.0:
+                raise ValueError(f"{name}: expected a float in (0, 1), got {value!r}")
+        from scipy.stats import norm
+
+        z = float(norm.ppf(1.0 - alpha / 2.0) + norm.ppf(power))
+        return math.ceil((z * 0.5 / bias) ** 2 - 1e-9)  # an exact square is not rounded up
+
     @classmethod
     def from_outcomes(
         cls,

@@ -189,10 +189,10 @@ class AssessConfig:
     condition (the agent from start states no score uses, one run each in a deterministic env,
     ``stochastic_seeds_per_start`` in the stochastic one): 375 find a bias of 0.10 (the largest
     the study's targets allow a condition's forecast) at the check's level (0.01, two-sided)
-    with power 0.9 whatever the success rate, (2.576 + 1.282)² · 0.5² / 0.10² = 372 (with 100,
-    the out-of-distribution forecasts' bias of six seeds, +0.06 to +0.14, was named in one run;
-    with 375, in all six). ``check_samples_per_member``: that check's
-    imagined samples per member where its start states are run once each (at most
+    with power 0.9 whatever the success rate (``OutcomeCheck.episodes_to_find(0.10)``: 372;
+    with 100, the out-of-distribution forecasts' bias of six seeds, +0.06 to +0.14, was named
+    in one run; with 375, in all six). ``check_samples_per_member``: that check's imagined
+    samples per member where its start states are run once each (at most
     ``samples_per_member``): the check judges the forecasts' mean, to which the samples' chance
     then adds at most 0.5 / √(10 · 5 · 375) = 0.004 with 5 members, against the real episodes'
     0.026; each start's forecast is noisier than a scored one's (at most 0.07), which its one

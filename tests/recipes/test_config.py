@@ -62,6 +62,15 @@ def test_profiles_hold_only_their_differences(profile):
     walk(values, defaults, "")
 
 
+def test_the_default_forecast_check_finds_the_largest_bias_the_targets_allow():
+    """375 real episodes per condition name a bias of 0.10 (the per-condition tolerance of the
+    study's targets) at the check's level with power 0.9, whatever the success rate."""
+    from rcvae_torchrl.training import OutcomeCheck
+    from recipes.pusher_competency.config import AssessConfig
+
+    assert AssessConfig().check_episodes >= OutcomeCheck.episodes_to_find(0.10) > 100
+
+
 def test_profiles_scale_up():
     quick, default, full = (_config(f"profile={p}") for p in ("quick", "default", "full"))
     assert quick.train.max_steps < default.train.max_steps <= full.train.max_steps

@@ -740,3 +740,49 @@ def test_a_stored_verdict_that_its_numbers_do_not_give_is_warned_of_not_taken():
         OutcomeCheck.from_dict({**record, "passed": "true"})
     with pytest.raises(TypeError, match=r"^values\['gap'\]: expected a number"):
         OutcomeCheck.from_dict({**record, "gap": "0.5"})
+
+
+def test_episodes_to_find_is_the_binomial_sample_size():
+    """The outcomes a check needs to name a bias: ((z(1 - a/2) + z(power)) * 0.5 / bias)^2,
+    rounded up; more for a smaller bias, a stricter level or more power."""
+    z = stats.norm.ppf(0.995) + stats.norm.ppf(0.9)
+    assert OutcomeCheck.episodes_to_find(0.10) == math.ceil((z * 0.5 / 0.10) ** 2) == 372
+    assert OutcomeCheck.episodes_to_find(0.05) == math.ceil((z * 0.5 / 0.05) ** 2)
+    assert OutcomeCheck.episodes_to_find(0.10, alpha=0.05) < 372
+    assert OutcomeCheck.episodes_to_find(0.10, power=0.99) > 372
+    # at power 0.5 and level 0.3173 (z = 0 and 1): exactly (0.5 / bias)^2, not rounded up
+    assert OutcomeCheck.episodes_to_find(0.5, alpha=2 * stats.norm.sf(1.0), power=0.5) == 1
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"bias": 0.0}, r"^bias: expected a float in \(0, 1\], got 0.0"),
+        ({"bias": 1.5}, r"^bias: expected a float in \(0, 1\], got 1.5"),
+        ({"bias": 0.1, "alpha": 1.0}, r"^alpha: expected a float in \(0, 1\), got 1.0"),
+        ({"bias": 0.1, "power": 0.0}, r"^power: expected a float in \(0, 1\], got 0.0"),
+        ({"bias": 0.1, "power": 1.0}, r"^power: expected a float in \(0, 1\), got 1.0"),
+    ],
+)
+def test_episodes_to_find_names_a_bad_argument(kwargs, match):
+    bias = kwargs.pop("bias")
+    with pytest.raises(ValueError, match=match):
+        OutcomeCheck.episodes_to_find(bias, **kwargs)
+
+
+def test_a_check_of_that_size_names_the_bias_it_was_sized_for():
+    """Forecasts 0.10 too optimistic, one outcome per start (a deterministic env): a check of
+    episodes_to_find(0.10) starts names them in at least 85 of 100 draws (power 0.9 at a
+    success rate of 0.5; 0.92 in 400 draws of this case, where both tests must find the gap);
+    one of 100 starts in at most half."""
+    n = OutcomeCheck.episodes_to_find(0.10)
+    g = torch.Generator().manual_seed(3)
+    named = {n: 0, 100: 0}
+    for _ in range(100):
+        for size in named:
+            chance = 0.2 + 0.6 * torch.rand(size, generator=g, dtype=torch.float64)
+            outcome = torch.rand(size, 1, generator=g, dtype=torch.float64) < chance[:, None]
+            check = OutcomeCheck.from_outcomes(chance + 0.10, outcome)
+            named[size] += check.biased and check.gap > 0
+    assert named[n] >= 85, named
+    assert named[100] <= 50, named
