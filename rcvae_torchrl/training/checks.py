@@ -771,13 +771,13 @@ class OutcomeCheck:
         mean minus the real rate) at level ``alpha``, two-sided, with probability ``power``,
         whatever the success rate: the binomial sample size
         ``((z(1 - alpha / 2) + z(power)) * 0.5 / bias) ** 2``, rounded up, where 0.5 is the
-        largest spread of one outcome. Count independent outcomes: start states where a start
-        repeats its outcome (a deterministic env), episodes where its runs are independent
-        draws (fewer: starts spread their rates too). Forecasts that also miss their own
-        starts' chances, beyond the bias they share, spread the per-start differences further
-        and need more; so does a check that must also pass (:attr:`precise`: its interval within
-        ``tolerance``). 100 outcomes give a gap a standard error of at most 0.05, but name a
-        bias of 0.08 with probability 0.17 to 0.28 only (success rates of 0.5 to 0.8).
+        largest spread of one outcome. Count independent outcomes: in a deterministic env a
+        start repeats its outcome, so count starts; in a stochastic one a start's runs share
+        its chance, so its R runs count for less than R starts would. Forecasts that also
+        miss their own starts' chances, beyond the bias they share, spread the per-start
+        differences further and need more. 100 outcomes give a gap a standard error of at
+        most 0.05, but name a bias of 0.08 with probability 0.17 to 0.28 only (success rates
+        of 0.5 to 0.8).
 
         Example:
             >>> OutcomeCheck.episodes_to_find(0.10)
