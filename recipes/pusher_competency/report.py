@@ -364,6 +364,9 @@ def write_report(
     texts = {"bits": _bits_text(config.assess), "agent": _agent_text(run_dir, config.agent)}
     text = _markdown(rows, overall, checks, by_window, figures, gif, run_dir, residual, texts)
     text = text.replace("## The agent", _validation_text(scores, a) + "## The agent", 1)
+    if forecast_checks:
+        told = _told_text(rows, forecast_checks, scores)
+        text = text.replace("## Table", told + "## Table", 1)
     if summary["real_spread"]:
         spread = _spread_text(summary["real_spread"])
         text = text.replace("## Uncertainty over time", spread + "## Uncertainty over time", 1)
@@ -653,6 +656,51 @@ def _far_checks_text(far_checks: Mapping[str, Sequence[ModelChecks]]) -> str:
             verdict = "covered as often as it should at every horizon"
         verdicts.append(f"- **{name}**: {verdict}.")
     return "\n".join([*lines, "", *verdicts]) + "\n\n"
+
+
+def _told_text(
+    rows: Mapping[str, Mapping[str, Any]],
+    forecast_checks: Mapping[str, OutcomeCheck],
+    scores: Mapping[str, Mapping[str, Any]],
+) -> str:
+    """What a person would be told before any scored outcome is known: per condition, the
+    mean forecast and whether the forecast check, from start states no score uses, vouches
+    for it; where it names a bias, the forecast through the Platt map fitted on that check's
+    episodes (the table below then holds what the agent really did)."""
+    lines = [
+        "## What the forecasts can be trusted for",
+        "",
+        "Before any scored outcome: each condition's mean forecast, and the verdict of its "
+        "forecast check on start states no score uses (*The forecasts, from start states they "
+        "are not scored on*, below).",
+        "",
+    ]
+    for condition, found in forecast_checks.items():
+        forecast = rows[condition]["forecast_p_success"]
+        head = f"- **{condition}**: forecast {forecast:.2f}"
+        if not (found.measured or found.biased):  # too few starts in doubt to tell a gap
+            told = "vouched for where it is 0 or 1 alone" if found.passed else found.verdict
+            lines.append(f"{head}: {told} (the check's {found.starts} start states).")
+            continue
+        low, high = (round(x, 3) + 0.0 for x in found.interval())  # + 0.0: no "-0.000"
+        gap = (
+            f"gap {round(found.gap, 3) + 0.0:+.3f} on {found.starts} start states, "
+            f"{100 * (1 - found.alpha):g} % interval {low:+.3f} to {high:+.3f}"
+        )
+        if found.biased:
+            mapped = scores.get(condition, {}).get("recalibrated_held_out")
+            after = (
+                f"; through the map fitted on the check's episodes it reads "
+                f"{mapped['forecast']:.2f}"
+                if mapped
+                else ""
+            )
+            lines.append(f"{head}, **{found.verdict}** ({gap}){after}.")
+        elif found.passed:
+            lines.append(f"{head}: the check finds no bias ({gap}).")
+        else:
+            lines.append(f"{head}: not vouched for, {found.verdict} ({gap}).")
+    return "\n".join(lines) + "\n\n"
 
 
 def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:

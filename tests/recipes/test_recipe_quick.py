@@ -580,6 +580,24 @@ def test_the_unscored_start_states_of_each_condition(runs):
         assert not (unscored[:, None] == scored[None]).all(-1).any()  # no scored start among them
 
 
+def test_the_report_opens_with_what_each_forecast_can_be_trusted_for(runs):
+    """Before its table, the report says per condition what a person would be told before any
+    scored outcome: the mean forecast and its forecast check's verdict."""
+    report = (runs["dir"] / "report.md").read_text()
+    summary = read_json(runs["dir"] / "summary.json")
+    told = report.index("## What the forecasts can be trusted for")
+    assert told < report.index("## Table")
+    section = report[told : report.index("## Table")]
+    from rcvae_torchrl.training import OutcomeCheck
+
+    for condition, row in summary["rows"].items():
+        check = OutcomeCheck.from_dict(summary["forecast_checks"][condition])
+        line = f"- **{condition}**: forecast {row['forecast_p_success']:.2f}"
+        assert line in section, condition
+        said = f"on {check.starts} start states" if check.measured else check.verdict
+        assert said in section[section.index(line) :].split("\n")[0], condition
+
+
 def test_the_forecast_check_imagines_fewer_samples_only_where_a_start_runs_once(runs, monkeypatch):
     """Where each of the forecast check's starts is run once (a deterministic env), only the
     forecasts' mean is judged: they are made with assess.check_samples_per_member samples per

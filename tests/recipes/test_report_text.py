@@ -178,6 +178,37 @@ def test_forecast_checks_section_gives_each_verdict():
     assert _forecast_checks_text({}) == ""
 
 
+def test_the_report_opens_with_what_each_forecast_can_be_trusted_for():
+    """Before any scored outcome: each condition's mean forecast and its forecast check's
+    verdict; a named bias with the forecast through the map fitted on the check's episodes."""
+    import torch
+
+    from rcvae_torchrl.training import OutcomeCheck
+    from recipes.pusher_competency.report import _told_text
+
+    forecast = torch.linspace(0.2, 0.8, 12, dtype=torch.float64)
+    noise = torch.linspace(-0.05, 0.05, 12, dtype=torch.float64)
+    checks = {
+        "fair": OutcomeCheck(forecast, forecast + noise, runs=30),
+        "high": OutcomeCheck(forecast, forecast - 0.15 + noise, runs=30),
+        "few": OutcomeCheck(forecast[:3], forecast[:3], runs=1),
+        "wide": OutcomeCheck(forecast, (forecast > 0.5).double(), runs=1),
+    }
+    rows = {c: {"forecast_p_success": 0.5} for c in checks}
+    scores = {"high": {"recalibrated_held_out": {"forecast": 0.352}}}
+    text = _told_text(rows, checks, scores)
+    assert text.startswith("## What the forecasts can be trusted for\n")
+    assert "- **fair**: forecast 0.50: the check finds no bias (gap +0.000 on 12 start" in text
+    assert (
+        "- **high**: forecast 0.50, **too optimistic** (gap +0.150 on 12 start states, 99 % "
+        "interval +0.1" in text
+    )
+    assert "; through the map fitted on the check's episodes it reads 0.35." in text
+    assert "- **few**: forecast 0.50: not measured (the check's 3 start states)." in text
+    assert checks["wide"].verdict == "too imprecise"
+    assert "- **wide**: forecast 0.50: not vouched for, too imprecise (gap " in text
+
+
 def test_the_gap_is_given_with_its_interval():
     from recipes.pusher_competency.report import _gap_text
 
