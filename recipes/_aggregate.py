@@ -16,6 +16,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import torch
+
+from rcvae_torchrl.competency.intervals import mean_p_value
 from rcvae_torchrl.io import StoredFileError, atomic_write, read_json, write_json
 from rcvae_torchrl.training import OutcomeCheck
 
@@ -153,13 +156,8 @@ def shared_bias(gaps: Sequence[float], alpha: float) -> dict[str, Any] | None:
     with fewer than :data:`SHARED_MIN_SEEDS` gaps."""
     if len(gaps) < SHARED_MIN_SEEDS:
         return None
-    from scipy.stats import ttest_1samp
-
     mean = sum(gaps) / len(gaps)
-    if max(gaps) - min(gaps) <= 1e-12:  # every seed the same gap: no spread to test against
-        p_value = 1.0 if abs(mean) <= 1e-12 else 0.0
-    else:
-        p_value = float(ttest_1samp(list(gaps), 0.0).pvalue)
+    p_value = mean_p_value(torch.tensor(list(gaps), dtype=torch.float64))
     verdict = "none found"
     if p_value < alpha:
         verdict = "too optimistic" if mean > 0 else "too pessimistic"

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from rcvae_torchrl.competency import _checks
 
-__all__ = ["binomial_interval", "mean_interval", "paired_difference_interval"]
+__all__ = ["binomial_interval", "mean_interval", "mean_p_value", "paired_difference_interval"]
 
 
 def binomial_interval(
@@ -155,3 +155,22 @@ def mean_interval(values: Tensor, confidence: float) -> tuple[float, float]:
     quantile = float(stats.t.ppf(0.5 + confidence / 2, n - 1))
     half = quantile * float(values.std()) / math.sqrt(n)
     return max(mean - half, -1.0), min(mean + half, 1.0)
+
+
+#: Differences whose spread is at most this are taken as one value repeated (no t-test).
+_NO_SPREAD = 1e-9
+
+
+def mean_p_value(values: Tensor) -> float:
+    """The two-sided p-value of "their mean is 0" for differences ``values`` ``[n]`` (a
+    one-sample Student's t-test, the test of :func:`mean_interval`'s interval); NaN with fewer
+    than 2. Where every value is the same (no spread to test against), 1 where that value is 0
+    and 0 otherwise."""
+    values = values.to(torch.float64)
+    if values.numel() < 2:
+        return math.nan
+    if float(values.std(correction=0)) <= _NO_SPREAD:  # the same difference everywhere
+        return 1.0 if abs(float(values.mean())) <= _NO_SPREAD else 0.0
+    from scipy.stats import ttest_1samp
+
+    return float(ttest_1samp(values.cpu().numpy(), 0.0).pvalue)

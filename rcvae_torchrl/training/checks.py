@@ -64,6 +64,7 @@ from rcvae_torchrl._checks import (
 )
 from rcvae_torchrl.competency import check_same_predicates, same_chance_p_value
 from rcvae_torchrl.competency._checks import check_probability
+from rcvae_torchrl.competency.intervals import mean_p_value
 from rcvae_torchrl.competency.report import register_report_part
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -999,14 +1000,7 @@ class OutcomeCheck:
     @property
     def p_value(self) -> float:
         """Two-sided p-value of "no bias" (NaN with fewer than 2 starts)."""
-        diff = (self.real - self.forecast).to(torch.float64)
-        if diff.numel() < 2:
-            return float("nan")
-        if float(diff.std(correction=0)) <= _NO_SPREAD:  # the same difference everywhere
-            return 1.0 if abs(float(diff.mean())) <= _NO_SPREAD else 0.0
-        from scipy.stats import ttest_1samp
-
-        return float(ttest_1samp(diff.numpy(), 0.0).pvalue)
+        return mean_p_value(self.real - self.forecast)
 
     @cached_property
     def exact_p_value(self) -> float:
