@@ -220,3 +220,20 @@ def test_a_report_that_is_not_trustworthy_opens_the_comparison():
     assert not compare_agents(a, b).summary().startswith("Warning")
     both = compare_agents(doubtful, doubtful).summary()
     assert both.startswith("Warning: both reports: the world model has not learned b. Over 2")
+
+
+def test_mean_p_value_is_the_one_sample_t_test_and_its_interval_holds_zero_where_it_passes():
+    """The p-value of "mean 0" is Student's one-sample t-test; at level a it is below a
+    exactly where mean_interval at 1 - a leaves 0 out; one value: NaN; no spread: 0 or 1."""
+    from scipy import stats
+
+    from rcvae_torchrl.competency.intervals import mean_p_value
+
+    values = torch.tensor([0.05, 0.12, -0.02, 0.09, 0.07, 0.11], dtype=torch.float64)
+    expected = stats.ttest_1samp(values.numpy(), 0.0).pvalue
+    assert mean_p_value(values) == pytest.approx(expected, rel=1e-12)
+    for level in (0.05, 0.01, 0.001):
+        low, high = mean_interval(values, 1 - level)
+        assert (mean_p_value(values) < level) == (low > 0 or high < 0)
+    assert math.isnan(mean_p_value(values[:1]))
+    assert mean_p_value(torch.zeros(4)) == 1.0 and mean_p_value(torch.full((4,), 0.2)) == 0.0
