@@ -28,11 +28,8 @@ import tempfile
 import time
 from collections.abc import Callable
 
-_CACHE = tempfile.mkdtemp(prefix="compiled_step_inductor_")
-os.environ["TORCHINDUCTOR_CACHE_DIR"] = _CACHE  # before torch reads it: cold compiles
-
-import torch  # noqa: E402
-from _report import (  # noqa: E402
+import torch
+from _report import (
     benchmark_device,
     conditions,
     device_name,
@@ -41,11 +38,11 @@ from _report import (  # noqa: E402
     synchronize,
     write_json,
 )
-from model_step import MEMBERS, study_ensemble  # noqa: E402
-from tensordict import TensorDict  # noqa: E402
+from model_step import MEMBERS, study_ensemble
+from tensordict import TensorDict
 
-from rcvae_torchrl.models import RCVAEEnsemble  # noqa: E402
-from rcvae_torchrl.objectives import RCVAELoss  # noqa: E402
+from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.objectives import RCVAELoss
 
 WINDOWS, LENGTH, HORIZON = 32, 32, 20
 SAMPLES = (20, 256, 4096)
@@ -123,6 +120,12 @@ def main() -> None:
     for n in SAMPLES[:1] if args.quick else SAMPLES:
         cases[f"imagination, {HORIZON} steps, {n} per member"] = (imagination, (n,))
     rows, results = [], {}
+    # Cold compiles: inductor reads its cache directory when it first compiles, so an empty
+    # temporary one set here (not at import: scripts importing this one keep their cache) is
+    # what every case below compiles into; it is removed afterwards.
+    cache = tempfile.mkdtemp(prefix="compiled_step_inductor_")
+    before = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+    os.environ["TORCHINDUCTOR_CACHE_DIR"] = cache
     try:
         for name, (make, extra) in cases.items():
             eager, compiled = make(model, *extra, False), make(model, *extra, True)
@@ -143,7 +146,11 @@ def main() -> None:
             }
             rows.append([name, e, c, e / c, first, "never" if payback is None else payback])
     finally:
-        shutil.rmtree(_CACHE, ignore_errors=True)
+        if before is None:
+            os.environ.pop("TORCHINDUCTOR_CACHE_DIR", None)
+        else:
+            os.environ["TORCHINDUCTOR_CACHE_DIR"] = before
+        shutil.rmtree(cache, ignore_errors=True)
     print_table(
         f"eager against torch.compile, the study's model (E = {MEMBERS}, H = MLP = 64), on "
         f"{device_name(device)}, {torch.get_num_threads()} thread(s), medians of "
