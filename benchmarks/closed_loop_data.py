@@ -44,6 +44,7 @@ from rcvae_torchrl.data import (
 from rcvae_torchrl.envs import make_pusher_env
 from rcvae_torchrl.io import load_torch
 from rcvae_torchrl.models import RCVAEEnsemble
+from rcvae_torchrl.reporting import signed
 from rcvae_torchrl.training import save_ensemble, train_ensemble
 from recipes.pusher_competency.pipeline import Study, study_of_run
 from recipes.pusher_competency.pusher import (
@@ -221,7 +222,7 @@ def main() -> None:
                 r["condition"],
                 r["real"],
                 f"{r['before']['forecast']:.3f} / {r['after']['forecast']:.3f}",
-                f"{r['before']['gap']:+.3f} / {r['after']['gap']:+.3f}",
+                f"{signed(r['before']['gap'])} / {signed(r['after']['gap'])}",
                 f"{r['before']['spearman']:.3f} / {r['after']['spearman']:.3f}",
                 f"{r['before']['epistemic_bits']:.3f} / {r['after']['epistemic_bits']:.3f}",
             ]

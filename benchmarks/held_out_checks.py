@@ -31,6 +31,7 @@ from _report import conditions, print_table, write_json
 
 from rcvae_torchrl.data import episode_spans
 from rcvae_torchrl.io import read_json
+from rcvae_torchrl.reporting import signed
 from rcvae_torchrl.rollout import imagine
 from rcvae_torchrl.training import OutcomeCheck
 from recipes.pusher_competency.data import replay_episodes
@@ -107,10 +108,10 @@ def main() -> None:
                     c.starts,
                     f"{float(c.forecast.mean()):.3f}",
                     f"{float(c.real.mean()):.3f}",
-                    f"{c.gap:+.3f} ({low:+.3f} to {high:+.3f})",
+                    f"{signed(c.gap)} ({signed(low)} to {signed(high)})",
                     f"{c.p_value:.2g}",
                     c.verdict,
-                    f"{gap:+.3f}",
+                    signed(gap),
                 ]
             )
     print_table(

@@ -58,6 +58,7 @@ from rcvae_torchrl.data import (
     prepare_env,
     split_episodes,
 )
+from rcvae_torchrl.reporting import signed
 from rcvae_torchrl.training import OutcomeCheck
 
 CONTROL_DT = 0.01  # dm_control cartpole's control step (s)
@@ -240,7 +241,7 @@ def main() -> None:
             [r["seed"], r["variant"], r["train_steps"],
              "passed" if r["checks_passed"] else "flagged " + ",".join(r["flagged"]),
              r["forecast"], r["real"], r["per_start_mae"], r["spearman"], r["auroc"],
-             r["brier_skill"], f"{r['held_out_check']} ({r['held_out_gap']:+.3f})",
+             r["brier_skill"], f"{r['held_out_check']} ({signed(r['held_out_gap'])})",
              f"{r['ood_epistemic_ratio_time_mean']:.2f} / "
              f"{r['ood_epistemic_ratio_per_live_step']:.2f}", r["ood_cause"]]
             for r in rows

@@ -20,6 +20,7 @@ import torch
 
 from rcvae_torchrl.competency.intervals import mean_p_value
 from rcvae_torchrl.io import StoredFileError, atomic_write, read_json, write_json
+from rcvae_torchrl.reporting import signed
 from rcvae_torchrl.training import OutcomeCheck
 
 __all__ = [
@@ -194,8 +195,8 @@ def check_cell(found: dict[str, Any] | None) -> str:
     if verdict in ("too optimistic", "too pessimistic") or (
         verdict is None and not found["passed"]
     ):
-        return f"{found['gap']:+.3f} ✗"
-    return f"{found['gap']:+.3f}" + ("" if found["passed"] else f" ? ({verdict})")
+        return f"{signed(found['gap'])} ✗"
+    return signed(found["gap"]) + ("" if found["passed"] else f" ? ({verdict})")
 
 
 def cell(values: dict[str, Any]) -> str:

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from rcvae_torchrl import fingerprint
 from rcvae_torchrl._checks import check_same_starts, check_unit_interval
+from rcvae_torchrl._text import signed
 from rcvae_torchrl.competency.intervals import mean_interval, paired_difference_interval
 from rcvae_torchrl.competency.report import CompetencyReport
 
@@ -108,11 +109,11 @@ class AgentComparison:
         starts = "one start state" if n == 1 else f"{n} start states"
         text = (
             f"Over {starts}: P({self.outcome}) {float(self.p_a.mean()):.2f} for {a} and "
-            f"{float(self.p_b.mean()):.2f} for {b}: {a} − {b} = {self.mean:+.2f} "
-            f"({self.confidence:.0%} interval {low:+.2f} to {high:+.2f})."
+            f"{float(self.p_b.mean()):.2f} for {b}: {a} − {b} = {signed(self.mean, 2)} "
+            f"({self.confidence:.0%} interval {signed(low, 2)} to {signed(high, 2)})."
         )
         members = self.members
-        spread = f"{float(members.min()):+.2f} to {float(members.max()):+.2f}"
+        spread = f"{signed(members.min(), 2)} to {signed(members.max(), 2)}"
         verdicts = self.member_verdicts
         favour_a, favour_b = int((verdicts == 1).sum()), int((verdicts == -1).sum())
         count = members.numel()

@@ -1,5 +1,7 @@
 """Reporting: tables and figures of competency assessments."""
 
+from rcvae_torchrl._text import signed
+
 from .figures import (
     forecast_vs_reality_figure,
     hold_after_success,
@@ -25,6 +27,7 @@ __all__ = [
     "plot_competency_surface",
     "plot_start_reliability",
     # tables
+    "signed",
     "format_table",
     "write_table",
 ]

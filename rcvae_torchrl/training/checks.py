@@ -62,6 +62,7 @@ from rcvae_torchrl._checks import (
     check_positive_int,
     check_unit_interval,
 )
+from rcvae_torchrl._text import signed
 from rcvae_torchrl.competency import check_same_predicates, same_chance_p_value
 from rcvae_torchrl.competency._checks import check_probability
 from rcvae_torchrl.competency.intervals import mean_p_value
@@ -1372,8 +1373,9 @@ class OutcomeCheck:
             f"{self.what} are {verdict}: from {self.starts} start states they forecast "
             f"success {float(self.forecast.mean()):.2f} on average where {self.runs} real "
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
-            f"{float(self.real.mean()):.2f} (gap {self.gap:+.3f}, {100 * (1 - self.alpha):g} % "
-            f"interval {low:+.3f} to {high:+.3f}; p = {self.p_value:.2g} by a t-test over the "
+            f"{float(self.real.mean()):.2f} (gap {signed(self.gap)}, "
+            f"{100 * (1 - self.alpha):g} % interval {signed(low)} to {signed(high)}; "
+            f"p = {self.p_value:.2g} by a t-test over the "
             f"starts, {_drawn_p(self.exact_p_value)} by the outcomes' exact chance, "
             f"{_DRAWS:,} draws){wide}" + self._per_start_sentence()
         )
@@ -1427,7 +1429,7 @@ class OutcomeCheck:
                 f"of {self.runs} episodes allows, by about {self._excess_said()}, and score no "
                 "better than one "
                 f"forecast of {float(self.real.mean()):.2f} for every start (Brier skill "
-                f"{self.brier_skill:+.3f} over the real episodes): they do not tell one start "
+                f"{signed(self.brier_skill)} over the real episodes): they do not tell one start "
                 "state's task from another, so the check has not passed"
             )
         if self.scattered:
@@ -1470,7 +1472,7 @@ class OutcomeCheck:
             return ""
         return (
             f"; they also scored no better than one forecast of {float(self.real.mean()):.2f} "
-            f"for every start (Brier skill {skill:+.3f} over the real episodes): nothing here "
+            f"for every start (Brier skill {signed(skill)} over the real episodes): nothing here "
             "shows that they tell one start state's task from another"
         )
 

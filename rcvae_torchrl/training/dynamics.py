@@ -57,6 +57,7 @@ from torch import Tensor
 from rcvae_torchrl import _checks, fingerprint
 from rcvae_torchrl._checks import check_positive_int, check_unit_interval
 from rcvae_torchrl._conformal import conformal_level
+from rcvae_torchrl._text import signed
 from rcvae_torchrl.competency.report import register_report_part
 from rcvae_torchrl.data import TRAJ_KEY, check_episode_ids, check_frames_type, episode_spans
 from rcvae_torchrl.models import RCVAEEnsemble
@@ -566,7 +567,7 @@ class DynamicsCheck:
                 said.append(f"{float(self.ratios[d]):.1f} times its held-out error")
             if "shift" in kinds:
                 assert self.shifts is not None
-                said.append(f"its errors shifted by {float(self.shifts[d]):+.2f} of their unit")
+                said.append(f"its errors shifted by {signed(self.shifts[d], 2)} of their unit")
             named.append(f"{self.names[d]} ({', '.join(said)})")
         return named
 

@@ -10,7 +10,12 @@ import torch
 
 from rcvae_torchrl.competency import CompetencyReport, reliability_diagram
 from rcvae_torchrl.io import atomic_write, write_json
-from rcvae_torchrl.reporting import plot_reliability, plot_uncertainty_over_time, write_table
+from rcvae_torchrl.reporting import (
+    plot_reliability,
+    plot_uncertainty_over_time,
+    signed,
+    write_table,
+)
 
 from .config import CONTROL_TIMESTEP, StudyConfig
 
@@ -185,8 +190,8 @@ def _markdown(run_dir: Path, checks: dict, summary: dict, config: StudyConfig) -
         "| condition | check starts | real runs each | verdict | gap (interval) | trusted |",
         "|:---|---:|---:|:---|:---|:---:|",
         *[
-            f"| {c} | {r['starts']} | {r['runs']} | {r['verdict']} | {r['gap']:+.3f} "
-            f"({r['gap_low']:+.3f} to {r['gap_high']:+.3f}) | {_yes(r['trustworthy'])} |"
+            f"| {c} | {r['starts']} | {r['runs']} | {r['verdict']} | {signed(r['gap'])} "
+            f"({signed(r['gap_low'])} to {signed(r['gap_high'])}) | {_yes(r['trustworthy'])} |"
             for c, r in found.items()
         ],
         "",

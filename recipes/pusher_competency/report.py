@@ -29,6 +29,7 @@ from rcvae_torchrl.reporting import (
     plot_reliability,
     plot_start_reliability,
     plot_uncertainty_over_time,
+    signed,
     write_table,
 )
 from rcvae_torchrl.stages import MARKERS
@@ -682,10 +683,10 @@ def _told_text(
             told = "vouched for where it is 0 or 1 alone" if found.passed else found.verdict
             lines.append(f"{head}: {told} (the check's {found.starts} start states).")
             continue
-        low, high = (round(x, 3) + 0.0 for x in found.interval())  # + 0.0: no "-0.000"
+        low, high = found.interval()
         gap = (
-            f"gap {round(found.gap, 3) + 0.0:+.3f} on {found.starts} start states, "
-            f"{100 * (1 - found.alpha):g} % interval {low:+.3f} to {high:+.3f}"
+            f"gap {signed(found.gap)} on {found.starts} start states, "
+            f"{100 * (1 - found.alpha):g} % interval {signed(low)} to {signed(high)}"
         )
         if found.biased:
             mapped = scores.get(condition, {}).get("recalibrated_held_out")
@@ -743,7 +744,7 @@ def _forecast_checks_text(forecast_checks: Mapping[str, OutcomeCheck]) -> str:
         lines.append(
             f"| {condition} | {found.starts} | {found.runs} | "
             f"{float(found.forecast.mean()):.3f} | {float(found.real.mean()):.3f} | "
-            f"{found.gap:+.3f} ({low:+.3f} to {high:+.3f}) | {found.p_value:.2g} | "
+            f"{signed(found.gap)} ({signed(low)} to {signed(high)}) | {found.p_value:.2g} | "
             f"{found.verdict} |"
         )
     return "\n".join([*lines, "", *verdicts]) + "\n\n"
@@ -878,7 +879,7 @@ def _score_cell(value: Any) -> str:
 def _gap_text(scores) -> list[str]:
     """Each condition's gap with its interval: how precisely these start states measure it."""
     parts = [
-        f"{c} {s['gap_signed']:+.3f} ({s['gap_low']:+.3f} to {s['gap_high']:+.3f})"
+        f"{c} {signed(s['gap_signed'])} ({signed(s['gap_low'])} to {signed(s['gap_high'])})"
         for c, s in scores.items()
         if "gap_signed" in s
     ]
@@ -949,7 +950,7 @@ def _map_cells(after: Mapping[str, Any]) -> str:
     """A Platt map's slope and intercept cells ("–" for a pool of several maps)."""
     if "slope" not in after:
         return "– | –"
-    return f"{after['slope']:.2f} | {after['intercept']:+.2f}"
+    return f"{after['slope']:.2f} | {signed(after['intercept'], 2)}"
 
 
 _AGENT_TEXT = {

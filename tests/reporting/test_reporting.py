@@ -237,3 +237,28 @@ def test_a_table_prints_a_tensor_as_its_number_and_refuses_negative_digits():
     assert "| 0.123 | 3 |" in markdown and "0.123" in csv_text and "tensor" not in markdown
     with pytest.raises(ValueError, match="digits: expected an integer >= 0, got -1"):
         format_table([{"x": 1.0}], ["x"], digits=-1)
+
+
+def test_signed_never_writes_minus_zero():
+    from rcvae_torchrl.reporting import signed
+
+    assert [signed(x) for x in (-0.0004, -0.0, 0.0004, -0.0005001, 0.0123)] == [
+        "+0.000",
+        "+0.000",
+        "+0.000",
+        "-0.001",
+        "+0.012",
+    ]
+    assert signed(-0.004, 2) == "+0.00" and signed(-0.006, 2) == "-0.01"
+    assert signed(torch.tensor(-0.25)) == "-0.250" and signed(float("nan")) == "+nan"
+
+
+def test_a_check_with_no_gap_reads_plus_zero():
+    from rcvae_torchrl.training import OutcomeCheck
+
+    forecast = torch.tensor([0.2, 0.5, 0.9, 0.4], dtype=torch.float64)
+    real = forecast + torch.tensor([1e-4, 3e-4, -1e-4, 2e-4], dtype=torch.float64)
+    check = OutcomeCheck(forecast, real, runs=10, min_starts=4)
+    assert -0.0005 < check.gap < 0  # rounds to zero at 3 decimals
+    text = check.describe()
+    assert "gap +0.000" in text and "-0.000" not in text
