@@ -36,6 +36,13 @@ re-verifies what it reuses:
   is removed and the stage runs once more when it is one of the stage's own outputs; otherwise a
   :class:`StageError` names the stage, the file and what to do.
 
+A stage may also declare the code it runs whose change its settings do not show
+(``stage_code``: e.g. :func:`code_digest` of the real environment's sources, which every real
+outcome and every world model trained on its data depends on). Its marker records that digest;
+a finished stage whose marker records another one runs again, as after changed inputs. A
+marker written before its stage declared code (none recorded) is reused, with a log line
+saying that it was not verified against the code.
+
 Another run directory's finished stages can be reused (``reuse_from``): a stage that is not
 done in this run takes the other run's files when that run's marker records the same inputs
 (the settings the stage reads, ``stage_settings``, and the same files from every stage before
@@ -60,6 +67,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import importlib.metadata
 import json
 import os
 import shutil
@@ -89,6 +97,7 @@ __all__ = [
     "StageError",
     "StageRunner",
     "check_run_directory",
+    "code_digest",
     "file_record",
 ]
 
@@ -158,6 +167,41 @@ def file_record(path: str | Path) -> dict[str, Any]:
     return {"bytes": Path(path).stat().st_size, "sha256": digest.hexdigest()}
 
 
+def code_digest(paths: Iterable[str | Path], packages: Iterable[str] = ()) -> str:
+    """SHA-256 hex digest of code a stage runs: the files at ``paths`` (a directory: every
+    file under it, by relative name, compiled caches left out) and the installed versions of
+    ``packages`` (distribution names, e.g. ``"mujoco"``; one not installed counts as such).
+    For :class:`StageRunner`'s ``stage_code``.
+
+    Example:
+        >>> import pathlib, tempfile
+        >>> folder = pathlib.Path(tempfile.mkdtemp())
+        >>> _ = (folder / "env.py").write_text("GRAVITY = 9.81")
+        >>> before = code_digest([folder])
+        >>> _ = (folder / "env.py").write_text("GRAVITY = 9.80")
+        >>> code_digest([folder]) == before
+        False
+    """
+    h = hashlib.sha256()
+    for path in map(Path, paths):
+        if not path.exists():
+            raise FileNotFoundError(f"paths: no file or directory {str(path)!r}")
+        files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+        for file in files:
+            if "__pycache__" in file.parts or file.suffix in (".pyc", ".pyo"):
+                continue
+            name = file.name if file == path else file.relative_to(path).as_posix()
+            h.update(f"{name}\0{file.stat().st_size}\0".encode())
+            h.update(file.read_bytes())
+    for package in packages:
+        try:
+            version = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            version = "not installed"
+        h.update(f"{package}=={version}\0".encode())
+    return h.hexdigest()
+
+
 def _digest(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
@@ -186,6 +230,10 @@ class StageRunner:
             generously.
         reuse_from: another run directory whose finished stages this run takes (checked,
             then hard-linked or copied) where their inputs are the same as this run's.
+        stage_code: per stage name, a digest of the code it runs whose change its settings
+            do not show (:func:`code_digest`, e.g. of the real environment's sources),
+            recorded in its marker: a finished stage (here or in ``reuse_from``) made with
+            another is not reused. A stage not named declares none.
 
     Example:
         >>> import tempfile
@@ -204,8 +252,18 @@ class StageRunner:
         logger: Logger | None = None,
         stage_settings: Mapping[str, Sequence[str]] | None = None,
         reuse_from: str | Path | None = None,
+        stage_code: Mapping[str, str] | None = None,
     ) -> None:
         self.run_dir = Path(run_dir)
+        if stage_code is not None and not (
+            isinstance(stage_code, Mapping)
+            and all(isinstance(k, str) and isinstance(v, str) for k, v in stage_code.items())
+        ):
+            raise TypeError(
+                "stage_code: expected a mapping of stage names to code digests (str), got "
+                f"{stage_code!r}"
+            )
+        self._stage_code = dict(stage_code or {})
         self.log = log
         self.logger = logger if distributed.is_main() else None
         self.summaries: dict[str, Any] = {}
@@ -365,7 +423,7 @@ class StageRunner:
             distributed.barrier()
         if not distributed.is_main():
             saved = _read_marker(self.marker(name), name)
-        summary = {k: v for k, v in saved.items() if k not in ("outputs", "inputs")}
+        summary = {k: v for k, v in saved.items() if k not in ("outputs", "inputs", "code")}
         log_scalars(self.logger, summary, len(self.summaries), prefix=f"stages/{name}/")
         self.summaries[name] = summary
         self._inputs = _digest([self._inputs, name, saved["outputs"]])
@@ -398,16 +456,12 @@ class StageRunner:
         # a marker of all settings (written before the stage declared what it reads) still
         # holds: every setting is the same
         if saved.get("inputs") not in (inputs, self._inputs):
-            self.log(
-                f"[{name}] its inputs changed (settings or an earlier stage's files): removing "
-                f"its {len(saved['outputs'])} files and running the stage again"
+            return self._discard(
+                name, saved, "its inputs changed (settings or an earlier stage's files)"
             )
-            changed = self._failed(saved["outputs"])
-            for rel, why in changed.items():
-                if why != _MISSING:  # changed since the stage wrote it: perhaps by hand
-                    self.log(f"[{name}] {rel}: {why}; set aside as {self._set_aside(rel)}")
-            self._remove(saved["outputs"])
-            return None
+        code = self._code_check(name, saved)
+        if code is not None:
+            return self._discard(name, saved, code)
         bad = self._failed(saved["outputs"])
         if bad:
             for rel, why in bad.items():
@@ -420,6 +474,37 @@ class StageRunner:
             self._write_marker(name, saved)
         self.log(f"[{name}] done earlier: reusing {path.parent.name}/{path.name} (files verified)")
         return saved
+
+    def _discard(self, name: str, saved: Mapping[str, Any], why: str) -> None:
+        """Remove the files of finished stage ``name`` (those changed since it wrote them are
+        set aside), which must run again because of ``why``."""
+        self.log(
+            f"[{name}] {why}: removing its {len(saved['outputs'])} files and running the stage "
+            "again"
+        )
+        changed = self._failed(saved["outputs"])
+        for rel, why_changed in changed.items():
+            if why_changed != _MISSING:  # changed since the stage wrote it: perhaps by hand
+                self.log(f"[{name}] {rel}: {why_changed}; set aside as {self._set_aside(rel)}")
+        self._remove(saved["outputs"])
+
+    def _code_check(self, name: str, saved: Mapping[str, Any], where: str = "") -> str | None:
+        """Why the marker ``saved`` of stage ``name`` does not hold for this run's declared
+        code (``stage_code``), else None; a marker that records no code holds, with a log line
+        (``where``: the run it is from, for that line)."""
+        code = self._stage_code.get(name)
+        if code is None:
+            return None
+        recorded = saved.get("code")
+        if recorded is None:
+            self.log(
+                f"[{name}] its marker{where} records no code digest (written before the stage "
+                "declared the code it runs): not verified against the current code"
+            )
+            return None
+        if recorded != code:
+            return f"its code changed (digest {recorded[:12]} recorded, {code[:12]} now)"
+        return None
 
     def _borrowed(self, name: str, outputs: Sequence[str]) -> dict[str, Any] | None:
         """The finished stage ``name`` of the ``reuse_from`` run, its files placed in this run
@@ -437,6 +522,10 @@ class StageRunner:
         inputs = self._stage_inputs(name)
         if saved.get("inputs") != inputs and not self._same_inputs_recorded(name, saved):
             self.log(f"[{name}] not reused from {str(other)!r}: {self._why_different(name)}")
+            return None
+        code = self._code_check(name, saved, f" in {str(other)!r}")
+        if code is not None:
+            self.log(f"[{name}] not reused from {str(other)!r}: {code}")
             return None
         bad = self._failed(saved["outputs"], other)
         if bad:
@@ -609,6 +698,7 @@ class StageRunner:
             "seconds": round(time.perf_counter() - start, 1),
             **({"attempts": attempts} if attempts > 1 else {}),
             "inputs": self._stage_inputs(name),
+            **({"code": self._stage_code[name]} if name in self._stage_code else {}),
             "outputs": self._records(outputs, journal["foreign"]) if journal is not None else {},
         }
         if distributed.is_main():

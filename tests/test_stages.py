@@ -625,3 +625,86 @@ def test_a_run_directory_is_refused_where_a_run_would_remove_files_it_did_not_ma
     # a run whose record alone was lost: its markers name its files, so it may run again
     (tmp_path / "run" / "study_config.json").unlink()
     check_run_directory(tmp_path / "run", {"seed": 1})
+
+
+def test_a_stage_made_with_other_code_runs_again_and_later_stages_follow_its_files(tmp_path):
+    first = Pipeline(tmp_path)
+    first.run(stage_code={"make": "code-1"})
+    assert json.loads((tmp_path / "stages" / "make.json").read_text())["code"] == "code-1"
+    assert "code" not in json.loads((tmp_path / "stages" / "use.json").read_text())
+    same = Pipeline(tmp_path)
+    runner, _ = same.run(stage_code={"make": "code-1"})
+    assert same.computed == [] and "code" not in runner.summaries["make"]
+    # new code, the same files: the stage runs again, the next one (no code declared) is reused
+    again = Pipeline(tmp_path)
+    _, lines = again.run(stage_code={"make": "code-2"})
+    assert again.computed == ["x", "y"]
+    assert any(
+        "[make] its code changed (digest code-1 recorded, code-2 now): removing its 2 files" in line
+        for line in lines
+    )
+    # new code that makes other files: the next stage's inputs changed, so it runs too
+    other = Pipeline(tmp_path, value=2.0)
+    other.run(stage_code={"make": "code-3"})
+    assert other.computed == ["x", "y", "z"]
+
+
+def test_a_marker_from_before_code_was_declared_is_reused_and_says_it_is_unverified(tmp_path):
+    Pipeline(tmp_path).run()
+    later = Pipeline(tmp_path)
+    runner, lines = later.run(stage_code={"make": "code-1"})
+    assert later.computed == [] and runner.summaries["use"]["total"] == 6.0
+    assert any("[make] its marker records no code digest" in line for line in lines)
+    assert "code" not in json.loads((tmp_path / "stages" / "make.json").read_text())
+
+
+def test_reuse_from_another_run_needs_the_same_code(tmp_path):
+    Pipeline(tmp_path / "first").run(stage_code={"make": "code-1"})
+    same = Pipeline(tmp_path / "same")
+    same.run(stage_code={"make": "code-1"}, reuse_from=tmp_path / "first")
+    assert same.computed == []
+    other = Pipeline(tmp_path / "other")
+    _, lines = other.run(stage_code={"make": "code-2"}, reuse_from=tmp_path / "first")
+    assert other.computed == ["x", "y"]  # the same files: "use" (no code declared) is reused
+    assert any(
+        "[make] not reused from" in line and "its code changed (digest code-1" in line
+        for line in lines
+    )
+    Pipeline(tmp_path / "old").run()  # no code recorded there: reused, and said so
+    unverified = Pipeline(tmp_path / "unverified")
+    _, lines = unverified.run(stage_code={"make": "code-1"}, reuse_from=tmp_path / "old")
+    assert unverified.computed == []
+    assert any("records no code digest" in line and "old" in line for line in lines)
+
+
+@pytest.mark.parametrize("stage_code", [["make"], {"make": 3}, {1: "code"}])
+def test_bad_stage_code_is_named(tmp_path, stage_code):
+    with pytest.raises(TypeError, match="stage_code: expected a mapping of stage names"):
+        StageRunner(tmp_path, stage_code=stage_code)
+
+
+def test_code_digest_follows_the_files_their_names_and_the_package_versions(tmp_path):
+    import importlib.metadata
+
+    from rcvae_torchrl.stages import code_digest
+
+    (tmp_path / "env").mkdir()
+    (tmp_path / "env" / "dynamics.py").write_text("G = 9.81\n")
+    (tmp_path / "env" / "model.xml").write_text("<mujoco/>\n")
+    base = code_digest([tmp_path / "env"])
+    assert base == code_digest([str(tmp_path / "env")])  # a str path or a Path
+    (tmp_path / "env" / "__pycache__").mkdir()
+    (tmp_path / "env" / "__pycache__" / "dynamics.cpython-311.pyc").write_bytes(b"\0")
+    assert code_digest([tmp_path / "env"]) == base  # compiled caches do not count
+    (tmp_path / "env" / "model.xml").rename(tmp_path / "env" / "arena.xml")
+    assert code_digest([tmp_path / "env"]) != base  # a renamed file counts
+    (tmp_path / "env" / "arena.xml").rename(tmp_path / "env" / "model.xml")
+    assert code_digest([tmp_path / "env"]) == base
+    (tmp_path / "env" / "dynamics.py").write_text("G = 9.80\n")
+    assert code_digest([tmp_path / "env"]) != base
+    with_torch = code_digest([tmp_path / "env"], packages=["torch"])
+    assert with_torch != code_digest([tmp_path / "env"])
+    assert importlib.metadata.version("torch") == torch.__version__
+    assert code_digest([], packages=["no-such-package-here"]) != code_digest([])
+    with pytest.raises(FileNotFoundError, match="paths: no file or directory"):
+        code_digest([tmp_path / "missing"])

@@ -46,7 +46,7 @@ from rcvae_torchrl.data import (
 from rcvae_torchrl.io import load_torch, read_json, save_torch, write_json
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
-from rcvae_torchrl.stages import StageRunner
+from rcvae_torchrl.stages import StageRunner, code_digest
 from rcvae_torchrl.training import (
     DynamicsCheck,
     OutcomeCheck,
@@ -57,6 +57,7 @@ from rcvae_torchrl.training import (
 )
 
 from .._settings import CHECKPOINTS, REPORT_FILES
+from . import task as task_module
 from .config import CONTROL_TIMESTEP, StudyConfig
 from .report import write_report
 from .task import (
@@ -83,6 +84,18 @@ STAGES = {
     "check": ("check/*.json",),
     "report": REPORT_FILES,  # named one by one (see REPORT_FILES)
 }
+
+
+def stage_code() -> dict[str, str]:
+    """The code every stage runs whose change the settings do not show, per stage (the
+    ``stage_code`` of :class:`~rcvae_torchrl.stages.StageRunner`): this study's task
+    (``task.py``: the env, its observation layout, the agent and the success predicate) and
+    the versions of dm_control (whose ``point_mass`` is the env) and MuJoCo. A run resumed
+    after they changed runs its stages again."""
+    digest = code_digest([Path(task_module.__file__)], packages=("mujoco", "dm_control"))
+    return dict.fromkeys(STAGES, digest)
+
+
 #: The settings each stage reads (the later stages read them all): another run's finished data
 #: and models are reused (``reuse_from``) when these and the earlier stages' files are the same.
 #: The data read the task's agent, training region, success radius and noise, not its deadline
@@ -403,6 +416,7 @@ def run_study(
         logger=logger,
         stage_settings=STAGE_SETTINGS,
         reuse_from=reuse_from,
+        stage_code=stage_code(),
     )
     study = Study(config, run_dir, progress, logger, log)
     for name, outputs in STAGES.items():

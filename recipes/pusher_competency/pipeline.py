@@ -33,6 +33,7 @@ from torchrl.envs import EnvBase
 from torchrl.record.loggers import Logger
 
 from rcvae_torchrl import distributed
+from rcvae_torchrl import envs as pusher_domain
 from rcvae_torchrl.agent import (
     EpisodeStats,
     FixedRowsPolicy,
@@ -67,7 +68,7 @@ from rcvae_torchrl.io import load_torch, read_json, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.processes import choose_workers, map_in_processes
-from rcvae_torchrl.stages import StageRunner
+from rcvae_torchrl.stages import StageRunner, code_digest
 from rcvae_torchrl.training import (
     DynamicsCheck,
     DynamicsNovelty,
@@ -83,6 +84,7 @@ from rcvae_torchrl.training import (
 )
 
 from .._settings import CHECKPOINTS, REPORT_FILES, resolve_device
+from . import pusher as pusher_module
 from .config import StudyConfig, study_config
 from .data import collect_pusher_data, replay_episodes
 from .pusher import (
@@ -160,6 +162,22 @@ STAGE_SETTINGS = {
         "assess.success_radius",
     ),
 }
+
+
+def stage_code() -> dict[str, str]:
+    """The code every stage runs whose change the settings do not show, per stage (the
+    ``stage_code`` of :class:`~rcvae_torchrl.stages.StageRunner`): the Pusher domain's sources
+    (its dynamics and MJCF model, the scripted pusher, the known functions the world models
+    read), this study's use of them (``pusher.py``) and the simulator's versions. Every stage
+    depends on them: the data and real outcomes through the real env, the models, agent and
+    forecasts through the known functions. A run resumed after they changed runs its stages
+    again."""
+    digest = code_digest(
+        [Path(pusher_domain.__file__).parent, Path(pusher_module.__file__)],
+        packages=("mujoco", "dm_control"),
+    )
+    return dict.fromkeys(STAGES, digest)
+
 
 # Disjoint seed ranges of the real episodes, per purpose (offset by 1000 per study seed).
 DEMONSTRATION_SEEDS = 50_000
@@ -1006,6 +1024,7 @@ def run_study(
         logger=logger,
         stage_settings=STAGE_SETTINGS,
         reuse_from=reuse_from,
+        stage_code=stage_code(),
     )
     study = Study(
         config,

@@ -72,3 +72,30 @@ def test_the_early_stages_read_only_the_settings_they_declare(recipe, tmp_path):
         undeclared = {k for k in read if k not in declared and k.split(".")[0] not in declared}
         assert not undeclared, f"stage {stage!r} reads {sorted(undeclared)} undeclared"
         assert read, f"stage {stage!r}: no setting read was recorded"
+
+
+@pytest.mark.parametrize("recipe", ["pusher", "point mass"])
+def test_every_stage_declares_the_code_of_its_env(recipe, tmp_path, monkeypatch):
+    """A run resumed after the env's code changed runs its stages again (the runner's side is
+    tested in tests/test_stages.py): every stage declares a digest of the env's files, which
+    follows them (here a copy, edited)."""
+    import shutil
+
+    module = pusher if recipe == "pusher" else point_mass
+    code = module.stage_code()
+    assert set(code) == set(module.STAGES) and len(set(code.values())) == 1
+    source = Path(
+        pusher.pusher_domain.__file__ if recipe == "pusher" else point_mass.task_module.__file__
+    )
+    if recipe == "pusher":
+        shutil.copytree(source.parent, tmp_path / "envs")
+        copy = tmp_path / "envs" / "__init__.py"
+        edited = tmp_path / "envs" / "pusher.xml"  # the MJCF model counts, not only Python
+        monkeypatch.setattr(pusher.pusher_domain, "__file__", str(copy))
+    else:
+        edited = tmp_path / "task.py"
+        shutil.copy(source, edited)
+        monkeypatch.setattr(point_mass.task_module, "__file__", str(edited))
+    assert module.stage_code() == code  # the same files, elsewhere
+    edited.write_text(edited.read_text().replace("0", "1", 1))
+    assert set(module.stage_code().values()).isdisjoint(code.values())
