@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -318,7 +319,7 @@ def read_summaries(
     removed first, so that it never looks current after a failure."""
     for old in ("aggregate.json", "aggregate.md"):
         (directory / old).unlink(missing_ok=True)
-    found = sorted(directory.glob("seed*/summary.json"))
+    found = sorted(directory.glob("seed*/summary.json"), key=lambda p: _in_order(p.parent.name))
     if not found:
         raise SystemExit(f"directory: expected seed*/summary.json under {directory}, found none")
     unfinished = sorted(
@@ -332,6 +333,11 @@ def read_summaries(
     summaries = {p.parent.name: _summary(p, required) for p in found}
     _check_same_settings({p.parent.name: p.parent / "study_config.json" for p in found})
     return summaries
+
+
+def _in_order(name: str) -> list[Any]:
+    """A sort key that orders ``seed2`` before ``seed10`` (numbers by value, not by digits)."""
+    return [(0, int(part)) if part.isdigit() else (1, part) for part in re.split(r"(\d+)", name)]
 
 
 def _summary(path: Path, required: set[str]) -> dict[str, Any]:

@@ -285,3 +285,14 @@ def test_the_point_mass_study_over_seeds_with_its_word_checks_and_outcome_checks
     with pytest.raises(SystemExit, match=r"expected a study summary \(a mapping with 'checks' and"):
         (tmp_path / "seed1" / "summary.json").write_text(json.dumps({"rows": {}}))
         point_mass([str(tmp_path)])
+
+
+def test_seeds_are_in_the_order_of_their_numbers(tmp_path):
+    for seed in (10, 2, 1, 0):
+        (tmp_path / f"seed{seed}").mkdir()
+        summary = json.dumps(_summary(0.01 * seed, True))
+        (tmp_path / f"seed{seed}" / "summary.json").write_text(summary)
+    main([str(tmp_path)])
+    seeds = json.loads((tmp_path / "aggregate.json").read_text())["seeds"]
+    assert seeds == ["seed0", "seed1", "seed2", "seed10"]  # not seed10 before seed2
+    assert "| check | seed0 | seed1 | seed2 | seed10 |" in (tmp_path / "aggregate.md").read_text()
