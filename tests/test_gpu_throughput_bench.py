@@ -92,3 +92,25 @@ def test_bad_counts_are_refused(monkeypatch):
     monkeypatch.setattr(sys, "argv", ["gpu_throughput.py", "--device", "cpu", "--sizes", "0"])
     with pytest.raises(SystemExit, match=r"--sizes: expected positive counts, got \[0\]"):
         gpu_throughput.main()
+
+
+def test_importing_the_compile_benchmark_leaves_the_inductor_cache_alone(tmp_path):
+    """``gpu_throughput`` imports ``compiled_step``, whose cold-compile cache (an empty
+    temporary directory) belongs to its own ``main``: the import does not point the importer's
+    inductor cache there and leaves no such directory behind."""
+    import os
+    import subprocess
+
+    code = (
+        "import os, sys; sys.path.insert(0, 'benchmarks'); import compiled_step; "
+        "print(os.environ.get('TORCHINDUCTOR_CACHE_DIR', 'unset'))"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "TORCHINDUCTOR_CACHE_DIR"}
+    env["TMPDIR"] = str(tmp_path)
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True, check=True
+    )
+    # unset or torch's own default (something imported may ask inductor for its directory)
+    assert "compiled_step_inductor" not in out.stdout, out.stdout
+    assert not list(tmp_path.glob("compiled_step_inductor_*"))
