@@ -630,7 +630,9 @@ def check_model(
     return checks
 
 
-#: Per-start differences closer than this are one difference (rounding, not spread).
+#: A constant forecast's Brier score at most this leaves nothing to tell apart (every run of
+#: every start alike, up to rounding). The t-test's own guard is
+#: :func:`~rcvae_torchrl.competency.intervals.mean_p_value`'s.
 _NO_SPREAD = 1e-9
 #: The tests read a forecast within [this, 1 - this]: one made from finitely many imagined
 #: episodes does not tell a chance below about 1/1000 from 0 (nor one above 0.999 from 1).
