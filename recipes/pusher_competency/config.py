@@ -313,10 +313,11 @@ class RecipeConfig(StudyConfig):
 
     ``stage_workers``: processes that run a stage's independent jobs side by side, each on
     ``threads`` threads (the two variants' data, the two world models, the three conditions'
-    forecasts): ``"auto"`` (one per job, up to the cores the machine's load leaves idle: 2 on an
-    idle 2-core machine, 1 beside another run; on a GPU only the data, which runs on the CPU,
-    while the models and forecasts on the device run in turn) or a count (every stage, on any
-    device). The results are the same either way.
+    forecasts, the real outcomes, spreads and split calibrations of the truth stage, the
+    report's forecast checks and world-model checks): ``"auto"`` (one per job, up to the cores
+    the machine's load leaves idle: 2 on an idle 2-core machine, 1 beside another run; on a GPU
+    only the data, which runs on the CPU, while the jobs that use the device run in turn) or a
+    count (every stage, on any device). The results are the same either way.
 
     ``logger``: where training curves and stage summaries go, under ``<run_dir>/logs``:
     ``"csv"``, ``"tensorboard"``, ``"wandb"`` (offline), ``"mlflow"`` (a local file store) or

@@ -628,32 +628,70 @@ class Study:
         """The agent in the real env from each forecast's start states, many runs per start in
         a batched env (or spread over ``assess.real_workers`` worker processes); episodes go
         on after success, so every boundary of the competency surface is answered by the
-        same episodes. Sharded: the real episodes over the ranks; rank 0 writes the
-        outcomes."""
+        same episodes. In one process its jobs (:meth:`truth_jobs`) run side by side where
+        cores are idle, the longest first. Sharded: the real episodes over the ranks; rank 0
+        writes the outcomes."""
+        if not distributed.is_active():
+            self.side_by_side("truth", list(self.truth_jobs()), "truth_job")
         summary = {}
         policy = make_policy_module(self.load_policy())
-        for index, (condition, (_, variant)) in enumerate(CONDITIONS.items()):
-            path = self.dir / "truth" / f"{condition}.pt"
-            if not distributed.broadcast(path.is_file()):
-                starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
-                result = self.real_runs(
-                    variant,
-                    policy,
-                    starts,
-                    seed=REAL_SEEDS + self.cfg.seed * 10 + index,
-                    desc=f"real: {condition}",
-                    trace=ball_to_target,
-                )
-                if distributed.is_main():
-                    save_torch(path, result.as_dict())
-            distributed.barrier()
-            saved = load_torch(path, "real outcomes")
+        for index, condition in enumerate(CONDITIONS):
+            self.real_truth(condition, index, policy)
+            saved = load_torch(self.dir / "truth" / f"{condition}.pt", "real outcomes")
             summary[condition] = {"success_rate": saved["success"].float().mean().item()}
             if self.cfg.assess.spread_starts:
                 summary[condition]["spread"] = self.real_spread(condition, index, policy)
                 if condition in CHECKED_CONDITIONS:
                     summary[condition]["share"] = self.aleatoric_share(condition, index, policy)
         return summary
+
+    def truth_jobs(self) -> dict[str, tuple[str, str]]:
+        """The truth stage's independent jobs, by the name of the file each writes in
+        ``truth/``: per condition its real outcomes (``<condition>``,
+        :meth:`real_truth`), and with ``assess.spread_starts`` its real spread
+        (``<condition>_spread``, :meth:`real_spread`) and, where the condition is its world
+        model's own env, the split's calibration (``<condition>_share``,
+        :meth:`aleatoric_share`); each as (method, condition), the most real episodes first
+        (worker processes that take them in turn then end them about together)."""
+        s = self.cfg.assess
+        jobs, episodes = {}, {}
+        for condition, (_, variant) in CONDITIONS.items():
+            jobs[condition] = ("real_truth", condition)
+            episodes[condition] = s.start_states * self.runs_per_start(variant)
+            if not s.spread_starts:
+                continue
+            kept = s.spread_starts * s.samples_per_member
+            jobs[f"{condition}_spread"] = ("real_spread", condition)
+            episodes[f"{condition}_spread"] = kept
+            if condition in CHECKED_CONDITIONS:
+                jobs[f"{condition}_share"] = ("aleatoric_share", condition)
+                episodes[f"{condition}_share"] = kept + 1  # and a forecast: before a spread
+        return {name: jobs[name] for name in sorted(jobs, key=episodes.get, reverse=True)}
+
+    def truth_job(self, name: str) -> None:
+        """Run the truth stage's job ``name`` (one of :meth:`truth_jobs`); it saves its file."""
+        method, condition = self.truth_jobs()[name]
+        index = list(CONDITIONS).index(condition)
+        getattr(self, method)(condition, index, make_policy_module(self.load_policy()))
+
+    def real_truth(self, condition: str, index: int, policy: Callable) -> None:
+        """The agent's real episodes from ``condition``'s scored start states (those of its
+        forecast), as many per start as :meth:`runs_per_start`, with the ball's distance to
+        the target traced; saved (where not saved yet)."""
+        path = self.dir / "truth" / f"{condition}.pt"
+        if not distributed.broadcast(path.is_file()):
+            starts = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")["starts"]
+            result = self.real_runs(
+                CONDITIONS[condition][1],
+                policy,
+                starts,
+                seed=REAL_SEEDS + self.cfg.seed * 10 + index,
+                desc=f"real: {condition}",
+                trace=ball_to_target,
+            )
+            if distributed.is_main():
+                save_torch(path, result.as_dict())
+        distributed.barrier()
 
     def aleatoric_share(self, condition: str, index: int, policy: Callable) -> dict[str, Any]:
         """The share of ``condition``'s world model's aleatoric bits that the agent's real
@@ -767,9 +805,16 @@ class Study:
 
     def report(self) -> dict[str, Any]:
         # the forecast checks' forecasts and real episodes, the conditions side by side (the
-        # report writes no per-condition file, so all of them run); under torchrun every rank
-        # takes its share of each condition's start states and real episodes
-        held_out, _ = self.side_by_side("report", list(CONDITIONS), "held_out_outcomes")
+        # report writes no per-condition file, so all of them run), and in one process the
+        # world models' checks beside them; under torchrun every rank takes its share of each
+        # condition's start states and real episodes, and rank 0 checks the world models
+        by_model = {}
+        if distributed.is_active():
+            held_out, _ = self.side_by_side("report", list(CONDITIONS), "held_out_outcomes")
+        else:
+            done, _ = self.side_by_side("report", list(self.report_jobs()), "report_job")
+            held_out = {c: done[c] for c in CONDITIONS}
+            by_model = {m: done[f"{m} {_CHECKS_JOB}"] for m in WORLD_MODELS}
         if not distributed.is_main():
             return {}  # rank 0 writes the report
         forecasts = {
@@ -793,8 +838,11 @@ class Study:
         policy = make_policy_module(self.load_policy())
         models = {name: self.load_model(name) for name in WORLD_MODELS}
         checks = {name: model.checks for name, model in models.items()}
-        far = {name: self.far_checks(name, model) for name, model in models.items()}
-        dynamics = {c: self.dynamics_check(c, models[CONDITIONS[c][0]]) for c in CONDITIONS}
+        for name, model in models.items():
+            if name not in by_model:  # under torchrun: here, on rank 0
+                by_model[name] = self.world_model_checks(name, model)
+        far = {name: by_model[name][0] for name in WORLD_MODELS}
+        dynamics = {c: by_model[model][1][c] for c, (model, _) in CONDITIONS.items()}
         return write_report(
             self.dir,
             forecasts,
@@ -810,6 +858,33 @@ class Study:
             real_spreads=spreads,
             split_shares={c: fitted[m] for c, (m, _) in CONDITIONS.items() if m in fitted},
         )
+
+    def report_jobs(self) -> dict[str, tuple[str, str]]:
+        """The report stage's independent jobs (in one process), by name: per condition the
+        forecast check's forecasts and real episodes (``<condition>``,
+        :meth:`held_out_outcomes`), the longest first; then per world model its far
+        self-checks and the dynamics checks of the conditions it forecasts
+        (``<world model> model's checks``, :meth:`world_model_checks`). Each as (method,
+        argument)."""
+        jobs = {c: ("held_out_outcomes", c) for c in CONDITIONS}
+        jobs.update({f"{m} {_CHECKS_JOB}": ("world_model_checks", m) for m in WORLD_MODELS})
+        return jobs
+
+    def report_job(self, name: str) -> Any:
+        """The result of the report stage's job ``name`` (one of :meth:`report_jobs`)."""
+        method, argument = self.report_jobs()[name]
+        return getattr(self, method)(argument)
+
+    def world_model_checks(
+        self, name: str, model: RCVAEEnsemble | None = None
+    ) -> tuple[list[ModelChecks], dict[str, DynamicsCheck]]:
+        """World model ``name``'s far self-checks (:meth:`far_checks`) and the dynamics
+        checks (:meth:`dynamics_check`) of the conditions it forecasts, by condition.
+        ``model``: the world model where it is loaded already."""
+        model = self.load_model(name) if model is None else model
+        far = self.far_checks(name, model)
+        own = [c for c, (m, _) in CONDITIONS.items() if m == name]
+        return far, {c: self.dynamics_check(c, model) for c in own}
 
     def forecast_check(
         self, condition: str, outcomes: tuple[torch.Tensor, torch.Tensor] | None = None
@@ -937,6 +1012,10 @@ class Study:
             check_model(model, truth, coverage_steps=k, alpha=alpha, seed=self.cfg.seed, warn=False)
             for k in steps
         ]
+
+
+#: The name of a world model's checks among the report stage's jobs (Study.report_jobs).
+_CHECKS_JOB = "model's checks"
 
 
 def _evenly(count: int, most: int) -> torch.Tensor:

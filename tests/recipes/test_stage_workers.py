@@ -1,9 +1,11 @@
 """A stage's independent jobs side by side in worker processes (``stage_workers``): the data of
-both variants, both world models and the three conditions' forecasts equal those of one process
-bit for bit, and the workers' training curves reach the run's logger."""
+both variants, both world models, the three conditions' forecasts, the real outcomes, spreads
+and shares of the truth stage and the report's checks equal those of one process bit for bit,
+and the workers' training curves reach the run's logger."""
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -33,9 +35,10 @@ class RecordingLogger:
         self.calls.append((name, value, step))
 
 
-def _config(*overrides: str):
+def _config(*overrides: str, micro: bool = True):
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose(config_name="pusher_competency", overrides=[*MICRO, *overrides])
+        micro_overrides = MICRO if micro else ()
+        cfg = compose(config_name="pusher_competency", overrides=[*micro_overrides, *overrides])
     return study_config(cfg)
 
 
@@ -47,9 +50,12 @@ def _assert_same(a, b, where: str) -> None:
         assert a.keys() == b.keys(), where
         for key in a:
             _assert_same(a[key], b[key], f"{where}/{key}")
-    elif isinstance(a, torch.Tensor):
-        assert torch.equal(a, b), where
-    elif isinstance(a, tuple):
+    elif isinstance(a, torch.Tensor):  # bit for bit, NaN where NaN
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True, msg=where)
+    elif dataclasses.is_dataclass(a):
+        assert type(a) is type(b), where
+        _assert_same(dataclasses.asdict(a), dataclasses.asdict(b), where)
+    elif isinstance(a, (tuple, list)):
         assert len(a) == len(b), where
         for i, (x, y) in enumerate(zip(a, b)):
             _assert_same(x, y, f"{where}[{i}]")
@@ -89,16 +95,47 @@ def test_stage_jobs_in_two_workers_equal_one_process(tmp_path):
     forecasts = [study.forecast() for study in studies]
     assert forecasts[0] == forecasts[1]
     _same_files(serial, parallel, "forecast", CONDITIONS)
-    # the report's forecast checks (forecasts and real episodes from unscored starts)
-    checks = [s.side_by_side("report", list(CONDITIONS), "held_out_outcomes") for s in studies]
+    truths = [study.truth() for study in studies]
+    assert truths[0] == truths[1]
+    jobs = studies[0].truth_jobs()  # the truth stage's files, each written by one job
+    assert sorted(jobs) == sorted(p.stem for p in (serial / "truth").glob("*.pt"))
+    _same_files(serial, parallel, "truth", jobs)
+    # the report's forecast checks (forecasts and real episodes from unscored starts) and the
+    # world models' far self-checks and dynamics checks
+    report_jobs = list(studies[0].report_jobs())
+    checks = [s.side_by_side("report", report_jobs, "report_job") for s in studies]
     assert [elsewhere for _, elsewhere in checks] == [False, True]
-    _assert_same(checks[0][0], checks[1][0], "held_out_outcomes")
+    assert list(checks[0][0]) == report_jobs
+    _assert_same(checks[0][0], checks[1][0], "report jobs")
     assert said == [
         f"[data] {', '.join(WORLD_MODELS)} in 2 worker processes",
         f"[models] {', '.join(WORLD_MODELS)} in 2 worker processes",
         f"[forecast] {', '.join(CONDITIONS)} in 2 worker processes",
-        f"[report] {', '.join(CONDITIONS)} in 2 worker processes",
+        f"[truth] {', '.join(jobs)} in 2 worker processes",
+        f"[report] {', '.join(report_jobs)} in 2 worker processes",
     ]
+
+
+def test_the_truth_stage_jobs_come_longest_first(tmp_path):
+    """The default profile's truth jobs, by the real episodes each runs: the stochastic
+    condition's 100 starts x 30 runs, then the calibrations of the split (12 starts x 50 runs
+    and a forecast), the spreads (12 x 50), the deterministic envs' outcomes (100 x 1); each
+    the method that writes its file. Without spread starts, the outcomes alone."""
+    config = _config(micro=False)
+    jobs = Study(config, tmp_path, torch.device("cpu"), False).truth_jobs()
+    assert jobs == {
+        "stochastic": ("real_truth", "stochastic"),
+        "deterministic_share": ("aleatoric_share", "deterministic"),
+        "stochastic_share": ("aleatoric_share", "stochastic"),
+        "deterministic_spread": ("real_spread", "deterministic"),
+        "stochastic_spread": ("real_spread", "stochastic"),
+        "out-of-distribution_spread": ("real_spread", "out-of-distribution"),
+        "deterministic": ("real_truth", "deterministic"),
+        "out-of-distribution": ("real_truth", "out-of-distribution"),
+    }
+    config = _config("assess.spread_starts=0", micro=False)
+    jobs = Study(config, tmp_path, torch.device("cpu"), False).truth_jobs()
+    assert list(jobs) == ["stochastic", "deterministic", "out-of-distribution"]
 
 
 @pytest.mark.parametrize("bad", ["0", "-1", "two", "1.5"])
