@@ -7,17 +7,21 @@ torch thread: the world model's ops are too small for a second thread to pay
 the caller's torch thread count), and :func:`choose_workers` picks how many: one per job, up
 to the cores the machine's load leaves idle. A job's result does not depend on where it ran:
 it is the same computation on the same thread count, in a fresh process.
+
+Spawning a worker costs it the imports of torch and the rest (seconds of a core each): a run of
+several calls (a study's stages) can keep its workers for all of them with :func:`worker_pool`.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import multiprocessing
 import os
 import signal
 import subprocess
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -26,7 +30,14 @@ import torch
 from rcvae_torchrl.run_log import LogTarget, forwarded_log, log_targets
 from rcvae_torchrl.threads import free_cores, set_threads
 
-__all__ = ["ChildOutcome", "check_workers", "choose_workers", "map_in_processes", "try_in_a_child"]
+__all__ = [
+    "ChildOutcome",
+    "check_workers",
+    "choose_workers",
+    "map_in_processes",
+    "try_in_a_child",
+    "worker_pool",
+]
 
 T = TypeVar("T")
 
@@ -71,6 +82,39 @@ def _call(threads: int, fn: Callable[..., T], args: tuple, logs: list[LogTarget]
         return fn(*args)
 
 
+#: The workers of the innermost :func:`worker_pool` block (an executor and its size), if any.
+_pools: list[tuple[concurrent.futures.ProcessPoolExecutor, int]] = []
+
+
+def _check_count(name: str, value: Any) -> None:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}: expected a positive int, got {value!r}")
+
+
+@contextlib.contextmanager
+def worker_pool(workers: int) -> Iterator[None]:
+    """Inside the block, :func:`map_in_processes` runs its jobs on up to ``workers`` spawned
+    processes kept for every call that asks for that many (or has no more jobs than it asks
+    for), instead of spawning its own each time: each process pays its imports once. The
+    processes start when a call first needs them and end with the block. ``workers=1`` keeps
+    none (every call as without it).
+
+    A job then may run in a process that ran other jobs before: one whose result depends
+    only on its arguments (seeded, as :func:`map_in_processes` asks) is the same there.
+    """
+    _check_count("workers", workers)
+    if workers == 1:
+        yield
+        return
+    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch
+    with concurrent.futures.ProcessPoolExecutor(workers, context) as pool:
+        _pools.append((pool, workers))
+        try:
+            yield
+        finally:
+            _pools.pop()
+
+
 def map_in_processes(
     fn: Callable[..., T], jobs: Sequence[tuple], workers: int, *, threads: int | None = None
 ) -> list[T]:
@@ -79,7 +123,9 @@ def map_in_processes(
     Args:
         fn: a module-level function (it is pickled by name) whose arguments and result pickle.
         jobs: one argument tuple per job.
-        workers: processes; 1 runs every job here, one after the other.
+        workers: processes; 1 runs every job here, one after the other. Inside a
+            :func:`worker_pool` block the block's processes run them where ``workers`` is
+            its count or at least the jobs' (no more side by side than asked for).
         threads: torch intra-op threads in each worker (default: this process's count).
 
     The library's log lines in a worker go where this process's go (the file and console of
@@ -88,16 +134,30 @@ def map_in_processes(
     Returns:
         the results in the order of ``jobs``; a job's exception is raised here.
     """
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers: expected a positive int, got {workers!r}")
+    _check_count("workers", workers)
     if workers == 1 or len(jobs) <= 1:
         return [fn(*args) for args in jobs]
     threads = torch.get_num_threads() if threads is None else threads
-    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch
+    logs = log_targets()
+    kept = _pools[-1] if _pools else None
+    if kept is not None and (workers == kept[1] or len(jobs) <= min(workers, kept[1])):
+        futures = [kept[0].submit(_call, threads, fn, tuple(args), logs) for args in jobs]
+        return _results(futures)
+    context = multiprocessing.get_context("spawn")
     with concurrent.futures.ProcessPoolExecutor(min(workers, len(jobs)), context) as pool:
-        logs = log_targets()
         futures = [pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
+        return _results(futures)
+
+
+def _results(futures: list[concurrent.futures.Future]) -> list:
+    """The futures' results in order; at the first exception the jobs not started are
+    cancelled (a kept pool's workers then take no more of them) and it is raised."""
+    try:
         return [f.result() for f in futures]
+    except BaseException:
+        for future in futures:
+            future.cancel()
+        raise
 
 
 @dataclass(frozen=True)

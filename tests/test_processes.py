@@ -1,15 +1,21 @@
-"""Independent jobs in worker processes: how many, in order, errors, threads."""
+"""Independent jobs in worker processes: how many, in order, errors, threads, kept workers."""
 
 from __future__ import annotations
 
 import io
 import logging
 import math
+import os
 
 import pytest
 import torch
 
-from rcvae_torchrl.processes import check_workers, choose_workers, map_in_processes
+from rcvae_torchrl.processes import (
+    check_workers,
+    choose_workers,
+    map_in_processes,
+    worker_pool,
+)
 from rcvae_torchrl.run_log import log_targets, run_log
 
 
@@ -44,6 +50,28 @@ def test_bad_worker_settings_name_the_setting(bad):
 def test_jobs_run_in_workers_in_order_with_the_thread_count_given():
     assert map_in_processes(math.pow, [(2, 3), (3, 2), (2, 0.5)], 2) == [8.0, 9.0, 2**0.5]
     assert map_in_processes(torch.get_num_threads, [(), ()], 2, threads=1) == [1, 1]
+
+
+def test_a_worker_pool_keeps_its_processes_for_every_call():
+    """Inside ``worker_pool(2)`` the calls that ask for 2 workers, or for as many as their
+    jobs, run on the block's two processes (their imports paid once), a job's error is raised
+    and the processes go on; the calls' results are those without the block."""
+    with worker_pool(2):
+        pids = set()
+        for _ in range(3):
+            pids.update(map_in_processes(os.getpid, [(), (), ()], 2))
+        pids.update(map_in_processes(os.getpid, [(), ()], 3))  # 2 jobs: no more than 2 at once
+        with pytest.raises(ValueError, match="math domain error"):
+            map_in_processes(math.sqrt, [(-1.0,), (4.0,)], 2)
+        assert map_in_processes(math.pow, [(2, 3), (3, 2), (2, 0.5)], 2) == [8.0, 9.0, 2**0.5]
+        pids.update(map_in_processes(os.getpid, [(), ()], 2, threads=1))
+        assert map_in_processes(torch.get_num_threads, [(), ()], 2, threads=1) == [1, 1]
+    assert 1 <= len(pids) <= 2 and os.getpid() not in pids
+    with worker_pool(1):  # keeps none: one worker runs the jobs here
+        assert map_in_processes(os.getpid, [(), ()], 1) == [os.getpid()] * 2
+    with pytest.raises(ValueError, match="workers: expected a positive int, got 0"):
+        with worker_pool(0):
+            pass
 
 
 def test_a_worker_s_library_lines_reach_the_caller_s_run_log(tmp_path):

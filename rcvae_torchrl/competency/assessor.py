@@ -255,6 +255,7 @@ class CompetencyAssessor(KeyedModule):
         seed: int | None = None,
         return_rollouts: bool = False,
         exploration_type: ExplorationType | str | None = None,
+        first_chunk: int = 0,
     ) -> CompetencyReport:
         """Imagine, measure and report; see :class:`CompetencyReport` for what it holds.
 
@@ -292,12 +293,24 @@ class CompetencyAssessor(KeyedModule):
                 otherwise do not check it. With a ``seed``, the samples it draws from torch's
                 global random stream are seeded by ``(seed, k)`` too (the stream restored
                 afterwards): the same seed gives the same report.
+            first_chunk: with ``seed``: these start states are a part of a larger set, cut
+                at chunk ``first_chunk`` of it (a multiple of ``start_chunk`` start states
+                in), and chunk ``k`` here draws as chunk ``first_chunk + k`` of the whole.
+                The reports of consecutive parts then hold the whole's rows: the unit of
+                work to share over processes, e.g. worker processes that each assess a
+                part.
         """
         observation = self._start_states(start)
         batch = observation.shape[:-1]
         policy, plan = self._controls(policy, actions, batch)
         mode = exploration_mode(exploration_type)
         _check_seed(seed, generator)
+        _checks.check_non_negative_int("first_chunk", first_chunk)
+        if first_chunk and seed is None:
+            raise ValueError(
+                f"first_chunk: expected a seed with it (chunk k of the whole draws from "
+                f"generators seeded by (seed, k)), got first_chunk={first_chunk} and no seed"
+            )
         _checks.check_bool("return_rollouts", return_rollouts)
         flat = observation.reshape(-1, observation.shape[-1])
         chunks = range(0, flat.shape[0], self.start_chunk)
@@ -310,9 +323,10 @@ class CompetencyAssessor(KeyedModule):
             reset = policy_reset(policy)
             if reset is not None:
                 reset()  # e.g. a planner's warm start: each chunk's episodes are new
-            draws = None if seed is None else distributed.work_generator(seed, k, 5)
+            whole = first_chunk + k  # the chunk's index in the whole set of start states
+            draws = None if seed is None else distributed.work_generator(seed, whole, 5)
             with (
-                self._chunk_noise(seed, k, generator, policy) as noise,
+                self._chunk_noise(seed, whole, generator, policy) as noise,
                 acting(mode, None if draws is None else draws.initial_seed()),
             ):
                 parts.append(

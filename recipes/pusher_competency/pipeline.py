@@ -67,7 +67,7 @@ from rcvae_torchrl.envs.scripted import ScriptedPusher
 from rcvae_torchrl.io import load_torch, read_json, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.processes import choose_workers, map_in_processes
+from rcvae_torchrl.processes import choose_workers, map_in_processes, worker_pool
 from rcvae_torchrl.stages import StageRunner, code_digest
 from rcvae_torchrl.training import (
     DynamicsCheck,
@@ -586,27 +586,86 @@ class Study:
     def forecast(self) -> dict[str, Any]:
         """Sharded: chunks of start states over the ranks (each chunk seeded by the study's
         seed and its index), one report gathered; rank 0 writes it. In one process the
-        conditions are forecast side by side where cores are idle."""
+        conditions are forecast side by side where cores are idle, each in as many parts as
+        there are workers (:meth:`forecast_parts`), the parts' rows then put together: the
+        same forecast."""
         if distributed.is_active():
             for condition in CONDITIONS:
                 if not distributed.broadcast((self.dir / "forecast" / f"{condition}.pt").is_file()):
                     self.forecast_condition(condition)
                 distributed.barrier()
         else:
-            self.side_by_side("forecast", list(CONDITIONS), "forecast_condition")
+            parts = self.forecast_parts()
+            self.side_by_side("forecast", list(parts), "forecast_part")
+            for condition in CONDITIONS:
+                own = [n for n, (c, *_) in parts.items() if c == condition and n != condition]
+                self._join_forecast(condition, own)
         summary = {}
         for condition in CONDITIONS:
             saved = load_torch(self.dir / "forecast" / f"{condition}.pt", "forecast")
             summary[condition] = {"p_success": saved["p_success"].mean().item()}
         return summary
 
-    def forecast_condition(self, condition: str) -> None:
-        """Forecast the agent from ``condition``'s start states in imagination; save it."""
+    def forecast_parts(self) -> dict[str, tuple[str, int, int]]:
+        """The forecast's jobs in one process, by the name of the file each writes in
+        ``forecast/``: per condition not forecast yet, its whole forecast (``<condition>``),
+        or, where the stage has more than one worker, as many parts of consecutive chunks of
+        start states (``<condition>.chunks<first>-<end>``; closed-loop forecasts only: an
+        open-loop plan is drawn for all start states at once), each as (condition, first
+        chunk, end chunk). A part's chunks draw as they do in the whole
+        (``CompetencyAssessor.assess(first_chunk=...)``), so its rows are the whole's; equal
+        parts keep the workers busy until the stage ends."""
+        s = self.cfg.assess
+        chunks = -(-s.start_states // s.start_chunk)  # the assessor's chunks of start states
+        count = 1 if s.open_loop else max(1, min(self.device_workers, chunks))
+        parts = {}
+        for condition in self._missing("forecast", list(CONDITIONS)):
+            if count == 1:
+                parts[condition] = (condition, 0, chunks)
+                continue
+            for i in range(count):
+                first, end = i * chunks // count, (i + 1) * chunks // count
+                parts[f"{condition}.chunks{first}-{end}"] = (condition, first, end)
+        return parts
+
+    def forecast_part(self, name: str) -> None:
+        """Forecast the part ``name`` of a condition (:meth:`forecast_parts`: the job's name
+        says which chunks of start states it holds) and save it."""
+        condition, dot, chunks = name.partition(".chunks")
+        if not dot:
+            return self.forecast_condition(condition)
+        first, end = (int(k) for k in chunks.split("-"))
+        return self.forecast_condition(condition, (first, end), name)
+
+    def _join_forecast(self, condition: str, parts: Sequence[str]) -> None:
+        """Put a condition's forecast parts (their names, in order) together into its
+        forecast, row after row; then remove every part file of the condition (those of a
+        run stopped with another split too)."""
+        folder = self.dir / "forecast"
+        whole = folder / f"{condition}.pt"
+        if parts and not whole.is_file():
+            loaded = [load_torch(folder / f"{name}.pt", "forecast part") for name in parts]
+            keys = [k for k in loaded[0] if k != "content_sha256"]
+            save_torch(whole, {k: torch.cat([part[k] for part in loaded]) for k in keys})
+        for path in folder.glob(f"{condition}.chunks*.pt"):
+            path.unlink()
+
+    def forecast_condition(
+        self, condition: str, chunks: tuple[int, int] | None = None, name: str | None = None
+    ) -> None:
+        """Forecast the agent from ``condition``'s start states in imagination; save it (as
+        ``forecast/<name>.pt``, by default the condition's). ``chunks``: only the start states
+        of chunks ``first`` to ``end`` (exclusive) of the assessor's, each drawing as in the
+        whole forecast."""
         s = self.cfg.assess
         model_name, variant = CONDITIONS[condition]
         policy = self.load_policy().to(self.device)
         starts = self.starts(condition)
         assessor = self.assessor(model_name, variant)
+        first = 0
+        if chunks is not None:
+            first, end = chunks
+            starts = starts[first * assessor.start_chunk : end * assessor.start_chunk]
         start = starts.to(self.device)
         if s.open_loop:
             generator = torch.Generator(device=self.device).manual_seed(self.cfg.seed)
@@ -615,9 +674,9 @@ class Study:
             )
             report = assessor.assess(start, actions=plan, seed=self.cfg.seed)
         else:
-            report = assessor.assess(start, policy=policy, seed=self.cfg.seed)
+            report = assessor.assess(start, policy=policy, seed=self.cfg.seed, first_chunk=first)
         if distributed.is_main():
-            path = self.dir / "forecast" / f"{condition}.pt"
+            path = self.dir / "forecast" / f"{name or condition}.pt"
             record = _forecast_record(report.data.cpu())
             if report.novel is not None:  # a model trained with its novelty check
                 record.update(novelty_start=report.data["novelty", "start"].cpu())
@@ -1086,13 +1145,14 @@ def run_study(
     ``logger`` (a TorchRL logger) gets the training curves (``models/<name>/...``) and every
     stage's numbers (``stages/<stage>/...``); without one, training writes CSV beside its
     checkpoints. ``stage_workers``: processes that run a stage's independent jobs side by
-    side (the two variants' data, the two world models, the three conditions' forecasts): an
-    int, or ``"auto"``: as many as idle cores allow (see
-    :func:`~rcvae_torchrl.processes.choose_workers`). The results are the same either way. A
-    worker's training curves reach ``logger`` when it finishes (and CSV beside its checkpoint
-    as it trains). ``reuse_from``: another run directory whose finished stages are taken
-    (hard-linked) where the settings they read (:data:`STAGE_SETTINGS`) and the files before
-    them are this run's.
+    side (the two variants' data, the two world models, the three conditions' forecasts, the
+    truth stage's real episodes, the report's checks): an int, or ``"auto"``: as many as idle
+    cores allow (see :func:`~rcvae_torchrl.processes.choose_workers`), kept from stage to stage
+    (:func:`~rcvae_torchrl.processes.worker_pool`: each pays its imports once). The results
+    are the same either way. A worker's training curves reach ``logger`` when it finishes (and
+    CSV beside its checkpoint as it trains). ``reuse_from``: another run directory whose
+    finished stages are taken (hard-linked) where the settings they read
+    (:data:`STAGE_SETTINGS`) and the files before them are this run's.
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -1114,8 +1174,9 @@ def run_study(
         workers=stage_workers,
         log=log,
     )
-    for name, outputs in STAGES.items():
-        runner.run(name, getattr(study, name), outputs, sharded=name in SHARDED_STAGES)
+    with worker_pool(1 if distributed.is_active() else study.workers):
+        for name, outputs in STAGES.items():
+            runner.run(name, getattr(study, name), outputs, sharded=name in SHARDED_STAGES)
     return runner.summaries
 
 

@@ -972,6 +972,27 @@ def test_a_planner_agent_is_reset_per_chunk_and_seeded_with_the_assessment(env, 
     assert not torch.equal(first.data["uncertainty", "total"], other)
 
 
+def test_parts_cut_at_chunks_give_the_whole_s_rows(env, starts):
+    """``first_chunk``: start states assessed in parts, each told at which chunk of the whole
+    it begins, give the whole's rows bit for bit under the seed, with a planner as the agent
+    (its draws seeded per chunk too); a part not told draws as the whole's first chunks do.
+    An offset without a seed, or a negative one, is refused."""
+    from rcvae_torchrl.planners import CEMPlanner
+
+    planner = CEMPlanner(env, horizon=2, num_candidates=6, top_k=2, iterations=1, seed=3)
+    assessor = make_assessor(env, policy=planner, start_chunk=1, samples_per_member=2)
+    whole = assessor.assess(starts, seed=0).data
+    first = assessor.assess(starts[:1], seed=0).data
+    rest = assessor.assess(starts[1:], seed=0, first_chunk=1).data
+    assert_same(whole, torch.cat([first, rest]))
+    untold = assessor.assess(starts[1:], seed=0).data
+    assert not torch.equal(untold["uncertainty", "total"], whole[1:]["uncertainty", "total"])
+    with pytest.raises(ValueError, match=r"first_chunk: expected a seed with it.*no seed"):
+        assessor.assess(starts[1:], generator=seeded(), first_chunk=1)
+    with pytest.raises(ValueError, match=r"first_chunk: expected an integer >= 0, got -1"):
+        assessor.assess(starts, seed=0, first_chunk=-1)
+
+
 def test_a_horizon_shorter_than_the_deadline_is_said(env, starts):
     """A horizon short of the boundary's time limit answers an earlier deadline: the assessor
     warns once, naming both, and the report's time limit is the horizon's."""

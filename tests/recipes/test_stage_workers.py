@@ -74,7 +74,7 @@ def _same_files(one: Path, other: Path, stage: str, names) -> None:
 
 
 def test_stage_jobs_in_two_workers_equal_one_process(tmp_path):
-    config = _config("stage_workers=2")
+    config = _config("stage_workers=2", "assess.start_chunk=1")  # 2 chunks of start states
     assert config.stage_workers == 2
     serial, parallel = tmp_path / "serial", tmp_path / "parallel"
     loggers, said = [RecordingLogger(), RecordingLogger()], []
@@ -92,9 +92,17 @@ def test_stage_jobs_in_two_workers_equal_one_process(tmp_path):
     assert loggers[0].calls and sorted(loggers[0].calls) == sorted(loggers[1].calls)
     studies[0].agent()
     shutil.copytree(serial / "agent", parallel / "agent")
+    # in two workers each condition's forecast in two parts, put together; a part of a run
+    # stopped with another split is removed
+    (parallel / "forecast").mkdir()
+    torch.save({}, parallel / "forecast" / "stochastic.chunks0-7.pt")
     forecasts = [study.forecast() for study in studies]
     assert forecasts[0] == forecasts[1]
     _same_files(serial, parallel, "forecast", CONDITIONS)
+    assert sorted(p.name for p in (parallel / "forecast").iterdir()) == sorted(
+        f"{c}.pt" for c in CONDITIONS
+    )
+    parts = [f"{c}.chunks{k}-{k + 1}" for c in CONDITIONS for k in range(2)]
     truths = [study.truth() for study in studies]
     assert truths[0] == truths[1]
     jobs = studies[0].truth_jobs()  # the truth stage's files, each written by one job
@@ -110,7 +118,7 @@ def test_stage_jobs_in_two_workers_equal_one_process(tmp_path):
     assert said == [
         f"[data] {', '.join(WORLD_MODELS)} in 2 worker processes",
         f"[models] {', '.join(WORLD_MODELS)} in 2 worker processes",
-        f"[forecast] {', '.join(CONDITIONS)} in 2 worker processes",
+        f"[forecast] {', '.join(parts)} in 2 worker processes",
         f"[truth] {', '.join(jobs)} in 2 worker processes",
         f"[report] {', '.join(report_jobs)} in 2 worker processes",
     ]
