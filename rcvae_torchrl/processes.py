@@ -27,6 +27,7 @@ from typing import Any, TypeVar
 
 import torch
 
+from rcvae_torchrl._checks import check_positive_int
 from rcvae_torchrl.run_log import LogTarget, forwarded_log, log_targets
 from rcvae_torchrl.threads import free_cores, set_threads
 
@@ -86,11 +87,6 @@ def _call(threads: int, fn: Callable[..., T], args: tuple, logs: list[LogTarget]
 _pools: list[tuple[concurrent.futures.ProcessPoolExecutor, int]] = []
 
 
-def _check_count(name: str, value: Any) -> None:
-    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"{name}: expected a positive int, got {value!r}")
-
-
 @contextlib.contextmanager
 def worker_pool(workers: int) -> Iterator[None]:
     """Inside the block, :func:`map_in_processes` runs its jobs on up to ``workers`` spawned
@@ -102,7 +98,7 @@ def worker_pool(workers: int) -> Iterator[None]:
     A job then may run in a process that ran other jobs before: one whose result depends
     only on its arguments (seeded, as :func:`map_in_processes` asks) is the same there.
     """
-    _check_count("workers", workers)
+    check_positive_int("workers", workers)
     if workers == 1:
         yield
         return
@@ -134,7 +130,7 @@ def map_in_processes(
     Returns:
         the results in the order of ``jobs``; a job's exception is raised here.
     """
-    _check_count("workers", workers)
+    check_positive_int("workers", workers)
     if workers == 1 or len(jobs) <= 1:
         return [fn(*args) for args in jobs]
     threads = torch.get_num_threads() if threads is None else threads

@@ -69,7 +69,7 @@ def test_a_worker_pool_keeps_its_processes_for_every_call():
     assert 1 <= len(pids) <= 2 and os.getpid() not in pids
     with worker_pool(1):  # keeps none: one worker runs the jobs here
         assert map_in_processes(os.getpid, [(), ()], 1) == [os.getpid()] * 2
-    with pytest.raises(ValueError, match="workers: expected a positive int, got 0"):
+    with pytest.raises(ValueError, match="workers: expected a positive integer, got 0"):
         with worker_pool(0):
             pass
 
