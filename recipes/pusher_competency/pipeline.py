@@ -64,7 +64,7 @@ from rcvae_torchrl.envs import (
     resolution_tensor,
 )
 from rcvae_torchrl.envs.scripted import ScriptedPusher
-from rcvae_torchrl.io import load_torch, read_json, save_torch
+from rcvae_torchrl.io import CHECKSUM_KEY, load_torch, read_json, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.processes import choose_workers, map_in_processes, worker_pool
@@ -633,9 +633,10 @@ class Study:
         says which chunks of start states it holds) and save it."""
         condition, dot, chunks = name.partition(".chunks")
         if not dot:
-            return self.forecast_condition(condition)
+            self.forecast_condition(condition)
+            return
         first, end = (int(k) for k in chunks.split("-"))
-        return self.forecast_condition(condition, (first, end), name)
+        self.forecast_condition(condition, (first, end), name)
 
     def _join_forecast(self, condition: str, parts: Sequence[str]) -> None:
         """Put a condition's forecast parts (their names, in order) together into its
@@ -645,7 +646,7 @@ class Study:
         whole = folder / f"{condition}.pt"
         if parts and not whole.is_file():
             loaded = [load_torch(folder / f"{name}.pt", "forecast part") for name in parts]
-            keys = [k for k in loaded[0] if k != "content_sha256"]
+            keys = [k for k in loaded[0] if k != CHECKSUM_KEY]  # each part's own digest
             save_torch(whole, {k: torch.cat([part[k] for part in loaded]) for k in keys})
         for path in folder.glob(f"{condition}.chunks*.pt"):
             path.unlink()
