@@ -10,6 +10,12 @@ it is the same computation on the same thread count, in a fresh process.
 
 Spawning a worker costs it the imports of torch and the rest (seconds of a core each): a run of
 several calls (a study's stages) can keep its workers for all of them with :func:`worker_pool`.
+
+A worker ends with the process that spawned it: killed mid-job (``kill -9``, an out-of-memory
+kill), that process would otherwise leave its workers computing a job nobody waits for, on
+cores the next run needs. A worker that dies mid-job (a crash in native code, a kill) fails
+the call with :class:`~concurrent.futures.process.BrokenProcessPool`; a :func:`worker_pool`
+block then starts fresh workers for its later calls.
 """
 
 from __future__ import annotations
@@ -21,7 +27,9 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -83,8 +91,38 @@ def _call(threads: int, fn: Callable[..., T], args: tuple, logs: list[LogTarget]
         return fn(*args)
 
 
-#: The workers of the innermost :func:`worker_pool` block (an executor and its size), if any.
-_pools: list[tuple[concurrent.futures.ProcessPoolExecutor, int]] = []
+def _end_with_parent() -> None:
+    """A worker's first step: a thread that waits for the process that spawned this one to
+    end (its sentinel, a pipe whose other end only that process holds, reads end-of-file then)
+    and ends this one too, with the processes this one started (a batched env's workers)."""
+    parent = multiprocessing.parent_process()
+    if parent is None:  # not a spawned process: nothing to watch
+        return
+
+    def watch() -> None:
+        parent.join()
+        for child in multiprocessing.active_children():
+            child.terminate()
+        os._exit(1)
+
+    threading.Thread(target=watch, name="end-with-parent", daemon=True).start()
+
+
+def _executor(workers: int) -> concurrent.futures.ProcessPoolExecutor:
+    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch
+    return concurrent.futures.ProcessPoolExecutor(workers, context, initializer=_end_with_parent)
+
+
+@dataclass
+class _Kept:
+    """The workers of a :func:`worker_pool` block: its executor (renewed when broken) and size."""
+
+    pool: concurrent.futures.ProcessPoolExecutor
+    workers: int
+
+
+#: The kept workers of the open :func:`worker_pool` blocks, the innermost last.
+_pools: list[_Kept] = []
 
 
 @contextlib.contextmanager
@@ -93,7 +131,8 @@ def worker_pool(workers: int) -> Iterator[None]:
     processes kept for every call that asks for that many (or has no more jobs than it asks
     for), instead of spawning its own each time: each process pays its imports once. The
     processes start when a call first needs them and end with the block. ``workers=1`` keeps
-    none (every call as without it).
+    none (every call as without it). A call whose worker died mid-job fails; the block's
+    later calls get fresh workers.
 
     A job then may run in a process that ran other jobs before: one whose result depends
     only on its arguments (seeded, as :func:`map_in_processes` asks) is the same there.
@@ -102,13 +141,13 @@ def worker_pool(workers: int) -> Iterator[None]:
     if workers == 1:
         yield
         return
-    context = multiprocessing.get_context("spawn")  # no fork of a process that holds torch
-    with concurrent.futures.ProcessPoolExecutor(workers, context) as pool:
-        _pools.append((pool, workers))
-        try:
-            yield
-        finally:
-            _pools.pop()
+    kept = _Kept(_executor(workers), workers)
+    _pools.append(kept)
+    try:
+        yield
+    finally:
+        _pools.remove(kept)
+        kept.pool.shutdown()
 
 
 def map_in_processes(
@@ -136,20 +175,32 @@ def map_in_processes(
     threads = torch.get_num_threads() if threads is None else threads
     logs = log_targets()
     kept = _pools[-1] if _pools else None
-    if kept is not None and (workers == kept[1] or len(jobs) <= min(workers, kept[1])):
-        futures = [kept[0].submit(_call, threads, fn, tuple(args), logs) for args in jobs]
-        return _results(futures)
-    context = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(min(workers, len(jobs)), context) as pool:
+    if kept is not None and (workers == kept.workers or len(jobs) <= min(workers, kept.workers)):
+        try:
+            futures = [kept.pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
+            return _results(futures, fn)
+        except BrokenProcessPool:
+            kept.pool.shutdown(wait=False, cancel_futures=True)
+            kept.pool = _executor(kept.workers)  # the block's later calls: fresh workers
+            raise
+    with _executor(min(workers, len(jobs))) as pool:
         futures = [pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
-        return _results(futures)
+        return _results(futures, fn)
 
 
-def _results(futures: list[concurrent.futures.Future]) -> list:
+def _results(futures: list[concurrent.futures.Future], fn: Callable) -> list:
     """The futures' results in order; at the first exception the jobs not started are
     cancelled (a kept pool's workers then take no more of them) and it is raised."""
     try:
         return [f.result() for f in futures]
+    except BrokenProcessPool as err:
+        for future in futures:
+            future.cancel()
+        name = getattr(fn, "__qualname__", repr(fn))
+        raise BrokenProcessPool(
+            f"a worker process ended abruptly (killed, or a crash in native code) while "
+            f"running the {len(futures)} jobs of {name}: none of their results is returned"
+        ) from err
     except BaseException:
         for future in futures:
             future.cancel()

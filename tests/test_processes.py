@@ -6,6 +6,12 @@ import io
 import logging
 import math
 import os
+import signal
+import subprocess
+import sys
+import time
+from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 
 import pytest
 import torch
@@ -72,6 +78,79 @@ def test_a_worker_pool_keeps_its_processes_for_every_call():
     with pytest.raises(ValueError, match="workers: expected a positive integer, got 0"):
         with worker_pool(0):
             pass
+
+
+def test_a_worker_that_dies_mid_job_fails_its_call_and_the_block_gets_fresh_workers():
+    """A worker killed mid-job (here it exits) fails the call with a message naming the jobs;
+    a kept pool is then renewed: the block's later calls run on new, working processes."""
+    with worker_pool(2):
+        before = set(map_in_processes(os.getpid, [(), ()], 2))
+        with pytest.raises(BrokenProcessPool, match=r"ended abruptly .* the 2 jobs of _exit"):
+            map_in_processes(os._exit, [(3,), (3,)], 2)
+        assert map_in_processes(math.pow, [(2, 3), (3, 2)], 2) == [8.0, 9.0]
+        after = set(map_in_processes(os.getpid, [(), ()], 2))
+    assert not before & after and os.getpid() not in after
+    with pytest.raises(BrokenProcessPool, match="ended abruptly"):  # without a kept pool too
+        map_in_processes(os._exit, [(3,), (3,)], 2)
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` exists and has not ended (a zombie has ended)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads processes in /proc")
+@pytest.mark.parametrize("kept", [True, False])
+def test_workers_end_when_the_process_that_spawned_them_is_killed(kept):
+    """``kill -9`` of a process mid-call ends its workers within seconds, not when their job
+    (here ten minutes of sleep) would have ended; kept workers or a call's own."""
+    code = (
+        "import contextlib, os, time\n"
+        "from rcvae_torchrl.processes import map_in_processes, worker_pool\n"
+        f"with (worker_pool(2) if {kept} else contextlib.nullcontext()):\n"
+        "    map_in_processes(os.getpid, [(), ()], 2)\n"
+        "    map_in_processes(time.sleep, [(600,), (600,)], 2)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", code])
+    pids: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while len(pids) < 2 and time.monotonic() < deadline:  # both sleeping (or the first
+            time.sleep(0.5)  # call's workers, ended by now when not kept)
+            pids = [p for p in _children(parent.pid) if _running(p)]
+        time.sleep(2.0)
+        pids = [p for p in _children(parent.pid) if _running(p)]
+        assert len(pids) == 2, "expected the call's two workers"
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 15
+        while any(_running(p) for p in pids) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not any(_running(p) for p in pids), "a worker outlived its parent"
+    finally:
+        parent.kill()
+        parent.wait()
+        for pid in pids:
+            if _running(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` that run Python's multiprocessing spawn."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmd = (stat.parent / "cmdline").read_bytes()
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+        if int(fields[1]) == pid and b"spawn_main" in cmd:
+            found.append(int(stat.parent.name))
+    return found
 
 
 def test_a_worker_s_library_lines_reach_the_caller_s_run_log(tmp_path):
