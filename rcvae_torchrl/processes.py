@@ -101,9 +101,11 @@ def _end_with_parent() -> None:
 
     def watch() -> None:
         parent.join()
-        for child in multiprocessing.active_children():
-            child.terminate()
-        os._exit(1)
+        try:
+            for child in multiprocessing.active_children():
+                child.terminate()
+        finally:  # whatever the children do, this process ends
+            os._exit(1)
 
     threading.Thread(target=watch, name="end-with-parent", daemon=True).start()
 
@@ -132,7 +134,7 @@ def worker_pool(workers: int) -> Iterator[None]:
     for), instead of spawning its own each time: each process pays its imports once. The
     processes start when a call first needs them and end with the block. ``workers=1`` keeps
     none (every call as without it). A call whose worker died mid-job fails; the block's
-    later calls get fresh workers.
+    later calls get fresh workers (as does a call after a worker died between calls).
 
     A job then may run in a process that ran other jobs before: one whose result depends
     only on its arguments (seeded, as :func:`map_in_processes` asks) is the same there.
@@ -178,14 +180,23 @@ def map_in_processes(
     if kept is not None and (workers == kept.workers or len(jobs) <= min(workers, kept.workers)):
         try:
             futures = [kept.pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
+        except BrokenProcessPool:  # a worker died between calls, before any of these jobs
+            _renew(kept)
+            futures = [kept.pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
+        try:
             return _results(futures, fn)
         except BrokenProcessPool:
-            kept.pool.shutdown(wait=False, cancel_futures=True)
-            kept.pool = _executor(kept.workers)  # the block's later calls: fresh workers
+            _renew(kept)  # the block's later calls: fresh workers
             raise
     with _executor(min(workers, len(jobs))) as pool:
         futures = [pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
         return _results(futures, fn)
+
+
+def _renew(kept: _Kept) -> None:
+    """Replace a broken pool's processes with fresh ones."""
+    kept.pool.shutdown(wait=False, cancel_futures=True)
+    kept.pool = _executor(kept.workers)
 
 
 def _results(futures: list[concurrent.futures.Future], fn: Callable) -> list:

@@ -90,6 +90,15 @@ def test_a_worker_that_dies_mid_job_fails_its_call_and_the_block_gets_fresh_work
         assert map_in_processes(math.pow, [(2, 3), (3, 2)], 2) == [8.0, 9.0]
         after = set(map_in_processes(os.getpid, [(), ()], 2))
     assert not before & after and os.getpid() not in after
+    with worker_pool(2):  # a worker killed between calls: the next call runs on fresh ones
+        before = set(map_in_processes(os.getpid, [(), ()] * 4, 2))
+        for pid in before:
+            os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 15
+        while any(_running(p) for p in before) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        time.sleep(0.5)  # the pool's manager sees it
+        assert map_in_processes(math.pow, [(2, 3), (3, 2)], 2) == [8.0, 9.0]
     with pytest.raises(BrokenProcessPool, match="ended abruptly"):  # without a kept pool too
         map_in_processes(os._exit, [(3,), (3,)], 2)
 
