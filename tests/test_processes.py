@@ -97,7 +97,7 @@ def test_a_worker_that_dies_mid_job_fails_its_call_and_the_block_gets_fresh_work
         deadline = time.monotonic() + 15
         while any(_running(p) for p in before) and time.monotonic() < deadline:
             time.sleep(0.1)
-        time.sleep(0.5)  # the pool's manager sees it
+        time.sleep(1.0)  # the pool's manager sees it (it wakes on the dead worker's sentinel)
         assert map_in_processes(math.pow, [(2, 3), (3, 2)], 2) == [8.0, 9.0]
     with pytest.raises(BrokenProcessPool, match="ended abruptly"):  # without a kept pool too
         map_in_processes(os._exit, [(3,), (3,)], 2)
