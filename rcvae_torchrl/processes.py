@@ -177,20 +177,23 @@ def map_in_processes(
     threads = torch.get_num_threads() if threads is None else threads
     logs = log_targets()
     kept = _pools[-1] if _pools else None
+
+    def submit(pool: concurrent.futures.ProcessPoolExecutor) -> list[concurrent.futures.Future]:
+        return [pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
+
     if kept is not None and (workers == kept.workers or len(jobs) <= min(workers, kept.workers)):
         try:
-            futures = [kept.pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
+            futures = submit(kept.pool)
         except BrokenProcessPool:  # a worker died between calls, before any of these jobs
             _renew(kept)
-            futures = [kept.pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
+            futures = submit(kept.pool)
         try:
             return _results(futures, fn)
         except BrokenProcessPool:
             _renew(kept)  # the block's later calls: fresh workers
             raise
     with _executor(min(workers, len(jobs))) as pool:
-        futures = [pool.submit(_call, threads, fn, tuple(args), logs) for args in jobs]
-        return _results(futures, fn)
+        return _results(submit(pool), fn)
 
 
 def _renew(kept: _Kept) -> None:
@@ -204,17 +207,15 @@ def _results(futures: list[concurrent.futures.Future], fn: Callable) -> list:
     cancelled (a kept pool's workers then take no more of them) and it is raised."""
     try:
         return [f.result() for f in futures]
-    except BrokenProcessPool as err:
+    except BaseException as err:
         for future in futures:
             future.cancel()
-        name = getattr(fn, "__qualname__", repr(fn))
-        raise BrokenProcessPool(
-            f"a worker process ended abruptly (killed, or a crash in native code) while "
-            f"running the {len(futures)} jobs of {name}: none of their results is returned"
-        ) from err
-    except BaseException:
-        for future in futures:
-            future.cancel()
+        if isinstance(err, BrokenProcessPool):
+            name = getattr(fn, "__qualname__", repr(fn))
+            raise BrokenProcessPool(
+                f"a worker process ended abruptly (killed, or a crash in native code) while "
+                f"running the {len(futures)} jobs of {name}: none of their results is returned"
+            ) from err
         raise
 
 
