@@ -27,6 +27,7 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import IO, Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 
@@ -160,6 +161,7 @@ def _strict(obj: Any, where: str = "obj") -> Any:
     browsers, most languages' libraries) refuse the whole file for it. A tensor, or a record
     with an ``as_dict`` method (a check, real outcomes), is refused (``where`` names it): as a
     string it would not read back, and a long tensor's is elided."""
+    obj = _python_scalar(obj)  # a NumPy number or bool as Python's (not its printed string)
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else ("NaN" if math.isnan(obj) else json.dumps(obj))
     if isinstance(obj, Mapping):
@@ -167,13 +169,20 @@ def _strict(obj: Any, where: str = "obj") -> Any:
     if isinstance(obj, (list, tuple)):
         return [_strict(value, f"{where}[{i}]") for i, value in enumerate(obj)]
     _refuse_record(obj, where, "write_json")
-    if isinstance(obj, torch.Tensor):
+    if isinstance(obj, (torch.Tensor, np.ndarray)):
+        kind = "a tensor" if isinstance(obj, torch.Tensor) else "a NumPy array"
         raise TypeError(
-            f"{where}: expected JSON values (numbers, strings, lists and dicts), got a tensor "
+            f"{where}: expected JSON values (numbers, strings, lists and dicts), got {kind} "
             f"of shape {tuple(obj.shape)}, whose printed form would not read back (a long "
             "one's is elided): write .tolist(), or save tensors with save_torch"
         )
     return obj
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Whether two JSON-able values are equal as JSON records them: a NaN equals a NaN (a
+    setting recorded as NaN is the same setting when the run resumes)."""
+    return _strict(a) == _strict(b)
 
 
 def _refuse_record(obj: Any, where: str, call: str) -> None:
@@ -196,6 +205,13 @@ def _numbers(obj: Any) -> Any:
     if isinstance(obj, list):
         return [_numbers(value) for value in obj]
     return obj
+
+
+def _read_back(obj: Any, where: str = "obj") -> Any:
+    """``obj`` as :func:`write_json` then :func:`read_json` give it back (tuples as lists,
+    NumPy numbers as Python's, paths as strings); what would not read back is refused as
+    :func:`write_json` refuses it (``where`` names it)."""
+    return _numbers(json.loads(json.dumps(_strict(obj, where), default=str, allow_nan=False)))
 
 
 def write_json(path: str | Path, obj: Any, *, checksum: bool = False) -> Path:
@@ -353,7 +369,7 @@ def _differences(key: str, old: Any, new: Any) -> list[tuple[str, Any, Any]]:
         return [
             d
             for k in sorted(old.keys() | new.keys())
-            if old.get(k) != new.get(k)
+            if not _same(old.get(k), new.get(k))
             for d in _differences(f"{key}.{k}", old.get(k), new.get(k))
         ]
     return [(key, old, new)]
@@ -374,7 +390,7 @@ def record_run_config(
     if path.is_file():
         saved = read_json(path, "run config")
         _compare_run_config(path, saved, current, may_change)
-        if saved == current:
+        if _same(saved, current):
             return
     write_json(path, current)
 
@@ -397,8 +413,22 @@ def check_run_config(
 
 
 def _as_json(config: Mapping[str, Any]) -> Any:
-    """Settings as they read back from JSON (tuples as lists, other values as strings)."""
-    return json.loads(json.dumps(dict(config), default=str))
+    """Settings as they read back from JSON (tuples as lists, NumPy numbers as Python's,
+    other values as strings)."""
+    return json.loads(json.dumps(dict(config), default=_plain))
+
+
+def _plain(value: Any) -> Any:
+    """A value JSON has no form for: a NumPy number or bool as Python's, else its string."""
+    scalar = _python_scalar(value)
+    return str(value) if scalar is value else scalar
+
+
+def _python_scalar(value: Any) -> Any:
+    """A NumPy number or bool (``np.float32(0.5)``, ``np.bool_(True)``) as the Python one,
+    which JSON writes as a number or bool; any other value as it is."""
+    numeric = isinstance(value, np.generic) and not isinstance(value, (np.str_, np.bytes_))
+    return value.item() if numeric and not isinstance(value, np.void) else value
 
 
 def _compare_run_config(
@@ -407,7 +437,9 @@ def _compare_run_config(
     if isinstance(saved, dict):
         skip = set(may_change)
         changed = sorted(
-            k for k in set(saved) | set(current) if k not in skip and saved.get(k) != current.get(k)
+            k
+            for k in set(saved) | set(current)
+            if k not in skip and not _same(saved.get(k), current.get(k))
         )
         if changed:
             details = "; ".join(

@@ -79,10 +79,13 @@ from typing import Any
 from torchrl.record.loggers import Logger
 
 from rcvae_torchrl import distributed
+from rcvae_torchrl._checks import check_bool
 from rcvae_torchrl.io import (  # settings as they read back from JSON, as recorded
     StoredFileError,
     _as_json,
     _differences,
+    _read_back,
+    _same,
     atomic_write,
     check_run_config,
     read_json,
@@ -102,6 +105,8 @@ __all__ = [
 ]
 
 _CHUNK = 1 << 20
+#: what a marker adds to a stage's summary: a summary may not hold these keys
+_RESERVED = ("outputs", "inputs", "code", "seconds", "attempts", "reused_from")
 
 
 #: The folder of a run directory that holds the stages' markers.
@@ -254,6 +259,15 @@ class StageRunner:
         reuse_from: str | Path | None = None,
         stage_code: Mapping[str, str] | None = None,
     ) -> None:
+        if not isinstance(run_dir, (str, os.PathLike)):
+            raise TypeError(f"run_dir: expected a str or a path, got {type(run_dir).__name__}")
+        if not callable(log):
+            raise TypeError(f"log: expected a callable taking a line, got {log!r}")
+        if settings is not None and not isinstance(settings, Mapping):
+            raise TypeError(
+                f"settings: expected a mapping of the run's settings or None, got "
+                f"{type(settings).__name__}"
+            )
         self.run_dir = Path(run_dir)
         if stage_code is not None and not (
             isinstance(stage_code, Mapping)
@@ -404,6 +418,13 @@ class StageRunner:
         ``sharded``: under ``torch.distributed`` the stage runs on every rank (see the module
         docstring).
         """
+        outputs = _checked_stage(name, fn, outputs, sharded)
+        if name in self.summaries:
+            raise ValueError(
+                f"name: stage {name!r} already ran in this runner (its marker would be written "
+                "over, and the stages after it read its first files); give each stage its own "
+                "name"
+            )
         saved = self._reusable(name) if distributed.is_main() else None
         own = self._last_outputs(name) if saved is None and distributed.is_main() else None
         if saved is None and distributed.is_main():
@@ -568,7 +589,7 @@ class StageRunner:
         changed = []
         for key in keys:
             there, here = (_setting_or_none(s, key) for s in (recorded, self._settings))
-            if there != here:
+            if not _same(there, here):
                 changed += _differences(key, there, here)
         if not changed:
             return "its inputs differ (an earlier stage's files)"
@@ -592,9 +613,9 @@ class StageRunner:
             return False
         keys = (self._stage_settings or {}).get(name)
         if keys is None:
-            return recorded == self._settings
+            return _same(recorded, self._settings)
         try:
-            return all(_setting(recorded, k) == _setting(self._settings, k) for k in keys)
+            return all(_same(_setting(recorded, k), _setting(self._settings, k)) for k in keys)
         except (KeyError, TypeError):
             return False
 
@@ -714,7 +735,7 @@ class StageRunner:
         """``fn()``; an unreadable file of the stage's own is removed and ``fn`` runs once more."""
         for attempt in range(2):
             try:
-                return fn()
+                return _checked_summary(name, fn())
             except StoredFileError as err:
                 path = err.path
                 own = path is not None and self._is_output(path, outputs)
@@ -755,6 +776,51 @@ class StageRunner:
             if (foreign or {}).get(rel) != record:
                 records[rel] = record
         return records
+
+
+def _checked_stage(name: object, fn: object, outputs: object, sharded: object) -> tuple[str, ...]:
+    """Refuse a stage a runner cannot run or record: ``name`` must be a marker's file name,
+    ``fn`` callable, ``outputs`` a sequence of glob patterns inside the run directory (a bare
+    string would be read letter by letter, and a pattern leaving the run directory would have
+    the runner remove files elsewhere); the patterns as a tuple."""
+    if not isinstance(name, str) or name in ("", ".", "..") or any(c in name for c in "/\\"):
+        raise ValueError(
+            f"name: expected a stage name usable as a file name (no path separators), got {name!r}"
+        )
+    if not callable(fn):
+        raise TypeError(f"fn: expected a callable that runs stage {name!r}, got {fn!r}")
+    check_bool("sharded", sharded)
+    if isinstance(outputs, (str, bytes)) or not isinstance(outputs, Sequence):
+        raise TypeError(
+            f"outputs: expected a sequence of glob patterns (e.g. ('models/*.pt',)), got "
+            f"{outputs!r}"
+        )
+    for pattern in outputs:
+        if not isinstance(pattern, str) or not pattern:
+            raise TypeError(f"outputs: expected glob patterns (str), got {pattern!r}")
+        if Path(pattern).is_absolute() or ".." in Path(pattern).parts:
+            raise ValueError(
+                f"outputs: expected patterns relative to the run directory and inside it, got "
+                f"{pattern!r} (the runner removes and sets aside the files its patterns match)"
+            )
+    return tuple(outputs)
+
+
+def _checked_summary(name: str, summary: object) -> dict[str, Any]:
+    """Stage ``name``'s summary as its marker will read back (so that a stage reused gives the
+    same summary as one run): a mapping of JSON values, without the marker's own keys."""
+    if not isinstance(summary, Mapping):
+        raise TypeError(
+            f"stage {name!r}: expected its function to return a dict summary (JSON values), "
+            f"got {type(summary).__name__}"
+        )
+    reserved = sorted(set(map(str, summary)) & set(_RESERVED))
+    if reserved:
+        raise ValueError(
+            f"stage {name!r}: its summary holds {reserved}, which the marker records itself "
+            f"(reserved: {list(_RESERVED)}); rename them"
+        )
+    return _read_back(dict(summary), f"the summary of stage {name!r}")
 
 
 def _read_marker(path: Path, name: str) -> dict[str, Any]:

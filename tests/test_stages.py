@@ -708,3 +708,92 @@ def test_code_digest_follows_the_files_their_names_and_the_package_versions(tmp_
     assert code_digest([], packages=["no-such-package-here"]) != code_digest([])
     with pytest.raises(FileNotFoundError, match="paths: no file or directory"):
         code_digest([tmp_path / "missing"])
+
+
+@pytest.mark.parametrize(
+    ("call", "error", "words"),
+    [
+        (lambda r: r.run("s", lambda: None), TypeError, "stage 's': expected its function to "),
+        (lambda r: r.run("s", lambda: 3), TypeError, "return a dict summary"),
+        (lambda r: r.run("s", lambda: {"seconds": 1.0}), ValueError, "holds ['seconds']"),
+        (lambda r: r.run("s", lambda: {"outputs": 3}), ValueError, "reserved"),
+        (lambda r: r.run("s", {"x": 1}), TypeError, "fn: expected a callable"),
+        (lambda r: r.run("s", dict, outputs="m/*.pt"), TypeError, "outputs: expected a sequence"),
+        (lambda r: r.run("s", dict, outputs=[3]), TypeError, "outputs: expected glob patterns"),
+        (lambda r: r.run("s", dict, outputs=["../x/*"]), ValueError, "inside it, got '../x/*'"),
+        (lambda r: r.run("s", dict, outputs=["/tmp/*"]), ValueError, "relative to the run dir"),
+        (lambda r: r.run("../evil", dict), ValueError, "name: expected a stage name"),
+        (lambda r: r.run("", dict), ValueError, "name: expected a stage name"),
+        (lambda r: r.run("s", dict, sharded="no"), TypeError, "sharded: expected True or False"),
+        (lambda r: r.run("s", lambda: {"a": torch.ones(2)}), TypeError, "summary of stage 's'"),
+    ],
+)
+def test_a_stage_the_runner_cannot_run_or_record_is_refused_by_name(tmp_path, call, error, words):
+    runner = StageRunner(tmp_path / "run", lambda line: None)
+    with pytest.raises(error) as info:
+        call(runner)
+    assert words in str(info.value)
+    assert not (tmp_path / "run" / "stages" / "s.json").exists()  # no marker of a bad stage
+
+
+def test_a_pattern_cannot_reach_files_outside_the_run_directory(tmp_path):
+    precious = tmp_path / "victim" / "precious.txt"
+    precious.parent.mkdir()
+    precious.write_text("mine")
+    runner = StageRunner(tmp_path / "run", lambda line: None)
+    with pytest.raises(ValueError, match="outputs"):
+        runner.run("s", dict, outputs=["../victim/*"])
+    assert precious.read_text() == "mine"
+    assert not (tmp_path / "evil.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        ({"run_dir": 5}, "run_dir: expected a str or a path, got int"),
+        ({"log": None}, "log: expected a callable"),
+        ({"settings": [1, 2]}, "settings: expected a mapping"),
+    ],
+)
+def test_a_runner_refuses_bad_arguments_by_name(tmp_path, kwargs, words):
+    args = {"run_dir": tmp_path, "log": print, **kwargs}
+    with pytest.raises(TypeError) as info:
+        StageRunner(args.pop("run_dir"), **args)
+    assert words in str(info.value)
+
+
+def test_a_stage_name_runs_once_per_runner(tmp_path):
+    runner = StageRunner(tmp_path, lambda line: None)
+    runner.run("s", lambda: {"n": 1})
+    with pytest.raises(ValueError, match="stage 's' already ran in this runner"):
+        runner.run("s", lambda: {"n": 2})
+
+
+def test_a_summary_reads_the_same_whether_the_stage_ran_or_was_reused(tmp_path):
+    import numpy as np
+
+    def fn():
+        return {"p": np.float32(0.5), "n": np.int64(3), "ok": np.bool_(True), "pair": (1, 2)}
+
+    first = StageRunner(tmp_path, lambda line: None).run("s", fn)
+    again = StageRunner(tmp_path, lambda line: None).run("s", fn)
+    assert first == again
+    assert {k: type(first[k]) for k in ("p", "n", "ok", "pair")} == {
+        "p": float,
+        "n": int,
+        "ok": bool,
+        "pair": list,
+    }
+    assert (first["p"], first["n"], first["ok"], first["pair"]) == (0.5, 3, True, [1, 2])
+    with pytest.raises(TypeError, match="a NumPy array of shape"):
+        StageRunner(tmp_path, lambda line: None).run("t", lambda: {"a": np.zeros(2000)})
+
+
+def test_a_run_with_a_nan_setting_resumes(tmp_path):
+    settings = {"threshold": float("nan"), "seed": 0}
+    StageRunner(tmp_path, lambda line: None, settings=settings).run("s", lambda: {"n": 1})
+    lines = []
+    StageRunner(tmp_path, lines.append, settings=settings).run("s", lambda: {"n": 2})
+    assert any("done earlier" in line for line in lines)
+    with pytest.raises(ValueError, match="threshold"):
+        StageRunner(tmp_path, lines.append, settings={"threshold": 1.0, "seed": 0})
