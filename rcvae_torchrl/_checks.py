@@ -125,6 +125,27 @@ def check_unit_interval(name: str, value: object, *, include_zero: bool = True) 
         raise ValueError(f"{name}: expected a float in {interval}, got {value!r}")
 
 
+def check_names(name: str, names: object, count: int | None = None) -> tuple[str, ...]:
+    """Require distinct names (a sequence of str, not one str that would read letter by
+    letter), ``count`` of them where given (one per dimension); returns them as a tuple."""
+    if isinstance(names, (str, bytes)) or not isinstance(names, Sequence):
+        raise TypeError(f"{name}: expected a sequence of names (str), got {names!r}")
+    names = tuple(names)
+    if not all(isinstance(n, str) for n in names):
+        raise TypeError(f"{name}: expected a sequence of names (str), got {names!r}")
+    if count is not None and len(names) != count:
+        raise ValueError(
+            f"{name}: expected {count} names (one per observation dimension), got {len(names)}"
+        )
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(
+            f"{name}: expected distinct names (results are kept by name), got {repeated} more "
+            f"than once in {list(names)}"
+        )
+    return names
+
+
 def check_choice(name: str, value: object, choices: Sequence[str]) -> None:
     """Require ``value`` to be one of ``choices``."""
     if not isinstance(value, str) or value not in choices:
@@ -210,6 +231,7 @@ def check_bounds(name: str, low: object, high: object, *, finite: bool = False) 
 
 def check_min_rank(name: str, x: Tensor, min_rank: int, layout: str) -> None:
     """Require ``x.ndim >= min_rank``; ``layout`` describes the expected shape."""
+    check_tensor(name, x)
     if x.ndim < min_rank:
         raise ValueError(
             f"{name}: expected shape {layout} (at least {min_rank} dims), "
@@ -219,6 +241,7 @@ def check_min_rank(name: str, x: Tensor, min_rank: int, layout: str) -> None:
 
 def check_rank(name: str, x: Tensor, rank: int, layout: str) -> None:
     """Require ``x.ndim == rank``; ``layout`` describes the expected shape."""
+    check_tensor(name, x)
     if x.ndim != rank:
         raise ValueError(
             f"{name}: expected shape {layout} ({rank} dims), "
@@ -228,6 +251,7 @@ def check_rank(name: str, x: Tensor, rank: int, layout: str) -> None:
 
 def check_shape(name: str, x: Tensor, expected: Sequence[int], layout: str) -> None:
     """Require ``x.shape == expected``; ``layout`` names the axes, e.g. ``"[*B, C, H, *A]"``."""
+    check_tensor(name, x)
     if tuple(x.shape) != tuple(expected):
         raise ValueError(
             f"{name}: expected shape {layout} = {tuple(expected)}, got {tuple(x.shape)}"
@@ -236,6 +260,7 @@ def check_shape(name: str, x: Tensor, expected: Sequence[int], layout: str) -> N
 
 def check_trailing(name: str, x: Tensor, trailing: Sequence[int], layout: str) -> None:
     """Require ``x.shape`` to end with ``trailing``; ``layout`` describes it (``[*B, S=5]``)."""
+    check_tensor(name, x)
     n = len(trailing)
     if x.dim() < n or tuple(x.shape[x.dim() - n :]) != tuple(trailing):
         raise ValueError(f"{name}: expected shape {layout}, got {tuple(x.shape)}")
@@ -304,6 +329,10 @@ def make_generator(
 
     A seed must be an integer in ``[0, 2**63)``, the range torch's generators accept.
     """
+    if generator is not None and not isinstance(generator, torch.Generator):
+        raise TypeError(
+            f"generator: expected a torch.Generator or None, got {type(generator).__name__}"
+        )
     if generator is not None and seed is not None:
         raise ValueError(f"seed: expected None when a generator is given, got {seed!r}")
     if seed is None:

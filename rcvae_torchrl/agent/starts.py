@@ -192,6 +192,11 @@ def reset_by_seed(env: EnvBase, start: TensorDictBase) -> TensorDictBase:
     _check_start(start, "seed", "draw_starts(env, seeds)")
     env.set_seed(int(start["seed"]) % 2**32)  # as draw_starts' seed_env gave it
     td = env.reset()
+    if start["observation"].shape != td["observation"].shape:
+        raise ValueError(
+            f"start['observation']: expected the env's observation shape "
+            f"{list(td['observation'].shape)}, got {list(start['observation'].shape)}"
+        )
     if not torch.equal(td["observation"], start["observation"].to(td["observation"])):
         raise ValueError(
             f"start: the seeded reset (seed {int(start['seed'])}) did not give the recorded "

@@ -20,6 +20,7 @@ from rcvae_torchrl._checks import (  # noqa: F401  (re-exported for the competen
     check_finite,
     check_floating,
     check_min_rank,
+    check_names,
     check_non_negative_int,
     check_positive,
     check_positive_int,

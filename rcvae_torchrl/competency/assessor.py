@@ -198,6 +198,7 @@ class CompetencyAssessor(KeyedModule):
             estimator_args["bias_correction"] = "shuffle"
         self.model_env = model_env
         self.success_metric = SuccessMetric(boundary, confidence, interval)
+        self.success_metric.warn_short = False  # a short horizon is warned of below, once
         self.dim_names = _dim_names(dim_names, model_env.ensemble.config)
         # the model's names when none are given: the metric's per-dimension entries and its
         # warnings name the dimensions as the report does
@@ -881,12 +882,7 @@ def _dim_names(names: Sequence[str] | None, config: Any) -> tuple[str, ...]:
     obs_dim = config.obs_dim
     if names is None:
         return tuple(getattr(config, "names", None) or (f"obs[{i}]" for i in range(obs_dim)))
-    names = tuple(names)
-    if len(names) != obs_dim:
-        raise ValueError(
-            f"dim_names: expected {obs_dim} names (one per observation dimension), got {len(names)}"
-        )
-    return names
+    return _checks.check_names("dim_names", names, obs_dim)
 
 
 def _derived_generator(source: torch.Generator) -> torch.Generator:

@@ -237,7 +237,7 @@ class UncertaintyMetric(KeyedModule):
         self.register_buffer("bin_width", width)
         self.estimator = estimator
         self.estimator_args = estimator_args
-        self.dim_names = None if dim_names is None else tuple(dim_names)
+        self.dim_names = None if dim_names is None else _checks.check_names("dim_names", dim_names)
         self.dim_reduction = dim_reduction
         self.episode_end = bool(episode_end)
         self._warned_saturated = False  # bins too narrow for the samples: said once
@@ -399,10 +399,14 @@ class SuccessMetric(KeyedModule):
         self.boundary = boundary
         self.confidence = confidence
         self.interval = interval
+        #: warn when rollouts end before a reach boundary's time limit (off where the caller
+        #: has said so already: the competency assessor warns at its construction)
+        self.warn_short = True
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Evaluate ``tensordict[observation]`` ``[E, N, *B, T, D]``; see the class docstring."""
         obs = _observation(tensordict, self.tensor_keys.observation)
+        self._check_length(obs.shape[-2])
         success_over_time, success, failure = self.boundary.outcome(obs)
         p, p_member = success_probability(success)
         trials = success.shape[0] * success.shape[1]
@@ -424,6 +428,27 @@ class SuccessMetric(KeyedModule):
         result = TensorDict()
         result.set(self.tensor_keys.competency, out)
         return result
+
+    def _check_length(self, steps: int) -> None:
+        """Rollouts of ``steps`` steps against the boundary's time limit: a survival boundary
+        is decided at its limit (shorter rollouts would read as never surviving), and a reach
+        boundary's forecast then answers the shorter deadline."""
+        limit = self.boundary.time_limit
+        if steps >= limit:
+            return
+        if self.boundary.is_survival:
+            raise ValueError(
+                f"observation: a survival boundary is decided at its time limit ({limit} "
+                f"steps), so the rollouts must last that long; expected T >= {limit}, got "
+                f"T = {steps}"
+            )
+        if self.warn_short and limit < math.inf:
+            warnings.warn(
+                f"observation: rollouts of {steps} steps, shorter than the boundary's time limit "
+                f"of {limit} steps: P(success) answers success within {steps} steps; roll out "
+                f"at least {limit} steps for the boundary's deadline",
+                stacklevel=3,
+            )
 
     def _time_to_success(self, success_over_time: Tensor) -> dict[str, Tensor]:
         stats = time_to_success(success_over_time)._asdict()

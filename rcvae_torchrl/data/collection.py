@@ -133,6 +133,9 @@ def collect_episodes(
                 bar.update(min(finished, num_episodes - bar.n))
                 if ended >= num_episodes or frames >= max_frames:
                     break
+    except Exception as err:
+        _refuse_policy_actions(env, policy, err)
+        raise
     finally:
         collector.shutdown()
         bar.close()
@@ -140,6 +143,29 @@ def collect_episodes(
     check_actions(env, data)
     _check_finite_observations(env, data)
     return data
+
+
+def _refuse_policy_actions(env: EnvBase, policy: object, err: Exception) -> None:
+    """After a collection failed with ``err``: where the policy's action has another shape
+    than the env's batch and action spec give (a simulator handed it fails inside its own step,
+    a broadcast error that does not name the policy), a ``ValueError`` saying so, from ``err``.
+    Checked only once a step failed, so that a collection draws nothing more from the
+    policy's random streams than its steps do."""
+    try:
+        with torch.no_grad():
+            td = env.reset()
+            out = policy(td)
+        action = (td if out is None else out).get(env.action_key, None)
+        wanted = (*env.batch_size, *env.action_spec_unbatched.shape)
+    except Exception:  # the diagnosis failed too: the original error says more
+        return
+    if isinstance(action, torch.Tensor) and tuple(action.shape) != wanted:
+        raise ValueError(
+            f"policy: expected actions of shape {wanted} (the env's batch "
+            f"{list(env.batch_size)} and its action_spec's "
+            f"{list(env.action_spec_unbatched.shape)}), got {tuple(action.shape)}; the env "
+            f"failed on them: {type(err).__name__}: {err}"
+        ) from err
 
 
 def _seeded(make_env: Callable[[], EnvBase], seed: int, index: int) -> EnvBase:

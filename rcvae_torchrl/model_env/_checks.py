@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from tensordict import TensorDictBase
 
@@ -51,6 +53,17 @@ def check_observation(ensemble: RCVAEEnsemble, name: str, observation: torch.Ten
     check_dtype(name, observation, ensemble.dtype)
 
 
+def check_batch_observation(name: str, observation: torch.Tensor, batch: Sequence[int]) -> None:
+    """Require ``observation [*B, S]`` with ``[*B]`` its tensordict's ``batch`` (a tensordict
+    built without its batch_size is the usual cause)."""
+    if tuple(observation.shape[:-1]) != tuple(batch):
+        raise ValueError(
+            f"{name}: expected shape [*B, S={observation.shape[-1]}] with [*B] the tensordict's "
+            f"batch_size {list(batch)}, got {tuple(observation.shape)}; build it with "
+            f"TensorDict({{...}}, batch_size={list(observation.shape[:-1])})"
+        )
+
+
 def check_evaluation_inputs(
     ensemble: RCVAEEnsemble, td_start: TensorDictBase, actions: torch.Tensor, particles: object
 ) -> torch.Tensor:
@@ -65,6 +78,7 @@ def check_evaluation_inputs(
         raise KeyError(f"td_start: expected an {OBSERVATION_KEY!r} entry [*B, S].")
     observation = td_start.get(OBSERVATION_KEY)
     check_trailing("td_start['observation']", observation, (cfg.obs_dim,), "[*B, S]")
+    check_batch_observation("td_start['observation']", observation, batch)
     check_dtype("td_start['observation']", observation, dtype)
     what = f"[*B, C, H, A] with B = {batch}, A = {cfg.action_dim}"
     if (

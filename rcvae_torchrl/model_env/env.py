@@ -174,6 +174,11 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             )
         task = Task(reward_fn, success_fn, terminate_on_success)
         device = ensemble.device
+        cfg, like = ensemble.config, {"dtype": ensemble.dtype, "device": device}
+        with torch.no_grad():  # two states: a function reducing over the batch shows
+            task.check_batched(
+                torch.zeros(2, cfg.obs_dim, **like), torch.zeros(2, cfg.action_dim, **like)
+            )
         generator = make_generator(generator, seed, device)
         transition = make_transition_module(
             ensemble,
@@ -270,6 +275,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
             return
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
+            raise ValueError(f"seed: expected an integer in [0, 2**63), got {seed!r}")
         if self.generator is None:
             self.generator = torch.Generator(device=self.device)
             if hasattr(self.world_model, "generator"):
@@ -287,12 +294,7 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
             observation = self._sample_start_states(batch)
         else:
             _checks.check_observation(self.ensemble, "tensordict['observation']", given)
-            if given.shape[:-1] != batch:
-                raise ValueError(
-                    f"tensordict['observation']: expected shape [*B, S={given.shape[-1]}] with "
-                    f"[*B] the tensordict's batch_size {list(batch)}, got {tuple(given.shape)}; "
-                    f"build it with TensorDict({{...}}, batch_size={list(given.shape[:-1])})"
-                )
+            _checks.check_batch_observation("tensordict['observation']", given, batch)
             observation = given.clone()
         member = None if tensordict is None else tensordict.get(MEMBER_KEY, None)
         state = self._initial_state(observation, member)

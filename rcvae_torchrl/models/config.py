@@ -6,6 +6,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from rcvae_torchrl._checks import check_names
+
 __all__ = ["RCVAEConfig"]
 
 
@@ -120,18 +122,9 @@ class RCVAEConfig:
         object.__setattr__(self, "passthrough_dims", tuple(dims))
         self._check_passthrough()
         if self.observation_names is not None:
-            names = self.observation_names
-            if isinstance(names, (str, bytes)) or not all(isinstance(n, str) for n in names):
-                raise TypeError(
-                    "RCVAEConfig.observation_names must be a sequence of strings (one per state "
-                    f"dimension), got {names!r}."
-                )
-            names = tuple(names)
-            if len(names) != self.obs_dim:
-                raise ValueError(
-                    f"RCVAEConfig.observation_names: expected {self.obs_dim} names (one per "
-                    f"state dimension), got {len(names)}"
-                )
+            names = check_names(
+                "RCVAEConfig.observation_names", self.observation_names, self.obs_dim
+            )
             object.__setattr__(self, "observation_names", names)
 
     def _check_passthrough(self) -> None:

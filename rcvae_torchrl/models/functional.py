@@ -57,6 +57,13 @@ def standard_normal(
     """
     if generator is None or isinstance(generator, torch.Generator):
         return torch.randn(shape, generator=generator, dtype=like.dtype, device=like.device)
+    if not isinstance(generator, Sequence) or not all(
+        isinstance(g, torch.Generator) for g in generator
+    ):
+        raise TypeError(
+            "generator: expected a torch.Generator, one per leading row, or None, got "
+            f"{type(generator).__name__}"
+        )
     if len(generator) != shape[0]:
         raise ValueError(
             f"generator: expected one generator per leading row ({shape[0]}), got {len(generator)}"

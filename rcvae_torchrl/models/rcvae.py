@@ -369,15 +369,24 @@ class RCVAEEnsemble(nn.Module):
             generator: torch generator for the noise not given.
         """
         # shapes and dtypes only (no data read: this is the imagination's hot path)
-        s, a = self.config.obs_dim, self.config.action_dim
-        if obs_prev.shape[-1] != s or action_prev.shape[-1] != a:
-            raise ValueError(
-                f"obs_prev, action_prev: expected [E, *B, S={s}] and [E, *B, A={a}], got "
-                f"{tuple(obs_prev.shape)} and {tuple(action_prev.shape)}"
-            )
-        if obs_prev.dtype != self.dtype or action_prev.dtype != self.dtype:
-            check_dtype("obs_prev", obs_prev, self.dtype)
-            check_dtype("action_prev", action_prev, self.dtype)
+        lead = obs_prev.shape[:-1]
+        if (
+            obs_prev.shape[-1] != self.config.obs_dim
+            or action_prev.shape[-1] != self.config.action_dim
+            or action_prev.shape[:-1] != lead
+            or hidden.shape[:-1] != lead
+            or hidden.shape[-1] != self.carry_dim
+            or lead[:1] != (self.ensemble_size,)
+        ):
+            self._refuse_step_shapes(hidden, obs_prev, action_prev)
+        dtype = self.dtype
+        if obs_prev.dtype != dtype or action_prev.dtype != dtype or hidden.dtype != dtype:
+            for name, x in (
+                ("hidden", hidden),
+                ("obs_prev", obs_prev),
+                ("action_prev", action_prev),
+            ):
+                check_dtype(name, check_tensor(name, x), dtype)
         # recur, prior and decode as one hot path (the modules' numbers, fewer ops and calls)
         x = self.embed_inputs(obs_prev, action_prev)
         hidden, episode = self._split_carry(hidden)
@@ -391,6 +400,24 @@ class RCVAEEnsemble(nn.Module):
         mean, std = gaussian_head(raw, log_std_bounds=bounds)
         delta = reparameterize(mean, std, noise_obs, generator)
         return StepOutput(hidden, latent, self.apply_delta(obs_prev, delta), mean, std)
+
+    def _refuse_step_shapes(self, *inputs: Any) -> None:
+        """:meth:`step`'s inputs whose shapes do not agree, refused naming each one's."""
+        for name, x in zip(("hidden", "obs_prev", "action_prev"), inputs, strict=True):
+            check_tensor(name, x)
+        e, s, a, c = (
+            self.ensemble_size,
+            self.config.obs_dim,
+            self.config.action_dim,
+            self.carry_dim,
+        )
+        hidden, obs_prev, action_prev = inputs
+        raise ValueError(
+            f"hidden, obs_prev, action_prev: expected [E={e}, *B, {c}], [E={e}, *B, S={s}] and "
+            f"[E={e}, *B, A={a}] with the same [*B], got {tuple(hidden.shape)}, "
+            f"{tuple(obs_prev.shape)} and {tuple(action_prev.shape)} (initial_hidden gives "
+            "the first hidden state)"
+        )
 
     # ----------------------------------------------------------------- training pass
     def forward(

@@ -12,7 +12,7 @@ from torchrl.data import TensorSpec
 from torchrl.envs import EnvBase
 from torchrl.modules.planners.common import MPCPlannerBase
 
-from rcvae_torchrl._checks import check_bounds, make_generator
+from rcvae_torchrl._checks import check_bounds, check_positive, make_generator
 from rcvae_torchrl.planners import _checks
 from rcvae_torchrl.planners.evaluation import (
     ParticleReturns,
@@ -146,6 +146,12 @@ class CEMPlanner(MPCPlannerBase):
         _checks.check_unit_interval("discount", discount, include_zero=False)
         _checks.check_bool("warm_start", warm_start)
         action_key = unravel_key(env.action_key if action_key is None else action_key)
+        actions = env.full_action_spec.keys(True, True)
+        if action_key not in actions:
+            raise ValueError(
+                f"action_key: expected one of the env's action keys {sorted(map(str, actions))}, "
+                f"got {action_key!r}"
+            )
         super().__init__(env=env, action_key=action_key)
         self.action_spec = _continuous_action_spec(env, action_key)
         self.horizon, self.num_candidates, self.top_k = horizon, num_candidates, top_k
@@ -162,8 +168,8 @@ class CEMPlanner(MPCPlannerBase):
         self._plan: tuple[Tensor, Tensor] | None = None
         if proposal is not None and not callable(proposal):
             raise TypeError(f"proposal: expected a callable or None, got {type(proposal).__name__}")
-        if proposal_std is not None and not proposal_std > 0:
-            raise ValueError(f"proposal_std: expected > 0 or None, got {proposal_std!r}")
+        if proposal_std is not None:
+            check_positive("proposal_std", proposal_std)
         self.proposal, self.proposal_std = proposal, proposal_std
 
     def _register_bounds(self, init_std: float | Tensor | None) -> None:

@@ -40,6 +40,10 @@ def action_prior(
     mean = torch.where(bounded, (low + high) / 2, torch.zeros_like(low).clamp(low, high))
     std = torch.where(bounded, (high - low) / 4, torch.ones_like(low))
     if init_std is not None:
+        if not isinstance(init_std, (int, float, torch.Tensor)) or isinstance(init_std, bool):
+            raise TypeError(
+                f"init_std: expected a positive number or a tensor [*A], got {init_std!r}"
+            )
         given = torch.as_tensor(init_std, dtype=low.dtype, device=low.device)
         if not bool((given > 0).all()) or not bool(torch.isfinite(given).all()):
             raise ValueError(f"init_std: expected positive finite values, got {given.tolist()}")

@@ -119,6 +119,20 @@ class Task:
                 f"terminate_on_success: expected True or False, got {self.terminate_on_success!r}"
             )
 
+    def check_batched(self, observation: torch.Tensor, action: torch.Tensor) -> None:
+        """Call both functions once on a batch (``observation [B, S]``, ``action [B, A]``,
+        B >= 2) and refuse outputs of another shape than the batch's: a function that reduces
+        over the batch (``.any()``, ``.sum()``) gives one value, which an unbatched check
+        cannot tell from a right one. Where a function raises on these states, nothing is
+        judged here (its first step, on real states, will)."""
+        try:
+            reward = self.reward_fn(observation=observation, action=action)
+            success = self.success_fn(observation=observation)
+        except Exception:  # e.g. states it was not written for: judged at its first step
+            return
+        self.checked_reward(reward, observation)
+        self.checked_success(success, observation)
+
     # ------------------------------------------------------------------ one step, any batch
     def reward(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """``reward_fn`` checked and shaped ``[*B, 1]`` (the observation's dtype)."""
@@ -144,7 +158,8 @@ class Task:
                 f"success_fn: expected a bool tensor, got dtype {success.dtype} (compare with a "
                 "threshold, e.g. distance <= radius)"
             )
-        expected = "a flag of shape [*B] or [*B, 1]"
+        batch = tuple(observation.shape[:-1])
+        expected = f"a flag of shape [*B] = {batch} or [*B, 1] = {(*batch, 1)}"
         return _column("success_fn", success, observation, expected)
 
     def terminated(self, success: torch.Tensor) -> torch.Tensor:

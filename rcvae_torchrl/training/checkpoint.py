@@ -65,6 +65,12 @@ def save_ensemble(
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
     _check_extra(extra)
     payload = ensemble_payload(ensemble, extra)
+    for name, value in payload["state_dict"].items():  # load_ensemble refuses them
+        if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+            raise ValueError(
+                f"ensemble: {name!r} holds NaN or infinite values (its training diverged?), "
+                "and load_ensemble refuses such a model: nothing was written"
+            )
     return save_torch(path, payload)
 
 
@@ -123,6 +129,11 @@ def load_ensemble(
         CheckpointError: missing, corrupt or truncated file; another kind of file; an unknown
             format version; a config or weights that do not match.
     """
+    if expected_config is not None and not isinstance(expected_config, RCVAEConfig):
+        raise TypeError(
+            "expected_config: expected an RCVAEConfig or None, got "
+            f"{type(expected_config).__name__}"
+        )
     device = _device(map_location)
     payload = read_checkpoint(path)
     if "training" in payload:  # train_ensemble's checkpoint_path: for resuming, not a model

@@ -20,6 +20,7 @@ import dataclasses
 import inspect
 import logging
 import math
+import os
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -164,11 +165,18 @@ class TrainConfig:
         check_positive("beta", self.beta)
         check_non_negative("free_nats", self.free_nats)
         check_non_negative_int("open_loop_steps", self.open_loop_steps)
+        if self.open_loop_steps >= self.window:
+            raise ValueError(
+                f"open_loop_steps: expected fewer than the window's {self.window} steps (the "
+                f"first transition of a window reads a true state), got {self.open_loop_steps}"
+            )
         check_unit_interval("nll_beta", self.nll_beta)
         for name in ("bootstrap", "compile"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: expected True or False, got {getattr(self, name)!r}")
         check_non_negative_int("seed", self.seed)
+        if self.seed >= 2**63:  # torch's generators take seeds below 2**63
+            raise ValueError(f"seed: expected an integer in [0, 2**63), got {self.seed!r}")
         parallel = self.data_parallel
         if isinstance(parallel, bool) or not isinstance(parallel, int) or parallel < 1:
             raise ValueError(f"data_parallel: expected an integer >= 1, got {parallel!r}")
@@ -293,12 +301,24 @@ def train_ensemble(
     """
     if not isinstance(ensemble, RCVAEEnsemble):
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
+    if checkpoint_path is not None and not isinstance(checkpoint_path, (str, os.PathLike)):
+        raise TypeError(
+            f"checkpoint_path: expected a str, a path or None, got {type(checkpoint_path).__name__}"
+        )
     path = Path(checkpoint_path) if checkpoint_path is not None else None
     if resume and path is None:
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")
     check_args = _check_args(checks)
+    for name, flag in (("resume", resume), ("progress", progress)):
+        check_bool(name, flag)
     check_bool("novelty", novelty)
     check_bool("dynamics", dynamics)
+    if not isinstance(log_prefix, str):
+        raise TypeError(f"log_prefix: expected a str, got {type(log_prefix).__name__}")
+    if logger is not None and not callable(getattr(logger, "log_scalar", None)):
+        raise TypeError(
+            f"logger: expected a TorchRL Logger or None (make_logger makes one), got {logger!r}"
+        )
     if path is not None:
         _check_checkpoint_path(path, resume)
     if not isinstance(config, TrainConfig):

@@ -177,6 +177,13 @@ def test_a_reset_that_is_not_a_function_of_the_seed_is_detected(reacher):
     start["observation"] = start["observation"] + 1.0
     with pytest.raises(ValueError, match="not a function of its seed"):
         reset_by_seed(reacher, start)
+    short = draw_starts(reacher, [1])[0].clone()
+    short["observation"] = short["observation"][:4]  # another env's starts, say
+    size = reacher.observation_spec["observation"].shape[-1]
+    with pytest.raises(
+        ValueError, match=rf"expected the env's observation shape \[{size}\], got \[4\]"
+    ):
+        reset_by_seed(reacher, short)
     with pytest.raises(TypeError, match="expected a TorchRL env over a dm_control environment"):
         reset_to_physics(object(), start)
     from torchrl.envs import PendulumEnv, StepCounter, TransformedEnv

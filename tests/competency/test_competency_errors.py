@@ -327,3 +327,35 @@ def test_a_ball_around_its_own_position_is_refused():
         SuccessBoundary.ball([0], 0.1, target=[0], time_limit=5)
     SuccessBoundary.ball([0], 0.1, target=[1], time_limit=5)
     SuccessBoundary.ball([0], 0.1, target=torch.tensor([0.5]), time_limit=5)
+
+
+def test_rollouts_shorter_than_the_boundary_s_time_limit():
+    """A survival boundary is decided at its limit: shorter rollouts would read as never
+    surviving (P = 0); a reach boundary's forecast answers the shorter deadline, with a
+    warning."""
+    obs = torch.zeros(2, 3, 4, 5, 1)  # E, N, B, T = 5, D
+    rollout = TensorDict({"observation": obs}, batch_size=obs.shape[:-1])
+    survive = SuccessBoundary.survival(lambda s: s[..., 0] > 1.0, time_limit=8)
+    with pytest.raises(ValueError, match=r"expected T >= 8, got T = 5"):
+        SuccessMetric(survive)(rollout)
+    reach = SuccessBoundary(lambda s: s[..., 0] > -1.0, time_limit=8)
+    with pytest.warns(UserWarning, match="rollouts of 5 steps, shorter than the boundary's"):
+        out = SuccessMetric(reach)(rollout)
+    assert bool(out["competency", "p_success"].eq(1.0).all())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        SuccessMetric(SuccessBoundary(lambda s: s[..., 0] > -1.0, time_limit=5))(rollout)
+
+
+@pytest.mark.parametrize(
+    ("names", "error", "words"),
+    [
+        (["a", "a", "b"], ValueError, "dim_names: expected distinct names"),
+        ("abc", TypeError, "dim_names: expected a sequence of names (str), got 'abc'"),
+        ([1, 2], TypeError, "dim_names: expected a sequence of names (str)"),
+    ],
+)
+def test_dimension_names_are_distinct_strings(names, error, words):
+    with pytest.raises(error) as info:
+        UncertaintyMetric(bin_width=0.1, dim_names=names)
+    assert words in str(info.value)

@@ -341,6 +341,12 @@ def test_collection_refuses_actions_out_of_the_spec_and_too_few_frames(num_envs)
         collect_episodes(make_env, make_policy_module(_Constant(1.25)), 2, **args)
     with pytest.raises(TypeError, match=r"expected actions of the env's action_spec dtype"):
         collect_episodes(make_env, make_policy_module(_Constant(0.0, torch.float64)), 1, **args)
+    # the simulator fails inside its own step on another width: the policy is named
+    wanted = (2,) if num_envs == 1 else (num_envs, 2)
+    with pytest.raises(ValueError) as info:
+        collect_episodes(make_env, make_policy_module(_Constant(0.0, dims=3)), 1, **args)
+    assert str(info.value).startswith(f"policy: expected actions of shape {wanted}")
+    assert f"got {(*wanted[:-1], 3)}; the env failed on them" in str(info.value)
     reads_position = TensorDictModule(_Constant(0.0), in_keys=["position"], out_keys=["action"])
     with pytest.raises(
         KeyError,

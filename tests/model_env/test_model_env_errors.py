@@ -114,15 +114,21 @@ def test_reset_inputs(make_env, starts):
 
 
 def test_task_functions_with_wrong_outputs(ensemble, starts):
-    td = TensorDict({"observation": starts[:3], "action": torch.zeros(3, 2)}, batch_size=[3])
-    env = RCVAEEnsembleEnv(ensemble, lambda observation, action: observation, pusher_success)
+    """Refused when the env is made (they are called once on a batch of two states), and at a
+    step where they only go wrong on real states."""
     with pytest.raises(ValueError, match="reward_fn: expected a reward of shape"):
-        env.step(td)
-    env = RCVAEEnsembleEnv(ensemble, pusher_reward, lambda observation: observation[..., :2] > 0)
+        RCVAEEnsembleEnv(ensemble, lambda observation, action: observation, pusher_success)
     with pytest.raises(ValueError, match="success_fn: expected a flag"):
-        env.step(td)
-    env = RCVAEEnsembleEnv(ensemble, lambda observation, action: 0.0, pusher_success)
+        RCVAEEnsembleEnv(ensemble, pusher_reward, lambda observation: observation[..., :2] > 0)
     with pytest.raises(TypeError, match="reward_fn: expected a tensor"):
+        RCVAEEnsembleEnv(ensemble, lambda observation, action: 0.0, pusher_success)
+
+    def later(observation, action):  # wrong only away from the zero states
+        return observation if bool((observation != 0).any()) else observation[..., :1]
+
+    td = TensorDict({"observation": starts[:3], "action": torch.zeros(3, 2)}, batch_size=[3])
+    env = RCVAEEnsembleEnv(ensemble, later, pusher_success)
+    with pytest.raises(ValueError, match="reward_fn: expected a reward of shape"):
         env.step(td)
 
 
@@ -318,3 +324,70 @@ def test_a_dtype_mismatch_is_told_which_way_to_cast(pusher_data, real_env):
         check_dtype("x", torch.zeros(2), torch.float64)
     with pytest.raises(TypeError, match=r"append a DoubleToFloat transform$"):
         check_dtype("x", torch.zeros(2, dtype=torch.float64), torch.float32)
+
+
+@pytest.mark.parametrize(
+    ("reward_fn", "success_fn", "words"),
+    [
+        (
+            pusher_reward,
+            lambda observation: (observation[..., 0] > 9).any(),
+            "success_fn: expected a flag of shape [*B] = (2,) or [*B, 1] = (2, 1)",
+        ),
+        (
+            lambda observation, action: observation.sum(),
+            pusher_success,
+            "reward_fn: expected a reward of shape [*B, 1] = (2, 1)",
+        ),
+    ],
+)
+def test_task_functions_that_reduce_over_the_batch_are_refused_when_the_env_is_made(
+    ensemble, reward_fn, success_fn, words
+):
+    """Unbatched, one value has the right shape; on a batch of two it shows."""
+    with pytest.raises(ValueError) as info:
+        RCVAEEnsembleEnv(ensemble, reward_fn, success_fn)
+    assert words in str(info.value)
+
+
+def test_task_functions_that_raise_on_zero_states_are_judged_at_their_first_step(ensemble):
+    def picky(observation):
+        if not bool((observation != 0).any()):
+            raise RuntimeError("not a state of mine")
+        return observation[..., 0] > 9
+
+    RCVAEEnsembleEnv(ensemble, pusher_reward, picky)  # made; judged on real states later
+
+
+@pytest.mark.parametrize(
+    ("call", "error", "words"),
+    [
+        (lambda env: env.set_seed("a"), ValueError, "seed: expected an integer in [0, 2**63)"),
+        (
+            lambda env: env.set_start_states([[0.0] * 14]),
+            TypeError,
+            "start_states: expected a torch.Tensor, got list",
+        ),
+    ],
+)
+def test_model_env_methods_refuse_other_types_by_name(ensemble, call, error, words):
+    env = RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success)
+    with pytest.raises(error) as info:
+        call(env)
+    assert words in str(info.value)
+
+
+def test_a_generator_of_another_type_is_refused_when_the_env_is_made(ensemble):
+    with pytest.raises(TypeError, match=r"generator: expected a torch\.Generator or None, got int"):
+        RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, generator=3)
+
+
+def test_a_plan_from_a_tensordict_without_its_batch_size_says_so(ensemble, starts):
+    from rcvae_torchrl.planners import CEMPlanner
+
+    env = RCVAEEnsembleEnv(ensemble, pusher_reward, pusher_success, seed=0)
+    planner = CEMPlanner(env, horizon=3, num_candidates=8, top_k=2)
+    with pytest.raises(ValueError, match=r"batch_size \[\]") as info:
+        planner(TensorDict({"observation": starts[:2]}, []))
+    assert "build it with TensorDict({...}, batch_size=[2])" in str(info.value)
+    assert planner(TensorDict({"observation": starts[:2]}, [2]))["action"].shape == (2, 2)

@@ -106,6 +106,10 @@ def test_task_functions_score_the_whole_horizon_in_one_call(ensemble, real_env, 
         return pusher_success(observation)
 
     env = make_rcvae_env(ensemble, real_env, reward, success, terminate_on_success=True, seed=0)
+    # made, the env called each once on a batch of two states (a check of their shapes)
+    assert shapes == {"reward": [(2, 14, 2)], "success": [(2, 14)]}
+    shapes["reward"].clear()
+    shapes["success"].clear()
     c, h, p = 3, 5, 2 * E
     actions = torch.rand(1, c, h, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
     env.evaluate_action_sequences(_start(starts, (1,)), actions, p)

@@ -70,10 +70,24 @@ def test_a_step_of_another_layout_is_refused(ensemble):
     hidden = torch.zeros(E, 3, ensemble.carry_dim)
     obs, act = torch.zeros(E, 3, 5), torch.zeros(E, 3, 2)
     assert ensemble.step(hidden, obs, act).observation.shape == (E, 3, 5)
-    with pytest.raises(ValueError, match=r"expected \[E, \*B, S=5\] and \[E, \*B, A=2\]"):
-        ensemble.step(hidden, obs, act[..., :1])  # would broadcast over A = 2
+    layout = rf"expected \[E={E}, \*B, {ensemble.carry_dim}\], \[E={E}, \*B, S=5\] and "
+    bad = {
+        "action width": (hidden, obs, act[..., :1]),  # would broadcast over A = 2
+        "members": (hidden[:1], obs[:1], act[:1]),
+        "hidden batch": (torch.zeros(E, 2, ensemble.carry_dim), obs, act),
+        "hidden width": (hidden[..., :-1], obs, act),
+        "action batch": (hidden, obs, torch.zeros(E, 2, 2)),
+    }
+    for case, inputs in bad.items():
+        with pytest.raises(ValueError, match=r"^hidden, obs_prev, action_prev: " + layout):
+            ensemble.step(*inputs)
+            pytest.fail(case)
     with pytest.raises(TypeError, match=r"^action_prev: expected dtype torch.float32"):
         ensemble.step(hidden, obs, act.double())
+    with pytest.raises(TypeError, match=r"^hidden: expected dtype torch.float32"):
+        ensemble.step(hidden.double(), obs, act)
+    with pytest.raises(TypeError, match=r"^obs_prev: expected a torch.Tensor, got ndarray"):
+        ensemble.step(hidden, obs.numpy(), act)
 
 
 @pytest.mark.parametrize("indices", [[-1], [4], [0.5], [], [[0, 1]]])

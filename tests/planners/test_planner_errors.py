@@ -38,6 +38,8 @@ from rcvae_torchrl.planners import CEMPlanner
             {"init_std": torch.ones(3)},
             r"init_std: expected a scalar or shape \[\*A\] = \(2,\), got shape \(3,\)",
         ),
+        ({"proposal": lambda td: td, "proposal_std": math.inf}, "proposal_std: expected a pos"),
+        ({"action_key": "act"}, r"action_key: expected one of the env's action keys \['action'\]"),
     ],
 )
 def test_bad_arguments(kwargs, message):
@@ -149,3 +151,17 @@ def test_a_plan_no_finite_score_chose_is_refused():
     # the same planner on a sound task plans
     sound = CEMPlanner(PointMassEnv(), horizon=4, num_candidates=10, top_k=2, seed=0)
     assert torch.isfinite(sound(PointMassEnv().reset())["action"]).all()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"init_std": "big"}, "init_std: expected a positive number or a tensor"),
+        ({"proposal": lambda td: td, "proposal_std": "x"}, "proposal_std: expected a positive"),
+        ({"generator": 3}, "generator: expected a torch.Generator or None, got int"),
+    ],
+)
+def test_arguments_of_another_type(kwargs, message):
+    with pytest.raises((TypeError, ValueError)) as info:
+        CEMPlanner(PointMassEnv(), horizon=4, **kwargs)
+    assert message in str(info.value)

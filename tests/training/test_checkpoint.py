@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from rcvae_torchrl.io import CHECKSUM_KEY, atomic_write, load_torch, save_torch
-from rcvae_torchrl.models import RCVAEConfig
+from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
 from rcvae_torchrl.rollout import imagine
 from rcvae_torchrl.training import (
     FORMAT_VERSION,
@@ -215,3 +215,16 @@ def test_a_path_that_is_no_file_path_is_named(tmp_path, small_ensemble):
         f"{str(tmp_path / 'afile' / 'sub' / 'm.pt')!r}, where {str(tmp_path / 'afile')!r} is a file"
     )
     assert (tmp_path / "afile").read_text() == "mine"
+
+
+def test_a_model_that_would_not_load_back_is_not_saved(tmp_path):
+    model = RCVAEEnsemble(RCVAEConfig(3, 2, hidden_dim=8, mlp_dim=8, latent_dim=2), 2, seed=0)
+    with torch.no_grad():
+        model.embed.weight.fill_(float("nan"))
+    with pytest.raises(ValueError, match=r"ensemble: 'embed\.weight' holds NaN or infinite"):
+        save_ensemble(model, tmp_path / "m.pt")
+    assert not (tmp_path / "m.pt").exists()
+    good = RCVAEEnsemble(RCVAEConfig(3, 2, hidden_dim=8, mlp_dim=8, latent_dim=2), 2, seed=0)
+    save_ensemble(good, tmp_path / "g.pt")
+    with pytest.raises(TypeError, match="expected_config: expected an RCVAEConfig or None, got"):
+        load_ensemble(tmp_path / "g.pt", expected_config={"obs_dim": 3})

@@ -278,3 +278,43 @@ def test_a_fitted_normaliser_far_from_new_data_is_named(linear_data, small_ensem
         r"data lie elsewhere: observation\[0\] has mean 50 and std .* refit them first \(ensemble",
     ):
         _train(model, moved, val)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "words"),
+    [
+        ({"progress": "no"}, TypeError, "progress: expected True or False, got 'no'"),
+        ({"log_prefix": 5}, TypeError, "log_prefix: expected a str, got int"),
+        ({"logger": "csv"}, TypeError, "logger: expected a TorchRL Logger or None"),
+        ({"checkpoint_path": 5}, TypeError, "checkpoint_path: expected a str, a path or None"),
+    ],
+)
+def test_train_ensemble_refuses_arguments_of_another_type_by_name(
+    linear_data, small_ensemble, kwargs, error, words
+):
+    """A string is not a flag ('no' would read as True) and not a logger."""
+    train, val = linear_data
+    args = {"progress": False, "checks": False, "dynamics": False, **kwargs}
+    with pytest.raises(error) as info:
+        train_ensemble(small_ensemble(2), train, val, BUDGET, **args)
+    assert words in str(info.value)
+
+
+def test_resume_is_a_flag(linear_data, small_ensemble, tmp_path):
+    train, val = linear_data
+    with pytest.raises(TypeError, match="resume: expected True or False, got 'no'"):
+        _train(small_ensemble(2), train, val, resume="no", checkpoint_path=tmp_path / "c.pt")
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "words"),
+    [
+        ({"window": 8, "open_loop_steps": 8}, "open_loop_steps: expected fewer than the window"),
+        ({"seed": 2**70}, "seed: expected an integer in [0, 2**63)"),
+    ],
+)
+def test_train_config_refuses_what_training_would_clamp_or_overflow(kwargs, words):
+    with pytest.raises(ValueError) as info:
+        TrainConfig(**kwargs)
+    assert words in str(info.value)
+    assert TrainConfig(window=8, open_loop_steps=7).open_loop_steps == 7
