@@ -8,6 +8,7 @@ live beside it (e.g. ``model_env/_checks.py``) and are built from these.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -144,6 +145,26 @@ def check_names(name: str, names: object, count: int | None = None) -> tuple[str
             f"than once in {list(names)}"
         )
     return names
+
+
+def check_seeds(name: str, seeds: object) -> list[int]:
+    """Require a sequence of integer seeds (Python, NumPy or one-element integer tensors; a
+    float would be truncated, so two seeds could give one episode twice); returns them as
+    Python ints."""
+    if isinstance(seeds, (str, bytes, Tensor)) or not isinstance(seeds, Sequence):
+        raise TypeError(
+            f"{name}: expected a sequence of integer seeds (one per episode, e.g. range(10)), "
+            f"got {type(seeds).__name__} {seeds!r}"
+        )
+    out = []
+    for seed in seeds:
+        integer = isinstance(seed, numbers.Integral)  # Python's and NumPy's integers
+        if isinstance(seed, Tensor):
+            integer = seed.numel() == 1 and not seed.is_floating_point()
+        if isinstance(seed, bool) or not integer:
+            raise ValueError(f"{name}: expected integer seeds, got {seed!r}")
+        out.append(int(seed))
+    return out
 
 
 def check_choice(name: str, value: object, choices: Sequence[str]) -> None:

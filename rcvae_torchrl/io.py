@@ -165,7 +165,18 @@ def _strict(obj: Any, where: str = "obj") -> Any:
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else ("NaN" if math.isnan(obj) else json.dumps(obj))
     if isinstance(obj, Mapping):
+        for key in obj:
+            if not isinstance(key, (str, int, float, bool)) and key is not None:
+                raise TypeError(
+                    f"{where}: expected str keys (JSON's), got the key {key!r} of type "
+                    f"{type(key).__name__}"
+                )
         return {key: _strict(value, f"{where}[{key!r}]") for key, value in obj.items()}
+    if isinstance(obj, (set, frozenset)):
+        raise TypeError(
+            f"{where}: expected JSON values (numbers, strings, lists and dicts), got a set, "
+            "which would be written as its printed string: write sorted(...) as a list"
+        )
     if isinstance(obj, (list, tuple)):
         return [_strict(value, f"{where}[{i}]") for i, value in enumerate(obj)]
     _refuse_record(obj, where, "write_json")
@@ -298,13 +309,25 @@ def save_torch(path: str | Path, obj: Any) -> Path:
             "td.to_dict()"
         )
     _refuse_record(obj, "obj", "save_torch")
+    _refuse_module(obj, "obj")
     if isinstance(obj, dict):
         for key, value in obj.items():
             _refuse_record(value, f"obj[{key!r}]", "save_torch")
+            _refuse_module(value, f"obj[{key!r}]")
         if CHECKSUM_KEY in obj:
             raise ValueError(f"obj: {CHECKSUM_KEY!r} is the entry save_torch writes; rename it")
         obj = {**obj, CHECKSUM_KEY: fingerprint.digest(obj)}
     return atomic_write(path, lambda f: torch.save(obj, f))
+
+
+def _refuse_module(obj: Any, where: str) -> None:
+    """A module is refused: pickled whole, :func:`load_torch` would not read it back."""
+    if isinstance(obj, torch.nn.Module):
+        raise TypeError(
+            f"{where}: expected plain tensors, numbers and strings in lists and dicts, got a "
+            f"{type(obj).__name__} module, which load_torch would refuse to unpickle; save its "
+            ".state_dict() (or a world model with save_ensemble, a policy with save_policy)"
+        )
 
 
 def load_torch(path: str | Path, what: str = "a torch file", map_location: Any = "cpu") -> Any:
@@ -312,6 +335,13 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
     is missing, truncated or corrupt, or when a dict's content does not match the checksum
     :func:`save_torch` wrote with it (returned without that entry; a dict written before
     checksums, or by ``torch.save``, loads unchecked)."""
+    if isinstance(map_location, (str, torch.device)):  # a device this machine lacks
+        device = torch.device(map_location)
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(
+                f"map_location: expected a device of this machine, got {str(device)!r}, which "
+                f"is not available here (load on 'cpu', then move what you need)"
+            )
     path = _existing_file(path, what)
     data = path.read_bytes()
     try:

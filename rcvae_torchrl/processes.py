@@ -24,6 +24,7 @@ import concurrent.futures
 import contextlib
 import multiprocessing
 import os
+import pickle
 import signal
 import subprocess
 import sys
@@ -172,8 +173,23 @@ def map_in_processes(
         the results in the order of ``jobs``; a job's exception is raised here.
     """
     check_positive_int("workers", workers)
+    if not callable(fn):
+        raise TypeError(f"fn: expected a module-level function, got {fn!r}")
+    if isinstance(jobs, (str, bytes)) or not isinstance(jobs, Sequence):
+        raise TypeError(
+            f"jobs: expected a sequence of argument tuples (one per job), got {type(jobs).__name__}"
+        )
+    if threads is not None:
+        check_positive_int("threads", threads)
     if workers == 1 or len(jobs) <= 1:
         return [fn(*args) for args in jobs]
+    try:  # before any process starts: a worker finds the function by its module and name
+        pickle.dumps(fn)
+    except (pickle.PicklingError, AttributeError, TypeError) as err:
+        raise TypeError(
+            f"fn: expected a module-level function (worker processes import it by name), got "
+            f"{fn!r}, which does not pickle: {err}"
+        ) from err
     threads = torch.get_num_threads() if threads is None else threads
     logs = log_targets()
     kept = _pools[-1] if _pools else None

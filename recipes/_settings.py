@@ -16,6 +16,7 @@ import math
 import os
 import re
 import tempfile
+import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -73,6 +74,25 @@ def whole_steps(name: str, seconds: Any, step: float) -> int:
             f"{name}: expected a positive whole number of {step} s control steps, got {seconds!r}"
         )
     return round(steps)
+
+
+def check_field_types(config: Any, prefix: str = "") -> None:
+    """Require each field of the dataclass ``config`` that holds a section (a dataclass) to be
+    one, and each ``bool`` field a bool: built in Python rather than by Hydra (which types
+    them), a dict for a section would skip the section's own checks, and ``"no"`` for a flag
+    would read as True."""
+    hints = typing.get_type_hints(type(config))
+    for field in dataclasses.fields(config):
+        value, hint = getattr(config, field.name), hints.get(field.name)
+        if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+            if not isinstance(value, hint):
+                raise TypeError(
+                    f"{prefix}{field.name}: expected {hint.__name__} settings (the section), "
+                    f"got {type(value).__name__}"
+                )
+            check_field_types(value, f"{prefix}{field.name}.")
+        elif hint is bool and not isinstance(value, bool):
+            raise TypeError(f"{prefix}{field.name}: expected true or false, got {value!r}")
 
 
 def check_seed(name: str, value: Any, maximum: int = SEED_MAX) -> None:

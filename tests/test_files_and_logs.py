@@ -10,7 +10,7 @@ import warnings
 import pytest
 import torch
 
-from rcvae_torchrl.io import atomic_write, read_json, save_torch, write_json
+from rcvae_torchrl.io import atomic_write, load_torch, read_json, save_torch, write_json
 from rcvae_torchrl.run_log import ANSI_CODE, run_log
 
 
@@ -318,3 +318,19 @@ def test_a_long_name_a_shared_folder_and_another_pid_namespace_do_not_stop_a_wri
     monkeypatch.setattr(Path, "unlink", real_unlink)
     write_json(path, {"a": 2})
     assert not dead.exists() and other.exists() and read_json(path) == {"a": 2}
+
+
+def test_what_would_not_read_back_is_refused_by_name(tmp_path):
+    with pytest.raises(TypeError, match=r"obj: expected str keys .* \(1, 2\)"):
+        write_json(tmp_path / "a.json", {(1, 2): 3})
+    with pytest.raises(TypeError, match=r"obj\['a'\]: .* got a set"):
+        write_json(tmp_path / "a.json", {"a": {1, 2}})
+    with pytest.raises(TypeError, match="got a Linear module, which load_torch would refuse"):
+        save_torch(tmp_path / "m.pt", torch.nn.Linear(2, 2))
+    with pytest.raises(TypeError, match=r"obj\['net'\]: .* Linear module"):
+        save_torch(tmp_path / "m.pt", {"net": torch.nn.Linear(2, 2)})
+    assert not (tmp_path / "m.pt").exists()
+    save_torch(tmp_path / "ok.pt", {"a": torch.ones(2)})
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="map_location: expected a device of this machine"):
+            load_torch(tmp_path / "ok.pt", map_location="cuda")

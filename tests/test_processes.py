@@ -216,3 +216,13 @@ def test_a_try_in_a_child_has_this_import_path_and_arguments(tmp_path, monkeypat
     (tmp_path / "only_here.py").write_text("import sys\nif sys.argv[1] != 'x y': sys.exit(9)\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     assert try_in_a_child("import only_here", "x y", timeout=60.0).problem is None
+
+
+def test_a_function_workers_cannot_import_is_refused_before_any_starts():
+    with pytest.raises(TypeError, match=r"fn: expected a module-level function .* does not pickle"):
+        map_in_processes(lambda x: x, [(1,), (2,)], 2)
+    with pytest.raises(TypeError, match="jobs: expected a sequence of argument tuples"):
+        map_in_processes(abs, ((i,) for i in range(2)), 2)
+    with pytest.raises(ValueError, match="threads: expected a positive integer, got 0"):
+        map_in_processes(abs, [(1,), (2,)], 2, threads=0)
+    assert map_in_processes(abs, [(-1,)], 2) == [1]  # one job runs here, pickled or not

@@ -13,7 +13,6 @@ everything. With a ``base`` policy (e.g. the planner's own prior) the MLP learns
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -21,7 +20,15 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl._checks import check_bounds, check_positive_int
+from rcvae_torchrl._checks import (
+    check_bounds,
+    check_non_negative,
+    check_non_negative_int,
+    check_positive_int,
+    check_rank,
+    check_tensor,
+    make_generator,
+)
 from rcvae_torchrl.data import make_policy_module
 
 from .distill import DistillConfig, distill_policy
@@ -45,11 +52,12 @@ class PerturbedPolicy:
         low: float = -1.0,
         high: float = 1.0,
     ) -> None:
-        if not (noise_std >= 0 and math.isfinite(noise_std)):
-            raise ValueError(f"noise_std: expected a finite std >= 0, got {noise_std!r}")
+        if not callable(policy):
+            raise TypeError(f"policy: expected a TorchRL policy (callable), got {policy!r}")
+        check_non_negative("noise_std", noise_std)
         check_bounds("low, high", low, high)
         self.policy, self.noise_std, self.low, self.high = policy, noise_std, low, high
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = make_generator(None, seed)
 
     def reset(self) -> None:
         if hasattr(type(self.policy), "reset"):
@@ -57,7 +65,9 @@ class PerturbedPolicy:
 
     def __call__(self, td: TensorDictBase) -> TensorDictBase:
         td = self.policy(td)
-        label = td["action"]
+        label = td.get("action", None)
+        if not isinstance(label, torch.Tensor):
+            raise KeyError("policy: expected it to write an 'action' to perturb, got none")
         noise = torch.randn(label.shape, generator=self.generator) * self.noise_std
         td["label"] = label
         td["action"] = (label + noise).clamp(self.low, self.high)
@@ -69,6 +79,8 @@ def label_states(planner: TensorDictPolicy, states: torch.Tensor, chunk: int = 2
     a fresh plan: the planner's warm start is reset per batch)."""
     actions = []
     check_positive_int("chunk", chunk)
+    check_tensor("states", states)
+    check_rank("states", states, 2, "[M, S]")
     for part in states.split(chunk):
         if hasattr(type(planner), "reset"):
             planner.reset()
@@ -107,6 +119,13 @@ def dagger(
     Returns:
         the last policy, all observations and labels, and per-round statistics.
     """
+
+    check_non_negative_int("rounds", rounds)
+    if rounds and not callable(episode_seeds):
+        raise TypeError(
+            "episode_seeds: expected a function of the round k (1-based) giving its episodes' "
+            f"seeds, e.g. lambda k: range(100 * k, 100 * k + 10), got {episode_seeds!r}"
+        )
 
     def fit(obs: torch.Tensor, target: torch.Tensor) -> tuple[nn.Module, dict]:
         if base is None:

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import torch
 from tqdm.auto import tqdm
 
-from rcvae_torchrl._checks import check_non_negative_int, check_positive
+from rcvae_torchrl._checks import check_non_negative_int, check_positive, check_tensor
 
 from .policy import MLPPolicy
 
@@ -41,13 +41,24 @@ class DistillConfig:
                 raise ValueError(f"{name}: expected an int >= 1, got {value!r}")
         check_positive("lr", self.lr)
         check_non_negative_int("seed", self.seed)
+        if isinstance(self.val_fraction, bool) or not isinstance(self.val_fraction, (int, float)):
+            raise TypeError(f"val_fraction: expected a float in (0, 1), got {self.val_fraction!r}")
         if not 0.0 < self.val_fraction < 1.0:
             raise ValueError(
                 f"val_fraction: expected a fraction in (0, 1), got {self.val_fraction!r}"
             )
 
 
-def _check_pairs(observations: torch.Tensor, actions: torch.Tensor) -> None:
+def _check_pairs(
+    observations: torch.Tensor, actions: torch.Tensor, dtype: torch.dtype = torch.float32
+) -> None:
+    for name, x in (("observations", observations), ("actions", actions)):
+        check_tensor(name, x)
+        if x.dtype != dtype:
+            raise TypeError(
+                f"{name}: expected {dtype} values (the policy's dtype), got {x.dtype}; cast "
+                f"them with .to({dtype})"
+            )
     if observations.ndim != 2 or actions.ndim != 2 or len(observations) != len(actions):
         raise ValueError(
             f"observations, actions: expected [N, S] and [N, A] with the same N, got "
@@ -77,7 +88,8 @@ def distill_policy(
     ``observations [N, S]`` by mean squared error, keeping the weights of the best validation
     epoch. Returns the policy and ``{"train_mse", "val_mse", "epochs"}``.
     """
-    _check_pairs(observations, actions)
+    dtype = torch.float32 if policy is None else next(policy.parameters()).dtype
+    _check_pairs(observations, actions, dtype)
     if policy is not None:
         with torch.no_grad():
             out = policy(observations[:1])

@@ -15,7 +15,7 @@ from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.utils import ExplorationType
 from tqdm.auto import tqdm
 
-from rcvae_torchrl._checks import check_positive_int
+from rcvae_torchrl._checks import check_positive_int, check_seeds
 from rcvae_torchrl.data import (
     TRAJ_KEY,
     acting,
@@ -160,9 +160,15 @@ def run_episodes(
     round a state otherwise in a batch than alone).
     """
     check_positive_int("max_steps", max_steps)
+    seeds = check_seeds("seeds", seeds)
     if len(seeds) == 0:
         raise ValueError("seeds: expected at least one seed (one episode each), got none")
     if starts is not None:
+        if not isinstance(starts, (torch.Tensor, TensorDictBase)):
+            raise TypeError(
+                f"starts: expected start states as a tensor [n, S] or a TensorDict [n], got "
+                f"{type(starts).__name__} (torch.as_tensor converts an array)"
+            )
         if len(starts) != len(seeds):
             raise ValueError(
                 f"starts: expected one start state per seed ({len(seeds)}), got {len(starts)}"
@@ -209,8 +215,8 @@ def _rollout(
     TensorDict (a tensor policy ``observation -> action``) is named with how to wire it. The
     actions of a TensorDict policy are checked before the env acts on them
     (``_CheckedPolicy``)."""
-    if isinstance(policy, TensorDictModuleBase):
-        policy = _CheckedPolicy(policy, env)
+    if isinstance(policy, TensorDictModuleBase) or not isinstance(policy, torch.nn.Module):
+        policy = _CheckedPolicy(policy, env)  # a TensorDict module or a plain function
     try:
         with torch.no_grad():
             return env.rollout(max_steps, policy, auto_reset=False, tensordict=td, **kwargs)
@@ -234,10 +240,14 @@ class _CheckedPolicy(TensorDictModuleBase):
     policy; bounds and dtype are checked on the whole episode afterwards
     (:func:`~rcvae_torchrl.data.check_actions`)."""
 
-    def __init__(self, policy: TensorDictModuleBase, env: EnvBase) -> None:
+    def __init__(self, policy: Callable[[TensorDictBase], Any], env: EnvBase) -> None:
         super().__init__()
+        if not callable(policy):
+            raise TypeError(f"policy: expected a TorchRL policy (callable), got {policy!r}")
         self.policy = policy
-        self.in_keys, self.out_keys = list(policy.in_keys), list(policy.out_keys)
+        # a plain function of the TensorDict declares no keys (a rollout selects none)
+        self.in_keys = list(getattr(policy, "in_keys", []))
+        self.out_keys = list(getattr(policy, "out_keys", [env.action_key]))
         self.action_key = env.action_key
         self.batch = tuple(env.batch_size)
         self.action_shape = tuple(env.action_spec_unbatched.shape)

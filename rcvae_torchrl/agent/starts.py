@@ -26,6 +26,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
+from rcvae_torchrl._checks import check_seeds
 from rcvae_torchrl.data import seed_env
 
 from .episodes import ResetToState, reset_to, seed_episodes
@@ -88,12 +89,8 @@ def draw_starts(env: EnvBase, seeds: Sequence[int], *, physics: bool = False) ->
     """
     _check_one_env(env)
     rows = []
-    for seed in seeds:
-        if isinstance(seed, (bool, float)) or not isinstance(seed, (int, np.integer, torch.Tensor)):
-            raise ValueError(f"seeds: expected integer seeds, got {seed!r}")
-        if isinstance(seed, torch.Tensor) and (seed.is_floating_point() or seed.numel() != 1):
-            raise ValueError(f"seeds: expected integer seeds, got {seed!r}")
-        seed_env(env, int(seed))
+    for seed in check_seeds("seeds", seeds):
+        seed_env(env, seed)
         td = env.reset()
         row = {"observation": td["observation"].clone(), "seed": torch.tensor(int(seed))}
         if physics:

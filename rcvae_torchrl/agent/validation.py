@@ -31,6 +31,7 @@ from rcvae_torchrl._checks import (
     check_non_negative_int,
     check_positive_int,
     check_same_starts,
+    check_tensor,
 )
 from rcvae_torchrl.competency import (
     CompetencyReport,
@@ -98,6 +99,21 @@ class RealOutcomes:
     survival_limit: int | None = None
 
     def __post_init__(self) -> None:
+        check_tensor("success", self.success)
+        if self.success.dtype != torch.bool or self.success.dim() == 0:
+            raise ValueError(
+                f"success: expected a bool tensor [B, R] (starts, runs), got dtype "
+                f"{self.success.dtype} and shape {tuple(self.success.shape)}"
+            )
+        for name in ("first_step", "steps"):
+            value = check_tensor(name, getattr(self, name))
+            if value.shape != self.success.shape:
+                raise ValueError(
+                    f"{name}: expected a tensor of success's shape {tuple(self.success.shape)}, "
+                    f"got {tuple(value.shape)}"
+                )
+        if self.max_steps is not None:
+            check_positive_int("max_steps", self.max_steps)
         limit = self.survival_limit
         if limit is not None and (
             isinstance(limit, bool) or not isinstance(limit, int) or limit < 1
@@ -150,6 +166,8 @@ class RealOutcomes:
             )
         if lasting is not None:
             lasting = _whole("values['survival_limit']", lasting)
+        if most is not None:
+            most = _whole("values['max_steps']", most)
         known = {}
         for name in _KNOWN:
             value = values.get(name)
@@ -360,6 +378,11 @@ def real_outcomes(
     check_positive_int("max_steps", max_steps)
     check_non_negative_int("seed", seed)
     check_bool("keep_observations", keep_observations)
+    if not isinstance(starts, (torch.Tensor, TensorDictBase)):
+        raise TypeError(
+            f"starts: expected start states as a tensor [B, S] or a TensorDict [B], got "
+            f"{type(starts).__name__} (torch.as_tensor converts an array)"
+        )
     if isinstance(starts, torch.Tensor) and starts.dim() < 2:
         raise ValueError(
             f"starts: expected start states [B, S] (or a TensorDict [B]), got shape "
@@ -814,6 +837,11 @@ def score_forecast(
             f"outcomes: expected the RealOutcomes of real_outcomes, got {type(outcomes).__name__}"
             "; for a bool [B, R] tensor of outcomes use rcvae_torchrl.competency."
             "validate_forecasts"
+        )
+    if not isinstance(forecast, (torch.Tensor, CompetencyReport)):
+        raise TypeError(
+            f"forecast: expected P(success) per start, a tensor [B], or a CompetencyReport, got "
+            f"{type(forecast).__name__}"
         )
     times = {}
     if isinstance(forecast, torch.Tensor) and forecast.dim() == 1:

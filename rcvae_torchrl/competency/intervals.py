@@ -49,9 +49,11 @@ def binomial_interval(
     _checks.check_confidence(confidence)
     k = torch.as_tensor(successes, dtype=torch.float64)
     n = torch.as_tensor(trials, dtype=torch.float64, device=k.device).expand_as(k)
-    if bool((n <= 0).any()) or bool((k < 0).any()) or bool((k > n).any()):
+    whole = bool((k == k.round()).all()) and bool((n == n.round()).all())  # NaN is not
+    if not whole or bool((n <= 0).any()) or bool((k < 0).any()) or bool((k > n).any()):
         raise ValueError(
-            f"successes, trials: expected 0 <= successes <= trials and trials > 0, got successes "
+            f"successes, trials: expected whole counts 0 <= successes <= trials and trials > 0, "
+            f"got successes "
             f"in [{float(k.min())}, {float(k.max())}] and trials in "
             f"[{float(n.min())}, {float(n.max())}]"
         )

@@ -212,6 +212,14 @@ class AleatoricShare:
     acting: str | None = None
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "dim_names", _checks.check_names("dim_names", self.dim_names))
+        _checks.check_positive_int("start_states", self.start_states)
+        _checks.check_bool("per_live_step", self.per_live_step)
+        for name in ("steps", "samples_per_member"):
+            if getattr(self, name) is not None:
+                _checks.check_positive_int(name, getattr(self, name))
+        if not isinstance(self.measure, Mapping):
+            raise TypeError(f"measure: expected a mapping, got {type(self.measure).__name__}")
         for name in ("share", "imagined", "real"):
             value = getattr(self, name)
             if not isinstance(value, Tensor):
@@ -222,11 +230,10 @@ class AleatoricShare:
                     f"{name}: expected one value per state dimension ({len(self.dim_names)} "
                     f"named), got shape {tuple(value.shape)}"
                 )
-            if bool((value.isnan() | (value < 0)).any()):
-                raise ValueError(f"{name}: expected values >= 0, got {value.tolist()}")
+            if not bool((torch.isfinite(value) & (value >= 0)).all()):
+                raise ValueError(f"{name}: expected finite values >= 0, got {value.tolist()}")
         if bool((self.share > 1).any()):
             raise ValueError(f"share: expected shares in [0, 1], got {self.share.tolist()}")
-        object.__setattr__(self, "dim_names", tuple(self.dim_names))
 
     @classmethod
     def fit(cls, report: CompetencyReport, spread: RealSpread) -> AleatoricShare:
@@ -319,18 +326,29 @@ class AleatoricShare:
             value = values.get(name)
             if value is not None and not isinstance(value, str):
                 raise TypeError(f"values[{name!r}]: expected a str ({_AS_DICT}), got {value!r}")
+        if values["measure"] is not None and not isinstance(values["measure"], Mapping):
+            raise TypeError(
+                f"values['measure']: expected a mapping ({_AS_DICT}), got {values['measure']!r}"
+            )
+        if isinstance(values["dim_names"], (str, bytes)) or not isinstance(
+            values["dim_names"], (list, tuple)
+        ):
+            raise TypeError(
+                f"values['dim_names']: expected a list of names ({_AS_DICT}), got "
+                f"{values['dim_names']!r}"
+            )
         steps, n = values["steps"], values.get("samples_per_member")
         return cls(
             share=torch.as_tensor(values["share"], dtype=torch.float32),
             imagined=torch.as_tensor(values["imagined"], dtype=torch.float32),
             real=torch.as_tensor(values["real"], dtype=torch.float32),
-            start_states=int(values["start_states"]),
-            per_live_step=bool(values["per_live_step"]),
+            start_states=values["start_states"],
+            per_live_step=values["per_live_step"],
             task=values["task"],
-            measure=dict(values["measure"]),
-            steps=None if steps is None else int(steps),
+            measure=dict(values["measure"] or {}),
+            steps=steps,
             dim_names=tuple(values["dim_names"]),
-            samples_per_member=None if n is None else int(n),
+            samples_per_member=n,
             agent=values.get("agent"),
             acting=values.get("acting"),
         )
@@ -584,6 +602,12 @@ def _report_data(values: Mapping[str, Any], keys: Mapping[str, NestedKey]) -> Te
                 f"values['data']: {name} holds values outside [0, 1] (from {float(p.min()):g} "
                 f"to {float(p.max()):g}): the record was edited or damaged"
             )
+    low, high = competency.get("p_success_low", None), competency.get("p_success_high", None)
+    if low is not None and high is not None and not bool((low <= high).all()):
+        raise ValueError(
+            "values['data']: p_success_low exceeds p_success_high for some start (an interval "
+            "from high to low): the record was edited or damaged"
+        )
     return data
 
 

@@ -84,6 +84,12 @@ def _runs_mask(mask: Tensor | None, runs: Tensor, whose: str) -> Tensor:
 
 def per_start_rates(outcome: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Real success rate ``[B]`` and number of runs ``[B]`` of outcomes ``[B, R]``."""
+    _checks.check_tensor("outcome", outcome)
+    if outcome.dtype != torch.bool or outcome.dim() != 2:
+        raise ValueError(
+            f"outcome: expected bool outcomes [B, R] (starts, runs), got dtype {outcome.dtype} "
+            f"and shape {tuple(outcome.shape)}"
+        )
     runs = outcome.shape[1] * torch.ones(outcome.shape[0]) if mask is None else mask.sum(1)
     hits = outcome.sum(1) if mask is None else (outcome & mask).sum(1)
     return hits.to(torch.float64) / runs.to(torch.float64), runs.to(torch.int64)
@@ -184,6 +190,9 @@ def brier_skill_score(brier: Tensor | float, reference: Tensor | float) -> Tenso
         torch.as_tensor(brier, dtype=torch.float64),
         torch.as_tensor(reference, dtype=torch.float64),
     )
+    for name, value in (("brier", brier), ("reference", reference)):
+        if bool((value < 0).any()):  # NaN (nothing scored) gives NaN
+            raise ValueError(f"{name}: expected Brier scores >= 0, got {value.tolist()}")
     return torch.where(reference > 0, 1.0 - brier / reference.clamp_min(1e-300), math.nan)
 
 
@@ -543,6 +552,9 @@ def same_chance_p_value(rates: Tensor, runs: int) -> float:
     samples) or a check's start states (their real episodes). 1.0 with one group, or where
     every draw of every group agrees (all succeed or all fail)."""
     r = torch.as_tensor(rates).detach().double().flatten()
+    _checks.check_positive_int("runs", runs)
+    if not bool(((r >= 0) & (r <= 1)).all()):  # NaN fails too
+        raise ValueError(f"rates: expected success rates in [0, 1], got {r.tolist()[:5]}")
     mean = float(r.mean()) if r.numel() else math.nan
     if r.numel() < 2 or runs < 1 or not 0 < mean < 1:
         return 1.0

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import itertools
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -49,8 +50,19 @@ def _nonempty(name: str, value: object) -> None:
 
 
 def _save(fig: Figure, path: str | Path) -> Path:
+    """Write ``fig`` atomically in the format its suffix names (``.png``, ``.pdf``, ``.svg``,
+    ...; a path without one is refused: matplotlib would pick PNG bytes for any name)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a str or a path, got {type(path).__name__}")
+    kind = Path(path).suffix.lstrip(".").lower()
+    formats = fig.canvas.get_supported_filetypes()
+    if kind not in formats:
+        raise ValueError(
+            f"path: expected a file name ending in one of {sorted('.' + k for k in formats)}, "
+            f"got {str(path)!r}"
+        )
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=120)
+    fig.savefig(buffer, format=kind, dpi=120)
     return atomic_write(path, lambda f: f.write(buffer.getvalue()))
 
 
@@ -94,7 +106,8 @@ def uncertainty_figure(
     for column, (title, dims) in enumerate(panels.items()):
         for row, (part, style) in enumerate((("aleatoric", "--"), ("epistemic", "-"))):
             ax = grid[row][column]
-            for colour, (condition, parts) in zip(_COLOURS, curves.items()):
+            for i, (condition, parts) in enumerate(curves.items()):
+                colour = _COLOURS[i % len(_COLOURS)]  # every condition drawn, colours reused
                 t = torch.arange(1, parts[part].shape[0] + 1) * dt
                 ax.plot(
                     t,
@@ -134,6 +147,15 @@ def reliability_figure(
     Bins with fewer than ``counts_floor`` episodes are not drawn.
     """
     _nonempty("diagrams", diagrams)
+    if not isinstance(diagrams, Mapping):
+        raise TypeError(
+            f"diagrams: expected a mapping of condition name to ReliabilityDiagram, got "
+            f"{type(diagrams).__name__}"
+        )
+    edges = {name: tuple(d.bin_edges.tolist()) for name, d in diagrams.items()}
+    if len(set(edges.values())) > 1:  # one table of counts, one column per bin
+        sizes = {name: len(e) - 1 for name, e in edges.items()}
+        raise ValueError(f"diagrams: expected the same bins in every diagram, got {sizes} bins")
     fig = Figure(figsize=(5.2, 5.4), layout="constrained")
     ax, table_ax = fig.subplots(2, 1, height_ratios=(5, 1.1 + 0.25 * len(diagrams)))
     ax.plot([0, 1], [0, 1], color="grey", lw=1, ls=":", label="perfect calibration")

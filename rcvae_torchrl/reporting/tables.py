@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -28,6 +29,16 @@ def format_table(
 ) -> tuple[str, str]:
     """``(markdown, csv)`` renderings of ``rows`` restricted to ``columns``, in that order."""
     check_non_negative_int("digits", digits)
+    if isinstance(columns, str) or not isinstance(columns, Sequence):
+        raise TypeError(f"columns: expected a sequence of column names, got {columns!r}")
+    if isinstance(rows, (str, Mapping)) or not isinstance(rows, Sequence):
+        raise TypeError(
+            f"rows: expected a sequence of rows (mappings of column to value), got "
+            f"{type(rows).__name__}"
+        )
+    for i, row in enumerate(rows):
+        if not isinstance(row, Mapping):
+            raise TypeError(f"rows[{i}]: expected a mapping of column to value, got {row!r}")
     missing = [c for c in columns if any(c not in r for r in rows)]
     if missing:
         raise KeyError(f"columns: {missing} missing from some rows")
@@ -47,9 +58,17 @@ def write_table(
     stem: str | Path,
     digits: int = 3,
 ) -> tuple[Path, Path]:
-    """Write ``<stem>.md`` and ``<stem>.csv`` atomically; returns both paths."""
+    """Write ``<stem>.md`` and ``<stem>.csv`` atomically; returns both paths. The suffixes are
+    added to the whole stem (``table_lr0.5`` gives ``table_lr0.5.md``)."""
     markdown, text = format_table(rows, columns, digits)
+    if not isinstance(stem, (str, os.PathLike)):
+        raise TypeError(f"stem: expected a str or a path, got {type(stem).__name__}")
     stem = Path(stem)
-    md = atomic_write(stem.with_suffix(".md"), lambda f: f.write(markdown.encode()))
-    cs = atomic_write(stem.with_suffix(".csv"), lambda f: f.write(text.encode()))
+    if stem.is_dir() or not stem.name:
+        raise ValueError(
+            f"stem: expected a file name without its suffix (e.g. 'results/table'), got the "
+            f"directory {str(stem)!r}"
+        )
+    md = atomic_write(stem.with_name(stem.name + ".md"), lambda f: f.write(markdown.encode()))
+    cs = atomic_write(stem.with_name(stem.name + ".csv"), lambda f: f.write(text.encode()))
     return md, cs

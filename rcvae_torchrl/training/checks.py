@@ -741,8 +741,24 @@ class OutcomeCheck:
                 f"real: expected one success rate per forecast ({self.forecast.shape[0]}), got "
                 f"{self.real.shape[0]}"
             )
+        for name in ("forecast", "real"):  # probabilities and rates, finite and in [0, 1]
+            value = getattr(self, name)
+            if not bool(((value >= 0) & (value <= 1)).all()):  # NaN fails too
+                raise ValueError(
+                    f"{name}: expected values in [0, 1] (a probability, a success rate), got "
+                    f"{value[~((value >= 0) & (value <= 1))][:3].tolist()}"
+                )
         check_positive_int("runs", self.runs)
+        check_positive_int("min_starts", self.min_starts)
+        if isinstance(self.alpha, bool) or not isinstance(self.alpha, (int, float)):
+            raise TypeError(f"alpha: expected a level in (0, 1), got {self.alpha!r}")
+        if not 0.0 < self.alpha < 1.0:
+            raise ValueError(f"alpha: expected a level in (0, 1), got {self.alpha!r}")
         check_unit_interval("tolerance", self.tolerance, include_zero=False)
+        for name in ("task", "acting", "agent", "what"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, str):
+                raise TypeError(f"{name}: expected a str or None, got {value!r}")
         if self.start_states is not None:
             _checks.check_tensor("start_states", self.start_states)
             _checks.check_rank("start_states", self.start_states, 2, "[n, D]")
@@ -1526,12 +1542,15 @@ class OutcomeCheck:
             ("forecast", "real", "runs", "alpha", "min_starts"),
             "an OutcomeCheck.as_dict()",
         )
+        for key in ("runs", "min_starts"):  # 2.7 runs is no count (int() would make it 2)
+            if isinstance(values[key], bool) or not isinstance(values[key], int):
+                raise TypeError(f"values[{key!r}]: expected an integer, got {values[key]!r}")
         check = cls(
             torch.tensor(values["forecast"], dtype=torch.float64),
             torch.tensor(values["real"], dtype=torch.float64),
-            runs=int(values["runs"]),
+            runs=values["runs"],
             alpha=float(values["alpha"]),
-            min_starts=int(values["min_starts"]),
+            min_starts=values["min_starts"],
             what=str(values.get("what", "the forecasts")),
             tolerance=float(values.get("tolerance", 0.2)),
             task=values.get("task"),

@@ -18,6 +18,7 @@ from rcvae_torchrl.training import TrainConfig
 from .._settings import (
     at_least,
     build_config,
+    check_field_types,
     check_run_dir_name,
     check_seed,
     check_threads,
@@ -172,6 +173,7 @@ class StudyConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         check_seed("seed", self.seed, MAX_SEED)
         if self.train.window > _whole_steps("data.time_limit_s", self.data.time_limit_s):
             raise ValueError(

@@ -26,6 +26,7 @@ from .._settings import (
     at_least,
     build_config,
     check_device_name,
+    check_field_types,
     check_run_dir_name,
     check_seed,
     check_threads,
@@ -297,6 +298,7 @@ class StudyConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        check_field_types(self)
         check_seed("seed", self.seed, MAX_SEED)
         longest = max(self.data.time_limit, self.data.random_time_limit)
         if self.train.window > round(longest / CONTROL_TIMESTEP):

@@ -93,7 +93,7 @@ def test_a_perturbed_policy_of_unbounded_noise_or_crossed_bounds_is_refused():
     from rcvae_torchrl.agent.dagger import PerturbedPolicy
 
     policy = make_policy_module(MLPPolicy(3, 2))
-    with pytest.raises(ValueError, match="noise_std: expected a finite std >= 0, got inf"):
+    with pytest.raises(ValueError, match="noise_std: expected a finite number >= 0, got inf"):
         PerturbedPolicy(policy, float("inf"))
     with pytest.raises(
         ValueError, match=r"low, high: expected low <= high \(and no NaN\), got 1\.0 and -1\.0"
@@ -107,3 +107,30 @@ def test_a_perturbed_policy_of_unbounded_noise_or_crossed_bounds_is_refused():
 def test_policy_sizes_are_positive_ints(args, name):
     with pytest.raises(ValueError, match=f"{name}: expected a positive integer"):
         MLPPolicy(*args)
+
+
+def test_pairs_of_another_dtype_and_bad_dagger_arguments_are_named():
+    from rcvae_torchrl.agent import PerturbedPolicy, dagger, label_states
+
+    obs, act = torch.rand(20, 3), torch.rand(20, 2) * 2 - 1
+    with pytest.raises(TypeError, match=r"observations: expected torch\.float32 values .* float64"):
+        distill_policy(obs.double(), act, DistillConfig(epochs=1), progress=False)
+    with pytest.raises(TypeError, match=r"observations: expected a torch\.Tensor, got ndarray"):
+        distill_policy(obs.numpy(), act, DistillConfig(epochs=1), progress=False)
+    with pytest.raises(TypeError, match="val_fraction: expected a float in"):
+        DistillConfig(val_fraction="0.1")
+    with pytest.raises(ValueError, match="seed: expected an integer"):
+        PerturbedPolicy(lambda td: td, 0.1, seed=1.5)
+    with pytest.raises(ValueError, match="noise_std: expected a finite number >= 0"):
+        PerturbedPolicy(lambda td: td, "0.1")
+    with pytest.raises(TypeError, match="policy: expected a TorchRL policy"):
+        PerturbedPolicy(None, 0.1)
+    with pytest.raises(ValueError, match=r"states: expected shape \[M, S\]"):
+        label_states(lambda td: td, torch.zeros(4))
+    common = {"max_steps": 3, "progress": False}
+    with pytest.raises(TypeError, match="episode_seeds: expected a function of the round"):
+        dagger(None, None, obs, act, DistillConfig(epochs=1), rounds=1, episode_seeds=[1], **common)
+    with pytest.raises(ValueError, match="rounds: expected an integer >= 0, got -1"):
+        dagger(
+            None, None, obs, act, DistillConfig(epochs=1), rounds=-1, episode_seeds=None, **common
+        )

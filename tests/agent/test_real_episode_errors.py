@@ -494,3 +494,56 @@ def test_a_success_flag_that_is_no_bool_is_refused():
         progress=False,
     )
     assert flagged.success.tolist() == [[True]] and flagged.first_step.tolist() == [[13]]
+
+
+def _point_mass_episodes(policy, **kwargs):
+    env = terminating_point_mass()
+    args = {"seeds": [0], "max_steps": 3, "success": _never, "progress": False, **kwargs}
+    return run_episodes(env, policy, **args)
+
+
+def _zero_action(td):
+    return td.set("action", torch.zeros(2))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "words"),
+    [
+        ({"seeds": 10}, TypeError, "seeds: expected a sequence of integer seeds"),
+        ({"seeds": [1.2, 1.7]}, ValueError, "seeds: expected integer seeds, got 1.2"),
+        ({"seeds": [0], "starts": [[0.0] * 4]}, TypeError, "starts: expected start states as a"),
+    ],
+)
+def test_seeds_and_starts_of_another_kind_are_refused(kwargs, error, words):
+    """10 is not ten seeds, and 1.2 and 1.7 would both be seed 1: one episode twice."""
+    args = {"reset_to_state": plain_reset} if "starts" in kwargs else {}
+    with pytest.raises(error) as info:
+        _point_mass_episodes(_zero_action, **kwargs, **args)
+    assert words in str(info.value)
+
+
+def test_a_plain_function_policy_has_its_actions_checked_as_a_module_s_are():
+    with pytest.raises(
+        ValueError, match=r"^policy: expected actions of shape \(2,\) .* got \(3,\)"
+    ):
+        _point_mass_episodes(lambda td: td.set("action", torch.zeros(3)))
+    with pytest.raises(KeyError, match="policy: expected it to write the env's action 'action'"):
+        _point_mass_episodes(lambda td: td)
+    stats = _point_mass_episodes(_zero_action)  # a right one runs
+    assert stats.steps.tolist() == [3]
+
+
+def test_real_outcomes_refuses_an_array_of_starts():
+    import numpy as np
+
+    with pytest.raises(TypeError, match="starts: expected start states as a tensor"):
+        real_outcomes(
+            terminating_point_mass(),
+            _zero_action,
+            np.full((2, 4), 0.8, np.float32),
+            runs_per_start=1,
+            reset_to_state=plain_reset,
+            max_steps=3,
+            success=_never,
+            progress=False,
+        )

@@ -248,8 +248,29 @@ def test_a_share_is_saved_and_read_back(tmp_path, kind):
     with pytest.raises(TypeError, match=r"^values\['imagined'\]: expected a list of numbers"):
         AleatoricShare.from_dict({**share.as_dict(), "imagined": "junk"})
     # the constructor checks what it is given
-    with pytest.raises(ValueError, match=r"^share: expected values >= 0, got \[nan"):
+    with pytest.raises(ValueError, match=r"^share: expected finite values >= 0, got \[nan"):
         replace(share, share=torch.full_like(share.share, math.nan))
+    with pytest.raises(ValueError, match=r"^imagined: expected finite values >= 0, got \[inf"):
+        replace(share, imagined=torch.full_like(share.imagined, math.inf))
+    edits = [
+        ({"start_states": -1}, ValueError, "start_states: expected a positive integer"),
+        ({"steps": -3}, ValueError, "steps: expected a positive integer"),
+        ({"samples_per_member": 0}, ValueError, "samples_per_member: expected a positive"),
+        ({"per_live_step": "no"}, TypeError, "per_live_step: expected True or False"),
+        ({"dim_names": ("a",) * 14}, ValueError, "dim_names: expected distinct names"),
+    ]
+    for change, error, said in edits:
+        with pytest.raises(error, match=said):
+            replace(share, **change)
+    record = share.as_dict()
+    for change, error, said in [
+        ({"per_live_step": "no"}, TypeError, "per_live_step: expected True or False"),
+        ({"start_states": 2.9}, ValueError, "start_states: expected a positive integer"),
+        ({"measure": 3}, TypeError, r"values\['measure'\]: expected a mapping"),
+        ({"dim_names": None}, TypeError, r"values\['dim_names'\]: expected a list of names"),
+    ]:
+        with pytest.raises(error, match=said):
+            AleatoricShare.from_dict({**record, **change})
     with pytest.raises(ValueError, match=r"^real: expected one value per state dimension \(14 "):
         replace(share, real=torch.zeros(3))
 

@@ -1,5 +1,6 @@
 """Bad input gives clear errors naming the argument, the expectation and what was given."""
 
+import math
 import warnings
 
 import pytest
@@ -359,3 +360,25 @@ def test_dimension_names_are_distinct_strings(names, error, words):
     with pytest.raises(error) as info:
         UncertaintyMetric(bin_width=0.1, dim_names=names)
     assert words in str(info.value)
+
+
+def test_counts_rates_and_briers_outside_their_range_are_refused():
+    from rcvae_torchrl.competency import brier_skill_score, per_start_rates, same_chance_p_value
+
+    with pytest.raises(ValueError, match="expected whole counts"):
+        binomial_interval(torch.tensor(float("nan")), 3)
+    with pytest.raises(ValueError, match="expected whole counts"):
+        binomial_interval(torch.tensor(1.5), 3)
+    with pytest.raises(ValueError, match="rates: expected success rates in"):
+        same_chance_p_value(torch.tensor([float("nan"), 0.5]), 5)
+    with pytest.raises(ValueError, match="rates: expected success rates in"):
+        same_chance_p_value(torch.tensor([1.2, 0.5]), 5)
+    with pytest.raises(ValueError, match="runs: expected a positive integer, got 0"):
+        same_chance_p_value(torch.tensor([0.2, 0.5]), 0)
+    with pytest.raises(ValueError, match="brier: expected Brier scores >= 0"):
+        brier_skill_score(-0.1, 0.2)
+    assert math.isnan(float(brier_skill_score(0.1, 0.0)))  # a perfect reference: NaN, as before
+    with pytest.raises(ValueError, match=r"outcome: expected bool outcomes \[B, R\]"):
+        per_start_rates(torch.tensor([True, False]))
+    with pytest.raises(ValueError, match=r"outcome: expected bool outcomes \[B, R\]"):
+        per_start_rates(torch.rand(3, 2))

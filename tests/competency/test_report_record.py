@@ -125,6 +125,14 @@ def test_a_damaged_or_foreign_record_is_refused_by_name():
     edited["data"]["competency"]["p_success"] = torch.full((4,), 3.0, dtype=torch.float64)
     with pytest.raises(ValueError, match=r"^values\['data'\]: p_success holds values outside"):
         CompetencyReport.from_dict(edited)
+    edited = report.as_dict()
+    competency = edited["data"]["competency"]
+    competency["p_success_low"], competency["p_success_high"] = (
+        torch.full((4,), 0.9, dtype=torch.float64),
+        torch.full((4,), 0.1, dtype=torch.float64),
+    )
+    with pytest.raises(ValueError, match=r"^values\['data'\]: p_success_low exceeds p_succ"):
+        CompetencyReport.from_dict(edited)
     del edited["data"]["competency"]
     with pytest.raises(ValueError, match=r"^values\['data'\]: expected the report's competency"):
         CompetencyReport.from_dict(edited)

@@ -446,3 +446,16 @@ def test_a_finished_run_is_opened_with_the_settings_it_recorded(tmp_path):
         study_of_run(elsewhere)
     with pytest.raises(ValueError, match="agnt: not a setting of the recipe"):
         study_of_run(tmp_path, changes={"agnt": {"demo_envs": 4}})
+
+
+def test_sections_and_flags_built_in_python_are_of_their_types():
+    """Hydra types them; built by hand, a dict for a section would skip its own checks and
+    'no' for a flag would read as True."""
+    from recipes.pusher_competency.config import RecipeConfig, StudyConfig
+
+    with pytest.raises(TypeError, match=r"assess: expected AssessConfig settings .* got dict"):
+        StudyConfig(assess={"start_states": -1})
+    with pytest.raises(TypeError, match=r"data: expected DataConfig settings .* got NoneType"):
+        StudyConfig(data=None)
+    with pytest.raises(TypeError, match="progress: expected true or false, got 'no'"):
+        RecipeConfig(progress="no")

@@ -262,3 +262,38 @@ def test_a_check_with_no_gap_reads_plus_zero():
     assert -0.0005 < check.gap < 0  # rounds to zero at 3 decimals
     text = check.describe()
     assert "gap +0.000" in text and "-0.000" not in text
+
+
+def test_a_table_stem_keeps_its_dots_and_a_directory_is_refused(tmp_path):
+    rows = [{"a": 1}]
+    md, csv = write_table(rows, ["a"], tmp_path / "table_lr0.5")
+    other, _ = write_table(rows, ["a"], tmp_path / "table_lr0.1")
+    assert md.name == "table_lr0.5.md" and csv.name == "table_lr0.5.csv" and md != other
+    with pytest.raises(ValueError, match="stem: expected a file name without its suffix"):
+        write_table(rows, ["a"], tmp_path)
+    with pytest.raises(TypeError, match="columns: expected a sequence of column names"):
+        format_table(rows, "a")
+    with pytest.raises(TypeError, match="rows: expected a sequence of rows"):
+        format_table({"a": 1.0}, ["a"])
+
+
+def test_a_figure_is_written_in_the_format_its_name_says(tmp_path):
+    forecast = torch.rand(100, generator=torch.Generator().manual_seed(0))
+    diagram = reliability_diagram(forecast, (forecast > 0.5).float(), n_bins=5)
+    pdf = plot_reliability({"all": diagram}, tmp_path / "r.pdf")
+    assert pdf.read_bytes().startswith(b"%PDF")
+    assert plot_reliability({"all": diagram}, tmp_path / "r.png").read_bytes()[1:4] == b"PNG"
+    with pytest.raises(ValueError, match="path: expected a file name ending in one of"):
+        plot_reliability({"all": diagram}, tmp_path / "r")
+    three = reliability_diagram(forecast, (forecast > 0.5).float(), n_bins=3)
+    with pytest.raises(ValueError, match="expected the same bins in every diagram"):
+        plot_reliability({"a": diagram, "b": three}, tmp_path / "r.png")
+
+
+def test_every_condition_is_drawn_when_there_are_more_than_colours():
+    curves = {
+        f"c{i}": {"aleatoric": torch.ones(5, 2), "epistemic": torch.ones(5, 2)} for i in range(8)
+    }
+    fig = uncertainty_figure(curves, {"p": [0]}, 0.1)
+    labels = [t.get_text() for t in _legends(fig)[0][0].get_texts()]
+    assert {f"c{i} aleatoric" for i in range(8)} <= set(labels)

@@ -133,7 +133,7 @@ def test_records_read_back_name_their_missing_entries():
     from rcvae_torchrl.agent import RealOutcomes
     from rcvae_torchrl.training import StateNovelty
 
-    outcomes = RealOutcomes(torch.ones(3, 2, dtype=torch.bool), torch.zeros(3, 2), torch.ones(3))
+    outcomes = RealOutcomes(torch.ones(3, 2, dtype=torch.bool), torch.zeros(3, 2), torch.ones(3, 2))
     kept = {k: v for k, v in outcomes.as_dict().items() if k != "first_step"}
     with pytest.raises(ValueError, match=r"\(a RealOutcomes.as_dict\(\)\), missing \['first_"):
         RealOutcomes.from_dict(kept)
@@ -786,3 +786,29 @@ def test_a_check_of_that_size_names_the_bias_it_was_sized_for():
             named[size] += check.biased and check.gap > 0
     assert named[n] >= 85, named
     assert named[100] <= 50, named
+
+
+def test_a_check_of_rates_outside_zero_to_one_or_of_a_bad_level_is_refused():
+    forecast, real = torch.full((12,), 0.5), torch.full((12,), 0.5)
+    bad = [
+        (
+            {"forecast": torch.full((12,), math.nan)},
+            ValueError,
+            r"forecast: expected values in \[0, 1\]",
+        ),
+        ({"real": torch.full((12,), 7.0)}, ValueError, r"real: expected values in \[0, 1\]"),
+        ({"alpha": 1.0}, ValueError, r"alpha: expected a level in \(0, 1\), got 1.0"),
+        ({"alpha": "0.1"}, TypeError, r"alpha: expected a level in \(0, 1\)"),
+        ({"min_starts": -3}, ValueError, "min_starts: expected a positive integer"),
+        ({"task": 5}, TypeError, "task: expected a str or None, got 5"),
+    ]
+    for change, error, said in bad:
+        args = {"forecast": forecast, "real": real, "runs": 3, **change}
+        with pytest.raises(error, match=said):
+            OutcomeCheck(args.pop("forecast"), args.pop("real"), **args)
+    record = OutcomeCheck(forecast, real, runs=3).as_dict()
+    with pytest.raises(TypeError, match=r"values\['runs'\]: expected an integer, got 2.7"):
+        OutcomeCheck.from_dict({**record, "runs": 2.7})
+    nan = {**record, "forecast": [math.nan, *record["forecast"][1:]]}
+    with pytest.raises(ValueError, match=r"forecast: expected values in \[0, 1\]"):
+        OutcomeCheck.from_dict(nan)
