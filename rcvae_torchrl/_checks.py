@@ -11,6 +11,7 @@ import math
 import numbers
 from collections.abc import Mapping, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -151,7 +152,9 @@ def check_seeds(name: str, seeds: object) -> list[int]:
     """Require a sequence of integer seeds (Python, NumPy or one-element integer tensors; a
     float would be truncated, so two seeds could give one episode twice); returns them as
     Python ints."""
-    if isinstance(seeds, (str, bytes, Tensor)) or not isinstance(seeds, Sequence):
+    if isinstance(seeds, (Tensor, np.ndarray)) and seeds.ndim == 1:
+        seeds = list(seeds)  # its elements are checked below
+    if isinstance(seeds, (str, bytes)) or not isinstance(seeds, Sequence):
         raise TypeError(
             f"{name}: expected a sequence of integer seeds (one per episode, e.g. range(10)), "
             f"got {type(seeds).__name__} {seeds!r}"

@@ -87,7 +87,7 @@ def rank() -> int:
         return 0
     if dist.is_available() and dist.is_initialized():
         return dist.get_rank(_group())
-    return int(os.environ.get("RANK", 0))
+    return _environ_int("RANK", 0, 0)
 
 
 def world_size() -> int:
@@ -97,7 +97,22 @@ def world_size() -> int:
         return 1
     if dist.is_available() and dist.is_initialized():
         return dist.get_world_size(_group())
-    return int(os.environ.get("WORLD_SIZE", 1))
+    return _environ_int("WORLD_SIZE", 1, 1)
+
+
+def _environ_int(name: str, default: int, low: int) -> int:
+    """The launcher's variable ``name`` (``torchrun`` sets ``RANK`` and ``WORLD_SIZE``) as an
+    int >= ``low``, ``default`` where unset; a clear error naming it otherwise."""
+    text = os.environ.get(name)
+    if text is None:
+        return default
+    try:
+        value = int(text)
+    except ValueError:
+        value = low - 1
+    if value < low:
+        raise ValueError(f"{name}: expected an integer >= {low} in the environment, got {text!r}")
+    return value
 
 
 def is_main() -> bool:

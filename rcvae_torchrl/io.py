@@ -362,10 +362,9 @@ def load_torch(path: str | Path, what: str = "a torch file", map_location: Any =
                 "expected one saved by this library",
                 path,
             ) from err
+        why = (_load_failure(err) or "unreadable") if data else "the file is empty"
         raise StoredFileError(
-            f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): "
-            f"{_load_failure(err)}",
-            path,
+            f"{what} {str(path)!r} is truncated or corrupt ({len(data)} bytes): {why}", path
         ) from err
     if isinstance(obj, dict) and CHECKSUM_KEY in obj:
         written = obj.pop(CHECKSUM_KEY)
@@ -445,6 +444,10 @@ def check_run_config(
 def _as_json(config: Mapping[str, Any]) -> Any:
     """Settings as they read back from JSON (tuples as lists, NumPy numbers as Python's,
     other values as strings)."""
+    if not isinstance(config, Mapping):
+        raise TypeError(
+            f"config: expected a mapping of the run's settings, got {type(config).__name__}"
+        )
     return json.loads(json.dumps(dict(config), default=_plain))
 
 

@@ -36,7 +36,7 @@ from typing import Any, TypeVar
 
 import torch
 
-from rcvae_torchrl._checks import check_positive_int
+from rcvae_torchrl._checks import check_positive, check_positive_int
 from rcvae_torchrl.run_log import LogTarget, forwarded_log, log_targets
 from rcvae_torchrl.threads import free_cores, set_threads
 
@@ -250,6 +250,7 @@ def try_in_a_child(
     path and environment (plus ``env``), for what may end a process rather than raise (a
     native library's crash or abort) or leave it half set up (a failed import): the child
     ends, this process learns how. ``OSError`` when no child can be started."""
+    check_positive("timeout", timeout)
     path = os.pathsep.join(p for p in sys.path if p)
     env = {**os.environ, "PYTHONPATH": path, **(env or {})}
     try:

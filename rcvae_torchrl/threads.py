@@ -43,6 +43,10 @@ def free_cores(cpus: int | None = None, load: float | None = None) -> float:
     """
     cpus = len(os.sched_getaffinity(0)) if cpus is None else cpus
     load = os.getloadavg()[0] if load is None else load
+    if isinstance(cpus, bool) or not isinstance(cpus, int) or cpus < 1:
+        raise ValueError(f"cpus: expected a positive integer, got {cpus!r}")
+    if isinstance(load, bool) or not isinstance(load, (int, float)) or not load >= 0:
+        raise ValueError(f"load: expected a load average >= 0, got {load!r}")
     return max(0.0, cpus - load)
 
 

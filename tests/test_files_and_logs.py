@@ -334,3 +334,15 @@ def test_what_would_not_read_back_is_refused_by_name(tmp_path):
     if not torch.cuda.is_available():
         with pytest.raises(ValueError, match="map_location: expected a device of this machine"):
             load_torch(tmp_path / "ok.pt", map_location="cuda")
+
+
+def test_an_empty_torch_file_and_settings_that_are_not_a_mapping_are_named(tmp_path):
+    from rcvae_torchrl.io import StoredFileError, record_run_config
+
+    (tmp_path / "empty.pt").write_bytes(b"")
+    with pytest.raises(StoredFileError, match=r"\(0 bytes\): the file is empty"):
+        load_torch(tmp_path / "empty.pt")
+    with pytest.raises(
+        TypeError, match="config: expected a mapping of the run's settings, got int"
+    ):
+        record_run_config(tmp_path / "c.json", 5)

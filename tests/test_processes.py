@@ -226,3 +226,17 @@ def test_a_function_workers_cannot_import_is_refused_before_any_starts():
     with pytest.raises(ValueError, match="threads: expected a positive integer, got 0"):
         map_in_processes(abs, [(1,), (2,)], 2, threads=0)
     assert map_in_processes(abs, [(-1,)], 2) == [1]  # one job runs here, pickled or not
+
+
+def test_counts_and_limits_of_another_kind_are_named():
+    from rcvae_torchrl.processes import try_in_a_child
+    from rcvae_torchrl.threads import free_cores
+
+    with pytest.raises(ValueError, match="load: expected a load average >= 0, got nan"):
+        free_cores(2, math.nan)
+    with pytest.raises(ValueError, match="load: expected a load average >= 0, got -5"):
+        free_cores(2, -5)
+    with pytest.raises(ValueError, match="cpus: expected a positive integer, got 0"):
+        free_cores(0, 0.5)
+    with pytest.raises(ValueError, match="timeout: expected a positive number, got -1"):
+        try_in_a_child("pass", timeout=-1)

@@ -147,8 +147,14 @@ def dagger(
             desc=f"DAgger {k}: policy",
         )
         states = stats.data["observation"]
+        new = label_states(planner, states)
+        if new.shape[-1] != labels.shape[-1]:
+            raise ValueError(
+                f"planner: expected actions of A={labels.shape[-1]} (the demonstrations' labels), "
+                f"got A={new.shape[-1]}"
+            )
         observations = torch.cat([observations, states])
-        labels = torch.cat([labels, label_states(planner, states)])
+        labels = torch.cat([labels, new])
         policy, info = fit(observations, labels)
         history.append(
             {

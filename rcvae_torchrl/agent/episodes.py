@@ -15,7 +15,7 @@ from torchrl.envs.batched_envs import BatchedEnvBase
 from torchrl.envs.utils import ExplorationType
 from tqdm.auto import tqdm
 
-from rcvae_torchrl._checks import check_positive_int, check_seeds
+from rcvae_torchrl._checks import check_non_negative_int, check_positive_int, check_seeds
 from rcvae_torchrl.data import (
     TRAJ_KEY,
     acting,
@@ -160,6 +160,8 @@ def run_episodes(
     round a state otherwise in a batch than alone).
     """
     check_positive_int("max_steps", max_steps)
+    check_non_negative_int("first_id", first_id)
+    check_success(success)
     seeds = check_seeds("seeds", seeds)
     if len(seeds) == 0:
         raise ValueError("seeds: expected at least one seed (one episode each), got none")
@@ -277,6 +279,19 @@ class _CheckedPolicy(TensorDictModuleBase):
                 f"step {step}; the env cannot act on them"
             )
         return out
+
+
+def check_success(success: object) -> None:
+    """Require what judges an episode a success: the name of a flag the env writes under
+    ``"next"``, or a function of the observations ``[T, S] -> [T]`` bool."""
+    key = isinstance(success, str) or (
+        isinstance(success, tuple) and success and all(isinstance(k, str) for k in success)
+    )
+    if not (key or callable(success)):
+        raise TypeError(
+            f"success: expected the name of the env's success flag (e.g. 'success') or a "
+            f"function of the observations [T, S] -> [T] bool, got {success!r}"
+        )
 
 
 def _success_flags(

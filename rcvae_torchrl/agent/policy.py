@@ -88,6 +88,26 @@ class ResidualPolicy(nn.Module):
 
     def __init__(self, base: nn.Module, residual: MLPPolicy) -> None:
         super().__init__()
+        if not isinstance(residual, MLPPolicy):
+            raise TypeError(
+                f"residual: expected an MLPPolicy (what distill_policy fits), got "
+                f"{type(residual).__name__}"
+            )
+        if not callable(base):
+            raise TypeError(f"base: expected a policy observation -> action, got {base!r}")
+        try:
+            with torch.no_grad():  # the base's action size, on one zero state
+                probe = base(torch.zeros(1, residual.obs_dim))
+        except Exception:  # a base not written for that state: its first call will tell
+            probe = None
+        if probe is not None and (
+            not isinstance(probe, torch.Tensor) or probe.shape != (1, residual.action_dim)
+        ):
+            got = tuple(probe.shape) if isinstance(probe, torch.Tensor) else type(probe).__name__
+            raise ValueError(
+                f"base: expected actions [B, A={residual.action_dim}] (the residual's) for states "
+                f"[B, S={residual.obs_dim}], got {got} for one state"
+            )
         self.base, self.residual = base, residual
         self.obs_dim, self.action_dim = residual.obs_dim, residual.action_dim
 

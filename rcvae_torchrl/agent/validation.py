@@ -378,6 +378,10 @@ def real_outcomes(
     check_positive_int("max_steps", max_steps)
     check_non_negative_int("seed", seed)
     check_bool("keep_observations", keep_observations)
+    if env is None:
+        raise TypeError("env: expected a TorchRL env or a function that makes one, got None")
+    if not callable(policy):
+        raise TypeError(f"policy: expected a TorchRL policy (callable), got {policy!r}")
     if not isinstance(starts, (torch.Tensor, TensorDictBase)):
         raise TypeError(
             f"starts: expected start states as a tensor [B, S] or a TensorDict [B], got "

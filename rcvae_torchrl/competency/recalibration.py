@@ -118,7 +118,11 @@ def apply_platt(forecast: Tensor, platt: PlattMap) -> Tensor:
             f"platt: expected a PlattMap (fit_platt's; PlattMap(slope, intercept)), got "
             f"{type(platt).__name__}"
         )
-    if not (math.isfinite(platt.slope) and math.isfinite(platt.intercept)):
+    numbers = all(
+        isinstance(v, (int, float)) and not isinstance(v, bool)
+        for v in (platt.slope, platt.intercept)
+    )
+    if not (numbers and math.isfinite(platt.slope) and math.isfinite(platt.intercept)):
         raise ValueError(f"platt: expected a finite slope and intercept, got {platt}")
     z = platt.slope * _logit(forecast) + platt.intercept
     return torch.sigmoid(z).to(forecast.dtype)

@@ -40,11 +40,14 @@ def action_prior(
     mean = torch.where(bounded, (low + high) / 2, torch.zeros_like(low).clamp(low, high))
     std = torch.where(bounded, (high - low) / 4, torch.ones_like(low))
     if init_std is not None:
-        if not isinstance(init_std, (int, float, torch.Tensor)) or isinstance(init_std, bool):
+        try:  # a number, a tensor or a sequence of numbers
+            if isinstance(init_std, (str, bytes, bool)):
+                raise TypeError(type(init_std).__name__)
+            given = torch.as_tensor(init_std, dtype=low.dtype, device=low.device)
+        except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(
                 f"init_std: expected a positive number or a tensor [*A], got {init_std!r}"
-            )
-        given = torch.as_tensor(init_std, dtype=low.dtype, device=low.device)
+            ) from err
         if not bool((given > 0).all()) or not bool(torch.isfinite(given).all()):
             raise ValueError(f"init_std: expected positive finite values, got {given.tolist()}")
         if not _broadcasts_to(given.shape, low.shape):

@@ -113,7 +113,7 @@ def test_pairs_of_another_dtype_and_bad_dagger_arguments_are_named():
     from rcvae_torchrl.agent import PerturbedPolicy, dagger, label_states
 
     obs, act = torch.rand(20, 3), torch.rand(20, 2) * 2 - 1
-    with pytest.raises(TypeError, match=r"observations: expected torch\.float32 values .* float64"):
+    with pytest.raises(TypeError, match=r"observations: expected torch\.float32 .* torch\.float64"):
         distill_policy(obs.double(), act, DistillConfig(epochs=1), progress=False)
     with pytest.raises(TypeError, match=r"observations: expected a torch\.Tensor, got ndarray"):
         distill_policy(obs.numpy(), act, DistillConfig(epochs=1), progress=False)
@@ -133,4 +133,40 @@ def test_pairs_of_another_dtype_and_bad_dagger_arguments_are_named():
     with pytest.raises(ValueError, match="rounds: expected an integer >= 0, got -1"):
         dagger(
             None, None, obs, act, DistillConfig(epochs=1), rounds=-1, episode_seeds=None, **common
+        )
+
+
+def test_a_residual_on_a_base_of_another_action_size_is_refused():
+    from rcvae_torchrl.agent import ResidualPolicy
+
+    mlp = MLPPolicy(4, 2)
+    with pytest.raises(ValueError, match=r"base: expected actions \[B, A=2\] .* got \(1, 1\)"):
+        ResidualPolicy(torch.nn.Linear(4, 1), mlp)
+    with pytest.raises(TypeError, match="residual: expected an MLPPolicy"):
+        ResidualPolicy(torch.nn.Linear(4, 2), torch.nn.Linear(4, 2))
+    assert ResidualPolicy(torch.nn.Linear(4, 2), mlp)(torch.zeros(3, 4)).shape == (3, 2)
+
+
+def test_dagger_names_a_planner_of_another_action_size():
+    from rcvae_torchrl.agent import dagger
+    from tests.agent.worker_envs import terminating_point_mass
+
+    env = terminating_point_mass()
+    obs = torch.rand(20, 4, generator=torch.Generator().manual_seed(0))
+    labels = torch.zeros(20, 2)
+
+    def planner(td):  # three actions where the labels hold two
+        return td.set("action", torch.zeros(*td.batch_size, 3))
+
+    with pytest.raises(ValueError, match=r"planner: expected actions of A=2 .* got A=3"):
+        dagger(
+            planner,
+            env,
+            obs,
+            labels,
+            DistillConfig(epochs=1),
+            rounds=1,
+            episode_seeds=lambda k: [k],
+            max_steps=3,
+            progress=False,
         )

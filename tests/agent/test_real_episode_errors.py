@@ -547,3 +547,34 @@ def test_real_outcomes_refuses_an_array_of_starts():
             success=_never,
             progress=False,
         )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "words"),
+    [
+        ({"success": 3}, TypeError, "success: expected the name of the env's success flag"),
+        ({"first_id": "a"}, ValueError, "first_id: expected an integer >= 0, got 'a'"),
+    ],
+)
+def test_how_episodes_are_judged_and_numbered_is_checked(kwargs, error, words):
+    with pytest.raises(error) as info:
+        _point_mass_episodes(_zero_action, **kwargs)
+    assert words in str(info.value)
+
+
+def test_real_outcomes_needs_an_env_and_a_policy():
+    args = {"runs_per_start": 1, "max_steps": 3, "success": _never, "progress": False}
+    with pytest.raises(TypeError, match="env: expected a TorchRL env or a function"):
+        real_outcomes(None, _zero_action, torch.zeros(2, 4), reset_to_state=plain_reset, **args)
+    with pytest.raises(TypeError, match="policy: expected a TorchRL policy"):
+        real_outcomes(
+            terminating_point_mass(), None, torch.zeros(2, 4), reset_to_state=plain_reset, **args
+        )
+
+
+def test_seeds_may_come_as_an_array_or_a_tensor_of_integers():
+    import numpy as np
+
+    for seeds in (np.arange(2), torch.arange(2), range(2)):
+        stats = _point_mass_episodes(_zero_action, seeds=seeds)
+        assert stats.success.shape == (2,)

@@ -382,3 +382,10 @@ def test_counts_rates_and_briers_outside_their_range_are_refused():
         per_start_rates(torch.tensor([True, False]))
     with pytest.raises(ValueError, match=r"outcome: expected bool outcomes \[B, R\]"):
         per_start_rates(torch.rand(3, 2))
+
+
+def test_a_platt_map_of_strings_is_refused():
+    from rcvae_torchrl.competency import PlattMap, apply_platt
+
+    with pytest.raises(ValueError, match="platt: expected a finite slope and intercept"):
+        apply_platt(torch.tensor([0.5]), PlattMap("1", 0))

@@ -37,6 +37,11 @@ def test_without_a_group_this_is_the_only_rank(monkeypatch):
     monkeypatch.setenv("RANK", "3")
     monkeypatch.setenv("WORLD_SIZE", "4")
     assert (distributed.rank(), distributed.world_size(), distributed.is_main()) == (3, 4, False)
+    for name, text in (("WORLD_SIZE", "abc"), ("WORLD_SIZE", "0"), ("RANK", "-1")):
+        monkeypatch.setenv(name, text)
+        with pytest.raises(ValueError, match=rf"^{name}: expected an integer >= \d in the env"):
+            distributed.world_size() if name == "WORLD_SIZE" else distributed.rank()
+        monkeypatch.setenv(name, "3" if name == "RANK" else "4")
 
 
 def test_work_generators_depend_on_their_keys_alone():

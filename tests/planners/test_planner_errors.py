@@ -165,3 +165,8 @@ def test_arguments_of_another_type(kwargs, message):
     with pytest.raises((TypeError, ValueError)) as info:
         CEMPlanner(PointMassEnv(), horizon=4, **kwargs)
     assert message in str(info.value)
+
+
+def test_init_std_may_be_a_list_per_action_dimension():
+    planner = CEMPlanner(PointMassEnv(), horizon=4, init_std=[0.3, 0.4])
+    assert planner.prior_std.tolist() == pytest.approx([0.3, 0.4])
