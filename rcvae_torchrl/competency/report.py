@@ -559,6 +559,18 @@ def _report_labels(values: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
+def _check_tensor_leaves(name: str, values: Mapping[str, Any]) -> None:
+    """Every leaf of a record's nested data is a tensor (a list would be taken as one)."""
+    for key, value in values.items():
+        if isinstance(value, Mapping):
+            _check_tensor_leaves(f"{name}[{key!r}]", value)
+        elif not isinstance(value, Tensor):
+            raise TypeError(
+                f"{name}[{key!r}]: expected a tensor (report.data.to_dict()), got "
+                f"{type(value).__name__}"
+            )
+
+
 def _report_data(values: Mapping[str, Any], keys: Mapping[str, NestedKey]) -> TensorDict:
     """A report record's data (a copy), checked: tensors of its batch size, holding the
     report's uncertainty and competency, with probabilities in [0, 1]."""
@@ -574,6 +586,7 @@ def _report_data(values: Mapping[str, Any], keys: Mapping[str, NestedKey]) -> Te
             f"values['data']: expected a dict of tensors (report.data.to_dict()), got "
             f"{type(values['data']).__name__}"
         )
+    _check_tensor_leaves("values['data']", values["data"])
     try:
         data = TensorDict(dict(values["data"]), batch_size=list(batch)).clone()
     except (RuntimeError, TypeError, ValueError) as err:
@@ -602,6 +615,12 @@ def _report_data(values: Mapping[str, Any], keys: Mapping[str, NestedKey]) -> Te
                 f"values['data']: {name} holds values outside [0, 1] (from {float(p.min()):g} "
                 f"to {float(p.max()):g}): the record was edited or damaged"
             )
+    start = data.get(keys["observation"], None)
+    if isinstance(start, Tensor) and start.is_floating_point() and not bool(start.isfinite().all()):
+        raise ValueError(
+            f"values['data']: the start states {keys['observation']!r} hold NaN or inf: the "
+            "record was edited or damaged"
+        )
     low, high = competency.get("p_success_low", None), competency.get("p_success_high", None)
     if low is not None and high is not None and not bool((low <= high).all()):
         raise ValueError(

@@ -24,6 +24,7 @@ from pathlib import Path
 import torch
 from matplotlib.figure import Figure
 
+from rcvae_torchrl._checks import check_positive, check_tensor
 from rcvae_torchrl.competency import ReliabilityDiagram
 from rcvae_torchrl.io import atomic_write
 
@@ -101,6 +102,21 @@ def uncertainty_figure(
     """
     _nonempty("curves", curves)
     _nonempty("panels", panels)
+    check_positive("dt", dt)
+    for condition, parts in curves.items():
+        for part in ("aleatoric", "epistemic"):
+            bits = parts.get(part) if isinstance(parts, Mapping) else None
+            if not isinstance(bits, torch.Tensor) or bits.ndim != 2:
+                raise ValueError(
+                    f"curves[{condition!r}][{part!r}]: expected bits [T, D], got "
+                    f"{tuple(bits.shape) if isinstance(bits, torch.Tensor) else bits!r}"
+                )
+            for title, dims in panels.items():
+                if any(not -bits.shape[1] <= d < bits.shape[1] for d in dims):
+                    raise ValueError(
+                        f"panels[{title!r}]: expected dimension indices below D={bits.shape[1]} "
+                        f"(those of curves[{condition!r}]), got {list(dims)}"
+                    )
     fig = Figure(figsize=(3.8 * len(panels), 5.4), layout="constrained")
     grid = fig.subplots(2, len(panels), squeeze=False, sharex=True)
     for column, (title, dims) in enumerate(panels.items()):
@@ -227,8 +243,9 @@ def hold_after_success(
         ``held`` ``[M, T]``: each sample held at its value at its first success from then on;
         ``ended`` ``[T]``: the fraction of the samples that have succeeded by each step.
     """
-    if samples.ndim != 2:
-        raise ValueError(f"samples: expected [M, T], got shape {tuple(samples.shape)}")
+    check_tensor("samples", samples)
+    if samples.ndim != 2 or samples.shape[1] == 0:
+        raise ValueError(f"samples: expected [M, T >= 1], got shape {tuple(samples.shape)}")
     success = (samples <= threshold).cumsum(-1) > 0
     first = torch.where(success.any(-1), success.float().argmax(-1), samples.shape[-1] - 1)
     at_success = samples.gather(-1, first[:, None]).expand_as(samples)
@@ -252,6 +269,9 @@ def forecast_vs_reality_figure(
     panels share the y axis.
     """
     _nonempty("panels", panels)
+    check_positive("dt", dt)
+    for i, panel in enumerate(panels):
+        _check_panel(f"panels[{i}]", panel)
     fig = Figure(figsize=(3.3 * len(panels) + 0.6, 3.6), layout="constrained")
     axes = list(fig.subplots(1, len(panels), squeeze=False, sharey=True)[0])
     for ax, panel in zip(axes, panels):
@@ -259,6 +279,26 @@ def forecast_vs_reality_figure(
     axes[0].set_ylabel(ylabel)
     _shared_legend(fig, axes, columns=5)
     return fig
+
+
+def _check_panel(name: str, panel: object) -> None:
+    """One panel of :func:`forecast_vs_reality_figure`: a title, samples ``[M, T]`` and real
+    runs (1-D tensors)."""
+    if not isinstance(panel, Mapping) or not {"title", "forecast", "real"} <= set(panel):
+        raise ValueError(
+            f"{name}: expected a mapping with 'title', 'forecast' [M, T] and 'real' (1-D "
+            f"tensors), got {type(panel).__name__}"
+            + (f" with keys {sorted(map(str, panel))}" if isinstance(panel, Mapping) else "")
+        )
+    forecast = panel["forecast"]
+    if not isinstance(forecast, torch.Tensor) or forecast.ndim != 2:
+        got = tuple(forecast.shape) if isinstance(forecast, torch.Tensor) else forecast
+        raise ValueError(f"{name}['forecast']: expected samples [M, T] (a tensor), got {got!r}")
+    runs = panel["real"]
+    if not isinstance(runs, (list, tuple)) or not all(
+        isinstance(r, torch.Tensor) and r.ndim == 1 for r in runs
+    ):
+        raise ValueError(f"{name}['real']: expected a list of 1-D tensors (one per run)")
 
 
 def _forecast_panel(ax, panel: Mapping[str, object], dt: float, threshold: float | None) -> None:

@@ -85,6 +85,11 @@ def plot_competency_surface(
                     f"surfaces[{name!r}][{kind!r}]: expected a grid of len(radii) x "
                     f"len(deadlines_s) = {grid}, got {got}"
                 )
+            if not bool(((s[kind] >= 0) & (s[kind] <= 1)).all()):  # NaN fails too
+                raise ValueError(
+                    f"surfaces[{name!r}][{kind!r}]: expected probabilities in [0, 1], got "
+                    f"values from {float(s[kind].min()):g} to {float(s[kind].max()):g}"
+                )
     rows = len(surfaces)
     fig = Figure(figsize=(8.4, 2.6 * rows + 0.6), layout="constrained")
     axes = fig.subplots(rows, 2, squeeze=False)

@@ -3,6 +3,7 @@ answers (task, agent, deadline) and how far it is to be trusted, where its bare 
 back through an assessor took the reading process's task and knew no agent."""
 
 import dataclasses
+import math
 
 import pytest
 import torch
@@ -133,6 +134,14 @@ def test_a_damaged_or_foreign_record_is_refused_by_name():
     )
     with pytest.raises(ValueError, match=r"^values\['data'\]: p_success_low exceeds p_succ"):
         CompetencyReport.from_dict(edited)
+    listed = report.as_dict()
+    listed["data"]["competency"]["p_success"] = [0.5] * 4
+    with pytest.raises(TypeError, match=r"\['p_success'\]: expected a tensor"):
+        CompetencyReport.from_dict(listed)
+    nan_start = report.as_dict()
+    nan_start["data"]["observation"] = torch.full_like(nan_start["data"]["observation"], math.nan)
+    with pytest.raises(ValueError, match=r"^values\['data'\]: the start states .* NaN or inf"):
+        CompetencyReport.from_dict(nan_start)
     del edited["data"]["competency"]
     with pytest.raises(ValueError, match=r"^values\['data'\]: expected the report's competency"):
         CompetencyReport.from_dict(edited)

@@ -174,7 +174,7 @@ def test_imagined_episodes_end_at_success_like_the_real_ones():
     assert held[0].tolist() == pytest.approx([0.10, 0.05, 0.02, 0.02, 0.02])
     assert torch.equal(held[1], samples[1])
     assert ended.tolist() == [0.0, 0.0, 0.5, 0.5, 0.5]
-    with pytest.raises(ValueError, match=r"samples: expected \[M, T\]"):
+    with pytest.raises(ValueError, match=r"samples: expected \[M, T >= 1\]"):
         hold_after_success(samples[0], 0.03)
 
 
@@ -297,3 +297,23 @@ def test_every_condition_is_drawn_when_there_are_more_than_colours():
     fig = uncertainty_figure(curves, {"p": [0]}, 0.1)
     labels = [t.get_text() for t in _legends(fig)[0][0].get_texts()]
     assert {f"c{i} aleatoric" for i in range(8)} <= set(labels)
+
+
+def test_figure_inputs_of_another_shape_are_named_before_matplotlib_sees_them(tmp_path):
+    curves = {"a": {"aleatoric": torch.ones(5, 2), "epistemic": torch.ones(5, 2)}}
+    with pytest.raises(ValueError, match=r"panels\['p'\]: expected dimension indices below D=2"):
+        uncertainty_figure(curves, {"p": [0, 7]}, 0.1)
+    with pytest.raises(ValueError, match=r"dt: expected a positive number, got '0\.1'"):
+        uncertainty_figure(curves, {"p": [0]}, "0.1")
+    with pytest.raises(ValueError, match=r"samples: expected \[M, T >= 1\], got shape \(3, 0\)"):
+        hold_after_success(torch.rand(3, 0), 0.5)
+    panel = {"title": "s", "forecast": torch.rand(6), "real": [torch.rand(4)]}
+    with pytest.raises(ValueError, match=r"panels\[0\]\['forecast'\]: expected samples \[M, T\]"):
+        forecast_vs_reality_figure([panel], 0.1)
+    with pytest.raises(ValueError, match=r"panels\[0\]\['real'\]: expected a list of 1-D tensors"):
+        forecast_vs_reality_figure([{**panel, "forecast": torch.rand(3, 6), "real": "x"}], 0.1)
+    from rcvae_torchrl.reporting import plot_competency_surface
+
+    surface = {"c": {"forecast": torch.full((2, 2), 3.0), "real": torch.rand(2, 2)}}
+    with pytest.raises(ValueError, match=r"surfaces\['c'\]\['forecast'\]: expected probabilities"):
+        plot_competency_surface(surface, [0.01, 0.02], [1.0, 2.0], tmp_path / "s.png")
