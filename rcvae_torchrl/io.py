@@ -460,8 +460,8 @@ def _plain(value: Any) -> Any:
 def _python_scalar(value: Any) -> Any:
     """A NumPy number or bool (``np.float32(0.5)``, ``np.bool_(True)``) as the Python one,
     which JSON writes as a number or bool; any other value as it is."""
-    numeric = isinstance(value, np.generic) and not isinstance(value, (np.str_, np.bytes_))
-    return value.item() if numeric and not isinstance(value, np.void) else value
+    text = isinstance(value, (np.str_, np.bytes_, np.void))
+    return value.item() if isinstance(value, np.generic) and not text else value
 
 
 def _compare_run_config(

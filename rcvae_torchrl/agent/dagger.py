@@ -32,7 +32,7 @@ from rcvae_torchrl._checks import (
 from rcvae_torchrl.data import make_policy_module
 
 from .distill import DistillConfig, distill_policy
-from .episodes import run_episodes
+from .episodes import check_policy, run_episodes
 from .policy import ResidualPolicy
 
 __all__ = ["PerturbedPolicy", "dagger", "label_states"]
@@ -52,8 +52,7 @@ class PerturbedPolicy:
         low: float = -1.0,
         high: float = 1.0,
     ) -> None:
-        if not callable(policy):
-            raise TypeError(f"policy: expected a TorchRL policy (callable), got {policy!r}")
+        check_policy(policy)
         check_non_negative("noise_std", noise_std)
         check_bounds("low, high", low, high)
         self.policy, self.noise_std, self.low, self.high = policy, noise_std, low, high

@@ -244,8 +244,7 @@ class _CheckedPolicy(TensorDictModuleBase):
 
     def __init__(self, policy: Callable[[TensorDictBase], Any], env: EnvBase) -> None:
         super().__init__()
-        if not callable(policy):
-            raise TypeError(f"policy: expected a TorchRL policy (callable), got {policy!r}")
+        check_policy(policy)
         self.policy = policy
         # a plain function of the TensorDict declares no keys (a rollout selects none)
         self.in_keys = list(getattr(policy, "in_keys", []))
@@ -279,6 +278,12 @@ class _CheckedPolicy(TensorDictModuleBase):
                 f"step {step}; the env cannot act on them"
             )
         return out
+
+
+def check_policy(policy: object) -> None:
+    """Require a TorchRL policy: a callable on the env's TensorDict."""
+    if not callable(policy):
+        raise TypeError(f"policy: expected a TorchRL policy (callable), got {policy!r}")
 
 
 def check_success(success: object) -> None:

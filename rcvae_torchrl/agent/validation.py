@@ -51,6 +51,7 @@ from .episodes import (
     ResetToState,
     _success_flags,
     check_not_cut_short,
+    check_policy,
     episode_groups,
     episode_lengths,
     run_episodes,
@@ -380,8 +381,7 @@ def real_outcomes(
     check_bool("keep_observations", keep_observations)
     if env is None:
         raise TypeError("env: expected a TorchRL env or a function that makes one, got None")
-    if not callable(policy):
-        raise TypeError(f"policy: expected a TorchRL policy (callable), got {policy!r}")
+    check_policy(policy)
     if not isinstance(starts, (torch.Tensor, TensorDictBase)):
         raise TypeError(
             f"starts: expected start states as a tensor [B, S] or a TensorDict [B], got "

@@ -305,14 +305,17 @@ def train_ensemble(
         raise TypeError(
             f"checkpoint_path: expected a str, a path or None, got {type(checkpoint_path).__name__}"
         )
+    for name, flag in (
+        ("resume", resume),
+        ("progress", progress),
+        ("novelty", novelty),
+        ("dynamics", dynamics),
+    ):
+        check_bool(name, flag)
     path = Path(checkpoint_path) if checkpoint_path is not None else None
     if resume and path is None:
         raise ValueError("resume: expected a checkpoint_path to resume from, got None")
     check_args = _check_args(checks)
-    for name, flag in (("resume", resume), ("progress", progress)):
-        check_bool(name, flag)
-    check_bool("novelty", novelty)
-    check_bool("dynamics", dynamics)
     if not isinstance(log_prefix, str):
         raise TypeError(f"log_prefix: expected a str, got {type(log_prefix).__name__}")
     if logger is not None and not callable(getattr(logger, "log_scalar", None)):
