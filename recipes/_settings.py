@@ -19,6 +19,7 @@ import tempfile
 import typing
 from collections.abc import Sequence
 from pathlib import Path
+from types import UnionType
 from typing import Any, TypeVar
 
 import torch
@@ -35,11 +36,13 @@ __all__ = [
     "build_config",
     "check_device_name",
     "check_override_keys",
+    "check_profile",
     "check_run_dir",
     "check_run_dir_name",
     "check_reuse_from",
     "check_run_settings",
     "check_seed",
+    "check_sequences",
     "check_threads",
     "register_schema",
     "resolve_device",
@@ -93,6 +96,42 @@ def check_field_types(config: Any, prefix: str = "") -> None:
             check_field_types(value, f"{prefix}{field.name}.")
         elif hint is bool and not isinstance(value, bool):
             raise TypeError(f"{prefix}{field.name}: expected true or false, got {value!r}")
+
+
+def check_sequences(config: Any) -> None:
+    """Require each field of the dataclass ``config`` typed as a tuple or a list to hold a list
+    or a tuple (``None`` where the type allows it): built in Python rather than by Hydra (which
+    types them), a scalar such as ``exploration_std=0.3`` would otherwise fail in the section's
+    own checks as "'float' object is not iterable". Call it first in a section's
+    ``__post_init__``."""
+    hints = typing.get_type_hints(type(config))
+    for field in dataclasses.fields(config):
+        hint = hints.get(field.name)
+        options = (
+            typing.get_args(hint)
+            if typing.get_origin(hint) in (typing.Union, UnionType)
+            else (hint,)
+        )
+        kinds = [typing.get_origin(option) or option for option in options]
+        if not any(kind in (tuple, list) for kind in kinds):
+            continue
+        value = getattr(config, field.name)
+        if value is None and type(None) in kinds:
+            continue
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(
+                f"{field.name}: expected a list of values"
+                + (" or null" if type(None) in kinds else "")
+                + f", got {value!r}"
+            )
+
+
+def check_profile(value: Any, profiles: Path) -> None:
+    """Require the name of a profile in the folder ``profiles`` (a recipe's
+    ``conf/profile``, one ``<name>.yaml`` per profile)."""
+    names = sorted(path.stem for path in Path(profiles).glob("*.yaml"))
+    if value not in names:
+        raise ValueError(f"profile: expected one of {names} ({profiles}), got {value!r}")
 
 
 def check_seed(name: str, value: Any, maximum: int = SEED_MAX) -> None:
@@ -325,12 +364,19 @@ def register_schema(name: str, cls: type) -> None:
     ConfigStore.instance().store(name=name, node=_schema(cls))
 
 
-def build_config(cls: type[T], cfg: DictConfig | dict) -> T:
+def build_config(cls: type[T], cfg: DictConfig | dict, profiles: Path | None = None) -> T:
     """The typed, range-checked ``cls`` of a composed config (or a mapping of overrides).
 
-    Each section is built on its own, so an error names the section and the setting
-    (``train.window: ...``); then :func:`check_run_settings`.
+    A mapping that names a ``profile`` gets that profile's settings (``<profiles>/<name>.yaml``)
+    under its own, as Hydra composes them: ``{"profile": "quick"}`` is the quick profile, not
+    the defaults under its name; an unknown profile is refused. Each section is built on its
+    own, so an error names the section and the setting (``train.window: ...``); then
+    :func:`check_run_settings`.
     """
+    if profiles is not None and not isinstance(cfg, DictConfig):
+        name = cfg.get("profile", "default")
+        check_profile(name, profiles)
+        cfg = OmegaConf.merge(OmegaConf.load(Path(profiles) / f"{name}.yaml"), cfg)
     schema = _schema(cls)
     _check_known_keys(schema, cfg)
     try:

@@ -8,6 +8,7 @@ runs.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig
@@ -19,14 +20,19 @@ from .._settings import (
     at_least,
     build_config,
     check_field_types,
+    check_profile,
     check_run_dir_name,
     check_seed,
+    check_sequences,
     check_threads,
     register_schema,
     whole_steps,
 )
 
 __all__ = ["RecipeConfig", "StudyConfig", "register_configs", "study_config"]
+
+#: The profiles (``<name>.yaml``: each one's differences from the defaults below).
+PROFILES = Path(__file__).parent / "conf" / "profile"
 
 CONTROL_TIMESTEP = 0.02  # s: dm_control point_mass's control step
 #: The largest study seed: the real episodes' seeds grow with it (the pipeline's REAL_SEEDS +
@@ -88,6 +94,7 @@ class DataConfig:
     time_limit_s: float = 3.0
 
     def __post_init__(self) -> None:
+        check_sequences(self)
         # a tenth (at least one) is held out, and the novelty check needs 2 training episodes
         _check("episodes", self.episodes, 3, int)
         if not self.exploration_std:  # the episodes are shared out over the levels of noise
@@ -136,6 +143,7 @@ class AssessConfig:
     bins: tuple[float, float] = (0.005, 0.02)  #: histogram widths: position (m), velocity (m/s)
 
     def __post_init__(self) -> None:
+        check_sequences(self)
         counts = ("start_states", "check_starts", "check_runs", "runs_per_start", "real_workers")
         for name in counts:
             _check(name, getattr(self, name), 1, int)
@@ -198,6 +206,7 @@ class RecipeConfig(StudyConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        check_profile(self.profile, PROFILES)
         check_threads(self.threads)
         check_run_dir_name(self.run_dir)
         check_logger_backend(self.logger)
@@ -211,4 +220,4 @@ def register_configs() -> None:
 def study_config(cfg: DictConfig | dict) -> RecipeConfig:
     """The typed, checked config of a composed Hydra config (or a mapping of overrides); the
     run directory is checked before anything is created or written."""
-    return build_config(RecipeConfig, cfg)
+    return build_config(RecipeConfig, cfg, PROFILES)

@@ -11,6 +11,7 @@ profiles under ``conf/profile/`` hold only their differences from these defaults
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig
@@ -27,8 +28,10 @@ from .._settings import (
     build_config,
     check_device_name,
     check_field_types,
+    check_profile,
     check_run_dir_name,
     check_seed,
+    check_sequences,
     check_threads,
     register_schema,
     whole_steps,
@@ -44,6 +47,9 @@ __all__ = [
     "register_configs",
     "study_config",
 ]
+
+#: The profiles (``<name>.yaml``: each one's differences from the defaults below).
+PROFILES = Path(__file__).parent / "conf" / "profile"
 
 #: The largest study seed: the real episodes' seeds grow with it (the pipeline's REAL_SEEDS,
 #: SPREAD_SEEDS, SHARE_SEEDS, HELD_OUT_SEEDS and DYNAMICS_SEEDS + 10·seed + condition, times
@@ -222,6 +228,7 @@ class AssessConfig:
     check_samples_per_member: int = 10
 
     def __post_init__(self) -> None:
+        check_sequences(self)
         _at_least(
             self,
             (
@@ -342,6 +349,7 @@ class RecipeConfig(StudyConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        check_profile(self.profile, PROFILES)
         check_device_name(self.device)
         check_threads(self.threads)
         check_workers("stage_workers", self.stage_workers)
@@ -361,4 +369,4 @@ def study_config(cfg: DictConfig | dict) -> RecipeConfig:
     checked against this machine, before anything is created or written; an error names the
     section and the setting.
     """
-    return build_config(RecipeConfig, cfg)
+    return build_config(RecipeConfig, cfg, PROFILES)

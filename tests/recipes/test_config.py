@@ -459,3 +459,47 @@ def test_sections_and_flags_built_in_python_are_of_their_types():
         StudyConfig(data=None)
     with pytest.raises(TypeError, match="progress: expected true or false, got 'no'"):
         RecipeConfig(progress="no")
+
+
+def test_lists_built_in_python_are_lists():
+    """A scalar where a section takes a list is named (it failed as "'float' object is not
+    iterable"), in both recipes."""
+    from recipes.point_mass_competency.config import AssessConfig as PointMassAssess
+    from recipes.point_mass_competency.config import DataConfig as PointMassData
+    from recipes.pusher_competency.config import AssessConfig
+
+    with pytest.raises(ValueError, match=r"surface_radii: expected a list of values, got 0\.03"):
+        AssessConfig(surface_radii=0.03)
+    with pytest.raises(ValueError, match=r"surface_deadlines_s: expected a list .* got 12\.0"):
+        AssessConfig(surface_deadlines_s=12.0)
+    with pytest.raises(ValueError, match=r"exploration_std: expected a list of values, got 0\.3"):
+        PointMassData(exploration_std=0.3)
+    with pytest.raises(ValueError, match=r"bins: expected a list of values, got 0\.01"):
+        PointMassAssess(bins=0.01)
+    assert PointMassData(exploration_std=[0.3]).exploration_std == [0.3]
+
+
+@pytest.mark.parametrize("recipe", ["pusher_competency", "point_mass_competency"])
+def test_a_profile_named_in_a_mapping_brings_its_settings(recipe, tmp_path):
+    """``{"profile": "quick"}`` is the quick profile as Hydra composes it, not the defaults
+    under its name; an unknown profile is refused, built either way."""
+    import importlib
+
+    config = importlib.import_module(f"recipes.{recipe}.config")
+    config.register_configs()
+    run_dir = str(tmp_path / "run")
+    with initialize_config_dir(config_dir=str(config.PROFILES.parent), version_base="1.3"):
+        composed = config.study_config(
+            compose(config_name=recipe, overrides=["profile=quick", f"run_dir={run_dir}"])
+        )
+    mapped = config.study_config({"profile": "quick", "run_dir": run_dir})
+    assert mapped == composed
+    assert mapped.train.max_steps != config.study_config({"run_dir": run_dir}).train.max_steps
+    overridden = config.study_config({"profile": "quick", "run_dir": run_dir, "seed": 3})
+    assert overridden == dataclasses.replace(composed, seed=3)
+    with pytest.raises(
+        ValueError, match=r"profile: expected one of \[.*'quick'.*\] \(.*\), got 'qiuck'"
+    ):
+        config.study_config({"profile": "qiuck", "run_dir": run_dir})
+    with pytest.raises(ValueError, match=r"profile: expected one of .* got 'qiuck'"):
+        config.RecipeConfig(profile="qiuck")
