@@ -36,6 +36,7 @@ __all__ = [
     "build_config",
     "check_device_name",
     "check_override_keys",
+    "check_printed_config",
     "check_profile",
     "check_run_dir",
     "check_run_dir_name",
@@ -350,6 +351,36 @@ def check_override_keys(cls: type, argv: Sequence[str]) -> None:
             raise SystemExit(f"error: {err}") from None
 
 
+def check_printed_config(
+    cls: type, argv: Sequence[str], config_dir: Path, config_name: str, profiles: Path
+) -> None:
+    """Before Hydra runs: with ``--cfg job`` or ``--cfg all`` (not a multirun), Hydra prints
+    the composed config and exits without calling the recipe, so a setting out of range would
+    be printed as if it ran. Build the settings ``cls`` from the same command line first, with
+    the range checks a run makes (not the machine's: a config may be printed for another
+    machine), and end with the recipe's own message (``SystemExit``) where one fails. A command
+    line Hydra cannot parse or compose is left to Hydra's own message."""
+    from hydra import compose, initialize_config_dir
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        args = get_args_parser().parse_args(list(argv))
+    except SystemExit:
+        return
+    if args.cfg not in ("job", "all") or args.multirun:
+        return
+    overrides = [o for o in args.overrides if not o.lstrip("+~").startswith(("hydra.", "hydra/"))]
+    try:
+        with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+            cfg = compose(config_name=config_name, overrides=overrides)
+    except Exception:  # Hydra names what it cannot compose when it runs
+        return
+    try:
+        build_config(cls, cfg, profiles, machine=False)
+    except (TypeError, ValueError) as error:
+        raise SystemExit(f"error: {error}") from None
+
+
 def _schema(cls: type) -> DictConfig:
     node = OmegaConf.structured(cls)
     _writable(node)
@@ -364,14 +395,16 @@ def register_schema(name: str, cls: type) -> None:
     ConfigStore.instance().store(name=name, node=_schema(cls))
 
 
-def build_config(cls: type[T], cfg: DictConfig | dict, profiles: Path | None = None) -> T:
+def build_config(
+    cls: type[T], cfg: DictConfig | dict, profiles: Path | None = None, machine: bool = True
+) -> T:
     """The typed, range-checked ``cls`` of a composed config (or a mapping of overrides).
 
     A mapping that names a ``profile`` gets that profile's settings (``<profiles>/<name>.yaml``)
     under its own, as Hydra composes them: ``{"profile": "quick"}`` is the quick profile, not
     the defaults under its name; an unknown profile is refused. Each section is built on its
-    own, so an error names the section and the setting (``train.window: ...``); then
-    :func:`check_run_settings`.
+    own, so an error names the section and the setting (``train.window: ...``); then, with
+    ``machine``, :func:`check_run_settings`.
     """
     if profiles is not None and not isinstance(cfg, DictConfig):
         name = cfg.get("profile", "default")
@@ -394,5 +427,6 @@ def build_config(cls: type[T], cfg: DictConfig | dict, profiles: Path | None = N
         if isinstance(sections.get(name), str):
             sections[name] = os.path.expanduser(sections[name])
     config = cls(**sections)
-    check_run_settings(config)
+    if machine:
+        check_run_settings(config)
     return config

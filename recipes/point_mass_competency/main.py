@@ -27,8 +27,19 @@ from torchrl.record.loggers import generate_exp_name
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
 from rcvae_torchrl.stages import check_run_directory
-from recipes._settings import RUN_MADE, check_override_keys, run_dir_refusal, set_threads
-from recipes.point_mass_competency.config import RecipeConfig, register_configs, study_config
+from recipes._settings import (
+    RUN_MADE,
+    check_override_keys,
+    check_printed_config,
+    run_dir_refusal,
+    set_threads,
+)
+from recipes.point_mass_competency.config import (
+    PROFILES,
+    RecipeConfig,
+    register_configs,
+    study_config,
+)
 from recipes.point_mass_competency.pipeline import run_study, study_settings
 
 register_configs()
@@ -73,4 +84,7 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     check_override_keys(RecipeConfig, sys.argv[1:])
+    check_printed_config(
+        RecipeConfig, sys.argv[1:], PROFILES.parent, "point_mass_competency", PROFILES
+    )
     main()

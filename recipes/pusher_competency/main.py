@@ -18,7 +18,7 @@ summaries go to the logger chosen with ``logger=csv|tensorboard|wandb|mlflow|non
 ``<run_dir>/logs``. Every
 setting and its default is in ``config.py``; the profiles in ``conf/profile/`` hold their
 differences. Unknown keys and values of the wrong type or out of range are rejected before
-anything runs.
+anything runs, and before ``--cfg job`` prints the config.
 """
 
 from __future__ import annotations
@@ -42,11 +42,17 @@ from rcvae_torchrl.stages import check_run_directory
 from recipes._settings import (
     RUN_MADE,
     check_override_keys,
+    check_printed_config,
     resolve_device,
     run_dir_refusal,
     set_threads,
 )
-from recipes.pusher_competency.config import RecipeConfig, register_configs, study_config
+from recipes.pusher_competency.config import (
+    PROFILES,
+    RecipeConfig,
+    register_configs,
+    study_config,
+)
 from recipes.pusher_competency.pipeline import run_study, study_settings, training_op_flop
 
 register_configs()
@@ -108,4 +114,5 @@ def _run(config: RecipeConfig, device: str, say: Callable[[str], None] | None) -
 
 if __name__ == "__main__":
     check_override_keys(RecipeConfig, sys.argv[1:])
+    check_printed_config(RecipeConfig, sys.argv[1:], PROFILES.parent, "pusher_competency", PROFILES)
     main()

@@ -503,3 +503,25 @@ def test_a_profile_named_in_a_mapping_brings_its_settings(recipe, tmp_path):
         config.study_config({"profile": "qiuck", "run_dir": run_dir})
     with pytest.raises(ValueError, match=r"profile: expected one of .* got 'qiuck'"):
         config.RecipeConfig(profile="qiuck")
+
+
+def test_a_printed_config_is_checked_like_a_run():
+    """``--cfg job`` prints the composed config without calling the recipe: a setting out of
+    range ends it with the recipe's message instead of being printed as if it ran; the machine
+    (device, run_dir) is not judged, nor what Hydra itself refuses or prints."""
+    from recipes._settings import check_printed_config
+    from recipes.pusher_competency.config import PROFILES
+
+    def check(*argv: str) -> None:
+        check_printed_config(RecipeConfig, argv, CONF, "pusher_competency", PROFILES)
+
+    with pytest.raises(SystemExit, match=r"^error: assess\.start_states: expected an integer >= 1"):
+        check("--cfg", "job", "assess.start_states=-1")
+    with pytest.raises(SystemExit, match=r"^error: train\.max_steps: expected a positive"):
+        check("-c", "all", "profile=quick", "train.max_steps=0", "hydra.job.chdir=false")
+    with pytest.raises(SystemExit, match=r"^error: data\.scripted_episodes: expected an integ"):
+        check("--cfg", "job", "profile=quick", "data.scripted_episodes=-3")
+    check("--cfg", "job", "device=cuda:7", "run_dir=/proc/x")  # another machine's config
+    check("--cfg", "hydra", "assess.start_states=-1")  # Hydra's settings only
+    check("assess.start_states=-1")  # a run: refused when it starts
+    check("--cfg", "job", "assess.start_states=x")  # a wrong type: Hydra's own message
