@@ -17,7 +17,7 @@ import os
 import re
 import tempfile
 import typing
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import UnionType
 from typing import Any, TypeVar
@@ -34,6 +34,10 @@ __all__ = [
     "SEED_MAX",
     "at_least",
     "build_config",
+    "check_command_line",
+    "claim_run_dir",
+    "say_checks",
+    "typed_settings",
     "check_device_name",
     "check_override_keys",
     "check_printed_config",
@@ -430,3 +434,41 @@ def build_config(
     if machine:
         check_run_settings(config)
     return config
+
+
+def check_command_line(cls: type, argv: Sequence[str], profiles: Path, config_name: str) -> None:
+    """A recipe's checks of its command line before Hydra runs: unknown keys
+    (:func:`check_override_keys`), and the settings that ``--cfg job`` would print
+    (:func:`check_printed_config`); ``profiles`` is the recipe's ``conf/profile``."""
+    check_override_keys(cls, argv)
+    check_printed_config(cls, argv, Path(profiles).parent, config_name, profiles)
+
+
+def typed_settings(study_config: Callable[[Any], T], cfg: DictConfig) -> T:
+    """``study_config(cfg)``, or the recipe's ``error:`` line (``SystemExit``, no traceback)
+    for a setting out of range."""
+    try:
+        return study_config(cfg)
+    except (TypeError, ValueError) as error:
+        raise SystemExit(f"error: {error}") from None
+
+
+def claim_run_dir(run_dir: str | Path, settings: dict[str, Any], profile: str) -> None:
+    """Before anything is made in ``run_dir``: a directory of other ``settings``, or of files
+    of the user's own, ends the run with :func:`run_dir_refusal`'s line."""
+    from rcvae_torchrl.stages import check_run_directory
+
+    try:
+        check_run_directory(run_dir, settings, made_before=RUN_MADE)
+    except ValueError as error:
+        raise run_dir_refusal(error, run_dir, profile) from None
+
+
+def say_checks(summary: dict[str, Any], run_dir: str | Path, say: Callable[[str], None]) -> None:
+    """The last lines of a run: each of its report's checks (``ok`` or ``NO``, its value) and
+    where the report is."""
+    for name, check in summary["report"]["checks"].items():
+        value = check["value"]
+        shown = f"{value:.3f}" if isinstance(value, float) else value
+        say(f"{'ok ' if check['met'] else 'NO '} {name}: {shown}")
+    say(f"report: {run_dir}/report.md")

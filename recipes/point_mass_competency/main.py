@@ -26,13 +26,12 @@ from torchrl.record.loggers import generate_exp_name
 
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
-from rcvae_torchrl.stages import check_run_directory
 from recipes._settings import (
-    RUN_MADE,
-    check_override_keys,
-    check_printed_config,
-    run_dir_refusal,
+    check_command_line,
+    claim_run_dir,
+    say_checks,
     set_threads,
+    typed_settings,
 )
 from recipes.point_mass_competency.config import (
     PROFILES,
@@ -47,18 +46,10 @@ register_configs()
 
 @hydra.main(config_path="conf", config_name="point_mass_competency", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    try:
-        config = study_config(cfg)
-    except (TypeError, ValueError) as error:  # a setting out of range: its message, no trace
-        raise SystemExit(f"error: {error}") from None
+    config = typed_settings(study_config, cfg)
     set_threads(config.threads)
     run_dir = Path(config.run_dir)
-    # a run directory of other settings, or of files of the user's own, is refused before
-    # anything is made in it
-    try:
-        check_run_directory(run_dir, study_settings(config), made_before=RUN_MADE)
-    except ValueError as error:
-        raise run_dir_refusal(error, run_dir, config.profile) from None
+    claim_run_dir(run_dir, study_settings(config), config.profile)
     with run_log(run_dir / "run.log") as log:
         threads = torch.get_num_threads()
         log.info(f"profile={config.profile} threads={threads} run_dir={run_dir}")
@@ -77,14 +68,9 @@ def main(cfg: DictConfig) -> None:
         finally:
             if logger is not None:
                 logger.close()
-        for name, check in summary["report"]["checks"].items():
-            log.info(f"{'ok ' if check['met'] else 'NO '} {name}: {check['value']}")
-        log.info(f"report: {run_dir}/report.md")
+        say_checks(summary, run_dir, log.info)
 
 
 if __name__ == "__main__":
-    check_override_keys(RecipeConfig, sys.argv[1:])
-    check_printed_config(
-        RecipeConfig, sys.argv[1:], PROFILES.parent, "point_mass_competency", PROFILES
-    )
+    check_command_line(RecipeConfig, sys.argv[1:], PROFILES, "point_mass_competency")
     main()

@@ -38,14 +38,13 @@ from torchrl.record.loggers import generate_exp_name
 from rcvae_torchrl import distributed
 from rcvae_torchrl.loggers import make_logger
 from rcvae_torchrl.run_log import run_log
-from rcvae_torchrl.stages import check_run_directory
 from recipes._settings import (
-    RUN_MADE,
-    check_override_keys,
-    check_printed_config,
+    check_command_line,
+    claim_run_dir,
     resolve_device,
-    run_dir_refusal,
+    say_checks,
     set_threads,
+    typed_settings,
 )
 from recipes.pusher_competency.config import (
     PROFILES,
@@ -60,22 +59,14 @@ register_configs()
 
 @hydra.main(config_path="conf", config_name="pusher_competency", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    try:
-        config = study_config(cfg)
-    except (TypeError, ValueError) as error:  # a setting out of range: its message, no trace
-        raise SystemExit(f"error: {error}") from None
+    config = typed_settings(study_config, cfg)
     device = resolve_device(config.device)
     set_threads(config.threads, training_op_flop(config))
     with distributed.session():  # a process group under torchrun, nothing otherwise
         if device == "cuda" and distributed.is_active():
             device = f"cuda:{torch.cuda.current_device()}"
         if distributed.is_main():  # rank 0 alone prints, logs and writes run.log
-            # a run directory of other settings, or of files of the user's own, is refused
-            # before anything is made in it
-            try:
-                check_run_directory(config.run_dir, study_settings(config), made_before=RUN_MADE)
-            except ValueError as error:
-                raise run_dir_refusal(error, config.run_dir, config.profile) from None
+            claim_run_dir(config.run_dir, study_settings(config), config.profile)
             with run_log(Path(config.run_dir) / "run.log") as log:
                 _run(config, device, log.info)
         else:
@@ -107,12 +98,9 @@ def _run(config: RecipeConfig, device: str, say: Callable[[str], None] | None) -
     finally:
         if logger is not None:
             logger.close()
-    for name, check in summary["report"]["checks"].items():
-        say(f"{'ok ' if check['met'] else 'NO '} {name}: {check['value']:.3f}")
-    say(f"report: {run_dir}/report.md")
+    say_checks(summary, run_dir, say)
 
 
 if __name__ == "__main__":
-    check_override_keys(RecipeConfig, sys.argv[1:])
-    check_printed_config(RecipeConfig, sys.argv[1:], PROFILES.parent, "pusher_competency", PROFILES)
+    check_command_line(RecipeConfig, sys.argv[1:], PROFILES, "pusher_competency")
     main()
