@@ -41,7 +41,9 @@ A stage may also declare the code it runs whose change its settings do not show
 outcome and every world model trained on its data depends on). Its marker records that digest;
 a finished stage whose marker records another one runs again, as after changed inputs. A
 marker written before its stage declared code (none recorded) is reused, with a log line
-saying that it was not verified against the code.
+saying that it was not verified against the code. Code whose every change need not mean a rerun
+(``library_code``: e.g. :func:`library_digest`, the library's own sources) is recorded too; a
+finished stage made with other such code is reused, with a log line saying so.
 
 Another run directory's finished stages can be reused (``reuse_from``): a stage that is not
 done in this run takes the other run's files when that run's marker records the same inputs
@@ -101,12 +103,14 @@ __all__ = [
     "StageRunner",
     "check_run_directory",
     "code_digest",
+    "library_digest",
     "file_record",
 ]
 
 _CHUNK = 1 << 20
+_MARKER_ONLY = ("outputs", "inputs", "code", "library_code")  # the marker's, not the summary's
 #: what a marker adds to a stage's summary: a summary may not hold these keys
-_RESERVED = ("outputs", "inputs", "code", "seconds", "attempts", "reused_from")
+_RESERVED = ("outputs", "inputs", "code", "library_code", "seconds", "attempts", "reused_from")
 
 
 #: The folder of a run directory that holds the stages' markers.
@@ -207,6 +211,12 @@ def code_digest(paths: Iterable[str | Path], packages: Iterable[str] = ()) -> st
     return h.hexdigest()
 
 
+def library_digest() -> str:
+    """:func:`code_digest` of this library's own sources (every file of the installed
+    ``rcvae_torchrl`` package): for :class:`StageRunner`'s ``library_code``."""
+    return code_digest([Path(__file__).parent])
+
+
 def _digest(obj: Any) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
@@ -239,6 +249,10 @@ class StageRunner:
             do not show (:func:`code_digest`, e.g. of the real environment's sources),
             recorded in its marker: a finished stage (here or in ``reuse_from``) made with
             another is not reused. A stage not named declares none.
+        library_code: a digest of code whose change is worth a word but not a rerun (e.g.
+            :func:`code_digest` of the library's own sources, which a docstring edit changes
+            as much as a fix): recorded in every marker; a finished stage made with another
+            is reused, with a log line naming the stage and how to run it again.
 
     Example:
         >>> import tempfile
@@ -258,6 +272,7 @@ class StageRunner:
         stage_settings: Mapping[str, Sequence[str]] | None = None,
         reuse_from: str | Path | None = None,
         stage_code: Mapping[str, str] | None = None,
+        library_code: str | None = None,
     ) -> None:
         if not isinstance(run_dir, (str, os.PathLike)):
             raise TypeError(f"run_dir: expected a str or a path, got {type(run_dir).__name__}")
@@ -278,6 +293,11 @@ class StageRunner:
                 f"{stage_code!r}"
             )
         self._stage_code = dict(stage_code or {})
+        if library_code is not None and not isinstance(library_code, str):
+            raise TypeError(
+                f"library_code: expected a code digest (str) or None, got {library_code!r}"
+            )
+        self._library_code = library_code
         self.log = log
         self.logger = logger if distributed.is_main() else None
         self.summaries: dict[str, Any] = {}
@@ -444,7 +464,7 @@ class StageRunner:
             distributed.barrier()
         if not distributed.is_main():
             saved = _read_marker(self.marker(name), name)
-        summary = {k: v for k, v in saved.items() if k not in ("outputs", "inputs", "code")}
+        summary = {k: v for k, v in saved.items() if k not in _MARKER_ONLY}
         log_scalars(self.logger, summary, len(self.summaries), prefix=f"stages/{name}/")
         self.summaries[name] = summary
         self._inputs = _digest([self._inputs, name, saved["outputs"]])
@@ -513,6 +533,13 @@ class StageRunner:
         """Why the marker ``saved`` of stage ``name`` does not hold for this run's declared
         code (``stage_code``), else None; a marker that records no code holds, with a log line
         (``where``: the run it is from, for that line)."""
+        library = saved.get("library_code")
+        if self._library_code is not None and library not in (None, self._library_code):
+            self.log(
+                f"[{name}] made{where} by other library code (digest {library[:12]} recorded, "
+                f"{self._library_code[:12]} now): reused as it is (a new run directory makes "
+                "every stage with this code)"
+            )
         code = self._stage_code.get(name)
         if code is None:
             return None
@@ -720,6 +747,7 @@ class StageRunner:
             **({"attempts": attempts} if attempts > 1 else {}),
             "inputs": self._stage_inputs(name),
             **({"code": self._stage_code[name]} if name in self._stage_code else {}),
+            **({"library_code": self._library_code} if self._library_code is not None else {}),
             "outputs": self._records(outputs, journal["foreign"]) if journal is not None else {},
         }
         if distributed.is_main():

@@ -677,6 +677,47 @@ def test_reuse_from_another_run_needs_the_same_code(tmp_path):
     assert any("records no code digest" in line and "old" in line for line in lines)
 
 
+def test_a_stage_made_with_other_library_code_is_reused_and_says_so(tmp_path):
+    first = Pipeline(tmp_path / "run")
+    runner, _ = first.run(library_code="lib-1")
+    marker = json.loads((tmp_path / "run" / "stages" / "make.json").read_text())
+    assert marker["library_code"] == "lib-1" and "library_code" not in runner.summaries["make"]
+    same = Pipeline(tmp_path / "run")
+    _, lines = same.run(library_code="lib-1")
+    assert same.computed == [] and not any("library code" in line for line in lines)
+    # other library code: every stage reused, each one named with what makes it anew
+    later = Pipeline(tmp_path / "run")
+    runner, lines = later.run(library_code="lib-2")
+    assert later.computed == [] and runner.summaries["use"]["total"] == 6.0
+    for name in ("make", "use"):
+        assert any(
+            line.startswith(f"[{name}] made by other library code (digest lib-1 recorded, lib-2")
+            and "reused as it is (a new run directory makes every stage with this code)" in line
+            for line in lines
+        )
+    borrowed = Pipeline(tmp_path / "borrowed")
+    _, lines = borrowed.run(library_code="lib-3", reuse_from=tmp_path / "run")
+    assert borrowed.computed == []
+    assert any("[make] made in" in line and "by other library code" in line for line in lines)
+    # markers that record none (written before, or by a runner not given any): nothing said
+    Pipeline(tmp_path / "old").run()
+    _, lines = Pipeline(tmp_path / "old").run(library_code="lib-1")
+    assert not any("library code" in line for line in lines)
+    with pytest.raises(TypeError, match=r"library_code: expected a code digest \(str\) or None"):
+        StageRunner(tmp_path, library_code=3)
+    with pytest.raises(ValueError, match="library_code"):  # reserved for the marker
+        StageRunner(tmp_path / "x").run("s", lambda: {"library_code": 1})
+
+
+def test_the_library_digest_is_the_digest_of_its_package(tmp_path):
+    from pathlib import Path
+
+    import rcvae_torchrl
+    from rcvae_torchrl.stages import code_digest, library_digest
+
+    assert library_digest() == code_digest([Path(rcvae_torchrl.__file__).parent])
+
+
 @pytest.mark.parametrize("stage_code", [["make"], {"make": 3}, {1: "code"}])
 def test_bad_stage_code_is_named(tmp_path, stage_code):
     with pytest.raises(TypeError, match="stage_code: expected a mapping of stage names"):

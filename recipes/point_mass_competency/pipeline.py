@@ -46,7 +46,7 @@ from rcvae_torchrl.data import (
 from rcvae_torchrl.io import load_torch, read_json, save_torch, write_json
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEConfig, RCVAEEnsemble
-from rcvae_torchrl.stages import StageRunner, code_digest
+from rcvae_torchrl.stages import StageRunner, code_digest, library_digest
 from rcvae_torchrl.training import (
     DynamicsCheck,
     OutcomeCheck,
@@ -417,6 +417,7 @@ def run_study(
         stage_settings=STAGE_SETTINGS,
         reuse_from=reuse_from,
         stage_code=stage_code(),
+        library_code=library_digest(),
     )
     study = Study(config, run_dir, progress, logger, log)
     for name, outputs in STAGES.items():

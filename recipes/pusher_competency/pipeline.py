@@ -68,7 +68,7 @@ from rcvae_torchrl.io import CHECKSUM_KEY, load_torch, read_json, save_torch
 from rcvae_torchrl.model_env import make_rcvae_env
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.processes import choose_workers, map_in_processes, worker_pool
-from rcvae_torchrl.stages import StageRunner, code_digest
+from rcvae_torchrl.stages import StageRunner, code_digest, library_digest
 from rcvae_torchrl.training import (
     DynamicsCheck,
     DynamicsNovelty,
@@ -1165,6 +1165,7 @@ def run_study(
         stage_settings=STAGE_SETTINGS,
         reuse_from=reuse_from,
         stage_code=stage_code(),
+        library_code=library_digest(),
     )
     study = Study(
         config,
