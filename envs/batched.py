@@ -45,7 +45,17 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from .factory import _check_args, _variant_region, check_strength
+from rcvae_torchrl._checks import check_bool, check_positive
+
+from .constraints import into_arena
+from .factory import (
+    _check_args,
+    _variant_region,
+    check_device,
+    check_env_args,
+    check_strength,
+    check_strength_range,
+)
 from .functions import DEFAULT_SUCCESS_RADIUS
 from .layout import OBSERVATION_DIM
 from .pusher import (
@@ -55,6 +65,7 @@ from .pusher import (
     IN_DISTRIBUTION,
     InitialStateRegion,
     Physics,
+    check_region,
     clip_action,
     draw_action_noise,
     draw_strength,
@@ -84,6 +95,9 @@ def episode_step_limit(time_limit: float, physics_timestep: float, n_sub_steps: 
 
     A float: an episode is truncated at the first step count ``>=`` it (600 for 30 s at 0.05 s).
     """
+    check_positive("time_limit", time_limit)
+    check_positive("physics_timestep", physics_timestep)
+    _check_count("n_sub_steps", n_sub_steps)
     return time_limit / (physics_timestep * n_sub_steps)
 
 
@@ -132,7 +146,8 @@ class BatchedPusherEnv(EnvBase):
         * ``reset(td, set_state=True)`` starts the reset envs from the states that
           ``td["observation"]`` describes, as :func:`~rcvae_torchrl.envs.state.reset_to_state`
           does for one env: a regular reset (which draws a start from the env's stream) and then
-          the given state, so the stream continues exactly as the dm_control env's.
+          the given state, so the stream continues exactly as the dm_control env's (a ball or
+          target out of the ball's reach is moved into the arena, as there).
         * A step moves the envs that are not done. A done env is not simulated until it is
           reset: its observation stays, its reward is 0 and its done flags stay set. A
           ``"_step"`` mask (``rollout(break_when_all_done=True)``) skips envs likewise.
@@ -168,6 +183,13 @@ class BatchedPusherEnv(EnvBase):
     ) -> None:
         _check_count("num_envs", num_envs)
         _check_count("num_threads", num_threads)
+        check_region(region)
+        check_env_args(
+            action_noise_std, time_limit, control_timestep, success_radius, noise_may_be_none=False
+        )
+        check_strength_range(actuator_strength)
+        check_bool("terminate_on_success", terminate_on_success)
+        check_device(device)
         super().__init__(device=device, batch_size=torch.Size([num_envs]))
         self.region = region
         self.success_radius = float(success_radius)
@@ -239,7 +261,11 @@ class BatchedPusherEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
             return
-        if not isinstance(seed, (int, np.integer)) or not 0 <= seed <= _MAX_SEED - self.num_envs:
+        if (
+            isinstance(seed, bool)
+            or not isinstance(seed, (int, np.integer))
+            or not 0 <= seed <= _MAX_SEED - self.num_envs
+        ):
             raise ValueError(
                 f"seed: expected an integer in [0, 2**32 - num_envs] (env i gets seed + i), "
                 f"got {seed!r}"
@@ -326,7 +352,7 @@ class BatchedPusherEnv(EnvBase):
             state = sample_start(self._randoms[i], self.region, self._finger_to_ball)
             self._strength[i] = draw_strength(self._randoms[i], self.actuator_strength)
             if observations is not None:
-                state = state_from_observation(observations[k])
+                state = into_arena(state_from_observation(observations[k]))
             self._scratch.set_state(state)
             qpos[k], qvel[k], self._target[i] = data.qpos, data.qvel, state.target
         rows = ids.astype(np.int32)

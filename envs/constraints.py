@@ -10,12 +10,17 @@ Given the model's generated state, make it consistent with what the simulator gu
 
 from __future__ import annotations
 
+import dataclasses
+
+import numpy as np
 import torch
 
+from .functions import _check_observation
 from .layout import OBSERVATION_PARTS
 from .pusher import ARENA_RADIUS, BALL_RADIUS, HUB_RADIUS, WRIST_RANGE
+from .readout import PusherState
 
-__all__ = ["pusher_state_constraint"]
+__all__ = ["into_arena", "pusher_state_constraint"]
 
 LINK_LENGTH = 0.12  # m, each of the two links (pusher.xml)
 _COS, _SIN, _JOINT_VEL, _FINGER, _BALL, _BALL_VEL, _ = OBSERVATION_PARTS.values()
@@ -36,9 +41,10 @@ def pusher_state_constraint(previous: torch.Tensor, state: torch.Tensor) -> torc
     """``(s_{t-1} [..., 14], generated s_t [..., 14]) -> s_t [..., 14]`` made consistent.
 
     Basic slices and one concatenation, no copy of the state and no advanced indexing: the
-    planner runs this on every imagined step.
+    planner runs this on every imagined step (``state``'s shape is checked, not its values).
     """
     del previous  # the constraint holds state by state
+    _check_observation(state, "state")
     # contiguous operands: atan2 then takes the same (vectorised) path as on gathered columns
     angles = torch.atan2(state[..., _SIN].contiguous(), state[..., _COS].contiguous())
     angles = torch.clamp(angles, *_joint_bounds(angles))  # the shoulder free, the wrist limited
@@ -59,6 +65,33 @@ def pusher_state_constraint(previous: torch.Tensor, state: torch.Tensor) -> torc
         ],
         dim=-1,
     )
+
+
+def _radially_within(xy: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Points ``[..., 2]`` moved along their ray from the base to a distance in [low, high];
+    points already there are returned as they are (the same array when all are)."""
+    radius = np.hypot(xy[..., 0], xy[..., 1])
+    inside = (radius >= low) & (radius <= high)
+    if inside.all():
+        return xy
+    unit = np.where(
+        radius[..., None] > 0, xy / np.where(radius > 0, radius, 1.0)[..., None], [1.0, 0.0]
+    )
+    return np.where(inside[..., None], xy, unit * np.clip(radius, low, high)[..., None])
+
+
+def into_arena(state: PusherState) -> PusherState:
+    """``state`` with the ball's centre and the target moved radially to where the ball's centre
+    can be, between the hub and the fence (with the contact slack of
+    :func:`pusher_state_constraint`); a state already there is returned as it is.
+    What :func:`~rcvae_torchrl.envs.state.reset_to_state` loads (and the batched env's
+    ``reset(..., set_state=True)``): a ball outside the fence or inside the hub, or a target
+    out of the ball's reach, is not a state the Pusher can be in."""
+    ball = _radially_within(state.ball, _BALL_MIN, _BALL_MAX)
+    target = _radially_within(state.target, _BALL_MIN, _BALL_MAX)
+    if ball is state.ball and target is state.target:
+        return state
+    return dataclasses.replace(state, ball=ball, target=target)
 
 
 _BOUNDS: dict[tuple[torch.dtype, torch.device], tuple[torch.Tensor, torch.Tensor]] = {}

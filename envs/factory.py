@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import math
 
+import torch
 from torchrl.envs import TransformedEnv
+
+from rcvae_torchrl._checks import check_bool
 
 from .functions import DEFAULT_SUCCESS_RADIUS
 from .pusher import (
@@ -13,11 +16,20 @@ from .pusher import (
     IN_DISTRIBUTION,
     OUT_OF_DISTRIBUTION,
     InitialStateRegion,
+    check_region,
     make_environment,
 )
 from .wrapper import PusherWrapper
 
-__all__ = ["DEFAULT_ACTION_NOISE_STD", "VARIANTS", "check_strength", "make_pusher_env"]
+__all__ = [
+    "DEFAULT_ACTION_NOISE_STD",
+    "VARIANTS",
+    "check_device",
+    "check_env_args",
+    "check_strength",
+    "check_strength_range",
+    "make_pusher_env",
+]
 
 VARIANTS = ("deterministic", "stochastic", "ood")
 DEFAULT_ACTION_NOISE_STD = 0.5  # std of the Gaussian action noise of the stochastic variant
@@ -27,15 +39,18 @@ def _finite_number(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _check_args(
-    variant: str,
+def check_env_args(
     action_noise_std: float | None,
     time_limit: float,
     control_timestep: float,
     success_radius: float,
-) -> float:
-    if variant not in VARIANTS:
-        raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
+    *,
+    noise_may_be_none: bool = True,
+) -> None:
+    """The checks every Pusher env's arguments pass, whatever its variant (``make_pusher_env``,
+    ``make_batched_pusher_env`` and ``BatchedPusherEnv`` run them): positive finite times and
+    radius, a whole number of control steps, a non-negative finite noise std (or None, the
+    variant's default, where ``noise_may_be_none``)."""
     for name, value, unit in (
         ("time_limit", time_limit, "seconds"),
         ("control_timestep", control_timestep, "seconds"),
@@ -49,13 +64,27 @@ def _check_args(
             f"time_limit: expected a whole number of control steps of {control_timestep} s, "
             f"got {time_limit} s ({steps:.4f} steps)"
         )
-    if action_noise_std is None:
-        return DEFAULT_ACTION_NOISE_STD if variant == "stochastic" else 0.0
-    if not (_finite_number(action_noise_std) and action_noise_std >= 0):
+    if (action_noise_std is not None or not noise_may_be_none) and not (
+        _finite_number(action_noise_std) and action_noise_std >= 0
+    ):
         raise ValueError(
             "action_noise_std: expected a non-negative standard deviation, "
             f"got {action_noise_std!r}"
         )
+
+
+def _check_args(
+    variant: str,
+    action_noise_std: float | None,
+    time_limit: float,
+    control_timestep: float,
+    success_radius: float,
+) -> float:
+    if variant not in VARIANTS:
+        raise ValueError(f"variant: expected one of {VARIANTS}, got {variant!r}")
+    check_env_args(action_noise_std, time_limit, control_timestep, success_radius)
+    if action_noise_std is None:
+        return DEFAULT_ACTION_NOISE_STD if variant == "stochastic" else 0.0
     if variant == "deterministic" and action_noise_std > 0:
         raise ValueError(
             f"action_noise_std: the deterministic variant takes no action noise, got "
@@ -64,14 +93,11 @@ def _check_args(
     return float(action_noise_std)
 
 
-def check_strength(
-    variant: str,
-    actuator_strength: tuple[float, float] | None,
-    name: str = "actuator_strength",
+def check_strength_range(
+    actuator_strength: tuple[float, float] | None, name: str = "actuator_strength"
 ) -> tuple[float, float] | None:
-    """``actuator_strength`` checked: None, or ``(low, high)`` with ``0 < low <= high <= 1``
-    (the motors clip their controls to [-1, 1], so a strength above 1 would only saturate);
-    errors name the argument ``name``."""
+    """``actuator_strength`` checked, whatever the variant: None, or ``(low, high)`` with
+    ``0 < low <= high <= 1``; returns it as two floats."""
     if actuator_strength is None:
         return None
     try:
@@ -84,16 +110,44 @@ def check_strength(
         raise ValueError(
             f"{name}: expected (low, high) with 0 < low <= high <= 1, got {actuator_strength!r}"
         )
-    if variant == "deterministic":
+    return (low, high)
+
+
+def check_strength(
+    variant: str,
+    actuator_strength: tuple[float, float] | None,
+    name: str = "actuator_strength",
+) -> tuple[float, float] | None:
+    """``actuator_strength`` checked: None, or ``(low, high)`` with ``0 < low <= high <= 1``
+    (the motors clip their controls to [-1, 1], so a strength above 1 would only saturate);
+    errors name the argument ``name``."""
+    checked = check_strength_range(actuator_strength, name)
+    if checked is not None and variant == "deterministic":
         raise ValueError(
             f"{name}: the deterministic variant's arm has a fixed strength, got "
             f"{actuator_strength!r}; use variant='stochastic'"
         )
-    return (low, high)
+    return checked
+
+
+def check_device(device: object) -> None:
+    """Require None or a device torch knows (``"cpu"``, ``"cuda:0"``, a ``torch.device``),
+    naming ``device`` where torch's own message would not."""
+    if device is None or isinstance(device, torch.device):
+        return
+    try:
+        torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as err:
+        kind = TypeError if not isinstance(device, (str, int)) else ValueError
+        raise kind(
+            f"device: expected a torch device (e.g. 'cpu' or 'cuda:0') or None, got {device!r} "
+            f"({err})"
+        ) from None
 
 
 def _variant_region(variant: str, region: InitialStateRegion | None) -> InitialStateRegion:
     """``region`` if given, else the variant's: out of distribution for ``"ood"``."""
+    check_region(region, or_none=True)
     if region is not None:
         return region
     return OUT_OF_DISTRIBUTION if variant == "ood" else IN_DISTRIBUTION
@@ -148,10 +202,9 @@ def make_pusher_env(
         torch.Size([10, 14])
     """
     noise = _check_args(variant, action_noise_std, time_limit, control_timestep, success_radius)
-    if not isinstance(terminate_on_success, bool):
-        raise TypeError(
-            f"terminate_on_success: expected True or False, got {terminate_on_success!r}"
-        )
+    check_bool("terminate_on_success", terminate_on_success)
+    check_bool("from_pixels", from_pixels)
+    check_device(device)
     dm_env = make_environment(
         _variant_region(variant, region),
         success_radius=success_radius,

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import torch
 
+from .functions import _check_observation
 from .layout import OBSERVATION_PARTS
 from .scripted import arm_jacobian
 
@@ -40,6 +41,7 @@ def pusher_input_features(observation: torch.Tensor) -> torch.Tensor:
     - closing speed: the rate at which the fingertip-ball distance shrinks (m/s, > 0 when they
       approach).
     """
+    _check_observation(observation)
     o = observation
     jacobian = arm_jacobian(o[..., _COS], o[..., _SIN])
     finger_vel = (jacobian @ o[..., _JOINT_VEL].unsqueeze(-1)).squeeze(-1)

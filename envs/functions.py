@@ -38,12 +38,14 @@ _TARGET = _positions("target")
 _FINGER = _positions("finger")
 
 
-def _check_observation(observation: torch.Tensor) -> None:
+def _check_observation(observation: torch.Tensor, name: str = "observation") -> None:
+    """Require a tensor ``[..., 14]`` (its shape only: no data is read, so it costs nothing on
+    the imagined-step paths that call it)."""
     if not isinstance(observation, torch.Tensor):
-        raise TypeError(f"observation: expected a torch.Tensor, got {type(observation).__name__}")
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(observation).__name__}")
     if observation.shape[-1:] != (OBSERVATION_DIM,):
         raise ValueError(
-            f"observation: expected shape [..., {OBSERVATION_DIM}], got {tuple(observation.shape)}"
+            f"{name}: expected shape [..., {OBSERVATION_DIM}], got {tuple(observation.shape)}"
         )
 
 

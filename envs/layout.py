@@ -114,7 +114,10 @@ def obs_indices(*names: str) -> list[int]:
 
 
 def resolution_tensor(dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """The per-dimension resolution as a ``[OBSERVATION_DIM]`` tensor (histogram bin widths)."""
+    """The per-dimension resolution as a ``[OBSERVATION_DIM]`` tensor (histogram bin widths);
+    ``dtype`` is a floating-point one (an integer one would round every width to 0)."""
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
     return torch.tensor([OBSERVATION_RESOLUTION[n] for n in OBSERVATION_NAMES], dtype=dtype)
 
 

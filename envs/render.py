@@ -13,6 +13,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import EnvBase
 
+from rcvae_torchrl._checks import check_positive
 from rcvae_torchrl.io import atomic_write
 from rcvae_torchrl.processes import try_in_a_child
 
@@ -68,7 +69,9 @@ def _render_check(backend: str | None) -> str | None:
 
 
 def save_video(frames: list[np.ndarray], path: str | Path, fps: float) -> Path:
-    """Write uint8 frames ``[H, W, 3]`` to a .gif (or .mp4, with imageio-ffmpeg), atomically."""
+    """Write uint8 frames ``[H, W, 3]`` to a .gif (or .mp4, with imageio-ffmpeg), atomically;
+    ``fps``: frames per second, a positive finite number."""
+    check_positive("fps", fps)
     path = Path(path)
     if path.suffix not in (".gif", ".mp4"):
         raise ValueError(f"path: expected a .gif or .mp4 file name, got {str(path)!r}")

@@ -13,8 +13,10 @@ import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
 
+from rcvae_torchrl._checks import check_floating, check_non_negative, check_positive
+
 from .constraints import LINK_LENGTH as _LINK
-from .functions import CONTACT_DISTANCE
+from .functions import CONTACT_DISTANCE, _check_observation
 from .layout import OBSERVATION_PARTS
 
 __all__ = ["ScriptedPusher", "make_scripted_policy"]
@@ -85,6 +87,11 @@ class ScriptedPusher(nn.Module):
         align_angle: largest angle (rad) between the fingertip and the point behind the ball,
             seen from the ball, at which the fingertip pushes.
         max_turn: largest angle (rad) the orbiting set point leads the fingertip by.
+
+    ``kp``, ``align_angle`` and ``max_turn`` are positive, the others finite and >= 0.
+    Observations must be floating-point ``[..., 14]``; their values are not read for a check
+    (the controller runs at every imagined step of a planner, where a NaN test would cost a
+    device synchronisation), so a NaN observation gives NaN actions, which the envs refuse.
     """
 
     def __init__(
@@ -98,6 +105,16 @@ class ScriptedPusher(nn.Module):
         align_angle: float = 0.5,
         max_turn: float = 1.0,
     ) -> None:
+        for name, value in (("kp", kp), ("align_angle", align_angle), ("max_turn", max_turn)):
+            check_positive(name, value)
+        for name, value in (
+            ("kd", kd),
+            ("kq", kq),
+            ("k_posture", k_posture),
+            ("standoff", standoff),
+            ("push_depth", push_depth),
+        ):
+            check_non_negative(name, value)
         super().__init__()
         self.kp, self.kd, self.kq, self.k_posture = kp, kd, kq, k_posture
         self.standoff, self.push_depth = standoff, push_depth
@@ -110,6 +127,7 @@ class ScriptedPusher(nn.Module):
         orbit the ball at ``CONTACT_DISTANCE + standoff``, turning at most ``max_turn`` per step
         towards the point behind it, so the fingertip never shoves the ball the wrong way.
         """
+        _check_scripted_input(observation)
         finger, ball = observation[..., _FINGER], observation[..., _BALL]
         goal = _push_goal(ball, observation[..., _TARGET])
         u = _unit(goal - ball)
@@ -130,6 +148,7 @@ class ScriptedPusher(nn.Module):
         return torch.where(aligned, push, orbit)
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        _check_scripted_input(observation)
         cos, sin = observation[..., _COS], observation[..., _SIN]
         qvel = observation[..., _QVEL]
         jac = arm_jacobian(cos, sin)
@@ -143,6 +162,12 @@ class ScriptedPusher(nn.Module):
         bend = torch.where(wrist >= 0, bend, -bend)
         torque = torque + torch.stack([torch.zeros_like(bend), self.k_posture * bend], dim=-1)
         return torque.clamp(-1.0, 1.0)
+
+
+def _check_scripted_input(observation: torch.Tensor) -> None:
+    """A floating-point tensor ``[..., 14]`` (shape and dtype only, no data read)."""
+    _check_observation(observation)
+    check_floating("observation", observation)
 
 
 def make_scripted_policy(**controller_kwargs: float) -> TensorDictModule:

@@ -14,6 +14,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
 from .batched import BatchedPusherEnv
+from .constraints import into_arena
 from .layout import OBSERVATION_DIM, OBSERVATION_NAMES
 from .readout import state_from_observation
 
@@ -54,7 +55,9 @@ def reset_to_state(env: EnvBase, observation: torch.Tensor) -> TensorDictBase:
     observation that is not a state the Pusher can be in is moved to one it can, with a
     ``UserWarning`` naming the entry that moved most and by how much when any entry moves
     more than :data:`PROJECTION_TOLERANCE`; the returned ``td["observation"]`` is the state
-    the episode starts from.
+    the episode starts from. That covers a ball outside the fence or inside the hub and a
+    target out of the ball's reach: each is moved along its ray from the base to where the
+    ball's centre can be (:func:`~rcvae_torchrl.envs.constraints.into_arena`).
 
     Example:
         >>> from rcvae_torchrl.envs import OBSERVATION_NAMES, make_pusher_env
@@ -81,7 +84,7 @@ def reset_to_state(env: EnvBase, observation: torch.Tensor) -> TensorDictBase:
     dm = _dm_env(env)
     physics = dm.physics
     with physics.reset_context():
-        physics.set_state(state_from_observation(observation.double().numpy()))
+        physics.set_state(into_arena(state_from_observation(observation.double().numpy())))
     dm.task.after_step(physics)
     current = dm.task.get_observation(physics)
     td["observation"] = torch.as_tensor(current["observation"], dtype=torch.float32)

@@ -42,6 +42,20 @@ class PusherWrapper(DMControlWrapper):
             raise ValueError(f"seed: expected an integer in [0, 2**32), got {seed!r}")
         super()._set_seed(seed)
 
+    def read_action(self, action: torch.Tensor) -> np.ndarray:
+        """The action as the NumPy array dm_control takes, checked: shape ``[2]`` and finite
+        (dm_control would broadcast a ``[1]`` action to both motors, clip an inf and fail on a
+        NaN deep in the physics). Two-entry checks on the array, no tensor reduction."""
+        values = super().read_action(action)
+        expected = tuple(self.action_spec.shape)
+        shape = getattr(values, "shape", None)
+        if shape != expected:
+            got = list(action.shape) if isinstance(action, torch.Tensor) else action
+            raise ValueError(f"action: expected shape {list(expected)}, got {got}")
+        if not np.isfinite(values).all():
+            raise ValueError(f"action: expected finite values, got {values.tolist()}")
+        return values
+
     def read_obs(self, observations: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in observations.items()}
 

@@ -322,3 +322,52 @@ def test_bad_seeds_and_states_raise_clear_errors():
     with pytest.raises(ValueError, match=r"observation: expected a finite tensor of shape \(2, 14"):
         reset_to_state(env, torch.zeros(14))
     assert isinstance(env, BatchedPusherEnv)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"success_radius": float("nan")}, ValueError, "success_radius: expected a positive"),
+        ({"action_noise_std": -1.0}, ValueError, "action_noise_std: expected a non-negative"),
+        ({"action_noise_std": None}, ValueError, "action_noise_std: expected a non-negative"),
+        ({"time_limit": 0.0}, ValueError, "time_limit: expected a positive finite number"),
+        ({"time_limit": 1.03}, ValueError, "whole number of control steps"),
+        ({"actuator_strength": (5.0, 9.0)}, ValueError, "actuator_strength: expected .* <= 1"),
+        ({"terminate_on_success": "no"}, TypeError, "terminate_on_success: expected True or"),
+        ({"region": "x"}, TypeError, "region: expected an InitialStateRegion, got str"),
+        ({"device": "foo"}, ValueError, r"device: expected a torch device .* got 'foo'"),
+    ],
+)
+def test_the_class_checks_its_arguments_as_the_factory_does(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        BatchedPusherEnv(2, **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"terminate_on_success": "no"}, TypeError, "terminate_on_success: expected True or"),
+        ({"seed": True}, ValueError, r"seed: expected an integer in \[0, 2\*\*32 - num_envs\]"),
+        ({"region": "x"}, TypeError, "region: expected an InitialStateRegion or None, got str"),
+        ({"device": "foo"}, ValueError, r"device: expected a torch device .* got 'foo'"),
+    ],
+)
+def test_flags_seed_region_and_device_of_the_factory_are_checked(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        make_batched_pusher_env(2, **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("args", "match"),
+    [
+        ((30.0, 0.005, 0), "n_sub_steps: expected an integer >= 1, got 0"),
+        ((30.0, 0.0, 10), "physics_timestep: expected a positive number, got 0.0"),
+        ((float("nan"), 0.005, 10), "time_limit: expected a positive number, got nan"),
+    ],
+)
+def test_episode_step_limit_names_a_bad_argument(args, match):
+    from rcvae_torchrl.envs.batched import episode_step_limit
+
+    assert episode_step_limit(30.0, 0.005, 10) == 600.0
+    with pytest.raises(ValueError, match=match):
+        episode_step_limit(*args)

@@ -67,3 +67,10 @@ def test_observation_parts_cover_the_layout_once():
     assert sorted(covered) == list(range(OBSERVATION_DIM))
     assert OBSERVATION_PARTS["cos"] == obs_slice("shoulder_cos", "wrist_cos")
     assert OBSERVATION_PARTS["target"] == obs_slice("target")
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool, "float32"])
+def test_resolution_tensor_takes_floating_dtypes_only(dtype):
+    assert resolution_tensor(torch.float64).dtype == torch.float64
+    with pytest.raises(TypeError, match=r"dtype: expected a floating-point torch\.dtype, got "):
+        resolution_tensor(dtype)

@@ -335,3 +335,124 @@ def test_reset_to_state_warns_when_it_moves_an_impossible_observation(recwarn):
     assert (td["observation"] - off[1]).abs().max() > PROJECTION_TOLERANCE  # where it starts
     with pytest.warns(UserWarning, match=pattern):
         reset_to_state(BatchedPusherEnv(2), off)
+
+
+@pytest.mark.parametrize(
+    ("action", "match"),
+    [
+        (torch.tensor([0.7]), r"action: expected shape \[2\], got \[1\]"),
+        (torch.zeros(3), r"action: expected shape \[2\], got \[3\]"),
+        (torch.zeros(1, 2), r"action: expected shape \[2\], got \[1, 2\]"),
+        (torch.tensor([math.inf, 0.0]), r"action: expected finite values, got \[inf, 0\.0\]"),
+        (torch.tensor([0.0, math.nan]), r"action: expected finite values, got \[0\.0, nan\]"),
+    ],
+)
+def test_single_env_refuses_actions_of_another_shape_or_not_finite(action, match):
+    env = make_pusher_env(seed=0)
+    td = env.reset()
+    with pytest.raises(ValueError, match=match):
+        env.step(td.set("action", action))
+    env.step(td.set("action", torch.zeros(2)))  # the env is still usable
+
+
+# ball and target 0.1 m from the base at most 0.2 rad apart: never 0.06 m apart
+_CRAMPED = InitialStateRegion((0.1, 0.1), (0, 0), (0, 0), (0.1, 0.1), angle=(0.0, 0.2))
+
+
+def test_a_region_without_valid_starts_is_refused_not_sampled_forever():
+    from rcvae_torchrl.envs.pusher import sample_start
+
+    pattern = r"region: no start state found in 10000 candidates: 10000 had the ball within"
+    with pytest.raises(ValueError, match=pattern):
+        make_pusher_env(region=_CRAMPED, seed=0)
+    with pytest.raises(ValueError, match=r"\d+ the fingertip within 0\.04 m of the ball"):
+        sample_start(np.random.RandomState(0), IN_DISTRIBUTION, lambda state: 0.0)
+    with pytest.raises(ValueError, match="finger_to_ball: expected a fingertip-to-ball distance"):
+        sample_start(np.random.RandomState(0), IN_DISTRIBUTION, lambda state: math.nan)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("ball_radius", 0.1),
+        ("ball_radius", (0.1, 0.1, 0.1)),
+        ("target_radius", ("a", "b")),
+        ("target_radius", "ab"),
+        ("angle", None),
+        ("ball_speed", (0, math.inf)),
+        ("joint_speed", (0, math.inf)),
+        ("joint_speed", (math.nan, 1.0)),
+        ("angle", (-math.inf, -math.inf)),
+        ("target_angle", (0.0, math.inf)),
+        ("target_angle", (True, 1.0)),
+    ],
+)
+def test_region_fields_are_pairs_of_finite_numbers(field, value):
+    pattern = rf"{field}: expected \(low, high\), two finite numbers, got "
+    with pytest.raises(ValueError, match=pattern):
+        dataclasses.replace(IN_DISTRIBUTION, **{field: value})
+
+
+def test_region_must_be_an_initial_state_region():
+    from rcvae_torchrl.envs.pusher import sample_start
+
+    with pytest.raises(TypeError, match="region: expected an InitialStateRegion or None, got str"):
+        make_pusher_env(region="foo")
+    with pytest.raises(TypeError, match="region: expected an InitialStateRegion, got NoneType"):
+        sample_start(np.random.RandomState(0), None, lambda state: 1.0)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"from_pixels": "no"}, TypeError, "from_pixels: expected True or False, got 'no'"),
+        ({"terminate_on_success": 1}, TypeError, "terminate_on_success: expected True or False"),
+        ({"device": "foo"}, ValueError, r"device: expected a torch device .* got 'foo'"),
+        ({"device": 2.5}, TypeError, r"device: expected a torch device .* got 2\.5"),
+    ],
+)
+def test_flags_and_device_are_checked(kwargs, error, match):
+    with pytest.raises(error, match=match):
+        make_pusher_env(**kwargs)
+
+
+@pytest.mark.parametrize(
+    ("entries", "values", "moved"),
+    [
+        ((8, 9), (0.6, 0.0), "ball_x"),  # outside the fence
+        ((8, 9), (0.0, 0.03), "ball_y"),  # inside the hub
+        ((12,), (5.0,), "target_x"),  # far out of the ball's reach
+    ],
+)
+def test_reset_to_state_moves_a_ball_or_target_out_of_reach_with_a_warning(entries, values, moved):
+    from rcvae_torchrl.envs.batched import BatchedPusherEnv
+    from rcvae_torchrl.envs.constraints import _BALL_MAX, _BALL_MIN
+    from rcvae_torchrl.envs.state import reset_to_state
+
+    start = make_pusher_env(seed=3).reset()["observation"]
+    off = start.clone()
+    off[list(entries)] = torch.tensor(values)
+    pattern = rf"not a state the Pusher can be in; .* {moved} \(entry \d+\) moved by "
+    single = make_pusher_env(seed=1)
+    with pytest.warns(UserWarning, match=pattern):
+        td = reset_to_state(single, off)
+    for group in (BALL, TARGET):
+        radius = float(td["observation"][group].norm())
+        assert _BALL_MIN - 1e-6 <= radius <= _BALL_MAX + 1e-6
+    with pytest.warns(UserWarning, match=pattern):
+        both = reset_to_state(BatchedPusherEnv(2), torch.stack([start, off]))
+    torch.testing.assert_close(both["observation"][1], td["observation"], atol=1e-6, rtol=0)
+
+
+def test_observation_functions_refuse_another_width():
+    from rcvae_torchrl.envs import pusher_input_features, pusher_state_constraint
+
+    for width in (13, 16):
+        with pytest.raises(
+            ValueError, match=rf"observation: expected shape \[\.\.\., 14\], got \({width},\)"
+        ):
+            pusher_input_features(torch.zeros(width))
+        with pytest.raises(
+            ValueError, match=rf"state: expected shape \[\.\.\., 14\], got \({width},\)"
+        ):
+            pusher_state_constraint(torch.zeros(width), torch.zeros(width))

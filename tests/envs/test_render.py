@@ -1,4 +1,5 @@
 import imageio.v2 as imageio
+import numpy as np
 import pytest
 
 from rcvae_torchrl import processes
@@ -62,6 +63,14 @@ def test_save_video_rejects_bad_input(tmp_path):
         save_video([], tmp_path / "x.avi", fps=10)
     with pytest.raises(ValueError, match="frames: expected at least one frame"):
         save_video([], tmp_path / "x.gif", fps=10)
+
+
+@pytest.mark.parametrize("fps", [0, -5, float("nan"), float("inf")])
+def test_save_video_names_a_frame_rate_that_is_not_positive(tmp_path, fps):
+    frames = [np.zeros((4, 4, 3), dtype=np.uint8)]
+    with pytest.raises(ValueError, match=f"fps: expected a positive number, got {fps}"):
+        save_video(frames, tmp_path / "x.gif", fps=fps)
+    assert not (tmp_path / "x.gif").exists()
 
 
 @needs_gl

@@ -29,3 +29,32 @@ def test_scripted_pusher_batched_and_bounded():
     assert action.shape == (4, 3, 2)
     assert (action.abs() <= 1).all()
     torch.testing.assert_close(action[2, 1], ScriptedPusher()(obs))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"kp": float("nan")}, "kp: expected a positive number, got nan"),
+        ({"kp": 0.0}, "kp: expected a positive number, got 0.0"),
+        ({"max_turn": -1}, "max_turn: expected a positive number, got -1"),
+        ({"align_angle": float("inf")}, "align_angle: expected a positive number, got inf"),
+        ({"standoff": -0.5}, "standoff: expected a finite number >= 0, got -0.5"),
+        ({"kd": float("nan")}, "kd: expected a finite number >= 0, got nan"),
+        ({"push_depth": "0.02"}, "push_depth: expected a finite number >= 0, got '0.02'"),
+    ],
+)
+def test_controller_arguments_are_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ScriptedPusher(**kwargs)
+
+
+def test_observations_of_another_width_or_dtype_are_refused():
+    pusher = ScriptedPusher()
+    with pytest.raises(
+        ValueError, match=r"observation: expected shape \[\.\.\., 14\], got \(13,\)"
+    ):
+        pusher(torch.zeros(13))
+    with pytest.raises(TypeError, match="observation: expected a floating-point tensor, got dtype"):
+        pusher(torch.zeros(14, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"observation: expected shape \[\.\.\., 14\]"):
+        pusher.desired_fingertip(torch.zeros(2, 13))
