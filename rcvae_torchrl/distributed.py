@@ -37,6 +37,8 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
+from rcvae_torchrl._checks import is_integer
+
 __all__ = [
     "Part",
     "Replicas",
@@ -67,6 +69,11 @@ _PART: list[Any] = []
 _ALONE = object()
 
 
+#: One entry per :func:`parts` block entered without a process group (the one process is the
+#: only part): a :func:`parts` inside one is refused, as it is with a group.
+_SINGLE_PARTS: list[None] = []
+
+
 def _group() -> Any:
     """The process group the helpers act on: this rank's part, else ``None`` (all ranks)."""
     return _PART[-1] if _PART else None
@@ -87,7 +94,22 @@ def rank() -> int:
         return 0
     if dist.is_available() and dist.is_initialized():
         return dist.get_rank(_group())
-    return _environ_int("RANK", 0, 0)
+    rank_ = _environ_int("RANK", 0, 0)
+    if "RANK" not in os.environ:
+        return rank_
+    if "WORLD_SIZE" not in os.environ:
+        raise ValueError(
+            f"RANK, WORLD_SIZE: RANK is {os.environ['RANK']!r} in the environment but "
+            "WORLD_SIZE is not set; expected both (a launcher such as torchrun sets both) or "
+            "neither (a single process)"
+        )
+    world = _environ_int("WORLD_SIZE", 1, 1)
+    if rank_ >= world:
+        raise ValueError(
+            f"RANK, WORLD_SIZE: expected RANK < WORLD_SIZE in the environment, got RANK "
+            f"{os.environ['RANK']!r} and WORLD_SIZE {os.environ['WORLD_SIZE']!r}"
+        )
+    return rank_
 
 
 def world_size() -> int:
@@ -168,12 +190,13 @@ def shard(n: int, rank_: int | None = None, world: int | None = None) -> range:
     Blocks are in rank order and differ in size by at most one (the first ``n % world`` ranks
     take one more); a rank beyond ``n`` gets an empty range.
     """
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+    if not is_integer(n) or n < 0:
         raise ValueError(f"n: expected a non-negative int, got {n!r}")
     rank_ = rank() if rank_ is None else rank_
     world = world_size() if world is None else world
-    if any(isinstance(v, bool) or not isinstance(v, int) for v in (rank_, world)):
+    if not (is_integer(rank_) and is_integer(world)):
         raise ValueError(f"rank, world: expected ints, got {rank_!r}, {world!r}")
+    n, rank_, world = int(n), int(rank_), int(world)
     if world < 1 or not 0 <= rank_ < world:
         raise ValueError(f"rank, world: expected 0 <= rank < world, got {rank_}, {world}")
     size, extra = divmod(n, world)
@@ -212,12 +235,17 @@ def parts(n: int) -> Iterator[Part]:
     Raises:
         ValueError: ``n`` is not an int from 1 to the number of ranks, or parts are nested.
     """
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+    if not is_integer(n) or n < 1:
         raise ValueError(f"n: expected a positive int (the number of parts), got {n!r}")
-    if any(group is not _ALONE for group in _PART):
+    n = int(n)
+    if _SINGLE_PARTS or any(group is not _ALONE for group in _PART):
         raise ValueError("parts: already within parts of the ranks (parts do not nest)")
     if not is_active():
-        yield Part(0, 1)
+        _SINGLE_PARTS.append(None)
+        try:
+            yield Part(0, 1)
+        finally:
+            _SINGLE_PARTS.pop()
         return
     world, rank_ = world_size(), rank()
     if n > world:
@@ -275,8 +303,9 @@ def replicas(size: int) -> Replicas:
     Raises:
         ValueError: ``size`` is not a positive int dividing the world size.
     """
-    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+    if not is_integer(size) or size < 1:
         raise ValueError(f"size: expected a positive int, got {size!r}")
+    size = int(size)
     if not is_active():
         return Replicas(0, 1, 0, 1)
     world, rank_ = world_size(), rank()
@@ -305,9 +334,17 @@ def work_generator(*keys: int, device: str | torch.device = "cpu") -> torch.Gene
     noise), so nothing here depends on the coincidence; give a new use its own stream number
     (not 0) or its own seed.
     """
-    if not keys or any(isinstance(k, bool) or not isinstance(k, int) or k < 0 for k in keys):
+    if not keys or any(not is_integer(k) or k < 0 for k in keys):
         raise ValueError(f"keys: expected one or more non-negative ints, got {keys!r}")
-    words = np.random.SeedSequence(list(keys)).generate_state(2, np.uint32)
+    if device is not None:
+        try:
+            torch.device(device)
+        except (RuntimeError, TypeError) as error:
+            raise ValueError(
+                f"device: expected a torch device (e.g. 'cpu', 'cuda:0' or a torch.device), "
+                f"got {device!r}: {error}"
+            ) from error
+    words = np.random.SeedSequence([int(k) for k in keys]).generate_state(2, np.uint32)
     generator = torch.Generator(device=device)
     generator.manual_seed(int(words[0]) << 31 | int(words[1]) >> 1)
     return generator

@@ -12,7 +12,9 @@ value that does, and :func:`digest` hashes one.
 - a class: its name and its module's source;
 - a ``functools.partial`` or a callable object: the function and its bound arguments or state
   (its ``__dict__`` and the values it keeps in ``__slots__``);
-- a tensor: dtype, shape and a hash of its values; numbers, strings, None: themselves.
+- a tensor: dtype, shape and a hash of its values; numbers, strings, None: themselves;
+- a NumPy array: its ``repr``, or, where that is abridged (more elements than NumPy's print
+  threshold), its dtype, shape and a hash of its values, as a tensor's.
 
 What a function reads in other ways (an attribute of an imported module, a file, a global
 changed at run time without its source changing) is not seen: give it a new name or clear the
@@ -31,12 +33,15 @@ import hashlib
 import inspect
 import json
 import math
+import numbers
+import os
 import sys
 import types
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -149,17 +154,53 @@ def model_digest(model: Any) -> str:
 def task_labels(predicates: str, time_limit: float, dt: float | None) -> dict[str, str]:
     """The parts of a :func:`task_digest` that a report's labels give (``"boundary"``,
     ``"deadline"``, ``"dt"``), as the digest writes them: a record's labels are checked
-    against its task with them."""
+    against its task with them.
+
+    ``time_limit``: the deadline in steps, a whole number >= 1, or ``None`` / ``inf`` for
+    none; ``dt``: the seconds per step, a finite number > 0, or ``None`` where not known."""
+    if time_limit is None or (_is_real(time_limit) and time_limit == math.inf):
+        deadline = "none"
+    elif (
+        _is_real(time_limit)
+        and math.isfinite(time_limit)
+        and time_limit >= 1
+        and time_limit == int(time_limit)
+    ):
+        deadline = str(int(time_limit))
+    else:
+        raise ValueError(
+            f"time_limit: expected a whole number of steps (>= 1), or None or inf for no "
+            f"deadline, got {time_limit!r}"
+        )
+    if dt is not None and not (_is_real(dt) and math.isfinite(dt) and dt > 0):
+        raise ValueError(
+            f"dt: expected the seconds per step (a finite number > 0) or None, got {dt!r}"
+        )
     return {
         "boundary": digest(predicates)[:16],
-        "deadline": str(int(time_limit)) if math.isfinite(time_limit) else "none",
+        "deadline": deadline,
         "dt": repr(None if dt is None else float(dt)),
     }
 
 
+def _is_real(value: object) -> bool:
+    """A real number: Python's or NumPy's (not a bool)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _check_task(name: str, task: object) -> None:
+    if not isinstance(task, str):
+        raise TypeError(
+            f"{name}: expected a task_digest string (or an older record's plain digest), got "
+            f"{type(task).__name__} {task!r}"
+        )
+
+
 def task_parts(task: str) -> dict[str, str] | None:
     """The parts of a :func:`task_digest` string by name (``"boundary"``, ``"deadline"``,
-    ``"dt"``, ``"model"``: the strings it holds); ``None`` where ``task`` is not one."""
+    ``"dt"``, ``"model"``: the strings it holds); ``None`` where ``task`` is not one (a str
+    of another form); a ``TypeError`` where it is not a str."""
+    _check_task("task", task)
     words = task.split(" ")
     parts = dict(zip(words[::2], words[1::2], strict=False))
     return (
@@ -172,6 +213,8 @@ def task_difference(theirs: str, mine: str) -> str:
     words: ``"another deadline (60 steps there, 100 steps here) and another world model (its
     weights, config or functions)"``; ``""`` where they are the same, ``"another task"``
     where either is not a :func:`task_digest` (an older record's plain digest)."""
+    _check_task("theirs", theirs)
+    _check_task("mine", mine)
     if theirs == mine:
         return ""
     a, b = task_parts(theirs), task_parts(mine)
@@ -236,6 +279,11 @@ def _plain(value: Any) -> Any:
 
 def source_digest(paths: Iterable[str | Path]) -> str:
     """SHA-256 hex digest of the named files' contents, in the given order."""
+    if isinstance(paths, (str, bytes, os.PathLike)) or not isinstance(paths, Iterable):
+        raise TypeError(
+            "paths: expected an iterable of file paths (e.g. a list), not one path or another "
+            f"object, got {type(paths).__name__} {paths!r}"
+        )
     h = hashlib.sha256()
     for path in paths:
         h.update(Path(path).read_bytes())
@@ -278,6 +326,8 @@ def describe(value: Any, _seen: tuple[int, ...] = ()) -> Any:
     if callable(value) or hasattr(value, "__dict__") or slots:
         state = {**getattr(value, "__dict__", {}), **slots}
         return {"object": describe(type(value), seen), "state": describe(state, seen)}
+    if isinstance(value, np.ndarray) and value.size > np.get_printoptions()["threshold"]:
+        return _array(value, seen)  # its repr would show only its first and last values
     return repr(value)
 
 
@@ -305,6 +355,18 @@ def _tensor(x: torch.Tensor) -> dict[str, Any]:
     raw = data.view(torch.uint8) if data.dim() else data.reshape(1).view(torch.uint8)
     return {"dtype": str(x.dtype), "shape": list(x.shape),
             "sha256": hashlib.sha256(raw.numpy().tobytes()).hexdigest()}  # fmt: skip
+
+
+def _array(x: np.ndarray, seen: tuple[int, ...]) -> dict[str, Any]:
+    """A NumPy array too large for its repr to show every value: dtype, shape and a hash of
+    its values (as :func:`_tensor`), or of its elements' descriptions for an object array."""
+    if x.dtype.hasobject:
+        values = json.dumps(describe(x.ravel().tolist(), seen), sort_keys=True, default=str)
+        raw = values.encode()
+    else:
+        raw = np.ascontiguousarray(x).tobytes()
+    return {"dtype": str(x.dtype), "shape": list(x.shape),
+            "sha256": hashlib.sha256(raw).hexdigest()}  # fmt: skip
 
 
 @functools.cache

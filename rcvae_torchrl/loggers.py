@@ -13,13 +13,18 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import numbers
 import os
 import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
 from torchrl.record.loggers import Logger, get_logger
+
+from rcvae_torchrl._checks import check_choice
 
 __all__ = ["LOGGER_BACKENDS", "check_logger_backend", "log_scalars", "make_logger"]
 
@@ -35,8 +40,7 @@ LOGGER_BACKENDS = {
 
 def check_logger_backend(backend: str, name: str = "logger") -> str:
     """``backend`` if it is one of :data:`LOGGER_BACKENDS`; else a ValueError naming ``name``."""
-    if backend not in LOGGER_BACKENDS:
-        raise ValueError(f"{name}: expected one of {sorted(LOGGER_BACKENDS)}, got {backend!r}")
+    check_choice(name, backend, list(LOGGER_BACKENDS))
     return backend
 
 
@@ -53,7 +57,10 @@ def make_logger(
         project: the Weights & Biases project.
 
     Raises:
-        ValueError: an unknown backend.
+        ValueError: an unknown backend, or an ``exp_name`` that is not a plain name (empty,
+            ``.`` or ``..``, or holding a path separator: the logs would go elsewhere than
+            under ``log_dir``).
+        TypeError: a ``log_dir`` that is not a path, or an ``exp_name`` that is not a str.
         ImportError: the backend's package is not installed (the message names the extra).
 
     Example:
@@ -63,6 +70,12 @@ def make_logger(
         ['train/loss', 'train/info/steps']
     """
     check_logger_backend(backend)
+    if not isinstance(log_dir, (str, os.PathLike)):
+        raise TypeError(
+            f"log_dir: expected a folder's path (a str or Path), got {type(log_dir).__name__} "
+            f"{log_dir!r}"
+        )
+    _check_exp_name(exp_name)
     if backend == "none":
         return None
     module = LOGGER_BACKENDS[backend]
@@ -81,6 +94,21 @@ def make_logger(
     if backend == "mlflow":
         _end_run_on_close(logger.experiment)
     return logger
+
+
+def _check_exp_name(exp_name: object) -> None:
+    """Require a plain name: one folder under ``log_dir``, not a path leading out of it."""
+    if not isinstance(exp_name, str):
+        raise TypeError(
+            f"exp_name: expected the experiment's name (a str), got {type(exp_name).__name__} "
+            f"{exp_name!r}"
+        )
+    separators = {"/", "\\", os.sep, os.altsep} - {None}
+    if exp_name in ("", ".", "..") or any(sep in exp_name for sep in separators):
+        raise ValueError(
+            "exp_name: expected a plain name (not empty, '.' or '..', and no path separator: "
+            f"the logs are written to a folder of that name under log_dir), got {exp_name!r}"
+        )
 
 
 def _end_run_on_close(run: Any) -> None:
@@ -115,14 +143,43 @@ def scalar_name(key: object) -> str:
     return re.sub(r"_+", "_", text).strip("_") or "_"
 
 
-def _numbers(values: Mapping[str, Any], prefix: str) -> dict[str, float]:
+def _number(value: object) -> float | None:
+    """``value`` as a float where it is a real number (Python's, a NumPy scalar, or a tensor
+    or NumPy array of one element), else ``None``."""
+    if isinstance(value, (bool, int, float, np.bool_, np.integer, np.floating)):
+        return float(value)
+    if isinstance(value, torch.Tensor) and value.numel() == 1 and not value.dtype.is_complex:
+        return float(value.item())
+    if isinstance(value, np.ndarray) and value.size == 1 and value.dtype.kind in "biuf":
+        return float(value.item())
+    return None
+
+
+def _numbers(
+    values: Mapping[str, Any], prefix: str, path: tuple[object, ...], keys: dict[str, tuple]
+) -> dict[str, float]:
     out = {}
     for key, value in values.items():
         if isinstance(value, Mapping):
-            out.update(_numbers(value, f"{prefix}{scalar_name(key)}/"))
-        elif isinstance(value, (bool, int, float)) and math.isfinite(value):
-            out[f"{prefix}{scalar_name(key)}"] = float(value)
+            out.update(_numbers(value, f"{prefix}{scalar_name(key)}/", (*path, key), keys))
+            continue
+        number = _number(value)
+        if number is None or not math.isfinite(number):
+            continue
+        name = f"{prefix}{scalar_name(key)}"
+        if name in keys:
+            raise ValueError(
+                f"values: the keys {_key_path(keys[name])} and {_key_path((*path, key))} both "
+                f"become the scalar name {name!r} (one would overwrite the other); rename one"
+            )
+        keys[name] = (*path, key)
+        out[name] = number
     return out
+
+
+def _key_path(path: tuple[object, ...]) -> str:
+    """Where a value is in the nested mapping, as its keys joined: ``'a' / 'b>c'``."""
+    return " / ".join(repr(key) for key in path)
 
 
 def log_scalars(
@@ -130,12 +187,36 @@ def log_scalars(
 ) -> list[str]:
     """Log every finite number in ``values`` (nested mappings joined with ``/``) at ``step``.
 
-    Values that are not numbers (strings, lists) are left out. Returns the names logged
-    (none when ``logger`` is None).
+    Numbers are Python's, NumPy's scalars, and tensors or NumPy arrays of one element (logged
+    as floats). Values that are not numbers (strings, lists) are left out. Returns the names
+    logged (none when ``logger`` is None).
+
+    Raises:
+        TypeError: ``logger`` is neither None nor a logger (an object with ``log_scalar``),
+            ``values`` is not a mapping, ``step`` is not an integer or ``prefix`` not a str.
+        ValueError: ``step`` is negative, or two keys become the same scalar name (``a>b``
+            and ``a_gt_b``: one would overwrite the other).
     """
+    if logger is not None and not callable(getattr(logger, "log_scalar", None)):
+        raise TypeError(
+            "logger: expected a TorchRL Logger (from make_logger) or None, got "
+            f"{type(logger).__name__} {logger!r}"
+        )
+    if not isinstance(values, Mapping):
+        raise TypeError(
+            f"values: expected a mapping of names to numbers, got {type(values).__name__} "
+            f"{values!r}"
+        )
+    if isinstance(step, bool) or not isinstance(step, numbers.Integral):
+        raise TypeError(f"step: expected an integer >= 0, got {type(step).__name__} {step!r}")
+    if step < 0:
+        raise ValueError(f"step: expected an integer >= 0, got {step!r}")
+    if not isinstance(prefix, str):
+        kind = type(prefix).__name__
+        raise TypeError(f"prefix: expected a str (e.g. 'train/' or ''), got {kind} {prefix!r}")
     if logger is None:
         return []
-    scalars = _numbers(values, prefix)
+    scalars = _numbers(values, prefix, (), {})
     for name, value in scalars.items():
-        logger.log_scalar(name, value, step=step)
+        logger.log_scalar(name, value, step=int(step))
     return list(scalars)

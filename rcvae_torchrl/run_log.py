@@ -11,9 +11,10 @@ console that is not a terminal (output redirected to a file or a pipe) too.
 from __future__ import annotations
 
 import logging
+import os
 import re
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import IO
@@ -60,6 +61,11 @@ def run_log(
         >>> path.read_text().endswith("stage done\\n")
         True
     """
+    if stream is not None and not callable(getattr(stream, "write", None)):
+        raise TypeError(
+            "stream: expected a text stream (an object with write(), e.g. sys.stdout or "
+            f"io.StringIO()) or None for stdout, got {type(stream).__name__} {stream!r}"
+        )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     stream = stream if stream is not None else sys.stdout
@@ -159,7 +165,12 @@ def log_targets() -> list[LogTarget]:
 @contextmanager
 def forwarded_log(targets: list[LogTarget]) -> Iterator[None]:
     """Inside the block, the library's INFO lines go to ``targets`` (from :func:`log_targets`
-    in the parent process): a worker's resumed training is in the parent's ``run.log``."""
+    in the parent process): a worker's resumed training is in the parent's ``run.log``.
+
+    Each target is ``(kind, where, formatter)``: ``("file", <path>, formatter)`` or
+    ``("stream", "stdout" | "stderr", formatter)``, the formatter a ``logging.Formatter`` or
+    None; anything else is refused (``ValueError``) before any handler is made."""
+    targets = _checked_targets(targets)
     package = logging.getLogger(_PACKAGE)
     handlers: list[logging.Handler] = []
     for kind, where, formatter in targets:
@@ -184,3 +195,27 @@ def forwarded_log(targets: list[LogTarget]) -> Iterator[None]:
             handler.close()
         package.setLevel(saved[0])
         package.propagate = saved[1]
+
+
+def _checked_targets(targets: object) -> list[LogTarget]:
+    """``targets`` as a list, each entry one :func:`log_targets` gives; a ValueError naming
+    the entry and what is expected otherwise."""
+    expected = (
+        "(kind, where, formatter) entries from log_targets(): ('file', a path, formatter) or "
+        "('stream', 'stdout' or 'stderr', formatter), the formatter a logging.Formatter or None"
+    )
+    if isinstance(targets, (str, bytes)) or not isinstance(targets, Iterable):
+        raise TypeError(f"targets: expected a list of {expected}, got {targets!r}")
+    targets = list(targets)
+    for i, target in enumerate(targets):
+        ok = isinstance(target, (tuple, list)) and len(target) == 3
+        if ok:
+            kind, where, formatter = target
+            ok = formatter is None or isinstance(formatter, logging.Formatter)
+            if kind == "file":
+                ok = ok and isinstance(where, (str, os.PathLike))
+            else:
+                ok = ok and kind == "stream" and where in ("stdout", "stderr")
+        if not ok:
+            raise ValueError(f"targets[{i}]: expected {expected}, got {target!r}")
+    return targets

@@ -19,10 +19,13 @@ from __future__ import annotations
 
 import contextlib
 import math
+import numbers
 import os
 from collections.abc import Iterator
 
 import torch
+
+from rcvae_torchrl._checks import is_integer
 
 __all__ = ["MIN_FLOP_PER_THREAD", "choose_threads", "free_cores", "set_threads", "threads_kept"]
 
@@ -43,11 +46,27 @@ def free_cores(cpus: int | None = None, load: float | None = None) -> float:
     """
     cpus = len(os.sched_getaffinity(0)) if cpus is None else cpus
     load = os.getloadavg()[0] if load is None else load
-    if isinstance(cpus, bool) or not isinstance(cpus, int) or cpus < 1:
+    if not is_integer(cpus) or cpus < 1:
         raise ValueError(f"cpus: expected a positive integer, got {cpus!r}")
-    if isinstance(load, bool) or not isinstance(load, (int, float)) or not load >= 0:
+    _check_load(load)
+    return max(0.0, int(cpus) - load)
+
+
+def _check_load(load: object) -> None:
+    """Require a load average >= 0 (a Python or NumPy number, not a bool)."""
+    if isinstance(load, bool) or not isinstance(load, numbers.Real) or not load >= 0:
         raise ValueError(f"load: expected a load average >= 0, got {load!r}")
-    return max(0.0, cpus - load)
+
+
+def _check_op_flop(op_flop: object) -> None:
+    """Require None or a finite FLOP count >= 0 (a Python or NumPy number, not a bool)."""
+    if op_flop is not None and (
+        isinstance(op_flop, bool)
+        or not isinstance(op_flop, numbers.Real)
+        or not math.isfinite(op_flop)
+        or op_flop < 0
+    ):
+        raise ValueError(f"op_flop: expected a finite FLOP count >= 0 or None, got {op_flop!r}")
 
 
 def choose_threads(
@@ -64,11 +83,15 @@ def choose_threads(
         >>> choose_threads(1e5, cpus=8, load=0.0)  # a small op: one thread
         1
     """
-    if op_flop is not None and (not math.isfinite(op_flop) or op_flop < 0):
-        raise ValueError(f"op_flop: expected a finite FLOP count >= 0 or None, got {op_flop!r}")
+    _check_op_flop(op_flop)
     cpus = len(os.sched_getaffinity(0)) if cpus is None else cpus
+    if not is_integer(cpus):
+        raise ValueError(f"cpus: expected a positive integer (cores) or None, got {cpus!r}")
     if cpus < 1:
         raise ValueError(f"cpus: expected at least 1 core, got {cpus}")
+    cpus = int(cpus)
+    if load is not None:
+        _check_load(load)
     if op_flop is None:
         return 1
     idle = math.floor(free_cores(cpus, load))
@@ -78,15 +101,16 @@ def choose_threads(
 
 def set_threads(threads: int | str | None, op_flop: float | None = None) -> int:
     """Set torch's intra-op threads: a count, ``"auto"`` (:func:`choose_threads` for
-    ``op_flop``) or None (leave torch's default). Returns the count in effect."""
-    if threads == "auto":
+    ``op_flop``) or None (leave torch's default). Returns the count in effect.
+
+    ``op_flop`` (None or a finite FLOP count >= 0) is checked whatever ``threads`` is."""
+    _check_op_flop(op_flop)
+    if isinstance(threads, str) and threads == "auto":
         threads = choose_threads(op_flop)
-    elif threads is not None and (
-        isinstance(threads, bool) or not isinstance(threads, int) or threads < 1
-    ):
+    elif threads is not None and (not is_integer(threads) or threads < 1):
         raise ValueError(f"threads: expected a positive integer, 'auto' or None, got {threads!r}")
     if threads is not None:
-        torch.set_num_threads(threads)
+        torch.set_num_threads(int(threads))
     return torch.get_num_threads()
 
 

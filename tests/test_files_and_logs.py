@@ -346,3 +346,34 @@ def test_an_empty_torch_file_and_settings_that_are_not_a_mapping_are_named(tmp_p
         TypeError, match="config: expected a mapping of the run's settings, got int"
     ):
         record_run_config(tmp_path / "c.json", 5)
+
+
+def test_a_stream_without_write_is_refused_naming_stream(tmp_path):
+    """``stream="stdout"`` was taken, then every line printed ``--- Logging error ---``."""
+    with pytest.raises(TypeError, match=r"^stream: expected a text stream .* got str 'stdout'"):
+        with run_log(tmp_path / "run.log", stream="stdout"):
+            pass
+    assert not (tmp_path / "run.log").exists()
+
+
+@pytest.mark.parametrize(
+    "targets",
+    [
+        [("bogus", "x", None)],
+        [("stream", "x", None)],
+        [("file", None, None)],
+        [("stream", "stdout", "not a formatter")],
+        [("stream", "stdout")],
+    ],
+)
+def test_forwarded_log_names_a_target_it_cannot_write_to(targets):
+    from rcvae_torchrl.run_log import forwarded_log
+
+    before = list(logging.getLogger("rcvae_torchrl").handlers)
+    with pytest.raises(ValueError, match=r"^targets\[0\]: expected \(kind, where, formatter\)"):
+        with forwarded_log(targets):
+            pass
+    with pytest.raises(TypeError, match=r"^targets: expected a list of"):
+        with forwarded_log(None):
+            pass
+    assert logging.getLogger("rcvae_torchrl").handlers == before  # no handler was made

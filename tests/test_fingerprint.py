@@ -8,6 +8,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
 import torch
 
 from rcvae_torchrl.fingerprint import describe, digest
@@ -166,3 +168,69 @@ def test_a_tasks_digest_ignores_an_unrelated_edit_of_the_file_defining_it(tmp_pa
     module.write_text(source.format(n=200, limit=0.6))  # the value the predicate reads
     importlib.reload(mod)
     assert predicates()[0] != before[0] and predicates()[1] != before[1]
+
+
+def test_a_large_numpy_array_is_hashed_by_its_values():
+    """NumPy abridges the repr of an array of more than 1000 elements (``[0., 0., ..., 0.]``):
+    two arrays that differ in the middle had one digest, and so had functions closing over
+    them."""
+    import hashlib
+    import json
+
+    a = np.zeros(5000)
+    b = a.copy()
+    b[2500] = 1.0
+    assert digest(a) != digest(b) and digest(a) == digest(a.copy())
+    assert digest(_above(a)) != digest(_above(b))
+    assert digest(a.reshape(50, 100)) != digest(a)  # the shape counts
+    assert digest(a.astype(np.float32)) != digest(np.zeros(5000, np.float32) + 1)
+    assert describe(a) == {
+        "dtype": "float64",
+        "shape": [5000],
+        "sha256": hashlib.sha256(a.tobytes()).hexdigest(),
+    }
+    objects = np.array([0.5] * 2000, dtype=object)
+    other = objects.copy()
+    other[1000] = 0.25
+    assert digest(objects) != digest(other)
+    # an array whose repr shows every value keeps its description, and so its digest: the
+    # digests kept in users' records still match
+    for small in (np.arange(10.0), np.ones((10, 100)), np.array(["x", "y"])):
+        assert describe(small) == repr(small)
+        text = json.dumps(repr(small), sort_keys=True, default=str)
+        assert digest(small) == hashlib.sha256(text.encode()).hexdigest()
+        assert describe(_above(small))["closure"] == [repr(small)]
+
+
+def test_a_task_s_bad_parts_are_named():
+    """A NaN deadline read as none, 2.7 steps as 2, and a str given as the files to hash was
+    read letter by letter."""
+    import math
+
+    from rcvae_torchrl.fingerprint import (
+        source_digest,
+        task_difference,
+        task_labels,
+        task_parts,
+    )
+
+    assert task_labels("p", 60, 0.05)["deadline"] == "60"
+    assert task_labels("p", 60.0, 0.05) == task_labels("p", 60, 0.05)
+    for unlimited in (None, math.inf):
+        assert task_labels("p", unlimited, None)["deadline"] == "none"
+    for bad in (math.nan, 2.7, -5, 0, -math.inf, True, "60"):
+        with pytest.raises(ValueError, match=r"^time_limit: expected a whole number of steps"):
+            task_labels("p", bad, 0.05)
+    for bad in (math.nan, math.inf, 0.0, -0.05, "0.05"):
+        with pytest.raises(ValueError, match=r"^dt: expected the seconds per step"):
+            task_labels("p", 60, bad)
+    for bad in ("file.py", Path("file.py"), 3):
+        with pytest.raises(TypeError, match=r"^paths: expected an iterable of file paths"):
+            source_digest(bad)
+    with pytest.raises(TypeError, match=r"^theirs: expected a task_digest string"):
+        task_difference(None, "x")
+    with pytest.raises(TypeError, match=r"^mine: expected a task_digest string"):
+        task_difference("x", 5)
+    with pytest.raises(TypeError, match=r"^task: expected a task_digest string .* got int 5"):
+        task_parts(5)
+    assert task_parts("3f2a") is None  # a str of another form: not a task digest

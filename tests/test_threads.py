@@ -1,7 +1,9 @@
 """The thread-count default: one thread unless the machine is idle and the ops are large."""
 
 import functools
+import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -58,6 +60,38 @@ def test_set_threads_applies_counts_and_auto_and_leaves_none_alone():
 def test_bad_arguments_name_themselves(call, match):
     with pytest.raises(ValueError, match=match):
         call()
+
+
+@pytest.mark.parametrize(
+    ("call", "match"),
+    [
+        (lambda: choose_threads(None, load=-1), r"^load: expected a load average >= 0, got -1"),
+        (lambda: choose_threads(None, cpus=True), r"^cpus: expected a positive integer .*True"),
+        (lambda: choose_threads(None, cpus="2"), r"^cpus: expected a positive integer .*'2'"),
+        (lambda: choose_threads(1e9, cpus=2.0), r"^cpus: expected a positive integer .*2\.0"),
+        (lambda: choose_threads(True), r"^op_flop: expected a finite FLOP count .* got True"),
+        (lambda: choose_threads("abc"), r"^op_flop: expected a finite FLOP count .* got 'abc'"),
+        (lambda: set_threads(1, op_flop=math.nan), r"^op_flop: expected .* got nan"),
+        (lambda: set_threads(None, op_flop=-1.0), r"^op_flop: expected .* got -1\.0"),
+    ],
+)
+def test_bad_arguments_are_named_whatever_else_is_given(call, match):
+    """A bad load or core count was taken where no work size was given, ``True`` as a FLOP
+    count or a core count, and an ``op_flop`` that ``set_threads`` did not use was not
+    looked at."""
+    with pytest.raises(ValueError, match=match):
+        call()
+
+
+def test_numpy_integers_are_taken_where_ints_are():
+    before = torch.get_num_threads()
+    try:
+        assert set_threads(np.int64(1)) == 1 and torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+    big = 1000 * MIN_FLOP_PER_THREAD
+    assert choose_threads(np.float32(big), cpus=np.int64(16), load=np.float64(12.2)) == 4
+    assert free_cores(cpus=np.int32(8), load=np.int64(2)) == 6.0
 
 
 def test_threads_kept_restores_the_count_whatever_happens_inside():

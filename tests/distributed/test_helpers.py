@@ -1,5 +1,6 @@
 """rcvae_torchrl.distributed without a process group, and its pure helpers."""
 
+import numpy as np
 import pytest
 import torch
 
@@ -59,3 +60,38 @@ def test_without_a_group_one_process_is_the_only_replica():
     for bad in (0, -2, 1.5, True):
         with pytest.raises(ValueError, match="size: expected a positive int"):
             distributed.replicas(bad)
+
+
+def test_a_launcher_s_rank_outside_its_world_is_refused(monkeypatch):
+    """``RANK=5 WORLD_SIZE=2`` gave rank 5, and ``RANK=1`` alone a rank 1 of a world of 1 that
+    is not main and so never wrote."""
+    monkeypatch.setenv("RANK", "5")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    with pytest.raises(ValueError, match=r"^RANK, WORLD_SIZE: expected RANK < WORLD_SIZE .*'5'"):
+        distributed.rank()
+    with pytest.raises(ValueError, match=r"^RANK, WORLD_SIZE: expected RANK < WORLD_SIZE"):
+        distributed.is_main()
+    monkeypatch.setenv("RANK", "1")
+    assert (distributed.rank(), distributed.world_size()) == (1, 2)
+    monkeypatch.delenv("WORLD_SIZE")
+    with pytest.raises(ValueError, match=r"^RANK, WORLD_SIZE: RANK is '1' .* WORLD_SIZE is not"):
+        distributed.rank()
+    monkeypatch.delenv("RANK")
+    monkeypatch.setenv("WORLD_SIZE", "2")  # RANK unset: rank 0, as before
+    assert distributed.rank() == 0
+
+
+def test_numpy_integers_are_taken_where_ints_are():
+    assert distributed.shard(np.int64(5), np.int64(1), np.int32(2)) == range(3, 5)
+    draw = lambda *keys: torch.rand(4, generator=distributed.work_generator(*keys))  # noqa: E731
+    assert torch.equal(draw(np.int64(3), np.uint8(1)), draw(3, 1))
+    assert distributed.replicas(np.int64(2)) == distributed.Replicas(0, 1, 0, 1)
+    for bad in (np.float64(1.0), np.bool_(True)):
+        with pytest.raises(ValueError, match="keys: expected one or more non-negative ints"):
+            distributed.work_generator(bad)
+
+
+def test_a_work_generator_names_a_bad_device():
+    with pytest.raises(ValueError, match=r"^device: expected a torch device .* got 'foo'"):
+        distributed.work_generator(1, device="foo")
+    assert distributed.work_generator(1, device=torch.device("cpu")).device.type == "cpu"

@@ -1,5 +1,6 @@
 """Independent jobs side by side over parts of the ranks (3 gloo ranks: parts of 2 and 1)."""
 
+import numpy as np
 import pytest
 import torch
 import workers
@@ -47,6 +48,24 @@ def test_without_a_group_the_one_process_is_the_only_part():
         with pytest.raises(ValueError, match="n: expected a positive int"):
             with distributed.parts(bad):
                 pass
+
+
+def test_parts_do_not_nest_in_a_single_process_either():
+    """A nested ``parts`` passed on one process and failed under torchrun (its docstring says
+    it raises): the one process refuses it too, and the block leaves nothing behind."""
+    with distributed.parts(2):
+        with pytest.raises(ValueError, match=r"^parts: already within parts of the ranks"):
+            with distributed.parts(1):
+                pass
+        with distributed.alone(), pytest.raises(ValueError, match=r"parts do not nest"):
+            with distributed.parts(1):
+                pass
+    with distributed.parts(np.int64(2)) as part:  # and again after the block
+        assert part == distributed.Part(0, 1)
+    with pytest.raises(KeyError), distributed.parts(1):
+        raise KeyError("inside")
+    with distributed.parts(1):  # an error inside left nothing behind
+        pass
 
 
 def test_a_resumed_job_runs_on_the_part_it_ran_on(tmp_path):

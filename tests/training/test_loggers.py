@@ -10,7 +10,9 @@ import importlib.util
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 
 from rcvae_torchrl.loggers import LOGGER_BACKENDS, check_logger_backend, log_scalars, make_logger
 from rcvae_torchrl.stages import StageRunner
@@ -174,3 +176,70 @@ def test_a_missing_backend_names_its_extra(tmp_path, monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
     with pytest.raises(ImportError, match=r"pip install 'rcvae_torchrl\[wandb\]'"):
         make_logger("wandb", tmp_path, "x")
+
+
+def test_tensors_and_numpy_scalars_are_logged_as_floats(tmp_path):
+    """A 0-d tensor (a loss) and a NumPy scalar were left out silently, though every finite
+    number is logged."""
+    logger = make_logger("csv", tmp_path / "logs", "trial")
+    values = {
+        "loss": torch.tensor(0.5),
+        "acc": np.float32(0.25),
+        "count": np.int64(4),
+        "one": torch.tensor([1.5]),
+        "array": np.array([2.0]),
+        "n": 3,
+        "vector": torch.ones(2),  # not one number: left out as before
+        "nan": torch.tensor(float("nan")),
+    }
+    names = log_scalars(logger, values, np.int64(2))
+    assert names == ["loss", "acc", "count", "one", "array", "n"]
+    scalars = _csv(tmp_path / "logs" / "csv")
+    assert {name: scalars[name] for name in names} == {
+        "loss": [(2, 0.5)], "acc": [(2, 0.25)], "count": [(2, 4.0)], "one": [(2, 1.5)],
+        "array": [(2, 2.0)], "n": [(2, 3.0)],
+    }  # fmt: skip
+
+
+def test_keys_that_become_one_name_are_refused_naming_both(tmp_path):
+    logger = make_logger("csv", tmp_path / "logs", "trial")
+    with pytest.raises(ValueError, match=r"^values: the keys 'a>b' and 'a_gt_b' both become"):
+        log_scalars(logger, {"a>b": 1.0, "a_gt_b": 2.0}, 0)
+    with pytest.raises(ValueError, match=r"'x' / 'a>b' and 'x ' / 'a_gt_b' .* 'p/x/a_gt_b'"):
+        log_scalars(logger, {"x": {"a>b": 1.0}, "x ": {"a_gt_b": 2.0}}, 0, prefix="p/")
+    # a key whose value is not logged takes no name
+    assert log_scalars(logger, {"a>b": "text", "a_gt_b": 2.0}, 0) == ["a_gt_b"]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"step": "x"}, TypeError, r"^step: expected an integer >= 0, got str 'x'"),
+        ({"step": 1.0}, TypeError, r"^step: expected an integer >= 0, got float 1\.0"),
+        ({"step": True}, TypeError, r"^step: expected an integer >= 0, got bool True"),
+        ({"step": -1}, ValueError, r"^step: expected an integer >= 0, got -1"),
+        ({"prefix": None}, TypeError, r"^prefix: expected a str .* got NoneType None"),
+        ({"values": [1, 2]}, TypeError, r"^values: expected a mapping .* got list \[1, 2\]"),
+        ({"logger": "csv"}, TypeError, r"^logger: expected a TorchRL Logger .* got str 'csv'"),
+    ],
+)
+def test_bad_log_scalars_arguments_are_named(kwargs, error, match, tmp_path):
+    arguments = {"logger": make_logger("csv", tmp_path, "x"), "values": {"a": 1.0}, "step": 0}
+    with pytest.raises(error, match=match):
+        log_scalars(**{**arguments, **kwargs})
+
+
+@pytest.mark.parametrize("name", ["../../escape", "a/b", "..", ".", "", "a\\b"])
+def test_an_exp_name_that_is_not_a_plain_name_is_refused(name, tmp_path):
+    with pytest.raises(ValueError, match=r"^exp_name: expected a plain name"):
+        make_logger("csv", tmp_path / "logs", name)
+    assert not tmp_path.exists() or list(tmp_path.iterdir()) == []  # nothing written
+
+
+def test_bad_make_logger_arguments_are_named(tmp_path):
+    with pytest.raises(ValueError, match=r"^logger: expected one of .* got \['csv'\]"):
+        make_logger(["csv"], tmp_path, "x")
+    with pytest.raises(TypeError, match=r"^log_dir: expected a folder's path .* got NoneType"):
+        make_logger("csv", None, "x")
+    with pytest.raises(TypeError, match=r"^exp_name: expected the experiment's name .* None"):
+        make_logger("csv", tmp_path, None)
