@@ -77,6 +77,11 @@ def check_entries(
 
 
 # ----------------------------------------------------------------------------- scalars
+def is_integer(value: object) -> bool:
+    """An integer: Python's or NumPy's (``numbers.Integral``), not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
 def _is_number(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
@@ -168,6 +173,14 @@ def check_seeds(name: str, seeds: object) -> list[int]:
             raise ValueError(f"{name}: expected integer seeds, got {seed!r}")
         out.append(int(seed))
     return out
+
+
+def check_seed(name: str, seed: object) -> int:
+    """Require one integer seed >= 0 (a Python or NumPy integer; a negative one would wrap to
+    2**64 - 1 in ``torch.Generator.manual_seed``, a float be truncated); returns it as an int."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise ValueError(f"{name}: expected an integer seed >= 0, got {seed!r}")
+    return int(seed)
 
 
 def check_choice(name: str, value: object, choices: Sequence[str]) -> None:

@@ -340,7 +340,8 @@ def variance_decomposition(samples: Tensor) -> UncertaintyDecomposition:
     biased, so the identity holds to round-off).
 
     Args:
-        samples: ``[E, N, *batch, D]``, ``E >= 2``.
+        samples: ``[E, N, *batch, D]``, ``E >= 2``, ``N >= 2`` (a member's variance from one
+            sample is 0, not its spread).
 
     Returns:
         :class:`UncertaintyDecomposition` of ``[*batch, D]`` variances (squared units, not bits).
@@ -352,6 +353,11 @@ def variance_decomposition(samples: Tensor) -> UncertaintyDecomposition:
     """
     _checks.check_samples("samples", samples, 3, _LAYOUT)
     _checks.check_members("samples", samples, _LAYOUT)
+    if samples.shape[1] < 2:
+        raise ValueError(
+            f"samples: expected at least 2 samples per member on axis 1 of {_LAYOUT} (a "
+            f"member's variance from one is 0), got N = 1 (shape {tuple(samples.shape)})"
+        )
     x = samples.to(torch.float64)
     member_var, member_mean = torch.var_mean(x, dim=1, correction=0)
     aleatoric = member_var.mean(dim=0)

@@ -8,6 +8,7 @@ your env's action spec with :func:`action_bounds`.
 from __future__ import annotations
 
 import contextlib
+import math
 import warnings
 from collections.abc import Iterator, Sequence
 
@@ -19,7 +20,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type, set_exploratio
 from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
-from rcvae_torchrl._checks import check_bounds, check_positive_int
+from rcvae_torchrl._checks import check_bounds, check_positive_int, check_seed
 from rcvae_torchrl.fingerprint import SETTINGS
 
 __all__ = [
@@ -216,6 +217,10 @@ def _short(agent: str) -> str:
     return agent.removeprefix(SETTINGS)[:12]
 
 
+def _is_std(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and 0 <= value < math.inf
+
+
 def _bounds(low: Bound, high: Bound) -> tuple[torch.Tensor, torch.Tensor]:
     low, high = (
         torch.as_tensor(low, dtype=torch.float32),
@@ -245,11 +250,16 @@ class GaussianExploration(nn.Module):
         high: Bound = 1.0,
     ) -> None:
         super().__init__()
-        if not noise_std >= 0:
-            raise ValueError(f"noise_std: expected a non-negative std, got {noise_std!r}")
+        if not callable(policy):
+            raise TypeError(
+                f"policy: expected a module mapping observations to actions, got "
+                f"{type(policy).__name__}"
+            )
+        if not _is_std(noise_std):
+            raise ValueError(f"noise_std: expected a finite std >= 0, got {noise_std!r}")
         self.policy, self.noise_std = policy, float(noise_std)
         self.low, self.high = _bounds(low, high)
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator().manual_seed(check_seed("seed", seed))
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         action = self.policy(observation)
@@ -282,7 +292,7 @@ class UniformRandomPolicy(nn.Module):
         check_positive_int("hold", hold)
         self.action_dim, self.hold = action_dim, hold
         self.low, self.high = _bounds(low, high)
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator().manual_seed(check_seed("seed", seed))
         self._calls, self._action = 0, None
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:

@@ -31,7 +31,7 @@ from torchrl.envs import (
     UnsqueezeTransform,
 )
 
-from rcvae_torchrl._checks import check_non_negative_int
+from rcvae_torchrl._checks import check_bounds, check_non_negative_int, check_seed
 
 __all__ = [
     "ActionNoise",
@@ -64,10 +64,28 @@ class ObservationLayout:
     sizes: tuple[int, ...]
 
     def __post_init__(self) -> None:
+        for name in ("keys", "sizes"):
+            if isinstance(getattr(self, name), (str, bytes)):
+                raise TypeError(
+                    f"{name}: expected a tuple (one per entry), got the string "
+                    f"{getattr(self, name)!r}"
+                )
         if len(self.keys) != len(self.sizes) or not self.keys:
             raise ValueError(
                 f"keys, sizes: expected one size per key, got {self.keys} and {self.sizes}"
             )
+        for key in self.keys:
+            if not (isinstance(key, str) and key) and not (
+                isinstance(key, tuple) and key and all(isinstance(k, str) for k in key)
+            ):
+                raise TypeError(f"keys: expected entry names (str), got {key!r} in {self.keys}")
+        if len(set(self.keys)) != len(self.keys):
+            raise ValueError(f"keys: expected distinct entries, got {self.keys}")
+        for size in self.sizes:
+            if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+                raise ValueError(
+                    f"sizes: expected a positive integer per entry, got {size!r} in {self.sizes}"
+                )
 
     @property
     def dim(self) -> int:
@@ -92,6 +110,10 @@ class ObservationLayout:
             >>> ObservationLayout.from_names(("x[0]", "x[1]", "speed")).sizes
             (2, 1)
         """
+        if isinstance(names, (str, bytes)) or not isinstance(names, Sequence) or not names:
+            raise ValueError(
+                f"names: expected a non-empty sequence of dimension names, got {names!r}"
+            )
         keys: list[str] = []
         sizes: list[int] = []
         indexed: list[bool] = []
@@ -319,12 +341,20 @@ class ActionNoise(Transform):
         if not bool(torch.isfinite(std).all() and (std >= 0).all()):
             raise ValueError(f"std: expected a finite standard deviation >= 0, got {std}")
         self.register_buffer("std", std)
+        for name, bound in (("low", low), ("high", high)):
+            if bound is None:
+                continue
+            if isinstance(bound, (str, bytes, bool)):
+                raise TypeError(f"{name}: expected a number, a tensor or None, got {bound!r}")
+            check_bounds(name, bound, bound)  # no NaN
+        if low is not None and high is not None:
+            check_bounds("low, high", low, high)
         self._low, self._high = low, high
-        self.generator = torch.Generator().manual_seed(seed)
+        self.generator = torch.Generator().manual_seed(check_seed("seed", seed))
 
     def reseed(self, seed: int) -> None:
         """Restart the noise stream (called by :func:`seed_env`)."""
-        self.generator.manual_seed(int(seed))
+        self.generator.manual_seed(check_seed("seed", seed))
 
     def _bounds(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         low, high = self._low, self._high

@@ -9,7 +9,12 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, TensorStorage
 from torchrl.data.replay_buffers.samplers import SliceSampler
 
-from rcvae_torchrl._checks import check_positive_int
+from rcvae_torchrl._checks import (
+    check_non_negative_int,
+    check_positive_int,
+    check_positive_int_or_none,
+    check_seed,
+)
 
 from .collection import TRAJ_KEY, check_episode_ids, check_frames_type
 
@@ -36,10 +41,20 @@ def make_window_buffer(
 
     ``SliceSampler`` finds episodes by :data:`TRAJ_KEY`, so windows never cross an episode
     boundary; episodes shorter than ``window`` are never drawn (``strict_length``).
+    ``max_size``: the storage's capacity, at least the frames of ``data`` (a smaller one would
+    keep only the last frames, and the episodes' recorded starts would point at frames gone);
+    None: exactly those frames.
     """
-    if window < 2:
-        raise ValueError(f"window: expected >= 2 steps, got {window}")
+    if isinstance(window, bool) or not isinstance(window, int) or window < 2:
+        raise ValueError(f"window: expected >= 2 steps (an integer), got {window!r}")
     _check_flat(data)
+    if max_size is not None:
+        check_positive_int("max_size", max_size)
+        if max_size < data.shape[0]:
+            raise ValueError(
+                f"max_size: expected at least the {data.shape[0]} frames of data (a smaller "
+                f"storage would drop the first ones), got {max_size}"
+            )
     first, lengths = episode_spans(data)
     if int(lengths.max()) < window:
         raise ValueError(
@@ -109,7 +124,18 @@ def sample_windows(
     """
     buffers = None
     if not isinstance(buffer, TensorDictReplayBuffer):
+        if isinstance(buffer, (str, bytes)) or not isinstance(buffer, Sequence):
+            raise TypeError(
+                "buffer: expected a buffer of make_window_buffer, or a sequence of them (one "
+                f"per member), got {type(buffer).__name__}"
+            )
         buffers = list(buffer)
+        for m, own in enumerate(buffers):
+            if not isinstance(own, TensorDictReplayBuffer):
+                raise TypeError(
+                    f"buffer[{m}]: expected a buffer of make_window_buffer, got "
+                    f"{type(own).__name__}"
+                )
         if generators is None or len(buffers) != len(generators):
             raise ValueError(
                 f"buffer: expected one buffer, or one per member with generators, got "
@@ -117,6 +143,19 @@ def sample_windows(
                 f"{'no' if generators is None else len(generators)} generators"
             )
     check_positive_int("num_windows", num_windows)
+    check_positive_int_or_none("members", members)
+    check_non_negative_int("start_windows", start_windows)
+    if generators is not None:
+        if isinstance(generators, torch.Generator) or not isinstance(generators, Sequence):
+            raise TypeError(
+                f"generators: expected a sequence of torch.Generator (one per member), got "
+                f"{type(generators).__name__}"
+            )
+        for m, generator in enumerate(generators):
+            if not isinstance(generator, torch.Generator):
+                raise TypeError(
+                    f"generators[{m}]: expected a torch.Generator, got {type(generator).__name__}"
+                )
     for own in [buffer] if buffers is None else buffers:
         if own.sampler.slice_len != window:
             raise ValueError(
@@ -176,14 +215,15 @@ def split_episodes(
     data: TensorDictBase, val_fraction: float, seed: int = 0
 ) -> tuple[TensorDict, TensorDict]:
     """Split ``data`` ``[frames]`` into (train, validation) by whole episodes."""
-    if not 0.0 < val_fraction < 1.0:
-        raise ValueError(f"val_fraction: expected a fraction in (0, 1), got {val_fraction}")
+    number = isinstance(val_fraction, (int, float)) and not isinstance(val_fraction, bool)
+    if not (number and 0.0 < val_fraction < 1.0):
+        raise ValueError(f"val_fraction: expected a fraction in (0, 1), got {val_fraction!r}")
     _check_flat(data)
     ids = data[TRAJ_KEY]
     episodes = torch.unique(ids)
     if episodes.numel() < 2:
         raise ValueError(f"data: expected >= 2 episodes to split, got {episodes.numel()}")
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator().manual_seed(check_seed("seed", seed))
     n_val = min(max(1, round(val_fraction * episodes.numel())), episodes.numel() - 1)
     val_ids = episodes[torch.randperm(episodes.numel(), generator=g)[:n_val]]
     is_val = torch.isin(ids, val_ids)

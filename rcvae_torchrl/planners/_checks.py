@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from rcvae_torchrl._checks import (  # noqa: F401  (re-exported for the planner modules)
     check_bool,
+    check_bounds,
     check_choice,
     check_finite,
     check_positive_int,

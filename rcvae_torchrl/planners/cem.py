@@ -251,6 +251,7 @@ class CEMPlanner(MPCPlannerBase):
         self, tensordict: TensorDictBase, mean: Tensor, std: Tensor
     ) -> tuple[Tensor, Tensor]:
         """Run the CEM iterations from ``(mean, std)`` ``[*B, H, *A]``; return the final plan."""
+        self._check_plan(tensordict, mean, std)
         prior = self._proposed_plan(tensordict, mean.shape)
         if prior is not None and self.proposal_std is not None:
             mean, std = prior.clone(), (self.prior_std * self.proposal_std).expand_as(std).clone()
@@ -276,6 +277,11 @@ class CEMPlanner(MPCPlannerBase):
         if not isinstance(plan, Tensor) or plan.shape != shape:
             got = tuple(plan.shape) if isinstance(plan, Tensor) else type(plan).__name__
             raise ValueError(f"proposal: expected a plan of shape {tuple(shape)}, got {got}")
+        if not bool(torch.isfinite(plan).all()):
+            raise ValueError(
+                "proposal: expected a finite plan, got non-finite actions at "
+                f"{torch.nonzero(~torch.isfinite(plan))[:3].tolist()} (first 3 indices)"
+            )
         return torch.maximum(torch.minimum(plan, self.high), self.low)
 
     def planning(self, tensordict: TensorDictBase) -> Tensor:
@@ -319,6 +325,21 @@ class CEMPlanner(MPCPlannerBase):
                 f"actions: expected shape [*B, C, H, *A] with B = {batch} and "
                 f"A = {action_shape}, got {tuple(actions.shape)}"
             )
+
+    def _check_plan(self, tensordict: TensorDictBase, mean: Tensor, std: Tensor) -> None:
+        """A plan to start from: ``[*B, H, *A]`` of this planner's H, a finite mean and a
+        positive finite std (a NaN mean would otherwise be blamed on the model)."""
+        shape = (*tensordict.batch_size, self.horizon, *self.action_shape)
+        for name, value in (("mean", mean), ("std", std)):
+            if not isinstance(value, Tensor) or tuple(value.shape) != shape:
+                got = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+                raise ValueError(
+                    f"{name}: expected a plan [*B, H, *A] = {shape} (H: the planning horizon), "
+                    f"got {got}"
+                )
+            _checks.check_finite(name, value)
+        if not bool((std > 0).all()):
+            raise ValueError(f"std: expected positive values, got a minimum of {std.min().item()}")
 
     def _check_state(self, tensordict: TensorDictBase) -> None:
         keys = {*self.in_keys, *self.env.state_spec.keys(True, True)}

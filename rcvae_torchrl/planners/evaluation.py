@@ -29,6 +29,8 @@ from tensordict import NestedKey, TensorDictBase, unravel_key
 from torch import Tensor
 from torchrl.envs import EnvBase
 
+from rcvae_torchrl.planners import _checks
+
 __all__ = [
     "ActionSequenceEvaluator",
     "ParticleReturns",
@@ -237,6 +239,7 @@ def rollout_returns(
     Returns:
         :class:`ParticleReturns`, ``returns`` ``[*B, C, P]`` (and ``success`` bool, same shape).
     """
+    _check_replay(td_start, actions, particles, discount)
     batch_dims = td_start.batch_dims + 2
     num_candidates, horizon = actions.shape[td_start.batch_dims : batch_dims]
     td = _expand_start(td_start, env, num_candidates, particles)
@@ -249,11 +252,42 @@ def rollout_returns(
     for t in range(horizon):
         td.set(action_key, replay.select(batch_dims, t).contiguous())
         td = env.step(td)
-        reward = _per_particle(td.get(("next", *_as_tuple(reward_key))), batch_dims).sum(-1)
+        reward = _per_particle(_entry(td, reward_key, "reward_key"), batch_dims).sum(-1)
         returns = returns + torch.where(alive, reward * discount**t, torch.zeros_like(reward))
         if success is not None:
-            flag = _per_particle(td.get(("next", *_as_tuple(success_key))), batch_dims).any(-1)
+            flag = _per_particle(_entry(td, success_key, "success_key"), batch_dims).any(-1)
             success = success | (alive & flag)
         alive = alive & ~_done(td, env, batch_dims)
         td = env.step_mdp(td)
     return ParticleReturns(returns, success)
+
+
+def _check_replay(td_start: object, actions: object, particles: object, discount: object) -> None:
+    """:func:`rollout_returns`' arguments, before any step."""
+    if not isinstance(td_start, TensorDictBase):
+        raise TypeError(f"td_start: expected a TensorDict, got {type(td_start).__name__}")
+    _checks.check_positive_int("particles", particles)
+    _checks.check_unit_interval("discount", discount, include_zero=False)
+    if not isinstance(actions, Tensor) or actions.ndim < td_start.batch_dims + 2:
+        got = tuple(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__
+        raise ValueError(
+            f"actions: expected a tensor [*B, C, H, *A] with [*B] = {list(td_start.batch_size)}, "
+            f"got {got}"
+        )
+    if tuple(actions.shape[: td_start.batch_dims]) != tuple(td_start.batch_size):
+        raise ValueError(
+            f"actions: expected [*B, C, H, *A] with the batch of td_start [*B] = "
+            f"{list(td_start.batch_size)}, got {tuple(actions.shape)}"
+        )
+    _checks.check_finite("actions", actions)
+
+
+def _entry(td: TensorDictBase, key: NestedKey, name: str) -> Tensor:
+    """``td["next", key]``, or an error naming the argument ``name`` that gave the key."""
+    value = td.get(("next", *_as_tuple(key)), None)
+    if value is None:
+        raise KeyError(
+            f"{name}: the env's step wrote no {('next', *_as_tuple(key))!r} entry; its entries "
+            f"under 'next': {sorted(map(str, td.get('next').keys(True, True)))}"
+        )
+    return value

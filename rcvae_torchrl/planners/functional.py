@@ -36,6 +36,7 @@ def action_prior(
         ``(mean, std)``, each ``[*A]``.
     """
     _checks.check_shape("high", high, low.shape, "[*A] (the shape of low)")
+    _checks.check_bounds("low, high", low, high)
     bounded = torch.isfinite(high - low)
     mean = torch.where(bounded, (low + high) / 2, torch.zeros_like(low).clamp(low, high))
     std = torch.where(bounded, (high - low) / 4, torch.ones_like(low))
@@ -86,6 +87,7 @@ def sample_candidates(
         ``[*B, C, H, *A]`` candidates inside ``[low, high]``.
     """
     _checks.check_shape("std", std, mean.shape, "[*B, H, *A] (the shape of mean)")
+    _checks.check_positive_int("num_candidates", num_candidates)
     batch_dims = mean.ndim - 1 - low.ndim
     shape = (*mean.shape[:batch_dims], num_candidates, *mean.shape[batch_dims:])
     noise = torch.randn(shape, generator=generator, dtype=mean.dtype, device=mean.device)
@@ -145,12 +147,13 @@ def cem_update(
     _check_update_shapes(mean, std, candidates, scores)
     _checks.check_momentum(momentum)
     batch_dims = scores.ndim - 1
-    weight = elite_mask(scores, top_k).to(candidates.dtype)
-    weight = weight.reshape(*weight.shape, *([1] * (candidates.ndim - scores.ndim)))
-    count = weight.sum(batch_dims)
-    elite_mean = (weight * candidates).sum(batch_dims) / count.clamp_min(1)
+    elite = elite_mask(scores, top_k)
+    elite = elite.reshape(*elite.shape, *([1] * (candidates.ndim - scores.ndim)))
+    count = elite.sum(batch_dims, dtype=candidates.dtype)
+    # selected, not weighted: a candidate that is not an elite (e.g. NaN, scored NaN) adds 0
+    elite_mean = candidates.where(elite, 0.0).sum(batch_dims) / count.clamp_min(1)
     deviation = candidates - elite_mean.unsqueeze(batch_dims)
-    elite_std = ((weight * deviation.square()).sum(batch_dims) / count.clamp_min(1)).sqrt()
+    elite_std = (deviation.square().where(elite, 0.0).sum(batch_dims) / count.clamp_min(1)).sqrt()
     any_elite = count > 0
     elite_mean = torch.where(any_elite, elite_mean, mean)
     elite_std = torch.where(any_elite, elite_std, std)

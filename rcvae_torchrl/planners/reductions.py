@@ -103,6 +103,12 @@ def success_fraction(success: Tensor) -> Tensor:
     """
     if success.ndim < 2:
         raise ValueError(f"success: expected shape [*B, C, P], got {tuple(success.shape)}")
+    if success.dtype != torch.bool and not bool(((success >= 0) & (success <= 1)).all()):
+        bad = success[~((success >= 0) & (success <= 1))]
+        raise ValueError(
+            f"success: expected a bool indicator or values in [0, 1], got {bad[:3].tolist()} "
+            f"among {success.numel()} values"
+        )
     return success.to(torch.get_default_dtype()).mean(dim=-1)
 
 
@@ -110,10 +116,11 @@ def lexicographic_score(primary: Tensor, secondary: Tensor) -> Tensor:
     """A score ordering candidates by ``primary``, ties broken by ``secondary``.
 
     Both ``[*B, C]``; the result is ``[*B, C]`` float64 (``C · rank(primary) + rank(secondary)``,
-    ranks over the candidate axis), exact for any ``C < 2**26``. NaN in ``secondary`` ranks lowest.
+    ranks over the candidate axis), exact for any ``C < 2**26``. NaN ranks lowest in either.
     """
     _checks.check_shape("secondary", secondary, primary.shape, "[*B, C] (the shape of primary)")
     num_candidates = primary.shape[-1]
+    primary = primary.masked_fill(primary.isnan(), -torch.inf)
     ordered = primary.sort(dim=-1).values.contiguous()
     primary_rank = torch.searchsorted(ordered, primary.contiguous(), side="left")
     filled = torch.nan_to_num(secondary, nan=-torch.inf)

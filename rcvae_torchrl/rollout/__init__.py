@@ -31,7 +31,14 @@ from rcvae_torchrl.rollout.imagine import (
     policy_reset,
 )
 from rcvae_torchrl.rollout.layout import MemberLayout
-from rcvae_torchrl.rollout.loop import ActionBounds, Policy, RolloutHook, StepRecord, rollout
+from rcvae_torchrl.rollout.loop import (
+    ActionBounds,
+    Policy,
+    RolloutHook,
+    StepRecord,
+    check_action_bounds,
+    rollout,
+)
 from rcvae_torchrl.rollout.sampling import (
     TRAJECTORY_SAMPLINGS,
     Propagated,
@@ -70,6 +77,7 @@ __all__ = [
     "Policy",
     "RolloutHook",
     "StepRecord",
+    "check_action_bounds",
     "rollout",
     # the task
     "RewardFn",

@@ -19,7 +19,13 @@ from torchrl.modules import GRUModule, LSTMModule
 
 from rcvae_torchrl import _checks
 from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.rollout.loop import ActionBounds, Policy, StepRecord, rollout
+from rcvae_torchrl.rollout.loop import (
+    ActionBounds,
+    Policy,
+    StepRecord,
+    check_action_bounds,
+    rollout,
+)
 from rcvae_torchrl.rollout.task import Task, alive_mask
 
 __all__ = [
@@ -263,6 +269,8 @@ def imagine(
     """
     tensor_policy = None if policy is None else as_tensor_policy(policy)
     _check_inputs(ensemble, observation, actions, samples_per_member, tensor_policy, horizon)
+    check_action_bounds(bounds, ensemble.config.action_dim)
+    _checks.check_bool("requires_grad", requires_grad)
     chunk_size = chunk_size_for(chunk_size, ensemble.device)
     n_steps = actions.shape[-2] if actions is not None else int(horizon)
     grid = (ensemble.ensemble_size, samples_per_member, *observation.shape[:-1])
@@ -318,6 +326,7 @@ def plan_actions(
     """
     tensor_policy = as_tensor_policy(policy)
     _check_inputs(ensemble, observation, None, 1, tensor_policy, horizon)
+    check_action_bounds(bounds, ensemble.config.action_dim)
     chunk_size = chunk_size_for(chunk_size, ensemble.device)
     with torch.no_grad():
         hooks = _rollout_chunks(

@@ -13,11 +13,11 @@ from typing import NamedTuple, Protocol
 
 import torch
 
-from rcvae_torchrl._checks import check_finite
+from rcvae_torchrl._checks import check_bounds, check_finite
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout.sampling import Propagated, TrajectorySampling, propagate
 
-__all__ = ["ActionBounds", "Policy", "RolloutHook", "StepRecord", "rollout"]
+__all__ = ["ActionBounds", "Policy", "RolloutHook", "StepRecord", "check_action_bounds", "rollout"]
 
 Policy = Callable[[torch.Tensor], torch.Tensor]
 """A closed-loop policy on tensors: observations ``[..., S]`` -> actions ``[..., A]``."""
@@ -28,6 +28,36 @@ class ActionBounds(NamedTuple):
 
     low: torch.Tensor
     high: torch.Tensor
+
+
+def check_action_bounds(bounds: object, action_dim: int, name: str = "bounds") -> None:
+    """Require ``None`` or :class:`ActionBounds` of tensors that broadcast to ``[A]``, with no
+    NaN and ``low <= high`` (clipping to crossed bounds would put every action at one of them
+    without a word)."""
+    if bounds is None:
+        return
+    if not isinstance(bounds, ActionBounds):
+        raise TypeError(
+            f"{name}: expected ActionBounds(low, high) of tensors or None, got "
+            f"{type(bounds).__name__} {bounds!r}"
+        )
+    for part in ("low", "high"):
+        value = getattr(bounds, part)
+        if (
+            not isinstance(value, torch.Tensor)
+            or value.ndim > 1
+            or value.numel()
+            not in (
+                1,
+                action_dim,
+            )
+        ):
+            got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
+            raise ValueError(
+                f"{name}.{part}: expected a tensor of shape [A={action_dim}] (or one value), "
+                f"got {got}"
+            )
+    check_bounds(name, bounds.low, bounds.high)
 
 
 class StepRecord(NamedTuple):

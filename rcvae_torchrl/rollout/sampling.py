@@ -25,6 +25,7 @@ from typing import Literal, NamedTuple
 
 import torch
 
+from rcvae_torchrl import _checks
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.models.functional import standard_normal
 
@@ -105,6 +106,7 @@ def propagate(
             ``generator`` when not given. ``"mean"`` draws none.
         generator: source of the noise (and of the ``"ts1"`` members).
     """
+    _checks.check_choice("mode", mode, TRAJECTORY_SAMPLINGS)
     if mode == "ts_inf":
         z, s = (None, None) if noise is None else noise
         out = ensemble.step(

@@ -32,10 +32,11 @@ from typing import Literal, NamedTuple
 
 import torch
 
+from rcvae_torchrl import _checks
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout.aot import aot_scoring
-from rcvae_torchrl.rollout.loop import ActionBounds, rollout
-from rcvae_torchrl.rollout.sampling import TrajectorySampling, initial_hidden
+from rcvae_torchrl.rollout.loop import ActionBounds, check_action_bounds, rollout
+from rcvae_torchrl.rollout.sampling import TRAJECTORY_SAMPLINGS, TrajectorySampling, initial_hidden
 from rcvae_torchrl.rollout.task import Task
 
 __all__ = [
@@ -76,6 +77,8 @@ def particle_groups(
 ) -> int:
     """G, the particles computed per row: ``E·⌈P/E⌉`` (``"ts_inf"``; 1 when P = 1), P
     (``"ts1"``), 1 (``"mean"``)."""
+    _checks.check_choice("trajectory_sampling", trajectory_sampling, TRAJECTORY_SAMPLINGS)
+    _checks.check_positive_int("particles", particles)
     if trajectory_sampling == "ts_inf":
         return 1 if particles == 1 else ensemble_size * math.ceil(particles / ensemble_size)
     return particles if trajectory_sampling == "ts1" else 1
@@ -159,6 +162,8 @@ def evaluate_action_sequences(
         :class:`SequenceReturns`, each ``[R, P']``.
     """
     check_compile("compile", compile)
+    _check_sequences(ensemble, start, actions, task)
+    check_action_bounds(bounds, ensemble.config.action_dim)
     rows, horizon = actions.shape[0], actions.shape[1]
     e = ensemble.ensemble_size
     groups = particle_groups(trajectory_sampling, particles, e)
@@ -191,6 +196,32 @@ def evaluate_action_sequences(
     if trajectory_sampling == "mean":
         out = SequenceReturns(*(x.expand(rows, particles) for x in out))
     return out
+
+
+def _check_sequences(ensemble: object, start: object, actions: object, task: object) -> None:
+    """Shapes and kinds only (the planner's fast path: no pass over the values)."""
+    if not isinstance(ensemble, RCVAEEnsemble):
+        raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
+    if not isinstance(task, Task):
+        raise TypeError(f"task: expected a rollout.Task, got {type(task).__name__}")
+    cfg = ensemble.config
+    _checks.check_tensor("start", start)
+    _checks.check_tensor("actions", actions)
+    if start.ndim != 2 or start.shape[-1] != cfg.obs_dim or start.shape[0] < 1:
+        raise ValueError(
+            f"start: expected [R, S={cfg.obs_dim}] with R >= 1, got {tuple(start.shape)}"
+        )
+    rows = start.shape[0]
+    if (
+        actions.ndim != 3
+        or actions.shape[0] != rows
+        or actions.shape[1] < 1
+        or (actions.shape[2] != cfg.action_dim)
+    ):
+        raise ValueError(
+            f"actions: expected [R={rows}, H, A={cfg.action_dim}] with H >= 1 (R: the rows of "
+            f"start), got {tuple(actions.shape)}"
+        )
 
 
 _COMPILED: list = []

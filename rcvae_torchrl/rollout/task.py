@@ -87,6 +87,8 @@ def alive_mask(done: torch.Tensor, time_dim: int = -1) -> torch.Tensor:
         >>> alive_mask(torch.tensor([False, True, False, True]))
         tensor([ True,  True, False, False])
     """
+    if done.dtype != torch.bool:  # a fraction would read as not done
+        raise TypeError(f"done: expected bool flags, got dtype {done.dtype}")
     done = done.to(torch.int64)
     return (done.cumsum(time_dim) - done) == 0
 
@@ -199,6 +201,11 @@ class Task:
         Returns:
             ``[n]``, summed in time order (as the rewards come, not pairwise).
         """
+        if reward.ndim != 2 or success.shape != reward.shape or success.dtype != torch.bool:
+            raise ValueError(
+                f"reward, success: expected [H, n] rewards and bool [H, n] success flags, got "
+                f"{tuple(reward.shape)} and {success.dtype} {tuple(success.shape)}"
+            )
         if self.terminate_on_success:
             reward = reward.masked_fill(~alive_mask(success, time_dim=0), 0.0)
         total = reward.new_zeros(reward.shape[1:])

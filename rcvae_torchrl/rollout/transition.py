@@ -97,6 +97,11 @@ class ParticleTransition(TensorDictModuleBase):
             outputs.append(member_key)
         if trajectory_sampling == "ts_inf":
             self.in_keys.append(member_key)
+        if not isinstance(out_prefix, tuple) or not all(isinstance(k, str) for k in out_prefix):
+            raise TypeError(
+                f"out_prefix: expected a tuple of key names (e.g. ('next',) or ()), got "
+                f"{out_prefix!r}"
+            )
         self.out_keys = [_prefixed(tuple(out_prefix), k) for k in outputs]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:

@@ -58,7 +58,9 @@ from tensordict import TensorDictBase
 from rcvae_torchrl import _checks, fingerprint
 from rcvae_torchrl._checks import (
     ROUNDING,
+    check_bool,
     check_entries,
+    check_non_negative,
     check_positive_int,
     check_unit_interval,
 )
@@ -566,6 +568,8 @@ def check_model(
         check_positive_int(name, value)
     check_unit_interval("interval", interval, include_zero=False)
     check_unit_interval("alpha", alpha, include_zero=False)
+    check_non_negative("min_gain", min_gain)
+    check_bool("warn", warn)
     cfg, e = ensemble.config, ensemble.ensemble_size
     device = ensemble.device
     longest = _longest_episode(data)

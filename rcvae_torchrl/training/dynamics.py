@@ -656,6 +656,19 @@ def rank_p_values(
     samples without ties; ``alternative="two-sided"``: are they elsewhere?); NaN elsewhere,
     and everywhere for ``M = 0``."""
     _checks.check_choice("alternative", alternative, ("greater", "two-sided"))
+    _check_tolerance(tolerance)
+    for name, x in (("scores", scores), ("held_out", held_out)):
+        _checks.check_tensor(name, x)
+    if scores.ndim != 2 or held_out.ndim != 2 or scores.shape[1] != held_out.shape[1]:
+        raise ValueError(
+            f"scores, held_out: expected [M, S] and [H, S] (the same S), got "
+            f"{tuple(scores.shape)} and {tuple(held_out.shape)}"
+        )
+    size = held_out.shape[1]
+    if any(isinstance(d, bool) or not isinstance(d, int) or not 0 <= d < size for d in dims):
+        raise ValueError(f"dims: expected dimensions in 0..{size - 1}, got {tuple(dims)}")
+    for name, x in (("scores", scores), ("held_out", held_out)):
+        _checks.check_finite(f"{name} (in dims)", x[:, list(dims)])
     from scipy.stats import mannwhitneyu
 
     out = torch.full((held_out.shape[1],), math.nan, dtype=torch.float64)

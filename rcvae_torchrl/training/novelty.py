@@ -254,6 +254,11 @@ class StateNovelty:
         if not quantile < 1:
             raise ValueError(f"quantile: expected a share in (0, 1), got {quantile!r}")
         check_positive_int("max_states", max_states)
+        if max_states <= k:
+            raise ValueError(
+                f"max_states: expected more than k = {k} (the reference states must hold a "
+                f"k-th nearest neighbour), got {max_states}"
+            )
         if states.shape[0] <= k:
             raise ValueError(
                 f"states: expected more than k = {k} training states, got {states.shape[0]}"
@@ -461,6 +466,7 @@ class StateNovelty:
             return torch.zeros(actions.shape[:-1], dtype=torch.bool, device=actions.device)
         bins = self.action_bins.to(actions.device)
         _checks.check_shape("actions", actions, (*actions.shape[:-1], bins.shape[0]), "[*B, A]")
+        _checks.check_finite("actions", actions)  # a NaN action would read as seen
         position = _action_position(actions, self.action_low, self.action_high)
         far = (position < -1) | (position > ACTION_BINS + 1)  # a bin's width past the extremes
         index = position.long().clamp(0, ACTION_BINS - 1)

@@ -130,3 +130,12 @@ def test_knn_epistemic_stays_within_the_mutual_informations_bounds_in_many_dimen
     apart = identical + 50.0 * torch.arange(E, dtype=torch.float32).view(E, 1, 1, 1)
     far = decompose_uncertainty(apart, "knn", k=3)
     assert torch.allclose(far.epistemic, torch.full((2,), math.log2(E)), atol=0.05)
+
+
+def test_variance_decomposition_needs_two_samples_per_member():
+    """With one sample a member's variance is 0: aleatoric read 0 without a word."""
+    from rcvae_torchrl.competency import variance_decomposition
+
+    with pytest.raises(ValueError, match=r"samples: expected at least 2 samples per member"):
+        variance_decomposition(torch.randn(3, 1, 2))
+    assert variance_decomposition(torch.randn(3, 2, 2)).aleatoric.shape == (2,)

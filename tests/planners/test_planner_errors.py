@@ -170,3 +170,85 @@ def test_arguments_of_another_type(kwargs, message):
 def test_init_std_may_be_a_list_per_action_dimension():
     planner = CEMPlanner(PointMassEnv(), horizon=4, init_std=[0.3, 0.4])
     assert planner.prior_std.tolist() == pytest.approx([0.3, 0.4])
+
+
+def test_a_nan_candidate_is_never_an_elite_and_a_nan_proposal_is_refused():
+    """A NaN candidate scored NaN added 0 x NaN = NaN to the elites' mean: the whole plan was
+    NaN. A proposal of NaN actions was taken in."""
+    from rcvae_torchrl.planners import cem_update
+
+    nan = float("nan")
+    candidates = torch.tensor([[0.0], [1.0], [nan]])
+    mean, std = cem_update(
+        torch.zeros(1), torch.ones(1), candidates, torch.tensor([0.0, 1.0, nan]), 2, 0.5
+    )
+    assert torch.equal(mean, torch.tensor([0.25])) and torch.equal(std, torch.tensor([0.75]))
+    env = PointMassEnv()
+    planner = CEMPlanner(
+        env, horizon=3, num_candidates=8, top_k=2, proposal=lambda td: torch.full((3, 2), nan)
+    )
+    with pytest.raises(ValueError, match=r"proposal: expected a finite plan, got non-finite"):
+        planner.planning(env.reset())
+
+
+def test_success_outside_0_1_is_refused_and_a_nan_ranks_lowest():
+    from rcvae_torchrl.planners import lexicographic_score, reduce_particles
+
+    returns = torch.tensor([[[1.0, 1.0], [5.0, 5.0], [2.0, 2.0]]])
+    for bad in (float("nan"), 7.0, -1.0):
+        success = torch.tensor([[[bad, 0.0], [1.0, 1.0], [0.5, 0.5]]])
+        with pytest.raises(ValueError, match=r"success: expected a bool indicator or values in"):
+            reduce_particles(returns, "success", success=success)
+    score = lexicographic_score(
+        torch.tensor([[float("nan"), 1.0, 0.5]]), torch.tensor([[9, 5, 2.0]])
+    )
+    assert score.argmax().item() == 1 and score.argmin().item() == 0
+
+
+def test_crossed_or_nan_bounds_and_bad_counts_are_named():
+    from rcvae_torchrl.planners import action_prior, sample_candidates
+
+    with pytest.raises(ValueError, match=r"low, high: expected low <= high \(and no NaN\)"):
+        action_prior(torch.ones(2), -torch.ones(2))
+    with pytest.raises(ValueError, match=r"low, high: expected low <= high \(and no NaN\)"):
+        action_prior(torch.tensor([float("nan"), 0.0]), torch.ones(2))
+    with pytest.raises(ValueError, match="num_candidates: expected a positive integer, got 0"):
+        sample_candidates(torch.zeros(3, 2), torch.ones(3, 2), 0, -torch.ones(2), torch.ones(2))
+
+
+def test_rollout_returns_names_its_arguments():
+    from rcvae_torchrl.planners import rollout_returns
+
+    env = PointMassEnv()
+    start, actions = env.reset(), torch.zeros(4, 3, 2)
+    with pytest.raises(ValueError, match=r"discount: expected a float in \(0, 1\], got nan"):
+        rollout_returns(env, start, actions, 1, discount=math.nan)
+    with pytest.raises(ValueError, match=r"discount: expected a float in \(0, 1\], got -2"):
+        rollout_returns(env, start, actions, 1, discount=-2)
+    for particles in (0, -1, 1.5):
+        with pytest.raises(ValueError, match="particles: expected a positive integer"):
+            rollout_returns(env, start, actions, particles)
+    with pytest.raises(KeyError, match=r"reward_key: the env's step wrote no \('next', 'rew'\)"):
+        rollout_returns(env, start, actions, reward_key="rew")
+    with pytest.raises(KeyError, match=r"success_key: the env's step wrote no"):
+        rollout_returns(env, start, actions, success_key="won")
+    with pytest.raises(TypeError, match="td_start: expected a TensorDict, got dict"):
+        rollout_returns(env, {}, actions)
+    with pytest.raises(ValueError, match=r"actions: expected \[\*B, C, H, \*A\] with the batch"):
+        rollout_returns(env, start.expand(2).clone(), torch.zeros(3, 4, 3, 2))
+    with pytest.raises(ValueError, match="actions: expected finite values"):
+        rollout_returns(env, start, torch.full((4, 3, 2), math.nan))
+
+
+def test_optimize_checks_the_plan_it_starts_from():
+    env = PointMassEnv()
+    planner = CEMPlanner(env, horizon=3, num_candidates=8, top_k=2)
+    td = env.reset()
+    mean, std = planner.initial_plan(td)
+    with pytest.raises(ValueError, match=r"mean: expected a plan \[\*B, H, \*A\] = \(3, 2\)"):
+        planner.optimize(td, torch.zeros(4, 2), std)
+    with pytest.raises(ValueError, match="mean: expected finite values"):
+        planner.optimize(td, torch.full_like(mean, math.nan), std)
+    with pytest.raises(ValueError, match="std: expected positive values"):
+        planner.optimize(td, mean, -std)
+    planner.optimize(td, mean, std)

@@ -318,3 +318,37 @@ def test_train_config_refuses_what_training_would_clamp_or_overflow(kwargs, word
         TrainConfig(**kwargs)
     assert words in str(info.value)
     assert TrainConfig(window=8, open_loop_steps=7).open_loop_steps == 7
+
+
+def test_the_checks_name_their_thresholds_and_inputs(linear_data, small_ensemble):
+    """A NaN or negative min_gain passed a model that fails; a NaN action was judged seen; a
+    reference smaller than k; a NaN tolerance or a dimension out of range in rank_p_values."""
+    from rcvae_torchrl.training import StateNovelty, check_model
+    from rcvae_torchrl.training.dynamics import rank_p_values
+
+    _, val = linear_data
+    model = small_ensemble(2)
+    for bad in (math.nan, -1.0, "0.1"):
+        with pytest.raises(ValueError, match="min_gain: expected a finite number >= 0"):
+            check_model(model, val, windows=4, min_gain=bad, warn=False)
+    with pytest.raises(TypeError, match="warn: expected True or False, got 'no'"):
+        check_model(model, val, windows=4, warn="no")
+    states, held = torch.randn(200, 3), torch.randn(50, 3)
+    with pytest.raises(ValueError, match="max_states: expected more than k = 5"):
+        StateNovelty.fit(states, held, k=5, max_states=2)
+    novelty = StateNovelty.fit(states, held).with_actions(
+        torch.rand(200, 1), torch.rand(50, 1), torch.arange(50) // 10
+    )
+    with pytest.raises(ValueError, match="actions: expected finite values"):
+        novelty.unseen_actions(torch.tensor([[math.nan]]))
+    scores, held_out = torch.rand(8, 3), torch.rand(12, 3)
+    for tolerance in (math.nan, -1.0, 0.5):
+        with pytest.raises(ValueError, match="tolerance: expected a finite factor >= 1"):
+            rank_p_values(scores, held_out, (0,), tolerance=tolerance)
+    with pytest.raises(ValueError, match=r"dims: expected dimensions in 0..2, got \(-1,\)"):
+        rank_p_values(scores, held_out, (-1,))
+    with pytest.raises(ValueError, match=r"scores \(in dims\): expected finite values"):
+        rank_p_values(torch.full((8, 3), math.nan), held_out, (0,))
+    nan_elsewhere = scores.clone()
+    nan_elsewhere[:, 2] = math.nan  # a dimension not tested may hold NaN
+    assert rank_p_values(nan_elsewhere, held_out, (0,))[0].isfinite()

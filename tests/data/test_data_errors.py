@@ -1,0 +1,122 @@
+"""Bad input to the data helpers gives errors that name the argument, what was expected and
+what was given, instead of data dropped or actions drawn from a wrapped seed."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from rcvae_torchrl.data import (
+    TRAJ_KEY,
+    ActionNoise,
+    GaussianExploration,
+    ObservationLayout,
+    UniformRandomPolicy,
+    make_window_buffer,
+    sample_windows,
+    split_episodes,
+)
+
+
+def _episodes(count: int = 3, length: int = 6) -> TensorDict:
+    g = torch.Generator().manual_seed(0)
+    parts = []
+    for e in range(count):
+        x = torch.randn(length + 1, 3, generator=g)
+        parts.append(
+            TensorDict(
+                {
+                    "observation": x[:-1],
+                    "action": torch.rand(length, 1, generator=g),
+                    ("next", "observation"): x[1:],
+                    ("next", "done"): torch.zeros(length, 1, dtype=torch.bool),
+                    TRAJ_KEY: torch.full((length,), e, dtype=torch.int64),
+                },
+                [length],
+            )
+        )
+    return torch.cat(parts)
+
+
+def test_a_buffer_smaller_than_its_data_is_refused():
+    """max_size=4 kept the last 4 of 18 frames while the episodes' starts pointed at gone ones."""
+    data = _episodes()
+    with pytest.raises(ValueError, match=r"max_size: expected at least the 18 frames of data"):
+        make_window_buffer(data, 3, max_size=4)
+    for bad in (0, -5, 20.5, True):
+        with pytest.raises(ValueError, match="max_size: expected a positive integer"):
+            make_window_buffer(data, 3, max_size=bad)
+    for bad in ("3", None, 2.5):
+        with pytest.raises(ValueError, match=r"window: expected >= 2 steps \(an integer\)"):
+            make_window_buffer(data, bad)
+    assert len(make_window_buffer(data, 3, max_size=40)) == 18
+
+
+def test_sample_windows_names_its_arguments():
+    buffer = make_window_buffer(_episodes(), 3)
+    generators = [torch.Generator().manual_seed(i) for i in range(2)]
+    with pytest.raises(TypeError, match="buffer: expected a buffer of make_window_buffer"):
+        sample_windows(None, 4, 3)
+    with pytest.raises(TypeError, match=r"buffer\[1\]: expected a buffer of make_window_buffer"):
+        sample_windows([buffer, "x"], 4, 3, members=2, generators=generators)
+    for bad in (0, -1, 2.5):
+        with pytest.raises(ValueError, match="members: expected a positive integer or None"):
+            sample_windows(buffer, 4, 3, members=bad)
+    with pytest.raises(TypeError, match=r"generators\[1\]: expected a torch.Generator, got int"):
+        sample_windows(buffer, 4, 3, members=2, generators=[generators[0], 2])
+    with pytest.raises(ValueError, match=r"start_windows: expected an integer >= 0, got 1.5"):
+        sample_windows(buffer, 4, 3, members=2, generators=generators, start_windows=1.5)
+    assert sample_windows(buffer, 4, 3, members=2, generators=generators).shape == (2, 4, 3)
+
+
+def test_layouts_name_their_keys_and_sizes():
+    with pytest.raises(ValueError, match=r"keys: expected distinct entries, got \('a', 'a'\)"):
+        ObservationLayout(("a", "a"), (1, 2))
+    for sizes in ((-1,), (0,), (1.5,)):
+        with pytest.raises(ValueError, match="sizes: expected a positive integer per entry"):
+            ObservationLayout(("a",), sizes)
+    with pytest.raises(TypeError, match=r"keys: expected a tuple .* got the string 'ab'"):
+        ObservationLayout("ab", (1, 1))
+    with pytest.raises(TypeError, match=r"keys: expected entry names \(str\), got 1"):
+        ObservationLayout((1, 2), (1, 1))
+    for names in ("abc", [], None):
+        with pytest.raises(ValueError, match="names: expected a non-empty sequence"):
+            ObservationLayout.from_names(names)
+    assert ObservationLayout(("p", ("agent", "v")), (2, 1)).dim == 3
+
+
+def test_exploration_noise_seeds_and_bounds_are_checked():
+    """A negative seed wrapped to 2**64 - 1; an infinite std gave bang-bang actions; NaN bounds
+    sent NaN actions to the env."""
+    policy = nn.Linear(3, 2)
+    for seed in (-1, 1.5, "0", True):
+        with pytest.raises(ValueError, match="seed: expected an integer seed >= 0"):
+            GaussianExploration(policy, 0.1, seed=seed)
+        with pytest.raises(ValueError, match="seed: expected an integer seed >= 0"):
+            UniformRandomPolicy(2, seed=seed)
+        with pytest.raises(ValueError, match="seed: expected an integer seed >= 0"):
+            ActionNoise(0.1, seed=seed)
+        with pytest.raises(ValueError, match="seed: expected an integer seed >= 0"):
+            split_episodes(_episodes(), 0.5, seed=seed)
+    for std in (math.inf, math.nan, -0.1, "0.1"):
+        with pytest.raises(ValueError, match="noise_std: expected a finite std >= 0"):
+            GaussianExploration(policy, std)
+    with pytest.raises(TypeError, match="policy: expected a module mapping observations"):
+        GaussianExploration(5, 0.1)
+    with pytest.raises(ValueError, match=r"low, high: expected low <= high \(and no NaN\)"):
+        ActionNoise(0.0, low=1.0, high=-1.0)
+    with pytest.raises(ValueError, match=r"low: expected low <= high \(and no NaN\)"):
+        ActionNoise(0.1, low=math.nan)
+    with pytest.raises(TypeError, match="high: expected a number, a tensor or None, got '1'"):
+        ActionNoise(0.1, high="1")
+    with pytest.raises(ValueError, match=r"val_fraction: expected a fraction in \(0, 1\)"):
+        split_episodes(_episodes(), "0.5")
+    # NumPy integers are seeds too
+    a, b = GaussianExploration(policy, 0.1, seed=np.int64(3)), GaussianExploration(policy, 0.1, 3)
+    x = torch.zeros(4, 3)
+    assert torch.equal(a(x), b(x))
