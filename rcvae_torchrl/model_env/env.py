@@ -244,6 +244,8 @@ class RCVAEEnsembleEnv(ModelBasedEnvBase):
         (see :mod:`rcvae_torchrl.model_env.specs`). Raises if the shapes do not match the
         ensemble.
         """
+        if not isinstance(env, EnvBase):
+            raise TypeError(f"env: expected a TorchRL EnvBase, got {type(env).__name__}")
         self._apply_specs(
             model_env_specs(self.ensemble, self.trajectory_sampling, self.device, env)
         )

@@ -18,9 +18,10 @@ import torch
 from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 
+from rcvae_torchrl._checks import check_choice
 from rcvae_torchrl.data import ObservationLayout, control_step, observation_layout
 from rcvae_torchrl.models import RCVAEEnsemble
-from rcvae_torchrl.rollout import TrajectorySampling
+from rcvae_torchrl.rollout import TRAJECTORY_SAMPLINGS, TrajectorySampling
 
 __all__ = [
     "ACTION_KEY",
@@ -65,6 +66,13 @@ def model_env_specs(
     unbounded ``[1]``, success bool ``[1]``, ``done`` / ``terminated`` / ``truncated`` bool
     ``[1]``. A batched real env contributes the spec of one of its elements.
     """
+    if not isinstance(ensemble, RCVAEEnsemble):
+        raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
+    check_choice("trajectory_sampling", trajectory_sampling, TRAJECTORY_SAMPLINGS)
+    if real_env is not None and not isinstance(real_env, EnvBase):
+        raise TypeError(
+            f"real_env: expected a TorchRL EnvBase or None, got {type(real_env).__name__}"
+        )
     task = _real_specs(ensemble, real_env) if real_env is not None else _default_specs(ensemble)
     obs_spec, success_spec, action, reward, done = (s.clone().to(device) for s in task)
     model_state = _model_state_spec(ensemble, trajectory_sampling, obs_spec.dtype, device)

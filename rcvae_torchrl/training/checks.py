@@ -61,8 +61,11 @@ from rcvae_torchrl._checks import (
     check_bool,
     check_entries,
     check_non_negative,
+    check_open_unit_interval,
     check_positive_int,
+    check_seed,
     check_unit_interval,
+    is_integer,
 )
 from rcvae_torchrl._text import signed
 from rcvae_torchrl.competency import check_same_predicates, same_chance_p_value
@@ -508,6 +511,11 @@ def _windows(data: TensorDictBase, length: int, count: int, seed: int) -> Tensor
         return sample_windows(make_window_buffer(data, length), count, length)
 
 
+def _check_level(name: str, value: object) -> None:
+    """Require a test's level in (0, 1): at level 1 a test always rejects."""
+    check_open_unit_interval(name, value, "a level", " (a test at level 1 always rejects)")
+
+
 @torch.no_grad()
 def check_model(
     ensemble: RCVAEEnsemble,
@@ -564,12 +572,27 @@ def check_model(
         seed: the windows and the samples are drawn from it.
         warn: emit a :class:`ModelCheckWarning` naming the flagged dimensions.
     """
-    for name, value in (("coverage_steps", coverage_steps), ("min_episodes", min_episodes)):
+    if not isinstance(ensemble, RCVAEEnsemble):
+        raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(
+            f"data: expected a flat TensorDict of held-out episodes [frames], got "
+            f"{type(data).__name__}"
+        )
+    if not is_integer(k) or k < 1:
+        raise ValueError(f"k: expected a positive integer (open-loop steps), got {k!r}")
+    for name, value in (
+        ("windows", windows),
+        ("samples_per_member", samples_per_member),
+        ("coverage_steps", coverage_steps),
+        ("min_episodes", min_episodes),
+    ):
         check_positive_int(name, value)
     check_unit_interval("interval", interval, include_zero=False)
-    check_unit_interval("alpha", alpha, include_zero=False)
+    _check_level("alpha", alpha)
     check_non_negative("min_gain", min_gain)
     check_bool("warn", warn)
+    seed = check_seed("seed", seed)
     cfg, e = ensemble.config, ensemble.ensemble_size
     device = ensemble.device
     longest = _longest_episode(data)
@@ -766,6 +789,8 @@ class OutcomeCheck:
         if self.start_states is not None:
             _checks.check_tensor("start_states", self.start_states)
             _checks.check_rank("start_states", self.start_states, 2, "[n, D]")
+            # a NaN start is near no state: covers() would vouch for none
+            _checks.check_finite("start_states", self.start_states)
             if self.start_states.shape[0] != self.forecast.shape[0]:
                 raise ValueError(
                     "start_states: expected one start state per forecast "
@@ -786,6 +811,7 @@ class OutcomeCheck:
                     f"state_scale: expected one positive unit per dimension [D={dim}], got shape "
                     f"{tuple(self.state_scale.shape)}"
                 )
+            _checks.check_finite("state_scale", self.state_scale)
             if not bool((self.state_scale > 0).all()):
                 raise ValueError("state_scale: expected positive units, got one <= 0")
 

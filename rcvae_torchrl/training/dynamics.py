@@ -258,10 +258,12 @@ class DynamicsNovelty:
         validation episodes whatever the env, and only a change that lifts its errors above
         theirs shows). ``steps``: where the env's dynamics act late in an episode (an object
         pushed seconds in), score the transitions that reach it (a forecast's horizon)."""
+        _check_ensemble(ensemble)
         check_positive_int("steps", steps)
         check_positive_int("max_episodes", max_episodes)
         _checks.check_non_negative_int("seed", seed)
-        check_unit_interval("quantile", quantile, include_zero=False)
+        # as StateNovelty.fit: a level over every episode is no level
+        _checks.check_open_unit_interval("quantile", quantile, "a share")
         obs, actions, _ = _episodes("train_data", train_data, ensemble, steps)
         if obs.shape[0] == 0:
             raise ValueError(
@@ -322,6 +324,7 @@ class DynamicsNovelty:
         """:meth:`scores`, with the episodes' mean signed errors ``[B, S]`` in units beside
         them (which way the model misses each episode, on average; NaN where not judged), and
         how many of the scored episodes repeat an earlier one transition for transition."""
+        _check_ensemble(ensemble)
         if _model_digest(ensemble) != self.model:
             raise ValueError(
                 "ensemble: not the world model this check was measured with (its weights, "
@@ -370,6 +373,11 @@ class DynamicsNovelty:
         if shifts is not None:
             shifts = _float_tensor("values['held_out_shifts']", shifts)
         return cls(**parts, names=values["names"], held_out_shifts=shifts)
+
+
+def _check_ensemble(ensemble: object) -> None:
+    if not isinstance(ensemble, RCVAEEnsemble):
+        raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
 
 
 def _check_tolerance(tolerance: object) -> None:
@@ -727,7 +735,10 @@ def check_dynamics(
     (an agent's own episodes in the env the model learned, fitted with
     :meth:`DynamicsNovelty.fit`): another policy visits states where the model errs another
     way, and the test cannot tell that from a change."""
-    check_unit_interval("alpha", alpha, include_zero=False)
+    _check_ensemble(ensemble)
+    _checks.check_open_unit_interval(
+        "alpha", alpha, "a level", " (a test at level 1 always rejects)"
+    )
     _check_tolerance(tolerance)
     _checks.check_bool("shift", shift)
     if novelty is None:

@@ -36,10 +36,16 @@ from tensordict import TensorDictBase
 from torch import Tensor
 
 from rcvae_torchrl import _checks, _spread
-from rcvae_torchrl._checks import check_positive_int, check_unit_interval
+from rcvae_torchrl._checks import (
+    check_bool,
+    check_positive_int,
+    check_seed,
+    check_unit_interval,
+    is_integer,
+)
 from rcvae_torchrl._conformal import conformal_level
 from rcvae_torchrl.competency.report import register_report_part
-from rcvae_torchrl.data import TRAJ_KEY, ObservationLayout, episode_spans
+from rcvae_torchrl.data import TRAJ_KEY, ObservationLayout, episode_ids, episode_spans
 
 __all__ = [
     "ACTION_BINS",
@@ -83,6 +89,15 @@ def entry_groups(names: Sequence[str] | None) -> tuple[tuple[int, ...], ...]:
     None without names, or where every name is its own entry."""
     if names is None:
         return ()
+    want = "None or a non-empty sequence of dimension names (str, one per dimension)"
+    if (
+        isinstance(names, (str, bytes))
+        or not isinstance(names, Sequence)
+        or not all(isinstance(name, str) for name in names)
+    ):
+        raise TypeError(f"names: expected {want}, got {names!r}")
+    if not names:
+        raise ValueError(f"names: expected {want}, got {names!r}")
     layout = ObservationLayout.from_names(tuple(names))
     starts = [sum(layout.sizes[:i]) for i in range(len(layout.sizes))]
     return tuple(
@@ -249,10 +264,14 @@ class StateNovelty:
         states = _states("states", states)
         dim = states.shape[-1]
         held_out = _states("held_out", held_out, dim)
+        if held_out.shape[0] == 0:
+            raise ValueError(
+                f"held_out: expected at least one held-out state [H >= 1, {dim}], got none "
+                f"(shape {tuple(held_out.shape)})"
+            )
         check_positive_int("k", k)
-        check_unit_interval("quantile", quantile, include_zero=False)
-        if not quantile < 1:
-            raise ValueError(f"quantile: expected a share in (0, 1), got {quantile!r}")
+        _checks.check_open_unit_interval("quantile", quantile, "a share")
+        seed = check_seed("seed", seed)
         check_positive_int("max_states", max_states)
         if max_states <= k:
             raise ValueError(
@@ -402,6 +421,7 @@ class StateNovelty:
                 raise TypeError(f"{name}: expected a TensorDict, got {type(data).__name__}")
             if key not in data.keys() or ("next", key) not in data.keys(True):
                 raise KeyError(f"{name}: expected {key!r} and ('next', {key!r}) entries")
+            episode_ids(data, name)
             parts[name] = torch.cat([data.get(key), data.get(("next", key))])
         check_novelty_episodes(train_data)
         frames = train_data.shape[0]
@@ -528,9 +548,8 @@ class StateNovelty:
         ``starts``."""
         flat = self._in_spreads(states)
         out = []
-        for i, block in zip(
-            range(0, flat.shape[0], _BLOCK_ROWS), flat.split(_BLOCK_ROWS), strict=True
-        ):
+        for i in range(0, flat.shape[0], _BLOCK_ROWS):  # none for no states
+            block = flat[i : i + _BLOCK_ROWS]
             own = None if ids is None else ids[i : i + _BLOCK_ROWS, None] == reference_ids[None]
             views = [self._nearest(block, own).values[:, -1] / math.sqrt(self.dim)]
             for group in self.groups if starts else ():
@@ -616,7 +635,21 @@ class StateNovelty:
         state = _states("state", state, self.dim, flat=False)
         if state.dim() != 1:
             raise ValueError(f"state: expected one state [D], got shape {tuple(state.shape)}")
-        names = tuple(names) if names is not None else tuple(f"dim {d}" for d in range(self.dim))
+        if not is_integer(top) or top < 1:
+            raise ValueError(f"top: expected a positive integer (dimensions to name), got {top!r}")
+        check_bool("start", start)
+        if names is None:
+            names = tuple(f"dim {d}" for d in range(self.dim))
+        elif (
+            isinstance(names, (str, bytes))
+            or not isinstance(names, Sequence)
+            or not all(isinstance(name, str) for name in names)
+        ):
+            raise TypeError(
+                f"names: expected None or a sequence of {self.dim} dimension names (str), got "
+                f"{names!r}"
+            )
+        names = tuple(names)
         if len(names) != self.dim:
             raise ValueError(f"names: expected {self.dim} names, got {len(names)}")
         ratio = float(self.ratio(state, starts=start))

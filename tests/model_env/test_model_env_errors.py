@@ -391,3 +391,26 @@ def test_a_plan_from_a_tensordict_without_its_batch_size_says_so(ensemble, start
         planner(TensorDict({"observation": starts[:2]}, []))
     assert "build it with TensorDict({...}, batch_size=[2])" in str(info.value)
     assert planner(TensorDict({"observation": starts[:2]}, [2]))["action"].shape == (2, 2)
+
+
+def test_model_env_specs_name_a_bad_ensemble_sampling_or_env(ensemble, make_env):
+    """An unknown trajectory sampling got the specs of "ts1"; a string or a tensor for the
+    ensemble or the env gave an AttributeError."""
+    from rcvae_torchrl.model_env import model_env_specs
+
+    cpu = torch.device("cpu")
+    with pytest.raises(
+        ValueError, match=r"trajectory_sampling: expected one of \['mean', 'ts1', 'ts_inf'\]"
+    ):
+        model_env_specs(ensemble, "foo", cpu)
+    for bad in ("x", torch.zeros(3)):
+        with pytest.raises(TypeError, match="ensemble: expected an RCVAEEnsemble, got"):
+            model_env_specs(bad, "ts1", cpu)
+    with pytest.raises(TypeError, match="real_env: expected a TorchRL EnvBase or None, got str"):
+        model_env_specs(ensemble, "ts1", cpu, real_env="pusher")
+    env = make_env()
+    for bad, kind in (("x", "str"), (torch.zeros(3), "Tensor")):
+        with pytest.raises(TypeError, match=f"env: expected a TorchRL EnvBase, got {kind}"):
+            env.set_specs_from_env(bad)
+    assert "member" not in model_env_specs(ensemble, "mean", cpu).state.keys()  # as before
+    assert "member" in model_env_specs(ensemble, "ts1", cpu).state.keys()

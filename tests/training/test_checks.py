@@ -113,7 +113,10 @@ def test_coverage_of_a_calibrated_model_and_of_a_harsher_reality(trained):
         ({"coverage_steps": 0}, r"coverage_steps: expected a positive integer, got 0"),
         ({"min_episodes": -1}, r"min_episodes: expected a positive integer, got -1"),
         ({"interval": 0.0}, r"interval: expected a float in \(0, 1\], got 0.0"),
-        ({"alpha": 1.5}, r"alpha: expected a float in \(0, 1\], got 1.5"),
+        (
+            {"alpha": 1.5},
+            r"alpha: expected a level in \(0, 1\) \(a test at level 1 always rejects\), got 1.5",
+        ),
     ],
 )
 def test_bad_coverage_settings_are_named(trained, kwargs, match):
