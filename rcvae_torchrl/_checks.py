@@ -132,6 +132,16 @@ def check_unit_interval(name: str, value: object, *, include_zero: bool = True) 
         raise ValueError(f"{name}: expected a float in {interval}, got {value!r}")
 
 
+def check_open_unit_interval(
+    name: str, value: object, what: str = "a number", why: str = ""
+) -> None:
+    """Require a number in (0, 1), neither end included (a share, a test's level, a held-out
+    fraction); ``what`` and ``why`` word the message: ``"{name}: expected {what} in (0, 1){why},
+    got ..."``."""
+    if not (_is_number(value) and 0.0 < value < 1.0):
+        raise ValueError(f"{name}: expected {what} in (0, 1){why}, got {value!r}")
+
+
 def check_names(name: str, names: object, count: int | None = None) -> tuple[str, ...]:
     """Require distinct names (a sequence of str, not one str that would read letter by
     letter), ``count`` of them where given (one per dimension); returns them as a tuple."""

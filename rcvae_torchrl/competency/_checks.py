@@ -48,6 +48,11 @@ def check_samples(name: str, x: Tensor, min_rank: int, layout: str) -> None:
         raise ValueError(
             f"{name}: expected at least one sample on axis 0, got shape {tuple(x.shape)}"
         )
+    if x.shape[-1] < 1:
+        raise ValueError(
+            f"{name}: expected at least one dimension D on the last axis of {layout}, got "
+            f"shape {tuple(x.shape)}"
+        )
 
 
 def check_members(name: str, x: Tensor, layout: str) -> None:

@@ -62,6 +62,10 @@ def _check_pair(forecast: Tensor, outcome: Tensor) -> tuple[Tensor, Tensor]:
     """
     _checks.check_min_rank("forecast", forecast, 1, _LAYOUT)
     _checks.check_probability("forecast", forecast)
+    if not isinstance(outcome, Tensor):
+        raise TypeError(
+            f"outcome: expected a tensor {_LAYOUT} (bool or 0/1), got {type(outcome).__name__}"
+        )
     if outcome.ndim == forecast.ndim + 1 and outcome.shape[:-1] == forecast.shape:
         forecast = forecast.unsqueeze(-1).expand_as(outcome).movedim(-1, 1).flatten(0, 1)
         outcome = outcome.movedim(-1, 1).flatten(0, 1)

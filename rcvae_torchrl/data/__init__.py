@@ -6,6 +6,7 @@ from .collection import (
     check_episode_ids,
     check_frames_type,
     collect_episodes,
+    episode_ids,
     merge_episodes,
     warn_narrow_bounds,
 )
@@ -47,6 +48,7 @@ __all__ = [
     "check_episode_ids",
     "check_frames_type",
     "collect_episodes",
+    "episode_ids",
     "merge_episodes",
     "warn_narrow_bounds",
     # exploration

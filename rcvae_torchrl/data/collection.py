@@ -33,11 +33,32 @@ __all__ = [
     "check_episode_ids",
     "check_frames_type",
     "collect_episodes",
+    "episode_ids",
     "merge_episodes",
     "warn_narrow_bounds",
 ]
 
 TRAJ_KEY = ("collector", "traj_ids")
+
+
+def episode_ids(data: object, name: str = "data") -> torch.Tensor:
+    """The episode id of every frame of flat episodes ``data`` ``[frames]`` (its
+    :data:`TRAJ_KEY` entry), or an error naming ``name`` and what is missing."""
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"{name}: expected a TensorDict of episodes, got {type(data).__name__}")
+    ids = data.get(TRAJ_KEY, None)
+    if ids is None:
+        raise KeyError(
+            f"{name}: expected episode ids under {TRAJ_KEY!r} (collect_episodes writes them; "
+            f"give data of your own one id per episode there), got entries "
+            f"{', '.join(sorted(map(str, data.keys(True, True)))[:8])}"
+        )
+    if ids.ndim != 1 or ids.is_floating_point() or ids.dtype == torch.bool:
+        raise ValueError(
+            f"{name}[{TRAJ_KEY!r}]: expected integer ids of flat frames [frames], got "
+            f"{ids.dtype} {tuple(ids.shape)}"
+        )
+    return ids
 
 
 @threads_kept()  # a SerialEnv changes torch's thread count when it closes
@@ -92,6 +113,8 @@ def collect_episodes(
             "make_env: expected a function that makes the env (e.g. lambda: env, or a "
             f"functools.partial of its constructor), got {_what(make_env)}"
         )
+    if not isinstance(desc, str):
+        raise TypeError(f"desc: expected the progress bar's label (a str), got {desc!r}")
     for name, value in (
         ("num_episodes", num_episodes),
         ("num_envs", num_envs),
@@ -100,9 +123,16 @@ def collect_episodes(
         check_positive_int(name, value)
     check_positive_int_or_none("max_frames", max_frames)
     check_non_negative_int("first_id", first_id)
+    if policy is None or not callable(policy):  # None: the collector would act at random
+        raise TypeError(
+            f"policy: expected a TorchRL policy (a module or a callable on tensordicts), got "
+            f"{_what(policy)}"
+        )
     max_frames = max_frames or 1000 * (num_episodes + num_envs - 1)
     if num_envs == 1:
         env = make_env()
+        if not isinstance(env, EnvBase):
+            raise TypeError(f"make_env: expected it to return a TorchRL env, got {_what(env)}")
     else:  # each env's own random streams (an ActionNoise) from a seed of its own
         env = SerialEnv(
             num_envs,
@@ -204,8 +234,17 @@ def check_actions(env: EnvBase, data: TensorDictBase, name: str = "policy") -> N
     Raises ``TypeError`` for another dtype than the spec's and ``ValueError`` for actions out of
     its bounds (or NaN), naming ``name`` (the policy that chose them) and how far out they are.
     """
+    if not isinstance(env, EnvBase):
+        raise TypeError(f"env: expected a TorchRL env (an EnvBase), got {_what(env)}")
+    if not isinstance(data, TensorDictBase):
+        raise TypeError(f"data: expected a TensorDict of frames, got {_what(data)}")
     spec = env.action_spec_unbatched
-    action = data.get(env.action_key)
+    action = data.get(env.action_key, None)
+    if action is None:
+        raise KeyError(
+            f"data: expected the actions under the env's action_key {env.action_key!r}, got "
+            f"entries {', '.join(sorted(map(str, data.keys(True, True)))[:8])}"
+        )
     trailing = tuple(action.shape[action.dim() - len(spec.shape) :])
     if action.dim() < len(spec.shape) or trailing != tuple(spec.shape):
         raise ValueError(
@@ -347,7 +386,7 @@ def check_episode_ids(data: TensorDictBase, name: str = "data") -> None:
     rounding): frames drawn from a replay buffer by ``sample()`` and sorted by id pass the
     first check and are not episodes; the error names the first pair that does not join.
     """
-    ids = data.get(TRAJ_KEY)
+    ids = episode_ids(data, name)
     runs = torch.unique_consecutive(ids)
     if runs.numel() != torch.unique(runs).numel():
         values, counts = torch.unique(runs, return_counts=True)

@@ -16,6 +16,7 @@ import torch
 from tensordict.nn import ProbabilisticTensorDictModule, TensorDictModule
 from torch import nn
 from torchrl import modules as torchrl_modules
+from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 from torchrl.modules.planners import MPCPlannerBase
 
@@ -125,6 +126,8 @@ Bound = float | torch.Tensor
 
 def action_bounds(env) -> tuple[torch.Tensor, torch.Tensor]:
     """``(low, high)`` ``[A]`` of a TorchRL env's bounded action spec."""
+    if not isinstance(env, EnvBase):
+        raise TypeError(f"env: expected a TorchRL env (an EnvBase), got {type(env).__name__}")
     space = getattr(env.action_spec, "space", None)
     low, high = getattr(space, "low", None), getattr(space, "high", None)
     if low is None or high is None:
@@ -170,6 +173,7 @@ def acting_record(policy: object, mode: ExplorationType) -> str | None:
     ``ProbabilisticActor`` or exploration-noise module, or a callable that is not a module,
     which may hold one), ``None`` for a module that holds none (a deterministic network, a
     planner): it acts the same in every mode, and its runs in two modes judge one agent."""
+    mode = exploration_mode(mode)
     if not isinstance(policy, nn.Module):
         return mode.value
     return mode.value if any(isinstance(m, _BY_MODE) for m in policy.modules()) else None

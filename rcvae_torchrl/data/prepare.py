@@ -138,6 +138,12 @@ class ObservationLayout:
         return list(range(start, start + self.sizes[self.keys.index(key)]))
 
 
+def check_env(env: object, name: str = "env") -> None:
+    """Require a TorchRL env (an ``EnvBase``)."""
+    if not isinstance(env, EnvBase):
+        raise TypeError(f"{name}: expected a TorchRL env (an EnvBase), got {_type_name(env)}")
+
+
 def _type_name(value: object) -> str:
     return f"the class {value.__name__}" if isinstance(value, type) else type(value).__name__
 
@@ -189,17 +195,21 @@ def prepare_env(
         KeyError: a named entry the env does not have.
         ValueError: an entry that is not floating point or has more than one dimension.
     """
-    if not isinstance(env, EnvBase):
-        raise TypeError(f"env: expected a TorchRL env (an EnvBase), got {_type_name(env)}")
-    if isinstance(observation_keys, str):
+    check_env(env)
+    if isinstance(observation_keys, str) or (
+        observation_keys is not None and not isinstance(observation_keys, (list, tuple))
+    ):
+        what = "the string" if isinstance(observation_keys, str) else _type_name(observation_keys)
         raise TypeError(
-            f"observation_keys: expected a list of keys, e.g. [{observation_keys!r}], got the "
-            f"string {observation_keys!r}"
+            f"observation_keys: expected a list of keys, e.g. [{observation_keys!r}], got "
+            f"{what} {observation_keys!r}"
         )
     if not isinstance(keep_keys, bool):
         raise TypeError(f"keep_keys: expected True or False, got {keep_keys!r}")
     spec = env.observation_spec
     keys = list(observation_keys) if observation_keys is not None else None
+    if keys is not None and not keys:
+        raise ValueError("observation_keys: expected at least one key (or None), got []")
     if keys is not None and len(set(keys)) != len(keys):
         raise ValueError(f"observation_keys: expected each key once, got {keys}")
     if keys is None:
@@ -279,8 +289,13 @@ class AngleAsCosSin(Transform):
     """
 
     def __init__(self, in_keys: Sequence[NestedKey]) -> None:
-        if isinstance(in_keys, str) or not in_keys:
+        if isinstance(in_keys, str) or not isinstance(in_keys, Sequence) or not in_keys:
             raise TypeError(f"in_keys: expected a non-empty list of angle keys, got {in_keys!r}")
+        for key in in_keys:
+            if not (isinstance(key, str) and key) and not (
+                isinstance(key, tuple) and key and all(isinstance(k, str) for k in key)
+            ):
+                raise TypeError(f"in_keys: expected keys (str or tuples of str), got {key!r}")
         names = [_name(key) for key in in_keys]
         out_keys = [f"{name}_{part}" for name in names for part in ("cos", "sin")]
         super().__init__(in_keys=list(in_keys), out_keys=out_keys)
@@ -384,6 +399,7 @@ def seed_env(env: EnvBase, seed: int) -> None:
     The env gets ``seed mod 2**32`` (numpy-based envs such as dm_control's take no more), so
     seeds derived from any study seed are valid.
     """
+    check_env(env)
     check_non_negative_int("seed", seed)
     env.set_seed(seed % 2**32)
     # the transforms of every TransformedEnv layer (an ActionNoise wrapped before prepare_env
@@ -413,6 +429,7 @@ def control_step(env: EnvBase) -> tuple[float, str] | None:
         >>> control_step(env)
         (0.05, "DMControlEnv's control timestep 0.01 s x FrameSkipTransform(5)")
     """
+    check_env(env)
     transforms, base = _transforms(env)
     skips = [p.frame_skip for p in transforms if isinstance(p, FrameSkipTransform)]
     inner = base.__dict__.get("_env")  # not getattr: a batched env would ask its workers
@@ -482,6 +499,7 @@ def observation_layout(env: EnvBase) -> ObservationLayout | None:
     entries its last ``CatTensors`` into ``"observation"`` concatenates, in order, and their
     sizes; ``None`` where no transform of ``env`` builds it (the env gives it itself, or a
     batched env's sub-envs do)."""
+    check_env(env)
     transforms, _ = _transforms(env)
     cats = [
         t for t in transforms if isinstance(t, CatTensors) and list(t.out_keys) == [OBSERVATION_KEY]

@@ -11,12 +11,13 @@ from torchrl.data.replay_buffers.samplers import SliceSampler
 
 from rcvae_torchrl._checks import (
     check_non_negative_int,
+    check_open_unit_interval,
     check_positive_int,
     check_positive_int_or_none,
     check_seed,
 )
 
-from .collection import TRAJ_KEY, check_episode_ids, check_frames_type
+from .collection import TRAJ_KEY, check_episode_ids, check_frames_type, episode_ids
 
 __all__ = [
     "episode_spans",
@@ -30,7 +31,7 @@ __all__ = [
 def episode_spans(data: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
     """The first frame and the length of every episode of flat episodes ``data`` ``[frames]``
     (consecutive frames of one :data:`TRAJ_KEY`)."""
-    lengths = torch.unique_consecutive(data.get(TRAJ_KEY), return_counts=True)[1]
+    lengths = torch.unique_consecutive(episode_ids(data), return_counts=True)[1]
     return torch.cumsum(lengths, 0) - lengths, lengths
 
 
@@ -215,11 +216,9 @@ def split_episodes(
     data: TensorDictBase, val_fraction: float, seed: int = 0
 ) -> tuple[TensorDict, TensorDict]:
     """Split ``data`` ``[frames]`` into (train, validation) by whole episodes."""
-    number = isinstance(val_fraction, (int, float)) and not isinstance(val_fraction, bool)
-    if not (number and 0.0 < val_fraction < 1.0):
-        raise ValueError(f"val_fraction: expected a fraction in (0, 1), got {val_fraction!r}")
+    check_open_unit_interval("val_fraction", val_fraction, "a fraction")
     _check_flat(data)
-    ids = data[TRAJ_KEY]
+    ids = episode_ids(data)
     episodes = torch.unique(ids)
     if episodes.numel() < 2:
         raise ValueError(f"data: expected >= 2 episodes to split, got {episodes.numel()}")

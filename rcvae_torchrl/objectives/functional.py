@@ -6,13 +6,17 @@ import math
 
 import torch
 
+from rcvae_torchrl._checks import check_non_negative
+
 __all__ = ["free_bits", "gaussian_kl", "gaussian_nll", "masked_mean"]
 
 _HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
 def gaussian_nll(x: torch.Tensor, mean: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
-    """Elementwise −log N(x; mean, std²) in nats, constant included. Shapes broadcast."""
+    """Elementwise −log N(x; mean, std²) in nats, constant included. Shapes broadcast.
+
+    ``std`` must be positive (not checked: the loss's hot path; 0 gives inf or NaN)."""
     return 0.5 * ((x - mean) / std).square() + std.log() + _HALF_LOG_2PI
 
 
@@ -21,7 +25,8 @@ def gaussian_kl(
 ) -> torch.Tensor:
     """Elementwise KL(N(mean_q, std_q²) ‖ N(mean_p, std_p²)) in nats. Shapes broadcast.
 
-    ``log(σp/σq) + (σq² + (μq − μp)²) / (2σp²) − 1/2``.
+    ``log(σp/σq) + (σq² + (μq − μp)²) / (2σp²) − 1/2``. Both stds must be positive (not
+    checked: the loss's hot path).
     """
     var_ratio = (std_q / std_p).square()
     mahalanobis = ((mean_q - mean_p) / std_p).square()
@@ -34,6 +39,7 @@ def free_bits(kl: torch.Tensor, free_nats: float) -> torch.Tensor:
     Below ``free_nats`` the KL gives no gradient to prior or posterior, so keep it small
     when prior samples must match the data (generation). ``free_nats = 0`` is the plain KL.
     """
+    check_non_negative("free_nats", free_nats)
     return kl.clamp_min(free_nats) if free_nats > 0 else kl
 
 

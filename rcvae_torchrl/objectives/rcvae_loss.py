@@ -121,6 +121,8 @@ class RCVAELoss(LossModule):
         validate: bool = True,
     ) -> None:
         super().__init__()
+        if not isinstance(ensemble, RCVAEEnsemble):
+            raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
         check_bool("validate", validate)
         check_non_negative("beta", beta)
         check_non_negative("free_nats", free_nats)

@@ -288,6 +288,6 @@ def _entry(td: TensorDictBase, key: NestedKey, name: str) -> Tensor:
     if value is None:
         raise KeyError(
             f"{name}: the env's step wrote no {('next', *_as_tuple(key))!r} entry; its entries "
-            f"under 'next': {sorted(map(str, td.get('next').keys(True, True)))}"
+            f"under 'next': {', '.join(sorted(map(str, td.get('next').keys(True, True))))}"
         )
     return value

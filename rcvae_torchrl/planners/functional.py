@@ -35,6 +35,9 @@ def action_prior(
     Returns:
         ``(mean, std)``, each ``[*A]``.
     """
+    for name, value in (("low", low), ("high", high)):
+        if not isinstance(value, Tensor):
+            raise TypeError(f"{name}: expected a tensor [*A], got {type(value).__name__}")
     _checks.check_shape("high", high, low.shape, "[*A] (the shape of low)")
     _checks.check_bounds("low, high", low, high)
     bounded = torch.isfinite(high - low)
@@ -88,6 +91,11 @@ def sample_candidates(
     """
     _checks.check_shape("std", std, mean.shape, "[*B, H, *A] (the shape of mean)")
     _checks.check_positive_int("num_candidates", num_candidates)
+    if mean.ndim < low.ndim + 1 or mean.shape[mean.ndim - low.ndim :] != low.shape:
+        raise ValueError(
+            f"mean: expected [*B, H, *A] with *A = {tuple(low.shape)} (the shape of low), got "
+            f"{tuple(mean.shape)}"
+        )
     batch_dims = mean.ndim - 1 - low.ndim
     shape = (*mean.shape[:batch_dims], num_candidates, *mean.shape[batch_dims:])
     noise = torch.randn(shape, generator=generator, dtype=mean.dtype, device=mean.device)
@@ -105,6 +113,9 @@ def elite_mask(scores: Tensor, top_k: int) -> Tensor:
     Returns:
         ``[*B, C]`` bool; fewer than ``top_k`` entries are set where fewer scores are finite.
     """
+    if not isinstance(scores, Tensor) or scores.ndim < 1 or not scores.is_floating_point():
+        got = f"{scores.dtype} {tuple(scores.shape)}" if isinstance(scores, Tensor) else scores
+        raise ValueError(f"scores: expected a floating tensor [*B, C], got {got!r}")
     _checks.check_top_k(top_k, scores.shape[-1])
     finite = torch.isfinite(scores)
     ranked = torch.where(finite, scores, torch.full_like(scores, -torch.inf))
@@ -190,6 +201,19 @@ def shift_plan(plan: Tensor, fill: Tensor, time_dim: int) -> Tensor:
     Returns:
         ``[*B, H, *A]``: ``out[..., t, :] = plan[..., t + 1, :]``, ``out[..., H-1, :] = fill``.
     """
+    if (
+        isinstance(time_dim, bool)
+        or not isinstance(time_dim, int)
+        or not (0 <= time_dim < plan.ndim and plan.shape[time_dim] >= 1)
+    ):
+        raise ValueError(
+            f"time_dim: expected the index of H >= 1 in plan of shape {tuple(plan.shape)}, "
+            f"got {time_dim!r}"
+        )
+    step = plan.select(time_dim, 0).shape
+    if not isinstance(fill, Tensor) or not _broadcasts_to(fill.shape, step):
+        got = tuple(fill.shape) if isinstance(fill, Tensor) else type(fill).__name__
+        raise ValueError(f"fill: expected a tensor that broadcasts to {tuple(step)}, got {got}")
     tail = plan.narrow(time_dim, 1, plan.shape[time_dim] - 1)
-    last = fill.expand(plan.select(time_dim, 0).shape).unsqueeze(time_dim)
+    last = fill.expand(step).unsqueeze(time_dim)
     return torch.cat([tail, last], dim=time_dim)

@@ -39,10 +39,12 @@ def _nan_where_nonfinite(score: Tensor, returns: Tensor) -> Tensor:
 
 
 def _check_returns(returns: Tensor) -> None:
-    if returns.ndim < 2 or not returns.is_floating_point():
+    if not isinstance(returns, Tensor):
+        raise TypeError(f"returns: expected a tensor [*B, C, P], got {type(returns).__name__}")
+    if returns.ndim < 2 or not returns.is_floating_point() or returns.shape[-1] < 1:
         raise ValueError(
-            f"returns: expected a floating tensor of shape [*B, C, P], got dtype {returns.dtype} "
-            f"and shape {tuple(returns.shape)}"
+            f"returns: expected a floating tensor of shape [*B, C, P] with P >= 1, got dtype "
+            f"{returns.dtype} and shape {tuple(returns.shape)}"
         )
 
 
@@ -118,6 +120,9 @@ def lexicographic_score(primary: Tensor, secondary: Tensor) -> Tensor:
     Both ``[*B, C]``; the result is ``[*B, C]`` float64 (``C · rank(primary) + rank(secondary)``,
     ranks over the candidate axis), exact for any ``C < 2**26``. NaN ranks lowest in either.
     """
+    if not isinstance(primary, Tensor) or primary.ndim < 1:
+        got = tuple(primary.shape) if isinstance(primary, Tensor) else type(primary).__name__
+        raise ValueError(f"primary: expected a tensor [*B, C], got {got}")
     _checks.check_shape("secondary", secondary, primary.shape, "[*B, C] (the shape of primary)")
     num_candidates = primary.shape[-1]
     primary = primary.masked_fill(primary.isnan(), -torch.inf)

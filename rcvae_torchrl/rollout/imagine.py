@@ -51,7 +51,10 @@ def chunk_size_for(chunk_size: int | str | None, device: torch.device | str) -> 
     """The chunk size ``imagine`` uses: ``"auto"`` resolves by ``device`` (:data:`AUTO_CHUNK_CPU`
     on a CPU, else :data:`AUTO_CHUNK_ACCELERATOR`); a count or ``None`` (one chunk) is kept."""
     if chunk_size == "auto":
-        cpu = torch.device(device).type == "cpu"
+        try:
+            cpu = torch.device(device).type == "cpu"
+        except (RuntimeError, TypeError) as err:
+            raise ValueError(f"device: expected a torch device, got {device!r} ({err})") from None
         return AUTO_CHUNK_CPU if cpu else AUTO_CHUNK_ACCELERATOR
     _checks.check_positive_int_or_none("chunk_size", chunk_size)
     return chunk_size

@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import torch
 
+from rcvae_torchrl._checks import check_positive_int
+
 __all__ = ["MemberLayout"]
 
 
@@ -38,11 +40,23 @@ class MemberLayout:
     """
 
     def __init__(self, member: torch.Tensor, ensemble_size: int) -> None:
+        if not isinstance(member, torch.Tensor) or member.dtype not in (torch.int64, torch.int32):
+            got = member.dtype if isinstance(member, torch.Tensor) else type(member).__name__
+            raise TypeError(f"member: expected an int64 tensor [B], got {got}")
         if member.dim() != 1:
             raise ValueError(f"MemberLayout: member must be 1-D [B], got {tuple(member.shape)}.")
+        check_positive_int("ensemble_size", ensemble_size)
         self.ensemble_size = ensemble_size
         self.batch_size = member.shape[0]
-        counts = torch.bincount(member, minlength=ensemble_size)
+        try:
+            counts = torch.bincount(member, minlength=ensemble_size)
+        except RuntimeError:  # a negative member
+            counts = None
+        if counts is None or counts.numel() > ensemble_size:  # no extra pass over member
+            raise ValueError(
+                f"member: expected values in [0, {ensemble_size}), got range "
+                f"[{int(member.min())}, {int(member.max())}]"
+            )
         self.capacity = max(int(counts.max()), 1) if member.numel() else 1
         sorted_member, order = torch.sort(member, stable=True)
         starts = torch.cumsum(counts, 0) - counts

@@ -224,6 +224,8 @@ def init_model_state(
     cfg, e = ensemble.config, ensemble.ensemble_size
     _checks.check_choice("trajectory_sampling", trajectory_sampling, TRAJECTORY_SAMPLINGS)
     _checks.check_trailing("observation", observation, (cfg.obs_dim,), f"[*B, S={cfg.obs_dim}]")
+    _checks.check_floating("observation", observation)
+    _checks.check_dtype("observation", observation, ensemble.dtype)
     _checks.check_finite("observation", observation)
     batch = observation.shape[:-1]
     # [E, *B, carry]: h_0 = 0 and the episode latent (drawn once, shared by the members)

@@ -120,3 +120,54 @@ def test_exploration_noise_seeds_and_bounds_are_checked():
     a, b = GaussianExploration(policy, 0.1, seed=np.int64(3)), GaussianExploration(policy, 0.1, 3)
     x = torch.zeros(4, 3)
     assert torch.equal(a(x), b(x))
+
+
+def test_envs_policies_ids_and_keys_are_named():
+    """A None policy collected at random; data without episode ids or actions, and objects
+    that are not envs, failed as NoneType or attribute errors."""
+    from torchrl.envs import GymLikeEnv  # noqa: F401  (only to be sure TorchRL is importable)
+
+    from rcvae_torchrl.data import (
+        AngleAsCosSin,
+        action_bounds,
+        check_actions,
+        check_episode_ids,
+        collect_episodes,
+        control_step,
+        episode_ids,
+        merge_episodes,
+        observation_layout,
+        prepare_env,
+        seed_env,
+    )
+    from rcvae_torchrl.data.replay import episode_spans
+
+    no_ids = _episodes().exclude(TRAJ_KEY)
+    for call in (
+        lambda: episode_ids(no_ids),
+        lambda: episode_spans(no_ids),
+        lambda: check_episode_ids(no_ids),
+        lambda: merge_episodes(no_ids),
+    ):
+        with pytest.raises(KeyError, match=r"expected episode ids under \('collector', 'traj_i"):
+            call()
+    with pytest.raises(TypeError, match="data: expected a TensorDict of episodes, got dict"):
+        episode_ids({})
+    with pytest.raises(TypeError, match=r"policy: expected a TorchRL policy .* got NoneType"):
+        collect_episodes(lambda: None, None, 1)
+    with pytest.raises(TypeError, match=r"desc: expected the progress bar's label \(a str\)"):
+        collect_episodes(lambda: None, lambda td: td, 1, desc=5)
+    with pytest.raises(TypeError, match="make_env: expected it to return a TorchRL env, got int"):
+        collect_episodes(lambda: 5, lambda td: td, 1)
+    for call in (
+        lambda: seed_env(5, 0),
+        lambda: control_step(5),
+        lambda: observation_layout(5),
+        lambda: prepare_env(5),
+        lambda: action_bounds(5),
+        lambda: check_actions(5, _episodes()),
+    ):
+        with pytest.raises(TypeError, match=r"env: expected a TorchRL env \(an EnvBase\), got int"):
+            call()
+    with pytest.raises(TypeError, match=r"in_keys: expected keys \(str or tuples of str\), got 5"):
+        AngleAsCosSin([5])

@@ -252,3 +252,36 @@ def test_optimize_checks_the_plan_it_starts_from():
     with pytest.raises(ValueError, match="std: expected positive values"):
         planner.optimize(td, mean, -std)
     planner.optimize(td, mean, std)
+
+
+def test_reductions_and_plan_helpers_name_empty_or_misshaped_inputs():
+    """An empty particle axis gave NaN scores or torch's "quantile() input tensor must be
+    non-empty"; a bad time_dim, fill or scalar scores failed inside torch."""
+    from rcvae_torchrl.planners import (
+        cvar_return,
+        elite_mask,
+        expected_return,
+        lexicographic_score,
+        quantile_return,
+        sample_candidates,
+        shift_plan,
+    )
+
+    empty = torch.zeros(2, 0)
+    for reduce in (expected_return, lambda r: quantile_return(r, 0.5), lambda r: cvar_return(r, 1)):
+        with pytest.raises(ValueError, match=r"returns: expected .* with P >= 1, got .* \(2, 0\)"):
+            reduce(empty)
+    with pytest.raises(TypeError, match=r"returns: expected a tensor \[\*B, C, P\], got list"):
+        expected_return([[1.0, 2.0]])
+    with pytest.raises(ValueError, match=r"time_dim: expected the index of H >= 1 in plan"):
+        shift_plan(torch.zeros(3, 2), torch.zeros(2), 5)
+    with pytest.raises(ValueError, match=r"fill: expected a tensor that broadcasts to \(2,\)"):
+        shift_plan(torch.zeros(3, 2), torch.zeros(3), 0)
+    with pytest.raises(ValueError, match=r"scores: expected a floating tensor \[\*B, C\]"):
+        elite_mask(torch.tensor(1.0), 1)
+    with pytest.raises(ValueError, match=r"primary: expected a tensor \[\*B, C\], got \(\)"):
+        lexicographic_score(torch.tensor(1.0), torch.tensor(1.0))
+    with pytest.raises(ValueError, match=r"mean: expected \[\*B, H, \*A\] with \*A = \(2,\)"):
+        sample_candidates(torch.zeros(3), torch.ones(3), 4, -torch.ones(2), torch.ones(2))
+    shifted = shift_plan(torch.arange(6.0).reshape(3, 2), torch.full((2,), -1.0), 0)
+    assert shifted.tolist() == [[2.0, 3.0], [4.0, 5.0], [-1.0, -1.0]]

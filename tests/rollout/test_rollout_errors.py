@@ -109,3 +109,22 @@ def test_flags_and_prefixes_of_the_wrong_kind_are_refused(model):
         TASK.returns(torch.zeros(4, 3), torch.zeros(4, 3))
     with pytest.raises(ValueError, match=r"reward, success: expected \[H, n\] rewards and bool"):
         TASK.returns(torch.zeros(4), torch.zeros(4, dtype=torch.bool))
+
+
+def test_member_layouts_and_devices_are_named():
+    from rcvae_torchrl.rollout import MemberLayout, chunk_size_for, init_model_state
+
+    for member in (torch.tensor([0, 3]), torch.tensor([0, -1])):
+        with pytest.raises(ValueError, match=r"member: expected values in \[0, 3\), got range"):
+            MemberLayout(member, 3)
+    with pytest.raises(TypeError, match=r"member: expected an int64 tensor \[B\], got torch"):
+        MemberLayout(torch.tensor([0.0, 1.0]), 3)
+    with pytest.raises(ValueError, match="ensemble_size: expected a positive integer, got 0"):
+        MemberLayout(torch.tensor([0, 1]), 0)
+    with pytest.raises(ValueError, match="device: expected a torch device, got 'nodevice'"):
+        chunk_size_for("auto", "nodevice")
+    model = RCVAEEnsemble(RCVAEConfig(4, 2, hidden_dim=16, mlp_dim=16), ensemble_size=3)
+    with pytest.raises(TypeError, match="observation"):
+        init_model_state(model, torch.zeros(2, 4, dtype=torch.int64))
+    with pytest.raises(TypeError, match="observation"):
+        init_model_state(model, torch.zeros(2, 4, dtype=torch.float64))
