@@ -45,13 +45,12 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl._checks import check_bool, check_positive
+from rcvae_torchrl._checks import check_bool, check_device, check_positive
 
 from .constraints import into_arena
 from .factory import (
     _check_args,
     _variant_region,
-    check_device,
     check_env_args,
     check_strength,
     check_strength_range,

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import math
 
-import torch
 from torchrl.envs import TransformedEnv
 
-from rcvae_torchrl._checks import check_bool
+from rcvae_torchrl._checks import check_bool, check_device
 
 from .functions import DEFAULT_SUCCESS_RADIUS
 from .pusher import (
@@ -24,7 +23,6 @@ from .wrapper import PusherWrapper
 __all__ = [
     "DEFAULT_ACTION_NOISE_STD",
     "VARIANTS",
-    "check_device",
     "check_env_args",
     "check_strength",
     "check_strength_range",
@@ -128,21 +126,6 @@ def check_strength(
             f"{actuator_strength!r}; use variant='stochastic'"
         )
     return checked
-
-
-def check_device(device: object) -> None:
-    """Require None or a device torch knows (``"cpu"``, ``"cuda:0"``, a ``torch.device``),
-    naming ``device`` where torch's own message would not."""
-    if device is None or isinstance(device, torch.device):
-        return
-    try:
-        torch.device(device)
-    except (RuntimeError, TypeError, ValueError) as err:
-        kind = TypeError if not isinstance(device, (str, int)) else ValueError
-        raise kind(
-            f"device: expected a torch device (e.g. 'cpu' or 'cuda:0') or None, got {device!r} "
-            f"({err})"
-        ) from None
 
 
 def _variant_region(variant: str, region: InitialStateRegion | None) -> InitialStateRegion:

@@ -6,6 +6,8 @@ real and on imagined observations (world-model rollouts, planners, competency es
 
 from __future__ import annotations
 
+import numbers
+
 import torch
 
 from .layout import OBSERVATION_DIM, obs_indices
@@ -69,8 +71,8 @@ def pusher_success(
         so it reads no data to check; the model env and
         :class:`~rcvae_torchrl.competency.SuccessBoundary` refuse NaN states before it.
     """
-    if not radius > 0:
-        raise ValueError(f"radius: expected a positive distance in metres, got {radius}")
+    if isinstance(radius, bool) or not isinstance(radius, numbers.Real) or not radius > 0:
+        raise ValueError(f"radius: expected a positive distance in metres, got {radius!r}")
     return ball_to_target(observation) <= radius
 
 

@@ -142,6 +142,22 @@ def check_open_unit_interval(
         raise ValueError(f"{name}: expected {what} in (0, 1){why}, got {value!r}")
 
 
+def check_device(device: object, name: str = "device") -> None:
+    """Require None or a device torch knows (``"cpu"``, ``"cuda:0"``, a ``torch.device``),
+    naming ``name`` where torch's own message would not. Whether it is present on this
+    machine is not judged."""
+    if device is None or isinstance(device, torch.device):
+        return
+    try:
+        torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as err:
+        kind = TypeError if not isinstance(device, (str, int)) else ValueError
+        raise kind(
+            f"{name}: expected a torch device (e.g. 'cpu' or 'cuda:0') or None, got {device!r} "
+            f"({err})"
+        ) from None
+
+
 def check_names(name: str, names: object, count: int | None = None) -> tuple[str, ...]:
     """Require distinct names (a sequence of str, not one str that would read letter by
     letter), ``count`` of them where given (one per dimension); returns them as a tuple."""

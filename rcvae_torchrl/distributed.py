@@ -37,7 +37,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from rcvae_torchrl._checks import is_integer
+from rcvae_torchrl._checks import check_device, is_integer
 
 __all__ = [
     "Part",
@@ -336,14 +336,7 @@ def work_generator(*keys: int, device: str | torch.device = "cpu") -> torch.Gene
     """
     if not keys or any(not is_integer(k) or k < 0 for k in keys):
         raise ValueError(f"keys: expected one or more non-negative ints, got {keys!r}")
-    if device is not None:
-        try:
-            torch.device(device)
-        except (RuntimeError, TypeError) as error:
-            raise ValueError(
-                f"device: expected a torch device (e.g. 'cpu', 'cuda:0' or a torch.device), "
-                f"got {device!r}: {error}"
-            ) from error
+    check_device(device)
     words = np.random.SeedSequence([int(k) for k in keys]).generate_state(2, np.uint32)
     generator = torch.Generator(device=device)
     generator.manual_seed(int(words[0]) << 31 | int(words[1]) >> 1)

@@ -83,6 +83,9 @@ def acting(
             yield resolved.value
             return
         held = list(generators)
+        for i, g in enumerate(held):
+            if not isinstance(g, torch.Generator):
+                raise TypeError(f"generators[{i}]: expected a torch.Generator, got {g!r}")
         states = [g.get_state() for g in held]
         in_use = torch.cuda.device_count() if torch.cuda.is_initialized() else 0
         with torch.random.fork_rng(devices=list(range(in_use))):

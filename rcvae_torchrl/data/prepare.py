@@ -352,6 +352,8 @@ class ActionNoise(Transform):
         seed: int = 0,
     ) -> None:
         super().__init__(in_keys_inv=["action"], out_keys_inv=["action"])
+        if isinstance(std, (str, bytes, bool)) or std is None:
+            raise TypeError(f"std: expected a number or a tensor, got {std!r}")
         std = torch.as_tensor(std, dtype=torch.float32)
         if not bool(torch.isfinite(std).all() and (std >= 0).all()):
             raise ValueError(f"std: expected a finite standard deviation >= 0, got {std}")

@@ -18,7 +18,7 @@ import torch
 from torchrl.data import Bounded, Categorical, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase
 
-from rcvae_torchrl._checks import check_choice
+from rcvae_torchrl._checks import check_choice, check_device
 from rcvae_torchrl.data import ObservationLayout, control_step, observation_layout
 from rcvae_torchrl.models import RCVAEEnsemble
 from rcvae_torchrl.rollout import TRAJECTORY_SAMPLINGS, TrajectorySampling
@@ -69,6 +69,7 @@ def model_env_specs(
     if not isinstance(ensemble, RCVAEEnsemble):
         raise TypeError(f"ensemble: expected an RCVAEEnsemble, got {type(ensemble).__name__}")
     check_choice("trajectory_sampling", trajectory_sampling, TRAJECTORY_SAMPLINGS)
+    check_device(device)
     if real_env is not None and not isinstance(real_env, EnvBase):
         raise TypeError(
             f"real_env: expected a TorchRL EnvBase or None, got {type(real_env).__name__}"

@@ -240,6 +240,14 @@ def rollout_returns(
         :class:`ParticleReturns`, ``returns`` ``[*B, C, P]`` (and ``success`` bool, same shape).
     """
     _check_replay(td_start, actions, particles, discount)
+    action_shape = tuple(env.action_spec.shape[len(env.batch_size) :])
+    if tuple(actions.shape[actions.ndim - len(action_shape) :]) != action_shape or (
+        actions.ndim != td_start.batch_dims + 2 + len(action_shape)
+    ):
+        raise ValueError(
+            f"actions: expected [*B, C, H, *A] with *A = {action_shape} (the env's action "
+            f"shape), got {tuple(actions.shape)}"
+        )
     batch_dims = td_start.batch_dims + 2
     num_candidates, horizon = actions.shape[td_start.batch_dims : batch_dims]
     td = _expand_start(td_start, env, num_candidates, particles)

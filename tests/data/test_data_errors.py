@@ -171,3 +171,13 @@ def test_envs_policies_ids_and_keys_are_named():
             call()
     with pytest.raises(TypeError, match=r"in_keys: expected keys \(str or tuples of str\), got 5"):
         AngleAsCosSin([5])
+
+
+def test_acting_generators_and_a_noise_std_string_are_named():
+    from rcvae_torchrl.data import acting
+
+    with pytest.raises(TypeError, match=r"generators\[0\]: expected a torch.Generator, got 5"):
+        with acting(seed=0, generators=[5]):
+            pass
+    with pytest.raises(TypeError, match=r"std: expected a number or a tensor, got '0\.1'"):
+        ActionNoise("0.1")

@@ -456,3 +456,13 @@ def test_observation_functions_refuse_another_width():
             ValueError, match=rf"state: expected shape \[\.\.\., 14\], got \({width},\)"
         ):
             pusher_state_constraint(torch.zeros(width), torch.zeros(width))
+
+
+def test_a_success_radius_that_is_not_a_number_is_named():
+    """A string radius failed inside the comparison ('<=' not supported)."""
+    from rcvae_torchrl.envs import pusher_success
+
+    for radius in ("0.1", None, True, 0.0):
+        with pytest.raises(ValueError, match="radius: expected a positive distance in metres"):
+            pusher_success(torch.zeros(14), radius=radius)
+    assert pusher_success(torch.zeros(14), radius=np.float32(0.05)).shape == ()

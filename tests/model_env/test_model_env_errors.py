@@ -412,5 +412,8 @@ def test_model_env_specs_name_a_bad_ensemble_sampling_or_env(ensemble, make_env)
     for bad, kind in (("x", "str"), (torch.zeros(3), "Tensor")):
         with pytest.raises(TypeError, match=f"env: expected a TorchRL EnvBase, got {kind}"):
             env.set_specs_from_env(bad)
+    for bad, kind in (("nodevice", ValueError), (5.5, TypeError)):
+        with pytest.raises(kind, match=r"device: expected a torch device \(e\.g\. 'cpu'"):
+            model_env_specs(ensemble, "ts1", bad)
     assert "member" not in model_env_specs(ensemble, "mean", cpu).state.keys()  # as before
     assert "member" in model_env_specs(ensemble, "ts1", cpu).state.keys()

@@ -285,3 +285,11 @@ def test_reductions_and_plan_helpers_name_empty_or_misshaped_inputs():
         sample_candidates(torch.zeros(3), torch.ones(3), 4, -torch.ones(2), torch.ones(2))
     shifted = shift_plan(torch.arange(6.0).reshape(3, 2), torch.full((2,), -1.0), 0)
     assert shifted.tolist() == [[2.0, 3.0], [4.0, 5.0], [-1.0, -1.0]]
+
+
+def test_rollout_returns_names_an_action_of_another_width():
+    from rcvae_torchrl.planners import rollout_returns
+
+    env = PointMassEnv()
+    with pytest.raises(ValueError, match=r"actions: expected \[\*B, C, H, \*A\] with \*A = \(2,\)"):
+        rollout_returns(env, env.reset(), torch.zeros(4, 3, 3))
