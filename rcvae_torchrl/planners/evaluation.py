@@ -240,7 +240,13 @@ def rollout_returns(
         :class:`ParticleReturns`, ``returns`` ``[*B, C, P]`` (and ``success`` bool, same shape).
     """
     _check_replay(td_start, actions, particles, discount)
-    action_shape = tuple(env.action_spec.shape[len(env.batch_size) :])
+    spec = env.full_action_spec.get(_as_tuple(action_key), None)
+    if spec is None:
+        raise KeyError(
+            f"action_key: the env has no action {action_key!r}; its actions: "
+            f"{', '.join(map(str, env.full_action_spec.keys(True, True)))}"
+        )
+    action_shape = tuple(spec.shape[len(env.batch_size) :])
     if tuple(actions.shape[actions.ndim - len(action_shape) :]) != action_shape or (
         actions.ndim != td_start.batch_dims + 2 + len(action_shape)
     ):

@@ -293,3 +293,13 @@ def test_rollout_returns_names_an_action_of_another_width():
     env = PointMassEnv()
     with pytest.raises(ValueError, match=r"actions: expected \[\*B, C, H, \*A\] with \*A = \(2,\)"):
         rollout_returns(env, env.reset(), torch.zeros(4, 3, 3))
+
+
+def test_rollout_returns_names_an_action_key_the_env_lacks():
+    from rcvae_torchrl.planners import rollout_returns
+
+    env = PointMassEnv(action_key=("agent", "action"), double=False)
+    with pytest.raises(KeyError, match=r"action_key: the env has no action 'action'; its actions"):
+        rollout_returns(env, env.reset(), torch.zeros(1, 1, 2))
+    out = rollout_returns(env, env.reset(), torch.zeros(1, 1, 2), action_key=("agent", "action"))
+    assert out.returns.shape == (1, 1)
