@@ -25,6 +25,7 @@ then loaded in a fraction of a second).
 
 from __future__ import annotations
 
+import gc
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -240,6 +241,7 @@ def compiled_scoring() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
     rounding (fused kernels), not bit for bit.
     """
     if not _COMPILED:
+        gc.collect()  # as the trainer's compile: no batched env's finalizer while it traces
         _COMPILED.append(torch.compile(_score, dynamic=True))
     return _COMPILED[0]
 

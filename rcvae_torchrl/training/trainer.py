@@ -17,6 +17,7 @@ ranks share out the members instead, and the ranks of a group share every step's
 from __future__ import annotations
 
 import dataclasses
+import gc
 import inspect
 import logging
 import math
@@ -680,6 +681,10 @@ def _train_shard(
     if layout.group is not None:  # the group's gradients averaged in the backward pass
         trained = DistributedDataParallel(loss_fn, process_group=layout.group)
     if config.compile:
+        # an unclosed TorchRL batched env still waiting for the garbage collector resets
+        # torch's thread count when it is collected, and dynamo refuses a thread count that
+        # changes while it traces ("Global num_threads state changed"): collect it first
+        gc.collect()
         trained = torch.compile(trained, dynamic=False)
     state = _new_state(local)
     if resume and shard_path is not None:
