@@ -128,6 +128,9 @@ class ScriptedPusher(nn.Module):
         towards the point behind it, so the fingertip never shoves the ball the wrong way.
         """
         _check_scripted_input(observation)
+        return self._desired_fingertip(observation)
+
+    def _desired_fingertip(self, observation: torch.Tensor) -> torch.Tensor:
         finger, ball = observation[..., _FINGER], observation[..., _BALL]
         goal = _push_goal(ball, observation[..., _TARGET])
         u = _unit(goal - ball)
@@ -153,7 +156,7 @@ class ScriptedPusher(nn.Module):
         qvel = observation[..., _QVEL]
         jac = arm_jacobian(cos, sin)
         v_finger = (jac @ qvel.unsqueeze(-1)).squeeze(-1)
-        force = self.kp * (self.desired_fingertip(observation) - observation[..., _FINGER])
+        force = self.kp * (self._desired_fingertip(observation) - observation[..., _FINGER])
         force = force - self.kd * v_finger
         torque = (jac.transpose(-1, -2) @ force.unsqueeze(-1)).squeeze(-1) - self.kq * qvel
         # Keep the elbow bent: a stretched or folded arm cannot move its fingertip radially.

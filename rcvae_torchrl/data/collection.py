@@ -25,7 +25,7 @@ from rcvae_torchrl.distributed import work_generator
 from rcvae_torchrl.threads import threads_kept
 
 from .exploration import acting, action_bounds, exploration_mode
-from .prepare import seed_env
+from .prepare import check_env, seed_env
 
 __all__ = [
     "TRAJ_KEY",
@@ -234,8 +234,7 @@ def check_actions(env: EnvBase, data: TensorDictBase, name: str = "policy") -> N
     Raises ``TypeError`` for another dtype than the spec's and ``ValueError`` for actions out of
     its bounds (or NaN), naming ``name`` (the policy that chose them) and how far out they are.
     """
-    if not isinstance(env, EnvBase):
-        raise TypeError(f"env: expected a TorchRL env (an EnvBase), got {_what(env)}")
+    check_env(env)
     if not isinstance(data, TensorDictBase):
         raise TypeError(f"data: expected a TensorDict of frames, got {_what(data)}")
     spec = env.action_spec_unbatched

@@ -16,13 +16,14 @@ import torch
 from tensordict.nn import ProbabilisticTensorDictModule, TensorDictModule
 from torch import nn
 from torchrl import modules as torchrl_modules
-from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
 from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
 from rcvae_torchrl._checks import check_bounds, check_positive_int, check_seed
 from rcvae_torchrl.fingerprint import SETTINGS
+
+from .prepare import check_env
 
 __all__ = [
     "GaussianExploration",
@@ -129,8 +130,7 @@ Bound = float | torch.Tensor
 
 def action_bounds(env) -> tuple[torch.Tensor, torch.Tensor]:
     """``(low, high)`` ``[A]`` of a TorchRL env's bounded action spec."""
-    if not isinstance(env, EnvBase):
-        raise TypeError(f"env: expected a TorchRL env (an EnvBase), got {type(env).__name__}")
+    check_env(env)
     space = getattr(env.action_spec, "space", None)
     low, high = getattr(space, "low", None), getattr(space, "high", None)
     if low is None or high is None:
