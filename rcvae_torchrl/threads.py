@@ -12,22 +12,38 @@ is large enough (:data:`MIN_FLOP_PER_THREAD` per thread). :func:`set_threads` ap
 :func:`threads_kept` keeps it across code that resets it: TorchRL's batched envs (``SerialEnv``,
 ``ParallelEnv``) change torch's thread count when they start and close workers (on close they
 raise it by the number of workers, up to the count torch started with), so a process that set 1
-thread trains on 2 after collecting data with a ``SerialEnv`` of 4 envs.
+thread trains on 2 after collecting data with a ``SerialEnv`` of 4 envs. A batched env left
+unclosed is closed by Python's garbage collector, at whatever moment it runs: if that is while
+``torch.compile`` traces, the trace fails ("Global num_threads state changed while dynamo
+tracing"). :func:`collection_paused` calls a compiled function with the collector paused.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import gc
 import math
 import numbers
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import ParamSpec, TypeVar
 
 import torch
 
 from rcvae_torchrl._checks import is_integer
 
-__all__ = ["MIN_FLOP_PER_THREAD", "choose_threads", "free_cores", "set_threads", "threads_kept"]
+__all__ = [
+    "MIN_FLOP_PER_THREAD",
+    "choose_threads",
+    "collection_paused",
+    "free_cores",
+    "set_threads",
+    "threads_kept",
+]
+
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 #: Floating-point operations per op below which a further thread is not given. A conservative
 #: bound, not a measured break-even: on this project's shared 2-core machine (load 4-7) a second
@@ -124,3 +140,27 @@ def threads_kept() -> Iterator[int]:
     finally:
         if torch.get_num_threads() != count:
             torch.set_num_threads(count)
+
+
+def collection_paused(fn: Callable[_P, _R]) -> Callable[_P, _R]:
+    """``fn`` called with Python's cyclic garbage collector paused (as it was after the call).
+
+    For ``torch.compile``-d functions, which trace at their first call and again at each new
+    shape: a TorchRL batched env waiting in a reference cycle for the collector sets torch's
+    thread count when it is collected, and a trace during which the count changes fails. With
+    the collector paused nothing is collected during the call; what is left is collected at
+    the collector's next run after it (its finalizers then change the count outside a trace).
+    Pausing and resuming cost well under a microsecond a call.
+    """
+
+    @functools.wraps(fn)
+    def paused(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        enabled = gc.isenabled()
+        gc.disable()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            if enabled:
+                gc.enable()
+
+    return paused

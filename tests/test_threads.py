@@ -1,6 +1,8 @@
 """The thread-count default: one thread unless the machine is idle and the ops are large."""
 
+import contextlib
 import functools
+import gc
 import math
 
 import numpy as np
@@ -12,6 +14,7 @@ from rcvae_torchrl.envs import make_pusher_env
 from rcvae_torchrl.threads import (
     MIN_FLOP_PER_THREAD,
     choose_threads,
+    collection_paused,
     free_cores,
     set_threads,
     threads_kept,
@@ -126,3 +129,106 @@ def test_collecting_with_a_serial_env_keeps_the_thread_count():
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+class _SetsThreadsWhenCollected:
+    """What a TorchRL batched env left unclosed in a reference cycle does when the garbage
+    collector frees it: it sets torch's thread count (here: records the call, then flips the
+    count between 1 and 2)."""
+
+    def __init__(self, calls: list[str], phase: list[str]) -> None:
+        self.cycle, self.calls, self.phase = self, calls, phase
+
+    def __del__(self) -> None:
+        self.calls.append(self.phase[0])
+        torch.set_num_threads(2 if torch.get_num_threads() == 1 else 1)
+
+
+@contextlib.contextmanager
+def _garbage_waiting_for_a_full_collection(calls: list[str], phase: list[str]):
+    """One such object, unreachable, in the collector's oldest generation (every other object
+    frozen out of its count), with thresholds at which a call that allocates a few thousand
+    container objects runs a full collection."""
+    threads = torch.get_num_threads()
+    thresholds = gc.get_threshold()
+    gc.collect()
+    gc.freeze()
+    try:
+        garbage = _SetsThreadsWhenCollected(calls, phase)
+        gc.collect()  # it survives into the oldest generation ...
+        del garbage  # ... and is garbage there
+        gc.set_threshold(100, 2, 2)
+        yield
+    finally:
+        gc.set_threshold(*thresholds)
+        gc.unfreeze()
+        gc.collect()
+        torch.set_num_threads(threads)
+
+
+def _allocate() -> int:
+    """Many container objects that live through the call, as a trace makes."""
+    kept = [[i] for i in range(20_000)]
+    return len(kept)
+
+
+def test_collection_paused_runs_no_finalizer_during_the_call_and_restores_the_collector():
+    calls: list[str] = []
+    phase = ["before"]
+    with _garbage_waiting_for_a_full_collection(calls, phase):
+        phase[0] = "during"
+        _allocate()  # unpaused, the finalizer runs inside the call: the setup bites
+        phase[0] = "after"
+    assert calls == ["during"]
+
+    calls.clear()
+    phase[0] = "before"
+    with _garbage_waiting_for_a_full_collection(calls, phase):
+        phase[0] = "during"
+        collection_paused(_allocate)()
+        phase[0] = "after"
+        assert gc.isenabled()
+        gc.collect()  # the next collection frees it, outside the call
+    assert calls == ["after"]
+
+    def fails() -> None:
+        raise KeyError("inside")
+
+    with pytest.raises(KeyError, match="inside"):
+        collection_paused(fails)()
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        assert collection_paused(gc.isenabled)() is False
+        assert not gc.isenabled()  # a collector the caller paused stays paused
+    finally:
+        gc.enable()
+    assert collection_paused(functools.partial(max, 1))(2) == 2  # arguments and result pass
+
+
+def _sines(x: torch.Tensor) -> torch.Tensor:
+    for _ in range(30):
+        x = torch.sin(x) * 2 + x.cos()
+    return x
+
+
+def test_a_compiled_function_traces_with_the_collector_paused():
+    """The failure the pause prevents: a trace during which the thread count changes fails."""
+    x = torch.linspace(-1, 1, 8)
+    calls: list[str] = []
+    phase = ["during"]
+    torch._dynamo.reset()
+    compiled = torch.compile(_sines, dynamic=False)
+    with _garbage_waiting_for_a_full_collection(calls, phase):
+        with pytest.raises(AssertionError, match="num_threads"):
+            compiled(x)
+    assert calls == ["during"]
+    calls.clear()
+    torch._dynamo.reset()
+    compiled = collection_paused(torch.compile(_sines, dynamic=False))
+    with _garbage_waiting_for_a_full_collection(calls, phase):
+        got = compiled(x)
+        phase[0] = "after"
+    torch.testing.assert_close(got, _sines(x))
+    assert calls == ["after"]
+    torch._dynamo.reset()

@@ -25,7 +25,6 @@ then loaded in a fraction of a second).
 
 from __future__ import annotations
 
-import gc
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -39,6 +38,7 @@ from rcvae_torchrl.rollout.aot import aot_scoring
 from rcvae_torchrl.rollout.loop import ActionBounds, check_action_bounds, rollout
 from rcvae_torchrl.rollout.sampling import TRAJECTORY_SAMPLINGS, TrajectorySampling, initial_hidden
 from rcvae_torchrl.rollout.task import Task
+from rcvae_torchrl.threads import collection_paused
 
 __all__ = [
     "COMPILE_MODES",
@@ -241,8 +241,8 @@ def compiled_scoring() -> Callable[..., tuple[torch.Tensor, torch.Tensor]]:
     rounding (fused kernels), not bit for bit.
     """
     if not _COMPILED:
-        gc.collect()  # as the trainer's compile: no batched env's finalizer while it traces
-        _COMPILED.append(torch.compile(_score, dynamic=True))
+        # no batched env's finalizer may change the threads while it traces (a new shape too)
+        _COMPILED.append(collection_paused(torch.compile(_score, dynamic=True)))
     return _COMPILED[0]
 
 

@@ -17,13 +17,12 @@ ranks share out the members instead, and the ranks of a group share every step's
 from __future__ import annotations
 
 import dataclasses
-import gc
 import inspect
 import logging
 import math
 import os
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,6 +58,7 @@ from rcvae_torchrl.io import _as_json, save_torch
 from rcvae_torchrl.loggers import log_scalars
 from rcvae_torchrl.models import RCVAEEnsemble, masked_mean_std
 from rcvae_torchrl.objectives import RCVAELoss
+from rcvae_torchrl.threads import collection_paused
 
 from .checkpoint import CheckpointError, ensemble_payload, read_checkpoint
 from .checks import ModelChecks, ModelCheckWarning, check_model
@@ -677,15 +677,11 @@ def _train_shard(
     )
     params = list(local.parameters())
     optimizer = _adam(params, config.lr)
-    trained: torch.nn.Module = loss_fn
+    trained: Callable[[TensorDictBase], TensorDictBase] = loss_fn
     if layout.group is not None:  # the group's gradients averaged in the backward pass
         trained = DistributedDataParallel(loss_fn, process_group=layout.group)
-    if config.compile:
-        # an unclosed TorchRL batched env still waiting for the garbage collector resets
-        # torch's thread count when it is collected, and dynamo refuses a thread count that
-        # changes while it traces ("Global num_threads state changed"): collect it first
-        gc.collect()
-        trained = torch.compile(trained, dynamic=False)
+    if config.compile:  # no batched env's finalizer may change the threads while it traces
+        trained = collection_paused(torch.compile(trained, dynamic=False))
     state = _new_state(local)
     if resume and shard_path is not None:
         _check_no_foreign_shards(shard_path, path)
@@ -800,7 +796,7 @@ def _to_device(windows: TensorDict, device: torch.device) -> TensorDict:
 
 
 def _train_step(
-    loss_fn: RCVAELoss | DistributedDataParallel,
+    loss_fn: Callable[[TensorDictBase], TensorDictBase],
     optimizer: torch.optim.Optimizer,
     params: list[torch.Tensor],
     windows: TensorDict,

@@ -273,3 +273,39 @@ def test_aot_scoring_equals_the_eager_reference(ensemble, real_env, starts):
         torch.testing.assert_close(got[0], want[0], rtol=1e-4, atol=1e-5)
         assert torch.equal(got[1], want[1])
         assert torch.equal(eager.generator.get_state(), aot.generator.get_state())
+
+
+def test_compiled_scoring_is_called_with_the_garbage_collector_paused(
+    ensemble, real_env, starts, monkeypatch
+):
+    """A finalizer that changes torch's thread count during a trace fails it: the compiled
+    scoring runs with the collector paused (``threads.collection_paused``). ``torch.compile``
+    is replaced by a recorder here (the compile itself is tested above)."""
+    import gc
+
+    from rcvae_torchrl.rollout import scoring
+
+    paused = []
+
+    def recorded(fn, **_):
+        def call(*args, **kwargs):
+            paused.append(not gc.isenabled())
+            return fn(*args, **kwargs)
+
+        return call
+
+    monkeypatch.setattr(scoring, "_COMPILED", [])
+    monkeypatch.setattr(torch, "compile", recorded)
+    kwargs = {"trajectory_sampling": "ts_inf", "seed": 0}
+    eager = make_rcvae_env(ensemble, real_env, pusher_reward, pusher_success, **kwargs)
+    compiled = make_rcvae_env(
+        ensemble, real_env, pusher_reward, pusher_success, compile_scoring=True, **kwargs
+    )
+    actions = torch.rand(2, 4, 2, 2, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    for env in (eager, compiled):
+        env.set_seed(3)
+    args = (_start(starts, (2,)), actions, 2 * E)
+    torch.testing.assert_close(
+        compiled.evaluate_action_sequences(*args), eager.evaluate_action_sequences(*args)
+    )
+    assert paused == [True] and gc.isenabled()
