@@ -120,7 +120,9 @@ def _as_ids(envs: Sequence[int] | np.ndarray | torch.Tensor | None, n: int) -> n
             raise ValueError(f"envs: expected a boolean mask of {n} envs, got shape {arr.shape}")
         return np.flatnonzero(arr.reshape(n))
     ids = arr.reshape(-1)
-    in_range = ids.size == 0 or (ids.min() >= 0 and ids.max() < n)
+    if ids.size == 0:  # no env chosen (``[]`` reads as float64): nothing to do
+        return np.zeros(0, dtype=np.int64)
+    in_range = ids.min() >= 0 and ids.max() < n
     if not np.issubdtype(ids.dtype, np.integer) or not in_range:
         raise ValueError(f"envs: expected env indices in [0, {n}), got {arr.tolist()}")
     if np.unique(ids).size != ids.size:
@@ -296,9 +298,10 @@ class BatchedPusherEnv(EnvBase):
         ids = _as_ids(envs, self.num_envs)
         values = seeds.detach().cpu().numpy() if isinstance(seeds, torch.Tensor) else seeds
         values = np.asarray(values).reshape(-1)
-        if values.shape != ids.shape or not np.issubdtype(values.dtype, np.integer):
+        integers = values.size == 0 or np.issubdtype(values.dtype, np.integer)
+        if values.shape != ids.shape or not integers:
             raise ValueError(
-                f"seeds: expected {ids.size} integers (one per env), got {np.asarray(seeds)!r}"
+                f"seeds: expected {ids.size} integers (one per env), got {values.tolist()!r}"
             )
         if values.size and (values.min() < 0 or values.max() >= _MAX_SEED):
             raise ValueError(f"seeds: expected integers in [0, 2**32), got {values.tolist()}")

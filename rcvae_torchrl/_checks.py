@@ -18,6 +18,7 @@ from torch import Tensor
 __all__ = [
     "ROUNDING",
     "as_tensor",
+    "broadcasts_to",
     "check_batch_shapes",
     "check_bool",
     "check_choice",
@@ -80,6 +81,15 @@ def check_entries(
 def is_integer(value: object) -> bool:
     """An integer: Python's or NumPy's (``numbers.Integral``), not a bool."""
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def broadcasts_to(shape: Sequence[int], target: Sequence[int]) -> bool:
+    """Whether a tensor of ``shape`` broadcasts to ``target`` (torch's rule: trailing sizes
+    equal or 1, no more dimensions than ``target``). Sizes only: nothing is read from a tensor,
+    so it costs nothing on a device and adds no graph break under ``torch.compile``."""
+    return len(shape) <= len(target) and all(
+        s in (1, t) for s, t in zip(reversed(shape), reversed(target))
+    )
 
 
 def _is_number(value: object) -> bool:

@@ -20,7 +20,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type, set_exploratio
 from torchrl.modules.planners import MPCPlannerBase
 
 from rcvae_torchrl import distributed
-from rcvae_torchrl._checks import check_bounds, check_positive_int, check_seed
+from rcvae_torchrl._checks import broadcasts_to, check_bounds, check_positive_int, check_seed
 from rcvae_torchrl.fingerprint import SETTINGS
 
 from .prepare import check_env
@@ -270,10 +270,16 @@ class GaussianExploration(nn.Module):
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         action = self.policy(observation)
-        if self.noise_std == 0:
-            return action
-        noise = torch.randn(action.shape, generator=self.generator, dtype=action.dtype)
-        noisy = action + self.noise_std * noise.to(action.device)
+        for name, bound in (("low", self.low), ("high", self.high)):  # the actions' width now
+            if not broadcasts_to(bound.shape, action.shape):
+                raise ValueError(
+                    f"{name}: expected a bound that broadcasts to the policy's actions "
+                    f"{tuple(action.shape)}, got shape {tuple(bound.shape)}"
+                )
+        noisy = action
+        if self.noise_std > 0:  # no noise: no draw (the generator's stream is left as it is)
+            noise = torch.randn(action.shape, generator=self.generator, dtype=action.dtype)
+            noisy = action + self.noise_std * noise.to(action.device)
         return torch.clamp(noisy, self.low.to(noisy), self.high.to(noisy))
 
 

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from rcvae_torchrl._checks import check_non_negative
+from rcvae_torchrl._checks import broadcasts_to, check_non_negative
 
 __all__ = ["free_bits", "gaussian_kl", "gaussian_nll", "masked_mean"]
 
@@ -50,5 +50,10 @@ def masked_mean(x: torch.Tensor, mask: torch.Tensor | None, dims: tuple[int, ...
     """
     if mask is None:
         return x.mean(dim=dims)
+    if not broadcasts_to(mask.shape, x.shape):
+        raise ValueError(
+            f"mask: expected a shape that broadcasts to x's {tuple(x.shape)}, got "
+            f"{tuple(mask.shape)}"
+        )
     weight = mask.to(x.dtype).expand_as(x)
     return (x * weight).sum(dim=dims) / weight.sum(dim=dims).clamp_min(1.0)

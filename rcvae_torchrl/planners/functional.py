@@ -14,6 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from rcvae_torchrl._checks import broadcasts_to
 from rcvae_torchrl.planners import _checks
 
 __all__ = ["action_prior", "cem_update", "elite_mask", "sample_candidates", "shift_plan"]
@@ -54,20 +55,13 @@ def action_prior(
             ) from err
         if not bool((given > 0).all()) or not bool(torch.isfinite(given).all()):
             raise ValueError(f"init_std: expected positive finite values, got {given.tolist()}")
-        if not _broadcasts_to(given.shape, low.shape):
+        if not broadcasts_to(given.shape, low.shape):
             raise ValueError(
                 f"init_std: expected a scalar or shape [*A] = {tuple(low.shape)}, "
                 f"got shape {tuple(given.shape)}"
             )
         std = given.expand_as(low).clone()
     return mean, std
-
-
-def _broadcasts_to(shape: torch.Size, target: torch.Size) -> bool:
-    try:
-        return torch.broadcast_shapes(shape, target) == target
-    except RuntimeError:
-        return False
 
 
 def sample_candidates(
@@ -211,7 +205,7 @@ def shift_plan(plan: Tensor, fill: Tensor, time_dim: int) -> Tensor:
             f"got {time_dim!r}"
         )
     step = plan.select(time_dim, 0).shape
-    if not isinstance(fill, Tensor) or not _broadcasts_to(fill.shape, step):
+    if not isinstance(fill, Tensor) or not broadcasts_to(fill.shape, step):
         got = tuple(fill.shape) if isinstance(fill, Tensor) else type(fill).__name__
         raise ValueError(f"fill: expected a tensor that broadcasts to {tuple(step)}, got {got}")
     tail = plan.narrow(time_dim, 1, plan.shape[time_dim] - 1)

@@ -271,6 +271,18 @@ def test_exploration_respects_the_action_bounds():
     noisy = GaussianExploration(base, 10.0, seed=0, low=low, high=high)(torch.randn(200, 3))
     assert (noisy >= low).all() and (noisy <= high).all()
     assert (noisy[:, 0] == 2.0).any() and (noisy[:, 1] == 0.0).any()  # clipped, not [-1, 1]
+    far = torch.tensor([[5.0, -5.0]])
+    clipped = GaussianExploration(lambda obs: far, 0.0, low=low, high=high)(torch.zeros(1, 3))
+    assert clipped.tolist() == [[2.0, 0.0]]  # clipped without noise too
+    wide = torch.tensor([-1.0, -1.0, -1.0])
+    for kwargs, name in (({"low": wide}, "low"), ({"high": -wide}, "high")):
+        exploration = GaussianExploration(base, 0.0, **kwargs)  # the action width is not known yet
+        with pytest.raises(
+            ValueError,
+            match=rf"^{name}: expected a bound that broadcasts to the policy's actions \(4, 2\), "
+            r"got shape \(3,\)",
+        ):
+            exploration(torch.randn(4, 3))
     bounds = action_bounds(make_pusher_env())
     assert torch.equal(bounds[0], -torch.ones(2)) and torch.equal(bounds[1], torch.ones(2))
     with pytest.raises(ValueError, match="low, high: expected finite bounds with low <= high"):

@@ -314,6 +314,14 @@ def test_bad_seeds_and_states_raise_clear_errors():
         env.set_seeds([1, -2])
     with pytest.raises(ValueError, match=r"envs: expected env indices in \[0, 2\)"):
         env.set_seeds([1], envs=[2])
+    with pytest.raises(ValueError, match=r"seeds: expected 1 integers \(one per env\), got \[\]"):
+        env.set_seeds([], envs=[1])
+    with pytest.raises(ValueError, match=r"seeds: expected 0 integers \(one per env\), got \[5\]"):
+        env.set_seeds([5], envs=[])
+    untouched = make_batched_pusher_env(2, seed=0)
+    env.set_seeds([], envs=[])  # no env chosen: nothing seeded or reset
+    env.set_seeds(torch.zeros(0, dtype=torch.int64), envs=torch.zeros(2, dtype=torch.bool))
+    assert torch.equal(env.reset()["observation"], untouched.reset()["observation"])
     with pytest.raises(ValueError, match="observation: expected finite values"):
         bad = torch.zeros(2, 14).index_fill_(0, torch.tensor([1]), float("nan"))
         env.reset(TensorDict(observation=bad, batch_size=[2]), set_state=True)

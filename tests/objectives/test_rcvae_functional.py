@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from torch.distributions import Normal, kl_divergence
 
@@ -40,3 +41,15 @@ def test_masked_mean_counts_only_valid_entries():
     torch.testing.assert_close(masked_mean(x, None, (0, 1)), x.mean())
     empty = masked_mean(x, torch.zeros_like(mask), (1,))
     assert empty.tolist() == [0.0, 0.0]
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (3, 2), (1, 2, 3), (2,)])
+def test_masked_mean_names_a_mask_that_does_not_broadcast(shape):
+    x = torch.zeros(2, 3)
+    with pytest.raises(
+        ValueError,
+        match=rf"mask: expected a shape that broadcasts to x's \(2, 3\), got \({shape[0]}",
+    ):
+        masked_mean(x, torch.ones(shape, dtype=torch.bool), (1,))
+    row = masked_mean(torch.tensor([[1.0, 2.0, 3.0]] * 2), torch.tensor([True, False, True]), (1,))
+    assert row.tolist() == [2.0, 2.0]  # a mask that broadcasts is taken as before
