@@ -21,7 +21,7 @@ import torch
 
 from rcvae_torchrl.competency.intervals import mean_p_value
 from rcvae_torchrl.io import StoredFileError, atomic_write, read_json, write_json
-from rcvae_torchrl.reporting import signed
+from rcvae_torchrl.reporting import escape_cell, signed
 from rcvae_torchrl.training import OutcomeCheck
 
 __all__ = [
@@ -31,7 +31,6 @@ __all__ = [
     "checks",
     "checks_lines",
     "command",
-    "escaped",
     "forecast_check_lines",
     "forecast_checks",
     "get",
@@ -228,11 +227,6 @@ def section(title: str, text: str, head: list[str], seeds: list[str]) -> list[st
     ]
 
 
-def escaped(name: str) -> str:
-    """A check's name in a markdown table cell (its ``|`` would end the cell)."""
-    return name.replace("|", "\\|")
-
-
 def seed_cell(check: dict[str, Any] | None) -> str:
     """One seed's value of a check, ✗ where it missed, – where it did not apply."""
     if check is None:
@@ -259,7 +253,7 @@ def checks_lines(result: dict[str, Any]) -> list[str]:
     lines = ["", "## Checks", "", "| check | mean ± sd | seeds met |", "|:---|---:|---:|"]
     for name, c in result["checks"].items():
         value = _check_value(c)
-        lines.append(f"| {escaped(name)} | {value} | {c['met']}/{c['seeds']} |")
+        lines.append(f"| {escape_cell(name)} | {value} | {c['met']}/{c['seeds']} |")
     lines += section(
         "Every seed",
         "Each check's value in each seed; ✗ marks a seed that misses it, – one where it did not "
@@ -270,7 +264,7 @@ def checks_lines(result: dict[str, Any]) -> list[str]:
     for name, c in result["checks"].items():
         if "by_seed" in c:
             cells = " | ".join(map(seed_cell, c["by_seed"]))
-            lines.append(f"| {escaped(name)} | {cells} |")
+            lines.append(f"| {escape_cell(name)} | {cells} |")
     return lines
 
 

@@ -77,7 +77,9 @@ def decompose_uncertainty(
       With ``bias_correction="shuffle"`` the plug-in divergence is corrected for its sampling
       bias (see below).
     - ``"gaussian"`` (``joint``, ``bin_width``, ``min_variance``): moment-matched Gaussians
-      (:func:`~rcvae_torchrl.competency.gaussian_entropy`); ``epistemic >= 0`` (clamped).
+      (:func:`~rcvae_torchrl.competency.gaussian_entropy`); ``epistemic >= 0`` (clamped: with
+      ``bin_width`` each member's discretised entropy is clamped at 0, and their mean can
+      exceed the pooled one's).
     - ``"knn"`` (``k``, ``bin_width``, ``min_distance``): Kozachenko–Leonenko, joint over
       dimensions (:func:`~rcvae_torchrl.competency.knn_entropy`). Epistemic clamped to
       ``[0, log2 E]``, the bounds of the mixture's mutual information: the estimator's bias
@@ -91,6 +93,9 @@ def decompose_uncertainty(
       mixture (KL upper bound by default, Bhattacharyya lower bound with ``bound="lower"``), so
       epistemic is an upper (lower) bound on the mixture's mutual information, in
       ``[0, log2 E]``.
+
+    Where an estimator's epistemic part is clamped, ``aleatoric = total - epistemic``: the
+    pooled total is kept, so ``total = aleatoric + epistemic`` holds for every estimator.
 
     **Ended episodes** (histogram only). Samples of trajectories that have ended (success,
     failure or time limit: an absorbing terminal state, as a TorchRL ``done``) have no state
@@ -148,9 +153,11 @@ def decompose_uncertainty(
         empty = samples.new_zeros(shape)
         return UncertaintyDecomposition(empty, empty.clone(), empty.clone())
     total, aleatoric, upper = ESTIMATORS[estimator](samples, **estimator_args)
-    epistemic = total - aleatoric
-    if upper is not None:
-        epistemic = epistemic.clamp(0.0, upper)
+    raw = total - aleatoric
+    epistemic = raw if upper is None else raw.clamp(0.0, upper)
+    # where the clamp moved it, the pooled total (E·N samples) stands and aleatoric is what is
+    # left of it, as the shuffle correction does: the parts still add up to the total
+    aleatoric = torch.where(epistemic != raw, total - epistemic, aleatoric)
     return UncertaintyDecomposition(total, aleatoric, epistemic)
 
 

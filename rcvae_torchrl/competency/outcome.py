@@ -125,7 +125,9 @@ class TimeToSuccess(NamedTuple):
     step_probability: Tensor  #: ``[*batch, T]`` P(first success at step t)
     success_by_step: Tensor  #: ``[*batch, T]`` P(success at or before step t), non-decreasing
     mean_steps: Tensor  #: ``[*batch]`` mean first-success step among successes (inf if none)
-    median_steps: Tensor  #: ``[*batch]`` median first-success step among successes (inf if none)
+    #: ``[*batch]`` median first-success step among successes, the lower one of an even count
+    #: (inf if none)
+    median_steps: Tensor
 
 
 def time_to_success(success_over_time: Tensor) -> TimeToSuccess:
@@ -158,7 +160,10 @@ def time_to_success(success_over_time: Tensor) -> TimeToSuccess:
     steps = torch.arange(horizon, dtype=torch.float64, device=first.device)
     p = success_by_step[..., -1]
     mean = (step_probability * steps).sum(dim=-1) / p
-    median = (success_by_step < 0.5 * p.unsqueeze(-1)).sum(dim=-1).double()
+    # the lower median, from whole counts: with the probabilities' float sums, rounding decided
+    # a tie at exactly half the successes (10 successes gave the 5th, 100 the 51st)
+    by_step = counts[..., :horizon].cumsum(dim=-1)
+    median = (2 * by_step < by_step[..., -1:]).sum(dim=-1).double()
     never = p == 0
     inf = torch.full_like(p, float("inf"))
     return TimeToSuccess(

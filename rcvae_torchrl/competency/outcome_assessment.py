@@ -49,9 +49,9 @@ def partial_moments(rewards: Tensor, threshold: float = 0.0) -> tuple[Tensor, Te
 def famsec_outcome_assessment(rewards: Tensor, threshold: float = 0.0, k: float = 1.0) -> Tensor:
     """FaMSeC outcome assessment ``xO = 2 / (1 + exp(-k·ln(UPM / LPM))) - 1``.
 
-    Computed as ``(UPM^k - LPM^k) / (UPM^k + LPM^k)`` (the same value), so that ``LPM = 0``
-    gives +1 (no outcome below the threshold; also when ``UPM = 0``) and ``UPM = 0 < LPM``
-    gives -1.
+    Computed as ``tanh(k/2 · (ln UPM - ln LPM))`` (the same value, without the powers that
+    overflow or underflow for a large ``k`` or returns far from 1), so that ``LPM = 0`` gives +1
+    (no outcome below the threshold; also when ``UPM = 0``) and ``UPM = 0 < LPM`` gives -1.
 
     Args:
         rewards: ``[N, *batch]`` finite sampled returns.
@@ -67,9 +67,7 @@ def famsec_outcome_assessment(rewards: Tensor, threshold: float = 0.0, k: float 
     """
     _checks.check_positive("k", k)
     upm, lpm = partial_moments(rewards.to(torch.float64), threshold)
-    upper, lower = upm.pow(k), lpm.pow(k)
-    ratio = (upper - lower) / (upper + lower).clamp_min(torch.finfo(torch.float64).tiny)
-    xo = torch.where(lpm == 0, 1.0, ratio)
+    xo = torch.where(lpm == 0, 1.0, torch.tanh(0.5 * k * (upm.log() - lpm.log())))
     return xo.to(rewards.dtype if rewards.is_floating_point() else torch.float32)
 
 

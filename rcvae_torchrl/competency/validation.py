@@ -343,7 +343,9 @@ class StartReliability(NamedTuple):
     """Reliability over start states: per bin of forecasts, the episodes' observed frequency."""
 
     bin_edges: Tensor  #: ``[n_bins + 1]``
-    mean_forecast: Tensor  #: ``[n_bins]`` (NaN for an empty bin)
+    #: ``[n_bins]`` mean forecast over the bin's episodes (a start's forecast once per episode,
+    #: as the frequency counts them; NaN for an empty bin)
+    mean_forecast: Tensor
     frequency: Tensor  #: ``[n_bins]`` success frequency over the bin's episodes
     low: Tensor  #: ``[n_bins]`` lower end of its binomial interval
     high: Tensor  #: ``[n_bins]`` upper end
@@ -375,7 +377,7 @@ def start_reliability(
     nan = torch.full_like(f[:1].expand(n_bins), math.nan)
     return StartReliability(
         torch.linspace(0.0, 1.0, n_bins + 1, dtype=torch.float64),
-        torch.where(empty, nan, per_bin(f) / starts.clamp_min(1)),
+        torch.where(empty, nan, per_bin(f * runs) / episodes.clamp_min(1)),
         torch.where(empty, nan, successes / episodes.clamp_min(1)),
         torch.where(empty, nan, low),
         torch.where(empty, nan, high),

@@ -11,7 +11,7 @@ from .figures import (
     reliability_figure,
     uncertainty_figure,
 )
-from .tables import format_table, write_table
+from .tables import escape_cell, format_table, write_table
 from .validation_figures import plot_competency_surface, plot_start_reliability
 
 __all__ = [
@@ -28,6 +28,7 @@ __all__ = [
     "plot_start_reliability",
     # tables
     "signed",
+    "escape_cell",
     "format_table",
     "write_table",
 ]

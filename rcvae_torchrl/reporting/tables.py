@@ -13,7 +13,13 @@ import torch
 from rcvae_torchrl._checks import check_non_negative_int
 from rcvae_torchrl.io import atomic_write
 
-__all__ = ["format_table", "write_table"]
+__all__ = ["escape_cell", "format_table", "write_table"]
+
+
+def escape_cell(text: str) -> str:
+    """``text`` for a Markdown table cell: each ``|`` escaped (a bare one ends the cell, so a
+    name such as ``|forecast - real| <= 0.1`` would push its row's values one column on)."""
+    return text.replace("|", "\\|")
 
 
 def _cell(value: object, digits: int) -> str:
@@ -21,7 +27,7 @@ def _cell(value: object, digits: int) -> str:
         value = value.item()
     if isinstance(value, float):
         return f"{value:.{digits}f}"
-    return str(value)
+    return escape_cell(str(value))
 
 
 def format_table(
@@ -42,7 +48,7 @@ def format_table(
     missing = [c for c in columns if any(c not in r for r in rows)]
     if missing:
         raise KeyError(f"columns: {missing} missing from some rows")
-    header = "| " + " | ".join(columns) + " |"
+    header = "| " + " | ".join(escape_cell(str(c)) for c in columns) + " |"
     rule = "|" + "|".join("---:" if i else ":---" for i in range(len(columns))) + "|"
     body = ["| " + " | ".join(_cell(r[c], digits) for c in columns) + " |" for r in rows]
     buffer = io.StringIO()

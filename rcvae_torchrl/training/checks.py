@@ -70,7 +70,8 @@ from rcvae_torchrl._checks import (
 from rcvae_torchrl._text import signed
 from rcvae_torchrl.competency import check_same_predicates, same_chance_p_value
 from rcvae_torchrl.competency._checks import check_probability
-from rcvae_torchrl.competency.intervals import mean_p_value
+from rcvae_torchrl.competency.intervals import _NO_SPREAD as _SAME_GAP
+from rcvae_torchrl.competency.intervals import mean_interval, mean_p_value
 from rcvae_torchrl.competency.report import register_report_part
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -229,8 +230,9 @@ class ModelChecks:
             sentences.append(
                 "the world model has not learned "
                 + _listed(parts)
-                + ": it predicts these dimensions no better than copying the previous state or "
-                "guessing their mean, so forecasts that depend on them are not trustworthy"
+                + f": it predicts these dimensions not at least {self.min_gain:.0%} better than "
+                "copying the previous state or guessing their mean, so forecasts that depend on "
+                "them are not trustworthy"
             )
         if self.drifting:
             parts = [
@@ -1089,7 +1091,8 @@ class OutcomeCheck:
         return float(diff.std(correction=1)) / diff.numel() ** 0.5
 
     def interval(self, confidence: float | None = None) -> tuple[float, float]:
-        """A ``confidence`` interval of :attr:`gap` (Student's t over the starts); by default
+        """A ``confidence`` interval of :attr:`gap` (Student's t over the starts, within
+        [-1, 1]); by default
         at the test's own level, ``1 - alpha``, so that it holds 0 exactly when the t-test
         passes (and then the check passes; it also passes where the outcomes' exact chance
         does not find the gap beyond chance, :attr:`biased`)."""
@@ -1097,10 +1100,8 @@ class OutcomeCheck:
         check_unit_interval("confidence", confidence, include_zero=False)
         if self.starts < 2:
             return float("nan"), float("nan")
-        from scipy.stats import t
-
-        half = float(t.ppf(0.5 + confidence / 2, self.starts - 1)) * self.standard_error
-        return self.gap - half, self.gap + half
+        # within [-1, 1], as every such interval of the library (a gap of probabilities)
+        return mean_interval((self.forecast - self.real).to(torch.float64), confidence)
 
     @property
     def per_start_measured(self) -> bool:
@@ -1423,10 +1424,18 @@ class OutcomeCheck:
             f"episode{'' if self.runs == 1 else 's'} from each succeeded "
             f"{float(self.real.mean()):.2f} (gap {signed(self.gap)}, "
             f"{100 * (1 - self.alpha):g} % interval {signed(low)} to {signed(high)}; "
-            f"p = {self.p_value:.2g} by a t-test over the "
-            f"starts, {_drawn_p(self.exact_p_value)} by the outcomes' exact chance, "
+            f"{self._t_test_words()}, {_drawn_p(self.exact_p_value)} by the outcomes' exact "
+            "chance, "
             f"{_DRAWS:,} draws){wide}" + self._per_start_sentence()
         )
+
+    def _t_test_words(self) -> str:
+        """The t-test's p-value in words; where every start's difference is the same there is
+        no spread to test against, and the p-value (0, or 1 for no difference) says so."""
+        diff = (self.forecast - self.real).to(torch.float64)
+        if diff.numel() >= 2 and float(diff.std(correction=0)) <= _SAME_GAP:  # as mean_p_value
+            return f"p = {self.p_value:g}: every start's gap the same, no spread for a t-test"
+        return f"p = {self.p_value:.2g} by a t-test over the starts"
 
     def _too_few_sure(self) -> str:
         """Where the check knows which starts were settled before the agent acted and some

@@ -11,6 +11,7 @@ import torch
 from rcvae_torchrl.competency import CompetencyReport, reliability_diagram
 from rcvae_torchrl.io import atomic_write, write_json
 from rcvae_torchrl.reporting import (
+    escape_cell,
     plot_reliability,
     plot_uncertainty_over_time,
     signed,
@@ -176,7 +177,10 @@ def _markdown(run_dir: Path, checks: dict, summary: dict, config: StudyConfig) -
         "",
         "| check | measured | met |",
         "|:---|---:|:---:|",
-        *[f"| {name} | {_cell(c['value'])} | {_yes(c['met'])} |" for name, c in checks.items()],
+        *[
+            f"| {escape_cell(name)} | {_cell(c['value'])} | {_yes(c['met'])} |"
+            for name, c in checks.items()
+        ],
         "",
         "## Outcome checks",
         "",

@@ -24,6 +24,7 @@ from rcvae_torchrl.envs import CONTROL_TIMESTEP, OBSERVATION_NAMES
 from rcvae_torchrl.envs.render import gl_unavailable_reason, record_episode
 from rcvae_torchrl.io import atomic_write, read_json, write_json
 from rcvae_torchrl.reporting import (
+    escape_cell,
     plot_competency_surface,
     plot_forecast_vs_reality,
     plot_reliability,
@@ -436,7 +437,7 @@ def _calibrated_text(
         "| check | measured | met |",
         "|:---|---:|:---:|",
         *[
-            f"| {name.replace(AFTER_SHARE, '')} | {c['value']:.3f} | "
+            f"| {escape_cell(name.replace(AFTER_SHARE, ''))} | {c['value']:.3f} | "
             f"{'yes' if c['met'] else 'no'} |"
             for name, c in checks.items()
             if name.endswith(AFTER_SHARE)
@@ -913,7 +914,8 @@ def _recalibration_text(scores) -> list[str]:
         "",
         f"Not the forecast above, but what a Platt map fitted on real episodes would make of it. "
         f"The cross-fitted map (this table): each condition's scored start states are split "
-        f"into {RECALIBRATION_FOLDS} folds and each fold's forecasts are recalibrated with the "
+        f"into {RECALIBRATION_FOLDS} folds (one start each where it has fewer) and each fold's "
+        "forecasts are recalibrated with the "
         "map fitted on the other folds' episodes, so no start is recalibrated with its own "
         "outcomes. The checks score the forecast itself, and those marked through the held-out "
         "map score it through the second map below, not this one.",
@@ -1080,7 +1082,7 @@ def _markdown(
         "| check | measured | met |",
         "|:---|---:|:---:|",
         *[
-            f"| {name} | {c['value']:.3f} | {'yes' if c['met'] else 'no'} |"
+            f"| {escape_cell(name)} | {c['value']:.3f} | {'yes' if c['met'] else 'no'} |"
             for name, c in checks.items()
         ],
         "",

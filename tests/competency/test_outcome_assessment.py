@@ -47,3 +47,17 @@ def test_ordinal_distribution_bins():
     outcomes = torch.tensor([[-1.0, 0.5], [0.2, 0.5], [3.0, 2.5], [0.9, 0.0]])
     p = ordinal_distribution(outcomes, torch.tensor([0.0, 1.0]))
     assert p.tolist() == [[0.25, 0.5, 0.25], [0.0, 0.75, 0.25]]
+
+
+@pytest.mark.parametrize(
+    ("rewards", "k", "expected"),
+    [
+        ([-50.0, 100.0], 200.0, math.tanh(100 * math.log(2))),  # the powers overflowed: NaN
+        ([-1e200, 2e200], 2.0, 0.6),  # 2 / (1 + 1/4) - 1
+        ([-1e-200, 2e-200], 2.0, 0.6),  # the powers underflowed to 0
+        ([-5.0, 25.0], 1.0, 2 / (1 + 1 / 5) - 1),
+    ],
+)
+def test_famsec_is_finite_for_any_steepness_and_scale(rewards, k, expected):
+    got = famsec_outcome_assessment(torch.tensor(rewards, dtype=torch.float64), k=k)
+    assert got.item() == pytest.approx(expected, rel=1e-12)

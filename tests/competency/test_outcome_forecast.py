@@ -88,3 +88,23 @@ def test_wilson_interval_closed_form():
     centre = (0.8 + z * z / 20) / (1 + z * z / 10)
     half = z / (1 + z * z / 10) * math.sqrt(0.8 * 0.2 / 10 + z * z / 400)
     assert (low.item(), high.item()) == pytest.approx((centre - half, centre + half), abs=1e-6)
+
+
+@pytest.mark.parametrize("n", [10, 30, 100, 101])
+def test_the_median_first_success_step_is_the_lower_median_whatever_the_count(n):
+    """Trajectory i first succeeds at step i: the lower median of 0..n-1 is (n-1)//2. Float sums
+    of probabilities decided the tie at exactly half (100 trajectories gave 50, not 49)."""
+    tts = time_to_success(torch.eye(n, dtype=torch.bool)[None])
+    assert tts.median_steps.item() == (n - 1) // 2
+
+
+def test_the_median_first_success_step_matches_the_sorted_steps():
+    g = torch.Generator().manual_seed(0)
+    for _ in range(300):
+        members, samples, horizon = 2, int(torch.randint(1, 9, (1,), generator=g)), 7
+        success = torch.rand(members, samples, horizon, generator=g) < 0.2
+        first = first_success_step(success).reshape(-1)
+        hits = first[first < horizon].sort().values
+        tts = time_to_success(success)
+        want = float(hits[(hits.numel() - 1) // 2]) if hits.numel() else math.inf
+        assert tts.median_steps.item() == want, success

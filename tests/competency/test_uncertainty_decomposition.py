@@ -7,7 +7,9 @@ import torch
 
 from rcvae_torchrl.competency import (
     decompose_uncertainty,
+    gaussian_entropy,
     histogram_entropy,
+    knn_entropy,
     variance_decomposition,
 )
 
@@ -125,8 +127,10 @@ def test_knn_epistemic_stays_within_the_mutual_informations_bounds_in_many_dimen
     g = torch.Generator().manual_seed(0)
     identical = torch.randn(E, 100, 2, 40, generator=g)
     raw = decompose_uncertainty(identical, "knn", k=3)
-    assert (raw.total - raw.aleatoric).max() < -0.5  # the bias, as the trial met it
+    members = torch.stack([knn_entropy(m, k=3) for m in identical]).mean(0)
+    assert (raw.total - members).max() < -0.5  # the bias, as the trial met it
     assert torch.equal(raw.epistemic, torch.zeros(2))
+    assert torch.equal(raw.aleatoric, raw.total)  # the pooled total kept, all of it aleatoric
     apart = identical + 50.0 * torch.arange(E, dtype=torch.float32).view(E, 1, 1, 1)
     far = decompose_uncertainty(apart, "knn", k=3)
     assert torch.allclose(far.epistemic, torch.full((2,), math.log2(E)), atol=0.05)
@@ -139,3 +143,36 @@ def test_variance_decomposition_needs_two_samples_per_member():
     with pytest.raises(ValueError, match=r"samples: expected at least 2 samples per member"):
         variance_decomposition(torch.randn(3, 1, 2))
     assert variance_decomposition(torch.randn(3, 2, 2)).aleatoric.shape == (2,)
+
+
+@pytest.mark.parametrize(
+    ("estimator", "args"),
+    [("gaussian", {"bin_width": 1.0}), ("gaussian", {"bin_width": 1.0, "joint": True})],
+)
+def test_a_clamped_epistemic_part_leaves_the_parts_adding_up_to_the_total(estimator, args):
+    """With a bin width each member's discretised Gaussian entropy is clamped at 0, and their
+    mean can exceed the pooled one's: a narrow member (entropy clamped up to 0) beside a wide
+    one. The epistemic part is clamped at 0 and the pooled total kept, so aleatoric is what is
+    left of it (it read 0.403 bits against a total of 0.305)."""
+    g = torch.Generator().manual_seed(0)
+    samples = torch.randn(2, 20_000, 1, generator=g, dtype=torch.float64)
+    samples[0] *= 0.421
+    samples[1] *= 1e-3
+    u = decompose_uncertainty(samples, estimator, **args)
+    pooled = gaussian_entropy(samples.reshape(-1, 1), **args)
+    torch.testing.assert_close(u.total, pooled)
+    assert float(u.total.sum()) > 0.25  # the pooled discretised entropy is not clamped
+    assert (u.epistemic == 0).all()
+    torch.testing.assert_close(u.aleatoric + u.epistemic, u.total)
+    wide = decompose_uncertainty(samples, estimator, **{**args, "bin_width": 0.01})
+    members = torch.stack([gaussian_entropy(m, **{**args, "bin_width": 0.01}) for m in samples])
+    torch.testing.assert_close(wide.aleatoric, members.mean(0))  # unclamped: as before
+    torch.testing.assert_close(wide.epistemic, wide.total - members.mean(0))
+
+
+def test_a_clamped_knn_split_adds_up_to_the_total():
+    samples = torch.randn(1, 300, 6, generator=torch.Generator().manual_seed(1)).expand(4, -1, -1)
+    samples = samples + 1e-3 * torch.randn(4, 300, 6, generator=torch.Generator().manual_seed(2))
+    u = decompose_uncertainty(samples, "knn")
+    assert (u.epistemic >= 0).all() and (u.epistemic <= 2).all()
+    torch.testing.assert_close(u.aleatoric + u.epistemic, u.total)

@@ -291,3 +291,21 @@ def test_forecasts_that_rank_the_outcomes_backwards_are_named():
         validate_forecasts(torch.full((12,), 0.5), runs)  # tells nothing: AUROC 0.5
     with pytest.warns(UserWarning, match=r"^outcome: the forecasts rank the real outcomes backw"):
         assert validate_forecasts(forecast, ~runs)["auroc"] < 0.2
+
+
+def test_the_ece_and_the_start_reliability_weigh_each_episode_alike():
+    """Starts with different numbers of runs: a bin's mean forecast counts a start once per
+    episode, as its frequency does, so the validation's ECE is the episodes' own
+    (it averaged the forecasts per start: 0.105 here against the episodes' 0.029)."""
+    f = torch.tensor([0.0, 0.19], dtype=torch.float64)
+    outcome = torch.zeros(2, 9, dtype=torch.bool)
+    mask = torch.zeros_like(outcome)
+    mask[0, 0], mask[1, :] = True, True
+    outcome[1, :2] = True
+    scores = validate_forecasts(f, outcome, mask, n_bins=5)
+    episodes = f[:, None].expand_as(outcome)[mask]
+    want = expected_calibration_error(episodes, outcome[mask].to(torch.float64), n_bins=5)
+    assert scores["ece"] == pytest.approx(float(want), abs=1e-7)
+    diagram = start_reliability(f, outcome, mask, n_bins=5)
+    assert float(diagram.mean_forecast[0]) == pytest.approx(0.19 * 9 / 10, abs=1e-12)
+    assert int(diagram.starts[0]) == 2 and int(diagram.episodes[0]) == 10

@@ -30,3 +30,21 @@ POINT_MASS_MICRO = (
     "assess.start_states=2",
     "task.deadline_s=1.0",
 )
+
+
+def broken_table_rows(markdown: str) -> list[str]:
+    """The rows of ``markdown``'s tables whose cell count differs from their header's (a bare
+    ``|`` inside a cell, e.g. in a check named ``|forecast - real| <= 0.10``, adds cells)."""
+    import re
+
+    broken, width = [], None
+    for line in markdown.splitlines():
+        if not line.startswith("|"):
+            width = None
+            continue
+        cells = len(re.findall(r"(?<!\\)\|", line))
+        if width is None:
+            width = cells
+        elif cells != width:
+            broken.append(line)
+    return broken

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from micro import POINT_MASS_MICRO
+from micro import POINT_MASS_MICRO, broken_table_rows
 
 from rcvae_torchrl.io import read_json, write_json
 from recipes._settings import CHECKPOINTS
@@ -54,6 +54,9 @@ def run_dir(tmp_path_factory):
 def test_every_output_and_a_row_per_condition(run_dir):
     for name in ("table.md", "table.csv", "report.md", "summary.json", "reliability.png"):
         assert (run_dir / name).is_file()
+    report = (run_dir / "report.md").read_text()
+    assert "\\|forecast - real\\| <= 0.10" in report  # a check's name, escaped
+    assert broken_table_rows(report) == []
     with open(run_dir / "table.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert [r["condition"] for r in rows] == list(CONDITIONS)

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import torch
 from doc_blocks import rst_python_blocks, run_blocks
-from micro import MICRO, START_STATES
+from micro import MICRO, START_STATES, broken_table_rows
 from PIL import Image
 
 from rcvae_torchrl.competency import AleatoricShare
@@ -204,6 +204,8 @@ def test_report_references_the_outputs(runs):
     assert (d / "table.md").read_text() in report
     for stage in ("data", "models", "agent", "forecast", "truth"):
         assert f"- {stage}: " in report
+    assert "\\|forecast - empirical\\| <= 0.10" in report  # a check's name, escaped
+    assert broken_table_rows(report) == []
 
 
 def test_summary_json(runs):

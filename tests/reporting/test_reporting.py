@@ -9,6 +9,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 
 from rcvae_torchrl.competency import reliability_diagram
 from rcvae_torchrl.reporting import (
+    escape_cell,
     forecast_vs_reality_figure,
     format_table,
     hold_after_success,
@@ -34,6 +35,15 @@ def test_tables(tmp_path):
     assert md_path.read_text().count("\n") == 4 and csv_path.exists()
     with pytest.raises(KeyError, match="missing"):
         format_table(rows, ["condition", "absent"])
+    piped = [{"check": "|forecast - real| <= 0.1", "a|b": 0.25}]
+    md, csv = format_table(piped, ["check", "a|b"])
+    assert md.splitlines() == [
+        "| check | a\\|b |",
+        "|:---|---:|",
+        "| \\|forecast - real\\| <= 0.1 | 0.250 |",  # a bare | would end the cell
+    ]
+    assert csv.splitlines()[1] == "|forecast - real| <= 0.1,0.25"  # CSV keeps the text
+    assert escape_cell("a|b|") == "a\\|b\\|"
 
 
 def _image(path):

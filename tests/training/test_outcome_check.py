@@ -812,3 +812,22 @@ def test_a_check_of_rates_outside_zero_to_one_or_of_a_bad_level_is_refused():
     nan = {**record, "forecast": [math.nan, *record["forecast"][1:]]}
     with pytest.raises(ValueError, match=r"forecast: expected values in \[0, 1\]"):
         OutcomeCheck.from_dict(nan)
+
+
+def test_the_interval_stays_within_the_gaps_range_and_a_gap_without_spread_is_named():
+    """Three starts forecast 0 that each succeeded once: every gap is -1, no spread to test.
+    The interval stays within [-1, 1], as the validation's own bias interval; the message says
+    there was nothing for a t-test (it read 'p = 0 by a t-test over the starts')."""
+    check = OutcomeCheck.from_outcomes(
+        torch.zeros(3, dtype=torch.float64), torch.ones(3, 1, dtype=torch.bool)
+    )
+    assert check.interval() == (-1.0, -1.0)
+    assert "p = 0: every start's gap the same, no spread for a t-test" in check.message()
+    real = torch.ones(10, 1, dtype=torch.bool)
+    real[0] = False
+    wide = OutcomeCheck.from_outcomes(torch.full((10,), 0.05, dtype=torch.float64), real)
+    diff = wide.forecast - wide.real
+    half = float(stats.t.ppf(0.995, 9) * diff.std() / math.sqrt(10))
+    assert float(diff.mean()) - half < -1.0  # the t interval reaches below -1: clipped there
+    assert wide.interval() == (-1.0, pytest.approx(float(diff.mean()) + half, abs=1e-12))
+    assert "by a t-test over the starts" in wide.message()
