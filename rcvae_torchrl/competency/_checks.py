@@ -81,7 +81,10 @@ def bin_width_tensor(bin_width: float | Tensor | Sequence[float], dim: int, like
 
     Returns a tensor of shape ``[]`` or ``[dim]`` on ``like``'s device.
     """
-    width = as_tensor("bin_width", bin_width).to(device=like.device, dtype=torch.float64)
+    if not isinstance(bin_width, Tensor):  # numbers as given: torch's default float32 rounds
+        as_tensor("bin_width", bin_width)  # (0.1 became 0.10000000149)
+        bin_width = torch.as_tensor(bin_width, dtype=torch.float64)
+    width = bin_width.to(device=like.device, dtype=torch.float64)
     if width.ndim > 1 or (width.ndim == 1 and width.shape[0] not in (1, dim)):
         raise ValueError(
             f"bin_width: expected a scalar or a tensor of shape [D] = [{dim}], "

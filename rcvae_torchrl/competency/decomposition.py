@@ -79,7 +79,10 @@ def decompose_uncertainty(
     - ``"gaussian"`` (``joint``, ``bin_width``, ``min_variance``): moment-matched Gaussians
       (:func:`~rcvae_torchrl.competency.gaussian_entropy`); ``epistemic >= 0`` (clamped: with
       ``bin_width`` each member's discretised entropy is clamped at 0, and their mean can
-      exceed the pooled one's).
+      exceed the pooled one's). Not bounded by ``log2 E``: a moment-matched Gaussian's entropy
+      is above the mixture's, so members far apart read more epistemic bits than the
+      mixture's mutual information can hold (two members 10 std apart: 2.35 bits, where 1 is
+      the most); prefer the histogram or the mixture bounds there.
     - ``"knn"`` (``k``, ``bin_width``, ``min_distance``): Kozachenko–Leonenko, joint over
       dimensions (:func:`~rcvae_torchrl.competency.knn_entropy`). Epistemic clamped to
       ``[0, log2 E]``, the bounds of the mixture's mutual information: the estimator's bias

@@ -135,3 +135,14 @@ def test_knn_duplicates_and_degenerate_stay_finite():
     h = knn_entropy(degenerate)
     assert torch.isfinite(h).all() and (h < -50).all()
     assert torch.equal(knn_entropy(degenerate, bin_width=0.1), torch.zeros(3))
+
+
+def test_a_python_number_width_is_taken_at_float64():
+    """0.1 went through torch's default float32 (0.10000000149), and float64 samples on the
+    bins' edges k * 0.1 fell a bin low: 0 and 0.1 shared a bin."""
+    samples = (torch.arange(10, dtype=torch.float64) * 0.1)[:, None]
+    got = histogram_entropy(samples, 0.1)
+    assert got.item() == pytest.approx(math.log2(10), abs=1e-12)
+    torch.testing.assert_close(
+        got, histogram_entropy(samples, torch.tensor(0.1, dtype=torch.float64))
+    )
