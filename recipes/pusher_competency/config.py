@@ -196,7 +196,8 @@ class AssessConfig:
     condition (the agent from start states no score uses, one run each in a deterministic env,
     ``stochastic_seeds_per_start`` in the stochastic one): 375 find a bias of 0.10 (the largest
     the study's targets allow a condition's forecast) at the check's level (0.01, two-sided)
-    with power 0.9 whatever the success rate (``OutcomeCheck.episodes_to_find(0.10)``: 372;
+    with power 0.9 by the normal approximation (``OutcomeCheck.episodes_to_find(0.10)``: 372;
+    simulated 0.875 at a chance of 0.5, 0.96 with chances spread over 0.05-0.95;
     with 100, the out-of-distribution forecasts' bias of six seeds, +0.06 to +0.14, was named
     in one run; with 375, in all six). ``check_samples_per_member``: that check's imagined
     samples per member where its start states are run once each (at most
