@@ -42,6 +42,25 @@ def single_thread():
 
 
 @pytest.fixture
+def compiled_calls_paused(monkeypatch) -> list[bool]:
+    """``torch.compile`` replaced by a recorder (no compile): per call of a function it
+    returned, whether Python's garbage collector was paused during the call."""
+    import gc
+
+    paused: list[bool] = []
+
+    def recorded(fn, **_):
+        def call(*args, **kwargs):
+            paused.append(not gc.isenabled())
+            return fn(*args, **kwargs)
+
+        return call
+
+    monkeypatch.setattr(torch, "compile", recorded)
+    return paused
+
+
+@pytest.fixture
 def config() -> RCVAEConfig:
     return RCVAEConfig(
         obs_dim=5, action_dim=2, hidden_dim=12, latent_dim=3, mlp_dim=16, passthrough_dims=(3, 4)

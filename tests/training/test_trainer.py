@@ -223,27 +223,17 @@ def test_a_compiled_loss_trains_as_the_eager_one(linear_data, small_ensemble):
 
 
 def test_the_compiled_loss_is_called_with_the_garbage_collector_paused(
-    linear_data, small_ensemble, monkeypatch
+    linear_data, small_ensemble, compiled_calls_paused
 ):
     """A finalizer that changes torch's thread count during a trace fails it (the fresh-clone
     suite failed the test above so once): every call of the compiled loss runs with the
     collector paused. ``torch.compile`` is replaced by a recorder here."""
     import gc
 
-    paused = []
-
-    def recorded(module, **_):
-        def call(*args, **kwargs):
-            paused.append(not gc.isenabled())
-            return module(*args, **kwargs)
-
-        return call
-
-    monkeypatch.setattr(torch, "compile", recorded)
     train, val = linear_data
     config = dataclasses.replace(CONFIG, max_steps=4, val_every=2, compile=True)
     train_ensemble(small_ensemble(seed=1), train, val, config, progress=False)
-    assert paused == [True] * 4 and gc.isenabled()
+    assert compiled_calls_paused == [True] * 4 and gc.isenabled()
 
 
 def test_bad_resume_arguments(linear_data, small_ensemble, tmp_path):
