@@ -75,9 +75,11 @@ def test_statistics_against_closed_forms():
     assert half_half.standard_error == pytest.approx(0.5 / 20, rel=0.01)
     both = max(check.p_value, check.exact_p_value)  # the t-test and the outcomes' chance
     assert check.measured and check.biased == (both < 0.05)
-    # the same difference at every start: certain, either way (rounding is not spread)
+    # the same difference at every start: certain to the t-test, either way (rounding is not
+    # spread); a pass needs the count of real outcomes to rule out a bias of the tolerance too
     same = OutcomeCheck(forecast, forecast.clone(), runs=1, min_starts=4)
-    assert same.p_value == 1.0 and same.passed
+    assert same.p_value == 1.0 and not same.precise  # 4 outcomes rule out nothing
+    assert OutcomeCheck(forecast, forecast.clone(), runs=100, min_starts=4).passed
     off = OutcomeCheck(forecast, forecast + 0.1, runs=1, min_starts=4)
     assert off.p_value == 0.0  # to the t-test the same difference everywhere is certain
     # but 4 single outcomes cannot show a gap of 0.1: by the outcomes' chance it is no bias
@@ -831,3 +833,22 @@ def test_the_interval_stays_within_the_gaps_range_and_a_gap_without_spread_is_na
     assert float(diff.mean()) - half < -1.0  # the t interval reaches below -1: clipped there
     assert wide.interval() == (-1.0, pytest.approx(float(diff.mean()) + half, abs=1e-12))
     assert "by a t-test over the starts" in wide.message()
+
+
+def test_outcomes_that_all_agree_do_not_make_a_check_precise_by_their_count_alone():
+    """Ten starts forecast 0.02 whose ten runs all failed: every gap is +0.02, so the t interval
+    has no width, but ten failures leave a real rate up to about 0.4 (a chance of 0.22 fails ten
+    runs in 8 % of draws): too imprecise to pass, and the message says why."""
+    check = OutcomeCheck.from_outcomes(
+        torch.full((10,), 0.02, dtype=torch.float64), torch.zeros(10, 1, dtype=torch.bool)
+    )
+    assert check.interval() == pytest.approx((0.02, 0.02))
+    assert not check.precise and not check.passed and check.verdict == "too imprecise"
+    assert "the count of real successes leaves the gap anywhere in -0.379 to +0.020" in (
+        check.message()
+    )
+    g = torch.Generator().manual_seed(0)
+    chance = torch.rand(400, generator=g, dtype=torch.float64) * 0.9 + 0.05
+    runs = torch.rand(400, 1, generator=g, dtype=torch.float64) < chance[:, None]
+    calibrated = OutcomeCheck.from_outcomes(chance, runs)
+    assert calibrated.precise and calibrated.passed  # enough outcomes: the count rules it out
