@@ -13,8 +13,8 @@ from rcvae_torchrl.models.ensemble_layers import EnsembleLinear, ensemble_linear
 
 __all__ = ["EnsembleGRUCell", "gru_scan", "gru_scan_stepwise", "gru_step", "gru_update"]
 
-_tanh_backward = torch.ops.aten.tanh_backward  # grad * (1 - y^2), y = tanh(x)
-_sigmoid_backward = torch.ops.aten.sigmoid_backward  # grad * y (1 - y), y = sigmoid(x)
+_tanh_backward = torch.ops.aten.tanh_backward.grad_input  # grad * (1 - y^2), y = tanh(x)
+_sigmoid_backward = torch.ops.aten.sigmoid_backward.grad_input  # grad * y (1 - y), y = sigmoid(x)
 
 
 def gru_update(gates_x: torch.Tensor, gates_h: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
@@ -94,8 +94,10 @@ def gru_scan(
     and new parts once for all steps, and the reset and update gates take one add and one
     sigmoid (10 ops a step). When a gradient is needed (and not under ``torch.compile``, which
     traces :func:`gru_scan_stepwise`), the scan is one autograd node whose backward pass is
-    written out: per step the gate gradients from the gates the forward pass kept (12 ops and
-    one ``baddbmm`` for the carried gradient, no autograd node), and the hidden weights'
+    written out: per step the gate gradients from the gates the forward pass kept, each written
+    straight into the input gates' and the hidden projection's gradients (10 ops, no
+    concatenation, and one ``baddbmm`` for the carried gradient, no autograd node), the reset
+    and update gates' copied over for all steps at once, and the hidden weights'
     gradient as one ``bmm`` over all steps, in place of about 20 autograd nodes a step. What
     each op costs besides its arithmetic does not grow with E, so the op count is a fixed cost
     of every training step, whatever the members. The outputs are :func:`gru_scan_stepwise`'s
@@ -215,20 +217,25 @@ class _GRUScan(torch.autograd.Function):
         weight_t = weight.transpose(1, 2)
         grad_gates = grad.new_empty(members, rows, steps, 3 * size)
         grad_hidden = grad.new_empty(members, steps, rows, 3 * size)  # step-major, as `read`
-        gates_at, hidden_at = grad_gates.unbind(dim=2), grad_hidden.unbind(dim=1)
+        # each gate's gradient is written where it goes (no concatenation a step): the reset and
+        # update gates' into the hidden projection's gradient (copied to the input gates' after
+        # the loop), the new gate's into the input gates' and, times r, into the hidden's
+        d_resets, d_updates, d_news_h = grad_hidden.split(size, dim=-1)
+        d_resets, d_updates, d_news_h = (g.unbind(dim=1) for g in (d_resets, d_updates, d_news_h))
+        d_news, hidden_at = grad_gates[..., 2 * size :].unbind(dim=2), grad_hidden.unbind(dim=1)
         dh = None
         for t in range(steps - 1, -1, -1):
             dh = grads[t] if dh is None else grads[t] + dh
             reset, update = gate_outputs[t].chunk(2, dim=-1)
             through = dh * update
-            d_new = _tanh_backward(dh - through, news[t])
-            d_reset = _sigmoid_backward(d_new * hidden_news[t], reset)
-            d_update = _sigmoid_backward(dh * (reads[t] - news[t]), update)
-            torch.cat([d_reset, d_update, d_new * reset], dim=-1, out=hidden_at[t])
-            torch.cat([d_reset, d_update, d_new], dim=-1, out=gates_at[t])
+            d_new = _tanh_backward(dh - through, news[t], grad_input=d_news[t])
+            _sigmoid_backward(d_new * hidden_news[t], reset, grad_input=d_resets[t])
+            _sigmoid_backward(dh * (reads[t] - news[t]), update, grad_input=d_updates[t])
+            torch.mul(d_new, reset, out=d_news_h[t])
             dh = torch.baddbmm(through, hidden_at[t], weight_t)
             if keep is not None and t > 0:
                 dh = dh * keep[t - 1]
+        grad_gates[..., : 2 * size].copy_(grad_hidden[..., : 2 * size].transpose(1, 2))
         flat = grad_hidden.view(members, -1, 3 * size)
         grad_weight = torch.bmm(read.reshape(members, -1, size).transpose(1, 2), flat)
         return grad_gates, dh, grad_weight, flat.sum(dim=1), None
