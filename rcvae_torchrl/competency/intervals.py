@@ -11,7 +11,13 @@ from torch import Tensor
 
 from rcvae_torchrl.competency import _checks
 
-__all__ = ["binomial_interval", "mean_interval", "mean_p_value", "paired_difference_interval"]
+__all__ = [
+    "binomial_interval",
+    "mean_interval",
+    "mean_p_value",
+    "paired_difference_interval",
+    "without_spread",
+]
 
 
 def binomial_interval(
@@ -163,6 +169,14 @@ def mean_interval(values: Tensor, confidence: float) -> tuple[float, float]:
 _NO_SPREAD = 1e-9
 
 
+def without_spread(values: Tensor) -> bool:
+    """Whether at least 2 ``values`` ``[n]`` are all the same up to rounding (a population
+    standard deviation of at most 1e-9): then a t-test has no spread to test against, and
+    :func:`mean_p_value` gives 1 or 0 by whether that value is 0."""
+    values = values.to(torch.float64)
+    return values.numel() >= 2 and float(values.std(correction=0)) <= _NO_SPREAD
+
+
 def mean_p_value(values: Tensor) -> float:
     """The two-sided p-value of "their mean is 0" for differences ``values`` ``[n]`` (a
     one-sample Student's t-test, the test of :func:`mean_interval`'s interval); NaN with fewer
@@ -171,7 +185,7 @@ def mean_p_value(values: Tensor) -> float:
     values = values.to(torch.float64)
     if values.numel() < 2:
         return math.nan
-    if float(values.std(correction=0)) <= _NO_SPREAD:  # the same difference everywhere
+    if without_spread(values):  # the same difference everywhere
         return 1.0 if abs(float(values.mean())) <= _NO_SPREAD else 0.0
     from scipy.stats import ttest_1samp
 

@@ -70,8 +70,12 @@ from rcvae_torchrl._checks import (
 from rcvae_torchrl._text import signed
 from rcvae_torchrl.competency import check_same_predicates, same_chance_p_value
 from rcvae_torchrl.competency._checks import check_probability
-from rcvae_torchrl.competency.intervals import _NO_SPREAD as _SAME_GAP
-from rcvae_torchrl.competency.intervals import binomial_interval, mean_interval, mean_p_value
+from rcvae_torchrl.competency.intervals import (
+    binomial_interval,
+    mean_interval,
+    mean_p_value,
+    without_spread,
+)
 from rcvae_torchrl.competency.report import register_report_part
 from rcvae_torchrl.data import (
     TRAJ_KEY,
@@ -1052,12 +1056,18 @@ class OutcomeCheck:
         """Mean forecast minus mean real rate: > 0 too optimistic, < 0 too pessimistic."""
         if self.starts == 0:
             return float("nan")
-        return float((self.forecast - self.real).mean())
+        return float(self._gaps.mean())
+
+    @cached_property
+    def _gaps(self) -> torch.Tensor:
+        """Each start's forecast minus its real rate, in float64 ``[n]``: what :attr:`gap`,
+        :attr:`p_value`, :attr:`standard_error` and :meth:`interval` are made of."""
+        return (self.forecast - self.real).to(torch.float64)
 
     @property
     def p_value(self) -> float:
         """Two-sided p-value of "no bias" (NaN with fewer than 2 starts)."""
-        return mean_p_value(self.real - self.forecast)
+        return mean_p_value(self._gaps)
 
     @cached_property
     def exact_p_value(self) -> float:
@@ -1091,7 +1101,7 @@ class OutcomeCheck:
         """The standard error of :attr:`gap`: the sample standard deviation of the per-start
         differences over √n (NaN with fewer than 2 starts). With one real episode per start
         it is at most about 0.5 / √n, whatever the success rate."""
-        diff = (self.forecast - self.real).to(torch.float64)
+        diff = self._gaps
         if diff.numel() < 2:
             return float("nan")
         return float(diff.std(correction=1)) / diff.numel() ** 0.5
@@ -1107,7 +1117,7 @@ class OutcomeCheck:
         if self.starts < 2:
             return float("nan"), float("nan")
         # within [-1, 1], as every such interval of the library (a gap of probabilities)
-        return mean_interval((self.forecast - self.real).to(torch.float64), confidence)
+        return mean_interval(self._gaps, confidence)
 
     @property
     def per_start_measured(self) -> bool:
@@ -1466,8 +1476,7 @@ class OutcomeCheck:
     def _t_test_words(self) -> str:
         """The t-test's p-value in words; where every start's difference is the same there is
         no spread to test against, and the p-value (0, or 1 for no difference) says so."""
-        diff = (self.forecast - self.real).to(torch.float64)
-        if diff.numel() >= 2 and float(diff.std(correction=0)) <= _SAME_GAP:  # as mean_p_value
+        if without_spread(self._gaps):
             return f"p = {self.p_value:g}: every start's gap the same, no spread for a t-test"
         return f"p = {self.p_value:.2g} by a t-test over the starts"
 
