@@ -237,3 +237,14 @@ def test_mean_p_value_is_the_one_sample_t_test_and_its_interval_holds_zero_where
         assert (mean_p_value(values) < level) == (low > 0 or high < 0)
     assert math.isnan(mean_p_value(values[:1]))
     assert mean_p_value(torch.zeros(4)) == 1.0 and mean_p_value(torch.full((4,), 0.2)) == 0.0
+
+
+def test_without_spread_is_one_value_repeated_up_to_rounding():
+    """Two or more equal values (float32 rounding of one difference included) have no spread;
+    one value, or values 1e-6 apart, are not."""
+    from rcvae_torchrl.competency.intervals import without_spread
+
+    repeated = torch.tensor([0.3], dtype=torch.float32) - torch.tensor([0.1] * 5)
+    assert without_spread(repeated) and without_spread(torch.zeros(2, dtype=torch.float64))
+    assert not without_spread(torch.tensor([0.2]))
+    assert not without_spread(torch.tensor([0.2, 0.2 + 1e-6], dtype=torch.float64))
