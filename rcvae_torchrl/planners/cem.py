@@ -22,9 +22,9 @@ from rcvae_torchrl.planners.evaluation import (
     supports_success,
 )
 from rcvae_torchrl.planners.functional import (
+    _draw_candidates,
     action_prior,
     cem_update,
-    sample_candidates,
     shift_plan,
 )
 from rcvae_torchrl.planners.reductions import OBJECTIVES, reduce_particles
@@ -257,7 +257,7 @@ class CEMPlanner(MPCPlannerBase):
             mean, std = prior.clone(), (self.prior_std * self.proposal_std).expand_as(std).clone()
         scored = None  # [*B]: some candidate of the start state had a finite score
         for _ in range(self.iterations):
-            candidates = sample_candidates(
+            candidates = _draw_candidates(
                 mean, std, self.num_candidates, self.low, self.high, self.generator
             )
             if prior is not None:

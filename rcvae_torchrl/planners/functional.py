@@ -85,11 +85,27 @@ def sample_candidates(
     """
     _checks.check_shape("std", std, mean.shape, "[*B, H, *A] (the shape of mean)")
     _checks.check_positive_int("num_candidates", num_candidates)
+    _checks.check_shape("high", high, low.shape, "[*A] (the shape of low)")
+    _checks.check_bounds("low, high", low, high)
     if mean.ndim < low.ndim + 1 or mean.shape[mean.ndim - low.ndim :] != low.shape:
         raise ValueError(
             f"mean: expected [*B, H, *A] with *A = {tuple(low.shape)} (the shape of low), got "
             f"{tuple(mean.shape)}"
         )
+    return _draw_candidates(mean, std, num_candidates, low, high, generator)
+
+
+def _draw_candidates(
+    mean: Tensor,
+    std: Tensor,
+    num_candidates: int,
+    low: Tensor,
+    high: Tensor,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """:func:`sample_candidates` without its checks of the arguments: the planner's inner loop,
+    whose plan and bounds were checked once (a check of the bounds' order would wait for a
+    GPU at every iteration)."""
     batch_dims = mean.ndim - 1 - low.ndim
     shape = (*mean.shape[:batch_dims], num_candidates, *mean.shape[batch_dims:])
     noise = torch.randn(shape, generator=generator, dtype=mean.dtype, device=mean.device)

@@ -214,6 +214,13 @@ def test_crossed_or_nan_bounds_and_bad_counts_are_named():
         action_prior(torch.tensor([float("nan"), 0.0]), torch.ones(2))
     with pytest.raises(ValueError, match="num_candidates: expected a positive integer, got 0"):
         sample_candidates(torch.zeros(3, 2), torch.ones(3, 2), 0, -torch.ones(2), torch.ones(2))
+    # crossed bounds would clamp every candidate to high; bounds of two shapes, to torch's error
+    with pytest.raises(ValueError, match=r"low, high: expected low <= high \(and no NaN\)"):
+        sample_candidates(torch.zeros(3, 2), torch.ones(3, 2), 4, torch.ones(2), -torch.ones(2))
+    with pytest.raises(
+        ValueError, match=r"high: expected shape \[\*A\] \(the shape of low\) = \(2,\), got \(1,\)"
+    ):
+        sample_candidates(torch.zeros(3, 2), torch.ones(3, 2), 4, -torch.ones(2), torch.ones(1))
 
 
 def test_rollout_returns_names_its_arguments():
