@@ -18,6 +18,9 @@ def test_each_part_trains_its_ensemble_as_a_single_process_would(tmp_path):
     seen = [torch.load(f"{out}.rank{r}") for r in range(3)]
     # ranks 0 and 1 form part 0, rank 2 part 1; the helpers act within the part
     assert [s["part"] for s in seen] == [(0, 2), (0, 2), (1, 2)]
+    # every rank enters its part once all have made the groups (rank 0 came 0.5 s late): a rank
+    # that left a group while a peer still connected to it broke the peer's connect
+    assert min(s["entered"] for s in seen) >= seen[0]["arrived"]
     assert [(s["rank"], s["world"]) for s in seen] == [(0, 2), (1, 2), (0, 1)]
     assert [s["gathered"] for s in seen] == [[0, 1], [0, 1], [2]]
     assert [s["broadcast"] for s in seen] == [1, 1, 2]  # the part's last rank's

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import signal
+import time
 import warnings
 from pathlib import Path
 
@@ -256,8 +257,13 @@ def train_in_parts(out: str) -> None:
                 pass
         except ValueError as error:
             errors.append(str(error))
+    if global_rank == 0:  # the last to come: no rank may use (or destroy) a group before it
+        time.sleep(0.5)
+    arrived = time.time()
     with distributed.parts(2) as part:
         seen = {
+            "arrived": arrived,
+            "entered": time.time(),
             "part": (part.index, part.parts),
             "rank": distributed.rank(),
             "world": distributed.world_size(),
