@@ -13,8 +13,9 @@ value that does, and :func:`digest` hashes one.
 - a ``functools.partial`` or a callable object: the function and its bound arguments or state
   (its ``__dict__`` and the values it keeps in ``__slots__``);
 - a tensor: dtype, shape and a hash of its values; numbers, strings, None: themselves;
-- a NumPy array: its ``repr``, or, where that is abridged (more elements than NumPy's print
-  threshold), its dtype, shape and a hash of its values, as a tensor's.
+- a NumPy array: its ``repr``, or, where that does not show every value exactly (more
+  elements than NumPy's print threshold, or floats its 8 digits round), its dtype, shape and a
+  hash of its values, as a tensor's.
 
 What a function reads in other ways (an attribute of an imported module, a file, a global
 changed at run time without its source changing) is not seen: give it a new name or clear the
@@ -326,9 +327,22 @@ def describe(value: Any, _seen: tuple[int, ...] = ()) -> Any:
     if callable(value) or hasattr(value, "__dict__") or slots:
         state = {**getattr(value, "__dict__", {}), **slots}
         return {"object": describe(type(value), seen), "state": describe(state, seen)}
-    if isinstance(value, np.ndarray) and value.size > np.get_printoptions()["threshold"]:
-        return _array(value, seen)  # its repr would show only its first and last values
+    if isinstance(value, np.ndarray) and not _repr_is_exact(value):
+        return _array(value, seen)
     return repr(value)
+
+
+def _repr_is_exact(x: np.ndarray) -> bool:
+    """Whether ``repr(x)`` shows every value of ``x`` exactly: not where it summarises a large
+    array by its first and last values, nor where it rounds floats to NumPy's 8 digits (0.1 and
+    0.1 + 1e-12 look alike) - those are described by a hash of their values instead."""
+    if x.size > np.get_printoptions()["threshold"]:
+        return False
+    if x.dtype.kind not in "fc":
+        return True
+    with np.printoptions(floatmode="unique"):  # each value's shortest repr that reads back exactly
+        exact = repr(x)
+    return exact == repr(x)
 
 
 def _slot_values(value: Any) -> dict[str, Any]:
@@ -358,7 +372,7 @@ def _tensor(x: torch.Tensor) -> dict[str, Any]:
 
 
 def _array(x: np.ndarray, seen: tuple[int, ...]) -> dict[str, Any]:
-    """A NumPy array too large for its repr to show every value: dtype, shape and a hash of
+    """A NumPy array whose repr does not show every value exactly: dtype, shape and a hash of
     its values (as :func:`_tensor`), or of its elements' descriptions for an object array."""
     if x.dtype.hasobject:
         values = json.dumps(describe(x.ravel().tolist(), seen), sort_keys=True, default=str)

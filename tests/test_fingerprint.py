@@ -200,6 +200,11 @@ def test_a_large_numpy_array_is_hashed_by_its_values():
         text = json.dumps(repr(small), sort_keys=True, default=str)
         assert digest(small) == hashlib.sha256(text.encode()).hexdigest()
         assert describe(_above(small))["closure"] == [repr(small)]
+    # a small array whose repr rounds (to NumPy's 8 digits) is hashed: 1e-12 apart, two digests
+    near, nearer = np.array([0.1, 0.123456789012]), np.array([0.1, 0.123456789013])
+    assert repr(near) == repr(nearer) and digest(near) != digest(nearer)
+    assert describe(near)["sha256"] == hashlib.sha256(near.tobytes()).hexdigest()
+    assert digest(near) == digest(near.copy())
 
 
 def test_a_task_s_bad_parts_are_named():
