@@ -271,7 +271,8 @@ def _made(groups: _T) -> _T:
     """``groups`` once every rank has made them (a barrier of all the ranks). Gloo connects a
     group's ranks while each makes it, and a rank that went on and destroyed the group (as
     parts do when their block raises) while a peer was still connecting broke the peer's
-    connect ("Connection closed by peer"): 1 in about 100 such groups on a loaded machine."""
+    connect ("Connection closed by peer"): within 100 such groups, in 3 of 3 tries on a loaded
+    machine."""
     dist.barrier()
     return groups
 
