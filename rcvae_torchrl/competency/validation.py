@@ -547,12 +547,25 @@ def time_to_success_scores(
     }
 
 
+#: Below this many expected successes (or failures) per group the chi-square law is not
+#: trusted (Cochran's rule) and :func:`same_chance_p_value` draws its p-value instead.
+_SPARSE = 5.0
+#: Draws of the successes over the groups for a sparse table's p-value (seeded).
+_SAME_CHANCE_DRAWS = 4000
+
+
 def same_chance_p_value(rates: Tensor, runs: int) -> float:
     """The p-value of "every group has the same chance" from each group's success rate
     ``rates`` ``[G]`` over ``runs`` draws each: Pearson's chi-square test of one chance for
     all (``G - 1`` degrees of freedom). The groups are an ensemble's members (their imagined
     samples) or a check's start states (their real episodes). 1.0 with one group, or where
-    every draw of every group agrees (all succeed or all fail)."""
+    every draw of every group agrees (all succeed or all fail).
+
+    Where the table is sparse (fewer than 5 successes, or failures, expected per group) the
+    chi-square law does not hold (with 100 groups of 30 runs at a chance of 0.002 it gave
+    p < 0.01 in 3 % of draws): there the p-value is the share of 4,000 seeded draws of the
+    same successes over the groups (multivariate hypergeometric, the permutation test of the
+    statistic given the total) whose statistic reaches the observed one, counting it too."""
     r = torch.as_tensor(rates).detach().double().flatten()
     _checks.check_positive_int("runs", runs)
     if not bool(((r >= 0) & (r <= 1)).all()):  # NaN fails too
@@ -560,7 +573,27 @@ def same_chance_p_value(rates: Tensor, runs: int) -> float:
     mean = float(r.mean()) if r.numel() else math.nan
     if r.numel() < 2 or runs < 1 or not 0 < mean < 1:
         return 1.0
+    groups, trials = r.numel(), r.numel() * runs
+    successes = round(float(r.sum()) * runs)
+    if min(successes, trials - successes) / groups < _SPARSE:
+        return _drawn_same_chance_p_value(r, runs, successes)
     from scipy.stats import chi2
 
     statistic = runs * float(((r - mean) ** 2).sum()) / (mean * (1 - mean))
-    return float(chi2.sf(statistic, r.numel() - 1))
+    return float(chi2.sf(statistic, groups - 1))
+
+
+def _drawn_same_chance_p_value(rates: Tensor, runs: int, successes: int) -> float:
+    """:func:`same_chance_p_value` of a sparse table: the chi-square statistic (up to its
+    constant factor, the same given the total) against the groups' counts drawn with the same
+    total of ``successes`` over ``runs`` draws per group, seeded."""
+    import numpy as np
+
+    counts = np.rint(rates.numpy() * runs)
+    draws = np.random.default_rng(1).multivariate_hypergeometric(
+        np.full(counts.size, runs), successes, size=_SAME_CHANCE_DRAWS
+    )
+    spread = ((counts - successes / counts.size) ** 2).sum()
+    drawn = ((draws - successes / counts.size) ** 2).sum(axis=1)
+    reached = int((drawn >= spread - 1e-9).sum())
+    return (reached + 1) / (_SAME_CHANCE_DRAWS + 1)

@@ -26,6 +26,21 @@ def test_the_members_test_in_closed_form():
     assert same_chance_p_value(torch.tensor([0.0, 0.0]), 10) == 1.0
 
 
+def test_a_sparse_table_is_tested_by_drawing_its_successes():
+    """Under 5 expected successes per group the chi-square law does not hold; the p-value is
+    the permutation test's. Two groups of 10 with 3 successes, all in one: the chance that 3
+    successes fall in one group is 2 C(10, 3) / C(20, 3) = 0.2105 (chi-square: 0.060). One
+    success: every placement is as extreme, p = 1 (chi-square: 0.305). Seeded: one number."""
+    from math import comb
+
+    drawn = same_chance_p_value(torch.tensor([0.3, 0.0]), 10)
+    assert drawn == pytest.approx(2 * comb(10, 3) / comb(20, 3), abs=0.02)
+    assert drawn == same_chance_p_value(torch.tensor([0.0, 0.3]), 10)
+    assert same_chance_p_value(torch.tensor([0.1, 0.0]), 10) == 1.0
+    # failures sparse alike: 3 failures in one group of two
+    assert same_chance_p_value(torch.tensor([0.7, 1.0]), 10) == pytest.approx(drawn, abs=0.02)
+
+
 def _with_members(report, per_member: list[float]):
     """The report's one start with member m succeeding in the first ``per_member[m] * N`` of
     its samples (its success, P and each member's P replaced)."""
