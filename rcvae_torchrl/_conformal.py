@@ -7,6 +7,8 @@ import math
 
 from torch import Tensor
 
+from rcvae_torchrl._checks import check_unit_interval
+
 
 def conformal_level(values: Tensor, quantile: float) -> tuple[float, float]:
     """The level of ``n`` exchangeable ``values`` that a new one stays at or below with
@@ -15,8 +17,10 @@ def conformal_level(values: Tensor, quantile: float) -> tuple[float, float]:
     quantile kept). An interpolated quantile of the sample would cover less: with 20 values
     and q = 0.95, about 0.91.
 
-    Raises ``ValueError`` for no values.
+    Raises ``ValueError`` for no values, or a ``quantile`` outside (0, 1] (a quantile of 0
+    took the largest value, as if it were the highest).
     """
+    check_unit_interval("quantile", quantile, include_zero=False)
     count = values.numel()
     if count == 0:
         raise ValueError("values: expected at least one value, got none")

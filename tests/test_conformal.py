@@ -25,3 +25,19 @@ def test_a_new_draw_exceeds_the_level_no_more_often_than_asked_where_a_quantile_
     # expected 1 - 20/21 = 0.048 and about 0.09; binomial sd over 4000 trials about 0.004
     assert 0.035 < float((new > conformal).double().mean()) < 0.06
     assert float((new > interpolated).double().mean()) > 0.075
+
+
+def test_a_quantile_outside_0_1_and_empty_spreads_are_named():
+    """A quantile of 0 took the largest value (as if it were the highest); NaN reached ceil."""
+    from rcvae_torchrl._spread import spread_steps
+
+    values = torch.arange(10.0)
+    for quantile in (0.0, -0.5, 1.5, float("nan")):
+        with pytest.raises(ValueError, match=r"quantile: expected a float in \(0, 1\], got"):
+            conformal_level(values, quantile)
+    assert conformal_level(values, 1.0) == (9.0, 10 / 11)
+    with pytest.raises(ValueError, match="length: expected a positive integer, got 0"):
+        spread_steps(0, 5)
+    with pytest.raises(ValueError, match="count: expected a positive integer, got 0"):
+        spread_steps(10, 0)
+    assert spread_steps(10, 3).tolist() == [0, 4, 9]

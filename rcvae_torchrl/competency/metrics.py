@@ -303,6 +303,8 @@ class UncertaintyMetric(KeyedModule):
         if samples < 2:
             return
         flat = obs.reshape(*obs.shape[:2], -1, *obs.shape[-2:])  # [E, N, B', T, D]
+        if flat.shape[2] == 0 or flat.shape[3] == 0:  # no start state or no step to look at
+            return
         rows = spread_steps(flat.shape[2], _SATURATION_ROWS)
         steps = spread_steps(flat.shape[3], _SATURATION_ROWS)
         picked = flat[:, :, rows][:, :, :, steps]
