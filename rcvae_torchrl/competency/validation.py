@@ -589,7 +589,7 @@ def _drawn_same_chance_p_value(rates: Tensor, runs: int, successes: int) -> floa
     total of ``successes`` over ``runs`` draws per group, seeded."""
     import numpy as np
 
-    counts = np.rint(rates.numpy() * runs)
+    counts = np.rint(rates.cpu().numpy() * runs)  # the rates may live on a GPU
     draws = np.random.default_rng(1).multivariate_hypergeometric(
         np.full(counts.size, runs), successes, size=_SAME_CHANCE_DRAWS
     )
