@@ -1356,9 +1356,10 @@ class OutcomeCheck:
         low, high = self.interval()
         if not (self.measured and max(-low, high) <= self.tolerance):
             return False
-        low, high = self._count_interval()
+        low, high = self._count_interval
         return max(-low, high) <= self.tolerance
 
+    @cached_property
     def _count_interval(self) -> tuple[float, float]:
         """The gap's interval from the count of real successes: the mean forecast minus a
         Wilson interval of the real rate at level ``1 - alpha`` over the independent outcomes
@@ -1452,7 +1453,7 @@ class OutcomeCheck:
             runs = " (or more real episodes per start)" if self._independent_runs else ""
             reach = "the interval reaches"
             if self.measured and max(-low, high) <= self.tolerance:  # the count's bound reaches
-                first, last = self._count_interval()
+                first, last = self._count_interval
                 reach = (
                     f"the count of real successes leaves the gap anywhere in {signed(first)} to "
                     f"{signed(last)}, which reaches"
