@@ -81,6 +81,12 @@ def test_bins_too_narrow_for_the_samples_are_named(rollout):
         "log2 16 = 4.00"
     )
     assert torch.allclose(out["uncertainty", "aleatoric"][..., 0], torch.tensor(math.log2(N)))
+    # no start state: nothing to look at, no word and no error (empty bits)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        empty = rollout[:, :, :0]
+        bits = UncertaintyMetric(bin_width=widths)(empty)["uncertainty", "total"]
+        assert bits.shape[0] == 0
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         narrow(rollout)  # said once per metric: an assessor's every call would repeat it
