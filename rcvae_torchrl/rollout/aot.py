@@ -24,6 +24,9 @@ loaded it). A package whose bytes do not match the recorded digest, or which fai
 reported with an :class:`AOTCacheWarning` and built again. The directory is ``cache_dir`` when
 given, else the environment variable ``RCVAE_TORCHRL_CACHE``, else
 ``$XDG_CACHE_HOME/rcvae_torchrl/aot_scoring`` (``~/.cache/...``). Deleting it is always safe.
+Inductor builds each package in a temporary directory of its own, not in its cache shared by
+the user's processes, so processes building the same graph at once cannot package each other's
+half-written files.
 
 A package is first loaded in a child process, once per package: some torch builds crash
 (a segmentation fault or an abort, which no ``except`` catches) rather than raise when loading
@@ -34,6 +37,7 @@ still serve.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
@@ -41,6 +45,7 @@ import io
 import logging
 import os
 import platform
+import tempfile
 import time
 import warnings
 from collections.abc import Callable
@@ -237,7 +242,7 @@ def _build(fn: ScoringFn, ensemble: RCVAEEnsemble, task: Task, horizon: int) -> 
     m = torch.export.Dim("particles_per_member", min=1)
     n = ensemble.ensemble_size * m
     shapes = ((None,) * len(names), {1: m}, {0: n}, {1: n}, {2: m}, {2: m}, None, None)
-    with torch.no_grad(), warnings.catch_warnings():
+    with torch.no_grad(), warnings.catch_warnings(), _own_build_dir():
         # torch's own, raised inside the build by modules it imports: nothing a caller can do
         warnings.filterwarnings("ignore", ".*LeafSpec", FutureWarning)
         warnings.filterwarnings("ignore", ".*torch.jit.script_method", DeprecationWarning)
@@ -245,6 +250,36 @@ def _build(fn: ScoringFn, ensemble: RCVAEEnsemble, task: Task, horizon: int) -> 
         buffer = io.BytesIO()
         torch._inductor.aoti_compile_and_package(exported, package_path=buffer)
     return buffer.getvalue()
+
+
+@contextlib.contextmanager
+def _own_build_dir():
+    """Inductor's working directory for one build, of its own, removed afterwards.
+
+    Inductor writes a build's generated sources, metadata and libraries into its cache
+    directory, which every process of the user shares, under names that hash the code. Two
+    processes building the same graph at once (ranks, test workers, two studies) write the same
+    files, and one can package a file while the other rewrites it: a package holding an empty
+    metadata file, which no process can load. A build in a directory of its own packages only
+    what it wrote."""
+    try:
+        from torch._inductor.runtime.cache_dir_utils import temporary_cache_dir
+    except ImportError:  # an older torch: its cache is the environment variable alone
+        temporary_cache_dir = None
+    with tempfile.TemporaryDirectory(prefix="rcvae_torchrl_aot_") as path:
+        if temporary_cache_dir is not None:
+            with temporary_cache_dir(path):
+                yield path
+            return
+        previous = os.environ.get("TORCHINDUCTOR_CACHE_DIR")
+        os.environ["TORCHINDUCTOR_CACHE_DIR"] = path
+        try:
+            yield path
+        finally:
+            if previous is None:
+                del os.environ["TORCHINDUCTOR_CACHE_DIR"]
+            else:
+                os.environ["TORCHINDUCTOR_CACHE_DIR"] = previous
 
 
 def _open(package: Path) -> Any:

@@ -160,6 +160,29 @@ def test_a_changed_key_builds_a_new_package(monkeypatch, change):
         aot.aot_scoring(_score, model, task, horizon)
 
 
+def test_a_build_works_in_a_directory_of_its_own(monkeypatch, tmp_path):
+    """Inductor's cache directory is shared by the user's processes, its files named by a hash
+    of the code: two processes building one graph at once rewrote each other's files, and one
+    packaged an empty metadata file that no process could load. A build writes into a
+    directory of its own, removed afterwards; the process's cache directory is restored."""
+    from torch._inductor.runtime.cache_dir_utils import cache_dir
+
+    shared = tmp_path / "inductor"
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(shared))
+    seen = []
+
+    def package(exported, package_path):
+        seen.append(Path(cache_dir()))
+        raise _Built
+
+    monkeypatch.setattr(torch._inductor, "aoti_compile_and_package", package)
+    with pytest.raises(_Built):
+        aot.aot_scoring(_score, _model(), TASK, H, cache_dir=tmp_path / "packages")
+    assert len(seen) == 1 and not seen[0].is_relative_to(shared)
+    assert not seen[0].exists()
+    assert os.environ["TORCHINDUCTOR_CACHE_DIR"] == str(shared)
+
+
 def _above(x: float):
     return lambda observation: observation[..., 8] > x
 
