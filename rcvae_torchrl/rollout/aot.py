@@ -24,9 +24,10 @@ loaded it). A package whose bytes do not match the recorded digest, or which fai
 reported with an :class:`AOTCacheWarning` and built again. The directory is ``cache_dir`` when
 given, else the environment variable ``RCVAE_TORCHRL_CACHE``, else
 ``$XDG_CACHE_HOME/rcvae_torchrl/aot_scoring`` (``~/.cache/...``). Deleting it is always safe.
-Inductor builds each package in a temporary directory of its own, not in its cache shared by
-the user's processes, so processes building the same graph at once cannot package each other's
-half-written files.
+One process builds a package at a time (a lock file, ``<key digest>.lock``): the others wait
+and load what it stored. Inductor builds each package in a temporary directory of its own, not
+in its cache shared by the user's processes, so builds of the same graph for two cache
+directories cannot package each other's half-written files.
 
 A package is first loaded in a child process, once per package: some torch builds crash
 (a segmentation fault or an abort, which no ``except`` catches) rather than raise when loading
@@ -53,6 +54,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from filelock import FileLock
 from torch import nn
 
 from rcvae_torchrl.fingerprint import describe, digest, source_digest
@@ -444,22 +446,44 @@ def aot_scoring(
         return _LOADED[(directory, name)]
     package, record = directory / f"{name}.pt2", directory / f"{name}.json"
     start = time.perf_counter()
+    seen = _stat(record)
     loaded = _load(package, record)
-    if loaded is not None:
-        runner, meta = loaded
-        build_s = float(meta.get("build_s", float("nan")))
-        scoring = AOTScoring(runner, horizon, package, build_s, False)
-        log.info("loaded AOT scoring package %s in %.2f s", package, time.perf_counter() - start)
-    else:
-        log.info("building AOT scoring package %s (horizon %d)", package, horizon)
-        data = _build(fn, ensemble, task, horizon)
-        build_s = time.perf_counter() - start
-        atomic_write(package, lambda f: f.write(data))
-        sha = hashlib.sha256(data).hexdigest()
-        meta = {"sha256": sha, "bytes": len(data), "build_s": build_s, "key": key}
-        write_json(record, meta)
-        runner = _open_checked(package, record, meta, built=True)
-        scoring = AOTScoring(runner, horizon, package, build_s, True)
-        log.info("built AOT scoring package %s in %.1f s", package, build_s)
+    if loaded is None:  # one build per package at a time, over every process using the cache
+        directory.mkdir(parents=True, exist_ok=True)
+        with FileLock(directory / f"{name}.lock"):
+            if _stat(record) != seen:  # another process stored it while this one waited
+                loaded = _load(package, record)
+            if loaded is None:
+                return _built(fn, ensemble, task, horizon, directory, name, key, start)
+    runner, meta = loaded
+    build_s = float(meta.get("build_s", float("nan")))
+    scoring = AOTScoring(runner, horizon, package, build_s, False)
+    log.info("loaded AOT scoring package %s in %.2f s", package, time.perf_counter() - start)
+    _LOADED[(directory, name)] = scoring
+    return scoring
+
+
+def _stat(path: Path) -> tuple[int, int] | None:
+    """A file's modification time and size (None when there is none): whether it changed."""
+    try:
+        info = path.stat()
+    except FileNotFoundError:
+        return None
+    return info.st_mtime_ns, info.st_size
+
+
+def _built(fn, ensemble, task, horizon, directory: Path, name: str, key, start: float):
+    """:func:`aot_scoring`'s build: the package built, stored, loaded and remembered."""
+    package, record = directory / f"{name}.pt2", directory / f"{name}.json"
+    log.info("building AOT scoring package %s (horizon %d)", package, horizon)
+    data = _build(fn, ensemble, task, horizon)
+    build_s = time.perf_counter() - start
+    atomic_write(package, lambda f: f.write(data))
+    sha = hashlib.sha256(data).hexdigest()
+    meta = {"sha256": sha, "bytes": len(data), "build_s": build_s, "key": key}
+    write_json(record, meta)
+    runner = _open_checked(package, record, meta, built=True)
+    scoring = AOTScoring(runner, horizon, package, build_s, True)
+    log.info("built AOT scoring package %s in %.1f s", package, build_s)
     _LOADED[(directory, name)] = scoring
     return scoring

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from filelock import FileLock
 
 from rcvae_torchrl import processes
 from rcvae_torchrl.envs import pusher_reward, pusher_success
@@ -229,6 +230,37 @@ def test_a_corrupt_package_is_rebuilt_with_a_warning(tmp_path, aot_cache_dir, mo
     assert package.read_bytes() == good
     assert json.loads(record.read_text())["bytes"] == len(good)
     _assert_same(got, _scores(model, 5, 2 * E, False))
+
+
+def test_a_package_stored_while_waiting_for_the_lock_is_loaded_not_built(
+    tmp_path, aot_cache_dir, monkeypatch
+):
+    """Processes sharing a cache build a package one at a time: one that waited while another
+    built it loads what that one stored (before the lock, both built and each overwrote the
+    other's package)."""
+    directory, package = _cached_copy(tmp_path, aot_cache_dir)
+    record = package.with_suffix(".json")
+    stored = {path: path.read_bytes() for path in (package, record)}
+    for path in stored:
+        path.unlink()
+
+    class Waited(FileLock):  # the other process stores its build while this one waits
+        def acquire(self, *args, **kwargs):
+            for path, data in stored.items():
+                path.write_bytes(data)
+            return super().acquire(*args, **kwargs)
+
+    def build(*args):
+        raise AssertionError("built a package")
+
+    monkeypatch.setattr(aot, "FileLock", Waited, raising=False)
+    monkeypatch.setattr(aot, "_build", build)
+    monkeypatch.setattr(aot, "_LOADED", {})
+    model = _model()
+    assert not aot.aot_scoring(_score, model, TASK, H, cache_dir=directory).built_here
+    _assert_same(
+        _scores(model, 5, 2 * E, "aot", cache_dir=directory), _scores(model, 5, 2 * E, False)
+    )
 
 
 def _unchecked(record: Path) -> None:
